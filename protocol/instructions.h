@@ -1,0 +1,60 @@
+#pragma once
+// Instruction builders and parsers. The common instructions (PING, READ, WRITE, REG WRITE,
+// ACTION, SYNC WRITE) have the same code and parameter layout in both packet protocols,
+// so they are built once here; protocol-specific ones live in feetech.h and d55d.h.
+// Builders return a Packet; encode(format, packet) frames it. Parsers take the params of
+// a decoded request and return nullopt when they are malformed (the simulator answers
+// those with the protocol's instruction-error bit).
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <vector>
+
+#include "protocol/packet.h"
+
+namespace sms::protocol {
+
+// Codes shared by feetech and d55d.
+namespace common {
+inline constexpr std::uint8_t kPing = 0x01;
+inline constexpr std::uint8_t kRead = 0x02;
+inline constexpr std::uint8_t kWrite = 0x03;
+inline constexpr std::uint8_t kRegWrite = 0x04;
+inline constexpr std::uint8_t kAction = 0x05;
+inline constexpr std::uint8_t kSyncWrite = 0x83;
+}  // namespace common
+
+Packet ping(std::uint8_t id);
+Packet read(std::uint8_t id, std::uint8_t address, std::uint8_t count);
+Packet write(std::uint8_t id, std::uint8_t address, std::span<const std::uint8_t> data);
+Packet reg_write(std::uint8_t id, std::uint8_t address, std::span<const std::uint8_t> data);
+Packet action(std::uint8_t id = kBroadcastId);
+
+struct SyncWriteEntry {
+  std::uint8_t id = 0;
+  Bytes data;  // exactly `length` bytes
+  friend bool operator==(const SyncWriteEntry&, const SyncWriteEntry&) = default;
+};
+// Broadcast frame: addr, L, (id, L bytes)...; throws std::invalid_argument when an entry's
+// size differs from `length`, std::length_error when the frame would not fit LEN.
+Packet sync_write(std::uint8_t address, std::uint8_t length, std::span<const SyncWriteEntry> entries);
+
+struct ReadRequest {
+  std::uint8_t address = 0;
+  std::uint8_t count = 0;
+};
+struct WriteRequest {  // WRITE and REG WRITE
+  std::uint8_t address = 0;
+  Bytes data;
+};
+struct SyncWriteRequest {
+  std::uint8_t address = 0;
+  std::uint8_t length = 0;
+  std::vector<SyncWriteEntry> entries;
+};
+
+std::optional<ReadRequest> parse_read(std::span<const std::uint8_t> params);
+std::optional<WriteRequest> parse_write(std::span<const std::uint8_t> params);
+std::optional<SyncWriteRequest> parse_sync_write(std::span<const std::uint8_t> params);
+
+}  // namespace sms::protocol
