@@ -1,0 +1,75 @@
+#pragma once
+// The seam between the Modbus TCP side and the servo buses. The TCP side turns Modbus
+// requests into BusOps (via modbus_map's register plans) and submits them; a BusEngine
+// runs them strictly one at a time on its own thread, in priority order and, within a
+// priority, in submission order (so writes from one connection keep their order).
+// Completion callbacks run on the bus thread: post to your own executor from there.
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <variant>
+#include <vector>
+
+#include "protocol/instructions.h"
+#include "protocol/packet.h"
+
+namespace sms::gateway {
+
+using protocol::Bytes;
+
+// Lower value runs first (MODBUS_MAP.md: client writes, then client live reads, then polling).
+enum class Priority : std::uint8_t { ClientWrite = 0, ClientRead = 1, Poll = 2 };
+
+// Addresses are bus addresses: bytes on packet buses, registers on modbus-rtu buses
+// (where `data` holds registers high byte first).
+struct ReadOp {
+  std::uint8_t servo_id = 0;
+  std::uint16_t address = 0;
+  std::uint16_t count = 0;  // bytes (packet) or registers (modbus-rtu)
+};
+struct WriteOp {
+  std::uint8_t servo_id = 0;
+  std::uint16_t address = 0;
+  Bytes data;
+  bool staged = false;        // REG WRITE (packet protocols): runs on ACTION
+  bool expect_reply = true;   // false when the servo's response level says it does not answer writes
+};
+struct ActionOp {};           // broadcast ACTION: runs every staged write on the bus
+struct SyncWriteOp {          // one broadcast SYNC WRITE frame, no reply
+  std::uint16_t address = 0;
+  std::uint8_t length = 0;
+  std::vector<protocol::SyncWriteEntry> entries;
+};
+struct PingOp {
+  std::uint8_t servo_id = 0;
+};
+struct RawPduOp {             // modbus-rtu passthrough: forward a PDU as it is
+  std::uint8_t slave = 0;     // 0 = broadcast, no reply awaited
+  Bytes pdu;
+};
+using BusOp = std::variant<ReadOp, WriteOp, ActionOp, SyncWriteOp, PingOp, RawPduOp>;
+
+enum class BusStatus : std::uint8_t {
+  Ok,
+  Timeout,       // no (valid) answer after every retry -> Modbus 0x0B
+  Corrupt,       // answers stayed corrupt through every retry -> 0x04
+  ServoRefused,  // the servo's ERROR byte / exception says it refused -> 0x04
+  BusDown,       // port missing or closed -> 0x0A
+  QueueFull,     // bounded queue full: back-pressure -> 0x06
+  Cancelled,     // engine stopping
+};
+std::string_view to_string(BusStatus status);
+
+struct BusResult {
+  BusStatus status = BusStatus::Ok;
+  std::uint8_t servo_error = 0;  // status/ERROR byte of the reply (packet protocols)
+  Bytes data;                    // READ payload (bytes, or registers high byte first); raw reply PDU for RawPduOp
+  std::string detail;            // human context for logs: what failed, where
+};
+
+using Completion = std::function<void(BusResult)>;
+
+}  // namespace sms::gateway
