@@ -1,8 +1,10 @@
 #pragma once
 // Vendor protocol with header `D5 5D`, SPEC §1.2: the instructions beyond the common set.
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <span>
+#include <string_view>
 #include <variant>
 #include <vector>
 
@@ -20,6 +22,26 @@ inline constexpr std::uint8_t kCustom = 0xFF;
 inline constexpr std::uint8_t kCustomRelativeMove = 0x01;
 inline constexpr std::uint8_t kCustomAbsoluteMove = 0x02;
 inline constexpr std::uint8_t kCustomChangeSpeed = 0x03;
+
+// Every instruction of SPEC §1.2, in code order.
+inline constexpr std::array<InstructionSpec, 11> kInstructions{{
+    {common::kPing, "PING"},
+    {common::kRead, "READ"},
+    {common::kWrite, "WRITE"},
+    {common::kRegWrite, "REG WRITE"},
+    {common::kAction, "ACTION"},
+    {kReset, "RESET"},
+    {kStartEnd, "START END"},
+    {kTrajectoryWrite, "TRAJECTORY WRITE"},
+    {kTrajectoryAction, "TRAJECTORY ACTION"},
+    {common::kSyncWrite, "SYNC WRITE"},
+    {kCustom, "CUSTOM"},
+}};
+// Name of an instruction code, nullopt for a code d55d does not define.
+std::optional<std::string_view> instruction_name(std::uint8_t code);
+
+// TRAJECTORY WRITE carries count + 3 bytes a point within LEN's 253 parameter bytes.
+inline constexpr std::size_t kMaxTrajectoryPoints = (kMaxParams - 1) / 3;
 
 // Status ERROR bits (SPEC §1.2, doc 002 §2.3).
 namespace error_bit {
@@ -62,10 +84,13 @@ using CustomMove = std::variant<RelativeMove, AbsoluteMove, ChangeSpeed>;
 Packet reset(std::uint8_t id);
 // The document does not give START END's parameters; they are passed through as given.
 Packet start_end(std::uint8_t id, std::span<const std::uint8_t> params);
+// Throws std::invalid_argument for no points, std::length_error past kMaxTrajectoryPoints.
 Packet trajectory_write(std::uint8_t id, std::span<const TrajectoryPoint> points);
 Packet trajectory_action(std::uint8_t id);
+// Throws std::invalid_argument for a RelativeMove with only one of accel/decel.
 Packet custom(std::uint8_t id, const CustomMove& move);
 
+// Malformed: count 0, or a count that disagrees with the number of 3-byte points.
 std::optional<std::vector<TrajectoryPoint>> parse_trajectory_write(std::span<const std::uint8_t> params);
 // Decision (SPEC §1.2): sub 0x01 is decoded by length, 4 bytes or 6 with accel/decel.
 std::optional<CustomMove> parse_custom(std::span<const std::uint8_t> params);

@@ -1,8 +1,10 @@
 #pragma once
 // Feetech `FF FF` protocol (SCS/STS/SMS), SPEC §1.1: the instructions beyond the common set.
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <span>
+#include <string_view>
 #include <vector>
 
 #include "protocol/instructions.h"
@@ -16,6 +18,24 @@ inline constexpr std::uint8_t kBackup = 0x09;
 inline constexpr std::uint8_t kResetStatus = 0x0A;
 inline constexpr std::uint8_t kCalibrate = 0x0B;
 inline constexpr std::uint8_t kSyncRead = 0x82;
+
+// Every instruction of SPEC §1.1, in code order.
+inline constexpr std::array<InstructionSpec, 12> kInstructions{{
+    {common::kPing, "PING"},
+    {common::kRead, "READ"},
+    {common::kWrite, "WRITE"},
+    {common::kRegWrite, "REG WRITE"},
+    {common::kAction, "ACTION"},
+    {kRecovery, "RECOVERY"},
+    {kReboot, "REBOOT"},
+    {kBackup, "BACKUP"},
+    {kResetStatus, "RESET STATUS"},
+    {kCalibrate, "CALIBRATE"},
+    {kSyncRead, "SYNC READ"},
+    {common::kSyncWrite, "SYNC WRITE"},
+}};
+// Name of an instruction code, nullopt for a code feetech does not define.
+std::optional<std::string_view> instruction_name(std::uint8_t code);
 
 // Status ERROR bits of the sts/sms tables (SPEC §1.1).
 namespace error_bit {
@@ -34,6 +54,8 @@ Packet reset_status(std::uint8_t id);
 // Without a position the present position becomes 2048; with one it becomes that value
 // (two bytes, low first as STS firmware reads them).
 Packet calibrate(std::uint8_t id, std::optional<std::uint16_t> position = std::nullopt);
+// Broadcast; each listed servo answers in list order. Throws std::invalid_argument for no ids
+// or count 0, std::length_error past 251 ids (LEN).
 Packet sync_read(std::uint8_t address, std::uint8_t count, std::span<const std::uint8_t> ids);
 
 struct SyncReadRequest {
@@ -41,6 +63,7 @@ struct SyncReadRequest {
   std::uint8_t count = 0;
   std::vector<std::uint8_t> ids;
 };
+// Malformed: fewer than addr, count and one id, or count 0.
 std::optional<SyncReadRequest> parse_sync_read(std::span<const std::uint8_t> params);
 // nullopt for malformed params; an engaged optional holding nullopt means "no position given".
 std::optional<std::optional<std::uint16_t>> parse_calibrate(std::span<const std::uint8_t> params);

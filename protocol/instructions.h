@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <optional>
 #include <span>
+#include <string_view>
 #include <vector>
 
 #include "protocol/packet.h"
@@ -24,11 +25,19 @@ inline constexpr std::uint8_t kAction = 0x05;
 inline constexpr std::uint8_t kSyncWrite = 0x83;
 }  // namespace common
 
+// One row of a protocol's instruction table (feetech::kInstructions, d55d::kInstructions).
+struct InstructionSpec {
+  std::uint8_t code = 0;
+  std::string_view name;  // as SPEC §1.1 / §1.2 spell it, for logs
+};
+
 Packet ping(std::uint8_t id);
 Packet read(std::uint8_t id, std::uint8_t address, std::uint8_t count);
 Packet write(std::uint8_t id, std::uint8_t address, std::span<const std::uint8_t> data);
 Packet reg_write(std::uint8_t id, std::uint8_t address, std::span<const std::uint8_t> data);
 Packet action(std::uint8_t id = kBroadcastId);
+// A status reply: `error` is the servo's ERROR byte, `params` the data it returns.
+Packet status(std::uint8_t id, std::uint8_t error, std::span<const std::uint8_t> params = {});
 
 struct SyncWriteEntry {
   std::uint8_t id = 0;
@@ -53,6 +62,8 @@ struct SyncWriteRequest {
   std::vector<SyncWriteEntry> entries;
 };
 
+// Malformed: a READ without exactly addr and a non-zero count; a WRITE without at least one
+// data byte; a SYNC WRITE whose entries do not each hold id + L bytes, or that has none.
 std::optional<ReadRequest> parse_read(std::span<const std::uint8_t> params);
 std::optional<WriteRequest> parse_write(std::span<const std::uint8_t> params);
 std::optional<SyncWriteRequest> parse_sync_write(std::span<const std::uint8_t> params);

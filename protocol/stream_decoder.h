@@ -35,14 +35,29 @@ class StreamDecoder {
   void reset();
 
   std::size_t buffered() const;
-  // Totals since construction, for bus counters.
+  // Totals since construction, for bus counters. Every byte fed ends up in exactly one of:
+  // a Frame event, discarded_bytes(), or buffered(). Bytes dropped by reset() count as
+  // discarded; so does the first byte of a frame that failed its checks (its other bytes
+  // are hunted through again and counted when they are dropped).
   std::size_t discarded_bytes() const { return discarded_bytes_; }
   std::size_t checksum_errors() const { return checksum_errors_; }
   std::size_t length_errors() const { return length_errors_; }
 
+  // Largest frame LEN can describe: header, id, LEN = 255, then 255 bytes counted by LEN.
+  static constexpr std::size_t kMaxFrameSize = 4 + 255;
+
  private:
+  std::span<const std::uint8_t> pending() const;
+  // Drops bytes that cannot start a frame, so garbage alone never accumulates.
+  void drop_garbage();
+  void discard(std::size_t count);
+  void consume(std::size_t count);
+  DecodeEvent make_event(DecodeEvent::Kind kind, Packet packet);
+
   const PacketFormat& format_;
   Bytes buffer_;
+  std::size_t start_ = 0;  // buffer_[0, start_) is already consumed or discarded
+  std::size_t skipped_since_event_ = 0;
   std::size_t discarded_bytes_ = 0;
   std::size_t checksum_errors_ = 0;
   std::size_t length_errors_ = 0;
