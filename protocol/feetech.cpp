@@ -40,7 +40,10 @@ Packet sync_read(std::uint8_t address, std::uint8_t count, std::span<const std::
     throw std::length_error("SYNC READ of " + std::to_string(ids.size()) + " servos: LEN allows at most " +
                             std::to_string(kMaxParams - 2) + "; split it");
   }
-  Packet packet{kBroadcastId, kSyncRead, {address, count}};
+  Packet packet{kBroadcastId, kSyncRead, {}};
+  packet.params.reserve(2 + ids.size());  // reserve first: GCC 12 -O2 misreads an insert after {a, b}
+  packet.params.push_back(address);
+  packet.params.push_back(count);
   packet.params.insert(packet.params.end(), ids.begin(), ids.end());
   return packet;
 }
