@@ -16,7 +16,7 @@ struct DecodeEvent {
   enum class Kind : std::uint8_t {
     Frame,          // `packet` is valid
     ChecksumError,  // a whole frame arrived but its CHK is wrong; `packet` holds what it said
-    LengthError,    // LEN < 2: cannot be a frame; the header is skipped
+    LengthError,    // LEN < 2: cannot be a frame; the header is skipped; `packet.id` is the ID it named
   };
   Kind kind = Kind::Frame;
   Packet packet;

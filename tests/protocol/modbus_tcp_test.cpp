@@ -2,6 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+
+#include <random>
 #include <stdexcept>
 #include <variant>
 #include <vector>
@@ -192,6 +195,43 @@ TEST(MbapDecoder, BufferDoesNotGrowAcrossManyRequests) {
     decoder.feed(kReadRequest);
     ASSERT_TRUE(decoder.next().has_value());
     EXPECT_EQ(decoder.buffered(), 0U);
+  }
+}
+
+TEST(MbapDecoder, RandomBytesNeverCrashAndStopAtTheFirstBadHeader) {
+  std::mt19937 random(99);
+  for (int trial = 0; trial < 500; ++trial) {
+    Bytes stream(random() % 300);
+    for (auto& byte : stream) byte = static_cast<std::uint8_t>(random());
+    if (trial % 2 == 0 && stream.size() >= 6) {
+      stream[2] = stream[3] = stream[4] = 0x00;  // protocol id 0, plausible length
+      stream[5] = static_cast<std::uint8_t>(2 + random() % 20);
+    }
+    MbapDecoder decoder;
+    std::size_t offset = 0;
+    std::size_t consumed = 0;
+    bool failed = false;
+    while (offset < stream.size()) {
+      const std::size_t size = std::min<std::size_t>(1 + random() % 13, stream.size() - offset);
+      decoder.feed(std::span(stream).subspan(offset, size));
+      offset += size;
+      for (const auto& event : drain(decoder)) {
+        ASSERT_FALSE(failed) << "an event after a BadHeader, trial " << trial;
+        if (std::holds_alternative<BadHeader>(event)) {
+          failed = true;
+        } else {
+          const auto& frame = std::get<Frame>(event);
+          EXPECT_GE(frame.pdu.size(), 1U);
+          EXPECT_LE(frame.pdu.size(), kMaxPduSize);
+          consumed += kMbapHeaderSize + frame.pdu.size();
+        }
+      }
+    }
+    EXPECT_EQ(decoder.failed(), failed);
+    if (!failed) {
+      EXPECT_EQ(consumed + decoder.buffered(), stream.size()) << "trial " << trial;
+      EXPECT_LT(decoder.buffered(), kMaxAduSize);
+    }
   }
 }
 
