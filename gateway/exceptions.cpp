@@ -1,0 +1,71 @@
+#include "gateway/exceptions.h"
+
+#include <array>
+#include <stdexcept>
+#include <string>
+
+#include "protocol/modbus_tcp.h"
+
+namespace sms::gateway {
+namespace {
+
+namespace code = protocol::tcp::exception_code;
+
+constexpr std::array kFaults{
+    FaultSpec{Fault::UnsupportedFunction, code::kIllegalFunction, "function code not supported"},
+    FaultSpec{Fault::BadAddress, code::kIllegalDataAddress, "address not served (no field, read-only, beyond the table)"},
+    FaultSpec{Fault::QuantityOverLimit, code::kIllegalDataAddress, "quantity outside the Modbus limits"},
+    FaultSpec{Fault::BadValue, code::kIllegalDataValue, "value outside the field's range"},
+    FaultSpec{Fault::MalformedRequest, code::kIllegalDataValue, "request PDU malformed for its function"},
+    FaultSpec{Fault::ServoRefused, code::kServerDeviceFailure, "the servo refused the instruction"},
+    FaultSpec{Fault::ServoCorrupt, code::kServerDeviceFailure, "the servo's replies stayed corrupt"},
+    FaultSpec{Fault::QueueFull, code::kServerDeviceBusy, "the bus's request queue is full"},
+    FaultSpec{Fault::UnknownUnit, code::kGatewayPathUnavailable, "unknown unit"},
+    FaultSpec{Fault::BusDown, code::kGatewayPathUnavailable, "the unit's bus is down"},
+    FaultSpec{Fault::GatewayStopping, code::kGatewayPathUnavailable, "the gateway is stopping"},
+    FaultSpec{Fault::ServoTimeout, code::kGatewayTargetFailedToRespond, "the servo did not answer"},
+};
+
+constexpr bool faults_in_enum_order() {
+  for (std::size_t i = 0; i < kFaults.size(); ++i) {
+    if (static_cast<std::size_t>(kFaults[i].fault) != i) return false;
+  }
+  return true;
+}
+static_assert(faults_in_enum_order(), "kFaults is indexed by Fault");
+
+struct BusStatusFault {
+  BusStatus status;
+  Fault fault;
+};
+constexpr std::array kBusStatusFaults{
+    BusStatusFault{BusStatus::Timeout, Fault::ServoTimeout},
+    BusStatusFault{BusStatus::Corrupt, Fault::ServoCorrupt},
+    BusStatusFault{BusStatus::ServoRefused, Fault::ServoRefused},
+    BusStatusFault{BusStatus::BusDown, Fault::BusDown},
+    BusStatusFault{BusStatus::QueueFull, Fault::QueueFull},
+    BusStatusFault{BusStatus::Cancelled, Fault::GatewayStopping},
+};
+
+const FaultSpec& spec(Fault fault) {
+  const auto index = static_cast<std::size_t>(fault);
+  if (index >= kFaults.size()) throw std::out_of_range("Fault " + std::to_string(index) + " has no exception code");
+  return kFaults[index];
+}
+
+}  // namespace
+
+std::span<const FaultSpec> fault_table() { return kFaults; }
+
+std::uint8_t exception_code(Fault fault) { return spec(fault).exception_code; }
+
+std::string_view to_string(Fault fault) { return spec(fault).meaning; }
+
+Fault fault_from(BusStatus status) {
+  for (const auto& entry : kBusStatusFaults) {
+    if (entry.status == status) return entry.fault;
+  }
+  throw std::logic_error("fault_from(BusStatus::Ok): a successful bus operation is not a fault");
+}
+
+}  // namespace sms::gateway

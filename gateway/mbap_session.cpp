@@ -1,0 +1,180 @@
+#include "gateway/mbap_session.h"
+
+#include <boost/asio/write.hpp>
+#include <spdlog/spdlog.h>
+
+namespace sms::gateway {
+namespace {
+
+std::string endpoint_text(const boost::asio::ip::tcp::socket& socket) {
+  boost::system::error_code error;
+  const auto endpoint = socket.remote_endpoint(error);
+  if (error) return "(unknown peer)";
+  return endpoint.address().to_string() + ":" + std::to_string(endpoint.port());
+}
+
+}  // namespace
+
+MbapSession::MbapSession(boost::asio::ip::tcp::socket socket, std::shared_ptr<SessionHost> host)
+    : socket_(std::move(socket)),
+      idle_timer_(socket_.get_executor()),
+      host_(std::move(host)),
+      peer_(endpoint_text(socket_)),
+      last_activity_(std::chrono::steady_clock::now()) {}
+
+void MbapSession::start() {
+  boost::system::error_code ignored;
+  // Modbus answers are small and latency matters more than packet count.
+  socket_.set_option(boost::asio::ip::tcp::no_delay(true), ignored);
+  const auto idle = host_->options().idle_timeout;
+  if (idle.count() > 0) arm_idle_timer(last_activity_ + idle);
+  read_some();
+}
+
+void MbapSession::read_some() {
+  if (closed_ || draining_ || reading_ || decoder_.failed()) return;
+  if (pending_.size() >= host_->options().max_pipelined) return;  // resumed by process_pending
+  reading_ = true;
+  socket_.async_read_some(boost::asio::buffer(read_buffer_),
+                          [self = shared_from_this()](const boost::system::error_code& error, std::size_t size) {
+                            self->on_read(error, size);
+                          });
+}
+
+void MbapSession::on_read(const boost::system::error_code& error, std::size_t size) {
+  reading_ = false;
+  if (closed_) return;
+  if (error) {
+    if (error != boost::asio::error::eof && error != boost::asio::error::connection_reset &&
+        error != boost::asio::error::operation_aborted) {
+      spdlog::warn("modbus tcp: connection {}: read failed: {}", peer_, error.message());
+    }
+    // The client is gone: nothing more can be answered. Bus work already handed over still
+    // completes (a write it started is not taken back); its answer is dropped in deliver().
+    close();
+    return;
+  }
+  last_activity_ = std::chrono::steady_clock::now();
+  if (draining_) return;  // shutting down: requests arriving now are not started
+
+  decoder_.feed(std::span<const std::uint8_t>(read_buffer_.data(), size));
+  while (auto event = decoder_.next()) {
+    if (auto* frame = std::get_if<protocol::tcp::Frame>(&*event)) {
+      pending_.push_back(std::move(*frame));
+      continue;
+    }
+    const auto& bad = std::get<protocol::tcp::BadHeader>(*event);
+    spdlog::warn("modbus tcp: connection {}: {}; closing it after answering the {} request(s) before it", peer_,
+                 bad.reason, pending_.size() + (in_flight_ ? 1 : 0));
+    host_->count_bad_header();
+    draining_ = true;  // answer what came before the bad header, then close
+    break;
+  }
+  process_pending();
+  read_some();
+  close_when_done();
+}
+
+void MbapSession::process_pending() {
+  if (processing_) return;
+  processing_ = true;
+  while (!closed_ && !in_flight_ && !pending_.empty()) {
+    protocol::tcp::Frame frame = std::move(pending_.front());
+    pending_.pop_front();
+    in_flight_ = InFlight{next_serial_++, frame.transaction_id, frame.unit_id};
+    host_->count_request();
+    // May answer at once (deliver() runs inside) or later from a bus completion.
+    host_->handler().handle(frame.unit_id, frame.pdu, Reply(shared_from_this(), in_flight_->serial));
+  }
+  processing_ = false;
+  read_some();  // resumes reading if the pipeline limit had paused it
+}
+
+void MbapSession::deliver(std::uint64_t request_serial, Bytes response_pdu) {
+  if (closed_) {
+    spdlog::debug("modbus tcp: connection {} closed before its answer was ready; answer dropped", peer_);
+    return;
+  }
+  if (!in_flight_ || in_flight_->serial != request_serial) return;  // answered already
+  const Bytes adu = protocol::tcp::encode_mbap(in_flight_->transaction_id, in_flight_->unit_id, response_pdu);
+  outbox_.insert(outbox_.end(), adu.begin(), adu.end());
+  in_flight_.reset();
+  flush();
+  process_pending();
+  close_when_done();
+}
+
+void MbapSession::flush() {
+  if (writing_ || outbox_.empty() || closed_) return;
+  write_buffer_.swap(outbox_);
+  outbox_.clear();
+  writing_ = true;
+  boost::asio::async_write(socket_, boost::asio::buffer(write_buffer_),
+                           [self = shared_from_this()](const boost::system::error_code& error, std::size_t) {
+                             self->on_written(error);
+                           });
+}
+
+void MbapSession::on_written(const boost::system::error_code& error) {
+  writing_ = false;
+  write_buffer_.clear();
+  if (closed_) return;
+  if (error) {
+    if (error != boost::asio::error::broken_pipe && error != boost::asio::error::connection_reset) {
+      spdlog::warn("modbus tcp: connection {}: write failed: {}", peer_, error.message());
+    }
+    close();
+    return;
+  }
+  flush();
+  close_when_done();
+}
+
+void MbapSession::drain() {
+  if (closed_) return;
+  draining_ = true;
+  pending_.clear();  // never started, never answered: the client cannot take them as done
+  close_when_done();
+}
+
+void MbapSession::close_when_done() {
+  if (draining_ && !closed_ && !in_flight_ && pending_.empty() && !writing_ && outbox_.empty()) close();
+}
+
+void MbapSession::close() {
+  if (closed_) return;
+  closed_ = true;
+  pending_.clear();
+  boost::system::error_code ignored;
+  socket_.shutdown(boost::asio::ip::tcp::socket::shutdown_both, ignored);
+  socket_.close(ignored);
+  idle_timer_.cancel();
+  host_->on_session_closed(shared_from_this());
+}
+
+void MbapSession::arm_idle_timer(std::chrono::steady_clock::time_point deadline) {
+  idle_timer_.expires_at(deadline);
+  idle_timer_.async_wait([self = shared_from_this()](const boost::system::error_code& error) {
+    self->on_idle_timer(error);
+  });
+}
+
+void MbapSession::on_idle_timer(const boost::system::error_code& error) {
+  if (error || closed_) return;
+  const auto idle = host_->options().idle_timeout;
+  const auto now = std::chrono::steady_clock::now();
+  // A request being answered is activity, however long the bus takes.
+  if (busy()) {
+    arm_idle_timer(now + idle);
+    return;
+  }
+  if (now - last_activity_ >= idle) {
+    spdlog::info("modbus tcp: connection {} idle for {}; closing it", peer_, duration_text(idle));
+    host_->count_idle_close();
+    close();
+    return;
+  }
+  arm_idle_timer(last_activity_ + idle);
+}
+
+}  // namespace sms::gateway
