@@ -1,0 +1,105 @@
+#include "simulator/motion_model.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+namespace sms::simulator {
+namespace {
+
+constexpr double kMaxStep = 0.001;  // s: fine enough for a 1 kHz servo loop
+
+// Moves `from` toward `to` by at most `rate * dt`; rate 0 means at once.
+double approach(double from, double to, double rate, double dt) {
+  if (rate <= 0) return to;
+  const double max_change = rate * dt;
+  if (std::abs(to - from) <= max_change) return to;
+  return from + std::copysign(max_change, to - from);
+}
+
+// Slowing down (toward zero, same sign) uses the deceleration, anything else the acceleration.
+double ramp_rate(double from, double to, const MotionLimits& limits) {
+  const bool slowing = std::abs(to) < std::abs(from) && (to == 0 || (to > 0) == (from > 0));
+  return slowing ? limits.deceleration : limits.acceleration;
+}
+
+}  // namespace
+
+void MotionModel::release() {
+  drive_ = Drive::Free;
+  velocity_ = 0;
+  acceleration_ = 0;
+  target_ = position_;
+}
+
+void MotionModel::hold() {
+  drive_ = Drive::Hold;
+  velocity_ = 0;
+  acceleration_ = 0;
+  target_ = position_;
+}
+
+void MotionModel::move_to(double target, const MotionLimits& limits) {
+  drive_ = Drive::Position;
+  target_ = target;
+  limits_ = limits;
+}
+
+void MotionModel::run_at(double velocity, const MotionLimits& limits) {
+  drive_ = Drive::Velocity;
+  commanded_velocity_ = std::clamp(velocity, -limits.max_speed, limits.max_speed);
+  limits_ = limits;
+}
+
+void MotionModel::shift(double delta) {
+  position_ += delta;
+  target_ += delta;
+}
+
+bool MotionModel::steady() const {
+  switch (drive_) {
+    case Drive::Free:
+    case Drive::Hold: return true;
+    case Drive::Position: return arrived();
+    case Drive::Velocity: return velocity_ == commanded_velocity_;
+  }
+  return true;
+}
+
+void MotionModel::advance(double seconds) {
+  while (seconds > 0) {
+    if (steady()) {
+      position_ += velocity_ * seconds;
+      acceleration_ = 0;
+      return;
+    }
+    const double dt = std::min(seconds, kMaxStep);
+    step(dt);
+    seconds -= dt;
+  }
+}
+
+void MotionModel::step(double dt) {
+  const double before = velocity_;
+  if (drive_ == Drive::Velocity) {
+    velocity_ = approach(velocity_, commanded_velocity_, ramp_rate(velocity_, commanded_velocity_, limits_), dt);
+    position_ += velocity_ * dt;
+  } else if (drive_ == Drive::Position) {
+    const double distance = target_ - position_;
+    // The fastest speed from which the deceleration still stops at the target.
+    const double stopping_speed = limits_.deceleration > 0 ? std::sqrt(2 * limits_.deceleration * std::abs(distance))
+                                                           : std::numeric_limits<double>::infinity();
+    const double wanted = std::copysign(std::min(limits_.max_speed, stopping_speed), distance);
+    velocity_ = approach(velocity_, wanted, ramp_rate(velocity_, wanted, limits_), dt);
+    const double next = position_ + velocity_ * dt;
+    if (distance == 0 || (target_ - next) * distance <= 0) {
+      position_ = target_;  // would pass it: arrived
+      velocity_ = 0;
+    } else {
+      position_ = next;
+    }
+  }
+  acceleration_ = (velocity_ - before) / dt;
+}
+
+}  // namespace sms::simulator

@@ -1,0 +1,128 @@
+#pragma once
+// A whole simulated servo bus in-process: a pseudo-terminal (or a real serial device), a
+// thread answering on it, and N virtual servos, each with its own ID, table, protocol and
+// baud (SPEC §1-§3). The host opens slave_path() like any serial port.
+//
+//   sms::simulator::SimulatedBus bus(sms::simulator::default_bus_options());
+//   bus.start();
+//   open(bus.slave_path().c_str(), ...);   // 6 sts servos, IDs 1-6, feetech, 1 Mbaud
+//
+// Every control method is thread-safe and may be called while the bus runs (tests inject
+// faults between transactions). A servo is addressed by its current ID; when several servos
+// share an ID (add_duplicate, or a mixed bus), the call applies to each of them.
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "modbus_map/control_table.h"
+#include "protocol/bus_protocol.h"
+#include "protocol/packet.h"
+
+namespace sms::simulator {
+
+struct ServoConfig {
+  std::uint8_t id = 1;
+  modbus_map::TableId table = modbus_map::TableId::Sts;
+  protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
+  std::uint32_t baud = 1'000'000;
+  friend bool operator==(const ServoConfig&, const ServoConfig&) = default;
+};
+
+struct BusOptions {
+  std::vector<ServoConfig> servos;
+  // Replies wait for the wire time (request + return delay + reply at 10 bits a character).
+  bool timing = true;
+  // Attach to this serial device instead of creating a pty (the device is set to the first
+  // servo's baud; servos at other rates then never answer, as on a real bus).
+  std::string device;
+  // Create this symlink to the pty slave (replaced if it is a symlink already; removed at stop).
+  std::string link;
+  // EEPROM persistence across restarts (unlocked EEPROM writes survive). Empty: none.
+  std::string state_file;
+  // How long a servo stays deaf after REBOOT / Modbus restart (0x41).
+  std::chrono::milliseconds reboot_time{500};
+  // Seed for the fault-injection dice; 0 picks a random seed.
+  std::uint32_t seed = 0;
+};
+
+// The gateway's `--simulate` bus: 6 sts servos, IDs 1-6, feetech, 1 000 000 baud.
+BusOptions default_bus_options();
+
+// What one servo looks like right now, for listings and assertions.
+struct ServoSummary {
+  ServoConfig config;  // current ID and baud (they follow writes to the table)
+  bool duplicate = false;
+  bool offline = false;
+  std::int32_t present_position = 0;  // as a Modbus client sees it (signed)
+  std::int32_t goal_position = 0;
+  bool moving = false;
+};
+
+struct BusStats {
+  std::uint64_t requests = 0;        // frames decoded (any servo, any protocol)
+  std::uint64_t replies = 0;         // replies written to the line
+  std::uint64_t dropped = 0;         // replies dropped by fault injection
+  std::uint64_t corrupted = 0;       // replies corrupted by fault injection
+  std::uint64_t collisions = 0;      // replies that overlapped another on the wire
+  std::uint64_t checksum_errors = 0; // request frames with a bad checksum or CRC
+};
+
+class SimulatedBus {
+ public:
+  // Throws std::invalid_argument when a servo's table does not speak its protocol or its
+  // baud is not in the protocol's baud table (SPEC §3), with the valid choices.
+  explicit SimulatedBus(BusOptions options);
+  ~SimulatedBus();  // stops
+  SimulatedBus(const SimulatedBus&) = delete;
+  SimulatedBus& operator=(const SimulatedBus&) = delete;
+
+  // Opens the pty (or device), loads the state file, starts the thread. Throws
+  // std::runtime_error / std::system_error with what failed and where.
+  void start();
+  void stop();
+  bool running() const;
+  // The path a host opens (/dev/pts/N, or the device). Empty before start().
+  std::string slave_path() const;
+
+  // --- fault injection -------------------------------------------------------------------
+  void set_offline(std::uint8_t id, bool offline);
+  void set_drop_probability(double probability);     // each reply dropped with probability p
+  void set_corrupt_probability(double probability);  // each reply gets one byte flipped
+  void corrupt_next_replies(unsigned count = 1);
+  // Extra delay on top of the wire time: the reply arrives after the host gave up.
+  void set_reply_delay(std::uint8_t id, std::chrono::milliseconds extra);
+  // The servo reports these ERROR / status bits (protocol's own bit meanings, SPEC §1) and
+  // behaves accordingly (temperature/voltage readings, unload conditions). 0 clears.
+  void set_error_bits(std::uint8_t id, std::uint8_t bits);
+  // A second servo with the same ID, table, protocol and baud (its position differs a little):
+  // both answer at once and their replies collide on the wire.
+  void add_duplicate(std::uint8_t id);
+  void set_timing(bool enabled);
+
+  // --- memory access for assertions (no bus traffic, no wire time) ----------------------
+  // Byte tables: `count` bytes from byte address `address`. SMSMB: `count` registers, two
+  // bytes each, high byte first (as on the wire). The motion model is advanced first.
+  // nullopt when no servo has the ID or the range leaves the table.
+  std::optional<protocol::Bytes> read_memory(std::uint8_t id, std::uint16_t address, std::uint16_t count);
+  // Raw write into the table with the same effects as a bus WRITE (read-only fields included:
+  // this is the test's backdoor). Returns false when no servo has the ID or the range leaves
+  // the table.
+  bool write_memory(std::uint8_t id, std::uint16_t address, std::span<const std::uint8_t> bytes);
+  // A field by its modbus_map name, decoded (signed where the field is). nullopt: no such
+  // servo or field.
+  std::optional<std::int32_t> read_field(std::uint8_t id, std::string_view field_name);
+
+  std::vector<ServoSummary> servos() const;
+  BusStats stats() const;
+
+ private:
+  class Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace sms::simulator

@@ -1,0 +1,320 @@
+#include "simulator/table_behaviour.h"
+
+#include <array>
+
+#include "protocol/d55d.h"
+#include "protocol/feetech.h"
+
+namespace sms::simulator {
+namespace {
+
+using modbus_map::TableId;
+namespace common = protocol::common;
+namespace feetech = protocol::feetech;
+namespace d55d = protocol::d55d;
+
+constexpr double kDegreesPerStep = 360.0 / 4096.0;
+// SM40BL: 65 rpm at 12 V (doc 001 §15); what "goal speed 0 = maximum" runs at.
+constexpr double kFeetechTopSpeed = 65.0 * 360.0 / 60.0;
+
+// --- sts (SPEC §2.1) ---------------------------------------------------------------------
+constexpr RoleBinding kStsRoles[] = {
+    {Role::FirmwareMajor, "firmware_major"},
+    {Role::FirmwareMinor, "firmware_minor"},
+    {Role::ModelMajor, "model_major"},
+    {Role::ModelMinor, "model_minor"},
+    {Role::Id, "id"},
+    {Role::BaudCode, "baud_rate"},
+    {Role::ReturnDelay, "return_delay"},
+    {Role::ResponseLevel, "response_level"},
+    {Role::MinLimit, "min_angle_limit"},
+    {Role::MaxLimit, "max_angle_limit"},
+    {Role::MaxTemperature, "max_temperature"},
+    {Role::MaxVoltage, "max_input_voltage"},
+    {Role::MinVoltage, "min_input_voltage"},
+    {Role::MaxTorque, "max_torque"},
+    {Role::UnloadConditions, "unload_conditions"},
+    {Role::PositionOffset, "position_offset"},
+    {Role::Mode, "operating_mode"},
+    {Role::TorqueEnable, "torque_enable"},
+    {Role::Acceleration, "acceleration"},
+    {Role::GoalPosition, "goal_position"},
+    {Role::GoalTime, "goal_time"},
+    {Role::GoalSpeed, "goal_speed"},
+    {Role::TorqueLimit, "torque_limit"},
+    {Role::Lock, "lock"},
+    {Role::PresentPosition, "present_position"},
+    {Role::PresentSpeed, "present_speed"},
+    {Role::PresentLoad, "present_load"},
+    {Role::PresentVoltage, "present_voltage"},
+    {Role::PresentTemperature, "present_temperature"},
+    {Role::Status, "status"},
+    {Role::Moving, "moving"},
+    {Role::PresentCurrent, "present_current"},
+};
+constexpr ModeBinding kStsModes[] = {
+    {0, ControlMode::Position},
+    {1, ControlMode::Velocity},
+    {2, ControlMode::Pwm},
+    {3, ControlMode::Step},
+};
+constexpr std::uint8_t kStsInstructions[] = {
+    common::kPing,        common::kRead,        common::kWrite,     common::kRegWrite,
+    common::kAction,      feetech::kRecovery,   feetech::kReboot,   feetech::kBackup,
+    feetech::kResetStatus, feetech::kCalibrate, feetech::kSyncRead, common::kSyncWrite,
+};
+// The FD tool's SM40BL/STS3215 readout in doc 001 §15: firmware 2.48, servo 8.42.
+constexpr IdentityValue kStsIdentity[] = {
+    {Role::FirmwareMajor, 2},
+    {Role::FirmwareMinor, 48},
+    {Role::ModelMajor, 8},
+    {Role::ModelMinor, 42},
+};
+
+// --- sms1 (SPEC §2.2) --------------------------------------------------------------------
+constexpr RoleBinding kSms1Roles[] = {
+    {Role::FirmwareMajor, "software_version"},
+    {Role::Id, "id"},
+    {Role::BaudCode, "baud_rate"},
+    {Role::ReturnDelay, "return_delay"},
+    {Role::ResponseLevel, "response_level"},
+    {Role::MinLimit, "min_angle_limit"},
+    {Role::MaxLimit, "max_angle_limit"},
+    {Role::MaxTemperature, "max_temperature"},
+    {Role::MaxVoltage, "max_input_voltage"},
+    {Role::MinVoltage, "min_input_voltage"},
+    {Role::MaxTorque, "max_torque"},
+    {Role::UnloadConditions, "unload_conditions"},
+    {Role::PositionOffset, "position_correction"},
+    {Role::Mode, "operating_mode"},
+    {Role::TorqueEnable, "torque_switch"},
+    {Role::GoalPosition, "goal_position"},
+    {Role::GoalTime, "run_time"},
+    {Role::GoalSpeed, "run_speed"},
+    {Role::Lock, "lock"},
+    {Role::PresentPosition, "present_position"},
+    {Role::PresentSpeed, "present_speed"},
+    {Role::PresentLoad, "present_load"},
+    {Role::PresentVoltage, "present_voltage"},
+    {Role::PresentTemperature, "present_temperature"},
+    {Role::RegWriteFlag, "reg_write_flag"},
+    {Role::Status, "error"},
+    {Role::Moving, "moving"},
+    {Role::PresentGoal, "present_goal_position"},
+    {Role::PresentCurrent, "present_current"},
+};
+constexpr ModeBinding kSms1Modes[] = {
+    {0, ControlMode::Position},
+    {1, ControlMode::Velocity},
+    {2, ControlMode::Pwm},
+};
+// SMS 1.0 (2016) predates REBOOT, BACKUP, RECOVERY, RESET STATUS and CALIBRATE ("newer
+// firmware", SPEC §1.1); SYNC READ is STS/SMS.
+constexpr std::uint8_t kSms1Instructions[] = {
+    common::kPing,   common::kRead,      common::kWrite,     common::kRegWrite,
+    common::kAction, feetech::kSyncRead, common::kSyncWrite,
+};
+constexpr IdentityValue kSms1Identity[] = {
+    {Role::FirmwareMajor, 0x0101},  // V1.01, the document's revision
+};
+
+// --- d55d (SPEC §2.3) --------------------------------------------------------------------
+constexpr RoleBinding kD55dRoles[] = {
+    {Role::FirmwareMajor, "software_version"},
+    {Role::ModelMajor, "vendor_code"},
+    {Role::Id, "id"},
+    {Role::BaudCode, "baud_rate"},
+    {Role::ReturnDelay, "return_delay"},
+    {Role::MinLimit, "cw_angle_limit"},
+    {Role::MaxLimit, "ccw_angle_limit"},
+    {Role::MaxTemperature, "max_temperature"},
+    {Role::AngleResolution, "angle_resolution"},
+    {Role::ResponseLevel, "response_level"},
+    {Role::Heartbeat, "heartbeat_enable"},
+    {Role::UnloadConditions, "unload_conditions"},
+    {Role::HomingDirection, "photo_switch_zero_direction"},
+    {Role::Homing, "photo_switch_homing"},
+    {Role::ClearUnload, "clear_unload_condition"},
+    {Role::GoalPosition, "goal_position"},
+    {Role::GoalSpeed, "run_speed"},
+    {Role::Acceleration, "acceleration"},
+    {Role::Deceleration, "deceleration"},
+    {Role::PresentPosition, "present_position"},
+    {Role::PresentSpeed, "present_speed"},
+    {Role::AccumulatedAngle, "accumulated_angle"},
+    {Role::Moving, "moving"},
+    {Role::Brake, "brake"},
+    {Role::RegWriteFlag, "reg_write_flag"},
+    {Role::PresentTemperature, "present_temperature"},
+    {Role::Sleep, "sleep"},
+    {Role::PhotoSwitchState, "photo_switch_state"},
+};
+constexpr std::uint8_t kD55dInstructions[] = {
+    common::kPing,          common::kRead,         common::kWrite,    common::kRegWrite,
+    common::kAction,        d55d::kReset,          d55d::kStartEnd,   d55d::kTrajectoryWrite,
+    d55d::kTrajectoryAction, common::kSyncWrite,   d55d::kCustom,
+};
+constexpr IdentityValue kD55dIdentity[] = {
+    {Role::ModelMajor, 0x5D},
+    {Role::FirmwareMajor, 1},
+};
+
+// --- smsmb (SPEC §2.4) -------------------------------------------------------------------
+constexpr RoleBinding kSmsmbRoles[] = {
+    {Role::FirmwareMajor, "firmware_version"},
+    {Role::ModelMajor, "servo_version"},
+    {Role::Id, "id"},
+    {Role::BaudCode, "baud_rate"},
+    {Role::ReturnDelay, "return_delay"},
+    {Role::MinLimit, "min_angle_limit"},
+    {Role::MaxLimit, "max_angle_limit"},
+    {Role::PositionOffset, "position_calibration"},
+    {Role::Mode, "mode"},
+    {Role::GoalPosition, "goal_position"},
+    {Role::TorqueEnable, "torque_switch"},
+    {Role::Acceleration, "acceleration"},
+    {Role::GoalSpeed, "running_speed"},
+    {Role::TorqueLimit, "torque_limit"},
+    {Role::Lock, "lock"},
+    {Role::FaultReset, "fault_reset"},
+    {Role::Status, "status"},
+    {Role::PresentPosition, "present_position"},
+    {Role::PresentSpeed, "present_speed"},
+    {Role::PresentLoad, "output_pwm"},
+    {Role::PresentVoltage, "present_voltage"},
+    {Role::PresentTemperature, "present_temperature"},
+    {Role::Moving, "moving"},
+    {Role::PresentCurrent, "present_current"},
+};
+constexpr ModeBinding kSmsmbModes[] = {
+    {0, ControlMode::Position},
+    {1, ControlMode::Velocity},
+    {3, ControlMode::PositionRelease},
+    {4, ControlMode::Step},
+};
+constexpr IdentityValue kSmsmbIdentity[] = {
+    {Role::FirmwareMajor, 3},
+    {Role::ModelMajor, 9},
+};
+
+constexpr TableBehaviour kSts{
+    .table = TableId::Sts,
+    .roles = kStsRoles,
+    .modes = kStsModes,
+    .instructions = kStsInstructions,
+    .identity = kStsIdentity,
+    .return_delay_us_per_unit = 2.0,
+    .degrees_per_position_unit = kDegreesPerStep,
+    .degrees_per_s_per_speed_unit = kDegreesPerStep,  // SPEC §2.1 decision: steps/s
+    .degrees_per_s2_per_accel_unit = 100.0 * kDegreesPerStep,
+    .top_speed_degrees_per_s = kFeetechTopSpeed,
+    .steps_per_turn = 4096,
+    .centre_position = 2048,
+    .power_on_position = 2048,
+    .refused_bit = feetech::error_bit::kAngle,
+    .checksum_bit = 0,
+    .temperature_bit = feetech::error_bit::kTemperature,
+    .overvoltage_bit = feetech::error_bit::kVoltage,
+    .error_mask = 0x3F,
+    .torque_on_status_bit = 0,
+    .d55d_response_levels = false,
+    .speed_zero_stops = false,
+    .move_time_in_position_mode = false,
+    .torque_128_calibrates = true,
+    .factory_area_start = 0,
+};
+
+constexpr TableBehaviour kSms1{
+    .table = TableId::Sms1,
+    .roles = kSms1Roles,
+    .modes = kSms1Modes,
+    .instructions = kSms1Instructions,
+    .identity = kSms1Identity,
+    .return_delay_us_per_unit = 2.0,
+    .degrees_per_position_unit = kDegreesPerStep,
+    .degrees_per_s_per_speed_unit = 0.087,  // doc 000: run speed unit 0.087 °/s
+    .degrees_per_s2_per_accel_unit = 0.0,   // no acceleration field
+    .top_speed_degrees_per_s = kFeetechTopSpeed,
+    .steps_per_turn = 4096,
+    .centre_position = 2048,
+    .power_on_position = 2048,
+    .refused_bit = feetech::error_bit::kAngle,
+    .checksum_bit = 0,
+    .temperature_bit = feetech::error_bit::kTemperature,
+    .overvoltage_bit = feetech::error_bit::kVoltage,
+    .error_mask = 0x2F,
+    .torque_on_status_bit = 0,
+    .d55d_response_levels = false,
+    .speed_zero_stops = false,
+    .move_time_in_position_mode = true,
+    .torque_128_calibrates = true,  // "older SMS: write 128 to torque enable" (SPEC §1.1)
+    .factory_area_start = 0,
+};
+
+constexpr TableBehaviour kD55d{
+    .table = TableId::D55d,
+    .roles = kD55dRoles,
+    .modes = {},
+    .instructions = kD55dInstructions,
+    .identity = kD55dIdentity,
+    .return_delay_us_per_unit = 500.0,
+    .degrees_per_position_unit = 0.0,       // angle resolution × 0.1°
+    .degrees_per_s_per_speed_unit = 0.0,    // position units per second
+    .degrees_per_s2_per_accel_unit = 10.0,  // ×10 °/s²
+    .top_speed_degrees_per_s = 360.0,
+    .steps_per_turn = 0,
+    .centre_position = 0,
+    .power_on_position = 0,
+    .refused_bit = d55d::error_bit::kInstruction,
+    .checksum_bit = d55d::error_bit::kChecksum,
+    .temperature_bit = d55d::error_bit::kOverTemperature,
+    .overvoltage_bit = d55d::error_bit::kOverVoltage,
+    .error_mask = 0x7F,
+    .torque_on_status_bit = 0,
+    .d55d_response_levels = true,
+    .speed_zero_stops = true,
+    .move_time_in_position_mode = false,
+    .torque_128_calibrates = false,
+    .factory_area_start = 0,
+};
+
+constexpr TableBehaviour kSmsmb{
+    .table = TableId::Smsmb,
+    .roles = kSmsmbRoles,
+    .modes = kSmsmbModes,
+    .instructions = {},
+    .identity = kSmsmbIdentity,
+    .return_delay_us_per_unit = 1.0,
+    .degrees_per_position_unit = kDegreesPerStep,
+    .degrees_per_s_per_speed_unit = 0.732 * 360.0 / 60.0,  // 0.732 rpm
+    .degrees_per_s2_per_accel_unit = 8.79,
+    .top_speed_degrees_per_s = kFeetechTopSpeed,
+    .steps_per_turn = 4096,
+    .centre_position = 2048,
+    .power_on_position = 2048,
+    .refused_bit = 0,  // Modbus answers with exceptions instead
+    .checksum_bit = 0,
+    .temperature_bit = 1 << 2,
+    .overvoltage_bit = 1 << 0,
+    .error_mask = 0xEF,
+    .torque_on_status_bit = 1 << 4,
+    .d55d_response_levels = false,
+    .speed_zero_stops = false,
+    .move_time_in_position_mode = false,
+    .torque_128_calibrates = false,
+    .factory_area_start = 0x180,
+};
+
+}  // namespace
+
+const TableBehaviour& behaviour(TableId table) {
+  switch (table) {
+    case TableId::Sts: return kSts;
+    case TableId::Sms1: return kSms1;
+    case TableId::D55d: return kD55d;
+    case TableId::Smsmb: return kSmsmb;
+  }
+  return kSts;
+}
+
+}  // namespace sms::simulator
