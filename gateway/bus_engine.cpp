@@ -1,0 +1,35 @@
+#include "gateway/bus_engine.h"
+
+#include <stdexcept>
+#include <string>
+
+#include "gateway/packet_bus_engine.h"
+
+namespace sms::gateway {
+
+std::string_view to_string(BusStatus status) {
+  switch (status) {
+    case BusStatus::Ok: return "ok";
+    case BusStatus::Timeout: return "timeout";
+    case BusStatus::Corrupt: return "corrupt";
+    case BusStatus::ServoRefused: return "servo refused";
+    case BusStatus::BusDown: return "bus down";
+    case BusStatus::QueueFull: return "queue full";
+    case BusStatus::Cancelled: return "cancelled";
+  }
+  return "?";
+}
+
+std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings) {
+  switch (settings.protocol) {
+    case protocol::BusProtocol::Feetech:
+    case protocol::BusProtocol::D55d:
+      return std::make_unique<PacketBusEngine>(std::move(settings));
+    case protocol::BusProtocol::ModbusRtu:
+      break;
+  }
+  throw std::invalid_argument("bus " + settings.name + ": no bus engine for " +
+                              std::string(protocol::to_string(settings.protocol)) + " buses in this build");
+}
+
+}  // namespace sms::gateway

@@ -1,0 +1,82 @@
+#pragma once
+// One engine per servo bus: it owns the serial port, runs bus operations strictly one at a
+// time on its own thread in priority order (FIFO within a priority), polls the feedback block
+// of every servo into its PollCache, discovers the servos at start and reopens a lost port by
+// itself. The Modbus TCP side talks to it through submit() and cache() only (gateway/bus.h).
+//
+//   auto engine = make_bus_engine(settings);   // settings: bus_settings_from(...) or by hand
+//   engine->start();
+//   engine->submit(ReadOp{1, 56, 2}, Priority::ClientRead, [](BusResult r) { ... });
+//   engine->cache().copy(1, 56, bytes, &state);   // input registers: no bus traffic
+//
+// Completions run on the bus thread, except QueueFull, BusDown while the port is down, and
+// Cancelled after stop(): those run synchronously inside submit(), on the caller's thread,
+// before submit() returns. Never call submit() while holding a lock the completion takes.
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "gateway/bus.h"
+#include "gateway/bus_counters.h"
+#include "gateway/poll_cache.h"
+#include "gateway/serial_port.h"
+#include "modbus_map/control_table.h"
+#include "protocol/bus_protocol.h"
+
+namespace sms::gateway {
+
+struct ServoSettings {
+  std::uint8_t servo_id = 1;
+  modbus_map::TableId table = modbus_map::TableId::Sts;
+  modbus_map::ByteOrder byte_order = modbus_map::ByteOrder::LowFirst;  // for identity values
+  AddressBlock poll_block;  // feedback block polled into the cache (bus addresses)
+};
+
+struct BusSettings {
+  std::string name;
+  protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
+  SerialSettings serial;
+  // Time a servo may take to start answering beyond the frames' wire time: its return delay
+  // (sts: address 7 x 2 us; d55d: address 5 x 500 us) plus the adapter's latency (an FTDI
+  // adapter holds short replies up to its latency timer, 16 ms by default).
+  std::chrono::milliseconds response_timeout{20};
+  unsigned retries = 2;                          // attempts after the first one
+  std::chrono::milliseconds poll_period{20};     // start of one cycle to the next; 0 = back to back
+  std::chrono::milliseconds probe_period{1000};  // an offline servo is asked once per period
+  std::chrono::milliseconds reopen_period{1000}; // a lost or missing port is retried this often
+  std::size_t queue_depth = 64;                  // client operations waiting, all priorities
+  bool discover = true;                          // PING and identity READs before polling starts
+  std::vector<ServoSettings> servos;
+};
+
+class BusEngine {
+ public:
+  virtual ~BusEngine() = default;
+
+  // Opens the port (a missing port is logged and retried: the bus starts down), starts the
+  // bus thread, runs discovery, then polls. Call once.
+  virtual void start() = 0;
+  // Fails what is queued with Cancelled, closes the port, joins the thread. Idempotent.
+  virtual void stop() = 0;
+
+  // Queues one operation; see the header comment for where `done` runs. Throws
+  // std::invalid_argument for an operation this bus cannot express (e.g. RawPduOp on a packet
+  // bus, a READ of the broadcast ID, a count beyond the packet limits): a programming error.
+  virtual void submit(BusOp op, Priority priority, Completion done) = 0;
+
+  virtual const BusSettings& settings() const = 0;
+  virtual bool bus_up() const = 0;
+  virtual BusCountersSnapshot counters() const = 0;
+  virtual const PollCache& cache() const = 0;
+  // True once discovery has finished for the current bus-up period (tests, readiness).
+  virtual bool discovered() const = 0;
+};
+
+// The engine for the bus's protocol: PacketBusEngine for feetech and d55d. Throws
+// std::invalid_argument for settings it cannot run (no engine for the protocol, a servo whose
+// table is not spoken on the bus, an empty poll block, duplicate IDs).
+std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings);
+
+}  // namespace sms::gateway

@@ -1,0 +1,76 @@
+#pragma once
+// Discovery at bus start (issue 4): PING every configured servo, read its identity where the
+// table has one, and log a one-screen summary. This header holds the data and the text; the
+// bus engine runs the transactions.
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include "gateway/poll_cache.h"
+#include "modbus_map/control_table.h"
+
+namespace sms::gateway {
+
+// How one identity value sits in the bytes read at discovery.
+enum class IdentityFormat : std::uint8_t {
+  MajorMinor,  // two one-byte fields, major first; shown "8.42"
+  Value,       // one field in the servo's byte order; shown as a number
+};
+struct IdentityField {
+  std::uint8_t offset = 0;  // into the bytes read
+  std::uint8_t size = 1;
+  IdentityFormat format = IdentityFormat::Value;
+};
+struct IdentityLayout {
+  modbus_map::TableId table;
+  AddressBlock read;  // one READ covering both fields
+  std::optional<IdentityField> model;
+  std::optional<IdentityField> firmware;
+};
+
+// sts: firmware 0-1, model 3-4 (SPEC §2.1); sms1: software version 3-4 (§2.2);
+// d55d: vendor code 0, software version 2 (§2.3). SMSMB servos are not on packet buses.
+inline constexpr std::array<IdentityLayout, 3> kIdentityLayouts{{
+    {modbus_map::TableId::Sts, {0, 5}, IdentityField{3, 2, IdentityFormat::MajorMinor},
+     IdentityField{0, 2, IdentityFormat::MajorMinor}},
+    {modbus_map::TableId::Sms1, {3, 2}, std::nullopt, IdentityField{0, 2, IdentityFormat::Value}},
+    {modbus_map::TableId::D55d, {0, 3}, IdentityField{0, 1, IdentityFormat::Value},
+     IdentityField{2, 1, IdentityFormat::Value}},
+}};
+
+const IdentityLayout* identity_layout(modbus_map::TableId table);
+
+// Decodes the bytes of one identity READ (exactly layout.read.count bytes).
+ServoIdentity decode_identity(const IdentityLayout& layout, std::span<const std::uint8_t> bytes,
+                              modbus_map::ByteOrder order);
+
+// "8.42", "257", "-" for an absent value.
+std::string format_identity_value(const IdentityLayout* layout, bool model, std::optional<std::uint16_t> value);
+
+struct DiscoveredServo {
+  std::uint8_t servo_id = 0;
+  modbus_map::TableId table = modbus_map::TableId::Sts;
+  bool online = false;
+  std::uint8_t status = 0;  // ERROR byte of its PING answer
+  ServoIdentity identity;
+  std::string detail;       // why it is offline
+};
+
+struct DiscoveryReport {
+  std::string bus_name;
+  std::string device;
+  std::string_view protocol;
+  std::uint32_t baud = 0;
+  std::span<const DiscoveredServo> servos;
+};
+
+// A header line and one line per servo, e.g.
+//   bus arm: /dev/ttyUSB0, feetech at 1000000 bit/s, 5 of 6 servos online
+//     servo   1  sts   online   model 8.42   firmware 2.48
+//     servo   4  sts   OFFLINE  no answer to PING (3 attempts)
+std::string format_discovery_summary(const DiscoveryReport& report);
+
+}  // namespace sms::gateway
