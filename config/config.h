@@ -1,0 +1,165 @@
+#pragma once
+// The gateway's configuration as plain values: what config/load.h produces from a YAML file
+// after validation. Every key, its default and its meaning: config/README.md.
+// No yaml-cpp here; the loader keeps it to itself.
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "modbus_map/control_table.h"
+#include "protocol/bus_protocol.h"
+#include "protocol/expected.h"
+
+namespace sms::config {
+
+// "HOST:PORT"; an IPv6 host is written in brackets: "[::1]:502".
+struct HostPort {
+  std::string host;
+  std::uint16_t port = 0;
+
+  std::string to_string() const;
+  bool operator==(const HostPort&) const = default;
+};
+// Error text says what is wrong with `text` (no location; callers add theirs).
+Expected<HostPort> parse_host_port(std::string_view text);
+
+struct ModbusTcpConfig {
+  // Local only by default, on an unprivileged port; a plant config says e.g. 0.0.0.0:502.
+  HostPort listen{"127.0.0.1", 5020};
+  std::size_t max_connections = 32;
+  std::chrono::seconds idle_timeout{60};  // 0: never close an idle client
+  std::uint8_t gateway_unit_id = 255;     // the gateway's own unit (MODBUS_MAP.md)
+  // Client requests one bus may have waiting; past it a request is answered 0x06 (busy).
+  std::size_t request_queue_depth = 64;
+
+  bool operator==(const ModbusTcpConfig&) const = default;
+};
+
+enum class Parity : std::uint8_t { None, Even, Odd };
+// libmodbus's RTS control for RS-485 direction switching (modbus_rtu_set_rts).
+enum class RtsMode : std::uint8_t { None, Up, Down };
+
+// A block of bus addresses: bytes on packet buses, registers on modbus-rtu buses.
+struct AddressRange {
+  std::uint16_t start = 0;
+  std::uint16_t count = 0;
+
+  bool operator==(const AddressRange&) const = default;
+};
+
+// What the poll cycle reads from each servo of a bus. Both empty: the table's feedback block
+// (resolved by the gateway from modbus_map). Never both set.
+struct PollSelection {
+  std::vector<std::string> fields;     // field names, each present in every table on the bus
+  std::optional<AddressRange> range;   // fits every table on the bus
+
+  bool table_default() const { return fields.empty() && !range; }
+  bool operator==(const PollSelection&) const = default;
+};
+
+// Line settings only a modbus-rtu bus uses (libmodbus).
+struct ModbusRtuOptions {
+  bool rs485 = false;                               // MODBUS_RTU_RS485 serial mode (TIOCSRS485)
+  RtsMode rts = RtsMode::None;
+  std::optional<std::chrono::microseconds> rts_delay;  // empty: libmodbus's one character time
+  std::chrono::milliseconds byte_timeout{50};      // longest silence inside one reply
+
+  bool operator==(const ModbusRtuOptions&) const = default;
+};
+
+struct BusConfig {
+  std::string name;
+  std::string device;                   // /dev/ttyUSB0, /dev/serial/by-id/..., a pty path
+  protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
+  std::uint32_t baud = 0;               // bits per second, a rate of the protocol's table (SPEC §3)
+  std::uint8_t baud_code = 0;           // that rate's code in the protocol's table
+  Parity parity = Parity::None;
+  std::uint8_t stop_bits = 1;           // 1 or 2
+  // Wait for a reply beyond its wire time: return delay plus adapter latency (SPEC §5).
+  std::chrono::milliseconds response_timeout{20};
+  unsigned retries = 2;                 // attempts after the first one
+  std::chrono::milliseconds poll_period{20};  // start of one poll cycle to the next; 0 = back to back
+  std::chrono::milliseconds offline_probe_period{1000};  // an offline servo is asked once per period
+  std::chrono::milliseconds reopen_period{1000};         // a missing or lost port is retried this often
+  PollSelection poll;
+  ModbusRtuOptions modbus_rtu;          // used only when protocol is ModbusRtu
+
+  bool operator==(const BusConfig&) const = default;
+};
+
+// Which register map a servo unit shows a Modbus client (MODBUS_MAP.md "Two register profiles").
+enum class Profile : std::uint8_t { Native, Smsmb };
+
+struct ServoConfig {
+  std::uint8_t unit_id = 0;             // Modbus unit 1..247
+  std::string bus;                      // a BusConfig::name
+  std::size_t bus_index = 0;            // that bus's index in Config::buses
+  std::uint8_t servo_id = 0;            // 0..253 on packet buses, 1..247 on modbus-rtu
+  // Empty: passthrough (modbus-rtu buses only): Modbus PDUs for this unit are forwarded to the
+  // slave unchanged.
+  std::optional<modbus_map::TableId> table;
+  // Smsmb only for sts/sms1; an smsmb table's native map already is the SMSMB map, so it is
+  // stored as Native.
+  Profile profile = Profile::Native;
+  std::optional<modbus_map::ByteOrder> byte_order;   // overrides the table's (SPEC §2.2)
+  // The servo's response level as set in it, so the gateway knows whether writes are
+  // answered; empty: the gateway finds out from the servo.
+  std::optional<std::uint8_t> response_level;
+  bool read_only = false;               // client writes refused (0x02)
+  std::string name;                     // label for logs and dumps, may be empty
+
+  bool passthrough() const { return !table.has_value(); }
+  bool operator==(const ServoConfig&) const = default;
+};
+
+// The byte order the gateway uses for a table servo: the override, else the table's default.
+// Passthrough servos: HighFirst (Modbus).
+modbus_map::ByteOrder effective_byte_order(const ServoConfig& servo);
+
+// A block of holding registers on the gateway unit; one FC16 write of it becomes one SYNC WRITE
+// frame per bus (MODBUS_MAP.md "The gateway unit").
+struct SyncGroupConfig {
+  std::string name;
+  std::string field;                    // a writable field of every member's table
+  std::vector<std::uint8_t> members;    // unit IDs, register i of the block is members[i]
+  std::uint16_t holding_register_start = 0;
+
+  std::uint16_t register_count() const { return static_cast<std::uint16_t>(members.size()); }
+  bool operator==(const SyncGroupConfig&) const = default;
+};
+
+enum class LogLevel : std::uint8_t { Trace, Debug, Info, Warn, Error, Critical, Off };
+
+struct LoggingConfig {
+  LogLevel level = LogLevel::Info;
+  std::optional<HostPort> metrics_listen;  // Prometheus-style metrics endpoint, off when empty
+
+  bool operator==(const LoggingConfig&) const = default;
+};
+
+struct Config {
+  ModbusTcpConfig modbus_tcp;
+  std::vector<BusConfig> buses;
+  std::vector<ServoConfig> servos;
+  std::vector<SyncGroupConfig> sync_groups;
+  LoggingConfig logging;
+
+  bool operator==(const Config&) const = default;
+};
+
+// Lookups; nullptr when absent.
+const BusConfig* find_bus(const Config& config, std::string_view name);
+const ServoConfig* find_unit(const Config& config, std::uint8_t unit_id);
+
+// The spellings used in configuration files.
+std::string_view to_string(Parity parity);
+std::string_view to_string(RtsMode rts);
+std::string_view to_string(Profile profile);
+std::string_view to_string(LogLevel level);
+std::string_view to_string(modbus_map::ByteOrder order);  // "low-first", "high-first"
+
+}  // namespace sms::config

@@ -1,0 +1,167 @@
+// dump_config(): the configuration back as YAML, every key written out (config/README.md order).
+#include <yaml-cpp/yaml.h>
+
+#include "config/load.h"
+#include "modbus_map/tables.h"
+
+namespace sms::config {
+namespace {
+
+void key(YAML::Emitter& out, const char* name) { out << YAML::Key << name << YAML::Value; }
+
+// Free text (paths, labels) is always quoted so that e.g. a name "null" or "123" stays a string.
+void quoted(YAML::Emitter& out, const std::string& text) { out << YAML::DoubleQuoted << text; }
+
+void emit_modbus_tcp(YAML::Emitter& out, const ModbusTcpConfig& tcp) {
+  key(out, "modbus_tcp");
+  out << YAML::BeginMap;
+  key(out, "listen");
+  out << tcp.listen.to_string();
+  key(out, "max_connections");
+  out << tcp.max_connections;
+  key(out, "idle_timeout_s");
+  out << tcp.idle_timeout.count();
+  key(out, "gateway_unit_id");
+  out << static_cast<unsigned>(tcp.gateway_unit_id);
+  key(out, "request_queue_depth");
+  out << tcp.request_queue_depth;
+  out << YAML::EndMap;
+}
+
+void emit_bus(YAML::Emitter& out, const BusConfig& bus) {
+  out << YAML::BeginMap;
+  key(out, "name");
+  out << bus.name;
+  key(out, "device");
+  quoted(out, bus.device);
+  key(out, "protocol");
+  out << std::string(protocol::to_string(bus.protocol));
+  key(out, "baud");
+  out << bus.baud;
+  key(out, "parity");
+  out << std::string(to_string(bus.parity));
+  key(out, "stop_bits");
+  out << static_cast<unsigned>(bus.stop_bits);
+  key(out, "response_timeout_ms");
+  out << bus.response_timeout.count();
+  key(out, "retries");
+  out << bus.retries;
+  key(out, "poll_period_ms");
+  out << bus.poll_period.count();
+  key(out, "offline_probe_period_ms");
+  out << bus.offline_probe_period.count();
+  key(out, "reopen_period_ms");
+  out << bus.reopen_period.count();
+  if (!bus.poll.fields.empty()) {
+    key(out, "poll_fields");
+    out << YAML::Flow << YAML::BeginSeq;
+    for (const auto& field : bus.poll.fields) out << field;
+    out << YAML::EndSeq;
+  }
+  if (bus.poll.range) {
+    key(out, "poll_range");
+    out << YAML::Flow << YAML::BeginMap;
+    key(out, "start");
+    out << bus.poll.range->start;
+    key(out, "count");
+    out << bus.poll.range->count;
+    out << YAML::EndMap;
+  }
+  if (bus.protocol == protocol::BusProtocol::ModbusRtu) {
+    key(out, "rs485");
+    out << bus.modbus_rtu.rs485;
+    key(out, "rts");
+    out << std::string(to_string(bus.modbus_rtu.rts));
+    if (bus.modbus_rtu.rts_delay) {
+      key(out, "rts_delay_us");
+      out << bus.modbus_rtu.rts_delay->count();
+    }
+    key(out, "byte_timeout_ms");
+    out << bus.modbus_rtu.byte_timeout.count();
+  }
+  out << YAML::EndMap;
+}
+
+void emit_servo(YAML::Emitter& out, const ServoConfig& servo) {
+  out << YAML::BeginMap;
+  key(out, "unit");
+  out << static_cast<unsigned>(servo.unit_id);
+  key(out, "bus");
+  out << servo.bus;
+  key(out, "id");
+  out << static_cast<unsigned>(servo.servo_id);
+  key(out, "table");
+  out << (servo.table ? std::string(modbus_map::table(*servo.table).name) : std::string("passthrough"));
+  if (servo.table) {
+    key(out, "profile");
+    out << std::string(to_string(servo.profile));
+  }
+  if (servo.byte_order) {
+    key(out, "byte_order");
+    out << std::string(to_string(*servo.byte_order));
+  }
+  if (servo.response_level) {
+    key(out, "response_level");
+    out << static_cast<unsigned>(*servo.response_level);
+  }
+  key(out, "read_only");
+  out << servo.read_only;
+  if (!servo.name.empty()) {
+    key(out, "name");
+    quoted(out, servo.name);
+  }
+  out << YAML::EndMap;
+}
+
+void emit_sync_group(YAML::Emitter& out, const SyncGroupConfig& group) {
+  out << YAML::BeginMap;
+  key(out, "name");
+  quoted(out, group.name);
+  key(out, "field");
+  out << group.field;
+  key(out, "members");
+  out << YAML::Flow << YAML::BeginSeq;
+  for (const auto unit : group.members) out << static_cast<unsigned>(unit);
+  out << YAML::EndSeq;
+  key(out, "holding_register_start");
+  out << group.holding_register_start;
+  out << YAML::EndMap;
+}
+
+void emit_logging(YAML::Emitter& out, const LoggingConfig& logging) {
+  key(out, "logging");
+  out << YAML::BeginMap;
+  key(out, "level");
+  out << std::string(to_string(logging.level));
+  if (logging.metrics_listen) {
+    key(out, "metrics_listen");
+    out << logging.metrics_listen->to_string();
+  }
+  out << YAML::EndMap;
+}
+
+}  // namespace
+
+std::string dump_config(const Config& config) {
+  YAML::Emitter out;
+  out.SetBoolFormat(YAML::TrueFalseBool);
+  out << YAML::BeginMap;
+  emit_modbus_tcp(out, config.modbus_tcp);
+  key(out, "buses");
+  out << YAML::BeginSeq;
+  for (const auto& bus : config.buses) emit_bus(out, bus);
+  out << YAML::EndSeq;
+  key(out, "servos");
+  out << YAML::BeginSeq;
+  for (const auto& servo : config.servos) emit_servo(out, servo);
+  out << YAML::EndSeq;
+  key(out, "sync_groups");
+  out << YAML::BeginSeq;
+  for (const auto& group : config.sync_groups) emit_sync_group(out, group);
+  out << YAML::EndSeq;
+  emit_logging(out, config.logging);
+  out << YAML::EndMap;
+  return std::string(out.c_str()) + "\n";
+}
+
+}  // namespace sms::config

@@ -1,0 +1,870 @@
+#include "config/load.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <algorithm>
+#include <array>
+#include <cerrno>
+#include <charconv>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <map>
+#include <span>
+#include <sstream>
+#include <utility>
+
+#include "config/names.h"
+#include "modbus_map/baud_tables.h"
+#include "modbus_map/tables.h"
+
+namespace sms::config {
+namespace {
+
+using modbus_map::TableId;
+using modbus_map::TableSpec;
+using protocol::BusProtocol;
+
+// ---- the keys allowed at each place (config/README.md) ----
+
+constexpr std::array<std::string_view, 5> kTopKeys{"modbus_tcp", "buses", "servos", "sync_groups", "logging"};
+constexpr std::array<std::string_view, 5> kModbusTcpKeys{"listen", "max_connections", "idle_timeout_s",
+                                                         "gateway_unit_id", "request_queue_depth"};
+constexpr std::array<std::string_view, 17> kBusKeys{
+    "name",           "device",           "protocol",       "baud",
+    "parity",         "stop_bits",        "response_timeout_ms",
+    "retries",        "poll_period_ms",   "offline_probe_period_ms",
+    "reopen_period_ms", "poll_fields",    "poll_range",     "rs485",
+    "rts",            "rts_delay_us",     "byte_timeout_ms"};
+// Keys of kBusKeys that only a modbus-rtu bus takes.
+constexpr std::array<std::string_view, 4> kModbusRtuOnlyKeys{"rs485", "rts", "rts_delay_us", "byte_timeout_ms"};
+constexpr std::array<std::string_view, 2> kPollRangeKeys{"start", "count"};
+constexpr std::array<std::string_view, 9> kServoKeys{"unit",           "bus",       "id",        "table", "profile",
+                                                     "byte_order",     "response_level", "read_only", "name"};
+constexpr std::array<std::string_view, 4> kSyncGroupKeys{"name", "field", "members", "holding_register_start"};
+constexpr std::array<std::string_view, 2> kLoggingKeys{"level", "metrics_listen"};
+
+constexpr std::string_view kPassthroughTable = "passthrough";
+constexpr std::uint8_t kMaxUnitId = 247;            // Modbus slave addresses
+constexpr std::uint8_t kMaxPacketServoId = 253;     // 254 is the broadcast ID (SPEC §1)
+constexpr std::size_t kMaxWriteRegisters = 123;     // FC16 limit: a sync group is one FC16 write
+constexpr std::uint16_t kMaxRtuReadRegisters = 125; // FC03 limit on a modbus-rtu bus
+constexpr std::uint16_t kMaxPacketReadBytes = 253;  // READ reply LEN = count + 2 fits one byte
+
+// Where the loader is: a node, the place to blame for it, and its path in the document.
+struct Value {
+  YAML::Node node;
+  YAML::Mark mark;
+  std::string path;
+};
+
+// yaml-cpp marks an empty value (`key:` followed by nothing) at the next token, which may be
+// lines away; blame the key instead.
+Value entry_value(const YAML::Node& key, const YAML::Node& value, std::string path) {
+  return Value{value, value.IsNull() ? key.Mark() : value.Mark(), std::move(path)};
+}
+
+struct Failure {
+  ConfigError error;
+};
+
+std::string join(std::span<const std::string_view> names) {
+  std::string text;
+  for (const auto name : names) {
+    if (!text.empty()) text += ", ";
+    text += name;
+  }
+  return text;
+}
+
+template <typename Range>
+std::string join_numbers(const Range& numbers) {
+  std::string text;
+  for (const auto number : numbers) {
+    if (!text.empty()) text += ", ";
+    text += std::to_string(number);
+  }
+  return text;
+}
+
+std::string place(const YAML::Mark& mark) {
+  return "line " + std::to_string(mark.line + 1) + ", column " + std::to_string(mark.column + 1);
+}
+
+std::size_t edit_distance(std::string_view a, std::string_view b) {
+  std::vector<std::size_t> row(b.size() + 1);
+  for (std::size_t j = 0; j <= b.size(); ++j) row[j] = j;
+  for (std::size_t i = 1; i <= a.size(); ++i) {
+    std::size_t diagonal = row[0];
+    row[0] = i;
+    for (std::size_t j = 1; j <= b.size(); ++j) {
+      const std::size_t above = row[j];
+      row[j] = std::min({row[j] + 1, row[j - 1] + 1, diagonal + (a[i - 1] == b[j - 1] ? 0 : 1)});
+      diagonal = above;
+    }
+  }
+  return row[b.size()];
+}
+
+// The allowed name closest to `name`, when it is close enough to be a typo.
+std::optional<std::string_view> closest(std::string_view name, std::span<const std::string_view> allowed) {
+  std::optional<std::string_view> best;
+  std::size_t best_distance = std::max<std::size_t>(2, name.size() / 3) + 1;
+  for (const auto candidate : allowed) {
+    const auto distance = edit_distance(name, candidate);
+    if (distance < best_distance) {
+      best = candidate;
+      best_distance = distance;
+    }
+  }
+  return best;
+}
+
+std::string describe(const YAML::Node& node) {
+  switch (node.Type()) {
+    case YAML::NodeType::Null:
+    case YAML::NodeType::Undefined:
+      return "nothing";
+    case YAML::NodeType::Sequence:
+      return "a list";
+    case YAML::NodeType::Map:
+      return "a map";
+    case YAML::NodeType::Scalar:
+      break;
+  }
+  if (node.Tag() == "!") return "the quoted string \"" + node.Scalar() + "\"";
+  return "`" + node.Scalar() + "`";
+}
+
+// Plain (unquoted) scalars, or ones tagged with the matching core type, are numbers and
+// booleans; a quoted "5020" is a string (YAML's rule) and is refused with a hint.
+bool plain_or_tagged(const YAML::Node& node, std::string_view core_tag) {
+  return node.Tag() == "?" || node.Tag() == core_tag;
+}
+
+std::optional<std::int64_t> parse_integer(std::string_view text) {
+  bool negative = false;
+  if (!text.empty() && (text.front() == '-' || text.front() == '+')) {
+    negative = text.front() == '-';
+    text.remove_prefix(1);
+  }
+  int base = 10;
+  if (text.size() > 2 && text[0] == '0' && (text[1] == 'x' || text[1] == 'X')) {
+    base = 16;
+    text.remove_prefix(2);
+  }
+  if (text.empty() || text.front() == '-' || text.front() == '+') return std::nullopt;
+  std::int64_t value = 0;
+  const auto* end = text.data() + text.size();
+  const auto [stop, error] = std::from_chars(text.data(), end, value, base);
+  if (error != std::errc{} || stop != end) return std::nullopt;
+  return negative ? -value : value;
+}
+
+// YAML 1.1 and 1.2 spellings both: configs in the field are written either way.
+std::optional<bool> parse_bool(std::string_view text) {
+  static constexpr std::array<std::string_view, 9> kTrue{"true", "True", "TRUE", "yes", "Yes", "YES", "on", "On", "ON"};
+  static constexpr std::array<std::string_view, 9> kFalse{"false", "False", "FALSE", "no", "No",
+                                                          "NO",    "off",   "Off",   "OFF"};
+  if (std::find(kTrue.begin(), kTrue.end(), text) != kTrue.end()) return true;
+  if (std::find(kFalse.begin(), kFalse.end(), text) != kFalse.end()) return false;
+  return std::nullopt;
+}
+
+bool valid_bus_name(std::string_view name) {
+  return !name.empty() && std::all_of(name.begin(), name.end(), [](char c) {
+    return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '_' || c == '-' ||
+           c == '.';
+  });
+}
+
+std::string table_names_text() {
+  std::string text;
+  for (const auto* spec : modbus_map::all_tables()) {
+    text += std::string(spec->name) + ", ";
+  }
+  return text + std::string(kPassthroughTable);
+}
+
+std::string field_names_text(const TableSpec& table) {
+  std::string text;
+  for (const auto& field : table.fields) {
+    if (!text.empty()) text += ", ";
+    text += field.name;
+  }
+  return text;
+}
+
+// Places of a servo's nodes, kept for messages that name two places.
+struct ServoPlaces {
+  YAML::Mark item;
+  YAML::Mark unit;     // the `unit` value, or the `id` value when the unit defaults to it
+  bool unit_given = false;
+  std::string path;
+};
+
+struct BusPlaces {
+  YAML::Mark name;
+  YAML::Mark device;
+  std::vector<Value> poll_fields;
+  std::optional<Value> poll_range;
+  std::string path;
+};
+
+// A map node checked for shape: keys are plain names, none twice, none unknown.
+class MapReader;
+
+class Loader {
+ public:
+  explicit Loader(std::string file) : file_(std::move(file)) {}
+
+  Config load(const YAML::Node& root);
+
+  [[noreturn]] void fail(const YAML::Mark& mark, std::string message) const {
+    ConfigError error;
+    error.file = file_;
+    if (!mark.is_null()) {
+      error.line = static_cast<std::uint32_t>(mark.line + 1);
+      error.column = static_cast<std::uint32_t>(mark.column + 1);
+    }
+    error.message = std::move(message);
+    throw Failure{std::move(error)};
+  }
+
+  // ---- scalars ----
+
+  std::int64_t integer(const Value& value, std::int64_t min, std::int64_t max) const {
+    const auto range = std::to_string(min) + ".." + std::to_string(max);
+    if (!value.node.IsScalar()) {
+      fail(value.mark, value.path + ": expected an integer (" + range + "), got " + describe(value.node));
+    }
+    if (!plain_or_tagged(value.node, "tag:yaml.org,2002:int")) {
+      fail(value.mark, value.path + ": expected an integer (" + range + "), got " + describe(value.node) +
+                           "; write numbers without quotes");
+    }
+    const auto parsed = parse_integer(value.node.Scalar());
+    if (!parsed) {
+      fail(value.mark, value.path + ": expected an integer (" + range + "), got " + describe(value.node));
+    }
+    if (*parsed < min || *parsed > max) {
+      fail(value.mark, value.path + ": " + value.node.Scalar() + " is outside " + range);
+    }
+    return *parsed;
+  }
+
+  template <typename Duration>
+  Duration duration(const Value& value, std::int64_t min, std::int64_t max) const {
+    return Duration{integer(value, min, max)};
+  }
+
+  bool boolean(const Value& value) const {
+    if (value.node.IsScalar() && plain_or_tagged(value.node, "tag:yaml.org,2002:bool")) {
+      if (const auto parsed = parse_bool(value.node.Scalar())) return *parsed;
+    }
+    fail(value.mark, value.path + ": expected true or false, got " + describe(value.node));
+  }
+
+  std::string string(const Value& value) const {
+    if (!value.node.IsScalar()) {
+      fail(value.mark, value.path + ": expected a string, got " + describe(value.node));
+    }
+    if (value.node.Scalar().empty()) fail(value.mark, value.path + ": must not be empty");
+    return value.node.Scalar();
+  }
+
+  template <typename E, std::size_t N>
+  E choice(const Value& value, const std::array<detail::Named<E>, N>& names) const {
+    if (value.node.IsScalar()) {
+      if (const auto parsed = detail::value_of(names, value.node.Scalar())) return *parsed;
+    }
+    fail(value.mark, value.path + ": expected one of " + detail::names_text(names) + ", got " + describe(value.node));
+  }
+
+  HostPort host_port(const Value& value) const {
+    const auto parsed = parse_host_port(string(value));
+    if (!parsed) fail(value.mark, value.path + ": " + parsed.error());
+    return *parsed;
+  }
+
+  std::vector<Value> list(const Value& value) const {
+    if (!value.node.IsSequence()) {
+      fail(value.mark, value.path + ": expected a list, got " + describe(value.node) +
+                           (value.node.IsNull() ? " (write [] for an empty list)" : ""));
+    }
+    std::vector<Value> items;
+    std::size_t index = 0;
+    for (const auto& item : value.node) {
+      items.push_back(Value{item, item.IsNull() ? value.mark : item.Mark(),
+                            value.path + "[" + std::to_string(index++) + "]"});
+    }
+    return items;
+  }
+
+ private:
+  friend class MapReader;
+
+  ModbusTcpConfig parse_modbus_tcp(const Value& value);
+  void parse_buses(const Value& value, Config& config);
+  BusConfig parse_bus(const Value& value, BusPlaces& places);
+  void parse_servos(const Value& value, Config& config);
+  ServoConfig parse_servo(const Value& value, const Config& config, ServoPlaces& places);
+  void check_poll_selections(const Config& config);
+  void parse_sync_groups(const Value& value, Config& config);
+  SyncGroupConfig parse_sync_group(const MapReader& keys, const Config& config);
+  LoggingConfig parse_logging(const Value& value);
+
+  std::string file_;
+  std::optional<YAML::Mark> gateway_unit_mark_;
+  std::vector<BusPlaces> bus_places_;
+  std::vector<ServoPlaces> servo_places_;
+  std::vector<YAML::Mark> group_start_marks_;
+};
+
+class MapReader {
+ public:
+  MapReader(const Loader& loader, const Value& map, std::span<const std::string_view> allowed)
+      : loader_(loader), map_(map) {
+    if (!map.node.IsMap()) {
+      loader.fail(map.mark, map.path + ": expected a map of keys (" + join(allowed) + "), got " + describe(map.node));
+    }
+    for (const auto& entry : map.node) {
+      const YAML::Node& key = entry.first;
+      if (!key.IsScalar()) loader.fail(key.Mark(), map.path + ": keys are plain names, got " + describe(key));
+      const std::string& name = key.Scalar();
+      if (std::find(allowed.begin(), allowed.end(), name) == allowed.end()) {
+        std::string message = "unknown key `" + name + "` in " + map.path;
+        if (const auto suggestion = closest(name, allowed)) message += " (did you mean `" + std::string(*suggestion) + "`?)";
+        loader.fail(key.Mark(), message + "; allowed keys here: " + join(allowed));
+      }
+      for (const auto& [seen, seen_key] : keys_) {
+        if (seen == name) {
+          loader.fail(key.Mark(), map.path + ": key `" + name + "` given twice (first at " + place(seen_key) + ")");
+        }
+      }
+      keys_.emplace_back(name, key.Mark());
+      entries_.push_back(entry_value(key, entry.second, child_path(name)));
+    }
+  }
+
+  std::optional<Value> find(std::string_view key) const {
+    for (std::size_t i = 0; i < keys_.size(); ++i) {
+      if (keys_[i].first == key) return entries_[i];
+    }
+    return std::nullopt;
+  }
+
+  Value require(std::string_view key) const {
+    if (auto value = find(key)) return *value;
+    loader_.fail(map_.mark, map_.path + ": missing required key `" + std::string(key) + "`");
+  }
+
+  YAML::Mark key_mark(std::string_view key) const {
+    for (const auto& [name, mark] : keys_) {
+      if (name == key) return mark;
+    }
+    return map_.mark;
+  }
+
+  const Value& self() const { return map_; }
+
+ private:
+  std::string child_path(std::string_view key) const {
+    return map_.path.empty() ? std::string(key) : map_.path + "." + std::string(key);
+  }
+
+  const Loader& loader_;
+  const Value& map_;
+  std::vector<std::pair<std::string, YAML::Mark>> keys_;
+  std::vector<Value> entries_;
+};
+
+// ---- sections ----
+
+Config Loader::load(const YAML::Node& root) {
+  const Value top{root, root.Mark(), ""};
+  if (!root.IsMap()) {
+    fail(root.Mark(), "expected a map of sections (" + join(kTopKeys) + "), got " + describe(root));
+  }
+  const MapReader sections(*this, top, kTopKeys);
+  Config config;
+  if (const auto value = sections.find("modbus_tcp")) config.modbus_tcp = parse_modbus_tcp(*value);
+  parse_buses(sections.require("buses"), config);
+  parse_servos(sections.require("servos"), config);
+  check_poll_selections(config);
+  if (const auto value = sections.find("sync_groups")) parse_sync_groups(*value, config);
+  if (const auto value = sections.find("logging")) config.logging = parse_logging(*value);
+  return config;
+}
+
+ModbusTcpConfig Loader::parse_modbus_tcp(const Value& value) {
+  const MapReader keys(*this, value, kModbusTcpKeys);
+  ModbusTcpConfig tcp;
+  if (const auto v = keys.find("listen")) tcp.listen = host_port(*v);
+  if (const auto v = keys.find("max_connections")) tcp.max_connections = static_cast<std::size_t>(integer(*v, 1, 4096));
+  if (const auto v = keys.find("idle_timeout_s")) tcp.idle_timeout = duration<std::chrono::seconds>(*v, 0, 86400);
+  if (const auto v = keys.find("gateway_unit_id")) {
+    tcp.gateway_unit_id = static_cast<std::uint8_t>(integer(*v, 1, 255));
+    gateway_unit_mark_ = v->mark;
+  }
+  if (const auto v = keys.find("request_queue_depth")) {
+    tcp.request_queue_depth = static_cast<std::size_t>(integer(*v, 1, 100000));
+  }
+  return tcp;
+}
+
+void Loader::parse_buses(const Value& value, Config& config) {
+  const auto items = list(value);
+  if (items.empty()) fail(value.mark, "buses: at least one bus is needed");
+  for (const auto& item : items) {
+    BusPlaces places;
+    BusConfig bus = parse_bus(item, places);
+    for (std::size_t i = 0; i < config.buses.size(); ++i) {
+      if (config.buses[i].name == bus.name) {
+        fail(places.name, item.path + ".name: bus name `" + bus.name + "` is already used by " +
+                              bus_places_[i].path + " (" + place(bus_places_[i].name) + ")");
+      }
+      if (config.buses[i].device == bus.device) {
+        fail(places.device, item.path + ".device: " + bus.device + " is already the device of bus `" +
+                                config.buses[i].name + "` (" + place(bus_places_[i].device) + ")");
+      }
+    }
+    config.buses.push_back(std::move(bus));
+    bus_places_.push_back(std::move(places));
+  }
+}
+
+BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
+  const MapReader keys(*this, value, kBusKeys);
+  places.path = value.path;
+  BusConfig bus;
+
+  const Value name = keys.require("name");
+  bus.name = string(name);
+  if (!valid_bus_name(bus.name)) {
+    fail(name.mark, name.path + ": `" + bus.name + "` may use letters, digits, '_', '-' and '.' only");
+  }
+  places.name = name.mark;
+  const Value device = keys.require("device");
+  bus.device = string(device);
+  places.device = device.mark;
+
+  const Value protocol = keys.require("protocol");
+  const auto parsed_protocol = protocol.node.IsScalar() ? protocol::bus_protocol_from_string(protocol.node.Scalar())
+                                                        : std::nullopt;
+  if (!parsed_protocol) {
+    fail(protocol.mark, protocol.path + ": expected one of feetech, d55d, modbus-rtu, got " + describe(protocol.node));
+  }
+  bus.protocol = *parsed_protocol;
+  const auto protocol_name = std::string(protocol::to_string(bus.protocol));
+
+  const Value baud = keys.require("baud");
+  bus.baud = static_cast<std::uint32_t>(integer(baud, 1, std::numeric_limits<std::uint32_t>::max()));
+  const auto code = modbus_map::baud_code(bus.protocol, bus.baud);
+  if (!code) {
+    fail(baud.mark, baud.path + ": " + std::to_string(bus.baud) + " bit/s is not a " + protocol_name +
+                        " rate; valid rates: " + modbus_map::valid_bauds_text(bus.protocol));
+  }
+  bus.baud_code = *code;
+
+  if (const auto v = keys.find("parity")) bus.parity = choice(*v, detail::kParityNames);
+  if (const auto v = keys.find("stop_bits")) {
+    bus.stop_bits = static_cast<std::uint8_t>(integer(*v, 1, 2));
+  }
+  if (const auto v = keys.find("response_timeout_ms")) {
+    bus.response_timeout = duration<std::chrono::milliseconds>(*v, 1, 10000);
+  }
+  if (const auto v = keys.find("retries")) bus.retries = static_cast<unsigned>(integer(*v, 0, 10));
+  if (const auto v = keys.find("poll_period_ms")) bus.poll_period = duration<std::chrono::milliseconds>(*v, 0, 3600000);
+  if (const auto v = keys.find("offline_probe_period_ms")) {
+    bus.offline_probe_period = duration<std::chrono::milliseconds>(*v, 1, 3600000);
+  }
+  if (const auto v = keys.find("reopen_period_ms")) {
+    bus.reopen_period = duration<std::chrono::milliseconds>(*v, 1, 3600000);
+  }
+
+  const auto poll_fields = keys.find("poll_fields");
+  const auto poll_range = keys.find("poll_range");
+  if (poll_fields && poll_range) {
+    const bool range_second = keys.key_mark("poll_range").pos > keys.key_mark("poll_fields").pos;
+    fail(range_second ? keys.key_mark("poll_range") : keys.key_mark("poll_fields"),
+         value.path + ": give either poll_fields or poll_range, not both");
+  }
+  if (poll_fields) {
+    const auto items = list(*poll_fields);
+    if (items.empty()) {
+      fail(poll_fields->mark, poll_fields->path + ": empty; remove the key to poll the table's feedback block");
+    }
+    for (const auto& item : items) {
+      auto field = string(item);
+      if (std::find(bus.poll.fields.begin(), bus.poll.fields.end(), field) != bus.poll.fields.end()) {
+        fail(item.mark, item.path + ": field `" + field + "` is listed twice");
+      }
+      bus.poll.fields.push_back(std::move(field));
+      places.poll_fields.push_back(item);
+    }
+  }
+  if (poll_range) {
+    const MapReader range(*this, *poll_range, kPollRangeKeys);
+    AddressRange block;
+    block.start = static_cast<std::uint16_t>(integer(range.require("start"), 0, 65535));
+    const Value count = range.require("count");
+    block.count = static_cast<std::uint16_t>(integer(count, 1, 65535));
+    bus.poll.range = block;
+    places.poll_range = count;
+  }
+
+  for (const auto key : kModbusRtuOnlyKeys) {
+    if (bus.protocol != BusProtocol::ModbusRtu && keys.find(key)) {
+      fail(keys.key_mark(key), value.path + ": `" + std::string(key) + "` applies to modbus-rtu buses only; bus `" +
+                                   bus.name + "` is " + protocol_name);
+    }
+  }
+  if (const auto v = keys.find("rs485")) bus.modbus_rtu.rs485 = boolean(*v);
+  if (const auto v = keys.find("rts")) bus.modbus_rtu.rts = choice(*v, detail::kRtsNames);
+  if (const auto v = keys.find("rts_delay_us")) {
+    if (bus.modbus_rtu.rts == RtsMode::None) {
+      fail(keys.key_mark("rts_delay_us"), value.path + ": `rts_delay_us` needs `rts: up` or `rts: down`");
+    }
+    bus.modbus_rtu.rts_delay = duration<std::chrono::microseconds>(*v, 0, 1000000);
+  }
+  if (const auto v = keys.find("byte_timeout_ms")) {
+    bus.modbus_rtu.byte_timeout = duration<std::chrono::milliseconds>(*v, 1, 10000);
+  }
+  return bus;
+}
+
+void Loader::parse_servos(const Value& value, Config& config) {
+  for (const auto& item : list(value)) {
+    ServoPlaces places;
+    ServoConfig servo = parse_servo(item, config, places);
+    for (std::size_t i = 0; i < config.servos.size(); ++i) {
+      const ServoConfig& other = config.servos[i];
+      const ServoPlaces& other_places = servo_places_[i];
+      if (other.unit_id == servo.unit_id) {
+        fail(places.unit, item.path + ": unit " + std::to_string(servo.unit_id) + " is already used by " +
+                              other_places.path + " (" + place(other_places.unit) + ")" +
+                              (places.unit_given ? "" : "; the unit defaults to the servo id, give `unit`"));
+      }
+      if (other.bus_index == servo.bus_index && other.servo_id == servo.servo_id) {
+        fail(places.item, item.path + ": servo id " + std::to_string(servo.servo_id) + " is already on bus `" +
+                              servo.bus + "` as " + other_places.path + " (" + place(other_places.item) +
+                              "); IDs on one bus must differ");
+      }
+      if (!servo.name.empty() && other.name == servo.name) {
+        fail(places.item, item.path + ": name `" + servo.name + "` is already used by " + other_places.path + " (" +
+                              place(other_places.item) + ")");
+      }
+    }
+    config.servos.push_back(std::move(servo));
+    servo_places_.push_back(std::move(places));
+  }
+}
+
+ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoPlaces& places) {
+  const MapReader keys(*this, value, kServoKeys);
+  places.item = value.mark;
+  places.path = value.path;
+  ServoConfig servo;
+
+  const Value bus_value = keys.require("bus");
+  servo.bus = string(bus_value);
+  const auto bus_it = std::find_if(config.buses.begin(), config.buses.end(),
+                                   [&](const BusConfig& bus) { return bus.name == servo.bus; });
+  if (bus_it == config.buses.end()) {
+    std::string names;
+    for (const auto& bus : config.buses) names += (names.empty() ? "" : ", ") + bus.name;
+    fail(bus_value.mark, bus_value.path + ": unknown bus `" + servo.bus + "`; configured buses: " + names);
+  }
+  const BusConfig& bus = *bus_it;
+  servo.bus_index = static_cast<std::size_t>(bus_it - config.buses.begin());
+  const auto protocol_name = std::string(protocol::to_string(bus.protocol));
+
+  const Value table_value = keys.require("table");
+  const std::string table_name = string(table_value);
+  const TableSpec* table = nullptr;
+  if (table_name == kPassthroughTable) {
+    if (bus.protocol != BusProtocol::ModbusRtu) {
+      fail(table_value.mark, table_value.path + ": passthrough forwards Modbus PDUs and needs a modbus-rtu bus; bus `" +
+                                 bus.name + "` is " + protocol_name);
+    }
+  } else {
+    const auto id = modbus_map::table_from_name(table_name);
+    if (!id) {
+      fail(table_value.mark, table_value.path + ": unknown table `" + table_name + "`; allowed: " + table_names_text());
+    }
+    table = &modbus_map::table(*id);
+    if (table->protocol != bus.protocol) {
+      fail(table_value.mark, table_value.path + ": table " + table_name + " is spoken on " +
+                                 std::string(protocol::to_string(table->protocol)) + " buses; bus `" + bus.name +
+                                 "` is " + protocol_name);
+    }
+    servo.table = *id;
+  }
+
+  const Value id_value = keys.require("id");
+  const bool packet_bus = bus.protocol != BusProtocol::ModbusRtu;
+  servo.servo_id = static_cast<std::uint8_t>(integer(id_value, packet_bus ? 0 : 1, packet_bus ? kMaxPacketServoId : kMaxUnitId));
+
+  if (const auto v = keys.find("unit")) {
+    servo.unit_id = static_cast<std::uint8_t>(integer(*v, 1, kMaxUnitId));
+    places.unit = v->mark;
+    places.unit_given = true;
+  } else {
+    if (servo.servo_id < 1 || servo.servo_id > kMaxUnitId) {
+      fail(id_value.mark, id_value.path + ": servo id " + std::to_string(servo.servo_id) +
+                              " cannot be its unit id (units are 1..247); give `unit`");
+    }
+    servo.unit_id = servo.servo_id;
+    places.unit = id_value.mark;
+  }
+  if (servo.unit_id == config.modbus_tcp.gateway_unit_id) {
+    fail(places.unit, value.path + ": unit " + std::to_string(servo.unit_id) +
+                          " is the gateway's own unit (modbus_tcp.gateway_unit_id" +
+                          (gateway_unit_mark_ ? ", " + place(*gateway_unit_mark_) : std::string()) + ")" +
+                          (places.unit_given ? "" : "; the unit defaults to the servo id, give `unit`"));
+  }
+
+  if (const auto v = keys.find("profile")) {
+    if (!table) fail(v->mark, v->path + ": passthrough units have no profile; remove the key");
+    servo.profile = choice(*v, detail::kProfileNames);
+    if (servo.profile == Profile::Smsmb) {
+      if (table->id == TableId::Smsmb) {
+        servo.profile = Profile::Native;  // its native map is the SMSMB map
+      } else if (table->id != TableId::Sts && table->id != TableId::Sms1) {
+        fail(v->mark, v->path + ": profile smsmb shows sts and sms1 servos as SMSMB servos; this servo's table is " +
+                          table_name);
+      }
+    }
+  }
+
+  if (const auto v = keys.find("byte_order")) {
+    if (!table || table->addressing != modbus_map::Addressing::Byte) {
+      fail(v->mark, v->path + ": byte_order applies to the packet tables (sts, sms1, d55d); " + table_name +
+                        " registers are always high byte first");
+    }
+    servo.byte_order = choice(*v, detail::kByteOrderNames);
+  }
+
+  if (const auto v = keys.find("response_level")) {
+    const auto* field = table ? modbus_map::field_by_name(*table, "response_level") : nullptr;
+    if (!field) {
+      fail(v->mark, v->path + ": " + table_name + " servos have no response level (a Modbus slave answers every "
+                                                  "unicast request)");
+    }
+    servo.response_level = static_cast<std::uint8_t>(integer(*v, field->min, field->max));
+  }
+
+  // A rate the protocol has may still be beyond one table's servos (SPEC §3: feetech codes 8-11
+  // are sts only).
+  if (table) {
+    if (const auto* field = modbus_map::field_by_name(*table, "baud_code");
+        field && table->addressing == modbus_map::Addressing::Byte && bus.baud_code > field->max) {
+      fail(table_value.mark, table_value.path + ": " + table_name + " servos cannot run at " +
+                                 std::to_string(bus.baud) + " bit/s (bus `" + bus.name + "`); their baud codes end at " +
+                                 std::to_string(field->max));
+    }
+  }
+
+  if (const auto v = keys.find("read_only")) servo.read_only = boolean(*v);
+  if (const auto v = keys.find("name")) servo.name = string(*v);
+  return servo;
+}
+
+void Loader::check_poll_selections(const Config& config) {
+  for (std::size_t b = 0; b < config.buses.size(); ++b) {
+    const BusConfig& bus = config.buses[b];
+    const BusPlaces& places = bus_places_[b];
+    for (std::size_t s = 0; s < config.servos.size(); ++s) {
+      const ServoConfig& servo = config.servos[s];
+      if (servo.bus_index != b || !servo.table) continue;  // passthrough units are not polled
+      const TableSpec& table = modbus_map::table(*servo.table);
+      const std::string who = servo_places_[s].path + " (unit " + std::to_string(servo.unit_id) + ", table " +
+                              std::string(table.name) + ")";
+      for (std::size_t f = 0; f < bus.poll.fields.size(); ++f) {
+        if (!modbus_map::field_by_name(table, bus.poll.fields[f])) {
+          fail(places.poll_fields[f].mark, places.poll_fields[f].path + ": " + who + " has no field `" +
+                                               bus.poll.fields[f] + "`; its fields: " + field_names_text(table));
+        }
+      }
+      if (bus.poll.range) {
+        const auto end = static_cast<std::uint32_t>(bus.poll.range->start) + bus.poll.range->count;
+        if (end > modbus_map::end_address(table)) {
+          fail(places.poll_range->mark, places.path + ".poll_range: " + std::to_string(bus.poll.range->start) + ".." +
+                                            std::to_string(end - 1) + " runs past the end of " + who +
+                                            ", whose last address is " +
+                                            std::to_string(modbus_map::end_address(table) - 1));
+        }
+      }
+    }
+    if (bus.poll.range) {
+      const bool rtu = bus.protocol == BusProtocol::ModbusRtu;
+      const std::uint16_t limit = rtu ? kMaxRtuReadRegisters : kMaxPacketReadBytes;
+      if (bus.poll.range->count > limit) {
+        fail(places.poll_range->mark, places.path + ".poll_range.count: one read takes at most " +
+                                          std::to_string(limit) + (rtu ? " registers" : " bytes") + " on a " +
+                                          std::string(protocol::to_string(bus.protocol)) + " bus");
+      }
+    }
+  }
+}
+
+void Loader::parse_sync_groups(const Value& value, Config& config) {
+  for (const auto& item : list(value)) {
+    const MapReader keys(*this, item, kSyncGroupKeys);
+    SyncGroupConfig group = parse_sync_group(keys, config);
+    const YAML::Mark name_mark = keys.require("name").mark;
+    const YAML::Mark start_mark = keys.require("holding_register_start").mark;
+    const auto first = group.holding_register_start;
+    const auto last = first + group.members.size() - 1;
+    for (std::size_t i = 0; i < config.sync_groups.size(); ++i) {
+      const SyncGroupConfig& other = config.sync_groups[i];
+      if (other.name == group.name) {
+        fail(name_mark, item.path + ".name: sync group `" + group.name + "` is already defined as sync_groups[" +
+                            std::to_string(i) + "]");
+      }
+      const auto other_first = other.holding_register_start;
+      const auto other_last = other_first + other.members.size() - 1;
+      if (first <= other_last && other_first <= last) {
+        fail(start_mark, item.path + ".holding_register_start: registers " + std::to_string(first) + ".." +
+                             std::to_string(last) + " overlap sync group `" + other.name + "` (" +
+                             std::to_string(other_first) + ".." + std::to_string(other_last) + ", " +
+                             place(group_start_marks_[i]) + ")");
+      }
+    }
+    config.sync_groups.push_back(std::move(group));
+    group_start_marks_.push_back(start_mark);
+  }
+}
+
+SyncGroupConfig Loader::parse_sync_group(const MapReader& keys, const Config& config) {
+  SyncGroupConfig group;
+  group.name = string(keys.require("name"));
+  const Value field = keys.require("field");
+  group.field = string(field);
+
+  const Value members = keys.require("members");
+  const auto items = list(members);
+  if (items.empty()) fail(members.mark, members.path + ": a sync group needs at least one member unit");
+  if (items.size() > kMaxWriteRegisters) {
+    fail(members.mark, members.path + ": " + std::to_string(items.size()) + " members; one FC16 write takes at most " +
+                           std::to_string(kMaxWriteRegisters) + " registers");
+  }
+
+  // One SYNC WRITE frame per bus carries one address and length for all its servos.
+  std::map<std::size_t, std::pair<const modbus_map::FieldSpec*, std::uint8_t>> field_on_bus;
+  for (const auto& item : items) {
+    const auto unit = static_cast<std::uint8_t>(integer(item, 1, 255));
+    if (std::find(group.members.begin(), group.members.end(), unit) != group.members.end()) {
+      fail(item.mark, item.path + ": unit " + std::to_string(unit) + " is listed twice");
+    }
+    const auto servo_it = std::find_if(config.servos.begin(), config.servos.end(),
+                                       [&](const ServoConfig& servo) { return servo.unit_id == unit; });
+    if (servo_it == config.servos.end()) {
+      std::vector<int> units;
+      for (const auto& servo : config.servos) units.push_back(servo.unit_id);
+      std::sort(units.begin(), units.end());
+      fail(item.mark, item.path + ": unknown unit " + std::to_string(unit) + "; configured units: " +
+                          (units.empty() ? std::string("none") : join_numbers(units)));
+    }
+    const ServoConfig& servo = *servo_it;
+    const std::string who = "unit " + std::to_string(unit);
+    if (!servo.table) fail(item.mark, item.path + ": " + who + " is a passthrough unit and has no fields to write");
+    if (servo.read_only) fail(item.mark, item.path + ": " + who + " is read_only");
+    const TableSpec& table = modbus_map::table(*servo.table);
+    const auto* spec = modbus_map::field_by_name(table, group.field);
+    if (!spec) {
+      fail(field.mark, field.path + ": " + who + " (table " + std::string(table.name) + ") has no field `" +
+                           group.field + "`; its fields: " + field_names_text(table));
+    }
+    if (spec->access == modbus_map::Access::ReadOnly) {
+      fail(field.mark, field.path + ": `" + group.field + "` is read-only in table " + std::string(table.name) + " (" +
+                           who + "); a sync group writes its field");
+    }
+    const auto [entry, inserted] = field_on_bus.try_emplace(servo.bus_index, spec, unit);
+    if (!inserted && (entry->second.first->addr != spec->addr || entry->second.first->size != spec->size)) {
+      fail(field.mark, field.path + ": `" + group.field + "` sits at address " + std::to_string(spec->addr) + " (" +
+                           std::to_string(spec->size) + " bytes) on " + who + " but at " +
+                           std::to_string(entry->second.first->addr) + " (" +
+                           std::to_string(entry->second.first->size) + " bytes) on unit " +
+                           std::to_string(entry->second.second) + "; members on one bus (`" + servo.bus +
+                           "`) share one SYNC WRITE frame");
+    }
+    group.members.push_back(unit);
+  }
+
+  const Value start = keys.require("holding_register_start");
+  const auto last_start = static_cast<std::int64_t>(65536 - group.members.size());
+  group.holding_register_start = static_cast<std::uint16_t>(integer(start, 0, last_start));
+  return group;
+}
+
+LoggingConfig Loader::parse_logging(const Value& value) {
+  const MapReader keys(*this, value, kLoggingKeys);
+  LoggingConfig logging;
+  if (const auto v = keys.find("level")) logging.level = choice(*v, detail::kLogLevelNames);
+  if (const auto v = keys.find("metrics_listen")) logging.metrics_listen = host_port(*v);
+  return logging;
+}
+
+Expected<Config, ConfigError> load_text(const std::string& text, const std::string& source) {
+  std::vector<YAML::Node> documents;
+  try {
+    documents = YAML::LoadAll(text);
+  } catch (const YAML::Exception& error) {
+    ConfigError config_error;
+    config_error.file = source;
+    if (!error.mark.is_null()) {
+      config_error.line = static_cast<std::uint32_t>(error.mark.line + 1);
+      config_error.column = static_cast<std::uint32_t>(error.mark.column + 1);
+    }
+    config_error.message = "YAML syntax error: " + error.msg;
+    return unexpected(std::move(config_error));
+  }
+  if (documents.empty()) {
+    return unexpected(ConfigError{source, 0, 0,
+                                  "the configuration is empty; it needs at least `buses` and `servos` "
+                                  "(examples: config/examples/)"});
+  }
+  Loader loader(source);
+  try {
+    if (documents.size() > 1) {
+      loader.fail(documents[1].Mark(), "a second YAML document starts here; the configuration is one document");
+    }
+    return loader.load(documents.front());
+  } catch (const Failure& failure) {
+    return unexpected(failure.error);
+  }
+}
+
+}  // namespace
+
+std::string ConfigError::to_string() const {
+  if (line == 0) return file + ": " + message;
+  return file + ":" + std::to_string(line) + ":" + std::to_string(column) + ": " + message;
+}
+
+Expected<Config, ConfigError> load_config_string(std::string_view text, std::string_view source_name) {
+  return load_text(std::string(text), std::string(source_name));
+}
+
+Expected<Config, ConfigError> load_config_file(const std::string& path) {
+  std::error_code error;
+  if (std::filesystem::is_directory(path, error)) {
+    return unexpected(ConfigError{path, 0, 0, "is a directory; give the configuration file"});
+  }
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    const int saved = errno;
+    return unexpected(ConfigError{path, 0, 0, std::string("cannot open: ") + std::strerror(saved)});
+  }
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (in.bad()) {
+    const int saved = errno;
+    return unexpected(ConfigError{path, 0, 0, std::string("cannot read: ") + std::strerror(saved)});
+  }
+  return load_text(text.str(), path);
+}
+
+}  // namespace sms::config
