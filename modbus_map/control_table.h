@@ -1,6 +1,7 @@
 #pragma once
 // Control tables as data (SPEC §2): one FieldSpec per field, one TableSpec per table.
 // The same lookup, encoding and register-mapping code serves every table.
+#include <cstddef>
 #include <cstdint>
 #include <optional>
 #include <span>
@@ -47,6 +48,9 @@ struct FieldSpec {
   std::string_view unit;        // "0.1 V", "steps", "°C", "" ...
   BitSpace bit_space = BitSpace::None;
   std::string_view notes;       // one line for the generated register map
+  // When not empty, the only values a write may carry (inside [min, max]); e.g. sts torque
+  // enable: 0, 1 and 128 (mid-point calibration), nothing in between.
+  std::span<const std::int32_t> allowed_values = {};
 };
 
 struct TableSpec {
@@ -59,5 +63,59 @@ struct TableSpec {
   std::span<const FieldSpec> fields;  // sorted by addr, non-overlapping
   bool has_sync_read;           // the poll cache may use one SYNC READ per cycle
 };
+
+// Bus address units one field address stands for: a byte on packet tables, a 16-bit register
+// (two bytes on the wire) on SMSMB.
+constexpr std::uint8_t bytes_per_address(Addressing addressing) { return addressing == Addressing::Register ? 2 : 1; }
+// Addresses a field occupies: its size in bytes on packet tables, always one register on SMSMB.
+constexpr std::uint16_t address_span(Addressing addressing, const FieldSpec& field) {
+  return addressing == Addressing::Register ? 1 : field.size;
+}
+
+// The compile-time checks every table gets (STYLE.md): fields sorted by address, no two
+// fields sharing an address, sizes 1 or 2 (a register is 2), min <= max, a default inside
+// the range, and names unique.
+constexpr bool fields_sorted_and_disjoint(std::span<const FieldSpec> fields, Addressing addressing) {
+  for (std::size_t i = 0; i < fields.size(); ++i) {
+    const FieldSpec& field = fields[i];
+    if (field.size != 1 && field.size != 2) return false;
+    if (addressing == Addressing::Register && field.size != 2) return false;
+    if (i + 1 < fields.size() && field.addr + address_span(addressing, field) > fields[i + 1].addr) return false;
+  }
+  return true;
+}
+// [min, max] fits the field's size and encoding.
+constexpr bool range_representable(const FieldSpec& field) {
+  const int bits = field.size * 8;
+  switch (field.encoding.kind) {
+    case EncodingKind::Unsigned:
+      return field.min >= 0 && field.max < (std::int64_t{1} << bits);
+    case EncodingKind::SignMagnitude: {
+      if (field.encoding.sign_bit >= bits) return false;
+      const std::int64_t largest = (std::int64_t{1} << field.encoding.sign_bit) - 1;
+      return field.min >= -largest && field.max <= largest;
+    }
+    case EncodingKind::TwosComplement:
+      return field.min >= -(std::int64_t{1} << (bits - 1)) && field.max < (std::int64_t{1} << (bits - 1));
+  }
+  return false;
+}
+constexpr bool fields_well_formed(std::span<const FieldSpec> fields) {
+  for (std::size_t i = 0; i < fields.size(); ++i) {
+    const FieldSpec& field = fields[i];
+    if (field.name.empty() || field.min > field.max) return false;
+    if (!range_representable(field)) return false;
+    if (field.default_value && (*field.default_value < field.min || *field.default_value > field.max)) return false;
+    for (const std::int32_t allowed : field.allowed_values) {
+      if (allowed < field.min || allowed > field.max) return false;
+    }
+    if (field.bit_space == BitSpace::Coil && (field.access != Access::ReadWrite || field.min != 0)) return false;
+    if (field.bit_space == BitSpace::DiscreteInput && field.access != Access::ReadOnly) return false;
+    for (std::size_t j = i + 1; j < fields.size(); ++j) {
+      if (fields[j].name == field.name) return false;
+    }
+  }
+  return true;
+}
 
 }  // namespace sms::modbus_map
