@@ -9,6 +9,12 @@ namespace {
 
 void key(YAML::Emitter& out, const char* name) { out << YAML::Key << name << YAML::Value; }
 
+// An empty list reads `[]`, not a block list with nothing in it.
+void begin_list(YAML::Emitter& out, bool empty) {
+  if (empty) out << YAML::Flow;
+  out << YAML::BeginSeq;
+}
+
 // Free text (paths, labels) is always quoted so that e.g. a name "null" or "123" stays a string.
 void quoted(YAML::Emitter& out, const std::string& text) { out << YAML::DoubleQuoted << text; }
 
@@ -148,15 +154,15 @@ std::string dump_config(const Config& config) {
   out << YAML::BeginMap;
   emit_modbus_tcp(out, config.modbus_tcp);
   key(out, "buses");
-  out << YAML::BeginSeq;
+  begin_list(out, config.buses.empty());
   for (const auto& bus : config.buses) emit_bus(out, bus);
   out << YAML::EndSeq;
   key(out, "servos");
-  out << YAML::BeginSeq;
+  begin_list(out, config.servos.empty());
   for (const auto& servo : config.servos) emit_servo(out, servo);
   out << YAML::EndSeq;
   key(out, "sync_groups");
-  out << YAML::BeginSeq;
+  begin_list(out, config.sync_groups.empty());
   for (const auto& group : config.sync_groups) emit_sync_group(out, group);
   out << YAML::EndSeq;
   emit_logging(out, config.logging);

@@ -118,6 +118,18 @@ std::optional<std::string_view> closest(std::string_view name, std::span<const s
       best_distance = distance;
     }
   }
+  if (best) return best;
+  // A longer or shorter spelling of an allowed key (`baudrate` for `baud`).
+  std::size_t best_prefix = 3;
+  for (const auto candidate : allowed) {
+    const auto limit = std::min(name.size(), candidate.size());
+    std::size_t common = 0;
+    while (common < limit && name[common] == candidate[common]) ++common;
+    if (common > best_prefix) {
+      best = candidate;
+      best_prefix = common;
+    }
+  }
   return best;
 }
 
@@ -200,6 +212,7 @@ std::string field_names_text(const TableSpec& table) {
 struct ServoPlaces {
   YAML::Mark item;
   YAML::Mark unit;     // the `unit` value, or the `id` value when the unit defaults to it
+  YAML::Mark id;
   bool unit_given = false;
   std::string path;
 };
@@ -330,16 +343,16 @@ class MapReader {
     }
     for (const auto& entry : map.node) {
       const YAML::Node& key = entry.first;
-      if (!key.IsScalar()) loader.fail(key.Mark(), map.path + ": keys are plain names, got " + describe(key));
+      if (!key.IsScalar()) loader.fail(key.Mark(), "keys are plain names, got " + describe(key) + " " + where());
       const std::string& name = key.Scalar();
       if (std::find(allowed.begin(), allowed.end(), name) == allowed.end()) {
-        std::string message = "unknown key `" + name + "` in " + map.path;
+        std::string message = "unknown key `" + name + "` " + where();
         if (const auto suggestion = closest(name, allowed)) message += " (did you mean `" + std::string(*suggestion) + "`?)";
         loader.fail(key.Mark(), message + "; allowed keys here: " + join(allowed));
       }
       for (const auto& [seen, seen_key] : keys_) {
         if (seen == name) {
-          loader.fail(key.Mark(), map.path + ": key `" + name + "` given twice (first at " + place(seen_key) + ")");
+          loader.fail(key.Mark(), "key `" + name + "` given twice " + where() + " (first at " + place(seen_key) + ")");
         }
       }
       keys_.emplace_back(name, key.Mark());
@@ -356,7 +369,7 @@ class MapReader {
 
   Value require(std::string_view key) const {
     if (auto value = find(key)) return *value;
-    loader_.fail(map_.mark, map_.path + ": missing required key `" + std::string(key) + "`");
+    loader_.fail(map_.mark, "missing required key `" + std::string(key) + "` " + where());
   }
 
   YAML::Mark key_mark(std::string_view key) const {
@@ -366,9 +379,9 @@ class MapReader {
     return map_.mark;
   }
 
-  const Value& self() const { return map_; }
-
  private:
+  std::string where() const { return map_.path.empty() ? "at the top level" : "in " + map_.path; }
+
   std::string child_path(std::string_view key) const {
     return map_.path.empty() ? std::string(key) : map_.path + "." + std::string(key);
   }
@@ -547,9 +560,9 @@ void Loader::parse_servos(const Value& value, Config& config) {
                               (places.unit_given ? "" : "; the unit defaults to the servo id, give `unit`"));
       }
       if (other.bus_index == servo.bus_index && other.servo_id == servo.servo_id) {
-        fail(places.item, item.path + ": servo id " + std::to_string(servo.servo_id) + " is already on bus `" +
-                              servo.bus + "` as " + other_places.path + " (" + place(other_places.item) +
-                              "); IDs on one bus must differ");
+        fail(places.id, item.path + ": servo id " + std::to_string(servo.servo_id) + " is already on bus `" +
+                            servo.bus + "` as " + other_places.path + " (" + place(other_places.id) +
+                            "); IDs on one bus must differ");
       }
       if (!servo.name.empty() && other.name == servo.name) {
         fail(places.item, item.path + ": name `" + servo.name + "` is already used by " + other_places.path + " (" +
@@ -605,6 +618,7 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
   const Value id_value = keys.require("id");
   const bool packet_bus = bus.protocol != BusProtocol::ModbusRtu;
   servo.servo_id = static_cast<std::uint8_t>(integer(id_value, packet_bus ? 0 : 1, packet_bus ? kMaxPacketServoId : kMaxUnitId));
+  places.id = id_value.mark;
 
   if (const auto v = keys.find("unit")) {
     servo.unit_id = static_cast<std::uint8_t>(integer(*v, 1, kMaxUnitId));
@@ -658,11 +672,13 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
   // A rate the protocol has may still be beyond one table's servos (SPEC §3: feetech codes 8-11
   // are sts only).
   if (table) {
-    if (const auto* field = modbus_map::field_by_name(*table, "baud_code");
+    if (const auto* field = modbus_map::field_by_name(*table, "baud_rate");
         field && table->addressing == modbus_map::Addressing::Byte && bus.baud_code > field->max) {
+      const auto last_rate = modbus_map::baud_from_code(bus.protocol, static_cast<std::uint8_t>(field->max));
       fail(table_value.mark, table_value.path + ": " + table_name + " servos cannot run at " +
-                                 std::to_string(bus.baud) + " bit/s (bus `" + bus.name + "`); their baud codes end at " +
-                                 std::to_string(field->max));
+                                 std::to_string(bus.baud) + " bit/s (bus `" + bus.name +
+                                 "`): their baud table ends at code " + std::to_string(field->max) + " (" +
+                                 std::to_string(last_rate.value_or(0)) + " bit/s)");
     }
   }
 
@@ -783,12 +799,12 @@ SyncGroupConfig Loader::parse_sync_group(const MapReader& keys, const Config& co
     }
     const auto [entry, inserted] = field_on_bus.try_emplace(servo.bus_index, spec, unit);
     if (!inserted && (entry->second.first->addr != spec->addr || entry->second.first->size != spec->size)) {
-      fail(field.mark, field.path + ": `" + group.field + "` sits at address " + std::to_string(spec->addr) + " (" +
-                           std::to_string(spec->size) + " bytes) on " + who + " but at " +
-                           std::to_string(entry->second.first->addr) + " (" +
-                           std::to_string(entry->second.first->size) + " bytes) on unit " +
+      fail(field.mark, field.path + ": `" + group.field + "` is at address " + std::to_string(spec->addr) +
+                           " (size " + std::to_string(spec->size) + ") on " + who + " but at address " +
+                           std::to_string(entry->second.first->addr) + " (size " +
+                           std::to_string(entry->second.first->size) + ") on unit " +
                            std::to_string(entry->second.second) + "; members on one bus (`" + servo.bus +
-                           "`) share one SYNC WRITE frame");
+                           "`) share one SYNC WRITE frame, so the field must be at one address");
     }
     group.members.push_back(unit);
   }
