@@ -47,6 +47,20 @@ constexpr std::array kBusStatusFaults{
     BusStatusFault{BusStatus::Cancelled, Fault::GatewayStopping},
 };
 
+struct MapExceptionFault {
+  modbus_map::ModbusException code;
+  Fault fault;
+};
+constexpr std::array kMapExceptionFaults{
+    MapExceptionFault{modbus_map::ModbusException::IllegalFunction, Fault::UnsupportedFunction},
+    MapExceptionFault{modbus_map::ModbusException::IllegalDataAddress, Fault::BadAddress},
+    MapExceptionFault{modbus_map::ModbusException::IllegalDataValue, Fault::BadValue},
+    MapExceptionFault{modbus_map::ModbusException::ServerDeviceFailure, Fault::ServoCorrupt},
+    MapExceptionFault{modbus_map::ModbusException::ServerDeviceBusy, Fault::QueueFull},
+    MapExceptionFault{modbus_map::ModbusException::GatewayPathUnavailable, Fault::BusDown},
+    MapExceptionFault{modbus_map::ModbusException::GatewayTargetFailedToRespond, Fault::ServoTimeout},
+};
+
 const FaultSpec& spec(Fault fault) {
   const auto index = static_cast<std::size_t>(fault);
   if (index >= kFaults.size()) throw std::out_of_range("Fault " + std::to_string(index) + " has no exception code");
@@ -66,6 +80,13 @@ Fault fault_from(BusStatus status) {
     if (entry.status == status) return entry.fault;
   }
   throw std::logic_error("fault_from(BusStatus::Ok): a successful bus operation is not a fault");
+}
+
+Fault fault_from(modbus_map::ModbusException code) {
+  for (const auto& entry : kMapExceptionFaults) {
+    if (entry.code == code) return entry.fault;
+  }
+  throw std::logic_error("fault_from: Modbus exception " + std::to_string(static_cast<int>(code)) + " has no Fault");
 }
 
 }  // namespace sms::gateway

@@ -7,6 +7,7 @@
 #include <string_view>
 
 #include "gateway/bus.h"
+#include "modbus_map/register_map.h"
 
 namespace sms::gateway {
 
@@ -39,5 +40,7 @@ std::string_view to_string(Fault fault);
 
 // The Fault a failed bus operation stands for. `status` must not be BusStatus::Ok.
 Fault fault_from(BusStatus status);
+// The Fault a register-map refusal stands for (modbus_map decides 0x02 / 0x03 / 0x04 there).
+Fault fault_from(modbus_map::ModbusException code);
 
 }  // namespace sms::gateway

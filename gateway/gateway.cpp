@@ -1,0 +1,179 @@
+#include "gateway/gateway.h"
+
+#include <future>
+#include <stdexcept>
+#include <thread>
+
+#include <boost/asio/executor_work_guard.hpp>
+#include <boost/asio/io_context.hpp>
+#include <boost/asio/post.hpp>
+#include <spdlog/spdlog.h>
+
+#include "config/load.h"
+#include "gateway/unit_router.h"
+#include "modbus_map/register_map.h"
+
+namespace sms::gateway {
+
+namespace asio = boost::asio;
+
+namespace {
+
+struct ParityName {
+  config::Parity config;
+  Parity serial;
+};
+constexpr ParityName kParities[] = {
+    {config::Parity::None, Parity::None},
+    {config::Parity::Even, Parity::Even},
+    {config::Parity::Odd, Parity::Odd},
+};
+
+Parity serial_parity(config::Parity parity) {
+  for (const auto& entry : kParities) {
+    if (entry.config == parity) return entry.serial;
+  }
+  return Parity::None;
+}
+
+AddressBlock poll_block_of(const config::BusConfig& bus, const config::ServoConfig& servo) {
+  const modbus_map::TableId table = *servo.table;
+  modbus_map::BusRange range;
+  if (bus.poll.range) {
+    range = {bus.poll.range->start, bus.poll.range->count};
+  } else if (!bus.poll.fields.empty()) {
+    const auto fields = modbus_map::poll_block_for_fields(table, bus.poll.fields);
+    if (!fields) throw std::runtime_error("bus '" + bus.name + "': poll_fields: " + fields.error());
+    range = *fields;
+  } else {
+    range = modbus_map::default_poll_block(table);
+  }
+  return AddressBlock{range.address, range.count};
+}
+
+}  // namespace
+
+BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index) {
+  const config::BusConfig& bus = config.buses.at(bus_index);
+  BusSettings settings;
+  settings.name = bus.name;
+  settings.protocol = bus.protocol;
+  settings.serial.device = bus.device;
+  settings.serial.baud = bus.baud;
+  settings.serial.parity = serial_parity(bus.parity);
+  settings.serial.stop_bits = bus.stop_bits;
+  settings.response_timeout = bus.response_timeout;
+  settings.retries = bus.retries;
+  settings.poll_period = bus.poll_period;
+  settings.probe_period = bus.offline_probe_period;
+  settings.reopen_period = bus.reopen_period;
+  settings.queue_depth = config.modbus_tcp.request_queue_depth;
+  for (const auto& servo : config.servos) {
+    if (servo.bus_index != bus_index || servo.passthrough()) continue;
+    settings.servos.push_back(ServoSettings{servo.servo_id, *servo.table, config::effective_byte_order(servo),
+                                            poll_block_of(bus, servo)});
+  }
+  return settings;
+}
+
+config::Config simulated_config(const std::string& device, const config::HostPort& listen) {
+  // Written as YAML and loaded, so the embedded default passes the same validation as a file.
+  std::string yaml = "modbus_tcp:\n  listen: \"" + listen.to_string() +
+                     "\"\n"
+                     "buses:\n"
+                     "  - name: sim\n"
+                     "    device: \"" + device + "\"\n"
+                     "    protocol: feetech\n"
+                     "    baud: 1000000\n"
+                     "servos:\n";
+  for (int id = 1; id <= 6; ++id) {
+    yaml += "  - {unit: " + std::to_string(id) + ", bus: sim, id: " + std::to_string(id) + ", table: sts}\n";
+  }
+  // The six goal positions as holding registers 0-5 of the gateway unit: one SYNC WRITE frame.
+  yaml += "sync_groups:\n"
+          "  - {name: goal_position, field: goal_position, members: [1, 2, 3, 4, 5, 6], holding_register_start: 0}\n";
+  auto config = config::load_config_string(yaml, "<--simulate>");
+  if (!config) throw std::logic_error("the built-in --simulate configuration is invalid: " + config.error().to_string());
+  return std::move(*config);
+}
+
+class Gateway::Impl {
+ public:
+  explicit Impl(const config::Config& config) : config_(config) {}
+
+  ~Impl() { stop(std::chrono::seconds{5}); }
+
+  void start() {
+    if (started_) throw std::logic_error("Gateway::start called twice");
+    started_ = true;
+    for (std::size_t i = 0; i < config_.buses.size(); ++i) {
+      try {
+        engines_.push_back(make_bus_engine(bus_settings_for(config_, i)));
+      } catch (const std::invalid_argument& error) {
+        throw std::runtime_error("bus '" + config_.buses[i].name + "' (" +
+                                 std::string(protocol::to_string(config_.buses[i].protocol)) +
+                                 ") cannot be run: " + error.what());
+      }
+    }
+    std::vector<BusEngine*> engines;
+    for (const auto& engine : engines_) engines.push_back(engine.get());
+    router_ = std::make_unique<UnitRouter>(config_, engines,
+                                           [this](std::function<void()> work) { asio::post(io_, std::move(work)); });
+
+    TcpServerOptions options;
+    options.host = config_.modbus_tcp.listen.host;
+    options.port = config_.modbus_tcp.listen.port;
+    options.max_connections = config_.modbus_tcp.max_connections;
+    options.idle_timeout = config_.modbus_tcp.idle_timeout;
+    server_ = std::make_unique<TcpServer>(io_, options, *router_);
+    // Listen before the buses start, so a port in use fails before any serial port is touched;
+    // connections wait in the backlog until the io thread runs.
+    server_->start();
+    for (const auto& engine : engines_) engine->start();
+    io_thread_ = std::thread([this] { io_.run(); });
+  }
+
+  void stop(std::chrono::milliseconds grace) {
+    if (!started_ || stopped_) return;
+    stopped_ = true;
+    if (server_ && io_thread_.joinable()) {
+      auto closed = std::make_shared<std::promise<void>>();
+      auto done = closed->get_future();
+      asio::post(io_, [this, closed] { server_->shutdown([closed] { closed->set_value(); }); });
+      if (done.wait_for(grace) != std::future_status::ready) {
+        spdlog::warn("stopping: connections still waiting for the bus after {}; closing them", duration_text(grace));
+        asio::post(io_, [this] { server_->close_all(); });
+      }
+    }
+    for (const auto& engine : engines_) engine->stop();
+    work_.reset();
+    io_.stop();
+    if (io_thread_.joinable()) io_thread_.join();
+  }
+
+  std::uint16_t port() const { return server_ ? server_->port() : 0; }
+  BusEngine& engine(std::size_t index) { return *engines_.at(index); }
+  TcpServerStats server_stats() const { return server_ ? server_->stats() : TcpServerStats{}; }
+
+ private:
+  const config::Config& config_;
+  asio::io_context io_;
+  std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work_{io_.get_executor()};
+  std::vector<std::unique_ptr<BusEngine>> engines_;
+  std::unique_ptr<UnitRouter> router_;
+  std::unique_ptr<TcpServer> server_;
+  std::thread io_thread_;
+  bool started_ = false;
+  bool stopped_ = false;
+};
+
+Gateway::Gateway(config::Config config) : config_(std::move(config)), impl_(std::make_unique<Impl>(config_)) {}
+Gateway::~Gateway() = default;
+
+void Gateway::start() { impl_->start(); }
+void Gateway::stop(std::chrono::milliseconds grace) { impl_->stop(grace); }
+std::uint16_t Gateway::port() const { return impl_->port(); }
+BusEngine& Gateway::engine(std::size_t index) { return impl_->engine(index); }
+TcpServerStats Gateway::server_stats() const { return impl_->server_stats(); }
+
+}  // namespace sms::gateway

@@ -1,0 +1,58 @@
+#pragma once
+// The whole gateway in one object: configuration -> one bus engine per bus -> unit router
+// (servo units and the gateway unit) -> Modbus TCP server, with the io thread that runs the
+// TCP side. sms-gateway's main() and the in-process tests use it the same way:
+//
+//   sms::gateway::Gateway gateway(config);
+//   gateway.start();                 // throws std::runtime_error with what to do
+//   ... gateway.port() ...
+//   gateway.stop();                  // graceful: in-flight answers first, then the buses
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "config/config.h"
+#include "gateway/bus_engine.h"
+#include "gateway/tcp_server.h"
+
+namespace sms::gateway {
+
+// The engine settings of config.buses[bus_index]: serial line, timing, queue depth, and every
+// servo of the bus with the block the poll cycle reads (the configured fields or range, else
+// the table's feedback block).
+BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index);
+
+// The configuration `sms-gateway --simulate` runs: one feetech bus on `device` at 1 000 000
+// baud with sts servos 1-6 as units 1-6 (profile native), listening on `listen`.
+config::Config simulated_config(const std::string& device, const config::HostPort& listen);
+
+class Gateway {
+ public:
+  explicit Gateway(config::Config config);
+  ~Gateway();  // stop()
+  Gateway(const Gateway&) = delete;
+  Gateway& operator=(const Gateway&) = delete;
+
+  // Starts the bus engines (a missing serial port is not fatal: that bus starts down and is
+  // reopened by itself), then listens. Throws std::runtime_error when it cannot listen or a
+  // bus cannot be run at all.
+  void start();
+  // Graceful stop, from any thread but the io thread: no new connections; requests being
+  // answered finish (a write handed to a bus is completed and answered), connections close,
+  // then the buses stop. After `grace` the remaining connections are closed regardless.
+  void stop(std::chrono::milliseconds grace = std::chrono::seconds{5});
+
+  std::uint16_t port() const;
+  const config::Config& config() const { return config_; }
+  // The engine of config().buses[index] (tests, benchmarks).
+  BusEngine& engine(std::size_t index);
+  TcpServerStats server_stats() const;
+
+ private:
+  class Impl;
+  config::Config config_;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace sms::gateway

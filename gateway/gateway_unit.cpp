@@ -1,0 +1,279 @@
+#include "gateway/gateway_unit.h"
+
+#include <algorithm>
+#include <array>
+#include <limits>
+#include <stdexcept>
+
+#include <spdlog/spdlog.h>
+
+#include "gateway/exceptions.h"
+#include "modbus_map/tables.h"
+
+namespace sms::gateway {
+namespace {
+
+namespace fc = function_code;
+namespace layout = gateway_unit_layout;
+
+template <typename... Ts>
+struct Overloaded : Ts... {
+  using Ts::operator()...;
+};
+template <typename... Ts>
+Overloaded(Ts...) -> Overloaded<Ts...>;
+
+std::uint16_t saturate16(std::uint64_t value) {
+  return static_cast<std::uint16_t>(std::min<std::uint64_t>(value, 0xFFFF));
+}
+
+// One entry of bus n's block: `words` registers (2 = 32 bits, high word first).
+struct BusFactRegister {
+  std::uint16_t offset;
+  std::uint8_t words;
+  std::uint64_t (*value)(const BusFacts&);
+};
+// MODBUS_MAP.md "The gateway unit", input registers 100 + 20·n ...; 32-bit counters wrap.
+constexpr std::array kBusFactRegisters{
+    BusFactRegister{0, 1, [](const BusFacts& f) -> std::uint64_t { return f.up ? 1 : 0; }},
+    BusFactRegister{1, 1, [](const BusFacts& f) -> std::uint64_t { return saturate16(f.baud / 100); }},
+    BusFactRegister{2, 1, [](const BusFacts& f) -> std::uint64_t { return saturate16(f.last_poll_cycle_us); }},
+    BusFactRegister{3, 1, [](const BusFacts& f) -> std::uint64_t { return saturate16(f.servos_online); }},
+    BusFactRegister{4, 2, [](const BusFacts& f) -> std::uint64_t { return f.frames_ok; }},
+    BusFactRegister{6, 2, [](const BusFacts& f) -> std::uint64_t { return f.timeouts; }},
+    BusFactRegister{8, 2, [](const BusFacts& f) -> std::uint64_t { return f.checksum_errors; }},
+};
+
+void put_words(std::vector<std::uint16_t>& image, std::size_t at, std::uint8_t words, std::uint64_t value) {
+  if (words == 2) {
+    image[at] = static_cast<std::uint16_t>((value >> 16) & 0xFFFF);
+    image[at + 1] = static_cast<std::uint16_t>(value & 0xFFFF);
+  } else {
+    image[at] = static_cast<std::uint16_t>(value & 0xFFFF);
+  }
+}
+
+}  // namespace
+
+BusFacts bus_facts(const BusEngine& engine) {
+  const BusCountersSnapshot counters = engine.counters();
+  BusFacts facts;
+  facts.up = engine.bus_up();
+  facts.baud = engine.settings().serial.baud;
+  facts.last_poll_cycle_us = counters.last_poll_cycle_us;
+  facts.servos_online = engine.cache().online_count();
+  facts.frames_ok = counters.frames_ok;
+  facts.timeouts = counters.timeouts;
+  facts.checksum_errors = counters.checksum_errors;
+  return facts;
+}
+
+GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> engines, PostFn post,
+                         std::chrono::steady_clock::time_point started)
+    : engines_(std::move(engines)), servo_count_(config.servos.size()), post_(std::move(post)), started_(started) {
+  for (const auto& group_config : config.sync_groups) {
+    SyncGroup group{group_config.name, group_config.holding_register_start, {}};
+    for (const std::uint8_t unit : group_config.members) {
+      const config::ServoConfig* servo = config::find_unit(config, unit);
+      if (servo == nullptr || servo->passthrough()) {
+        throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) +
+                                    " is not a configured servo with a control table");
+      }
+      const auto& table = modbus_map::table(*servo->table);
+      const modbus_map::FieldSpec* field = modbus_map::field_by_name(table, group_config.field);
+      if (field == nullptr || field->access == modbus_map::Access::ReadOnly) {
+        throw std::invalid_argument("sync group '" + group_config.name + "': table " + std::string(table.name) +
+                                    " of unit " + std::to_string(unit) + " has no writable field '" +
+                                    group_config.field + "'");
+      }
+      if (servo->bus_index >= engines_.size()) {
+        throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) +
+                                    " is on a bus without an engine");
+      }
+      auto map = modbus_map::RegisterMap::create(*servo->table, modbus_map::Profile::Native,
+                                                 config::effective_byte_order(*servo));
+      if (!map) throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) + ": " + map.error());
+      group.members.push_back(SyncMember{unit, servo->bus_index, servo->servo_id, field, std::move(*map), servo->read_only});
+    }
+    groups_.push_back(std::move(group));
+  }
+}
+
+std::optional<std::vector<std::uint16_t>> GatewayUnit::input_registers(std::uint16_t address,
+                                                                       std::uint16_t count) const {
+  const std::size_t end = layout::kFirstBusBlock + layout::kBusBlockSize * engines_.size();
+  if (std::size_t{address} + count > end) return std::nullopt;
+
+  // The whole image is small (100 + 20 per bus registers); addresses with nothing read as 0.
+  std::vector<std::uint16_t> image(end, 0);
+  image[layout::kVersion + 0] = SMS_GATEWAY_VERSION_MAJOR;
+  image[layout::kVersion + 1] = SMS_GATEWAY_VERSION_MINOR;
+  image[layout::kVersion + 2] = SMS_GATEWAY_VERSION_PATCH;
+  const auto uptime = std::chrono::duration_cast<std::chrono::seconds>(std::chrono::steady_clock::now() - started_);
+  put_words(image, layout::kUptime, 2, static_cast<std::uint64_t>(uptime.count()));
+  image[layout::kBusCount] = saturate16(engines_.size());
+  image[layout::kServoCount] = saturate16(servo_count_);
+  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+    const std::size_t block = layout::kFirstBusBlock + layout::kBusBlockSize * bus;
+    // Only the blocks the request touches are worth the counters' atomics.
+    if (block >= std::size_t{address} + count || block + layout::kBusBlockSize <= address) continue;
+    const BusFacts facts = bus_facts(*engines_[bus]);
+    for (const auto& entry : kBusFactRegisters) put_words(image, block + entry.offset, entry.words, entry.value(facts));
+  }
+  return std::vector<std::uint16_t>(image.begin() + address, image.begin() + address + count);
+}
+
+void GatewayUnit::handle(const Request& request, const Reply& reply) {
+  std::visit(Overloaded{
+                 [&](const ReadRegistersRequest& read) {
+                   if (read.function == fc::kReadInputRegisters) {
+                     const auto values = input_registers(read.address, read.count);
+                     reply.send(values ? registers_response(read.function, *values)
+                                       : exception_response(read.function, Fault::BadAddress));
+                   } else {
+                     read_sync_registers(read.function, read.address, read.count, reply);
+                   }
+                 },
+                 [&](const ReadBitsRequest& read) {
+                   // Coil 0 reads 0: ACTION is an event, not a state. No discrete inputs here.
+                   if (read.function == fc::kReadCoils && read.address == layout::kActionCoil && read.count == 1) {
+                     reply.send(bits_response(read.function, {false}));
+                   } else {
+                     reply.send(exception_response(read.function, Fault::BadAddress));
+                   }
+                 },
+                 [&](const WriteBitsRequest& write) { write_action_coil(write, reply); },
+                 [&](const WriteRegistersRequest& write) {
+                   write_sync_registers(write, reply, [write](const Reply& r) { r.send(write_response(write)); });
+                 },
+                 [&](const ReadWriteRegistersRequest& both) {
+                   write_sync_registers(both.write, reply, [this, read = both.read](const Reply& r) {
+                     read_sync_registers(read.function, read.address, read.count, r);
+                   });
+                 },
+             },
+             request);
+}
+
+const GatewayUnit::SyncMember* GatewayUnit::sync_member_at(std::uint16_t address) const {
+  for (const auto& group : groups_) {
+    if (address >= group.start && address < group.start + group.members.size()) {
+      return &group.members[address - group.start];
+    }
+  }
+  return nullptr;
+}
+
+void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count,
+                                      const Reply& reply) {
+  std::vector<const SyncMember*> members;
+  for (std::uint32_t a = address; a < std::uint32_t{address} + count; ++a) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(a));
+    if (member == nullptr) {
+      reply.send(exception_response(function, Fault::BadAddress));
+      return;
+    }
+    members.push_back(member);
+  }
+  // Each member's value is read and converted by its own native register map.
+  std::vector<modbus_map::ReadPlan> plans;
+  for (const SyncMember* member : members) {
+    auto plan = member->map.plan_holding_read(member->field->addr, 1);
+    if (!plan || plan->reads.size() != 1) {
+      reply.send(exception_response(function, Fault::BadAddress));
+      return;
+    }
+    plans.push_back(std::move(*plan));
+  }
+  auto join = BusJoin::create(members.size(), post_,
+                              [function, members, plans, reply](std::vector<BusResult> results) {
+                                if (const BusResult* failure = BusJoin::first_failure(results)) {
+                                  reply.send(exception_response(function, fault_from(failure->status)));
+                                  return;
+                                }
+                                std::vector<std::uint16_t> values;
+                                for (std::size_t i = 0; i < members.size(); ++i) {
+                                  const protocol::Bytes replies[] = {results[i].data};
+                                  const auto value = members[i]->map.registers_from(plans[i], replies);
+                                  if (!value) {
+                                    reply.send(exception_response(function, fault_from(value.error().code)));
+                                    return;
+                                  }
+                                  values.push_back(value->at(0));
+                                }
+                                reply.send(registers_response(function, values));
+                              });
+  for (std::size_t i = 0; i < members.size(); ++i) {
+    const auto& range = plans[i].reads.front();
+    engines_[members[i]->bus]->submit(ReadOp{members[i]->servo_id, range.address, range.count}, Priority::ClientRead,
+                                      join->completion(i));
+  }
+}
+
+void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,
+                                       std::function<void(const Reply&)> after) {
+  // Validate everything before the first frame: a refused write changes nothing.
+  struct Frame {
+    std::size_t bus;
+    SyncWriteOp op;
+  };
+  std::vector<Frame> frames;
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+    if (member == nullptr || member->read_only) {
+      reply.send(exception_response(request.function, Fault::BadAddress));
+      return;
+    }
+    const auto bytes = member->map.field_bytes(*member->field, request.values[i]);
+    if (!bytes) {
+      spdlog::debug("gateway unit: sync group register {}: {}", request.address + i, bytes.error().message);
+      reply.send(exception_response(request.function, fault_from(bytes.error().code)));
+      return;
+    }
+    // One SYNC WRITE per bus; members whose tables put the field elsewhere need a frame of their own.
+    auto frame = std::find_if(frames.begin(), frames.end(), [&](const Frame& f) {
+      return f.bus == member->bus && f.op.address == member->field->addr && f.op.length == member->field->size;
+    });
+    if (frame == frames.end()) {
+      frames.push_back(Frame{member->bus, SyncWriteOp{member->field->addr, member->field->size, {}}});
+      frame = std::prev(frames.end());
+    }
+    frame->op.entries.push_back(protocol::SyncWriteEntry{member->servo_id, *bytes});
+  }
+  auto join = BusJoin::create(frames.size(), post_,
+                              [function = request.function, reply, after = std::move(after)](std::vector<BusResult> results) {
+                                if (const BusResult* failure = BusJoin::first_failure(results)) {
+                                  spdlog::warn("gateway unit: sync group write failed: {}", failure->detail);
+                                  reply.send(exception_response(function, fault_from(failure->status)));
+                                  return;
+                                }
+                                after(reply);
+                              });
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    engines_[frames[i].bus]->submit(std::move(frames[i].op), Priority::ClientWrite, join->completion(i));
+  }
+}
+
+void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply& reply) {
+  if (request.address != layout::kActionCoil || request.values.size() != 1) {
+    reply.send(exception_response(request.function, Fault::BadAddress));
+    return;
+  }
+  if (!request.values[0] || engines_.empty()) {  // writing 0 asks for nothing
+    reply.send(write_response(request));
+    return;
+  }
+  auto join = BusJoin::create(engines_.size(), post_, [request, reply](std::vector<BusResult> results) {
+    if (const BusResult* failure = BusJoin::first_failure(results)) {
+      spdlog::warn("gateway unit: ACTION failed on a bus: {}", failure->detail);
+      reply.send(exception_response(request.function, fault_from(failure->status)));
+      return;
+    }
+    reply.send(write_response(request));
+  });
+  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+    engines_[bus]->submit(ActionOp{}, Priority::ClientWrite, join->completion(bus));
+  }
+}
+
+}  // namespace sms::gateway

@@ -1,0 +1,183 @@
+// sms-gateway: Modbus TCP for serial-bus servos (MODBUS_MAP.md is the contract).
+//
+//   sms-gateway --config /etc/sms-gateway/gateway.yaml
+//   sms-gateway --simulate                   # 6 simulated sts servos, units 1-6, 127.0.0.1:5020
+//   sms-gateway --check-config gateway.yaml
+//
+// Integrator tools come as subcommands (kSubcommands below), beside the default action that
+// runs the gateway.
+#include <signal.h>
+
+#include <chrono>
+#include <iostream>
+#include <optional>
+#include <string>
+
+#include <CLI/CLI.hpp>
+#include <spdlog/spdlog.h>
+
+#include "config/load.h"
+#include "gateway/gateway.h"
+#include "simulator/simulated_bus.h"
+
+namespace {
+
+using sms::config::Config;
+using sms::config::LogLevel;
+
+constexpr int kExitOk = 0;
+constexpr int kExitRuntimeError = 1;
+constexpr int kExitConfigError = 2;
+
+struct Options {
+  std::string config_file;
+  bool simulate = false;
+  std::string listen;
+  std::string log_level;
+  std::string check_config_file;
+  bool version = false;
+};
+
+spdlog::level::level_enum spdlog_level(LogLevel level) {
+  constexpr spdlog::level::level_enum kLevels[] = {spdlog::level::trace, spdlog::level::debug, spdlog::level::info,
+                                                   spdlog::level::warn,  spdlog::level::err,   spdlog::level::critical,
+                                                   spdlog::level::off};
+  return kLevels[static_cast<std::size_t>(level)];
+}
+
+// --log-level wins over the configuration's logging.level.
+std::optional<LogLevel> log_level_from(const std::string& name) {
+  for (const LogLevel level : {LogLevel::Trace, LogLevel::Debug, LogLevel::Info, LogLevel::Warn, LogLevel::Error,
+                               LogLevel::Critical, LogLevel::Off}) {
+    if (sms::config::to_string(level) == name) return level;
+  }
+  return std::nullopt;
+}
+
+std::string summary(const Config& config) {
+  return std::to_string(config.buses.size()) + " bus(es), " + std::to_string(config.servos.size()) + " servo(s), " +
+         std::to_string(config.sync_groups.size()) + " sync group(s); Modbus TCP on " +
+         config.modbus_tcp.listen.to_string() + ", gateway unit " + std::to_string(config.modbus_tcp.gateway_unit_id);
+}
+
+int check_config(const std::string& path) {
+  const auto config = sms::config::load_config_file(path);
+  if (!config) {
+    std::cerr << config.error().to_string() << "\n";
+    return kExitConfigError;
+  }
+  std::cout << path << ": OK: " << summary(*config) << "\n";
+  return kExitOk;
+}
+
+// Blocks SIGINT/SIGTERM in every thread (call before any thread starts) and returns the set
+// so main can sigwait() for them.
+sigset_t block_stop_signals() {
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+  return signals;
+}
+
+int run_gateway(const Options& options) {
+  const sigset_t stop_signals = block_stop_signals();
+
+  std::optional<sms::config::HostPort> listen;
+  if (!options.listen.empty()) {
+    auto parsed = sms::config::parse_host_port(options.listen);
+    if (!parsed) {
+      std::cerr << "sms-gateway: --listen " << options.listen << ": " << parsed.error() << "\n";
+      return kExitConfigError;
+    }
+    listen = *parsed;
+  }
+
+  std::optional<sms::simulator::SimulatedBus> simulated_bus;
+  Config config;
+  if (options.simulate) {
+    try {
+      simulated_bus.emplace(sms::simulator::default_bus_options());
+      simulated_bus->start();
+    } catch (const std::exception& error) {
+      std::cerr << "sms-gateway: cannot start the simulated bus: " << error.what() << "\n";
+      return kExitRuntimeError;
+    }
+    config = sms::gateway::simulated_config(simulated_bus->slave_path(),
+                                            listen.value_or(sms::config::HostPort{"127.0.0.1", 5020}));
+  } else {
+    auto loaded = sms::config::load_config_file(options.config_file);
+    if (!loaded) {
+      std::cerr << loaded.error().to_string() << "\n";
+      return kExitConfigError;
+    }
+    config = std::move(*loaded);
+    if (listen) config.modbus_tcp.listen = *listen;
+  }
+  if (!options.log_level.empty()) config.logging.level = *log_level_from(options.log_level);
+  spdlog::set_level(spdlog_level(config.logging.level));
+
+  if (options.simulate) {
+    spdlog::info("simulated bus: 6 sts servos (IDs 1-6 = units 1-6), feetech at 1000000 bit/s on {}",
+                 simulated_bus->slave_path());
+  } else {
+    spdlog::info("configuration {}: {}", options.config_file, summary(config));
+  }
+
+  try {
+    sms::gateway::Gateway gateway(std::move(config));
+    gateway.start();
+    int signal_number = 0;
+    sigwait(&stop_signals, &signal_number);
+    spdlog::info("{} received: finishing the requests in flight, then stopping", strsignal(signal_number));
+    gateway.stop();
+  } catch (const std::exception& error) {
+    spdlog::critical("{}", error.what());
+    return kExitRuntimeError;
+  }
+  if (simulated_bus) simulated_bus->stop();
+  spdlog::info("stopped");
+  return kExitOk;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"sms-gateway: Modbus TCP gateway for Feetech (FF FF), D5 5D and SMSMB serial-bus servos.\n"
+               "Runs the gateway from a configuration file, or on a built-in simulated bus (--simulate)."};
+  Options options;
+  auto* config_option = app.add_option("--config", options.config_file, "YAML configuration file to run");
+  auto* simulate_option =
+      app.add_flag("--simulate", options.simulate,
+                   "Run on a built-in simulated bus: 6 sts servos (IDs 1-6 = units 1-6), feetech at 1000000 "
+                   "baud; listens on 127.0.0.1:5020 unless --listen says otherwise");
+  config_option->excludes(simulate_option);
+  app.add_option("--listen", options.listen, "HOST:PORT to serve Modbus TCP on (overrides modbus_tcp.listen)");
+  app.add_option("--log-level", options.log_level, "trace, debug, info, warn, error, critical or off")
+      ->check(CLI::IsMember({"trace", "debug", "info", "warn", "error", "critical", "off"}));
+  auto* check_option = app.add_option("--check-config", options.check_config_file,
+                                      "Validate a configuration file and exit (0 valid, 2 invalid)");
+  check_option->excludes(simulate_option);
+  app.add_flag("--version", options.version, "Print the version and exit");
+  // Subcommands (scan, forward, set-id ...) slot in here; without one, the gateway runs.
+  app.require_subcommand(0, 1);
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& error) {
+    return app.exit(error);
+  }
+
+  if (options.version) {
+    std::cout << "sms-gateway " << SMS_GATEWAY_VERSION << "\n";
+    return kExitOk;
+  }
+  if (!options.check_config_file.empty()) return check_config(options.check_config_file);
+  if (options.config_file.empty() && !options.simulate) {
+    std::cerr << "sms-gateway: say what to run: --config FILE (a configuration), or --simulate (the built-in "
+                 "simulated bus). See --help.\n";
+    return kExitConfigError;
+  }
+  return run_gateway(options);
+}

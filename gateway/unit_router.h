@@ -1,0 +1,100 @@
+#pragma once
+// Modbus unit id -> what answers it (MODBUS_MAP.md "Units", "A servo unit"):
+// - a servo unit: (bus engine, servo id, register map of its table/profile/byte order,
+//   whether it answers writes). FC03/FC23-read/FC01 read live through register plans
+//   (Priority::ClientRead); FC04/FC02 are served from the poll cache and the gateway's own
+//   facts (1000-1008) without bus traffic; FC05/06/15/16/23-write become WriteOps
+//   (Priority::ClientWrite, REG WRITE for 512 + a) answered once the servo acknowledged them;
+// - the gateway unit (GatewayUnit);
+// - anything else: 0x0A.
+// Runs on the io thread; bus completions come back through PostFn.
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "config/config.h"
+#include "gateway/bus_engine.h"
+#include "gateway/bus_join.h"
+#include "gateway/gateway_unit.h"
+#include "gateway/modbus_request.h"
+#include "gateway/tcp_server.h"
+#include "modbus_map/register_map.h"
+
+namespace sms::gateway {
+
+// Input registers 1000-1007 and discrete inputs 1000-1008 of a servo unit: facts the gateway
+// keeps about the servo (no table uses these addresses).
+namespace servo_facts_layout {
+inline constexpr std::uint16_t kFirstRegister = 1000;
+inline constexpr std::uint16_t kRegisterCount = 8;   // 1000 .. 1007
+inline constexpr std::uint16_t kFirstBit = 1000;     // 1000 + b: bit b of register 1000
+inline constexpr std::uint16_t kOnlineBit = 1008;
+}  // namespace servo_facts_layout
+
+// What the facts registers show, gathered from the poll cache.
+struct ServoFacts {
+  std::uint8_t last_status = 0;
+  bool online = false;
+  std::optional<std::chrono::milliseconds> cache_age;  // nullopt: never polled
+  std::uint16_t identity = 0;                          // model, else firmware, as read at discovery
+  std::uint64_t replies_ok = 0;
+  std::uint64_t timeouts = 0;
+};
+// Registers 1000-1007 from the facts: saturating age (65535 also before the first poll),
+// 32-bit counters high word first (they wrap).
+std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registers(const ServoFacts& facts);
+
+struct ServoUnit {
+  std::uint8_t unit_id = 0;
+  std::size_t bus_index = 0;
+  BusEngine* engine = nullptr;
+  std::uint8_t servo_id = 0;
+  modbus_map::RegisterMap map;
+  modbus_map::BusRange poll_block;  // what the engine polls into the cache for this servo
+  bool writes_answered = true;      // response level: false when the servo does not answer writes
+  bool read_only = false;
+  std::string label;                // "unit 3 (bus arm, servo 3)" for logs
+};
+
+class UnitRouter : public RequestHandler {
+ public:
+  // `engines[i]` runs config.buses[i] (the engine's settings give each servo's poll block).
+  // Throws std::invalid_argument for a servo whose table/profile has no register map.
+  UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post);
+
+  void handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) override;
+
+  const ServoUnit* servo_unit(std::uint8_t unit_id) const;
+  std::uint8_t gateway_unit_id() const { return gateway_unit_id_; }
+
+ private:
+  void handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply);
+  void read_holding(const ServoUnit& unit, std::uint8_t function, std::uint16_t start, std::uint16_t count,
+                    const Reply& reply);
+  void read_input(const ServoUnit& unit, const ReadRegistersRequest& request, const Reply& reply);
+  void read_coils(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply);
+  void read_discrete(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply);
+  // Runs the plan's frames one after another (a refusal stops the rest), then `after`.
+  void run_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan, const Reply& reply,
+                  std::function<void(const Reply&)> after);
+  // Live reads of plan.reads, in order; `then` gets the replies' bytes.
+  void run_reads(const ServoUnit& unit, std::uint8_t function, const modbus_map::ReadPlan& plan, const Reply& reply,
+                 std::function<void(std::vector<protocol::Bytes>)> then);
+  // Copies plan.reads out of the poll cache; nullopt after answering the failure.
+  std::optional<std::vector<protocol::Bytes>> copy_from_cache(const ServoUnit& unit, std::uint8_t function,
+                                                              const modbus_map::ReadPlan& plan, const Reply& reply);
+  ServoFacts facts_of(const ServoUnit& unit) const;
+  void refuse(const ServoUnit& unit, std::uint8_t function, const modbus_map::MapError& error,
+              const Reply& reply) const;
+
+  std::array<std::unique_ptr<ServoUnit>, 256> units_{};
+  std::uint8_t gateway_unit_id_ = 255;
+  std::unique_ptr<GatewayUnit> gateway_unit_;
+  PostFn post_;
+};
+
+}  // namespace sms::gateway
