@@ -32,16 +32,14 @@ constexpr std::array<std::string_view, 5> kTopKeys{"modbus_tcp", "buses", "servo
 constexpr std::array<std::string_view, 5> kModbusTcpKeys{"listen", "max_connections", "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth"};
 constexpr std::array<std::string_view, 17> kBusKeys{
-    "name",           "device",           "protocol",       "baud",
-    "parity",         "stop_bits",        "response_timeout_ms",
-    "retries",        "poll_period_ms",   "offline_probe_period_ms",
-    "reopen_period_ms", "poll_fields",    "poll_range",     "rs485",
-    "rts",            "rts_delay_us",     "byte_timeout_ms"};
+    "name",        "device",         "protocol",   "baud",  "parity", "stop_bits",    "response_timeout_ms",
+    "retries",     "poll_period_ms", "offline_probe_period_ms",      "reopen_period_ms",
+    "poll_fields", "poll_range",     "rs485",      "rts",   "rts_delay_us",           "byte_timeout_ms"};
 // Keys of kBusKeys that only a modbus-rtu bus takes.
 constexpr std::array<std::string_view, 4> kModbusRtuOnlyKeys{"rs485", "rts", "rts_delay_us", "byte_timeout_ms"};
 constexpr std::array<std::string_view, 2> kPollRangeKeys{"start", "count"};
-constexpr std::array<std::string_view, 9> kServoKeys{"unit",           "bus",       "id",        "table", "profile",
-                                                     "byte_order",     "response_level", "read_only", "name"};
+constexpr std::array<std::string_view, 9> kServoKeys{"unit",       "bus",           "id",        "table", "profile",
+                                                     "byte_order", "response_level", "read_only", "name"};
 constexpr std::array<std::string_view, 4> kSyncGroupKeys{"name", "field", "members", "holding_register_start"};
 constexpr std::array<std::string_view, 2> kLoggingKeys{"level", "metrics_listen"};
 
@@ -225,9 +223,9 @@ struct BusPlaces {
   std::string path;
 };
 
-// A map node checked for shape: keys are plain names, none twice, none unknown.
 class MapReader;
 
+// Reads the document into a Config, checking as it goes; the first problem throws Failure.
 class Loader {
  public:
   explicit Loader(std::string file) : file_(std::move(file)) {}
@@ -315,8 +313,6 @@ class Loader {
   }
 
  private:
-  friend class MapReader;
-
   ModbusTcpConfig parse_modbus_tcp(const Value& value);
   void parse_buses(const Value& value, Config& config);
   BusConfig parse_bus(const Value& value, BusPlaces& places);
@@ -334,6 +330,7 @@ class Loader {
   std::vector<YAML::Mark> group_start_marks_;
 };
 
+// A map node checked for shape on construction: keys are plain names, none twice, none unknown.
 class MapReader {
  public:
   MapReader(const Loader& loader, const Value& map, std::span<const std::string_view> allowed)
@@ -347,7 +344,9 @@ class MapReader {
       const std::string& name = key.Scalar();
       if (std::find(allowed.begin(), allowed.end(), name) == allowed.end()) {
         std::string message = "unknown key `" + name + "` " + where();
-        if (const auto suggestion = closest(name, allowed)) message += " (did you mean `" + std::string(*suggestion) + "`?)";
+        if (const auto suggestion = closest(name, allowed)) {
+          message += " (did you mean `" + std::string(*suggestion) + "`?)";
+        }
         loader.fail(key.Mark(), message + "; allowed keys here: " + join(allowed));
       }
       for (const auto& [seen, seen_key] : keys_) {
@@ -617,7 +616,8 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
 
   const Value id_value = keys.require("id");
   const bool packet_bus = bus.protocol != BusProtocol::ModbusRtu;
-  servo.servo_id = static_cast<std::uint8_t>(integer(id_value, packet_bus ? 0 : 1, packet_bus ? kMaxPacketServoId : kMaxUnitId));
+  servo.servo_id = static_cast<std::uint8_t>(
+      integer(id_value, packet_bus ? 0 : 1, packet_bus ? kMaxPacketServoId : kMaxUnitId));
   places.id = id_value.mark;
 
   if (const auto v = keys.find("unit")) {

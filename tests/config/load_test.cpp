@@ -190,12 +190,17 @@ Config every_key_expected() {
                                         .response_level = 0,
                                         .read_only = true,
                                         .name = "Achse 1"});
-  expected.servos.push_back(ServoConfig{.unit_id = 7, .bus = "arm", .bus_index = 0, .servo_id = 7, .table = TableId::Sms1});
+  expected.servos.push_back(
+      ServoConfig{.unit_id = 7, .bus = "arm", .bus_index = 0, .servo_id = 7, .table = TableId::Sms1});
   expected.servos.push_back(ServoConfig{
       .unit_id = 3, .bus = "base.1", .bus_index = 1, .servo_id = 7, .table = TableId::D55d, .response_level = 2});
   // profile smsmb on an smsmb table is its native map
-  expected.servos.push_back(ServoConfig{
-      .unit_id = 21, .bus = "lift", .bus_index = 2, .servo_id = 1, .table = TableId::Smsmb, .profile = Profile::Native});
+  expected.servos.push_back(ServoConfig{.unit_id = 21,
+                                        .bus = "lift",
+                                        .bus_index = 2,
+                                        .servo_id = 1,
+                                        .table = TableId::Smsmb,
+                                        .profile = Profile::Native});
   expected.servos.push_back(ServoConfig{.unit_id = 247, .bus = "lift", .bus_index = 2, .servo_id = 247});
   expected.sync_groups.push_back(
       SyncGroupConfig{.name = "goals", .field = "goal_position", .members = {7, 3}, .holding_register_start = 16});
