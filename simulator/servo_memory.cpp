@@ -45,6 +45,10 @@ void ServoMemory::store_value(const FieldSpec& field, std::int64_t value) {
 bool ServoMemory::accepts(const FieldSpec& field, std::uint32_t raw) {
   const std::int32_t value = modbus_map::decode_value(field, raw);
   if (value < field.min || value > field.max) return false;
+  if (!field.allowed_values.empty() &&
+      std::find(field.allowed_values.begin(), field.allowed_values.end(), value) == field.allowed_values.end()) {
+    return false;
+  }
   const auto encoded = modbus_map::encode_value(field, value);
   // Sign-magnitude has two zeros; a host sending "-0" (direction bit, no magnitude) is fine.
   return encoded && (*encoded == raw || value == 0);

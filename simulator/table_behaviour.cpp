@@ -64,7 +64,7 @@ constexpr std::uint8_t kStsInstructions[] = {
     feetech::kResetStatus, feetech::kCalibrate, feetech::kSyncRead, common::kSyncWrite,
 };
 // The FD tool's SM40BL/STS3215 readout in doc 001 §15: firmware 2.48, servo 8.42.
-constexpr IdentityValue kStsIdentity[] = {
+constexpr SimulatedDefault kStsIdentity[] = {
     {Role::FirmwareMajor, 2},
     {Role::FirmwareMinor, 48},
     {Role::ModelMajor, 8},
@@ -114,7 +114,7 @@ constexpr std::uint8_t kSms1Instructions[] = {
     common::kPing,   common::kRead,      common::kWrite,     common::kRegWrite,
     common::kAction, feetech::kSyncRead, common::kSyncWrite,
 };
-constexpr IdentityValue kSms1Identity[] = {
+constexpr SimulatedDefault kSms1Identity[] = {
     {Role::FirmwareMajor, 0x0101},  // V1.01, the document's revision
 };
 
@@ -154,9 +154,12 @@ constexpr std::uint8_t kD55dInstructions[] = {
     common::kAction,        d55d::kReset,          d55d::kStartEnd,   d55d::kTrajectoryWrite,
     d55d::kTrajectoryAction, common::kSyncWrite,   d55d::kCustom,
 };
-constexpr IdentityValue kD55dIdentity[] = {
+constexpr SimulatedDefault kD55dIdentity[] = {
     {Role::ModelMajor, 0x5D},
     {Role::FirmwareMajor, 1},
+    // "max angle × resolution" (doc 002 §3.1): a 360° finger/wrist motor at the default
+    // resolution of 1°. Without it both limits would be 0, which is wheel mode.
+    {Role::MaxLimit, 360},
 };
 
 // --- smsmb (SPEC §2.4) -------------------------------------------------------------------
@@ -177,6 +180,10 @@ constexpr RoleBinding kSmsmbRoles[] = {
     {Role::TorqueLimit, "torque_limit"},
     {Role::Lock, "lock"},
     {Role::FaultReset, "fault_reset"},
+    {Role::UnloadConditions, "unload_conditions"},
+    {Role::MaxTemperature, "max_temperature"},
+    {Role::MaxVoltage, "max_input_voltage"},
+    {Role::MinVoltage, "min_input_voltage"},
     {Role::Status, "status"},
     {Role::PresentPosition, "present_position"},
     {Role::PresentSpeed, "present_speed"},
@@ -192,7 +199,7 @@ constexpr ModeBinding kSmsmbModes[] = {
     {3, ControlMode::PositionRelease},
     {4, ControlMode::Step},
 };
-constexpr IdentityValue kSmsmbIdentity[] = {
+constexpr SimulatedDefault kSmsmbIdentity[] = {
     {Role::FirmwareMajor, 3},
     {Role::ModelMajor, 9},
 };
@@ -202,7 +209,7 @@ constexpr TableBehaviour kSts{
     .roles = kStsRoles,
     .modes = kStsModes,
     .instructions = kStsInstructions,
-    .identity = kStsIdentity,
+    .simulated_defaults = kStsIdentity,
     .return_delay_us_per_unit = 2.0,
     .degrees_per_position_unit = kDegreesPerStep,
     .degrees_per_s_per_speed_unit = kDegreesPerStep,  // SPEC §2.1 decision: steps/s
@@ -229,7 +236,7 @@ constexpr TableBehaviour kSms1{
     .roles = kSms1Roles,
     .modes = kSms1Modes,
     .instructions = kSms1Instructions,
-    .identity = kSms1Identity,
+    .simulated_defaults = kSms1Identity,
     .return_delay_us_per_unit = 2.0,
     .degrees_per_position_unit = kDegreesPerStep,
     .degrees_per_s_per_speed_unit = 0.087,  // doc 000: run speed unit 0.087 °/s
@@ -256,7 +263,7 @@ constexpr TableBehaviour kD55d{
     .roles = kD55dRoles,
     .modes = {},
     .instructions = kD55dInstructions,
-    .identity = kD55dIdentity,
+    .simulated_defaults = kD55dIdentity,
     .return_delay_us_per_unit = 500.0,
     .degrees_per_position_unit = 0.0,       // angle resolution × 0.1°
     .degrees_per_s_per_speed_unit = 0.0,    // position units per second
@@ -283,7 +290,7 @@ constexpr TableBehaviour kSmsmb{
     .roles = kSmsmbRoles,
     .modes = kSmsmbModes,
     .instructions = {},
-    .identity = kSmsmbIdentity,
+    .simulated_defaults = kSmsmbIdentity,
     .return_delay_us_per_unit = 1.0,
     .degrees_per_position_unit = kDegreesPerStep,
     .degrees_per_s_per_speed_unit = 0.732 * 360.0 / 60.0,  // 0.732 rpm

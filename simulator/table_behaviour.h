@@ -76,8 +76,9 @@ struct ModeBinding {
   std::int32_t value;  // the mode field's value
   ControlMode mode;
 };
-// Values for read-only identity fields the documents give no default for.
-struct IdentityValue {
+// Power-on values the simulated servo uses where the table gives no default (identity
+// fields, a d55d motor's travel).
+struct SimulatedDefault {
   Role role;
   std::int32_t value;
 };
@@ -87,7 +88,7 @@ struct TableBehaviour {
   std::span<const RoleBinding> roles;
   std::span<const ModeBinding> modes;  // empty: position mode, wheel (velocity) mode when both limits are 0
   std::span<const std::uint8_t> instructions;  // packet instruction codes the firmware knows
-  std::span<const IdentityValue> identity;
+  std::span<const SimulatedDefault> simulated_defaults;
 
   double return_delay_us_per_unit;
   double degrees_per_position_unit;     // 0: angle-resolution field × 0.1° (d55d)

@@ -135,7 +135,7 @@ VirtualServo::VirtualServo(const ServoConfig& config, Clock::time_point now, std
   }
   memory_.reset_area(Area::Eeprom);
   memory_.reset_area(Area::Ram);
-  for (const IdentityValue& identity : behaviour_->identity) {
+  for (const SimulatedDefault& identity : behaviour_->simulated_defaults) {
     const FieldSpec* spec = field(identity.role);
     if (spec != nullptr && !spec->default_value) memory_.store_value(*spec, identity.value);
   }
@@ -680,10 +680,14 @@ void VirtualServo::refresh_present() {
 
   const std::uint8_t errors = error_bits();
   double voltage = kIdleVoltageDeciVolt - std::abs(load) * kCurrentUnitsPerLoadPermille / 50.0;
-  if ((errors & behaviour_->overvoltage_bit) != 0) voltage = get(Role::MaxVoltage, 140) + 5;
+  // A table without a configured limit (0) gets a typical one: 14.0 V, 70 °C.
+  const auto limit_or = [](std::int32_t limit, std::int32_t typical) { return limit > 0 ? limit : typical; };
+  if ((errors & behaviour_->overvoltage_bit) != 0) voltage = limit_or(get(Role::MaxVoltage), 140) + 5;
   put(Role::PresentVoltage, std::lround(voltage));
   double temperature = temperature_;
-  if ((errors & behaviour_->temperature_bit) != 0) temperature = std::max(temperature, get(Role::MaxTemperature, 70) + 3.0);
+  if ((errors & behaviour_->temperature_bit) != 0) {
+    temperature = std::max(temperature, limit_or(get(Role::MaxTemperature), 70) + 3.0);
+  }
   put(Role::PresentTemperature, std::lround(temperature));
 
   put(Role::Status, errors | (torque_on() ? behaviour_->torque_on_status_bit : 0));
@@ -868,7 +872,7 @@ VirtualServo::Outcome VirtualServo::on_calibrate(const Packet& request) {
 
 VirtualServo::Outcome VirtualServo::on_factory_reset(const Packet&) {
   memory_.reset_area(Area::Eeprom);
-  for (const IdentityValue& identity : behaviour_->identity) {
+  for (const SimulatedDefault& identity : behaviour_->simulated_defaults) {
     const FieldSpec* spec = field(identity.role);
     if (spec != nullptr && !spec->default_value) memory_.store_value(*spec, identity.value);
   }

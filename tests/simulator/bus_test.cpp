@@ -1,0 +1,423 @@
+// The bus around the servos: wire timing, line speed, mixed buses, fault injection, the
+// state file, the control socket and the sms-sim program.
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/un.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "protocol/feetech.h"
+#include "protocol/stream_decoder.h"
+#include "simulator/control_server.h"
+#include "tests/simulator/sim_fixture.h"
+
+namespace sms::simulator::testing {
+namespace {
+
+using protocol::kD55dFormat;
+using protocol::kFeetechFormat;
+using Clock = std::chrono::steady_clock;
+
+std::string temporary_path(const std::string& name) {
+  return (std::filesystem::temp_directory_path() /
+          ("sms-sim-test-" + std::to_string(::getpid()) + "-" + name))
+      .string();
+}
+
+double elapsed_ms(Clock::time_point since) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - since).count();
+}
+
+// --- wire timing ------------------------------------------------------------------------
+
+TEST(SimulatedBusTiming, ReplyNeverArrivesBeforeItsWireTime) {
+  BusOptions options = quick_options({sts(1, 38'400)});
+  options.timing = true;
+  Rig rig(options);
+  // READ 56..70: 8 request + 21 reply bytes at 38400 = 7.55 ms, + return delay 250 × 2 µs.
+  const double wire_ms = (8 + 21) * 10.0 / 38'400 * 1000 + 0.5;
+  for (int round = 0; round < 10; ++round) {
+    const auto sent = Clock::now();
+    rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 15)));
+    const Bytes reply = rig.host->receive_exactly(21);
+    const double took = elapsed_ms(sent);
+    ASSERT_EQ(reply.size(), 21U);
+    EXPECT_GE(took, wire_ms) << "round " << round;
+    EXPECT_LT(took, wire_ms + 40) << "round " << round << ": timing should not add much more than the wire";
+  }
+}
+
+TEST(SimulatedBusTiming, ReturnDelayIsPartOfTheWireTime) {
+  BusOptions options = quick_options({d55d(1, 115'200)});
+  options.timing = true;
+  Rig rig(options);
+  // d55d return delay: address 5 × 500 µs; 20 -> 10 ms.
+  ASSERT_EQ(rig.host->transact(kD55dFormat, protocol::write(1, 5, Bytes{20})), status(1, 0));
+  const auto sent = Clock::now();
+  ASSERT_EQ(rig.host->transact(kD55dFormat, protocol::ping(1)), status(1, 0, {0}));
+  EXPECT_GE(elapsed_ms(sent), 10.0 + (6 + 7) * 10.0 / 115'200 * 1000);
+}
+
+TEST(SimulatedBusTiming, SyncReadRepliesFollowEachOtherWithTheirReturnDelays) {
+  BusOptions options = quick_options({sts(1, 115'200), sts(2, 115'200), sts(3, 115'200)});
+  options.timing = true;
+  Rig rig(options);
+  const std::vector<std::uint8_t> ids{1, 2, 3};
+  const auto sent = Clock::now();
+  rig.host->send(protocol::encode(kFeetechFormat, protocol::feetech::sync_read(56, 15, ids)));
+  const Bytes replies = rig.host->receive_exactly(3 * 21);
+  const double took = elapsed_ms(sent);
+  ASSERT_EQ(replies.size(), 63U);
+  // SPEC §5: (8 + N) request bytes + N × (6 + L) reply bytes + N return delays.
+  EXPECT_GE(took, (11 + 63) * 10.0 / 115'200 * 1000 + 3 * 0.5);
+  const auto packets = decode_all(kFeetechFormat, replies);
+  ASSERT_EQ(packets.size(), 3U);
+  EXPECT_EQ(packets[0].id, 1);
+  EXPECT_EQ(packets[1].id, 2);
+  EXPECT_EQ(packets[2].id, 3);
+}
+
+TEST(SimulatedBusTiming, NoTimingAnswersWithoutWaitingForTheWire) {
+  Rig rig(quick_options({sts(1, 4'800)}));
+  // At 4800 bit/s the wire would take 60 ms.
+  const auto sent = Clock::now();
+  rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 15)));
+  ASSERT_EQ(rig.host->receive_exactly(21).size(), 21U);
+  EXPECT_LT(elapsed_ms(sent), 40.0);
+}
+
+TEST(SimulatedBusTiming, TimingCanBeSwitchedAtRunTime) {
+  Rig rig(quick_options({sts(1, 4'800)}));
+  rig.bus->set_timing(true);
+  const auto sent = Clock::now();
+  rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 15)));
+  ASSERT_EQ(rig.host->receive_exactly(21).size(), 21U);
+  EXPECT_GE(elapsed_ms(sent), 60.0);
+}
+
+// --- line speed -------------------------------------------------------------------------
+
+TEST(SimulatedBusLine, ServoIsSilentWhenTheHostSpeedDiffersFromItsBaud) {
+  Rig rig(quick_options({sts(1)}), 115'200);
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::ping(1), std::chrono::milliseconds(50)));
+  rig.host->set_baud(1'000'000);
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+}
+
+TEST(SimulatedBusLine, MixedBusAnswersEachServoAtItsOwnRateAndProtocol) {
+  Rig rig(quick_options({sts(1, 1'000'000), sts(2, 115'200), smsmb(3, 115'200), d55d(4, 115'200), sms1(5, 76'800)}));
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::ping(2), std::chrono::milliseconds(30)));
+
+  rig.host->set_baud(115'200);
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::ping(1), std::chrono::milliseconds(30)));
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(2)), status(2, 0));
+  EXPECT_EQ(rig.host->transact(kD55dFormat, protocol::ping(4)), status(4, 0, {0}));
+  rig.host->send({0x03, 0x11, 0xC1, 0x4C});  // FC 0x11 to slave 3
+  EXPECT_EQ(rig.host->receive(), (Bytes{0x03, 0x11, 0x03, 0x03, 0x00, 0x00, 0x0C, 0x6F}));
+
+  rig.host->set_baud(76'800);  // not a standard termios rate: BOTHER
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(5)), status(5, 0));
+}
+
+TEST(SimulatedBusLine, HostClosingItsEndDoesNotHangTheBusUp) {
+  Rig rig(quick_options({sts(1)}));
+  rig.host.reset();
+  HostPort again(rig.bus->slave_path(), 1'000'000);
+  EXPECT_EQ(again.transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+}
+
+TEST(SimulatedBusLine, LinkPointsAtThePtyAndGoesAwayAtStop) {
+  BusOptions options = quick_options({sts(1)});
+  options.link = temporary_path("link");
+  {
+    SimulatedBus bus(options);
+    bus.start();
+    EXPECT_EQ(std::filesystem::read_symlink(options.link).string(), bus.slave_path());
+    HostPort host(options.link, 1'000'000);
+    EXPECT_EQ(host.transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+  }
+  EXPECT_FALSE(std::filesystem::exists(std::filesystem::symlink_status(options.link)));
+}
+
+TEST(SimulatedBusLine, WrongTableForTheProtocolIsRefusedWithTheReason) {
+  BusOptions options = quick_options({{1, modbus_map::TableId::Sts, protocol::BusProtocol::D55d, 115'200}});
+  try {
+    SimulatedBus bus(options);
+    FAIL() << "constructed";
+  } catch (const std::invalid_argument& error) {
+    EXPECT_NE(std::string(error.what()).find("feetech"), std::string::npos) << error.what();
+  }
+}
+
+TEST(SimulatedBusLine, BaudOutsideTheProtocolTableIsRefusedWithTheValidRates) {
+  try {
+    SimulatedBus bus(quick_options({sts(1, 12'345)}));
+    FAIL() << "constructed";
+  } catch (const std::invalid_argument& error) {
+    EXPECT_NE(std::string(error.what()).find("12345"), std::string::npos) << error.what();
+  }
+}
+
+// --- faults ---------------------------------------------------------------------------------
+
+TEST(SimulatedBusFaults, OfflineServoIsSilentUntilOnlineAgain) {
+  Rig rig(quick_options({sts(1), sts(2)}));
+  rig.bus->set_offline(2, true);
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::ping(2), std::chrono::milliseconds(50)));
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+  rig.bus->set_offline(2, false);
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(2)), status(2, 0));
+}
+
+TEST(SimulatedBusFaults, DropProbabilityOneDropsEveryReplyButTheWriteStillLands) {
+  Rig rig(quick_options({sts(1)}));
+  rig.bus->set_drop_probability(1.0);
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::write(1, 41, Bytes{7}), std::chrono::milliseconds(50)));
+  rig.bus->set_drop_probability(0.0);
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::read(1, 41, 1)), status(1, 0, {7}));
+  EXPECT_EQ(rig.bus->stats().dropped, 1U);
+}
+
+TEST(SimulatedBusFaults, DropProbabilityHalfDropsAboutHalf) {
+  Rig rig(quick_options({sts(1)}));
+  rig.bus->set_drop_probability(0.5);
+  int answered = 0;
+  for (int round = 0; round < 40; ++round) {
+    if (rig.host->transact(kFeetechFormat, protocol::ping(1), std::chrono::milliseconds(25))) ++answered;
+  }
+  EXPECT_GT(answered, 8);
+  EXPECT_LT(answered, 32);
+}
+
+TEST(SimulatedBusFaults, CorruptedReplyFailsItsChecksumAndTheNextIsClean) {
+  Rig rig(quick_options({sts(1)}));
+  rig.bus->corrupt_next_replies(1);
+  rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 2)));
+  const Bytes corrupted = rig.host->receive();
+  EXPECT_EQ(corrupted.size(), 8U);
+  EXPECT_NE(corrupted, (Bytes{0xFF, 0xFF, 0x01, 0x04, 0x00, 0x00, 0x08, 0xF2}));
+  EXPECT_TRUE(decode_all(kFeetechFormat, corrupted).empty()) << hex(corrupted);
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::read(1, 56, 2)), status(1, 0, {0x00, 0x08}));
+}
+
+TEST(SimulatedBusFaults, LateServoAnswersAfterTheHostGaveUp) {
+  Rig rig(quick_options({sts(1), sts(2)}));
+  rig.bus->set_reply_delay(2, std::chrono::milliseconds(80));
+  const auto sent = Clock::now();
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::ping(2), std::chrono::milliseconds(30)));
+  // The late reply turns up when the host has moved on to servo 1.
+  const auto replies = rig.host->transact_all(kFeetechFormat, protocol::ping(1), std::chrono::milliseconds(120));
+  EXPECT_GE(elapsed_ms(sent), 80.0);
+  EXPECT_EQ(replies, (std::vector<protocol::Packet>{status(1, 0), status(2, 0)}));
+}
+
+TEST(SimulatedBusFaults, DuplicateIdRepliesCollideOnTheWire) {
+  Rig rig(quick_options({sts(1)}));
+  rig.bus->add_duplicate(1);
+  rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 2)));
+  const Bytes collided = rig.host->receive();
+  EXPECT_EQ(collided.size(), 8U) << "both start together: one frame's worth of garbled characters";
+  EXPECT_TRUE(decode_all(kFeetechFormat, collided).empty()) << hex(collided);
+  EXPECT_EQ(rig.bus->stats().collisions, 1U);
+  EXPECT_EQ(rig.bus->servos().size(), 2U);
+}
+
+TEST(SimulatedBusFaults, ErrorBitsAreClearedWithZero) {
+  Rig rig(quick_options({sts(1)}));
+  rig.bus->set_error_bits(1, protocol::feetech::error_bit::kOverload);
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(1)), status(1, protocol::feetech::error_bit::kOverload));
+  rig.bus->set_error_bits(1, 0);
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+}
+
+// --- state file ---------------------------------------------------------------------------
+
+TEST(SimulatedBusStateFile, UnlockedEepromWritesSurviveARestartLockedOnesDoNot) {
+  const std::string path = temporary_path("state");
+  std::filesystem::remove(path);
+  BusOptions options = quick_options({sts(1), sts(2)});
+  options.state_file = path;
+  {
+    Rig rig(options);
+    ASSERT_EQ(rig.host->transact(kFeetechFormat, protocol::write(1, 13, Bytes{60})), status(1, 0));  // locked
+    ASSERT_EQ(rig.host->transact(kFeetechFormat, protocol::write(2, 55, Bytes{0})), status(2, 0));
+    ASSERT_EQ(rig.host->transact(kFeetechFormat, protocol::write(2, 13, Bytes{61})), status(2, 0));
+    ASSERT_EQ(rig.host->transact(kFeetechFormat, protocol::write(2, 5, Bytes{12})), status(2, 0));
+  }
+  Rig again(options);
+  EXPECT_EQ(again.host->transact(kFeetechFormat, protocol::read(1, 13, 1)), status(1, 0, {70}));
+  EXPECT_EQ(again.host->transact(kFeetechFormat, protocol::read(12, 13, 1)), status(12, 0, {61}))
+      << "slot 2 comes back with its saved ID";
+  EXPECT_FALSE(again.host->transact(kFeetechFormat, protocol::ping(2), std::chrono::milliseconds(30)));
+  std::filesystem::remove(path);
+}
+
+TEST(SimulatedBusStateFile, UnreadableStateFileIsReportedWithItsLine) {
+  const std::string path = temporary_path("bad-state");
+  {
+    std::ofstream out(path);
+    out << "# comment\neeprom zero sts id=1\n";
+  }
+  BusOptions options = quick_options({sts(1)});
+  options.state_file = path;
+  SimulatedBus bus(options);
+  try {
+    bus.start();
+    FAIL() << "started";
+  } catch (const std::runtime_error& error) {
+    EXPECT_NE(std::string(error.what()).find(path + ":2"), std::string::npos) << error.what();
+  }
+  std::filesystem::remove(path);
+}
+
+// --- control socket ---------------------------------------------------------------------
+
+class ControlClient {
+ public:
+  explicit ControlClient(const std::string& path) {
+    fd_ = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+    sockaddr_un address{};
+    address.sun_family = AF_UNIX;
+    std::strncpy(address.sun_path, path.c_str(), sizeof address.sun_path - 1);
+    for (int attempt = 0; attempt < 100; ++attempt) {
+      if (::connect(fd_, reinterpret_cast<const sockaddr*>(&address), sizeof address) == 0) return;
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    throw std::runtime_error("cannot connect to " + path);
+  }
+  ~ControlClient() { ::close(fd_); }
+  std::string ask(const std::string& line) {
+    const std::string request = line + "\n";
+    EXPECT_EQ(::send(fd_, request.data(), request.size(), MSG_NOSIGNAL), static_cast<ssize_t>(request.size()));
+    std::string reply;
+    char byte = 0;
+    while (::recv(fd_, &byte, 1, 0) == 1 && byte != '\n') reply += byte;
+    return reply;
+  }
+
+ private:
+  int fd_ = -1;
+};
+
+TEST(SimulatedBusControl, SocketCommandsInjectFaultsAndReadMemory) {
+  Rig rig(quick_options({sts(1), sts(2)}));
+  const std::string path = temporary_path("control.sock");
+  ControlServer server(*rig.bus, path);
+  ControlClient control(path);
+
+  EXPECT_EQ(control.ask("get 1 56 2"), "00 08");
+  EXPECT_EQ(control.ask("set 1 41 0a"), "ok");
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::read(1, 41, 1)), status(1, 0, {10}));
+  EXPECT_EQ(control.ask("field 1 acceleration"), "10");
+
+  EXPECT_EQ(control.ask("offline 2"), "ok");
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::ping(2), std::chrono::milliseconds(30)));
+  EXPECT_EQ(control.ask("list"), "1:sts:feetech:1000000 2:sts:feetech:1000000:offline");
+  EXPECT_EQ(control.ask("online 2"), "ok");
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(2)), status(2, 0));
+
+  EXPECT_EQ(control.ask("error 2 0x20"), "ok");
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(2)), status(2, 0x20));
+  EXPECT_EQ(control.ask("error 2 0"), "ok");
+
+  EXPECT_EQ(control.ask("drop 1"), "ok");
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::ping(1), std::chrono::milliseconds(30)));
+  EXPECT_EQ(control.ask("drop 0"), "ok");
+
+  EXPECT_EQ(control.ask("late 1 60"), "ok");
+  const auto sent = Clock::now();
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+  EXPECT_GE(elapsed_ms(sent), 60.0);
+  EXPECT_EQ(control.ask("late 1 0"), "ok");
+
+  EXPECT_EQ(control.ask("corrupt-next"), "ok");
+  EXPECT_FALSE(rig.host->transact(kFeetechFormat, protocol::ping(1), std::chrono::milliseconds(30)));
+  EXPECT_EQ(control.ask("duplicate 1"), "ok");
+  EXPECT_EQ(control.ask("timing off"), "ok");
+  EXPECT_EQ(control.ask("stats").rfind("requests=", 0), 0U);
+
+  EXPECT_EQ(control.ask("offline 9"), "error: no servo has ID 9");
+  EXPECT_EQ(control.ask("drop 2").rfind("error: usage: drop P", 0), 0U);
+  EXPECT_EQ(control.ask("get 1 250 10").rfind("error: ", 0), 0U);
+  EXPECT_EQ(control.ask("frobnicate").rfind("error: unknown command 'frobnicate'", 0), 0U);
+}
+
+// --- the sms-sim program ------------------------------------------------------------------
+
+std::string run_and_capture(const std::string& command) {
+  std::string output;
+  FILE* pipe = ::popen(command.c_str(), "r");
+  if (pipe == nullptr) return output;
+  char buffer[512];
+  while (std::fgets(buffer, sizeof buffer, pipe) != nullptr) output += buffer;
+  ::pclose(pipe);
+  return output;
+}
+
+TEST(SmsSimProgram, HelpDocumentsEveryOption) {
+  const std::string help = run_and_capture(std::string(SMS_SIM_PATH) + " --help");
+  for (const char* option : {"--protocol", "--table", "--ids", "--baud", "--servo", "--link", "--device",
+                             "--no-timing", "--state-file", "--control", "--drop", "--corrupt", "--late",
+                             "--offline", "--error", "--duplicate", "modbus-rtu", "smsmb", "get ID ADDR COUNT"}) {
+    EXPECT_NE(help.find(option), std::string::npos) << option << " missing from --help";
+  }
+}
+
+TEST(SmsSimProgram, PrintsThePtyPathServesItAndStopsOnSigterm) {
+  const std::string link = temporary_path("prog-link");
+  const std::string socket_path = temporary_path("prog.sock");
+  int out[2];
+  ASSERT_EQ(::pipe(out), 0);
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    ::dup2(out[1], STDOUT_FILENO);
+    ::close(out[0]);
+    ::close(out[1]);
+    ::execl(SMS_SIM_PATH, SMS_SIM_PATH, "--protocol", "feetech", "--table", "sts", "--ids", "1,3", "--baud",
+            "1000000", "--link", link.c_str(), "--no-timing", "--control", socket_path.c_str(), "--late", "3:40",
+            static_cast<char*>(nullptr));
+    ::_exit(127);
+  }
+  ::close(out[1]);
+  std::string line;
+  char byte = 0;
+  while (::read(out[0], &byte, 1) == 1 && byte != '\n') line += byte;
+  ::close(out[0]);
+  EXPECT_EQ(line.rfind("/dev/pts/", 0), 0U) << line;
+
+  {
+    HostPort host(link, 1'000'000);
+    EXPECT_EQ(host.transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+    const auto sent = Clock::now();
+    EXPECT_EQ(host.transact(kFeetechFormat, protocol::ping(3)), status(3, 0));
+    EXPECT_GE(elapsed_ms(sent), 40.0) << "--late 3:40";
+    ControlClient control(socket_path);
+    EXPECT_EQ(control.ask("offline 1"), "ok");
+    EXPECT_FALSE(host.transact(kFeetechFormat, protocol::ping(1), std::chrono::milliseconds(30)));
+  }
+  ASSERT_EQ(::kill(child, SIGTERM), 0);
+  int status_code = 0;
+  ASSERT_EQ(::waitpid(child, &status_code, 0), child);
+  EXPECT_TRUE(WIFEXITED(status_code) && WEXITSTATUS(status_code) == 0);
+  EXPECT_FALSE(std::filesystem::exists(std::filesystem::symlink_status(link)));
+}
+
+TEST(SmsSimProgram, BadArgumentsSayWhatIsWrong) {
+  const std::string output =
+      run_and_capture(std::string(SMS_SIM_PATH) + " --protocol d55d --table sts 2>&1; echo exit=$?");
+  EXPECT_NE(output.find("spoken over feetech"), std::string::npos) << output;
+  EXPECT_EQ(output.find("exit=0"), std::string::npos) << output;
+}
+
+}  // namespace
+}  // namespace sms::simulator::testing
