@@ -23,8 +23,19 @@ using namespace sms::simulator;
 
 constexpr const char* kDescription = R"(sms-sim: simulated RS-485 servos on a pseudo-terminal.
 
-Prints the pty path (one line) and answers on it until SIGINT/SIGTERM. A host opens the path
-like a serial port; a servo answers only when the host's line speed equals its baud.
+Prints the pty path (one line, flushed) and answers on it until SIGINT/SIGTERM. A host opens
+the path like a serial port; a servo answers only when the host's line speed equals its baud,
+so several rates and protocols can share one bus. Tables: sts and sms1 (protocol feetech,
+FF FF), d55d (protocol d55d, D5 5D), smsmb (protocol modbus-rtu: FC 03/06/10/11/41, FC 04 ->
+exception 0x01). Every instruction of the protocol is simulated, with a motion model behind
+the present-value fields.
+
+Wire timing: a reply is written no earlier than request + return delay + reply on the wire at
+10 bits a character (--no-timing answers at once).
+
+State file: per servo slot (its place on the command line), the EEPROM that survives a power
+cycle: writes made while the lock is open (sts 55 = 0, sms1 48 = 0, smsmb 0x85 = 0 or 128;
+d55d always) and the BACKUP image. A saved ID or baud wins over the command line.
 
 Examples:
   sms-sim --ids 1-6                                    6 STS servos, feetech, 1 Mbaud
@@ -38,6 +49,7 @@ Control socket (--control PATH; one command per line, one reply line each: "ok",
   duplicate ID | timing on|off | get ID ADDR COUNT (hex bytes) | set ID ADDR HEX... |
   field ID NAME | list | stats | help
   e.g. `get 3 56 2` -> `18 05`, `set 3 42 00 08`, `error 2 0x04`, `late 2 50`.
+  SMSMB addresses are registers; get/set move 2 bytes per register, high byte first.
 )";
 
 std::vector<ServoConfig> build_servos(const std::optional<std::string>& protocol_name,
@@ -116,7 +128,7 @@ int main(int argc, char** argv) {
                                          "10 bits a character)");
   app.add_option("--state-file", options.state_file,
                  "Keep EEPROM here across restarts: unlocked EEPROM writes survive (sts lock 55, sms1 48, smsmb 0x85)");
-  app.add_option("--control", control_path, "Unix socket for run-time commands (see below)");
+  app.add_option("--control", control_path, "Unix socket for run-time commands (listed above)");
   app.add_option("--drop", drop, "Drop each reply with probability P (0-1)")->check(CLI::Range(0.0, 1.0));
   app.add_option("--corrupt", corrupt, "Flip a byte in each reply with probability P (0-1)")->check(CLI::Range(0.0, 1.0));
   app.add_option("--late", late, "ID:MS - servo ID answers MS milliseconds late (repeatable)");
@@ -148,21 +160,27 @@ int main(int argc, char** argv) {
 
   try {
     SimulatedBus bus(options);
-    for (const unsigned id : duplicates) bus.add_duplicate(static_cast<std::uint8_t>(id));
-    for (const unsigned id : offline) bus.set_offline(static_cast<std::uint8_t>(id), true);
+    const auto require_servo = [&](std::uint32_t id, const std::string& option) {
+      for (const ServoSummary& servo : bus.servos()) {
+        if (servo.config.id == id) return static_cast<std::uint8_t>(id);
+      }
+      throw std::invalid_argument(option + ": no servo has ID " + std::to_string(id));
+    };
+    for (const unsigned id : duplicates) bus.add_duplicate(require_servo(id, "--duplicate"));
+    for (const unsigned id : offline) bus.set_offline(require_servo(id, "--offline"), true);
     if (drop) bus.set_drop_probability(*drop);
     if (corrupt) bus.set_corrupt_probability(*corrupt);
     for (const std::string& entry : late) {
       const auto pair = parse_id_value(entry);
       if (!pair) throw std::invalid_argument("--late " + pair.error() + "; write ID:MS, e.g. 2:50");
-      bus.set_reply_delay(pair->first, std::chrono::milliseconds(pair->second));
+      bus.set_reply_delay(require_servo(pair->first, "--late"), std::chrono::milliseconds(pair->second));
     }
     for (const std::string& entry : errors) {
       const auto pair = parse_id_value(entry);
       if (!pair || pair->second > 0xFF) {
         throw std::invalid_argument("--error '" + entry + "': write ID:BITS with BITS 0-255, e.g. 2:0x04");
       }
-      bus.set_error_bits(pair->first, static_cast<std::uint8_t>(pair->second));
+      bus.set_error_bits(require_servo(pair->first, "--error"), static_cast<std::uint8_t>(pair->second));
     }
     bus.start();
     std::optional<ControlServer> control;

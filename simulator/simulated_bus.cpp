@@ -364,8 +364,10 @@ bool SimulatedBus::Impl::listens(BusProtocol protocol, std::uint32_t speed) cons
 void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::time_point now) {
   const std::uint32_t speed = current_speed();
   if (speed == 0) return;
-  // The request occupies the wire from when it arrived (or when the wire became free).
-  const Clock::time_point wire_start = std::max(wire_free_, now);
+  // The request occupies the wire from when it arrived (or when the wire became free). Without
+  // timing the host may outrun the wire; the virtual wire then restarts at each arrival so it
+  // never runs ahead of real time.
+  const Clock::time_point wire_start = timing_ ? std::max(wire_free_, now) : now;
   wire_free_ = wire_start + character_time(speed) * static_cast<long>(bytes.size());
   const Clock::time_point request_end = wire_free_;
   if (spdlog::should_log(spdlog::level::debug)) {

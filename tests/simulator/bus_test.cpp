@@ -1,7 +1,10 @@
 // The bus around the servos: wire timing, line speed, mixed buses, fault injection, the
 // state file, the control socket and the sms-sim program.
+#include <fcntl.h>
 #include <gtest/gtest.h>
+#include <poll.h>
 #include <signal.h>
+#include <stdlib.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
 #include <sys/un.h>
@@ -146,6 +149,34 @@ TEST(SimulatedBusLine, LinkPointsAtThePtyAndGoesAwayAtStop) {
     EXPECT_EQ(host.transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
   }
   EXPECT_FALSE(std::filesystem::exists(std::filesystem::symlink_status(options.link)));
+}
+
+TEST(SimulatedBusLine, AttachesToAnExistingSerialDevice) {
+  // A second pty stands in for a USB adapter: the simulator answers on its slave end, the
+  // test talks on the master end.
+  const int master = ::posix_openpt(O_RDWR | O_NOCTTY | O_CLOEXEC);
+  ASSERT_GE(master, 0);
+  ASSERT_EQ(::grantpt(master), 0);
+  ASSERT_EQ(::unlockpt(master), 0);
+  BusOptions options = quick_options({sts(1, 115'200)});
+  options.device = ::ptsname(master);
+  SimulatedBus bus(options);
+  bus.start();
+  EXPECT_EQ(bus.slave_path(), options.device);
+  const Bytes ping{0xFF, 0xFF, 0x01, 0x02, 0x01, 0xFB};
+  ASSERT_EQ(::write(master, ping.data(), ping.size()), static_cast<ssize_t>(ping.size()));
+  Bytes reply(6);
+  std::size_t got = 0;
+  const auto give_up = Clock::now() + std::chrono::seconds(1);
+  while (got < reply.size() && Clock::now() < give_up) {
+    pollfd pfd{master, POLLIN, 0};
+    if (::poll(&pfd, 1, 50) <= 0) continue;
+    const ssize_t n = ::read(master, reply.data() + got, reply.size() - got);
+    if (n > 0) got += static_cast<std::size_t>(n);
+  }
+  EXPECT_EQ(reply, (Bytes{0xFF, 0xFF, 0x01, 0x02, 0x00, 0xFC}));
+  bus.stop();
+  ::close(master);
 }
 
 TEST(SimulatedBusLine, WrongTableForTheProtocolIsRefusedWithTheReason) {
