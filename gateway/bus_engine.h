@@ -48,6 +48,7 @@ struct BusSettings {
   std::chrono::milliseconds reopen_period{1000}; // a lost or missing port is retried this often
   std::size_t queue_depth = 64;                  // client operations waiting, all priorities
   bool discover = true;                          // PING and identity READs before polling starts
+  bool poll = true;                              // cyclic polling into the cache (off: live operations only)
   std::vector<ServoSettings> servos;
 };
 

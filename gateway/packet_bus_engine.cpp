@@ -931,7 +931,7 @@ void PacketBusEngine::Impl::begin_discovery() {
   }
   if (!settings_.discover || settings_.servos.empty()) {
     discovered_.store(true);
-    schedule_poll(SteadyClock::now());
+    if (settings_.poll) schedule_poll(SteadyClock::now());
     return;
   }
   for (std::size_t index = 0; index < settings_.servos.size(); ++index) {
@@ -985,7 +985,7 @@ void PacketBusEngine::Impl::discovery_step_done() {
   spdlog::info("{}", format_discovery_summary({settings_.name, settings_.serial.device, rules_.format->name,
                                                settings_.serial.baud, discovery_.servos}));
   discovered_.store(true);
-  schedule_poll(SteadyClock::now());
+  if (settings_.poll) schedule_poll(SteadyClock::now());
 }
 
 // ==== polling =============================================================================
