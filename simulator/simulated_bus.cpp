@@ -375,6 +375,7 @@ void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::ti
   }
 
   // A servo at another rate sees only framing errors: its decoder forgets what it had.
+  bool packet_frame = false;
   for (const auto& [protocol, decoder] : {std::pair{BusProtocol::Feetech, &feetech_decoder_},
                                           std::pair{BusProtocol::D55d, &d55d_decoder_}}) {
     if (!listens(protocol, speed)) {
@@ -384,16 +385,30 @@ void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::ti
     decoder->feed(bytes);
     const protocol::PacketFormat& format =
         protocol == BusProtocol::Feetech ? protocol::kFeetechFormat : protocol::kD55dFormat;
-    while (const auto event = decoder->next()) on_packet(format, *event, speed, request_end, now);
+    while (const auto event = decoder->next()) {
+      packet_frame = packet_frame || event->kind == protocol::DecodeEvent::Kind::Frame;
+      on_packet(format, *event, speed, request_end, now);
+    }
   }
   if (!listens(BusProtocol::ModbusRtu, speed)) {
     rtu_decoder_.reset();
   } else {
     if (rtu_speed_ != speed) rtu_decoder_.reset();
     rtu_speed_ = speed;
+    // The silence that ends a Modbus frame may have passed before the poll loop looked.
+    if (rtu_decoder_.buffered() > 0 && now >= last_received_ + rtu_silence()) {
+      if (const auto event = rtu_decoder_.end_of_frame()) on_modbus(*event, speed, request_end, now);
+    }
     last_received_ = now;
-    rtu_decoder_.feed(bytes);
-    while (const auto event = rtu_decoder_.next()) on_modbus(*event, speed, request_end, now);
+    if (packet_frame) {
+      // Another protocol's frame on a mixed bus: to the Modbus slaves it is noise that ends
+      // whatever they were collecting. Without wire timing the host may follow it by less than
+      // the 3.5-character silence, which would otherwise glue it to the next Modbus request.
+      rtu_decoder_.reset();
+    } else {
+      rtu_decoder_.feed(bytes);
+      while (const auto event = rtu_decoder_.next()) on_modbus(*event, speed, request_end, now);
+    }
   }
   save_state_if_dirty();
   flush_due(now);
