@@ -47,7 +47,7 @@ struct BusCounters {
 struct ServoCountersSnapshot {
   std::uint64_t replies_ok = 0;  // valid answers from this servo (polls, probes, client operations)
   std::uint64_t timeouts = 0;    // attempts addressed to it that got no valid answer in time
-  std::uint8_t last_status = 0;  // ERROR / status byte of its latest answer
+  std::uint8_t last_status = 0;  // ERROR / status byte of its latest answer, refusal bits removed
 };
 
 struct ServoCounters {

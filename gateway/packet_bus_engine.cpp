@@ -667,12 +667,14 @@ void PacketBusEngine::Impl::handle_frame(Packet frame) {
       }
       return accept_answer(std::move(frame));
     case Verdict::Refused:
-      note_answer(frame.id, frame.code);
+      // The refusal bits are about this instruction, not the servo's condition: the last
+      // status byte keeps only the rest (the client learns of the refusal from the result).
+      note_answer(frame.id, frame.code & ~rules_.refusal_bits);
       return finish(BusStatus::ServoRefused, frame.code, {},
                     fmt::format("bus {}: servo {} refused {} (ERROR 0x{:02X})", settings_.name, frame.id,
                                 describe(active.job), frame.code));
     case Verdict::RefusedDamaged:
-      note_answer(frame.id, frame.code);
+      note_answer(frame.id, frame.code & ~rules_.refusal_bits);
       active.refused_damaged = true;
       active.last_error = frame.code;
       attempt_timer_.cancel();
