@@ -53,131 +53,156 @@ std::optional<std::uint8_t> parse_hex_byte(std::string_view text) {
 
 }  // namespace
 
+namespace {
+
+// Argument readers with plain out-parameters (GCC 12 -O2 reports std::optional copies in
+// ternaries as maybe-uninitialized).
+bool read_id(const std::string& word, std::uint8_t& id) {
+  const auto value = parse_number(word);
+  if (!value || *value > 253) return false;
+  id = static_cast<std::uint8_t>(*value);
+  return true;
+}
+
+bool read_number(const std::string& word, std::uint32_t& number, std::uint32_t max = 0xFFFFFFFF) {
+  const auto value = parse_number(word);
+  if (!value || *value > max) return false;
+  number = *value;
+  return true;
+}
+
+bool has_servo(SimulatedBus& bus, std::uint8_t id) {
+  for (const ServoSummary& servo : bus.servos()) {
+    if (servo.config.id == id) return true;
+  }
+  return false;
+}
+
+std::string usage(std::string_view form) { return "error: usage: " + std::string(form); }
+std::string unknown_id(std::uint8_t id) { return "error: no servo has ID " + std::to_string(id); }
+
+std::string run_command(SimulatedBus& bus, const std::vector<std::string>& words) {
+  const std::string& command = words[0];
+  const std::size_t arguments = words.size() - 1;
+  std::uint8_t id = 0;
+  std::uint32_t number = 0;
+
+  if (command == "help") return std::string(kHelp);
+  if (command == "offline" || command == "online") {
+    if (arguments != 1 || !read_id(words[1], id)) return usage(command + " ID");
+    if (!has_servo(bus, id)) return unknown_id(id);
+    bus.set_offline(id, command == "offline");
+    return "ok";
+  }
+  if (command == "drop" || command == "corrupt") {
+    const auto probability = arguments == 1 ? parse_probability(words[1]) : std::optional<double>();
+    if (!probability) return usage(command + " P   (P from 0 to 1)");
+    if (command == "drop") {
+      bus.set_drop_probability(*probability);
+    } else {
+      bus.set_corrupt_probability(*probability);
+    }
+    return "ok";
+  }
+  if (command == "corrupt-next") {
+    number = 1;
+    if (arguments > 1 || (arguments == 1 && !read_number(words[1], number))) return usage("corrupt-next [N]");
+    bus.corrupt_next_replies(number);
+    return "ok";
+  }
+  if (command == "late") {
+    if (arguments != 2 || !read_id(words[1], id) || !read_number(words[2], number)) return usage("late ID MS");
+    if (!has_servo(bus, id)) return unknown_id(id);
+    bus.set_reply_delay(id, std::chrono::milliseconds(number));
+    return "ok";
+  }
+  if (command == "error") {
+    if (arguments != 2 || !read_id(words[1], id) || !read_number(words[2], number, 0xFF)) {
+      return usage("error ID BITS   (BITS 0-255, e.g. 0x04)");
+    }
+    if (!has_servo(bus, id)) return unknown_id(id);
+    bus.set_error_bits(id, static_cast<std::uint8_t>(number));
+    return "ok";
+  }
+  if (command == "duplicate") {
+    if (arguments != 1 || !read_id(words[1], id)) return usage("duplicate ID");
+    if (!has_servo(bus, id)) return unknown_id(id);
+    bus.add_duplicate(id);
+    return "ok";
+  }
+  if (command == "timing") {
+    if (arguments != 1 || (words[1] != "on" && words[1] != "off")) return usage("timing on|off");
+    bus.set_timing(words[1] == "on");
+    return "ok";
+  }
+  if (command == "get") {
+    std::uint32_t address = 0;
+    std::uint32_t count = 1;
+    if ((arguments != 2 && arguments != 3) || !read_id(words[1], id) || !read_number(words[2], address, 0xFFFF) ||
+        (arguments == 3 && !read_number(words[3], count, 0xFFFF)) || count == 0) {
+      return usage("get ID ADDR COUNT");
+    }
+    if (!has_servo(bus, id)) return unknown_id(id);
+    const auto bytes = bus.read_memory(id, static_cast<std::uint16_t>(address), static_cast<std::uint16_t>(count));
+    if (!bytes) {
+      return "error: " + std::to_string(count) + " from address " + words[2] + " leave servo " + words[1] + "'s table";
+    }
+    return hex_bytes(*bytes);
+  }
+  if (command == "set") {
+    std::uint32_t address = 0;
+    if (arguments < 3 || !read_id(words[1], id) || !read_number(words[2], address, 0xFFFF)) {
+      return usage("set ID ADDR HEX...   (e.g. set 3 42 00 08)");
+    }
+    protocol::Bytes bytes;
+    for (std::size_t index = 3; index < words.size(); ++index) {
+      const auto byte = parse_hex_byte(words[index]);
+      if (!byte) return "error: '" + words[index] + "' is not a hex byte";
+      bytes.push_back(*byte);
+    }
+    if (!has_servo(bus, id)) return unknown_id(id);
+    if (!bus.write_memory(id, static_cast<std::uint16_t>(address), bytes)) {
+      return "error: the write leaves servo " + words[1] + "'s table (SMSMB: whole registers, 2 bytes each)";
+    }
+    return "ok";
+  }
+  if (command == "field") {
+    if (arguments != 2 || !read_id(words[1], id)) return usage("field ID NAME");
+    if (!has_servo(bus, id)) return unknown_id(id);
+    const auto value = bus.read_field(id, words[2]);
+    if (!value) return "error: servo " + words[1] + "'s table has no field '" + words[2] + "'";
+    return std::to_string(*value);
+  }
+  if (command == "list") {
+    std::string text;
+    for (const ServoSummary& servo : bus.servos()) {
+      if (!text.empty()) text += ' ';
+      text += std::to_string(servo.config.id) + ":" + std::string(modbus_map::table(servo.config.table).name) + ":" +
+              std::string(protocol::to_string(servo.config.protocol)) + ":" + std::to_string(servo.config.baud);
+      if (servo.offline) text += ":offline";
+      if (servo.duplicate) text += ":duplicate";
+    }
+    return text;
+  }
+  if (command == "stats") {
+    const BusStats stats = bus.stats();
+    return "requests=" + std::to_string(stats.requests) + " replies=" + std::to_string(stats.replies) +
+           " dropped=" + std::to_string(stats.dropped) + " corrupted=" + std::to_string(stats.corrupted) +
+           " collisions=" + std::to_string(stats.collisions) + " checksum_errors=" + std::to_string(stats.checksum_errors);
+  }
+  return "error: unknown command '" + command + "'; " + std::string(kHelp);
+}
+
+}  // namespace
+
 std::string execute_control_command(SimulatedBus& bus, std::string_view line) {
   const auto words = words_of(line);
   if (words.empty()) return "error: empty command; " + std::string(kHelp);
-  const std::string& command = words[0];
-  const auto argument_count = words.size() - 1;
-  const auto usage = [&](std::string_view form) { return "error: usage: " + std::string(form); };
-  const auto id_at = [&](std::size_t index) -> std::optional<std::uint8_t> {
-    const auto value = parse_number(words[index]);
-    if (!value || *value > 253) return std::nullopt;
-    return static_cast<std::uint8_t>(*value);
-  };
-  const auto has_id = [&](std::uint8_t id) {
-    for (const ServoSummary& servo : bus.servos()) {
-      if (servo.config.id == id) return true;
-    }
-    return false;
-  };
-  const auto unknown_id = [](std::uint8_t id) { return "error: no servo has ID " + std::to_string(id); };
-
   try {
-    if (command == "help") return std::string(kHelp);
-    if (command == "offline" || command == "online") {
-      const auto id = argument_count == 1 ? id_at(1) : std::nullopt;
-      if (!id) return usage(command + " ID");
-      if (!has_id(*id)) return unknown_id(*id);
-      bus.set_offline(*id, command == "offline");
-      return "ok";
-    }
-    if (command == "drop" || command == "corrupt") {
-      const auto probability = argument_count == 1 ? parse_probability(words[1]) : std::nullopt;
-      if (!probability) return usage(command + " P   (P from 0 to 1)");
-      command == "drop" ? bus.set_drop_probability(*probability) : bus.set_corrupt_probability(*probability);
-      return "ok";
-    }
-    if (command == "corrupt-next") {
-      const auto count = argument_count == 1 ? parse_number(words[1]) : std::optional<std::uint32_t>(1);
-      if (!count || argument_count > 1) return usage("corrupt-next [N]");
-      bus.corrupt_next_replies(*count);
-      return "ok";
-    }
-    if (command == "late" || command == "error") {
-      const auto id = argument_count == 2 ? id_at(1) : std::nullopt;
-      const auto value = argument_count == 2 ? parse_number(words[2]) : std::nullopt;
-      if (!id || !value || (command == "error" && *value > 0xFF)) {
-        return usage(command == "late" ? "late ID MS" : "error ID BITS   (BITS 0-255, e.g. 0x04)");
-      }
-      if (!has_id(*id)) return unknown_id(*id);
-      if (command == "late") {
-        bus.set_reply_delay(*id, std::chrono::milliseconds(*value));
-      } else {
-        bus.set_error_bits(*id, static_cast<std::uint8_t>(*value));
-      }
-      return "ok";
-    }
-    if (command == "duplicate") {
-      const auto id = argument_count == 1 ? id_at(1) : std::nullopt;
-      if (!id) return usage("duplicate ID");
-      if (!has_id(*id)) return unknown_id(*id);
-      bus.add_duplicate(*id);
-      return "ok";
-    }
-    if (command == "timing") {
-      if (argument_count != 1 || (words[1] != "on" && words[1] != "off")) return usage("timing on|off");
-      bus.set_timing(words[1] == "on");
-      return "ok";
-    }
-    if (command == "get") {
-      const auto id = argument_count == 2 || argument_count == 3 ? id_at(1) : std::nullopt;
-      const auto address = argument_count >= 2 ? parse_number(words[2]) : std::nullopt;
-      const auto count = argument_count == 3 ? parse_number(words[3]) : std::optional<std::uint32_t>(1);
-      if (!id || !address || !count || *address > 0xFFFF || *count == 0 || *count > 0xFFFF) {
-        return usage("get ID ADDR COUNT");
-      }
-      if (!has_id(*id)) return unknown_id(*id);
-      const auto bytes = bus.read_memory(*id, static_cast<std::uint16_t>(*address), static_cast<std::uint16_t>(*count));
-      if (!bytes) {
-        return "error: " + std::to_string(*count) + " from address " + words[2] + " leave servo " + words[1] + "'s table";
-      }
-      return hex_bytes(*bytes);
-    }
-    if (command == "set") {
-      const auto id = argument_count >= 3 ? id_at(1) : std::nullopt;
-      const auto address = argument_count >= 3 ? parse_number(words[2]) : std::nullopt;
-      if (!id || !address || *address > 0xFFFF) return usage("set ID ADDR HEX...   (e.g. set 3 42 00 08)");
-      protocol::Bytes bytes;
-      for (std::size_t index = 3; index < words.size(); ++index) {
-        const auto byte = parse_hex_byte(words[index]);
-        if (!byte) return "error: '" + words[index] + "' is not a hex byte";
-        bytes.push_back(*byte);
-      }
-      if (!has_id(*id)) return unknown_id(*id);
-      if (!bus.write_memory(*id, static_cast<std::uint16_t>(*address), bytes)) {
-        return "error: the write leaves servo " + words[1] + "'s table (SMSMB: whole registers, 2 bytes each)";
-      }
-      return "ok";
-    }
-    if (command == "field") {
-      const auto id = argument_count == 2 ? id_at(1) : std::nullopt;
-      if (!id) return usage("field ID NAME");
-      if (!has_id(*id)) return unknown_id(*id);
-      const auto value = bus.read_field(*id, words[2]);
-      if (!value) return "error: servo " + words[1] + "'s table has no field '" + words[2] + "'";
-      return std::to_string(*value);
-    }
-    if (command == "list") {
-      std::string text;
-      for (const ServoSummary& servo : bus.servos()) {
-        if (!text.empty()) text += ' ';
-        text += std::to_string(servo.config.id) + ":" + std::string(modbus_map::table(servo.config.table).name) + ":" +
-                std::string(protocol::to_string(servo.config.protocol)) + ":" + std::to_string(servo.config.baud);
-        if (servo.offline) text += ":offline";
-        if (servo.duplicate) text += ":duplicate";
-      }
-      return text;
-    }
-    if (command == "stats") {
-      const BusStats stats = bus.stats();
-      return "requests=" + std::to_string(stats.requests) + " replies=" + std::to_string(stats.replies) +
-             " dropped=" + std::to_string(stats.dropped) + " corrupted=" + std::to_string(stats.corrupted) +
-             " collisions=" + std::to_string(stats.collisions) + " checksum_errors=" + std::to_string(stats.checksum_errors);
-    }
+    return run_command(bus, words);
   } catch (const std::exception& error) {
     return "error: " + std::string(error.what());
   }
-  return "error: unknown command '" + command + "'; " + std::string(kHelp);
 }
 
 class ControlServer::Impl {
