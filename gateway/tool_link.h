@@ -1,0 +1,103 @@
+#pragma once
+// The integrator tools' line to the servos (scan, set-id, set-baud, calibrate-middle, dump):
+// one servo transaction at a time, synchronously, on the tool's own thread — no engine, no
+// queue, no polling. One interface for the three bus protocols:
+//   feetech / d55d: PING, READ, WRITE packets through SerialPort and the stream decoder;
+//   modbus-rtu:     FC03 / FC06 / FC16 through RtuMaster (libmodbus).
+// Addresses and counts are bus addresses: bytes on packet buses, registers on modbus-rtu
+// (data then holds registers high byte first).
+//
+// Timeouts are sized from the baud (SPEC §5): the request's and the reply's wire time, plus
+// the servo's usual return delay, plus the adapter latency (`LinkSettings::latency`).
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include "config/config.h"
+#include "modbus_map/control_table.h"
+#include "protocol/bus_protocol.h"
+#include "protocol/expected.h"
+#include "protocol/packet.h"
+
+namespace sms::gateway {
+
+using protocol::Bytes;
+
+// What the tools need to know of a bus protocol, as data.
+struct ToolProtocol {
+  protocol::BusProtocol protocol;
+  modbus_map::TableId default_table;  // for identity and dumps when no --table is given
+  std::uint8_t first_id;              // unicast IDs
+  std::uint8_t last_id;
+  std::uint8_t broadcast_id;
+  // The factory return delay (sts 250 x 2 us, d55d 16 x 500 us, SMSMB 500 us): how long a
+  // servo usually waits before answering, for the scan's per-ID timeout.
+  std::chrono::microseconds usual_return_delay;
+  bool broadcast_ping_answered;  // PING to the broadcast ID is answered by every servo
+};
+const ToolProtocol& tool_protocol(protocol::BusProtocol protocol);
+
+struct LinkSettings {
+  std::string device;
+  protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
+  std::uint32_t baud = 1'000'000;
+  config::Parity parity = config::Parity::None;
+  std::uint8_t stop_bits = 1;
+  config::ModbusRtuOptions rtu;  // modbus-rtu only: RS-485 mode, RTS, byte timeout
+  // Added to every reply timeout: the USB adapter's latency (an FTDI adapter holds short
+  // replies up to its latency timer: 16 ms unless set to 1 ms) and scheduling jitter.
+  std::chrono::milliseconds latency{2};
+  unsigned attempts = 3;  // per transaction, on timeouts and corrupt replies
+};
+
+enum class LinkStatus : std::uint8_t {
+  Ok,
+  Timeout,    // nothing valid from the addressed ID in time
+  Corrupt,    // only damaged frames (checksum / CRC), or frames from another ID
+  Refused,    // the servo refused: packet ERROR refusal bits without data, or a Modbus exception
+  PortError,  // the device failed
+};
+std::string_view to_string(LinkStatus status);
+
+struct LinkAnswer {
+  LinkStatus status = LinkStatus::Timeout;
+  Bytes data;                    // READ: the bytes (packet) or registers high byte first (modbus)
+  std::uint8_t servo_status = 0; // packet: the ERROR byte; modbus: the exception code (Refused, or a PING answered with one)
+  bool heard_anything = false;   // some bytes came back, valid or not (collisions, other IDs)
+  std::string detail;
+
+  bool ok() const { return status == LinkStatus::Ok; }
+};
+
+class ServoLink {
+ public:
+  virtual ~ServoLink() = default;
+
+  // Opens the device at settings().baud. The error says what to do.
+  virtual Expected<Ok> open() = 0;
+  // Changes the line rate (reopening where the transport needs it).
+  virtual Expected<Ok> set_baud(std::uint32_t baud) = 0;
+  virtual const LinkSettings& settings() const = 0;
+  virtual void set_attempts(unsigned attempts) = 0;
+
+  // Is anything there? feetech/d55d: PING; modbus-rtu: FC03 of register 0 (an exception
+  // answer counts as present: servo_status holds its code).
+  virtual LinkAnswer ping(std::uint8_t id) = 0;
+  virtual LinkAnswer read(std::uint8_t id, std::uint16_t address, std::uint16_t count) = 0;
+  // To the broadcast ID: sent, nothing awaited (Ok once it left the wire).
+  virtual LinkAnswer write(std::uint8_t id, std::uint16_t address, std::span<const std::uint8_t> data) = 0;
+
+  // Wire time of `bytes` characters at the current rate.
+  virtual std::chrono::nanoseconds wire_time(std::size_t bytes) const = 0;
+};
+
+std::unique_ptr<ServoLink> make_servo_link(const LinkSettings& settings);
+
+// The reply timeout of a transaction: request and reply wire time, the protocol's usual return
+// delay and the link's latency.
+std::chrono::nanoseconds tool_reply_timeout(const ServoLink& link, std::size_t request_bytes, std::size_t reply_bytes);
+
+}  // namespace sms::gateway

@@ -1,0 +1,227 @@
+#include "gateway/tool_scan.h"
+
+#include <algorithm>
+#include <array>
+#include <map>
+#include <set>
+
+#include <fmt/format.h>
+
+#include "gateway/discovery.h"
+#include "modbus_map/baud_tables.h"
+#include "modbus_map/tables.h"
+
+namespace sms::gateway {
+
+using modbus_map::TableId;
+using protocol::BusProtocol;
+
+namespace {
+
+// Reads of present_position per servo for the duplicate check (see the header).
+constexpr int kConflictReads = 3;
+// SMSMB identity (SPEC §2.4): register 0 firmware version, register 1 servo (model) version.
+constexpr std::uint16_t kSmsmbIdentityRegister = 0x00;
+constexpr std::uint16_t kSmsmbIdentityCount = 2;
+
+std::string identity_text(const ScanReport& report, const ServoIdentity& identity, bool model) {
+  const IdentityLayout* layout = identity_layout(report.table);
+  return format_identity_value(layout, model, model ? identity.model : identity.firmware);
+}
+
+ServoIdentity read_identity(ServoLink& link, TableId table_id, std::uint8_t id, bool& damaged) {
+  const auto& table = modbus_map::table(table_id);
+  if (table.addressing == modbus_map::Addressing::Register) {
+    const LinkAnswer answer = link.read(id, kSmsmbIdentityRegister, kSmsmbIdentityCount);
+    if (answer.status == LinkStatus::Corrupt) damaged = true;
+    if (!answer.ok() || answer.data.size() != 4) return {};
+    return {static_cast<std::uint16_t>(answer.data[2] << 8 | answer.data[3]),
+            static_cast<std::uint16_t>(answer.data[0] << 8 | answer.data[1])};
+  }
+  const IdentityLayout* layout = identity_layout(table_id);
+  if (layout == nullptr) return {};
+  const LinkAnswer answer = link.read(id, layout->read.address, layout->read.count);
+  if (answer.status == LinkStatus::Corrupt) damaged = true;
+  if (!answer.ok()) return {};
+  return decode_identity(*layout, answer.data, table.default_byte_order);
+}
+
+// True when present_position comes back damaged: two servos answer on this ID.
+bool answers_collide(ServoLink& link, TableId table_id, std::uint8_t id) {
+  const auto& table = modbus_map::table(table_id);
+  const modbus_map::FieldSpec* position = modbus_map::field_by_name(table, "present_position");
+  if (position == nullptr) return false;
+  const std::uint16_t span = modbus_map::address_span(table.addressing, *position);
+  for (int read = 0; read < kConflictReads; ++read) {
+    const LinkAnswer answer = link.read(id, position->addr, span);
+    if (answer.status == LinkStatus::Corrupt) return true;
+  }
+  return false;
+}
+
+}  // namespace
+
+Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const Say& say) {
+  const auto started = std::chrono::steady_clock::now();
+  const BusProtocol protocol = link.settings().protocol;
+  const ToolProtocol& rules = tool_protocol(protocol);
+  if (modbus_map::table(options.table).protocol != protocol) {
+    return unexpected(fmt::format("table {} is not spoken on {} buses", modbus_map::table(options.table).name,
+                                  protocol::to_string(protocol)));
+  }
+  ScanReport report;
+  report.protocol = protocol;
+  report.table = options.table;
+  if (options.bauds.empty()) {
+    for (const auto& entry : modbus_map::baud_table(protocol)) report.bauds.push_back(entry.bps);
+  } else {
+    for (const std::uint32_t baud : options.bauds) {
+      if (auto code = modbus_map::baud_code(protocol, baud); !code) return unexpected(code.error());
+      report.bauds.push_back(baud);
+    }
+  }
+  std::vector<std::uint8_t> ids = options.ids;
+  if (ids.empty()) {
+    for (unsigned id = rules.first_id; id <= rules.last_id; ++id) ids.push_back(static_cast<std::uint8_t>(id));
+  }
+  for (const std::uint8_t id : ids) {
+    if (id < rules.first_id || id > rules.last_id) {
+      return unexpected(fmt::format("ID {} is not a servo ID on {} buses ({}-{})", id, protocol::to_string(protocol),
+                                    rules.first_id, rules.last_id));
+    }
+  }
+  report.ids_per_baud = ids.size();
+
+  const unsigned attempts = link.settings().attempts;
+  link.set_attempts(1);  // a scan asks each ID once; an answer is confirmed by the reads after it
+  for (const std::uint32_t baud : report.bauds) {
+    const auto baud_started = std::chrono::steady_clock::now();
+    if (auto switched = link.set_baud(baud); !switched) return unexpected(switched.error());
+    if (options.broadcast_probe && rules.broadcast_ping_answered) {
+      const LinkAnswer anyone = link.ping(rules.broadcast_id);
+      if (anyone.status == LinkStatus::PortError) return unexpected(anyone.detail);
+      if (!anyone.heard_anything) {
+        report.skipped_bauds.push_back(baud);
+        say(fmt::format("{:>8} bit/s: nothing answers a broadcast PING", baud));
+        continue;
+      }
+    }
+    std::size_t at_this_baud = 0;
+    for (const std::uint8_t id : ids) {
+      LinkAnswer answer = link.ping(id);
+      if (answer.status == LinkStatus::PortError) return unexpected(answer.detail);
+      // A PING answered with garbage: ask once more before calling it a collision.
+      if (!answer.ok() && answer.heard_anything) answer = link.ping(id);
+      if (!answer.ok() && !answer.heard_anything) continue;
+      ScanFinding finding;
+      finding.baud = baud;
+      finding.id = id;
+      if (answer.ok()) {
+        finding.status = answer.servo_status;
+        bool damaged = false;
+        finding.identity = read_identity(link, options.table, id, damaged);
+        finding.conflict = damaged || answers_collide(link, options.table, id);
+        if (protocol == BusProtocol::ModbusRtu && answer.servo_status != 0) {
+          finding.note = fmt::format("a Modbus slave, not an SMSMB servo (FC03 of register 0 answered exception 0x{:02X})",
+                                     answer.servo_status);
+        }
+      } else {
+        finding.conflict = true;  // only damaged answers: several transmitters at once
+      }
+      if (finding.conflict) {
+        finding.note = "two or more servos answer on this ID (their replies collide): connect one at a time and "
+                       "give each its own ID with set-id";
+      }
+      report.found.push_back(std::move(finding));
+      ++at_this_baud;
+    }
+    const auto took = std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - baud_started);
+    say(fmt::format("{:>8} bit/s: {} found ({} IDs in {} ms)", baud, at_this_baud, ids.size(), took.count()));
+  }
+  link.set_attempts(attempts);
+  report.elapsed = std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - started);
+  return report;
+}
+
+std::string format_scan(const ScanReport& report) {
+  std::string text = fmt::format("{:>8}  {:>3}  {:<8}  {:<8}  {}\n", "baud", "id", "model", "firmware", "note");
+  for (const ScanFinding& finding : report.found) {
+    text += fmt::format("{:>8}  {:>3}  {:<8}  {:<8}  {}\n", finding.baud, finding.id,
+                        identity_text(report, finding.identity, true), identity_text(report, finding.identity, false),
+                        finding.note);
+  }
+  const auto conflicts = std::count_if(report.found.begin(), report.found.end(),
+                                       [](const ScanFinding& finding) { return finding.conflict; });
+  text += fmt::format("{} servo ID(s) answering on {} ({} rate(s) x {} IDs, {} rate(s) silent) in {:.1f} s", report.found.size(),
+                      protocol::to_string(report.protocol), report.bauds.size(), report.ids_per_baud,
+                      report.skipped_bauds.size(), static_cast<double>(report.elapsed.count()) / 1000.0);
+  if (conflicts > 0) text += fmt::format("; {} ID conflict(s)", conflicts);
+  return text + "\n";
+}
+
+std::string scan_config_yaml(const ScanReport& report, const LinkSettings& link) {
+  const auto& table = modbus_map::table(report.table);
+  // The bus runs at the rate where most servos answer cleanly (the faster one on a tie).
+  std::map<std::uint32_t, std::size_t> clean_per_baud;
+  for (const ScanFinding& finding : report.found) {
+    if (!finding.conflict) ++clean_per_baud[finding.baud];
+  }
+  std::uint32_t bus_baud = link.baud;
+  std::size_t best = 0;
+  for (const std::uint32_t baud : report.bauds) {
+    const auto found = clean_per_baud.find(baud);
+    if (found != clean_per_baud.end() && found->second > best) {
+      best = found->second;
+      bus_baud = baud;
+    }
+  }
+  std::string yaml = fmt::format(
+      "# Written by `sms-gateway scan` on {} ({}): {} servo(s) at {} bit/s.\n"
+      "# Check each servo's table (a scan cannot tell sts from sms1) and the unit numbers, then:\n"
+      "#   sms-gateway --check-config THIS_FILE && sms-gateway --config THIS_FILE\n"
+      "# Every key and its default: config/README.md.\n\n"
+      "modbus_tcp:\n  listen: 127.0.0.1:5020\n\n"
+      "buses:\n  - name: bus1\n    device: \"{}\"\n    protocol: {}\n    baud: {}\n",
+      link.device, protocol::to_string(report.protocol), best, bus_baud, link.device,
+      protocol::to_string(report.protocol), bus_baud);
+  if (report.protocol == BusProtocol::ModbusRtu) {
+    yaml += fmt::format("    parity: {}\n    stop_bits: {}\n", config::to_string(link.parity), link.stop_bits);
+  }
+  std::string servos;
+  std::set<std::uint8_t> units;
+  for (const ScanFinding& finding : report.found) {
+    if (finding.baud == bus_baud && !finding.conflict && finding.id >= 1 && finding.id <= 247) units.insert(finding.id);
+  }
+  std::string later;
+  for (const ScanFinding& finding : report.found) {
+    const std::string identity = fmt::format("model {}, firmware {}", identity_text(report, finding.identity, true),
+                                             identity_text(report, finding.identity, false));
+    if (finding.conflict) {
+      later += fmt::format("# ID {} at {} bit/s: two or more servos answer; give them distinct IDs (set-id) and "
+                           "scan again\n",
+                           finding.id, finding.baud);
+      continue;
+    }
+    if (finding.baud != bus_baud) {
+      later += fmt::format("# ID {} answers at {} bit/s ({}): one bus runs at one rate; move it with\n"
+                           "#   sms-gateway set-baud --device {} --protocol {} --baud {} --id {} --new-baud {}\n",
+                           finding.id, finding.baud, identity, link.device, protocol::to_string(report.protocol),
+                           finding.baud, finding.id, bus_baud);
+      continue;
+    }
+    std::uint8_t unit = finding.id;
+    if (unit < 1 || unit > 247) {
+      // IDs 0 and 248-253 cannot be units: the first free unit stands in.
+      unit = 1;
+      while (units.count(unit) != 0) ++unit;
+      units.insert(unit);
+    }
+    servos += fmt::format("  - {{unit: {}, bus: bus1, id: {}, table: {}}}   # {}\n", unit, finding.id, table.name,
+                          identity);
+  }
+  yaml += servos.empty() ? "\nservos: []   # no servo answered cleanly\n" : "\nservos:\n" + servos;
+  if (!later.empty()) yaml += "\n" + later;
+  return yaml;
+}
+
+}  // namespace sms::gateway
