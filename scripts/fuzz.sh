@@ -37,10 +37,12 @@ run() {
     exit 2
   fi
   local scratch=$build_dir/fuzz-corpus/$target
+  local dictionary=()
+  [ -f "tests/fuzz/dict/$target.dict" ] && dictionary=(-dict="tests/fuzz/dict/$target.dict")
   mkdir -p "$scratch" tests/fuzz/crashes
   echo "fuzz.sh: $target for $seconds s (new inputs: $scratch, crashes: tests/fuzz/crashes/)" >&2
   ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-    "$binary" -max_total_time="$seconds" -timeout=10 -rss_limit_mb=2048 -print_final_stats=1 \
+    "$binary" -max_total_time="$seconds" -timeout=10 -rss_limit_mb=2048 -print_final_stats=1 "${dictionary[@]}" \
     -artifact_prefix="tests/fuzz/crashes/$target-" "$@" "$scratch" "tests/fuzz/corpus/$target"
 }
 

@@ -36,7 +36,7 @@ class Checker {
   void feed(std::span<const std::uint8_t> chunk) {
     decoder_.feed(chunk);
     fed_ += chunk.size();
-    check_accounting("after feed of " + std::to_string(chunk.size()) + " bytes");
+    check_accounting("after a feed");
     drain();
   }
 
@@ -115,9 +115,9 @@ class Checker {
     }
   }
 
-  void check_accounting(const std::string& when) {
+  void check_accounting(const char* when) {
     const std::size_t accounted = frame_bytes_ + decoder_.discarded_bytes() + decoder_.buffered();
-    SMS_FUZZ_CHECK(accounted == fed_, when + ": fed " + std::to_string(fed_) + " bytes, frames " +
+    SMS_FUZZ_CHECK(accounted == fed_, std::string(when) + ": fed " + std::to_string(fed_) + " bytes, frames " +
                                           std::to_string(frame_bytes_) + " + discarded " +
                                           std::to_string(decoder_.discarded_bytes()) + " + buffered " +
                                           std::to_string(decoder_.buffered()));
