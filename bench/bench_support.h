@@ -1,0 +1,193 @@
+#pragma once
+// What the benchmark programs share: a simulated bus in the bench process, the real
+// sms-gateway program as a child process driving it, libmodbus TCP clients on their own
+// threads, latency summaries and the `name value unit` output lines.
+//
+// Benchmarks print figures; they assert nothing about time. They talk to 127.0.0.1 only,
+// run for a bounded time and stop by themselves. A setup failure (gateway missing, port not
+// answering) is an error with what to do, and a non-zero exit.
+#include <sys/types.h>
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "simulator/simulated_bus.h"
+
+typedef struct _modbus modbus_t;  // libmodbus's opaque context (modbus.h stays out of here)
+
+namespace sms::bench {
+
+using Clock = std::chrono::steady_clock;
+
+// --- output ----------------------------------------------------------------------------------
+
+// One figure: `name value unit`. Names are dotted paths without spaces.
+void print_figure(std::string_view name, double value, std::string_view unit);
+// Context for a human reader: `# text`.
+void print_note(std::string_view text);
+
+// --- latency ---------------------------------------------------------------------------------
+
+struct LatencySummary {
+  std::size_t count = 0;
+  double p50_us = 0;
+  double p99_us = 0;
+  double max_us = 0;
+};
+// Sorts `samples_ns` in place.
+LatencySummary summarize(std::vector<std::uint32_t>& samples_ns);
+std::uint32_t to_ns(Clock::duration duration);
+
+// --- the bus and its wire time (SPEC §5) -----------------------------------------------------
+
+inline constexpr std::uint32_t kBaud = 1'000'000;
+inline constexpr unsigned kBitsPerCharacter = 10;  // 8N1
+// The sts feedback block the poll cycle reads and FC04 serves: present position .. present
+// current (modbus_map::default_poll_block(sts)).
+inline constexpr std::uint16_t kFeedbackAddress = 56;
+inline constexpr std::uint16_t kFeedbackCount = 15;
+inline constexpr std::uint16_t kReturnDelayAddress = 7;  // sts: x 2 us
+inline constexpr double kReturnDelayUsPerUnit = 2.0;
+
+double wire_us(std::size_t bytes, std::uint32_t baud = kBaud);
+
+// `count` sts servos, IDs 1..count, feetech at 1 Mbaud, wire timing on.
+simulator::BusOptions sts_bus(unsigned count);
+// Writes the return delay (sts address 7, in 2 us units) of servos 1..count.
+void set_return_delay(simulator::SimulatedBus& bus, unsigned count, std::uint8_t units);
+
+// --- the gateway as a child process ----------------------------------------------------------
+
+struct GatewaySetup {
+  std::string device;                    // the simulated bus's pty
+  unsigned servos = 6;                   // sts IDs 1..servos = units 1..servos
+  std::chrono::milliseconds poll_period{20};
+  std::chrono::milliseconds probe_period{1000};
+  std::size_t max_connections = 200;
+  std::size_t request_queue_depth = 64;
+};
+
+// The YAML configuration for `setup` listening on 127.0.0.1:`port`.
+std::string gateway_yaml(const GatewaySetup& setup, std::uint16_t port);
+
+// A free TCP port on 127.0.0.1 (bound and released; the child binds it right after).
+std::uint16_t free_port();
+
+// build/bin/sms-gateway beside this program, or $SMS_GATEWAY.
+std::string gateway_program();
+
+// Runs `sms-gateway --config <file> --log-level warn` with its output in a log file, and stops
+// it with SIGTERM (then SIGKILL after 10 s) when destroyed.
+class GatewayProcess {
+ public:
+  explicit GatewayProcess(const GatewaySetup& setup);
+  ~GatewayProcess();
+  GatewayProcess(const GatewayProcess&) = delete;
+  GatewayProcess& operator=(const GatewayProcess&) = delete;
+
+  // Waits until the gateway answers on its port, its bus is up with `online` servos online and
+  // a poll cycle has finished. Throws std::runtime_error (with the log's tail) after `limit`.
+  void wait_ready(unsigned online, std::chrono::seconds limit = std::chrono::seconds{20});
+  std::uint16_t port() const { return port_; }
+  pid_t pid() const { return pid_; }
+  // Graceful stop; returns the exit status (0 expected).
+  int stop();
+
+ private:
+  std::string log_tail() const;
+
+  std::string directory_;
+  std::string log_path_;
+  std::uint16_t port_ = 0;
+  pid_t pid_ = -1;
+};
+
+// Resident set size of a process (VmRSS in /proc/PID/status), KiB; nullopt when gone.
+std::optional<std::uint64_t> rss_kib(pid_t pid);
+// Open file descriptors of a process (/proc/PID/fd entries).
+std::optional<std::uint64_t> open_fds(pid_t pid);
+
+// --- libmodbus clients -----------------------------------------------------------------------
+
+// One libmodbus TCP connection to 127.0.0.1:port, addressing `unit`. Throws on connect failure.
+class ModbusClient {
+ public:
+  ModbusClient(std::uint16_t port, int unit, std::chrono::milliseconds response_timeout = std::chrono::seconds{2});
+  ~ModbusClient();
+  ModbusClient(const ModbusClient&) = delete;
+  ModbusClient& operator=(const ModbusClient&) = delete;
+
+  modbus_t* get() const { return context_; }
+  void set_unit(int unit);
+  // Reads input registers; throws with the Modbus error on failure (setup and check reads).
+  std::vector<std::uint16_t> input_registers(int address, int count);
+  std::vector<std::uint16_t> holding_registers(int address, int count);
+
+ private:
+  modbus_t* context_ = nullptr;
+};
+
+// 32-bit counter from two registers, high word first (MODBUS_MAP.md).
+inline std::uint32_t u32(std::uint16_t high, std::uint16_t low) { return (std::uint32_t{high} << 16) | low; }
+
+// Gateway unit (255) input registers of bus 0 (MODBUS_MAP.md "The gateway unit").
+struct BusFacts {
+  std::uint16_t state = 0;
+  std::uint16_t last_poll_cycle_us = 0;
+  std::uint16_t servos_online = 0;
+  std::uint32_t frames_ok = 0;
+  std::uint32_t timeouts = 0;
+  std::uint32_t checksum_errors = 0;
+};
+inline constexpr int kGatewayUnit = 255;
+BusFacts read_bus_facts(ModbusClient& client);  // sets the client's unit to 255
+
+// Servo unit facts, input registers 1000-1007.
+struct ServoFacts {
+  bool online = false;
+  std::uint16_t cache_age_ms = 0;
+  std::uint32_t replies_ok = 0;
+  std::uint32_t timeouts = 0;
+};
+ServoFacts read_servo_facts(ModbusClient& client, int unit);  // sets the client's unit
+
+// What one request of a client loop came to.
+enum class Outcome : std::uint8_t { Ok, Busy, Error };
+
+struct ClientTotals {
+  std::vector<std::uint32_t> ok_ns;    // latency of each answered request
+  std::vector<std::uint32_t> busy_ns;  // latency of each exception 0x06 answer
+  std::uint64_t errors = 0;            // any other failure
+  std::string first_error;
+  double seconds = 0;                  // from the common start to the last client's end
+};
+
+// Runs `clients` threads, each with its own connection to `unit`, all starting together and
+// each calling `request(context, client_index, iteration)` back to back until `duration`
+// has passed. `setup` runs once per client after connecting (may be empty).
+using RequestFn = std::function<Outcome(modbus_t*, unsigned client, std::uint64_t iteration)>;
+ClientTotals run_clients(std::uint16_t port, int unit, unsigned clients, std::chrono::milliseconds duration,
+                         const RequestFn& request);
+
+// Classifies the result of a libmodbus call (rc < 0: errno tells).
+Outcome outcome_of(int rc, int expected);
+std::string modbus_error_text();
+
+// Command-line numbers: `--name value` pairs after argv[0]; unknown options are an error.
+struct Argument {
+  std::string_view name;
+  double* value;
+  std::string_view help;
+};
+// Returns false (after printing usage) when the command line is wrong or --help was given.
+bool parse_arguments(int argc, char** argv, std::string_view summary, std::initializer_list<Argument> arguments);
+
+// spdlog level of the in-process simulator: warnings only.
+void quiet_logs();
+
+}  // namespace sms::bench

@@ -1,0 +1,202 @@
+// poll_cycle: the gateway's poll cycle time next to the wire-time limit of the frames it sends
+// (SPEC §5), for 6, 20 and 60 simulated sts servos at 1 000 000 baud with wire timing on; then
+// what a silent servo costs the others (issue 4, bench (b)).
+//
+//   poll_cycle [--seconds 2] [--silent-seconds 5]
+//
+// The gateway (sms-gateway, a child process) polls back to back (poll_period_ms 0) so every
+// cycle is pure bus work. The cycle time is what the gateway itself reports: gateway unit 255,
+// input register 102 "last poll cycle us", sampled every 10 ms. The limit is one SYNC READ of
+// the 15-byte feedback block from N servos: (8 + N) request bytes + N x (6 + 15) reply bytes
+// at 10 bits a character, plus N return delays (sts address 7, x 2 us). Efficiency = limit /
+// measured median cycle. Measured with return delay 0 (SPEC §5's example) and with the sts
+// factory default 250 (500 us).
+#include <algorithm>
+#include <iostream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "bench/bench_support.h"
+
+namespace {
+
+using namespace sms::bench;
+using namespace std::chrono_literals;
+
+constexpr unsigned kServoCounts[] = {6, 20, 60};
+constexpr std::uint8_t kReturnDelays[] = {0, 250};  // sts address 7 units (x 2 us)
+constexpr unsigned kSilentBusServos = 6;
+constexpr std::uint8_t kSilentServo = 3;
+constexpr auto kSampleEvery = 10ms;
+constexpr auto kProbePeriod = 1000ms;
+constexpr auto kResponseTimeout = 20ms;  // the configuration default the gateway runs with
+
+double sync_read_limit_us(unsigned servos, std::uint8_t return_delay) {
+  const std::size_t request = 8 + servos;
+  const std::size_t replies = servos * (6 + kFeedbackCount);
+  return wire_us(request + replies) + servos * return_delay * kReturnDelayUsPerUnit;
+}
+
+struct Window {
+  std::vector<std::uint32_t> cycle_us;  // sampled "last poll cycle us"
+  double seconds = 0;
+  BusFacts first;
+  BusFacts last;
+  ServoFacts watched_first;  // servo unit 1 (always online)
+  ServoFacts watched_last;
+  ServoFacts silent_first;   // the servo taken offline
+  ServoFacts silent_last;
+};
+
+Window sample(ModbusClient& client, std::chrono::milliseconds duration) {
+  Window window;
+  window.watched_first = read_servo_facts(client, 1);
+  window.silent_first = read_servo_facts(client, kSilentServo);
+  window.first = read_bus_facts(client);
+  const auto start = Clock::now();
+  const auto end = start + duration;
+  auto next = start;
+  while (Clock::now() < end) {
+    next += kSampleEvery;
+    window.cycle_us.push_back(read_bus_facts(client).last_poll_cycle_us);
+    std::this_thread::sleep_until(next);
+  }
+  window.last = read_bus_facts(client);
+  window.watched_last = read_servo_facts(client, 1);
+  window.silent_last = read_servo_facts(client, kSilentServo);
+  window.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  return window;
+}
+
+double median(std::vector<std::uint32_t> values) {
+  if (values.empty()) return 0;
+  std::sort(values.begin(), values.end());
+  return values[values.size() / 2];
+}
+
+double per_second(std::uint32_t before, std::uint32_t after, double seconds) {
+  return static_cast<double>(after - before) / seconds;
+}
+
+void measure_cycle(unsigned servos, std::uint8_t return_delay, std::chrono::milliseconds duration) {
+  sms::simulator::SimulatedBus bus(sts_bus(servos));
+  bus.start();
+  set_return_delay(bus, servos, return_delay);
+  GatewaySetup setup;
+  setup.device = bus.slave_path();
+  setup.servos = servos;
+  setup.poll_period = 0ms;
+  GatewayProcess gateway(setup);
+  gateway.wait_ready(servos);
+  ModbusClient client(gateway.port(), kGatewayUnit);
+  std::this_thread::sleep_for(200ms);  // past discovery's last identity reads
+
+  const Window window = sample(client, duration);
+  const double limit = sync_read_limit_us(servos, return_delay);
+  const double measured = median(window.cycle_us);
+  // Every servo answers once per cycle in one SYNC READ: frames / servos = cycles.
+  const double cycles_per_s = per_second(window.first.frames_ok, window.last.frames_ok, window.seconds) / servos;
+  const std::string name = "poll_cycle.servos_" + std::to_string(servos) + ".return_delay_us_" +
+                           std::to_string(static_cast<int>(return_delay * kReturnDelayUsPerUnit));
+  print_figure(name + ".wire_limit", limit, "us");
+  print_figure(name + ".cycle_median", measured, "us");
+  print_figure(name + ".cycle_mean_from_frame_rate", cycles_per_s > 0 ? 1e6 / cycles_per_s : 0, "us");
+  print_figure(name + ".efficiency", measured > 0 ? 100.0 * limit / measured : 0, "%");
+  print_figure(name + ".timeouts", window.last.timeouts - window.first.timeouts, "frames");
+  gateway.stop();
+}
+
+void measure_silent_servo(std::chrono::milliseconds duration) {
+  sms::simulator::SimulatedBus bus(sts_bus(kSilentBusServos));
+  bus.start();
+  set_return_delay(bus, kSilentBusServos, 0);
+  GatewaySetup setup;
+  setup.device = bus.slave_path();
+  setup.servos = kSilentBusServos;
+  setup.poll_period = 0ms;
+  setup.probe_period = kProbePeriod;
+  GatewayProcess gateway(setup);
+  gateway.wait_ready(kSilentBusServos);
+  ModbusClient client(gateway.port(), kGatewayUnit);
+  std::this_thread::sleep_for(200ms);
+
+  const Window all_online = sample(client, duration);
+
+  bus.set_offline(kSilentServo, true);
+  const auto went_silent = Clock::now();
+  while (read_servo_facts(client, kSilentServo).online) {
+    if (Clock::now() - went_silent > 5s) throw std::runtime_error("the silent servo was never marked offline");
+    std::this_thread::sleep_for(1ms);
+  }
+  const double detection_ms = std::chrono::duration<double, std::milli>(Clock::now() - went_silent).count();
+  std::this_thread::sleep_for(100ms);
+  const Window one_offline = sample(client, duration);
+
+  bus.set_offline(kSilentServo, false);
+  const auto came_back = Clock::now();
+  while (!read_servo_facts(client, kSilentServo).online) {
+    if (Clock::now() - came_back > 2 * kProbePeriod + 1s) throw std::runtime_error("the servo never came back online");
+    std::this_thread::sleep_for(1ms);
+  }
+  const double back_ms = std::chrono::duration<double, std::milli>(Clock::now() - came_back).count();
+
+  const unsigned online = kSilentBusServos - 1;
+  const double limit = sync_read_limit_us(online, 0);
+  const double measured = median(one_offline.cycle_us);
+  const double probes_per_s =
+      per_second(one_offline.silent_first.timeouts, one_offline.silent_last.timeouts, one_offline.seconds);
+  // One probe = one READ of the feedback block, one attempt: its wire time + the response timeout.
+  const double probe_cost_ms =
+      (wire_us(8) + wire_us(6 + kFeedbackCount)) / 1000.0 + static_cast<double>(kResponseTimeout.count());
+  const double rate_all = per_second(all_online.watched_first.replies_ok, all_online.watched_last.replies_ok,
+                                     all_online.seconds);
+  const double rate_one_off = per_second(one_offline.watched_first.replies_ok, one_offline.watched_last.replies_ok,
+                                         one_offline.seconds);
+  const std::string name = "silent_servo.servos_6.return_delay_us_0";
+  print_figure(name + ".detected_offline_after", detection_ms, "ms");
+  print_figure(name + ".others.wire_limit", limit, "us");
+  print_figure(name + ".others.cycle_median", measured, "us");
+  print_figure(name + ".others.efficiency", measured > 0 ? 100.0 * limit / measured : 0, "%");
+  print_figure(name + ".cycle_max_sampled", *std::max_element(one_offline.cycle_us.begin(), one_offline.cycle_us.end()),
+               "us");
+  print_figure(name + ".probe_period", static_cast<double>(kProbePeriod.count()), "ms");
+  print_figure(name + ".probes_per_s", probes_per_s, "1/s");
+  print_figure(name + ".bus_timeouts_per_s",
+               per_second(one_offline.first.timeouts, one_offline.last.timeouts, one_offline.seconds), "1/s");
+  print_figure(name + ".bus_time_lost", probes_per_s * probe_cost_ms, "ms/s");
+  print_figure(name + ".servo1_poll_rate.all_online", rate_all, "Hz");
+  print_figure(name + ".servo1_poll_rate.one_offline", rate_one_off, "Hz");
+  print_figure(name + ".servo1_poll_rate.loss", rate_all > 0 ? 100.0 * (rate_all - rate_one_off) / rate_all : 0, "%");
+  print_figure(name + ".back_online_after", back_ms, "ms");
+  gateway.stop();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  double seconds = 2;
+  double silent_seconds = 5;
+  if (!parse_arguments(argc, argv,
+                       "poll cycle time vs the SYNC READ wire-time limit for 6, 20, 60 servos at 1 Mbaud; the cost "
+                       "of one silent servo",
+                       {{"seconds", &seconds, "sampling time per bus size"},
+                        {"silent-seconds", &silent_seconds, "sampling time with and without the silent servo"}})) {
+    return 2;
+  }
+  try {
+    quiet_logs();
+    print_note("sms-gateway polling back to back (poll_period_ms 0); cycle = gateway unit 255 input register 102, "
+               "sampled every 10 ms; limit = SYNC READ of 15 bytes, SPEC §5");
+    for (const std::uint8_t return_delay : kReturnDelays) {
+      for (const unsigned servos : kServoCounts) {
+        measure_cycle(servos, return_delay, std::chrono::milliseconds(static_cast<long>(seconds * 1000)));
+      }
+    }
+    measure_silent_servo(std::chrono::milliseconds(static_cast<long>(silent_seconds * 1000)));
+  } catch (const std::exception& error) {
+    std::cerr << "poll_cycle: " << error.what() << "\n";
+    return 1;
+  }
+  return 0;
+}

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Builds the release build in build/ (RelWithDebInfo, benchmarks on, tests off), then runs every
+# benchmark in bench/ and prints its figures as `name value unit` lines (`#` lines are context).
+# Benchmarks only print; they talk to 127.0.0.1 only and stop by themselves.
+#
+#   scripts/bench.sh            # everything, the soak for 60 s (about 3 minutes in all)
+#   scripts/bench.sh --quick    # shorter runs, the soak for 10 s (about 1 minute)
+#   scripts/bench.sh soak       # only the named programs (cached_reads poll_cycle write_latency soak)
+#
+# Figures depend on the machine and on what else runs on it: compare a run with itself, not
+# with another machine. The README's "Performance (measured)" section has a reference run.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+programs=(cached_reads poll_cycle write_latency soak)
+quick=0
+selected=()
+for argument in "$@"; do
+  case "$argument" in
+    --quick) quick=1 ;;
+    -h|--help) sed -n '2,11p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    cached_reads|poll_cycle|write_latency|soak) selected+=("$argument") ;;
+    *) echo "bench.sh: unknown argument '$argument' (try --help)" >&2; exit 2 ;;
+  esac
+done
+if ((${#selected[@]} > 0)); then programs=("${selected[@]}"); fi
+
+cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSMS_BUILD_TESTS=OFF -DSMS_BUILD_BENCH=ON \
+  -DSMS_SANITIZE=OFF >/dev/null
+cmake --build build --target sms-gateway "${programs[@]}" -j "$(nproc)"
+
+declare -A quick_options=(
+  [cached_reads]="--seconds 1 --flood-seconds 1"
+  [poll_cycle]="--seconds 1 --silent-seconds 3"
+  [write_latency]="--seconds 1"
+  [soak]="--seconds 10"
+)
+
+echo "# $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores, $(uname -m), load average $(cut -d' ' -f1-3 /proc/loadavg)"
+status=0
+for program in "${programs[@]}"; do
+  echo "# --- $program"
+  options=()
+  if ((quick)); then read -r -a options <<<"${quick_options[$program]}"; fi
+  if ! "build/bin/$program" "${options[@]}"; then
+    echo "# $program FAILED" >&2
+    status=1
+  fi
+done
+exit "$status"
