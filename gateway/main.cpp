@@ -4,8 +4,8 @@
 //   sms-gateway --simulate                   # 6 simulated sts servos, units 1-6, 127.0.0.1:5020
 //   sms-gateway --check-config gateway.yaml
 //
-// Integrator tools come as subcommands (kSubcommands below), beside the default action that
-// runs the gateway.
+// Integrator tools (scan, set-id, set-baud, calibrate-middle, dump) and the transparent
+// forwarder come as subcommands (gateway/tool_cli.h); without a subcommand the gateway runs.
 #include <signal.h>
 
 #include <chrono>
@@ -18,6 +18,7 @@
 
 #include "config/load.h"
 #include "gateway/gateway.h"
+#include "gateway/tool_cli.h"
 #include "simulator/simulated_bus.h"
 
 namespace {
@@ -160,7 +161,8 @@ int main(int argc, char** argv) {
                                       "Validate a configuration file and exit (0 valid, 2 invalid)");
   check_option->excludes(simulate_option);
   app.add_flag("--version", options.version, "Print the version and exit");
-  // Subcommands (scan, forward, set-id ...) slot in here; without one, the gateway runs.
+  // Subcommands run inside parse() and end it with their exit status; without one, the gateway runs.
+  sms::gateway::add_tool_commands(app);
   app.require_subcommand(0, 1);
 
   try {
