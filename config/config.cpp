@@ -1,5 +1,7 @@
 #include "config/config.h"
 
+#include <arpa/inet.h>
+
 #include <charconv>
 
 #include "config/names.h"
@@ -46,6 +48,70 @@ Expected<HostPort> parse_host_port(std::string_view text) {
   return HostPort{std::string(host), static_cast<std::uint16_t>(value)};
 }
 
+namespace {
+
+constexpr std::string_view kNetworkForm =
+    "write ADDRESS/PREFIX (e.g. 192.168.10.0/24, fd00::/8) or one address (10.0.0.7, ::1)";
+
+int family_code(IpNetwork::Family family) { return family == IpNetwork::Family::V4 ? AF_INET : AF_INET6; }
+
+// Clears the bits below the prefix; true when any was set.
+bool clear_host_bits(IpNetwork& network) {
+  bool any = false;
+  for (std::size_t i = 0; i < network.address.size(); ++i) {
+    const std::size_t first_bit = i * 8;
+    std::uint8_t keep = 0xFF;
+    if (first_bit >= network.prefix_length) {
+      keep = 0;
+    } else if (network.prefix_length - first_bit < 8) {
+      keep = static_cast<std::uint8_t>(0xFF << (8 - (network.prefix_length - first_bit)));
+    }
+    any = any || (network.address[i] & ~keep) != 0;
+    network.address[i] &= keep;
+  }
+  return any;
+}
+
+}  // namespace
+
+std::string IpNetwork::to_string() const {
+  char text[INET6_ADDRSTRLEN] = {};
+  ::inet_ntop(family_code(family), address.data(), text, sizeof text);
+  return std::string(text) + "/" + std::to_string(prefix_length);
+}
+
+Expected<IpNetwork> parse_ip_network(std::string_view text) {
+  const std::string quoted = "\"" + std::string(text) + "\"";
+  const auto slash = text.find('/');
+  const std::string address_text(text.substr(0, slash));
+  IpNetwork network;
+  network.family = address_text.find(':') != std::string::npos ? IpNetwork::Family::V6 : IpNetwork::Family::V4;
+  const bool v4 = network.family == IpNetwork::Family::V4;
+  if (::inet_pton(family_code(network.family), address_text.c_str(), network.address.data()) != 1) {
+    return unexpected(quoted + " is not an IPv4 or IPv6 address; " + std::string(kNetworkForm));
+  }
+  const unsigned max_prefix = v4 ? 32 : 128;
+  network.prefix_length = static_cast<std::uint8_t>(max_prefix);
+  if (slash != std::string_view::npos) {
+    const auto prefix = text.substr(slash + 1);
+    unsigned value = 0;
+    const auto* end = prefix.data() + prefix.size();
+    const auto [stop, error] = std::from_chars(prefix.data(), end, value);
+    if (prefix.empty() || error != std::errc{} || stop != end || value > max_prefix) {
+      return unexpected(quoted + ": the prefix length after '/' must be 0.." + std::to_string(max_prefix) + " for an " +
+                        (v4 ? "IPv4" : "IPv6") + " network");
+    }
+    network.prefix_length = static_cast<std::uint8_t>(value);
+  }
+  IpNetwork cleared = network;
+  if (clear_host_bits(cleared)) {
+    return unexpected(quoted + " has address bits set below its /" + std::to_string(network.prefix_length) +
+                      " prefix; the network is " + cleared.to_string() + " (or give /" + std::to_string(max_prefix) +
+                      " for the one address)");
+  }
+  return network;
+}
+
 modbus_map::ByteOrder effective_byte_order(const ServoConfig& servo) {
   if (servo.byte_order) return *servo.byte_order;
   if (!servo.table) return modbus_map::ByteOrder::HighFirst;  // Modbus registers
@@ -70,6 +136,7 @@ std::string_view to_string(Parity parity) { return detail::name_of(detail::kPari
 std::string_view to_string(RtsMode rts) { return detail::name_of(detail::kRtsNames, rts); }
 std::string_view to_string(Profile profile) { return detail::name_of(detail::kProfileNames, profile); }
 std::string_view to_string(LogLevel level) { return detail::name_of(detail::kLogLevelNames, level); }
+std::string_view to_string(LogFormat format) { return detail::name_of(detail::kLogFormatNames, format); }
 std::string_view to_string(modbus_map::ByteOrder order) {
   return detail::name_of(detail::kByteOrderNames, order);
 }

@@ -2,6 +2,7 @@
 // The gateway's configuration as plain values: what config/load.h produces from a YAML file
 // after validation. Every key, its default and its meaning: config/README.md.
 // No yaml-cpp here; the loader keeps it to itself.
+#include <array>
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
@@ -27,6 +28,24 @@ struct HostPort {
 // Error text says what is wrong with `text` (no location; callers add theirs).
 Expected<HostPort> parse_host_port(std::string_view text);
 
+// An IPv4 or IPv6 network in CIDR form: "192.168.10.0/24", "fd00:1::/64"; a bare address is
+// one host ("10.0.0.7" = /32, "::1" = /128). Host bits below the prefix are zero.
+struct IpNetwork {
+  enum class Family : std::uint8_t { V4, V6 };
+  Family family = Family::V4;
+  std::array<std::uint8_t, 16> address{};  // network byte order; IPv4 uses the first 4 bytes
+  std::uint8_t prefix_length = 32;
+
+  std::string to_string() const;  // "192.168.10.0/24", "fd00:1::/64"
+  bool operator==(const IpNetwork&) const = default;
+};
+// Error text says what is wrong with `text` and shows the valid form (no location).
+Expected<IpNetwork> parse_ip_network(std::string_view text);
+
+// Limits shared by the YAML loader and the environment overlay (config/env.h).
+inline constexpr std::size_t kMaxConnectionsLimit = 4096;
+inline constexpr std::int64_t kMaxIdleTimeoutSeconds = 86400;
+
 struct ModbusTcpConfig {
   // Local only by default, on an unprivileged port; a plant config says e.g. 0.0.0.0:502.
   HostPort listen{"127.0.0.1", 5020};
@@ -35,6 +54,9 @@ struct ModbusTcpConfig {
   std::uint8_t gateway_unit_id = 255;     // the gateway's own unit (MODBUS_MAP.md)
   // Client requests one bus may have waiting; past it a request is answered 0x06 (busy).
   std::size_t request_queue_depth = 64;
+  // Client addresses allowed to connect; empty: every client. Modbus has no authentication, so
+  // this and the bind address are the gateway's access control (README "Security").
+  std::vector<IpNetwork> allow;
 
   bool operator==(const ModbusTcpConfig&) const = default;
 };
@@ -133,9 +155,12 @@ struct SyncGroupConfig {
 };
 
 enum class LogLevel : std::uint8_t { Trace, Debug, Info, Warn, Error, Critical, Off };
+// Plain text lines for people, or one JSON object per line for log collectors.
+enum class LogFormat : std::uint8_t { Plain, Json };
 
 struct LoggingConfig {
   LogLevel level = LogLevel::Info;
+  LogFormat format = LogFormat::Plain;
   std::optional<HostPort> metrics_listen;  // Prometheus-style metrics endpoint, off when empty
 
   bool operator==(const LoggingConfig&) const = default;
@@ -160,6 +185,7 @@ std::string_view to_string(Parity parity);
 std::string_view to_string(RtsMode rts);
 std::string_view to_string(Profile profile);
 std::string_view to_string(LogLevel level);
+std::string_view to_string(LogFormat format);
 std::string_view to_string(modbus_map::ByteOrder order);  // "low-first", "high-first"
 
 }  // namespace sms::config

@@ -31,6 +31,12 @@ void emit_modbus_tcp(YAML::Emitter& out, const ModbusTcpConfig& tcp) {
   out << static_cast<unsigned>(tcp.gateway_unit_id);
   key(out, "request_queue_depth");
   out << tcp.request_queue_depth;
+  if (!tcp.allow.empty()) {  // absent: every client (an empty list is refused by the loader)
+    key(out, "allow");
+    out << YAML::Flow << YAML::BeginSeq;
+    for (const auto& network : tcp.allow) quoted(out, network.to_string());
+    out << YAML::EndSeq;
+  }
   out << YAML::EndMap;
 }
 
@@ -139,6 +145,8 @@ void emit_logging(YAML::Emitter& out, const LoggingConfig& logging) {
   out << YAML::BeginMap;
   key(out, "level");
   out << std::string(to_string(logging.level));
+  key(out, "format");
+  out << std::string(to_string(logging.format));
   if (logging.metrics_listen) {
     key(out, "metrics_listen");
     out << logging.metrics_listen->to_string();

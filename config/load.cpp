@@ -29,8 +29,8 @@ using protocol::BusProtocol;
 // ---- the keys allowed at each place (config/README.md) ----
 
 constexpr std::array<std::string_view, 5> kTopKeys{"modbus_tcp", "buses", "servos", "sync_groups", "logging"};
-constexpr std::array<std::string_view, 5> kModbusTcpKeys{"listen", "max_connections", "idle_timeout_s",
-                                                         "gateway_unit_id", "request_queue_depth"};
+constexpr std::array<std::string_view, 6> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
+                                                         "gateway_unit_id", "request_queue_depth", "allow"};
 constexpr std::array<std::string_view, 17> kBusKeys{
     "name",        "device",         "protocol",   "baud",  "parity", "stop_bits",    "response_timeout_ms",
     "retries",     "poll_period_ms", "offline_probe_period_ms",      "reopen_period_ms",
@@ -41,7 +41,7 @@ constexpr std::array<std::string_view, 2> kPollRangeKeys{"start", "count"};
 constexpr std::array<std::string_view, 9> kServoKeys{"unit",       "bus",           "id",        "table", "profile",
                                                      "byte_order", "response_level", "read_only", "name"};
 constexpr std::array<std::string_view, 4> kSyncGroupKeys{"name", "field", "members", "holding_register_start"};
-constexpr std::array<std::string_view, 2> kLoggingKeys{"level", "metrics_listen"};
+constexpr std::array<std::string_view, 3> kLoggingKeys{"level", "format", "metrics_listen"};
 
 constexpr std::string_view kPassthroughTable = "passthrough";
 constexpr std::uint8_t kMaxUnitId = 247;            // Modbus slave addresses
@@ -413,14 +413,34 @@ ModbusTcpConfig Loader::parse_modbus_tcp(const Value& value) {
   const MapReader keys(*this, value, kModbusTcpKeys);
   ModbusTcpConfig tcp;
   if (const auto v = keys.find("listen")) tcp.listen = host_port(*v);
-  if (const auto v = keys.find("max_connections")) tcp.max_connections = static_cast<std::size_t>(integer(*v, 1, 4096));
-  if (const auto v = keys.find("idle_timeout_s")) tcp.idle_timeout = duration<std::chrono::seconds>(*v, 0, 86400);
+  if (const auto v = keys.find("max_connections")) {
+    tcp.max_connections = static_cast<std::size_t>(integer(*v, 1, static_cast<std::int64_t>(kMaxConnectionsLimit)));
+  }
+  if (const auto v = keys.find("idle_timeout_s")) {
+    tcp.idle_timeout = duration<std::chrono::seconds>(*v, 0, kMaxIdleTimeoutSeconds);
+  }
   if (const auto v = keys.find("gateway_unit_id")) {
     tcp.gateway_unit_id = static_cast<std::uint8_t>(integer(*v, 1, 255));
     gateway_unit_mark_ = v->mark;
   }
   if (const auto v = keys.find("request_queue_depth")) {
     tcp.request_queue_depth = static_cast<std::size_t>(integer(*v, 1, 100000));
+  }
+  if (const auto v = keys.find("allow")) {
+    const auto items = list(*v);
+    // An empty list would lock every client out; that is never what a plant wants.
+    if (items.empty()) fail(v->mark, v->path + ": empty; remove the key to let every client connect");
+    for (std::size_t i = 0; i < items.size(); ++i) {
+      const auto network = parse_ip_network(string(items[i]));
+      if (!network) fail(items[i].mark, items[i].path + ": " + network.error());
+      for (std::size_t j = 0; j < tcp.allow.size(); ++j) {
+        if (tcp.allow[j] == *network) {
+          fail(items[i].mark, items[i].path + ": " + network->to_string() + " is already listed as " + v->path + "[" +
+                                  std::to_string(j) + "] (" + place(items[j].mark) + ")");
+        }
+      }
+      tcp.allow.push_back(*network);
+    }
   }
   return tcp;
 }
@@ -819,6 +839,7 @@ LoggingConfig Loader::parse_logging(const Value& value) {
   const MapReader keys(*this, value, kLoggingKeys);
   LoggingConfig logging;
   if (const auto v = keys.find("level")) logging.level = choice(*v, detail::kLogLevelNames);
+  if (const auto v = keys.find("format")) logging.format = choice(*v, detail::kLogFormatNames);
   if (const auto v = keys.find("metrics_listen")) logging.metrics_listen = host_port(*v);
   return logging;
 }

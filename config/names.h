@@ -43,6 +43,11 @@ inline constexpr std::array<Named<LogLevel>, 7> kLogLevelNames{{
     {"off", LogLevel::Off},
 }};
 
+inline constexpr std::array<Named<LogFormat>, 2> kLogFormatNames{{
+    {"plain", LogFormat::Plain},
+    {"json", LogFormat::Json},
+}};
+
 inline constexpr std::array<Named<modbus_map::ByteOrder>, 2> kByteOrderNames{{
     {"low-first", modbus_map::ByteOrder::LowFirst},
     {"high-first", modbus_map::ByteOrder::HighFirst},

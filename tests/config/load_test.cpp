@@ -96,6 +96,7 @@ constexpr std::string_view kEveryKey = R"(modbus_tcp:
   idle_timeout_s: 0
   gateway_unit_id: 250
   request_queue_depth: 8
+  allow: [192.168.10.0/24, "fd00:1::/64", 10.0.0.7]
 buses:
   - name: arm
     device: /dev/serial/by-id/usb-FTDI-if00
@@ -141,6 +142,7 @@ sync_groups:
     holding_register_start: 0x12
 logging:
   level: debug
+  format: json
   metrics_listen: 0.0.0.0:9102
 )";
 
@@ -150,7 +152,18 @@ Config every_key_expected() {
                                         .max_connections = 4,
                                         .idle_timeout = 0s,
                                         .gateway_unit_id = 250,
-                                        .request_queue_depth = 8};
+                                        .request_queue_depth = 8,
+                                        .allow = {
+                                            IpNetwork{.family = IpNetwork::Family::V4,
+                                                      .address = {192, 168, 10, 0},
+                                                      .prefix_length = 24},
+                                            IpNetwork{.family = IpNetwork::Family::V6,
+                                                      .address = {0xfd, 0x00, 0x00, 0x01},
+                                                      .prefix_length = 64},
+                                            IpNetwork{.family = IpNetwork::Family::V4,
+                                                      .address = {10, 0, 0, 7},
+                                                      .prefix_length = 32},
+                                        }};
   expected.buses.push_back(BusConfig{.name = "arm",
                                      .device = "/dev/serial/by-id/usb-FTDI-if00",
                                      .protocol = BusProtocol::Feetech,
@@ -206,7 +219,8 @@ Config every_key_expected() {
       SyncGroupConfig{.name = "goals", .field = "goal_position", .members = {7, 3}, .holding_register_start = 16});
   expected.sync_groups.push_back(
       SyncGroupConfig{.name = "speed", .field = "run_speed", .members = {7}, .holding_register_start = 18});
-  expected.logging = LoggingConfig{.level = LogLevel::Debug, .metrics_listen = HostPort{"0.0.0.0", 9102}};
+  expected.logging = LoggingConfig{
+      .level = LogLevel::Debug, .format = LogFormat::Json, .metrics_listen = HostPort{"0.0.0.0", 9102}};
   return expected;
 }
 
@@ -264,6 +278,7 @@ servos:
 sync_groups: []
 logging:
   level: info
+  format: plain
 )");
 }
 
