@@ -1,5 +1,7 @@
 #include "gateway/packet_bus_engine.h"
 
+#include <pthread.h>
+
 #include <boost/asio/executor_work_guard.hpp>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/posix/stream_descriptor.hpp>
@@ -576,6 +578,9 @@ void PacketBusEngine::Impl::on_readable(std::uint64_t token, const boost::system
     process_events();
     sync_discarded();
     if (token != token_) return;  // finished, or a new attempt is under way
+    // A short read emptied the tty's buffer: what arrives later raises a new readiness edge,
+    // so the extra read() that would say EAGAIN is skipped.
+    if (*received < rx_buffer_.size()) break;
   }
   wait_for_reply();
 }
@@ -863,6 +868,8 @@ void PacketBusEngine::Impl::start() {
 }
 
 void PacketBusEngine::Impl::run_thread() {
+  // "bus <name>" in top -H / gdb; Linux limits thread names to 15 characters.
+  ::pthread_setname_np(::pthread_self(), ("bus " + settings_.name).substr(0, 15).c_str());
   for (;;) {
     try {
       io_.run();
