@@ -16,6 +16,7 @@
 #include <mutex>
 #include <stdexcept>
 #include <thread>
+#include <type_traits>
 #include <variant>
 
 #include <fmt/format.h>
@@ -468,6 +469,21 @@ std::vector<PollCache::ServoEntry> cache_entries(const BusSettings& settings) {
   return entries;
 }
 
+// SMSMB registers are two bytes each: the cache holds count x 2 bytes per servo and the unit
+// router copies count x 2 bytes out of it (unit_router.cpp, copy_from_cache). That needs
+// PollCache(entries, bytes_per_address); until poll_cache.h has that constructor the cache
+// holds one byte per register, store_block() refuses the blocks, and input-register reads
+// answer 0x0B (NoData) rather than wrong values.
+// (A template so that the branch not taken is never compiled.)
+template <typename Cache>
+Cache register_cache(std::span<const typename Cache::ServoEntry> entries) {
+  if constexpr (std::is_constructible_v<Cache, std::span<const typename Cache::ServoEntry>, std::uint8_t>) {
+    return Cache(entries, std::uint8_t{2});
+  } else {
+    return Cache(entries);
+  }
+}
+
 std::vector<PollTarget> poll_targets(const BusSettings& settings) {
   std::vector<PollTarget> targets;
   for (const auto& servo : settings.servos) targets.push_back({servo.servo_id, servo.poll_block, false});
@@ -481,7 +497,7 @@ class RtuBusEngine::Impl {
   Impl(BusSettings settings, config::ModbusRtuOptions options)
       : settings_(validated(std::move(settings))),
         master_(RtuLineSettings{settings_.serial, options}),
-        cache_(cache_entries(settings_)),
+        cache_(register_cache<PollCache>(cache_entries(settings_))),
         scheduler_(poll_targets(settings_), settings_.probe_period) {}
   ~Impl() { stop(); }
 
