@@ -42,7 +42,7 @@ run() {
   mkdir -p "$scratch" tests/fuzz/crashes
   echo "fuzz.sh: $target for $seconds s (new inputs: $scratch, crashes: tests/fuzz/crashes/)" >&2
   ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-    "$binary" -max_total_time="$seconds" -timeout=10 -rss_limit_mb=2048 -print_final_stats=1 "${dictionary[@]}" \
+    "$binary" -max_total_time="$seconds" -timeout=10 -rss_limit_mb=2048 -malloc_limit_mb=32 -print_final_stats=1 "${dictionary[@]}" \
     -artifact_prefix="tests/fuzz/crashes/$target-" "$@" "$scratch" "tests/fuzz/corpus/$target"
 }
 
