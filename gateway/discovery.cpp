@@ -37,6 +37,8 @@ std::string format_identity_value(const IdentityLayout* layout, bool model, std:
   if (!value) return "-";
   const std::optional<IdentityField> field = layout == nullptr ? std::nullopt : (model ? layout->model : layout->firmware);
   if (field && field->format == IdentityFormat::MajorMinor) return fmt::format("{}.{}", *value >> 8, *value & 0xFF);
+  // A two-byte version word reads best in hex (sms1 V1.01 is 0x0101).
+  if (field && field->size == 2) return fmt::format("0x{:04X}", *value);
   return fmt::format("{}", *value);
 }
 

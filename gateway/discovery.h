@@ -17,7 +17,7 @@ namespace sms::gateway {
 // How one identity value sits in the bytes read at discovery.
 enum class IdentityFormat : std::uint8_t {
   MajorMinor,  // two one-byte fields, major first; shown "8.42"
-  Value,       // one field in the servo's byte order; shown as a number
+  Value,       // one field in the servo's byte order; shown in decimal, two bytes in hex
 };
 struct IdentityField {
   std::uint8_t offset = 0;  // into the bytes read
@@ -47,7 +47,7 @@ const IdentityLayout* identity_layout(modbus_map::TableId table);
 ServoIdentity decode_identity(const IdentityLayout& layout, std::span<const std::uint8_t> bytes,
                               modbus_map::ByteOrder order);
 
-// "8.42", "257", "-" for an absent value.
+// "8.42" (major.minor), "93" (one byte), "0x0101" (two-byte word), "-" for an absent value.
 std::string format_identity_value(const IdentityLayout* layout, bool model, std::optional<std::uint16_t> value);
 
 struct DiscoveredServo {

@@ -1,0 +1,75 @@
+// Identity decoding and the discovery summary text (the engine's discovery itself runs
+// against the simulator in poll_cycle_test.cpp).
+#include "gateway/discovery.h"
+
+#include <gtest/gtest.h>
+
+#include <vector>
+
+namespace sms::gateway {
+namespace {
+
+using modbus_map::ByteOrder;
+using modbus_map::TableId;
+
+TEST(Discovery, StsIdentityIsFirmwareAndModelMajorMinor) {
+  const IdentityLayout* layout = identity_layout(TableId::Sts);
+  ASSERT_NE(layout, nullptr);
+  EXPECT_EQ(layout->read, (AddressBlock{0, 5}));
+  // Addresses 0-4: firmware 2.48, (address 2 is no field), model 8.42.
+  const std::vector<std::uint8_t> bytes{0x02, 0x30, 0x00, 0x08, 0x2A};
+  const ServoIdentity identity = decode_identity(*layout, bytes, ByteOrder::LowFirst);
+  EXPECT_EQ(identity.firmware, 0x0230);
+  EXPECT_EQ(identity.model, 0x082A);
+  EXPECT_EQ(format_identity_value(layout, true, identity.model), "8.42");
+  EXPECT_EQ(format_identity_value(layout, false, identity.firmware), "2.48");
+}
+
+TEST(Discovery, Sms1SoftwareVersionFollowsTheServosByteOrder) {
+  const IdentityLayout* layout = identity_layout(TableId::Sms1);
+  ASSERT_NE(layout, nullptr);
+  EXPECT_EQ(layout->read, (AddressBlock{3, 2}));
+  const std::vector<std::uint8_t> bytes{0x34, 0x12};
+  EXPECT_EQ(decode_identity(*layout, bytes, ByteOrder::LowFirst).firmware, 0x1234);
+  EXPECT_EQ(decode_identity(*layout, bytes, ByteOrder::HighFirst).firmware, 0x3412);
+  EXPECT_FALSE(decode_identity(*layout, bytes, ByteOrder::LowFirst).model);
+  EXPECT_EQ(format_identity_value(layout, false, 0x0101), "0x0101");
+  EXPECT_EQ(format_identity_value(layout, true, std::nullopt), "-");
+}
+
+TEST(Discovery, D55dIdentityIsVendorCodeAndSoftwareVersion) {
+  const IdentityLayout* layout = identity_layout(TableId::D55d);
+  ASSERT_NE(layout, nullptr);
+  const std::vector<std::uint8_t> bytes{0x5D, 0x00, 0x01};
+  const ServoIdentity identity = decode_identity(*layout, bytes, ByteOrder::LowFirst);
+  EXPECT_EQ(identity.model, 0x5D);
+  EXPECT_EQ(identity.firmware, 1);
+  EXPECT_EQ(format_identity_value(layout, true, identity.model), "93");
+}
+
+TEST(Discovery, ShortIdentityReadYieldsNoValues) {
+  const IdentityLayout* layout = identity_layout(TableId::Sts);
+  const std::vector<std::uint8_t> bytes{0x02, 0x30};
+  const ServoIdentity identity = decode_identity(*layout, bytes, ByteOrder::LowFirst);
+  EXPECT_EQ(identity.firmware, 0x0230);
+  EXPECT_FALSE(identity.model);
+}
+
+TEST(Discovery, SmsmbServosHaveNoPacketIdentityLayout) { EXPECT_EQ(identity_layout(TableId::Smsmb), nullptr); }
+
+TEST(Discovery, SummaryHasOneLinePerServo) {
+  std::vector<DiscoveredServo> servos(2);
+  servos[0].servo_id = 1;
+  servos[0].online = true;
+  servos[0].identity = {0x082A, 0x0230};
+  servos[1].servo_id = 12;
+  servos[1].detail = "no answer to PING (3 attempts)";
+  const std::string text = format_discovery_summary({"arm", "/dev/ttyUSB0", "feetech", 1'000'000, servos});
+  EXPECT_EQ(text,
+            "bus arm: /dev/ttyUSB0, feetech at 1000000 bit/s, 1 of 2 servos online\n"
+            "  servo   1  sts   online   model 8.42   firmware 2.48   status 0x00\n"
+            "  servo  12  sts   OFFLINE  no answer to PING (3 attempts)");
+}
+
+}  // namespace
+}  // namespace sms::gateway
