@@ -1,6 +1,12 @@
 // libFuzzer target: modbus_map::RegisterMap planning (MODBUS_MAP.md), which every Modbus request
-// to a servo unit goes through before any bus traffic. The input picks a table, profile and
-// byte order, then a function (FC01 to FC06, FC15, FC16 as plans), a start, a count and values.
+// to a servo unit goes through before any bus traffic. The input is read front to back (zeros
+// once it runs out), so a seed reads in a hex dump: TABLE PROFILE BYTE_ORDER (taken modulo 4,
+// 2, 3), then requests until the input ends, OP taken modulo 7, numbers big-endian:
+//   0 FC03, 1 FC04:  OP START(2) COUNT(1) HAS_POLL POLL_START(2) POLL_COUNT(1) REPLY BYTES...
+//   2 FC01, 3 FC02:  the same with COUNT(2)
+//   4 FC16:          OP START(2) COUNT(1) VALUES(2 each)
+//   5 FC15:          OP START(2) COUNT(2) PACKED BITS
+//   6 field_bytes:   OP FIELD_INDEX VALUE(2)
 //
 // Invariants:
 //   - whatever the request, planning returns a plan or an address / value exception with a
@@ -12,11 +18,10 @@
 //   - a write plan's frames are in ascending, non-overlapping bus address order, each carrying
 //     whole addresses; it is staged exactly when a register write starts at 512 or above;
 //   - field_bytes gives exactly the field's size in bytes, or a value exception.
-#include <fuzzer/FuzzedDataProvider.h>
-
 #include <cstddef>
 #include <cstdint>
 #include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -29,19 +34,30 @@ namespace mm = sms::modbus_map;
 using sms::fuzz::hex;
 using sms::protocol::Bytes;
 
-// Modbus addresses worth hitting: anywhere, the byte tables, the SMSMB registers, staged writes.
-std::uint16_t pick_address(FuzzedDataProvider& input) {
-  switch (input.ConsumeIntegralInRange<int>(0, 3)) {
-    case 0:
-      return input.ConsumeIntegral<std::uint16_t>();
-    case 1:
-      return input.ConsumeIntegralInRange<std::uint16_t>(0, 130);
-    case 2:
-      return input.ConsumeIntegralInRange<std::uint16_t>(0x100, 0x110);
-    default:
-      return input.ConsumeIntegralInRange<std::uint16_t>(mm::kStagedWriteBase, mm::kStagedWriteBase + 130);
+class Reader {
+ public:
+  explicit Reader(std::span<const std::uint8_t> data) : data_(data) {}
+  bool empty() const { return data_.empty(); }
+  std::uint8_t u8() {
+    if (data_.empty()) return 0;
+    const std::uint8_t value = data_[0];
+    data_ = data_.subspan(1);
+    return value;
   }
-}
+  std::uint16_t u16() {
+    const std::uint8_t high = u8();
+    return static_cast<std::uint16_t>(high << 8 | u8());
+  }
+  bool flag() { return (u8() & 1) != 0; }
+  Bytes bytes(std::size_t count) {
+    Bytes out(count, 0);
+    for (auto& byte : out) byte = u8();
+    return out;
+  }
+
+ private:
+  std::span<const std::uint8_t> data_;
+};
 
 std::string request_label(const char* function, std::uint16_t start, std::size_t count, const mm::RegisterMap& map) {
   return std::string(function) + " start " + std::to_string(start) + " count " + std::to_string(count) + " on " +
@@ -56,13 +72,13 @@ void check_planning_error(const mm::MapError& error, const std::string& request)
   SMS_FUZZ_CHECK(!error.message.empty(), request + ": exception without a message");
 }
 
-void check_read(FuzzedDataProvider& input, const mm::RegisterMap& map, mm::RequestSpace space) {
-  const std::uint16_t start = pick_address(input);
+void check_read(Reader& input, const mm::RegisterMap& map, mm::RequestSpace space) {
+  const std::uint16_t start = input.u16();
   const bool bits = space == mm::RequestSpace::Coils || space == mm::RequestSpace::DiscreteInputs;
-  const std::uint16_t count = input.ConsumeIntegralInRange<std::uint16_t>(0, bits ? 2001 : 126);
-  const mm::BusRange poll_block{input.ConsumeIntegralInRange<std::uint16_t>(0, 0x110),
-                                input.ConsumeIntegralInRange<std::uint16_t>(0, 40)};
-  const bool have_poll_block = input.ConsumeBool();
+  const std::uint16_t count = bits ? input.u16() % 2002 : input.u8();
+  const bool have_poll_block = input.flag();
+  const std::uint16_t poll_start = input.u16();
+  const mm::BusRange poll_block{poll_start, input.u8()};
 
   const char* function = bits ? (space == mm::RequestSpace::Coils ? "FC01" : "FC02")
                               : (space == mm::RequestSpace::HoldingRegisters ? "FC03" : "FC04");
@@ -106,9 +122,7 @@ void check_read(FuzzedDataProvider& input, const mm::RegisterMap& map, mm::Reque
   std::vector<Bytes> replies;
   for (const mm::BusRange& range : plan->reads) {
     const std::size_t size = std::size_t{range.count} * map.bytes_per_bus_address();
-    Bytes reply = input.ConsumeBytes<std::uint8_t>(size);
-    reply.resize(size, 0x5A);
-    replies.push_back(std::move(reply));
+    replies.push_back(input.bytes(size));
   }
   if (bits) {
     const auto values = map.bits_from(*plan, replies);
@@ -149,11 +163,11 @@ void check_write_plan(const mm::RegisterMap& map, const mm::WritePlan& plan, boo
   }
 }
 
-void check_register_write(FuzzedDataProvider& input, const mm::RegisterMap& map) {
-  const std::uint16_t start = pick_address(input);
-  const std::size_t count = input.ConsumeIntegralInRange<std::size_t>(0, 124);
+void check_register_write(Reader& input, const mm::RegisterMap& map) {
+  const std::uint16_t start = input.u16();
+  const std::size_t count = input.u8();
   std::vector<std::uint16_t> values;
-  for (std::size_t i = 0; i < count; ++i) values.push_back(input.ConsumeIntegral<std::uint16_t>());
+  for (std::size_t i = 0; i < count; ++i) values.push_back(input.u16());
   const std::string request = request_label("FC16", start, count, map) + " values " +
                               hex(std::span(reinterpret_cast<const std::uint8_t*>(values.data()), values.size() * 2));
   const auto plan = map.plan_register_write(start, values);
@@ -166,11 +180,15 @@ void check_register_write(FuzzedDataProvider& input, const mm::RegisterMap& map)
   check_write_plan(map, *plan, start >= mm::kStagedWriteBase, request);
 }
 
-void check_coil_write(FuzzedDataProvider& input, const mm::RegisterMap& map) {
-  const std::uint16_t start = pick_address(input);
-  const std::size_t count = input.ConsumeIntegralInRange<std::size_t>(0, 1970);
+void check_coil_write(Reader& input, const mm::RegisterMap& map) {
+  const std::uint16_t start = input.u16();
+  const std::size_t count = input.u16() % 1970;
   std::vector<bool> values;
-  for (std::size_t i = 0; i < count; ++i) values.push_back(input.ConsumeBool());
+  std::uint8_t packed = 0;
+  for (std::size_t i = 0; i < count; ++i) {
+    if (i % 8 == 0) packed = input.u8();
+    values.push_back(((packed >> (i % 8)) & 1) != 0);
+  }
   const std::string request = request_label("FC15", start, count, map);
   const auto plan = map.plan_coil_write(start, values);
   if (!plan) {
@@ -182,11 +200,11 @@ void check_coil_write(FuzzedDataProvider& input, const mm::RegisterMap& map) {
   check_write_plan(map, *plan, false, request);
 }
 
-void check_field_bytes(FuzzedDataProvider& input, const mm::RegisterMap& map) {
+void check_field_bytes(Reader& input, const mm::RegisterMap& map) {
   const auto fields = map.servo_table().fields;
   if (fields.empty()) return;
-  const mm::FieldSpec& field = fields[input.ConsumeIntegralInRange<std::size_t>(0, fields.size() - 1)];
-  const std::uint16_t value = input.ConsumeIntegral<std::uint16_t>();
+  const mm::FieldSpec& field = fields[input.u8() % fields.size()];
+  const std::uint16_t value = input.u16();
   const std::string request = "field_bytes(" + std::string(field.name) + ", " + std::to_string(value) + ") on " +
                               map.description();
   const auto bytes = map.field_bytes(field, value);
@@ -200,11 +218,11 @@ void check_field_bytes(FuzzedDataProvider& input, const mm::RegisterMap& map) {
 }  // namespace
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
-  FuzzedDataProvider input(data, size);
-  const auto table = static_cast<mm::TableId>(input.ConsumeIntegralInRange<int>(0, 3));
-  const auto profile = input.ConsumeBool() ? mm::Profile::Smsmb : mm::Profile::Native;
+  Reader input(std::span<const std::uint8_t>(data, size));
+  const auto table = static_cast<mm::TableId>(input.u8() % 4);
+  const auto profile = input.flag() ? mm::Profile::Smsmb : mm::Profile::Native;
   std::optional<mm::ByteOrder> byte_order;
-  switch (input.ConsumeIntegralInRange<int>(0, 2)) {
+  switch (input.u8() % 3) {
     case 1:
       byte_order = mm::ByteOrder::LowFirst;
       break;
@@ -224,8 +242,8 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
                        std::string(mm::to_string(profile)) + ": " + map.error());
     return 0;
   }
-  while (input.remaining_bytes() > 0) {
-    switch (input.ConsumeIntegralInRange<int>(0, 6)) {
+  while (!input.empty()) {
+    switch (input.u8() % 7) {
       case 0:
         check_read(input, *map, mm::RequestSpace::HoldingRegisters);
         break;
