@@ -1,18 +1,19 @@
 #!/bin/sh
 # Container entrypoint for sms-gateway (installed as /usr/local/bin/sms-gateway-entrypoint).
-#   no arguments          -> sms-gateway --config "$SMS_GATEWAY_CONFIG" --listen 0.0.0.0:502 when
-#                            that path exists, else the simulated bus:
-#                            sms-gateway --simulate --listen 0.0.0.0:502
+#   no arguments          -> sms-gateway --config "$SMS_GATEWAY_CONFIG" --listen "$SMS_GATEWAY_LISTEN"
+#                            when that path exists, else the simulated bus:
+#                            sms-gateway --simulate --listen "$SMS_GATEWAY_LISTEN"
+#                            (defaults: /etc/sms-gateway/config.yaml and 0.0.0.0:502)
 #   arguments "-..."      -> sms-gateway <arguments>       (e.g. --check-config FILE, --version)
 #   anything else         -> run as given                  (e.g. sms-sim --help)
 # exec keeps sms-gateway the process that receives SIGTERM (from the init, or as PID 1).
 set -eu
 
 config="${SMS_GATEWAY_CONFIG:-/etc/sms-gateway/config.yaml}"
-# Inside the container the gateway always serves on 0.0.0.0:502 (EXPOSE and HEALTHCHECK use it);
-# the host side is chosen with -p. --listen overrides the config's modbus_tcp.listen, so a config
-# written for the host (127.0.0.1:5020, say) works unchanged.
-listen=0.0.0.0:502
+# Inside the container the gateway serves on $SMS_GATEWAY_LISTEN, 0.0.0.0:502 by default (EXPOSE
+# and HEALTHCHECK use 502); the host side is chosen with -p. --listen overrides the config's
+# modbus_tcp.listen, so a config written for the host (127.0.0.1:5020, say) works unchanged.
+listen="${SMS_GATEWAY_LISTEN:-0.0.0.0:502}"
 
 if [ "$#" -eq 0 ]; then
   # -e, not -f: a mount that went wrong (Docker creates a directory when the host file is

@@ -195,12 +195,12 @@ check "podman healthcheck run: healthy ($(elapsed "$t0") s)"
 other_port=$(free_port)
 off_ctr=$run_id-offport
 containers+=("$off_ctr")
-start_container --name "$off_ctr" -p "127.0.0.1:$other_port:5020" "$image" --simulate --listen 0.0.0.0:5020
+start_container --name "$off_ctr" -p "127.0.0.1:$other_port:5020" -e SMS_GATEWAY_LISTEN=0.0.0.0:5020 "$image"
 wait_for_modbus "$other_port" 255 30 || { podman logs "$off_ctr" | tail -20 >&2; fail "gateway on 5020 did not answer"; }
 if podman healthcheck run "$off_ctr" >/dev/null 2>&1; then
   fail "healthcheck says healthy although nothing answers on port 502"
 fi
-check "healthcheck reports unhealthy when the gateway serves but not on 502"
+check "SMS_GATEWAY_LISTEN=0.0.0.0:5020 moves the listener; the healthcheck then reports unhealthy"
 
 stop_and_check "$sim_ctr" "with --init"
 stop_and_check "$off_ctr" "without --init (sms-gateway is PID 1)"
