@@ -69,6 +69,10 @@ class ChildProcess {
       const pid_t done = ::waitpid(pid_, &status, WNOHANG);
       if (done == pid_) {
         exit_status_ = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+        // Everything the child wrote is in the pipe: let the reader take it all before anyone
+        // looks at output().
+        std::unique_lock lock(mutex_);
+        changed_.wait_for(lock, std::chrono::seconds{5}, [this] { return output_closed_; });
         return exit_status_;
       }
       if (std::chrono::steady_clock::now() >= deadline) return std::nullopt;

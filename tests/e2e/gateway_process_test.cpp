@@ -7,6 +7,7 @@
 
 #include <atomic>
 #include <future>
+#include <mutex>
 
 #include "tests/e2e/plant.h"
 
@@ -82,14 +83,14 @@ TEST(GatewayProcess, SyncGroupsWriteEveryMemberOnEachBus) {
   wait_until_polled(plant.port(), 4);
   ModbusClient gateway(plant.port(), 255);
   ASSERT_TRUE(gateway.write_registers(0, {1000, 1100, 1200}).ok());
-  EXPECT_EQ(plant.arm().field(1, "goal_position"), 1000);
-  EXPECT_EQ(plant.arm().field(2, "goal_position"), 1100);
-  EXPECT_EQ(plant.arm().field(4, "goal_position"), 1200);
+  EXPECT_TRUE(eventually([&] { return plant.arm().field(1, "goal_position") == 1000; }));
+  EXPECT_TRUE(eventually([&] { return plant.arm().field(2, "goal_position") == 1100; }));
+  EXPECT_TRUE(eventually([&] { return plant.arm().field(4, "goal_position") == 1200; }));
   EXPECT_EQ(gateway.read_holding(0, 3).values, (std::vector<std::uint16_t>{1000, 1100, 1200}));
 
   ASSERT_TRUE(gateway.write_registers(10, {150, static_cast<std::uint16_t>(-200)}).ok());
-  EXPECT_EQ(plant.base().field(1, "run_speed"), 150);
-  EXPECT_EQ(plant.base().field(2, "run_speed"), -200);
+  EXPECT_TRUE(eventually([&] { return plant.base().field(1, "run_speed") == 150; }));
+  EXPECT_TRUE(eventually([&] { return plant.base().field(2, "run_speed") == -200; }));
 
   EXPECT_EQ(gateway.write_registers(2, {1, 2}).exception, 0x02);  // 3 is in no group
   EXPECT_EQ(gateway.write_register(20, 1).exception, 0x02);
@@ -135,6 +136,8 @@ TEST(GatewayProcess, FiftyConcurrentClientsAreAllServed) {
   const Target targets[] = {{1, 42, 56}, {2, 42, 56}, {3, 0x80, 0x101}, {4, 42, 56},
                             {5, 0x80, 0x101}, {11, 30, 36}, {12, 30, 36}};
   std::atomic<int> failures{0};
+  std::mutex first_failure_mutex;
+  std::string first_failure;
   std::vector<std::future<void>> clients;
   const auto started = std::chrono::steady_clock::now();
   for (int i = 0; i < kClients; ++i) {
@@ -145,12 +148,19 @@ TEST(GatewayProcess, FiftyConcurrentClientsAreAllServed) {
         // Mostly cached reads (what an HMI does), every fourth a live read over the bus.
         const auto answer = r % 4 == 3 ? client.read_holding(target.live, 1)
                                        : r % 2 == 0 ? client.read_input(target.cached, 1) : client.read_input(1000, 8);
-        if (!answer.ok()) ++failures;
+        if (!answer.ok()) {
+          ++failures;
+          std::lock_guard lock(first_failure_mutex);
+          if (first_failure.empty()) {
+            first_failure = "unit " + std::to_string(target.unit) + " request " + std::to_string(r) + ": exception " +
+                            std::to_string(answer.exception) + " " + answer.error;
+          }
+        }
       }
     }));
   }
   for (auto& client : clients) client.get();
-  EXPECT_EQ(failures, 0);
+  EXPECT_EQ(failures, 0) << first_failure;
   EXPECT_LT(std::chrono::steady_clock::now() - started, 60s);
 }
 

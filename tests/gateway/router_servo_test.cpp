@@ -22,7 +22,7 @@ std::string config_with(const std::string& bus_options, const std::string& servo
 
 const std::string kTwoServos = "  - {unit: 1, bus: arm, id: 1, table: sts}\n  - {unit: 2, bus: arm, id: 2, table: sts}\n";
 // One poll cycle after discovery, then none for an hour: bus traffic is the test's alone.
-const std::string kQuietBus = ", poll_period_ms: 3600000, response_timeout_ms: 20, retries: 1";
+const std::string kQuietBus = ", poll_period_ms: 3600000, response_timeout_ms: 100, retries: 1";
 
 template <typename F>
 bool eventually(F condition, std::chrono::milliseconds timeout = 3s) {
@@ -225,7 +225,7 @@ TEST_F(Router, StagedWriteWaitsForTheActionCoil) {
   EXPECT_EQ(*sim().read_field(1, "goal_position"), goal_before);  // staged, not applied
   client.set_unit(255);
   ASSERT_TRUE(client.write_coil(0, true).ok());
-  EXPECT_EQ(*sim().read_field(1, "goal_position"), 1000);
+  EXPECT_TRUE(eventually([&] { return *sim().read_field(1, "goal_position") == 1000; }));
   EXPECT_EQ(client.read_coils(0, 1).values, std::vector<std::uint8_t>{0});
 }
 
@@ -239,10 +239,10 @@ TEST_F(Router, SyncGroupWriteIsOneBusFrameAndReadsBack) {
   ModbusClient client(port(), 255);
   const auto before = sim().stats().requests;
   ASSERT_TRUE(client.write_registers(10, {100, 0xFC18, 3000}).ok());
-  EXPECT_EQ(sim().stats().requests, before + 1);  // one SYNC WRITE frame for three servos
-  EXPECT_EQ(*sim().read_field(1, "goal_speed"), 100);
-  EXPECT_EQ(*sim().read_memory(2, 46, 2), (Bytes{0xE8, 0x83}));  // -1000 sign-magnitude
-  EXPECT_EQ(*sim().read_field(3, "goal_speed"), 3000);
+  EXPECT_TRUE(eventually([&] { return sim().stats().requests == before + 1; }));  // one SYNC WRITE frame for three servos
+  EXPECT_TRUE(eventually([&] { return *sim().read_field(1, "goal_speed") == 100; }));
+  EXPECT_TRUE(eventually([&] { return *sim().read_memory(2, 46, 2) == Bytes{0xE8, 0x83}; }));  // -1000 sign-magnitude
+  EXPECT_TRUE(eventually([&] { return *sim().read_field(3, "goal_speed") == 3000; }));
   EXPECT_EQ(client.read_holding(10, 3).values, (std::vector<std::uint16_t>{100, 0xFC18, 3000}));
   EXPECT_EQ(client.write_registers(12, {1, 2}).exception, 0x02);  // 13 is no group register
   EXPECT_EQ(client.write_register(11, 0x8000).exception, 0x03);   // -32768: beyond a 15-bit magnitude
