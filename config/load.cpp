@@ -1,5 +1,6 @@
 #include "config/load.h"
 
+#include <yaml-cpp/eventhandler.h>
 #include <yaml-cpp/yaml.h>
 
 #include <algorithm>
@@ -66,6 +67,41 @@ Value entry_value(const YAML::Node& key, const YAML::Node& value, std::string pa
 struct Failure {
   ConfigError error;
 };
+
+// Well-formed UTF-8 without control characters: such strings would not survive a dump (the YAML
+// writer replaces them) and would garble logs and metrics labels.
+bool is_printable_utf8(std::string_view text) {
+  for (std::size_t i = 0; i < text.size();) {
+    const auto lead = static_cast<unsigned char>(text[i]);
+    if (lead < 0x80) {
+      if (lead < 0x20 || lead == 0x7F) return false;
+      ++i;
+      continue;
+    }
+    std::size_t length = 0;
+    std::uint32_t code = 0;
+    if ((lead & 0xE0) == 0xC0) {
+      length = 2, code = lead & 0x1F;
+    } else if ((lead & 0xF0) == 0xE0) {
+      length = 3, code = lead & 0x0F;
+    } else if ((lead & 0xF8) == 0xF0) {
+      length = 4, code = lead & 0x07;
+    } else {
+      return false;
+    }
+    if (i + length > text.size()) return false;
+    for (std::size_t k = 1; k < length; ++k) {
+      const auto next = static_cast<unsigned char>(text[i + k]);
+      if ((next & 0xC0) != 0x80) return false;
+      code = (code << 6) | (next & 0x3F);
+    }
+    static constexpr std::uint32_t kSmallest[] = {0, 0, 0x80, 0x800, 0x10000};
+    if (code < kSmallest[length] || code > 0x10FFFF || (code >= 0xD800 && code <= 0xDFFF)) return false;
+    if (code >= 0x80 && code < 0xA0) return false;  // C1 controls
+    i += length;
+  }
+  return true;
+}
 
 std::string join(std::span<const std::string_view> names) {
   std::string text;
@@ -281,6 +317,10 @@ class Loader {
       fail(value.mark, value.path + ": expected a string, got " + describe(value.node));
     }
     if (value.node.Scalar().empty()) fail(value.mark, value.path + ": must not be empty");
+    if (!is_printable_utf8(value.node.Scalar())) {
+      fail(value.mark, value.path + ": must be printable UTF-8 text (it has a control character or "
+                                    "bytes that are not UTF-8); names end up in logs and metrics labels");
+    }
     return value.node.Scalar();
   }
 
@@ -844,10 +884,45 @@ LoggingConfig Loader::parse_logging(const Value& value) {
   return logging;
 }
 
+// Counts documents without building them, stopping at the second: yaml-cpp 0.7's LoadAll never
+// returns on some malformed input (a lone `,` yields empty documents forever, jbeder/yaml-cpp#1040).
+class DocumentCounter : public YAML::EventHandler {
+ public:
+  void OnDocumentStart(const YAML::Mark& mark) override {
+    if (++count_ == 2) second_start_ = mark;
+  }
+  void OnDocumentEnd() override {}
+  void OnNull(const YAML::Mark&, YAML::anchor_t) override {}
+  void OnAlias(const YAML::Mark&, YAML::anchor_t) override {}
+  void OnScalar(const YAML::Mark&, const std::string&, YAML::anchor_t, const std::string&) override {}
+  void OnSequenceStart(const YAML::Mark&, const std::string&, YAML::anchor_t, YAML::EmitterStyle::value) override {}
+  void OnSequenceEnd() override {}
+  void OnMapStart(const YAML::Mark&, const std::string&, YAML::anchor_t, YAML::EmitterStyle::value) override {}
+  void OnMapEnd() override {}
+
+  std::size_t count() const { return count_; }
+  const YAML::Mark& second_start() const { return second_start_; }
+
+ private:
+  std::size_t count_ = 0;
+  YAML::Mark second_start_ = YAML::Mark::null_mark();
+};
+
 Expected<Config, ConfigError> load_text(const std::string& text, const std::string& source) {
   std::vector<YAML::Node> documents;
   try {
-    documents = YAML::LoadAll(text);
+    std::istringstream stream(text);
+    YAML::Parser parser(stream);
+    DocumentCounter counter;
+    while (counter.count() < 2 && parser.HandleNextDocument(counter)) {
+    }
+    if (counter.count() >= 2) {
+      Loader(source).fail(counter.second_start(),
+                          "a second YAML document starts here; the configuration is one document");
+    }
+    if (counter.count() == 1) documents.push_back(YAML::Load(text));
+  } catch (const Failure& failure) {
+    return unexpected(failure.error);
   } catch (const YAML::Exception& error) {
     ConfigError config_error;
     config_error.file = source;
@@ -865,9 +940,6 @@ Expected<Config, ConfigError> load_text(const std::string& text, const std::stri
   }
   Loader loader(source);
   try {
-    if (documents.size() > 1) {
-      loader.fail(documents[1].Mark(), "a second YAML document starts here; the configuration is one document");
-    }
     return loader.load(documents.front());
   } catch (const Failure& failure) {
     return unexpected(failure.error);

@@ -53,7 +53,7 @@ TEST(ConfigErrors, SecondDocumentIsRefused) {
 ---
 servos: []
 )"),
-            "plant.yaml:3:1: a second YAML document starts here; the configuration is one document");
+            "plant.yaml:2:1: a second YAML document starts here; the configuration is one document");
 }
 
 TEST(ConfigErrors, TopLevelMustBeAMap) {
@@ -814,6 +814,31 @@ TEST(ConfigErrors, DirectoryIsNoFile) {
   const auto config = load_config_file("/tmp");
   ASSERT_FALSE(config);
   EXPECT_EQ(config.error().to_string(), "/tmp: is a directory; give the configuration file");
+}
+
+}  // namespace
+}  // namespace sms::config
+
+namespace sms::config {
+namespace {
+
+// Fuzz finding (tests/fuzz/corpus/fuzz_config/finding-lone-comma-endless-loadall.yaml): yaml-cpp 0.7's
+// LoadAll produced empty documents forever for a lone comma; the loader must answer at once.
+TEST(ConfigErrors, LoneCommaIsRefusedInsteadOfLoopingForever) {
+  EXPECT_EQ(error_text(","), "plant.yaml:1:1: a second YAML document starts here; the configuration is one document");
+}
+
+// Fuzz findings (finding-servo-name-*.yaml): such names did not survive a dump and would garble logs.
+TEST(ConfigErrors, NameWithControlCharacterOrBrokenUtf8IsRefused) {
+  const std::string prefix = "buses:\n  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}\n"
+                             "servos:\n  - {bus: arm, id: 1, table: sts, name: \"a";
+  EXPECT_EQ(error_text(prefix + "\\x01b\"}\n"),
+            "plant.yaml:4:41: servos[0].name: must be printable UTF-8 text (it has a control character or bytes "
+            "that are not UTF-8); names end up in logs and metrics labels");
+  EXPECT_EQ(error_text(prefix + "\xFF" + "b\"}\n"),
+            "plant.yaml:4:41: servos[0].name: must be printable UTF-8 text (it has a control character or bytes "
+            "that are not UTF-8); names end up in logs and metrics labels");
+  EXPECT_TRUE(load_config_string(prefix + "\xC3\xA9t\xC3\xA9\"}\n", "plant.yaml").has_value()) << "UTF-8 names are fine";
 }
 
 }  // namespace
