@@ -6,6 +6,7 @@
 #include <netinet/in.h>
 #include <signal.h>
 #include <spawn.h>
+#include <sys/resource.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
@@ -343,7 +344,7 @@ Outcome outcome_of(int rc, int expected) {
 }
 
 ClientTotals run_clients(std::uint16_t port, int unit, unsigned clients, std::chrono::milliseconds duration,
-                         const RequestFn& request) {
+                         const RequestFn& request, int nice) {
   std::vector<ClientTotals> per_client(clients);
   std::vector<Clock::time_point> ended(clients);
   std::latch connected(clients);
@@ -356,6 +357,7 @@ ClientTotals run_clients(std::uint16_t port, int unit, unsigned clients, std::ch
   for (unsigned index = 0; index < clients; ++index) {
     threads.emplace_back([&, index] {
       ClientTotals& totals = per_client[index];
+      if (nice > 0) ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), nice);
       std::optional<ModbusClient> client;
       try {
         client.emplace(port, unit);

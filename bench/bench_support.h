@@ -169,10 +169,12 @@ struct ClientTotals {
 
 // Runs `clients` threads, each with its own connection to `unit`, all starting together and
 // each calling `request(context, client_index, iteration)` back to back until `duration`
-// has passed. `setup` runs once per client after connecting (may be empty).
+// has passed. `nice` > 0 lowers the client threads' priority (setpriority per thread), so a
+// flood of clients cannot starve the simulated servos and the gateway of CPU on a small
+// machine: on a real bus the servos are other hardware.
 using RequestFn = std::function<Outcome(modbus_t*, unsigned client, std::uint64_t iteration)>;
 ClientTotals run_clients(std::uint16_t port, int unit, unsigned clients, std::chrono::milliseconds duration,
-                         const RequestFn& request);
+                         const RequestFn& request, int nice = 0);
 
 // Classifies the result of a libmodbus call (rc < 0: errno tells).
 Outcome outcome_of(int rc, int expected);

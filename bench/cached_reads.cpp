@@ -166,7 +166,7 @@ Throughput measure_reads(const std::string& server, std::uint16_t port, unsigned
   return result;
 }
 
-void measure_flood(std::uint16_t port, std::chrono::milliseconds duration) {
+void measure_flood(std::uint16_t port, std::chrono::milliseconds duration, int nice) {
   // Live FC03 reads of the feedback block, spread over the six servos: every one is a bus READ.
   const auto live_read = [](modbus_t* context, unsigned client, std::uint64_t) {
     modbus_set_slave(context, static_cast<int>(1 + client % kServos));
@@ -174,7 +174,7 @@ void measure_flood(std::uint16_t port, std::chrono::milliseconds duration) {
     return outcome_of(modbus_read_registers(context, kFeedbackAddress, kFeedbackCount, registers.data()),
                       kFeedbackCount);
   };
-  ClientTotals totals = run_clients(port, 1, kFloodClients, duration, live_read);
+  ClientTotals totals = run_clients(port, 1, kFloodClients, duration, live_read, nice);
   const double answered = static_cast<double>(totals.ok_ns.size());
   const double busy = static_cast<double>(totals.busy_ns.size());
   const LatencySummary ok = summarize(totals.ok_ns);
@@ -200,11 +200,13 @@ int main(int argc, char** argv) {
   }
   double seconds = 3;
   double flood_seconds = 3;
+  double flood_nice = 0;
   if (!parse_arguments(argc, argv,
                        "cached FC04 reads/s and latency with 1, 8 and 64 clients, gateway vs a bare libmodbus "
                        "server; then the bounded bus queue under 64 clients of live FC03 reads",
                        {{"seconds", &seconds, "duration of each throughput run"},
-                        {"flood-seconds", &flood_seconds, "duration of the live-read flood"}})) {
+                        {"flood-seconds", &flood_seconds, "duration of the live-read flood"},
+                        {"flood-nice", &flood_nice, "niceness of the flooding client threads"}})) {
     return 2;
   }
   const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
@@ -228,7 +230,8 @@ int main(int argc, char** argv) {
       print_figure("cached_reads.ratio.clients_" + std::to_string(clients),
                    100.0 * through_gateway.requests_per_s / through_bare.requests_per_s, "%_of_bare");
     }
-    measure_flood(gateway.port(), std::chrono::milliseconds(static_cast<long>(flood_seconds * 1000)));
+    measure_flood(gateway.port(), std::chrono::milliseconds(static_cast<long>(flood_seconds * 1000)),
+                  static_cast<int>(flood_nice));
     if (const int status = gateway.stop(); status != 0) {
       std::cerr << "cached_reads: sms-gateway exited with status " << status << "\n";
       return 1;

@@ -179,9 +179,12 @@ int main(int argc, char** argv) {
     RssSeries rss;
     std::atomic<bool> sampling{true};
     const pid_t pid = gateway.pid();
+    const auto idle_kib = rss_kib(pid);
+    // Samples every second from one second into the load (all clients connected), to the end.
     std::thread sampler([&] {
       const auto start = Clock::now();
-      auto next = start;
+      auto next = start + 1s;
+      while (sampling.load() && Clock::now() < next) std::this_thread::sleep_for(20ms);
       while (sampling.load()) {
         if (const auto kib = rss_kib(pid)) {
           rss.seconds.push_back(std::chrono::duration<double>(Clock::now() - start).count());
@@ -251,12 +254,12 @@ int main(int argc, char** argv) {
     print_figure(name + ".all.p99", latency.p99_us, "us");
     if (totals.errors > 0) print_note("first failure: " + totals.first_error);
     if (!rss.kib.empty()) {
-      const std::size_t warm = std::min<std::size_t>(5, rss.kib.size() - 1);
+      if (idle_kib) print_figure(name + ".rss.before_load", static_cast<double>(*idle_kib), "KiB");
       print_figure(name + ".rss.first", rss.kib.front(), "KiB");
       print_figure(name + ".rss.last", rss.kib.back(), "KiB");
       print_figure(name + ".rss.max", *std::max_element(rss.kib.begin(), rss.kib.end()), "KiB");
       print_figure(name + ".rss.slope", slope_kib_per_min(rss, 0), "KiB/min");
-      print_figure(name + ".rss.slope_after_5s", slope_kib_per_min(rss, warm), "KiB/min");
+      print_figure(name + ".rss.slope_second_half", slope_kib_per_min(rss, rss.kib.size() / 2), "KiB/min");
       print_figure(name + ".rss.samples", static_cast<double>(rss.kib.size()), "samples");
       print_figure(name + ".open_fds.first", static_cast<double>(rss.fds.front()), "fds");
       print_figure(name + ".open_fds.last", static_cast<double>(rss.fds.back()), "fds");
