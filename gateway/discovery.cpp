@@ -33,6 +33,11 @@ ServoIdentity decode_identity(const IdentityLayout& layout, std::span<const std:
   return {decode_field(layout.model, bytes, order), decode_field(layout.firmware, bytes, order)};
 }
 
+std::optional<std::uint8_t> decode_response_level(const IdentityLayout& layout, std::span<const std::uint8_t> bytes) {
+  if (layout.response_level_offset >= bytes.size()) return std::nullopt;
+  return bytes[layout.response_level_offset];
+}
+
 std::string format_identity_value(const IdentityLayout* layout, bool model, std::optional<std::uint16_t> value) {
   if (!value) return "-";
   const std::optional<IdentityField> field = layout == nullptr ? std::nullopt : (model ? layout->model : layout->firmware);

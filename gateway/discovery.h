@@ -26,26 +26,32 @@ struct IdentityField {
 };
 struct IdentityLayout {
   modbus_map::TableId table;
-  AddressBlock read;  // one READ covering both fields
+  AddressBlock read;  // one READ covering every field below
   std::optional<IdentityField> model;
   std::optional<IdentityField> firmware;
+  std::uint8_t response_level_offset;  // the table's `response_level` field, one byte
+
+  std::uint16_t response_level_address() const { return static_cast<std::uint16_t>(read.address + response_level_offset); }
 };
 
-// sts: firmware 0-1, model 3-4 (SPEC §2.1); sms1: software version 3-4 (§2.2);
-// d55d: vendor code 0, software version 2 (§2.3). SMSMB servos are not on packet buses.
+// sts: firmware 0-1, model 3-4, response level 8 (SPEC §2.1); sms1: software version 3-4,
+// response level 8 (§2.2); d55d: vendor code 0, software version 2, response level 16 (§2.3).
+// SMSMB servos are not on packet buses.
 inline constexpr std::array<IdentityLayout, 3> kIdentityLayouts{{
-    {modbus_map::TableId::Sts, {0, 5}, IdentityField{3, 2, IdentityFormat::MajorMinor},
-     IdentityField{0, 2, IdentityFormat::MajorMinor}},
-    {modbus_map::TableId::Sms1, {3, 2}, std::nullopt, IdentityField{0, 2, IdentityFormat::Value}},
-    {modbus_map::TableId::D55d, {0, 3}, IdentityField{0, 1, IdentityFormat::Value},
-     IdentityField{2, 1, IdentityFormat::Value}},
+    {modbus_map::TableId::Sts, {0, 9}, IdentityField{3, 2, IdentityFormat::MajorMinor},
+     IdentityField{0, 2, IdentityFormat::MajorMinor}, 8},
+    {modbus_map::TableId::Sms1, {3, 6}, std::nullopt, IdentityField{0, 2, IdentityFormat::Value}, 5},
+    {modbus_map::TableId::D55d, {0, 17}, IdentityField{0, 1, IdentityFormat::Value},
+     IdentityField{2, 1, IdentityFormat::Value}, 16},
 }};
 
 const IdentityLayout* identity_layout(modbus_map::TableId table);
 
-// Decodes the bytes of one identity READ (exactly layout.read.count bytes).
+// Decode the bytes of one identity READ (layout.read.count bytes; fields beyond a shorter
+// read stay empty).
 ServoIdentity decode_identity(const IdentityLayout& layout, std::span<const std::uint8_t> bytes,
                               modbus_map::ByteOrder order);
+std::optional<std::uint8_t> decode_response_level(const IdentityLayout& layout, std::span<const std::uint8_t> bytes);
 
 // "8.42" (major.minor), "93" (one byte), "0x0101" (two-byte word), "-" for an absent value.
 std::string format_identity_value(const IdentityLayout* layout, bool model, std::optional<std::uint16_t> value);

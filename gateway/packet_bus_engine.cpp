@@ -178,6 +178,7 @@ class PacketBusEngine::Impl {
   void finish(BusStatus status, std::uint8_t servo_error, protocol::Bytes data, std::string detail);
   void note_answer(std::uint8_t servo_id, std::uint8_t error);
   void note_timeout(std::uint8_t servo_id);
+  void note_written(const Packet& request);
   void sync_discarded();
   std::chrono::nanoseconds reply_allowance(std::size_t reply_bytes) const;
   bool addressed_servo_offline(const Job& job) const;
@@ -733,7 +734,11 @@ void PacketBusEngine::Impl::finish(BusStatus status, std::uint8_t servo_error, p
   ++token_;
   attempt_timer_.cancel();
   counters_.transactions.fetch_add(1, std::memory_order_relaxed);
-  if (status != BusStatus::Ok) spdlog::debug("{}", detail);
+  if (status == BusStatus::Ok) {
+    note_written(active.job.request);
+  } else {
+    spdlog::debug("{}", detail);
+  }
   if (active.job.reply == ReplyKind::SyncRead) {
     on_sync_read_finished(active);
   } else {
@@ -755,6 +760,28 @@ void PacketBusEngine::Impl::note_answer(std::uint8_t servo_id, std::uint8_t erro
 void PacketBusEngine::Impl::note_timeout(std::uint8_t servo_id) {
   counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
   if (ServoCounters* counters = cache_.counters(servo_id)) counters->timeouts.fetch_add(1, std::memory_order_relaxed);
+}
+
+void PacketBusEngine::Impl::note_written(const Packet& request) {
+  // Keeps the cached response levels true when a client changes one (REG WRITE takes effect
+  // only at ACTION and is not followed).
+  const auto apply = [this](std::uint8_t servo_id, std::uint8_t address, std::span<const std::uint8_t> data) {
+    const ServoSettings* target = servo(servo_id);
+    const IdentityLayout* layout = target == nullptr ? nullptr : identity_layout(target->table);
+    if (layout == nullptr) return;
+    const std::uint16_t level_address = layout->response_level_address();
+    if (level_address < address || level_address >= address + data.size()) return;
+    cache_.set_response_level(servo_id, data[level_address - address]);
+  };
+  if (request.code == protocol::common::kWrite && request.params.size() >= 2) {
+    const auto data = std::span<const std::uint8_t>(request.params).subspan(1);
+    if (request.id != protocol::kBroadcastId) return apply(request.id, request.params[0], data);
+    for (const auto& each : settings_.servos) apply(each.servo_id, request.params[0], data);
+  } else if (request.code == protocol::common::kSyncWrite) {
+    if (const auto sync = protocol::parse_sync_write(request.params)) {
+      for (const auto& entry : sync->entries) apply(entry.id, sync->address, entry.data);
+    }
+  }
 }
 
 void PacketBusEngine::Impl::sync_discarded() {
@@ -980,6 +1007,7 @@ void PacketBusEngine::Impl::read_identity(std::uint8_t servo_id, std::optional<s
     if (result.status == BusStatus::Ok) {
       const ServoIdentity identity = decode_identity(*layout, result.data, order);
       cache_.set_identity(servo_id, identity);
+      cache_.set_response_level(servo_id, decode_response_level(*layout, result.data));
       identity_known_.set(servo_id);
       if (discovery_index) discovery_.servos.at(*discovery_index).identity = identity;
     }

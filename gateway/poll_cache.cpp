@@ -6,8 +6,12 @@
 
 namespace sms::gateway {
 
-PollCache::PollCache(std::span<const ServoEntry> servos)
-    : counters_(std::make_unique<ServoCounters[]>(servos.size())) {
+PollCache::PollCache(std::span<const ServoEntry> servos, std::uint8_t bytes_per_address)
+    : bytes_per_address_(bytes_per_address), counters_(std::make_unique<ServoCounters[]>(servos.size())) {
+  if (bytes_per_address != 1 && bytes_per_address != 2) {
+    throw std::invalid_argument("poll cache: an address holds 1 byte (packet buses) or 2 (Modbus registers), not " +
+                                std::to_string(bytes_per_address));
+  }
   index_.fill(kNoServo);
   slots_.reserve(servos.size());
   for (const auto& servo : servos) {
@@ -23,7 +27,7 @@ PollCache::PollCache(std::span<const ServoEntry> servos)
     Slot slot;
     slot.servo_id = servo.servo_id;
     slot.block = servo.block;
-    slot.bytes.assign(servo.block.count, 0);
+    slot.bytes.assign(std::size_t{servo.block.count} * bytes_per_address_, 0);
     slots_.push_back(std::move(slot));
   }
 }
@@ -45,6 +49,7 @@ void PollCache::fill_state(const Slot& slot, std::size_t index, CachedServoState
   state.has_data = slot.has_data;
   state.updated = slot.updated;
   state.identity = slot.identity;
+  state.response_level = slot.response_level;
   state.counters = counters_[index].snapshot();
 }
 
@@ -68,9 +73,12 @@ CacheRead PollCache::copy(std::uint8_t servo_id, std::uint16_t address, std::spa
   const Slot& found = slots_[index];
   std::lock_guard lock(mutex_);
   if (state != nullptr) fill_state(found, index, *state);
-  if (!found.block.contains(address, out.size())) return CacheRead::OutsideBlock;
+  if (out.size() % bytes_per_address_ != 0 || !found.block.contains(address, out.size() / bytes_per_address_)) {
+    return CacheRead::OutsideBlock;
+  }
   if (!found.has_data) return CacheRead::NoData;
-  std::copy_n(found.bytes.begin() + (address - found.block.address), out.size(), out.begin());
+  const std::size_t offset = std::size_t{address} - found.block.address;
+  std::copy_n(found.bytes.begin() + static_cast<std::ptrdiff_t>(offset * bytes_per_address_), out.size(), out.begin());
   return CacheRead::Ok;
 }
 
@@ -115,6 +123,13 @@ void PollCache::set_identity(std::uint8_t servo_id, const ServoIdentity& identit
   if (found == nullptr) return;
   std::lock_guard lock(mutex_);
   found->identity = identity;
+}
+
+void PollCache::set_response_level(std::uint8_t servo_id, std::optional<std::uint8_t> level) {
+  Slot* found = slot(servo_id);
+  if (found == nullptr) return;
+  std::lock_guard lock(mutex_);
+  found->response_level = level;
 }
 
 ServoCounters* PollCache::counters(std::uint8_t servo_id) {

@@ -6,6 +6,8 @@
 
 #include <vector>
 
+#include "modbus_map/tables.h"
+
 namespace sms::gateway {
 namespace {
 
@@ -15,10 +17,12 @@ using modbus_map::TableId;
 TEST(Discovery, StsIdentityIsFirmwareAndModelMajorMinor) {
   const IdentityLayout* layout = identity_layout(TableId::Sts);
   ASSERT_NE(layout, nullptr);
-  EXPECT_EQ(layout->read, (AddressBlock{0, 5}));
-  // Addresses 0-4: firmware 2.48, (address 2 is no field), model 8.42.
-  const std::vector<std::uint8_t> bytes{0x02, 0x30, 0x00, 0x08, 0x2A};
+  EXPECT_EQ(layout->read, (AddressBlock{0, 9}));
+  // Addresses 0-8: firmware 2.48, (2 is no field), model 8.42, ID 1, baud code 0, return
+  // delay 250, response level 1.
+  const std::vector<std::uint8_t> bytes{0x02, 0x30, 0x00, 0x08, 0x2A, 0x01, 0x00, 0xFA, 0x01};
   const ServoIdentity identity = decode_identity(*layout, bytes, ByteOrder::LowFirst);
+  EXPECT_EQ(decode_response_level(*layout, bytes), 1);
   EXPECT_EQ(identity.firmware, 0x0230);
   EXPECT_EQ(identity.model, 0x082A);
   EXPECT_EQ(format_identity_value(layout, true, identity.model), "8.42");
@@ -28,8 +32,10 @@ TEST(Discovery, StsIdentityIsFirmwareAndModelMajorMinor) {
 TEST(Discovery, Sms1SoftwareVersionFollowsTheServosByteOrder) {
   const IdentityLayout* layout = identity_layout(TableId::Sms1);
   ASSERT_NE(layout, nullptr);
-  EXPECT_EQ(layout->read, (AddressBlock{3, 2}));
-  const std::vector<std::uint8_t> bytes{0x34, 0x12};
+  EXPECT_EQ(layout->read, (AddressBlock{3, 6}));
+  // Addresses 3-8: software version, ID 1, baud code 0, return delay 0, response level 0.
+  const std::vector<std::uint8_t> bytes{0x34, 0x12, 0x01, 0x00, 0x00, 0x00};
+  EXPECT_EQ(decode_response_level(*layout, bytes), 0);
   EXPECT_EQ(decode_identity(*layout, bytes, ByteOrder::LowFirst).firmware, 0x1234);
   EXPECT_EQ(decode_identity(*layout, bytes, ByteOrder::HighFirst).firmware, 0x3412);
   EXPECT_FALSE(decode_identity(*layout, bytes, ByteOrder::LowFirst).model);
@@ -40,8 +46,13 @@ TEST(Discovery, Sms1SoftwareVersionFollowsTheServosByteOrder) {
 TEST(Discovery, D55dIdentityIsVendorCodeAndSoftwareVersion) {
   const IdentityLayout* layout = identity_layout(TableId::D55d);
   ASSERT_NE(layout, nullptr);
-  const std::vector<std::uint8_t> bytes{0x5D, 0x00, 0x01};
+  // Addresses 0-16: vendor code, -, software version, ID 3, baud code 4, return delay 16,
+  // CW limit 0, CCW limit 3600, -, max temperature 80, max current 20, resolution 10, -, -,
+  // response level 2.
+  const std::vector<std::uint8_t> bytes{0x5D, 0x00, 0x01, 0x03, 0x04, 0x10, 0x00, 0x00, 0x10,
+                                        0x0E, 0x00, 0x50, 0x14, 0x0A, 0x00, 0x00, 0x02};
   const ServoIdentity identity = decode_identity(*layout, bytes, ByteOrder::LowFirst);
+  EXPECT_EQ(decode_response_level(*layout, bytes), 2);
   EXPECT_EQ(identity.model, 0x5D);
   EXPECT_EQ(identity.firmware, 1);
   EXPECT_EQ(format_identity_value(layout, true, identity.model), "93");
@@ -53,6 +64,16 @@ TEST(Discovery, ShortIdentityReadYieldsNoValues) {
   const ServoIdentity identity = decode_identity(*layout, bytes, ByteOrder::LowFirst);
   EXPECT_EQ(identity.firmware, 0x0230);
   EXPECT_FALSE(identity.model);
+  EXPECT_FALSE(decode_response_level(*layout, bytes));
+}
+
+TEST(Discovery, ResponseLevelOffsetsPointAtTheTablesResponseLevelField) {
+  for (const auto& layout : kIdentityLayouts) {
+    const auto* field = modbus_map::field_by_name(modbus_map::table(layout.table), "response_level");
+    ASSERT_NE(field, nullptr);
+    EXPECT_EQ(layout.response_level_address(), field->addr) << modbus_map::table(layout.table).name;
+    EXPECT_LT(layout.response_level_offset, layout.read.count);
+  }
 }
 
 TEST(Discovery, SmsmbServosHaveNoPacketIdentityLayout) { EXPECT_EQ(identity_layout(TableId::Smsmb), nullptr); }

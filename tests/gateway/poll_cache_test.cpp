@@ -89,6 +89,37 @@ TEST(PollCache, CountersAndIdentityArePerServo) {
   EXPECT_EQ(cache.counters(3), nullptr);
 }
 
+TEST(PollCache, RegisterBlocksHoldTwoBytesPerAddress) {
+  // An SMSMB servo's feedback registers 0x100-0x107, each high byte first as on the wire.
+  PollCache cache(std::vector<PollCache::ServoEntry>{{5, {0x100, 8}}}, 2);
+  EXPECT_EQ(cache.bytes_per_address(), 2);
+  const std::vector<std::uint8_t> registers{0x00, 0x00, 0x08, 0x00, 0x00, 0x10, 0x00, 0x00,
+                                            0x00, 0x78, 0x00, 0x1C, 0x00, 0x00, 0x00, 0x03};
+  cache.store_block(5, registers, SteadyClock::now());
+  std::array<std::uint8_t, 4> position_and_speed{};
+  ASSERT_EQ(cache.copy(5, 0x101, position_and_speed), CacheRead::Ok);
+  EXPECT_EQ(position_and_speed, (std::array<std::uint8_t, 4>{0x08, 0x00, 0x00, 0x10}));
+  std::array<std::uint8_t, 3> half_a_register{};
+  EXPECT_EQ(cache.copy(5, 0x101, half_a_register), CacheRead::OutsideBlock);
+  std::array<std::uint8_t, 4> past_the_end{};
+  EXPECT_EQ(cache.copy(5, 0x107, past_the_end), CacheRead::OutsideBlock);
+  std::array<std::uint8_t, 2> current{};
+  ASSERT_EQ(cache.copy(5, 0x107, current), CacheRead::Ok);
+  EXPECT_EQ(current, (std::array<std::uint8_t, 2>{0x00, 0x03}));
+  // A block of one byte per register is not what this cache holds.
+  PollCache fresh(std::vector<PollCache::ServoEntry>{{5, {0x100, 8}}}, 2);
+  fresh.store_block(5, std::vector<std::uint8_t>(8, 0), SteadyClock::now());
+  EXPECT_EQ(fresh.copy(5, 0x100, current), CacheRead::NoData);
+  EXPECT_THROW(PollCache(std::vector<PollCache::ServoEntry>{{5, {0x100, 8}}}, 3), std::invalid_argument);
+}
+
+TEST(PollCache, ResponseLevelIsUnknownUntilSet) {
+  PollCache cache(two_servos());
+  EXPECT_FALSE(cache.state(1)->response_level);
+  cache.set_response_level(1, 0);
+  EXPECT_EQ(cache.state(1)->response_level, 0);
+}
+
 TEST(PollCache, DuplicateOrBroadcastIdsAreRejected) {
   EXPECT_THROW(PollCache(std::vector<PollCache::ServoEntry>{{1, {0, 1}}, {1, {0, 1}}}), std::invalid_argument);
   EXPECT_THROW(PollCache(std::vector<PollCache::ServoEntry>{{254, {0, 1}}}), std::invalid_argument);

@@ -171,12 +171,26 @@ TEST_F(PollCycleTest, DiscoveryLogsOneSummaryAndStoresIdentities) {
   EXPECT_FALSE(engine_->cache().state(7)->online);
 }
 
+TEST_F(PollCycleTest, DiscoveryLearnsTheResponseLevelAndFollowsClientWritesToIt) {
+  start({1, 2});
+  EXPECT_EQ(engine_->cache().state(1)->response_level, 1);  // sts factory level
+  // Level 0: the servo stops answering writes, so this one is sent without waiting.
+  const BusResult write = transact(*engine_, WriteOp{1, 8, {0x00}, false, false});
+  ASSERT_EQ(write.status, BusStatus::Ok) << write.detail;
+  EXPECT_EQ(engine_->cache().state(1)->response_level, 0);
+  EXPECT_EQ(engine_->cache().state(2)->response_level, 1);
+  const BusResult level = transact(*engine_, ReadOp{1, 8, 1}, Priority::ClientRead);  // READ is still answered
+  ASSERT_EQ(level.status, BusStatus::Ok) << level.detail;
+  EXPECT_EQ(level.data, (Bytes{0x00}));
+}
+
 TEST_F(PollCycleTest, D55dDiscoveryReadsVendorCodeAndSoftwareVersion) {
   start({3}, TableId::D55d, 115'200);
   const auto state = engine_->cache().state(3);
   EXPECT_TRUE(state->online);
   EXPECT_EQ(state->identity.model, 0x5D);
   EXPECT_EQ(state->identity.firmware, 1);
+  EXPECT_EQ(state->response_level, 2);  // d55d factory level: all but broadcasts
 }
 
 TEST_F(PollCycleTest, ServoFoundLaterGetsItsIdentityRead) {
