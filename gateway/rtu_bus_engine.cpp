@@ -970,8 +970,9 @@ void RtuBusEngine::Impl::run_work(Work work) {
                               [&](const DiscoveredServo& servo) { return servo.servo_id == work.servo_id; });
     if (result.status == BusStatus::Ok) {
       // SPEC §2.4: register 0 firmware version, register 1 servo (model) version.
-      const ServoIdentity identity{static_cast<std::uint16_t>(result.data[2] << 8 | result.data[3]),
-                                   static_cast<std::uint16_t>(result.data[0] << 8 | result.data[1])};
+      ServoIdentity identity;
+      identity.model = static_cast<std::uint16_t>(result.data[2] << 8 | result.data[3]);
+      identity.firmware = static_cast<std::uint16_t>(result.data[0] << 8 | result.data[1]);
       cache_.set_identity(work.servo_id, identity);
       servo_answered(work.servo_id);
       if (found != discovery_.end()) {

@@ -89,6 +89,7 @@ class PacketLink final : public ServoLink {
 
   const LinkSettings& settings() const override { return settings_; }
   void set_attempts(unsigned attempts) override { settings_.attempts = std::max(attempts, 1U); }
+  void set_latency(std::chrono::milliseconds latency) override { settings_.latency = latency; }
 
   LinkAnswer ping(std::uint8_t id) override { return exchange(protocol::ping(id), Expect::Ping, 1); }
 
@@ -121,7 +122,8 @@ class PacketLink final : public ServoLink {
     const auto timeout = tool_reply_timeout(*this, frame.size(), protocol::kMinFrameSize + reply_params);
     LinkAnswer answer;
     bool corrupt = false;
-    const unsigned attempts = broadcast ? 1 : settings_.attempts;
+    // Nothing answers a broadcast WRITE: never sent twice. A broadcast PING may be repeated.
+    const unsigned attempts = broadcast && expect != Expect::Ping ? 1 : settings_.attempts;
     for (unsigned attempt = 0; attempt < attempts; ++attempt) {
       if (auto flushed = port_.discard_input(); !flushed) return port_error(flushed.error());
       decoder_.reset();
@@ -173,6 +175,7 @@ class PacketLink final : public ServoLink {
           return answer;
         }
       }
+      if (broadcast && answer.heard_anything) break;  // colliding answers: someone is there
     }
     answer.status = corrupt ? LinkStatus::Corrupt : LinkStatus::Timeout;
     answer.detail = fmt::format("{} from ID {} at {} bit/s ({} attempt{})",
@@ -226,6 +229,7 @@ class ModbusLink final : public ServoLink {
 
   const LinkSettings& settings() const override { return settings_; }
   void set_attempts(unsigned attempts) override { settings_.attempts = std::max(attempts, 1U); }
+  void set_latency(std::chrono::milliseconds latency) override { settings_.latency = latency; }
 
   LinkAnswer ping(std::uint8_t id) override {
     // Any answer, an exception too, says a slave is there.

@@ -82,9 +82,11 @@ class ServoLink {
   virtual Expected<Ok> set_baud(std::uint32_t baud) = 0;
   virtual const LinkSettings& settings() const = 0;
   virtual void set_attempts(unsigned attempts) = 0;
+  virtual void set_latency(std::chrono::milliseconds latency) = 0;
 
   // Is anything there? feetech/d55d: PING; modbus-rtu: FC03 of register 0 (an exception
-  // answer counts as present: servo_status holds its code).
+  // answer counts as present: servo_status holds its code). A PING to the broadcast ID is Ok
+  // as soon as any servo's answer arrives (they collide; heard_anything says something came).
   virtual LinkAnswer ping(std::uint8_t id) = 0;
   virtual LinkAnswer read(std::uint8_t id, std::uint16_t address, std::uint16_t count) = 0;
   // To the broadcast ID: sent, nothing awaited (Ok once it left the wire).

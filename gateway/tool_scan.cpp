@@ -20,6 +20,9 @@ namespace {
 
 // Reads of present_position per servo for the duplicate check (see the header).
 constexpr int kConflictReads = 3;
+// The broadcast PING that decides whether a rate is worth scanning.
+constexpr unsigned kProbeAttempts = 3;
+constexpr std::chrono::milliseconds kProbeExtraWait{20};
 // SMSMB identity (SPEC §2.4): register 0 firmware version, register 1 servo (model) version.
 constexpr std::uint16_t kSmsmbIdentityRegister = 0x00;
 constexpr std::uint16_t kSmsmbIdentityCount = 2;
@@ -35,8 +38,10 @@ ServoIdentity read_identity(ServoLink& link, TableId table_id, std::uint8_t id, 
     const LinkAnswer answer = link.read(id, kSmsmbIdentityRegister, kSmsmbIdentityCount);
     if (answer.status == LinkStatus::Corrupt) damaged = true;
     if (!answer.ok() || answer.data.size() != 4) return {};
-    return {static_cast<std::uint16_t>(answer.data[2] << 8 | answer.data[3]),
-            static_cast<std::uint16_t>(answer.data[0] << 8 | answer.data[1])};
+    ServoIdentity identity;
+    identity.model = static_cast<std::uint16_t>(answer.data[2] << 8 | answer.data[3]);
+    identity.firmware = static_cast<std::uint16_t>(answer.data[0] << 8 | answer.data[1]);
+    return identity;
   }
   const IdentityLayout* layout = identity_layout(table_id);
   if (layout == nullptr) return {};
@@ -98,7 +103,13 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
     const auto baud_started = std::chrono::steady_clock::now();
     if (auto switched = link.set_baud(baud); !switched) return unexpected(switched.error());
     if (options.broadcast_probe && rules.broadcast_ping_answered) {
+      // One probe decides over a whole rate: it gets three attempts and a generous wait.
+      const auto latency = link.settings().latency;
+      link.set_latency(latency + kProbeExtraWait);
+      link.set_attempts(kProbeAttempts);
       const LinkAnswer anyone = link.ping(rules.broadcast_id);
+      link.set_latency(latency);
+      link.set_attempts(1);
       if (anyone.status == LinkStatus::PortError) return unexpected(anyone.detail);
       if (!anyone.heard_anything) {
         report.skipped_bauds.push_back(baud);

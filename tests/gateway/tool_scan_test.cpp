@@ -1,0 +1,232 @@
+// `sms-gateway scan` as library code against the simulator: servos at non-default rates of
+// each protocol's baud table, two servos on one ID, the configuration written from a scan.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdint>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include "config/load.h"
+#include "gateway/tool_link.h"
+#include "gateway/tool_scan.h"
+#include "simulator/simulated_bus.h"
+
+namespace sms::gateway {
+namespace {
+
+using namespace std::chrono_literals;
+using modbus_map::TableId;
+using protocol::BusProtocol;
+
+std::vector<std::uint8_t> ids(unsigned first, unsigned last) {
+  std::vector<std::uint8_t> list;
+  for (unsigned id = first; id <= last; ++id) list.push_back(static_cast<std::uint8_t>(id));
+  return list;
+}
+
+std::unique_ptr<ServoLink> open_link(const std::string& device, BusProtocol protocol, std::uint32_t baud) {
+  LinkSettings settings;
+  settings.device = device;
+  settings.protocol = protocol;
+  settings.baud = baud;
+  settings.latency = 5ms;  // a pty and the simulator's thread on 2 shared cores, sanitizers on
+  auto link = make_servo_link(settings);
+  const auto opened = link->open();
+  EXPECT_TRUE(opened) << (opened ? "" : opened.error());
+  return link;
+}
+
+const ScanFinding* finding(const ScanReport& report, std::uint32_t baud, std::uint8_t id) {
+  const auto found = std::find_if(report.found.begin(), report.found.end(),
+                                  [&](const ScanFinding& f) { return f.baud == baud && f.id == id; });
+  return found == report.found.end() ? nullptr : &*found;
+}
+
+simulator::BusOptions one_servo(simulator::ServoConfig servo) {
+  simulator::BusOptions options;
+  options.servos = {servo};
+  return options;
+}
+
+void quiet(const std::string&) {}
+
+TEST(Scan, FindsFeetechServosAtNonDefaultRatesAndSkipsSilentRates) {
+  simulator::BusOptions options;
+  options.servos = {{1, TableId::Sts, BusProtocol::Feetech, 1'000'000},
+                    {3, TableId::Sts, BusProtocol::Feetech, 500'000},
+                    {7, TableId::Sts, BusProtocol::Feetech, 76'800}};  // 76800 needs termios2
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  auto link = open_link(bus.slave_path(), BusProtocol::Feetech, 1'000'000);
+  ScanOptions scan;
+  scan.bauds = {1'000'000, 500'000, 250'000, 76'800};
+  scan.ids = ids(0, 10);
+  scan.table = TableId::Sts;
+  const auto report = scan_bus(*link, scan, quiet);
+  ASSERT_TRUE(report) << report.error();
+  ASSERT_EQ(report->found.size(), 3U) << format_scan(*report);
+  EXPECT_NE(finding(*report, 1'000'000, 1), nullptr);
+  EXPECT_NE(finding(*report, 500'000, 3), nullptr);
+  const ScanFinding* slow = finding(*report, 76'800, 7);
+  ASSERT_NE(slow, nullptr);
+  EXPECT_FALSE(slow->conflict);
+  // Identity as the servo holds it: model at addresses 3-4, firmware at 0-1 (SPEC §2.1).
+  const auto memory = bus.read_memory(7, 0, 5);
+  ASSERT_TRUE(memory);
+  EXPECT_EQ(slow->identity.model, static_cast<std::uint16_t>((*memory)[3] << 8 | (*memory)[4]));
+  EXPECT_EQ(slow->identity.firmware, static_cast<std::uint16_t>((*memory)[0] << 8 | (*memory)[1]));
+  EXPECT_EQ(report->skipped_bauds, std::vector<std::uint32_t>{250'000});
+}
+
+TEST(Scan, FindsD55dServosAtNonDefaultRates) {
+  simulator::BusOptions options;
+  options.servos = {{2, TableId::D55d, BusProtocol::D55d, 256'000}, {5, TableId::D55d, BusProtocol::D55d, 1'280'000}};
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  auto link = open_link(bus.slave_path(), BusProtocol::D55d, 115'200);
+  ScanOptions scan;
+  scan.bauds = {115'200, 256'000, 1'280'000};
+  scan.ids = ids(1, 8);
+  scan.table = TableId::D55d;
+  const auto report = scan_bus(*link, scan, quiet);
+  ASSERT_TRUE(report) << report.error();
+  ASSERT_EQ(report->found.size(), 2U) << format_scan(*report);
+  EXPECT_NE(finding(*report, 256'000, 2), nullptr);
+  EXPECT_NE(finding(*report, 1'280'000, 5), nullptr);
+}
+
+TEST(Scan, FindsModbusServosAtRatesLibmodbusCannotSetItself) {
+  simulator::BusOptions options;
+  options.servos = {{1, TableId::Smsmb, BusProtocol::ModbusRtu, 256'000},
+                    {4, TableId::Smsmb, BusProtocol::ModbusRtu, 56'000},
+                    {9, TableId::Smsmb, BusProtocol::ModbusRtu, 14'400}};
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  auto link = open_link(bus.slave_path(), BusProtocol::ModbusRtu, 115'200);
+  ScanOptions scan;
+  scan.bauds = {256'000, 115'200, 56'000, 14'400};
+  scan.ids = ids(1, 10);
+  scan.table = TableId::Smsmb;
+  const auto report = scan_bus(*link, scan, quiet);
+  ASSERT_TRUE(report) << report.error();
+  ASSERT_EQ(report->found.size(), 3U) << format_scan(*report);
+  EXPECT_NE(finding(*report, 256'000, 1), nullptr);
+  EXPECT_NE(finding(*report, 56'000, 4), nullptr);
+  const ScanFinding* slow = finding(*report, 14'400, 9);
+  ASSERT_NE(slow, nullptr);
+  const auto memory = bus.read_memory(9, 0x00, 2);  // firmware version, servo version
+  ASSERT_TRUE(memory);
+  EXPECT_EQ(slow->identity.firmware, static_cast<std::uint16_t>((*memory)[0] << 8 | (*memory)[1]));
+  EXPECT_EQ(slow->identity.model, static_cast<std::uint16_t>((*memory)[2] << 8 | (*memory)[3]));
+}
+
+TEST(Scan, ReportsTwoServosAnsweringOnOneId) {
+  simulator::BusOptions options;
+  options.servos = {{1, TableId::Sts, BusProtocol::Feetech, 1'000'000}, {2, TableId::Sts, BusProtocol::Feetech, 1'000'000}};
+  options.seed = 1;
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  bus.add_duplicate(2);
+  auto link = open_link(bus.slave_path(), BusProtocol::Feetech, 1'000'000);
+  ScanOptions scan;
+  scan.bauds = {1'000'000};
+  scan.ids = ids(1, 4);
+  const auto report = scan_bus(*link, scan, quiet);
+  ASSERT_TRUE(report) << report.error();
+  const ScanFinding* single = finding(*report, 1'000'000, 1);
+  const ScanFinding* doubled = finding(*report, 1'000'000, 2);
+  ASSERT_NE(single, nullptr);
+  ASSERT_NE(doubled, nullptr);
+  EXPECT_FALSE(single->conflict);
+  EXPECT_TRUE(doubled->conflict);
+  EXPECT_NE(format_scan(*report).find("two or more servos answer on this ID"), std::string::npos);
+}
+
+TEST(Scan, ReportsTwoModbusServosOnOneAddress) {
+  simulator::BusOptions options;
+  options.servos = {{3, TableId::Smsmb, BusProtocol::ModbusRtu, 115'200}};
+  options.seed = 1;
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  bus.add_duplicate(3);
+  auto link = open_link(bus.slave_path(), BusProtocol::ModbusRtu, 115'200);
+  ScanOptions scan;
+  scan.bauds = {115'200};
+  scan.ids = ids(2, 4);
+  scan.table = TableId::Smsmb;
+  const auto report = scan_bus(*link, scan, quiet);
+  ASSERT_TRUE(report) << report.error();
+  ASSERT_EQ(report->found.size(), 1U) << format_scan(*report);
+  EXPECT_TRUE(report->found[0].conflict);
+}
+
+TEST(Scan, RefusesARateOutsideTheProtocolsTable) {
+  simulator::SimulatedBus bus(one_servo({1, TableId::Sts, BusProtocol::Feetech, 1'000'000}));
+  bus.start();
+  auto link = open_link(bus.slave_path(), BusProtocol::Feetech, 1'000'000);
+  ScanOptions scan;
+  scan.bauds = {123'456};
+  const auto report = scan_bus(*link, scan, quiet);
+  ASSERT_FALSE(report);
+  EXPECT_NE(report.error().find("123456"), std::string::npos) << report.error();
+  EXPECT_NE(report.error().find("1000000"), std::string::npos) << report.error();  // lists the valid rates
+}
+
+TEST(Scan, WritesAConfigurationTheGatewayLoads) {
+  simulator::BusOptions options;
+  options.servos = {{1, TableId::Sts, BusProtocol::Feetech, 1'000'000},
+                    {2, TableId::Sts, BusProtocol::Feetech, 1'000'000},
+                    {0, TableId::Sts, BusProtocol::Feetech, 1'000'000},
+                    {6, TableId::Sts, BusProtocol::Feetech, 115'200}};
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  auto link = open_link(bus.slave_path(), BusProtocol::Feetech, 1'000'000);
+  ScanOptions scan;
+  scan.bauds = {1'000'000, 115'200};
+  scan.ids = ids(0, 8);
+  const auto report = scan_bus(*link, scan, quiet);
+  ASSERT_TRUE(report) << report.error();
+  const std::string yaml = scan_config_yaml(*report, link->settings());
+  const auto config = config::load_config_string(yaml, "<scan>");
+  ASSERT_TRUE(config) << config.error().to_string() << "\n" << yaml;
+  ASSERT_EQ(config->buses.size(), 1U);
+  EXPECT_EQ(config->buses[0].baud, 1'000'000U);
+  EXPECT_EQ(config->buses[0].device, bus.slave_path());
+  ASSERT_EQ(config->servos.size(), 3U) << yaml;
+  EXPECT_EQ(config->servos[0].servo_id, 0);  // ID 0 cannot be a unit: the first free one stands in
+  EXPECT_EQ(config->servos[0].unit_id, 3);
+  EXPECT_EQ(config->servos[1].servo_id, 1);
+  EXPECT_EQ(config->servos[1].unit_id, 1);
+  // The servo at the other rate is named with the command that moves it.
+  EXPECT_NE(yaml.find("--id 6 --new-baud 1000000"), std::string::npos) << yaml;
+}
+
+// The figure for the README: every ID at 1 Mbaud, six servos on the line, the tools' default
+// adapter latency (2 ms).
+TEST(Scan, EveryIdAtOneMegabaudTakesUnderTwoSeconds) {
+  simulator::BusOptions options;
+  for (std::uint8_t id = 1; id <= 6; ++id) options.servos.push_back({id, TableId::Sts, BusProtocol::Feetech, 1'000'000});
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  LinkSettings settings;
+  settings.device = bus.slave_path();
+  settings.baud = 1'000'000;
+  settings.latency = 2ms;  // the tool's default
+  auto link = make_servo_link(settings);
+  ASSERT_TRUE(link->open());
+  ScanOptions scan;
+  scan.bauds = {1'000'000};
+  const auto report = scan_bus(*link, scan, quiet);
+  ASSERT_TRUE(report) << report.error();
+  EXPECT_EQ(report->found.size(), 6U) << format_scan(*report);
+  EXPECT_EQ(report->ids_per_baud, 254U);
+  std::cout << "scan of 254 IDs at 1000000 bit/s: " << report->elapsed.count() << " ms\n";
+  RecordProperty("scan_254_ids_1mbaud_ms", static_cast<int>(report->elapsed.count()));
+  EXPECT_LT(report->elapsed, 2s);
+}
+
+}  // namespace
+}  // namespace sms::gateway
