@@ -6,6 +6,7 @@
 #include <netinet/in.h>
 #include <signal.h>
 #include <spawn.h>
+#include <sys/prctl.h>
 #include <sys/resource.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
@@ -443,5 +444,17 @@ bool parse_arguments(int argc, char** argv, std::string_view summary, std::initi
 }
 
 void quiet_logs() { spdlog::set_level(spdlog::level::warn); }
+
+void start_precise(simulator::SimulatedBus& bus) {
+  const int previous = ::prctl(PR_GET_TIMERSLACK, 0UL, 0UL, 0UL, 0UL);
+  ::prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);
+  try {
+    bus.start();
+  } catch (...) {
+    ::prctl(PR_SET_TIMERSLACK, static_cast<unsigned long>(previous), 0UL, 0UL, 0UL);
+    throw;
+  }
+  ::prctl(PR_SET_TIMERSLACK, static_cast<unsigned long>(previous), 0UL, 0UL, 0UL);
+}
 
 }  // namespace sms::bench

@@ -213,7 +213,7 @@ int main(int argc, char** argv) {
   try {
     quiet_logs();
     sms::simulator::SimulatedBus bus(sts_bus(kServos));
-    bus.start();
+    start_precise(bus);
     GatewaySetup setup;
     setup.device = bus.slave_path();
     setup.servos = kServos;

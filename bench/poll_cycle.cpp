@@ -81,7 +81,7 @@ double per_second(std::uint32_t before, std::uint32_t after, double seconds) {
 
 void measure_cycle(unsigned servos, std::uint8_t return_delay, std::chrono::milliseconds duration) {
   sms::simulator::SimulatedBus bus(sts_bus(servos));
-  bus.start();
+  start_precise(bus);
   set_return_delay(bus, servos, return_delay);
   GatewaySetup setup;
   setup.device = bus.slave_path();
@@ -109,7 +109,7 @@ void measure_cycle(unsigned servos, std::uint8_t return_delay, std::chrono::mill
 
 void measure_silent_servo(std::chrono::milliseconds duration) {
   sms::simulator::SimulatedBus bus(sts_bus(kSilentBusServos));
-  bus.start();
+  start_precise(bus);
   set_return_delay(bus, kSilentBusServos, 0);
   GatewaySetup setup;
   setup.device = bus.slave_path();

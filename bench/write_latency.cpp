@@ -74,7 +74,7 @@ struct Direct {
 
 Direct measure_direct(std::chrono::milliseconds duration) {
   sms::simulator::SimulatedBus bus(sts_bus(1));
-  bus.start();
+  start_precise(bus);
   set_return_delay(bus, 1, 0);
   sms::gateway::SerialPort port(sms::gateway::SerialSettings{bus.slave_path(), kBaud});
   if (const auto opened = port.open(); !opened) throw std::runtime_error("direct: " + opened.error());
@@ -101,7 +101,7 @@ void print_latency(const std::string& name, const LatencySummary& latency, doubl
 void measure_gateway(const std::string& mode, std::chrono::milliseconds poll_period,
                      std::chrono::milliseconds duration, const Direct& direct) {
   sms::simulator::SimulatedBus bus(sts_bus(1));
-  bus.start();
+  start_precise(bus);
   set_return_delay(bus, 1, 0);
   GatewaySetup setup;
   setup.device = bus.slave_path();
