@@ -21,7 +21,9 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
+#include <atomic>
 #include <cstring>
 #include <filesystem>
 #include <iostream>
@@ -174,7 +176,27 @@ void measure_flood(std::uint16_t port, std::chrono::milliseconds duration, int n
     return outcome_of(modbus_read_registers(context, kFeedbackAddress, kFeedbackCount, registers.data()),
                       kFeedbackCount);
   };
+  ModbusClient observer(port, kGatewayUnit);
+  const BusFacts before = read_bus_facts(observer);
+  // Client operations go before polling (MODBUS_MAP.md): a sustained flood holds the poll
+  // back. Watch the cache age of unit 1 meanwhile.
+  std::atomic<bool> flooding{true};
+  std::uint16_t max_cache_age_ms = 0;
+  std::thread watcher([&] {
+    ModbusClient watch(port, 1);
+    while (flooding.load()) {
+      try {
+        max_cache_age_ms = std::max(max_cache_age_ms, read_servo_facts(watch, 1).cache_age_ms);
+      } catch (const std::exception&) {
+        // a 0x06 answer to the watcher itself: input registers never queue, so not expected
+      }
+      std::this_thread::sleep_for(50ms);
+    }
+  });
   ClientTotals totals = run_clients(port, 1, kFloodClients, duration, live_read, nice);
+  flooding.store(false);
+  watcher.join();
+  const BusFacts after = read_bus_facts(observer);
   const double answered = static_cast<double>(totals.ok_ns.size());
   const double busy = static_cast<double>(totals.busy_ns.size());
   const LatencySummary ok = summarize(totals.ok_ns);
@@ -189,6 +211,11 @@ void measure_flood(std::uint16_t port, std::chrono::milliseconds duration, int n
   print_figure(name + ".busy.p50", refused.p50_us, "us");
   print_figure(name + ".busy.p99", refused.p99_us, "us");
   print_figure(name + ".other_errors", static_cast<double>(totals.errors), "requests");
+  print_figure(name + ".bus_frames_ok", after.frames_ok - before.frames_ok, "frames");
+  print_figure(name + ".bus_timeouts", after.timeouts - before.timeouts, "frames");
+  print_figure(name + ".bus_transaction_mean", 1e6 * totals.seconds / std::max(1.0, static_cast<double>(after.frames_ok - before.frames_ok)), "us");
+  print_figure(name + ".bus_transaction_wire_model", wire_us(8 + 6 + kFeedbackCount) + 250 * kReturnDelayUsPerUnit, "us");
+  print_figure(name + ".servo1_cache_age_max", max_cache_age_ms, "ms");
   if (totals.errors > 0) print_note(name + ": first other error: " + totals.first_error);
 }
 
