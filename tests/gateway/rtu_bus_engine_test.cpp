@@ -233,14 +233,20 @@ TEST_F(RtuEngineTest, DiscoveryReadsEachServosIdentity) {
 TEST_F(RtuEngineTest, PollsTheFeedbackBlockIntoTheCacheWithOneFc03PerServo) {
   if (!cache_holds_registers()) GTEST_SKIP() << "PollCache has no bytes-per-address constructor yet (see rtu_bus_engine.cpp)";
   start({1, 2});
-  ASSERT_TRUE(bus_->write_memory(2, 0x101, Bytes{0x03, 0xE8}));  // present position 1000
+  // The motion model rewrites present values on every access, so the feedback is changed the
+  // way the servo itself would show it: an over-temperature fault sets status bit 2 (0x100)
+  // and lifts the temperature (0x105) past the 70 °C default limit.
+  bus_->set_error_bits(2, 0x04);
   Bytes block(16);
   ASSERT_TRUE(wait_until([&] {
-    return engine_->cache().copy(2, 0x100, block) == CacheRead::Ok && block[2] == 0x03 && block[3] == 0xE8;
+    return engine_->cache().copy(2, 0x100, block) == CacheRead::Ok && (block[1] & 0x04) != 0;
   }));
-  Bytes position(2);
-  ASSERT_EQ(engine_->cache().copy(2, 0x101, position), CacheRead::Ok);
-  EXPECT_EQ(position, (Bytes{0x03, 0xE8}));
+  Bytes temperature(2);
+  ASSERT_EQ(engine_->cache().copy(2, 0x105, temperature), CacheRead::Ok);
+  EXPECT_GE((temperature[0] << 8) | temperature[1], 73);
+  Bytes other(2);
+  ASSERT_EQ(engine_->cache().copy(1, 0x100, other), CacheRead::Ok);
+  EXPECT_EQ(other[1] & 0x04, 0) << "the fault belongs to servo 2 only";
   EXPECT_GT(engine_->counters().poll_cycles, 0U);
 }
 
