@@ -108,7 +108,9 @@ struct LineArgs {
   std::uint32_t baud = 0;
   std::string parity = "none";
   unsigned stop_bits = 1;
-  unsigned latency_ms = 2;
+  // The scan asks hundreds of IDs and keeps it short; a tool changing one servo asks a few
+  // times and can afford to wait for a slow adapter.
+  unsigned latency_ms = 10;
   std::string table;
   unsigned id = 1;
   bool force = false;
@@ -173,6 +175,7 @@ Say printer() {
 
 void add_scan(CLI::App& app) {
   auto args = std::make_shared<LineArgs>();
+  args->latency_ms = 2;
   auto bauds = std::make_shared<std::vector<std::uint32_t>>();
   auto ids = std::make_shared<std::string>();
   auto config_file = std::make_shared<std::string>();
@@ -361,8 +364,9 @@ void add_forward(CLI::App& app) {
     try {
       ForwardGateway gateway(options);
       gateway.start();
-      spdlog::info("forwarding Modbus TCP on {} to {} at {} bit/s ({}{}{}): unit u -> slave u, unit 0 -> broadcast",
-                   listen->to_string(), args->device, args->baud, 8,
+      // The bound port: --listen HOST:0 picks a free one.
+      spdlog::info("forwarding Modbus TCP on {}:{} to {} at {} bit/s ({}{}{}): unit u -> slave u, unit 0 -> broadcast",
+                   listen->host, gateway.port(), args->device, args->baud, 8,
                    parity_letter(options.serial.parity), args->stop_bits);
       int signal_number = 0;
       sigwait(&stop_signals, &signal_number);

@@ -8,7 +8,8 @@
 // A subcommand runs inside app.parse() (its callback) and ends the parse with
 // CLI::RuntimeError(exit status): main's `catch (const CLI::ParseError& e) { return app.exit(e); }`
 // returns that status without printing anything more. Exit status: 0 done, 1 the tool failed or
-// refused (the reason is on stderr), 2 bad arguments.
+// refused (the reason is on stderr), 2 an argument the tool refuses (a rate outside the table,
+// a bad ID list); CLI11's own usage errors keep CLI11's status.
 namespace CLI {
 class App;
 }

@@ -121,6 +121,18 @@ Expected<Ok> write_field(ServoLink& link, const TableSpec& table, std::uint8_t i
                                 answer.detail.empty() ? std::string(to_string(answer.status)) : answer.detail));
 }
 
+// Whether anything answers on `id`: before an ID is given away a silence must be sure, so the
+// check waits longer than a scan does (a late answer would mean two servos on one ID).
+constexpr std::chrono::milliseconds kFreeIdExtraWait{20};
+
+LinkAnswer ask_carefully(ServoLink& link, std::uint8_t id) {
+  const auto latency = link.settings().latency;
+  link.set_latency(latency + kFreeIdExtraWait);
+  LinkAnswer answer = link.ping(id);
+  link.set_latency(latency);
+  return answer;
+}
+
 Expected<Ok> require_answer(ServoLink& link, std::uint8_t id, std::string_view hint) {
   const LinkAnswer answer = link.ping(id);
   if (answer.ok()) return Ok{};
@@ -189,7 +201,7 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
       return unexpected(present.error());
     }
   }
-  const LinkAnswer taken = link.ping(new_id);
+  const LinkAnswer taken = ask_carefully(link, new_id);
   if (taken.status == LinkStatus::PortError) return unexpected(taken.detail);
   if (taken.ok() || taken.heard_anything) {
     return unexpected(fmt::format(
@@ -218,7 +230,7 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
     return unexpected(fmt::format("servo on ID {} reports {} = {}: the change did not hold", new_id, id_field.name,
                                   *stored));
   }
-  if (!broadcast && link.ping(target.id).ok()) {
+  if (!broadcast && ask_carefully(link, target.id).ok()) {
     return unexpected(fmt::format("ID {} answers as well as ID {}: two servos were on ID {}; one of them moved",
                                   target.id, new_id, target.id));
   }
@@ -252,7 +264,7 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
     }
     // At the new rate the ID must be free, or two servos would share it there.
     if (auto switched = link.set_baud(new_baud); !switched) return unexpected(switched.error());
-    const LinkAnswer taken = link.ping(target.id);
+    const LinkAnswer taken = ask_carefully(link, target.id);
     if (auto back = link.set_baud(old_baud); !back) return unexpected(back.error());
     if (taken.status == LinkStatus::PortError) return unexpected(taken.detail);
     if (taken.ok() || taken.heard_anything) {

@@ -1,0 +1,90 @@
+// `sms-gateway forward` as a process: a plain Modbus TCP -> RTU gateway in front of sms-sim's
+// SMSMB servos, with libmodbus TCP clients.
+#include <gtest/gtest.h>
+
+#include <signal.h>
+
+#include <chrono>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "tests/e2e/child_process.h"
+#include "tests/e2e/e2e_support.h"
+#include "tests/e2e/modbus_client.h"
+
+namespace sms::e2e {
+namespace {
+
+using namespace std::chrono_literals;
+
+// Starts `sms-gateway forward` on a free port and returns the port it logged.
+std::uint16_t start_forward(ChildProcess& process) {
+  const auto line = process.wait_for_line("forwarding Modbus TCP on 127.0.0.1:", 10s);
+  if (!line) throw std::runtime_error("forward did not start:\n" + process.output());
+  const auto at = line->find("127.0.0.1:") + 10;
+  return static_cast<std::uint16_t>(std::stoi(line->substr(at)));
+}
+
+TEST(ForwardProcess, ForwardsToSmsmbServosAtARateLibmodbusCannotSetAndStopsOnSigterm) {
+  TempDir dir;
+  SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "1-2", "--baud", "56000"}, true);
+  ChildProcess forward({bin("sms-gateway"), "forward", "--device", sim.pty(), "--baud", "56000", "--listen",
+                        "127.0.0.1:0", "--response-timeout-ms", "30", "--retries", "1"});
+  const std::uint16_t port = start_forward(forward);
+
+  ModbusClient client(port, 2);
+  auto id = client.read_holding(0x0A, 2);
+  ASSERT_TRUE(id.ok()) << id.error;
+  EXPECT_EQ(id.values[0], 2);
+  EXPECT_EQ(id.values[1], 4);  // baud code 4 = 56000
+  ASSERT_TRUE(client.write_register(0x84, 600).ok());
+  EXPECT_EQ(sim.field(2, "torque_limit"), 600);
+
+  // The servo's own exception: SMSMB has no FC04 (SPEC §1.3).
+  EXPECT_EQ(client.read_input(0x100, 1).exception, 0x01);
+
+  // A slave nobody answers for: 0x0B after the retry.
+  client.set_unit(5);
+  EXPECT_EQ(client.read_holding(0x0A, 1).exception, 0x0B);
+
+  // Unit 0: an RTU broadcast, answered once sent.
+  client.set_unit(0);
+  ASSERT_TRUE(client.write_register(0x84, 700).ok());
+  EXPECT_TRUE(eventually([&] { return sim.field(1, "torque_limit") == 700 && sim.field(2, "torque_limit") == 700; }));
+  EXPECT_EQ(client.read_holding(0x84, 1).exception, 0x0A);
+
+  forward.signal(SIGTERM);
+  EXPECT_EQ(forward.wait_exit(10s), 0) << forward.output();
+}
+
+TEST(ForwardProcess, SeveralClientsAtOnceAllGetTheirAnswers) {
+  TempDir dir;
+  SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "1-4", "--baud", "115200"}, true);
+  ChildProcess forward({bin("sms-gateway"), "forward", "--device", sim.pty(), "--baud", "115200", "--listen",
+                        "127.0.0.1:0"});
+  const std::uint16_t port = start_forward(forward);
+  std::vector<std::thread> clients;
+  std::vector<int> failures(4, 0);
+  for (int unit = 1; unit <= 4; ++unit) {
+    clients.emplace_back([&, unit] {
+      ModbusClient client(port, unit);
+      for (int round = 0; round < 15; ++round) {
+        const auto value = static_cast<std::uint16_t>(100 + unit * 10 + round);
+        auto read = client.write_register(0x84, value);
+        auto back = client.read_holding(0x84, 1);
+        if (!read.ok() || !back.ok() || back.values[0] != value) ++failures[static_cast<std::size_t>(unit - 1)];
+      }
+    });
+  }
+  for (auto& thread : clients) thread.join();
+  for (int unit = 1; unit <= 4; ++unit) {
+    EXPECT_EQ(failures[static_cast<std::size_t>(unit - 1)], 0) << "unit " << unit;
+    EXPECT_EQ(sim.field(unit, "torque_limit"), 100 + unit * 10 + 14);
+  }
+  forward.signal(SIGTERM);
+  EXPECT_EQ(forward.wait_exit(10s), 0) << forward.output();
+}
+
+}  // namespace
+}  // namespace sms::e2e
