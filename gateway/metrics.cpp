@@ -1,0 +1,364 @@
+#include "gateway/metrics.h"
+
+#include <algorithm>
+#include <charconv>
+#include <variant>
+
+#include "gateway/access_policy.h"
+#include "gateway/bus_engine.h"
+#include "protocol/bus_protocol.h"
+#include "protocol/modbus_tcp.h"
+
+namespace sms::gateway {
+namespace {
+
+constexpr auto kRelaxed = std::memory_order_relaxed;
+
+// ---- the exposition format ----
+
+enum class MetricType : std::uint8_t { Counter, Gauge };
+
+using Value = std::variant<std::uint64_t, double>;
+
+struct Label {
+  std::string_view name;
+  std::string value;
+};
+using Labels = std::vector<Label>;
+
+// Label values escape backslash, double quote and line feed; HELP text backslash and line feed.
+void append_escaped(std::string& out, std::string_view text, bool quotes) {
+  for (const char c : text) {
+    if (c == '\\') {
+      out += "\\\\";
+    } else if (c == '\n') {
+      out += "\\n";
+    } else if (quotes && c == '"') {
+      out += "\\\"";
+    } else {
+      out += c;
+    }
+  }
+}
+
+void append_value(std::string& out, const Value& value) {
+  char text[32];
+  std::to_chars_result result{};
+  if (const auto* integer = std::get_if<std::uint64_t>(&value)) {
+    result = std::to_chars(std::begin(text), std::end(text), *integer);
+  } else {
+    result = std::to_chars(std::begin(text), std::end(text), std::get<double>(value));
+  }
+  out.append(text, result.ptr);
+}
+
+class Exposition {
+ public:
+  void family(std::string_view name, MetricType type, std::string_view help) {
+    out_ += "# HELP ";
+    out_ += name;
+    out_ += ' ';
+    append_escaped(out_, help, false);
+    out_ += "\n# TYPE ";
+    out_ += name;
+    out_ += type == MetricType::Counter ? " counter\n" : " gauge\n";
+  }
+
+  void sample(std::string_view name, const Labels& labels, const Value& value) {
+    out_ += name;
+    if (!labels.empty()) {
+      out_ += '{';
+      for (std::size_t i = 0; i < labels.size(); ++i) {
+        if (i > 0) out_ += ',';
+        out_ += labels[i].name;
+        out_ += "=\"";
+        append_escaped(out_, labels[i].value, true);
+        out_ += '"';
+      }
+      out_ += '}';
+    }
+    out_ += ' ';
+    append_value(out_, value);
+    out_ += '\n';
+  }
+
+  std::string take() { return std::move(out_); }
+
+ private:
+  std::string out_;
+};
+
+double seconds(std::chrono::microseconds duration) { return static_cast<double>(duration.count()) / 1e6; }
+
+// ---- families, as data ----
+
+template <typename Subject>
+struct Family {
+  std::string_view name;
+  MetricType type;
+  std::string_view help;
+  std::optional<Value> (*value)(const Subject&);  // nullopt: no sample for this subject
+};
+
+constexpr Family<BusMetrics> kBusFamilies[] = {
+    {"sms_gateway_bus_up", MetricType::Gauge, "1 when the bus's serial port is open, 0 while it is down (Modbus 0x0A)",
+     [](const BusMetrics& b) -> std::optional<Value> { return std::uint64_t{b.up ? 1u : 0u}; }},
+    {"sms_gateway_bus_servos", MetricType::Gauge, "Servos the bus polls",
+     [](const BusMetrics& b) -> std::optional<Value> { return std::uint64_t{b.servos.size()}; }},
+    {"sms_gateway_bus_servos_online", MetricType::Gauge, "Servos that answered their last poll or probe",
+     [](const BusMetrics& b) -> std::optional<Value> { return std::uint64_t{b.servos_online}; }},
+    {"sms_gateway_bus_last_poll_cycle_seconds", MetricType::Gauge, "Duration of the last finished poll cycle",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       return seconds(std::chrono::microseconds{b.counters.last_poll_cycle_us});
+     }},
+    {"sms_gateway_bus_poll_cycles_total", MetricType::Counter, "Finished poll cycles",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.poll_cycles; }},
+    {"sms_gateway_bus_frames_ok_total", MetricType::Counter, "Valid reply frames taken as an answer",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.frames_ok; }},
+    {"sms_gateway_bus_timeouts_total", MetricType::Counter,
+     "Expected replies that did not come in time (every attempt, every servo of a SYNC READ)",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.timeouts; }},
+    {"sms_gateway_bus_checksum_errors_total", MetricType::Counter,
+     "Frames with a wrong checksum or CRC, or an impossible length (framing)",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.checksum_errors; }},
+    {"sms_gateway_bus_stray_frames_total", MetricType::Counter,
+     "Valid frames that were not the awaited answer (late replies, echoes, other IDs)",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.stray_frames; }},
+    {"sms_gateway_bus_discarded_bytes_total", MetricType::Counter,
+     "Bytes dropped while hunting for a frame header, or flushed unread",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.discarded_bytes; }},
+    {"sms_gateway_bus_retries_total", MetricType::Counter, "Attempts after the first one",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.retries; }},
+    {"sms_gateway_bus_transactions_total", MetricType::Counter, "Bus operations finished, whatever their outcome",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.transactions; }},
+    {"sms_gateway_bus_queue_full_total", MetricType::Counter,
+     "Client requests refused because the bus queue was full (Modbus 0x06)",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.queue_full; }},
+    {"sms_gateway_bus_down_events_total", MetricType::Counter,
+     "Times the serial port was lost, or could not be reopened after a loss",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.bus_down_events; }},
+};
+
+constexpr Family<ServoMetrics> kServoFamilies[] = {
+    {"sms_gateway_servo_online", MetricType::Gauge, "1 when the servo answered its last poll or probe",
+     [](const ServoMetrics& s) -> std::optional<Value> { return std::uint64_t{s.online ? 1u : 0u}; }},
+    {"sms_gateway_servo_cache_age_seconds", MetricType::Gauge,
+     "Age of the servo's polled data (input registers); absent until the first successful poll",
+     [](const ServoMetrics& s) -> std::optional<Value> {
+       if (!s.cache_age) return std::nullopt;
+       return seconds(*s.cache_age);
+     }},
+    {"sms_gateway_servo_last_status", MetricType::Gauge,
+     "Status / ERROR byte of the servo's latest answer (input register 1000)",
+     [](const ServoMetrics& s) -> std::optional<Value> { return std::uint64_t{s.counters.last_status}; }},
+    {"sms_gateway_servo_replies_ok_total", MetricType::Counter, "Valid answers from the servo",
+     [](const ServoMetrics& s) -> std::optional<Value> { return s.counters.replies_ok; }},
+    {"sms_gateway_servo_timeouts_total", MetricType::Counter, "Attempts addressed to the servo that got no valid answer",
+     [](const ServoMetrics& s) -> std::optional<Value> { return s.counters.timeouts; }},
+};
+
+constexpr Family<TcpServerStats> kTcpFamilies[] = {
+    {"sms_gateway_tcp_connections", MetricType::Gauge, "Modbus TCP connections open now",
+     [](const TcpServerStats& t) -> std::optional<Value> { return std::uint64_t{t.open_connections}; }},
+    {"sms_gateway_tcp_connections_accepted_total", MetricType::Counter, "Modbus TCP connections accepted",
+     [](const TcpServerStats& t) -> std::optional<Value> { return t.accepted; }},
+    {"sms_gateway_tcp_connections_closed_idle_total", MetricType::Counter,
+     "Connections closed after modbus_tcp.idle_timeout_s without a request",
+     [](const TcpServerStats& t) -> std::optional<Value> { return t.idle_closed; }},
+    {"sms_gateway_tcp_bad_headers_total", MetricType::Counter,
+     "Connections closed for an MBAP header that is not Modbus TCP",
+     [](const TcpServerStats& t) -> std::optional<Value> { return t.bad_headers; }},
+};
+
+// Modbus Application Protocol v1.1b3 §7; `contract`: a code MODBUS_MAP.md says the gateway
+// answers, always shown (at 0) so that rate() works from the start.
+struct ExceptionName {
+  std::uint8_t code;
+  std::string_view name;
+  bool contract;
+};
+constexpr ExceptionName kExceptionNames[] = {
+    {0x01, "illegal_function", true},
+    {0x02, "illegal_data_address", true},
+    {0x03, "illegal_data_value", true},
+    {0x04, "server_device_failure", true},
+    {0x05, "acknowledge", false},
+    {0x06, "server_device_busy", true},
+    {0x08, "memory_parity_error", false},
+    {0x0A, "gateway_path_unavailable", true},
+    {0x0B, "gateway_target_device_failed_to_respond", true},
+};
+
+const ExceptionName* find_exception_name(std::uint8_t code) {
+  for (const auto& entry : kExceptionNames) {
+    if (entry.code == code) return &entry;
+  }
+  return nullptr;
+}
+
+std::string hex_code(std::uint8_t code) {
+  constexpr char kDigits[] = "0123456789ABCDEF";
+  return {'0', 'x', kDigits[code >> 4], kDigits[code & 0x0F]};
+}
+
+Labels bus_labels(const BusMetrics& bus) { return {{"bus", bus.name}, {"protocol", bus.protocol}}; }
+
+Labels servo_labels(const BusMetrics& bus, const ServoMetrics& servo) {
+  Labels labels{{"bus", bus.name}, {"unit", std::to_string(servo.unit_id)}, {"servo", std::to_string(servo.servo_id)}};
+  // An empty label value means "no such label" to Prometheus: leave it out instead.
+  if (!servo.name.empty()) labels.push_back({"name", servo.name});
+  return labels;
+}
+
+void render_requests(Exposition& out, const ModbusTrafficSnapshot& traffic) {
+  constexpr std::string_view kName = "sms_gateway_modbus_requests_total";
+  out.family(kName, MetricType::Counter, "Modbus TCP requests received, by function code");
+  for (unsigned code = 0; code < traffic.requests_by_function.size(); ++code) {
+    const auto* function = find_modbus_function(static_cast<std::uint8_t>(code));
+    const std::uint64_t count = traffic.requests_by_function[code];
+    if (count == 0 && !(function && function->served)) continue;
+    out.sample(kName, {{"function", std::to_string(code)}, {"name", std::string(function ? function->name : "unknown")}},
+               count);
+  }
+}
+
+void render_exceptions(Exposition& out, const ModbusTrafficSnapshot& traffic) {
+  constexpr std::string_view kName = "sms_gateway_modbus_exceptions_total";
+  out.family(kName, MetricType::Counter, "Modbus exception answers sent, by exception code");
+  for (unsigned code = 0; code < traffic.exceptions_by_code.size(); ++code) {
+    const auto* exception = find_exception_name(static_cast<std::uint8_t>(code));
+    const std::uint64_t count = traffic.exceptions_by_code[code];
+    if (count == 0 && !(exception && exception->contract)) continue;
+    out.sample(kName,
+               {{"code", hex_code(static_cast<std::uint8_t>(code))},
+                {"name", std::string(exception ? exception->name : "unknown")}},
+               count);
+  }
+}
+
+}  // namespace
+
+// ---- ModbusTrafficCounters ----
+
+void ModbusTrafficCounters::count_request(std::span<const std::uint8_t> pdu) {
+  if (pdu.empty()) return;
+  requests_by_function_[pdu[0]].fetch_add(1, kRelaxed);
+}
+
+void ModbusTrafficCounters::count_response(std::span<const std::uint8_t> pdu) {
+  responses_.fetch_add(1, kRelaxed);
+  if (const auto code = protocol::tcp::exception_code_of(pdu)) exceptions_by_code_[*code].fetch_add(1, kRelaxed);
+}
+
+void ModbusTrafficCounters::count_denied_connection() { denied_connections_.fetch_add(1, kRelaxed); }
+
+ModbusTrafficSnapshot ModbusTrafficCounters::snapshot() const {
+  ModbusTrafficSnapshot snapshot;
+  for (std::size_t i = 0; i < snapshot.requests_by_function.size(); ++i) {
+    snapshot.requests_by_function[i] = requests_by_function_[i].load(kRelaxed);
+    snapshot.exceptions_by_code[i] = exceptions_by_code_[i].load(kRelaxed);
+  }
+  snapshot.responses = responses_.load(kRelaxed);
+  snapshot.denied_connections = denied_connections_.load(kRelaxed);
+  return snapshot;
+}
+
+// ---- collecting ----
+
+BusMetrics read_bus_metrics(const config::Config& config, std::size_t bus_index, bool up,
+                            const BusCountersSnapshot& counters, const PollCache& cache, SteadyClock::time_point now) {
+  const config::BusConfig& bus = config.buses.at(bus_index);
+  BusMetrics metrics;
+  metrics.name = bus.name;
+  metrics.protocol = std::string(protocol::to_string(bus.protocol));
+  metrics.up = up;
+  metrics.counters = counters;
+  metrics.servos_online = cache.online_count();
+  for (const auto& servo : config.servos) {
+    if (servo.bus_index != bus_index || servo.passthrough()) continue;
+    const auto state = cache.state(servo.servo_id);
+    if (!state) continue;
+    ServoMetrics entry;
+    entry.unit_id = servo.unit_id;
+    entry.servo_id = servo.servo_id;
+    entry.name = servo.name;
+    entry.online = state->online;
+    if (const auto age = state->age(now)) {
+      entry.cache_age = std::max(std::chrono::duration_cast<std::chrono::microseconds>(*age), std::chrono::microseconds{0});
+    }
+    entry.counters = state->counters;
+    metrics.servos.push_back(std::move(entry));
+  }
+  return metrics;
+}
+
+MetricsSnapshot collect_metrics(const config::Config& config, std::span<BusEngine* const> engines,
+                                const TcpServerStats& tcp, const ModbusTrafficCounters& traffic,
+                                SteadyClock::time_point started, SteadyClock::time_point now) {
+  MetricsSnapshot snapshot;
+  snapshot.version = SMS_GATEWAY_VERSION;
+  snapshot.uptime = std::chrono::duration_cast<std::chrono::seconds>(now - started);
+  for (std::size_t i = 0; i < engines.size() && i < config.buses.size(); ++i) {
+    const BusEngine* engine = engines[i];
+    if (engine == nullptr) continue;
+    snapshot.buses.push_back(read_bus_metrics(config, i, engine->bus_up(), engine->counters(), engine->cache(), now));
+  }
+  snapshot.tcp = tcp;
+  snapshot.traffic = traffic.snapshot();
+  return snapshot;
+}
+
+// ---- rendering ----
+
+std::string render_prometheus(const MetricsSnapshot& snapshot) {
+  Exposition out;
+  out.family("sms_gateway_build_info", MetricType::Gauge, "Always 1; the version is in the label");
+  out.sample("sms_gateway_build_info", {{"version", snapshot.version}}, std::uint64_t{1});
+  out.family("sms_gateway_uptime_seconds", MetricType::Gauge, "Seconds since the gateway started");
+  out.sample("sms_gateway_uptime_seconds", {}, static_cast<std::uint64_t>(std::max<std::int64_t>(snapshot.uptime.count(), 0)));
+
+  for (const auto& family : kBusFamilies) {
+    out.family(family.name, family.type, family.help);
+    for (const auto& bus : snapshot.buses) {
+      if (const auto value = family.value(bus)) out.sample(family.name, bus_labels(bus), *value);
+    }
+  }
+  for (const auto& family : kServoFamilies) {
+    out.family(family.name, family.type, family.help);
+    for (const auto& bus : snapshot.buses) {
+      for (const auto& servo : bus.servos) {
+        if (const auto value = family.value(servo)) out.sample(family.name, servo_labels(bus, servo), *value);
+      }
+    }
+  }
+  for (const auto& family : kTcpFamilies) {
+    out.family(family.name, family.type, family.help);
+    if (const auto value = family.value(snapshot.tcp)) out.sample(family.name, {}, *value);
+  }
+  constexpr std::string_view kRefused = "sms_gateway_tcp_connections_refused_total";
+  out.family(kRefused, MetricType::Counter,
+             "Connections closed at once: over modbus_tcp.max_connections, or not in modbus_tcp.allow");
+  out.sample(kRefused, {{"reason", "max_connections"}}, snapshot.tcp.refused);
+  out.sample(kRefused, {{"reason", "allow"}}, snapshot.traffic.denied_connections);
+
+  render_requests(out, snapshot.traffic);
+  constexpr std::string_view kResponses = "sms_gateway_modbus_responses_total";
+  out.family(kResponses, MetricType::Counter, "Modbus TCP answers sent, normal and exception");
+  out.sample(kResponses, {}, snapshot.traffic.responses);
+  render_exceptions(out, snapshot.traffic);
+  return out.take();
+}
+
+Health health_of(const MetricsSnapshot& snapshot) {
+  Health health;
+  for (const auto& bus : snapshot.buses) {
+    if (bus.up) continue;
+    if (!health.reason.empty()) health.reason += "; ";
+    health.reason += "bus " + bus.name + " is down";
+  }
+  health.ok = health.reason.empty();
+  if (health.ok) health.reason = "ok";
+  return health;
+}
+
+}  // namespace sms::gateway
