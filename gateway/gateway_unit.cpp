@@ -213,9 +213,11 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
 void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,
                                        std::function<void(const Reply&)> after) {
   // Validate everything before the first frame: a refused write changes nothing.
+  // Packet buses: one SYNC WRITE per bus (per field address, should tables differ); modbus-rtu
+  // has no SYNC WRITE, so its members get one acknowledged write each.
   struct Frame {
     std::size_t bus;
-    SyncWriteOp op;
+    BusOp op;
   };
   std::vector<Frame> frames;
   for (std::size_t i = 0; i < request.values.size(); ++i) {
@@ -224,21 +226,26 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
       reply.send(exception_response(request.function, Fault::BadAddress));
       return;
     }
-    const auto bytes = member->map.field_bytes(*member->field, request.values[i]);
+    auto bytes = member->map.field_bytes(*member->field, request.values[i]);
     if (!bytes) {
       spdlog::debug("gateway unit: sync group register {}: {}", request.address + i, bytes.error().message);
       reply.send(exception_response(request.function, fault_from(bytes.error().code)));
       return;
     }
-    // One SYNC WRITE per bus; members whose tables put the field elsewhere need a frame of their own.
+    if (engines_[member->bus]->settings().protocol == protocol::BusProtocol::ModbusRtu) {
+      frames.push_back(Frame{member->bus, WriteOp{member->servo_id, member->field->addr, std::move(*bytes)}});
+      continue;
+    }
     auto frame = std::find_if(frames.begin(), frames.end(), [&](const Frame& f) {
-      return f.bus == member->bus && f.op.address == member->field->addr && f.op.length == member->field->size;
+      const auto* sync = std::get_if<SyncWriteOp>(&f.op);
+      return f.bus == member->bus && sync != nullptr && sync->address == member->field->addr &&
+             sync->length == member->field->size;
     });
     if (frame == frames.end()) {
       frames.push_back(Frame{member->bus, SyncWriteOp{member->field->addr, member->field->size, {}}});
       frame = std::prev(frames.end());
     }
-    frame->op.entries.push_back(protocol::SyncWriteEntry{member->servo_id, *bytes});
+    std::get<SyncWriteOp>(frame->op).entries.push_back(protocol::SyncWriteEntry{member->servo_id, std::move(*bytes)});
   }
   auto join = BusJoin::create(frames.size(), post_,
                               [function = request.function, reply, after = std::move(after)](std::vector<BusResult> results) {
@@ -259,11 +266,16 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
     reply.send(exception_response(request.function, Fault::BadAddress));
     return;
   }
-  if (!request.values[0] || engines_.empty()) {  // writing 0 asks for nothing
+  // Staged writes exist on packet buses only: ACTION goes to those.
+  std::vector<BusEngine*> packet_buses;
+  for (BusEngine* engine : engines_) {
+    if (engine->settings().protocol != protocol::BusProtocol::ModbusRtu) packet_buses.push_back(engine);
+  }
+  if (!request.values[0] || packet_buses.empty()) {  // writing 0 asks for nothing
     reply.send(write_response(request));
     return;
   }
-  auto join = BusJoin::create(engines_.size(), post_, [request, reply](std::vector<BusResult> results) {
+  auto join = BusJoin::create(packet_buses.size(), post_, [request, reply](std::vector<BusResult> results) {
     if (const BusResult* failure = BusJoin::first_failure(results)) {
       spdlog::warn("gateway unit: ACTION failed on a bus: {}", failure->detail);
       reply.send(exception_response(request.function, fault_from(failure->status)));
@@ -271,8 +283,8 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
     }
     reply.send(write_response(request));
   });
-  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
-    engines_[bus]->submit(ActionOp{}, Priority::ClientWrite, join->completion(bus));
+  for (std::size_t i = 0; i < packet_buses.size(); ++i) {
+    packet_buses[i]->submit(ActionOp{}, Priority::ClientWrite, join->completion(i));
   }
 }
 

@@ -35,15 +35,6 @@ constexpr WriteReplyLevel kWriteReplyLevels[] = {
     {TableId::Smsmb, 0},
 };
 
-bool writes_answered(TableId table, std::optional<std::uint8_t> response_level) {
-  // Not configured: the factory levels of every table answer writes.
-  if (!response_level) return true;
-  for (const auto& entry : kWriteReplyLevels) {
-    if (entry.table == table) return *response_level >= entry.min_level;
-  }
-  return true;
-}
-
 modbus_map::Profile map_profile(config::Profile profile) {
   return profile == config::Profile::Smsmb ? modbus_map::Profile::Smsmb : modbus_map::Profile::Native;
 }
@@ -53,6 +44,13 @@ std::uint16_t saturate16(std::uint64_t value) {
 }
 
 }  // namespace
+
+bool writes_answered(TableId table, std::uint8_t response_level) {
+  for (const auto& entry : kWriteReplyLevels) {
+    if (entry.table == table) return response_level >= entry.min_level;
+  }
+  return true;
+}
 
 std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registers(const ServoFacts& facts) {
   const std::uint16_t age = facts.cache_age ? saturate16(static_cast<std::uint64_t>(std::max<std::int64_t>(
@@ -73,14 +71,17 @@ std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registe
 UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post)
     : gateway_unit_id_(config.modbus_tcp.gateway_unit_id), post_(post) {
   for (const auto& servo : config.servos) {
-    if (servo.passthrough()) {
-      throw std::invalid_argument("unit " + std::to_string(servo.unit_id) +
-                                  ": passthrough units (modbus-rtu without a table) are not served by this build");
-    }
     if (servo.bus_index >= engines.size() || engines[servo.bus_index] == nullptr) {
       throw std::invalid_argument("unit " + std::to_string(servo.unit_id) + ": bus '" + servo.bus + "' has no engine");
     }
     BusEngine* engine = engines[servo.bus_index];
+    if (servo.passthrough()) {
+      passthrough_[servo.unit_id] = std::make_unique<PassthroughUnit>(
+          PassthroughUnit{servo.unit_id, engine, servo.servo_id,
+                          "unit " + std::to_string(servo.unit_id) + " (bus " + servo.bus + ", slave " +
+                              std::to_string(servo.servo_id) + ", passthrough)"});
+      continue;
+    }
     auto map = modbus_map::RegisterMap::create(*servo.table, map_profile(servo.profile), servo.byte_order);
     if (!map) throw std::invalid_argument("unit " + std::to_string(servo.unit_id) + ": " + map.error());
 
@@ -96,7 +97,7 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
                         std::to_string(servo.servo_id) + ")";
     units_[servo.unit_id] = std::make_unique<ServoUnit>(
         ServoUnit{servo.unit_id, servo.bus_index, engine, servo.servo_id, std::move(*map), poll_block,
-                  writes_answered(*servo.table, servo.response_level), servo.read_only, std::move(label)});
+                  servo.response_level, servo.read_only, std::move(label)});
   }
   gateway_unit_ = std::make_unique<GatewayUnit>(config, std::move(engines), std::move(post));
 }
@@ -104,7 +105,23 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
 const ServoUnit* UnitRouter::servo_unit(std::uint8_t unit_id) const { return units_[unit_id].get(); }
 
 void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) {
+  try {
+    dispatch(unit_id, pdu, reply);
+  } catch (const std::exception& error) {
+    // A request the code cannot express on its bus is a bug; answer it instead of taking the
+    // io thread (and every other connection) down with it.
+    spdlog::error("modbus: unit {}: request {:02X} failed inside the gateway: {}", unit_id, pdu.empty() ? 0 : pdu[0],
+                  error.what());
+    reply.send(exception_response(pdu.empty() ? 0 : pdu[0], Fault::ServoCorrupt));
+  }
+}
+
+void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, const Reply& reply) {
   const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
+  if (const PassthroughUnit* forwarded = passthrough_[unit_id].get()) {
+    forward(*forwarded, pdu, reply);
+    return;
+  }
   const ServoUnit* unit = units_[unit_id].get();
   if (unit == nullptr && unit_id != gateway_unit_id_) {
     spdlog::debug("modbus: request for unit {}, which is not configured", unit_id);
@@ -121,6 +138,30 @@ void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu,
     return;
   }
   handle_servo(*unit, *request, reply);
+}
+
+void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8_t> pdu, const Reply& reply) {
+  const std::uint8_t function = pdu[0];
+  if (!unit.engine->bus_up()) {
+    reply.send(exception_response(function, Fault::BusDown));
+    return;
+  }
+  // Reads queue behind writes like any client read (MODBUS_MAP.md priorities).
+  const bool read = function >= function_code::kReadCoils && function <= function_code::kReadInputRegisters;
+  unit.engine->submit(RawPduOp{unit.slave, Bytes(pdu.begin(), pdu.end())},
+                      read ? Priority::ClientRead : Priority::ClientWrite,
+                      on_io_thread(post_, [&unit, function, reply](BusResult result) {
+                        if (result.status != BusStatus::Ok) {
+                          spdlog::debug("modbus: {} FC{:02X}: {}", unit.label, function, result.detail);
+                          reply.send(exception_response(function, fault_from(result.status)));
+                          return;
+                        }
+                        if (result.data.empty()) {  // slaves are 1-247: an answer always has a PDU
+                          reply.send(exception_response(function, Fault::ServoCorrupt));
+                          return;
+                        }
+                        reply.send(std::move(result.data));
+                      }));
 }
 
 void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply) {
@@ -332,7 +373,7 @@ struct WriteChain : std::enable_shared_from_this<WriteChain> {
       return;
     }
     const auto& write = plan.writes[next];
-    WriteOp op{unit->servo_id, write.address, write.data, plan.staged, unit->writes_answered};
+    WriteOp op{unit->servo_id, write.address, write.data, plan.staged, expects_write_reply(*unit)};
     unit->engine->submit(std::move(op), Priority::ClientWrite,
                          on_io_thread(post, [self = shared_from_this()](BusResult result) {
                            if (result.status != BusStatus::Ok) {
@@ -353,6 +394,14 @@ void UnitRouter::run_writes(const ServoUnit& unit, std::uint8_t function, modbus
                             const Reply& reply, std::function<void(const Reply&)> after) {
   auto chain = std::make_shared<WriteChain>(&unit, function, std::move(plan), reply, std::move(after), post_);
   chain->step();
+}
+
+bool expects_write_reply(const ServoUnit& unit) {
+  const TableId table = unit.map.servo_table().id;
+  if (unit.configured_response_level) return writes_answered(table, *unit.configured_response_level);
+  const auto state = unit.engine->cache().state(unit.servo_id);
+  if (state && state->response_level) return writes_answered(table, *state->response_level);
+  return true;  // not read yet: every table's factory level answers writes
 }
 
 ServoFacts UnitRouter::facts_of(const ServoUnit& unit) const {

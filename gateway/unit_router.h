@@ -5,6 +5,7 @@
 //   (Priority::ClientRead); FC04/FC02 are served from the poll cache and the gateway's own
 //   facts (1000-1008) without bus traffic; FC05/06/15/16/23-write become WriteOps
 //   (Priority::ClientWrite, REG WRITE for 512 + a) answered once the servo acknowledged them;
+// - a passthrough unit (modbus-rtu slave without a table): the PDU forwarded as it is;
 // - the gateway unit (GatewayUnit);
 // - anything else: 0x0A.
 // Runs on the io thread; bus completions come back through PostFn.
@@ -35,6 +36,10 @@ inline constexpr std::uint16_t kFirstBit = 1000;     // 1000 + b: bit b of regis
 inline constexpr std::uint16_t kOnlineBit = 1008;
 }  // namespace servo_facts_layout
 
+// Whether a servo of `table` at `response_level` answers unicast WRITE / REG WRITE (SPEC §2.1
+// and §2.2 address 8: 0 = only READ and PING; §2.3 address 16: 2 = all but broadcast).
+bool writes_answered(modbus_map::TableId table, std::uint8_t response_level);
+
 // What the facts registers show, gathered from the poll cache.
 struct ServoFacts {
   std::uint8_t last_status = 0;
@@ -55,9 +60,24 @@ struct ServoUnit {
   std::uint8_t servo_id = 0;
   modbus_map::RegisterMap map;
   modbus_map::BusRange poll_block;  // what the engine polls into the cache for this servo
-  bool writes_answered = true;      // response level: false when the servo does not answer writes
+  // The response level from the configuration; without one, the level discovery read from
+  // the servo (poll cache), else the table's factory behaviour (writes answered).
+  std::optional<std::uint8_t> configured_response_level;
   bool read_only = false;
   std::string label;                // "unit 3 (bus arm, servo 3)" for logs
+};
+
+// Whether a WRITE to this unit's servo waits for its answer: the configured response level,
+// else the level discovery read from the servo, else yes (every table's factory level).
+bool expects_write_reply(const ServoUnit& unit);
+
+// A unit on a modbus-rtu bus without a table: its PDUs are forwarded to the slave unchanged
+// and its answers (exceptions included) come back unchanged.
+struct PassthroughUnit {
+  std::uint8_t unit_id = 0;
+  BusEngine* engine = nullptr;
+  std::uint8_t slave = 0;
+  std::string label;
 };
 
 class UnitRouter : public RequestHandler {
@@ -72,7 +92,9 @@ class UnitRouter : public RequestHandler {
   std::uint8_t gateway_unit_id() const { return gateway_unit_id_; }
 
  private:
+  void dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, const Reply& reply);
   void handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply);
+  void forward(const PassthroughUnit& unit, std::span<const std::uint8_t> pdu, const Reply& reply);
   void read_holding(const ServoUnit& unit, std::uint8_t function, std::uint16_t start, std::uint16_t count,
                     const Reply& reply);
   void read_input(const ServoUnit& unit, const ReadRegistersRequest& request, const Reply& reply);
@@ -92,6 +114,7 @@ class UnitRouter : public RequestHandler {
               const Reply& reply) const;
 
   std::array<std::unique_ptr<ServoUnit>, 256> units_{};
+  std::array<std::unique_ptr<PassthroughUnit>, 256> passthrough_{};
   std::uint8_t gateway_unit_id_ = 255;
   std::unique_ptr<GatewayUnit> gateway_unit_;
   PostFn post_;

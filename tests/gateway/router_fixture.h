@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <chrono>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -38,8 +39,12 @@ inline simulator::BusOptions sts_bus(int count) {
 // "@LISTEN@" for an ephemeral loopback port.
 class SimulatedGateway {
  public:
-  SimulatedGateway(simulator::BusOptions bus_options, const std::string& yaml) : bus_(std::move(bus_options)) {
+  // `prepare` runs on the started simulator before the gateway starts (and discovers it).
+  SimulatedGateway(simulator::BusOptions bus_options, const std::string& yaml,
+                   const std::function<void(simulator::SimulatedBus&)>& prepare = {})
+      : bus_(std::move(bus_options)) {
     bus_.start();
+    if (prepare) prepare(bus_);
     std::string text = yaml;
     replace(text, "@DEVICE@", bus_.slave_path());
     replace(text, "@LISTEN@", "127.0.0.1:0");

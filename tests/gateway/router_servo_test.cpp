@@ -36,8 +36,9 @@ bool eventually(F condition, std::chrono::milliseconds timeout = 3s) {
 
 class Router : public ::testing::Test {
  protected:
-  void start(const std::string& yaml, simulator::BusOptions options = sts_bus(6)) {
-    gateway_ = std::make_unique<SimulatedGateway>(std::move(options), yaml);
+  void start(const std::string& yaml, simulator::BusOptions options = sts_bus(6),
+             const std::function<void(simulator::SimulatedBus&)>& prepare = {}) {
+    gateway_ = std::make_unique<SimulatedGateway>(std::move(options), yaml, prepare);
   }
   simulator::SimulatedBus& sim() { return gateway_->bus(); }
   std::uint16_t port() const { return gateway_->port(); }
@@ -289,6 +290,22 @@ TEST_F(Router, WriteToAServoThatDoesNotAnswerWritesIsAnsweredOnceSent) {
   ModbusClient client(port(), 1);
   ASSERT_TRUE(client.write_register(42, 1234).ok());
   EXPECT_TRUE(eventually([&] { return *sim().read_field(1, "goal_position") == 1234; }));
+}
+
+TEST_F(Router, ResponseLevelReadAtDiscoveryDecidesWhetherAWriteWaitsForAnAnswer) {
+  // No response_level in the configuration: the gateway reads it from the servo.
+  start(config_with(", poll_period_ms: 3600000, response_timeout_ms: 300, retries: 0", kTwoServos), sts_bus(2),
+        [](simulator::SimulatedBus& bus) { ASSERT_TRUE(bus.write_memory(1, 8, Bytes{0x00})); });
+  gateway_->wait_until_polled(1);
+  ModbusClient client(port(), 1);
+  const auto started = std::chrono::steady_clock::now();
+  ASSERT_TRUE(client.write_register(42, 1500).ok());
+  // Not waiting for an answer that never comes: well under the 300 ms response timeout.
+  EXPECT_LT(std::chrono::steady_clock::now() - started, 250ms);
+  EXPECT_TRUE(eventually([&] { return *sim().read_field(1, "goal_position") == 1500; }));
+  ModbusClient answering(port(), 2);  // level 1: its write is acknowledged
+  EXPECT_TRUE(answering.write_register(42, 1600).ok());
+  EXPECT_EQ(*sim().read_field(2, "goal_position"), 1600);
 }
 
 TEST_F(Router, PipelinedWritesOfOneConnectionApplyInOrder) {
