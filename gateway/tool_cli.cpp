@@ -175,7 +175,7 @@ Say printer() {
 
 void add_scan(CLI::App& app) {
   auto args = std::make_shared<LineArgs>();
-  args->latency_ms = 2;
+  args->latency_ms = 5;
   auto bauds = std::make_shared<std::vector<std::uint32_t>>();
   auto ids = std::make_shared<std::string>();
   auto config_file = std::make_shared<std::string>();

@@ -275,7 +275,8 @@ class ModbusLink final : public ServoLink {
   LinkAnswer exchange(std::uint8_t id, const Bytes& pdu, std::uint16_t registers, bool exception_is_answer) {
     LinkAnswer answer;
     const std::size_t reply_bytes = registers > 0 ? 5 + 2 * std::size_t{registers} : 8;
-    const auto timeout = tool_reply_timeout(*this, pdu.size() + 3, reply_bytes);
+    // RtuMaster counts the reply timeout from when the request has left: no request bytes here.
+    const auto timeout = tool_reply_timeout(*this, 0, reply_bytes);
     if (id == 0) {
       const RtuExchange sent = master_->send_only(0, pdu, timeout);
       answer.status = sent.outcome == RtuOutcome::Sent ? LinkStatus::Ok : LinkStatus::PortError;

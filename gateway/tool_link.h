@@ -49,7 +49,7 @@ struct LinkSettings {
   config::ModbusRtuOptions rtu;  // modbus-rtu only: RS-485 mode, RTS, byte timeout
   // Added to every reply timeout: the USB adapter's latency (an FTDI adapter holds short
   // replies up to its latency timer: 16 ms unless set to 1 ms) and scheduling jitter.
-  std::chrono::milliseconds latency{2};
+  std::chrono::milliseconds latency{5};
   unsigned attempts = 3;  // per transaction, on timeouts and corrupt replies
 };
 

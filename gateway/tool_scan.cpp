@@ -23,6 +23,8 @@ constexpr int kConflictReads = 3;
 // The broadcast PING that decides whether a rate is worth scanning.
 constexpr unsigned kProbeAttempts = 3;
 constexpr std::chrono::milliseconds kProbeExtraWait{20};
+// Reads that confirm a suspected ID conflict wait this much longer.
+constexpr std::chrono::milliseconds kConfirmExtraWait{20};
 // SMSMB identity (SPEC §2.4): register 0 firmware version, register 1 servo (model) version.
 constexpr std::uint16_t kSmsmbIdentityRegister = 0x00;
 constexpr std::uint16_t kSmsmbIdentityCount = 2;
@@ -32,11 +34,10 @@ std::string identity_text(const ScanReport& report, const ServoIdentity& identit
   return format_identity_value(layout, model, model ? identity.model : identity.firmware);
 }
 
-ServoIdentity read_identity(ServoLink& link, TableId table_id, std::uint8_t id, bool& damaged) {
+ServoIdentity read_identity(ServoLink& link, TableId table_id, std::uint8_t id) {
   const auto& table = modbus_map::table(table_id);
   if (table.addressing == modbus_map::Addressing::Register) {
     const LinkAnswer answer = link.read(id, kSmsmbIdentityRegister, kSmsmbIdentityCount);
-    if (answer.status == LinkStatus::Corrupt) damaged = true;
     if (!answer.ok() || answer.data.size() != 4) return {};
     ServoIdentity identity;
     identity.model = static_cast<std::uint16_t>(answer.data[2] << 8 | answer.data[3]);
@@ -46,22 +47,35 @@ ServoIdentity read_identity(ServoLink& link, TableId table_id, std::uint8_t id, 
   const IdentityLayout* layout = identity_layout(table_id);
   if (layout == nullptr) return {};
   const LinkAnswer answer = link.read(id, layout->read.address, layout->read.count);
-  if (answer.status == LinkStatus::Corrupt) damaged = true;
   if (!answer.ok()) return {};
   return decode_identity(*layout, answer.data, table.default_byte_order);
 }
 
-// True when present_position comes back damaged: two servos answer on this ID.
+// How many of `reads` reads of present_position come back damaged.
+int damaged_position_reads(ServoLink& link, const modbus_map::TableSpec& table, const modbus_map::FieldSpec& position,
+                           std::uint8_t id, int reads) {
+  const std::uint16_t span = modbus_map::address_span(table.addressing, position);
+  int damaged = 0;
+  for (int read = 0; read < reads; ++read) {
+    if (link.read(id, position.addr, span).status == LinkStatus::Corrupt) ++damaged;
+  }
+  return damaged;
+}
+
+// True when present_position keeps coming back damaged: two servos answer on this ID. A
+// damaged answer can also be a late answer overlapping the next request (a timeout shorter
+// than the servo's delay on a busy machine): a suspicion is confirmed with reads that wait
+// longer, and only a majority of damaged ones counts.
 bool answers_collide(ServoLink& link, TableId table_id, std::uint8_t id) {
   const auto& table = modbus_map::table(table_id);
   const modbus_map::FieldSpec* position = modbus_map::field_by_name(table, "present_position");
   if (position == nullptr) return false;
-  const std::uint16_t span = modbus_map::address_span(table.addressing, *position);
-  for (int read = 0; read < kConflictReads; ++read) {
-    const LinkAnswer answer = link.read(id, position->addr, span);
-    if (answer.status == LinkStatus::Corrupt) return true;
-  }
-  return false;
+  if (damaged_position_reads(link, table, *position, id, kConflictReads) == 0) return false;
+  const auto latency = link.settings().latency;
+  link.set_latency(latency + kConfirmExtraWait);
+  const int damaged = damaged_position_reads(link, table, *position, id, kConflictReads);
+  link.set_latency(latency);
+  return damaged * 2 > kConflictReads;
 }
 
 }  // namespace
@@ -121,23 +135,30 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
     for (const std::uint8_t id : ids) {
       LinkAnswer answer = link.ping(id);
       if (answer.status == LinkStatus::PortError) return unexpected(answer.detail);
-      // A PING answered with garbage: ask once more before calling it a collision.
-      if (!answer.ok() && answer.heard_anything) answer = link.ping(id);
       if (!answer.ok() && !answer.heard_anything) continue;
+      if (!answer.ok()) {
+        // Only damaged answers: several transmitters at once, or a late answer overlapping
+        // ours. Ask again, waiting longer, before calling it a collision.
+        const auto latency = link.settings().latency;
+        link.set_latency(latency + kConfirmExtraWait);
+        answer = link.ping(id);
+        link.set_latency(latency);
+        if (answer.status == LinkStatus::PortError) return unexpected(answer.detail);
+        if (!answer.ok() && !answer.heard_anything) continue;
+      }
       ScanFinding finding;
       finding.baud = baud;
       finding.id = id;
       if (answer.ok()) {
         finding.status = answer.servo_status;
-        bool damaged = false;
-        finding.identity = read_identity(link, options.table, id, damaged);
-        finding.conflict = damaged || answers_collide(link, options.table, id);
+        finding.identity = read_identity(link, options.table, id);
+        finding.conflict = answers_collide(link, options.table, id);
         if (protocol == BusProtocol::ModbusRtu && answer.servo_status != 0) {
           finding.note = fmt::format("a Modbus slave, not an SMSMB servo (FC03 of register 0 answered exception 0x{:02X})",
                                      answer.servo_status);
         }
       } else {
-        finding.conflict = true;  // only damaged answers: several transmitters at once
+        finding.conflict = true;  // still only damaged answers
       }
       if (finding.conflict) {
         finding.note = "two or more servos answer on this ID (their replies collide): connect one at a time and "

@@ -10,8 +10,10 @@
 // For each servo found: its identity (model, firmware) and a check for a second servo on the
 // same ID. Two servos on one ID answer a PING with identical frames (a PING carries no data),
 // so the check reads present_position three times: two servos never sit at exactly the same
-// position, their answers overlap on the wire and arrive damaged. Damaged answers (or a PING
-// answered only with garbage) are reported as an ID conflict.
+// position, their answers overlap on the wire and arrive damaged. A late answer overlapping
+// the next request looks the same, so a suspicion is confirmed with reads that wait 20 ms
+// longer; only when most of those come back damaged too (or a PING is answered only with
+// garbage even then) is the ID reported as a conflict.
 #include <chrono>
 #include <cstdint>
 #include <string>

@@ -204,9 +204,9 @@ TEST(Scan, WritesAConfigurationTheGatewayLoads) {
   EXPECT_NE(yaml.find("--id 6 --new-baud 1000000"), std::string::npos) << yaml;
 }
 
-// The figure for the README: every ID at 1 Mbaud, six servos on the line, the tools' default
-// adapter latency (2 ms).
-TEST(Scan, EveryIdAtOneMegabaudTakesUnderTwoSeconds) {
+// The figure for the README: every ID at 1 Mbaud, six servos on the line, the scan's default
+// adapter latency (5 ms).
+TEST(Scan, EveryIdAtOneMegabaudTakesUnderThreeSeconds) {
   simulator::BusOptions options;
   for (std::uint8_t id = 1; id <= 6; ++id) options.servos.push_back({id, TableId::Sts, BusProtocol::Feetech, 1'000'000});
   simulator::SimulatedBus bus(options);
@@ -214,7 +214,7 @@ TEST(Scan, EveryIdAtOneMegabaudTakesUnderTwoSeconds) {
   LinkSettings settings;
   settings.device = bus.slave_path();
   settings.baud = 1'000'000;
-  settings.latency = 2ms;  // the tool's default
+  settings.latency = 5ms;  // the scan's default
   auto link = make_servo_link(settings);
   ASSERT_TRUE(link->open());
   ScanOptions scan;
@@ -225,7 +225,7 @@ TEST(Scan, EveryIdAtOneMegabaudTakesUnderTwoSeconds) {
   EXPECT_EQ(report->ids_per_baud, 254U);
   std::cout << "scan of 254 IDs at 1000000 bit/s: " << report->elapsed.count() << " ms\n";
   RecordProperty("scan_254_ids_1mbaud_ms", static_cast<int>(report->elapsed.count()));
-  EXPECT_LT(report->elapsed, 2s);
+  EXPECT_LT(report->elapsed, 3s);
 }
 
 }  // namespace
