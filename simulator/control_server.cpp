@@ -21,8 +21,9 @@ namespace sms::simulator {
 namespace {
 
 constexpr std::string_view kHelp =
-    "commands: offline ID | online ID | drop P | corrupt P | corrupt-next [N] | late ID MS | error ID BITS | "
-    "duplicate ID | timing on|off | get ID ADDR COUNT | set ID ADDR HEX... | field ID NAME | list | stats | help";
+    "commands: offline ID | online ID | drop P | corrupt P | corrupt-next [N] | garble ID on|off | late ID MS | "
+    "error ID BITS | duplicate ID | timing on|off | get ID ADDR COUNT | set ID ADDR HEX... | field ID NAME | "
+    "list | stats | help";
 constexpr std::size_t kMaxLine = 4096;
 
 std::vector<std::string> words_of(std::string_view line) {
@@ -108,6 +109,14 @@ std::string run_command(SimulatedBus& bus, const std::vector<std::string>& words
     number = 1;
     if (arguments > 1 || (arguments == 1 && !read_number(words[1], number))) return usage("corrupt-next [N]");
     bus.corrupt_next_replies(number);
+    return "ok";
+  }
+  if (command == "garble") {
+    if (arguments != 2 || !read_id(words[1], id) || (words[2] != "on" && words[2] != "off")) {
+      return usage("garble ID on|off");
+    }
+    if (!has_servo(bus, id)) return unknown_id(id);
+    bus.set_garbled(id, words[2] == "on");
     return "ok";
   }
   if (command == "late") {

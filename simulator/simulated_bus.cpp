@@ -490,8 +490,13 @@ void SimulatedBus::Impl::schedule(std::vector<Reply> replies, std::uint32_t spee
       ++stats_.dropped;
       continue;
     }
-    if (corrupt_next_ > 0 || (corrupt_probability_ > 0 && chance(dice_) < corrupt_probability_)) {
-      if (corrupt_next_ > 0) --corrupt_next_;
+    bool corrupt = reply.servo->garbled();
+    if (!corrupt && corrupt_next_ > 0) {
+      --corrupt_next_;
+      corrupt = true;
+    }
+    if (!corrupt && corrupt_probability_ > 0) corrupt = chance(dice_) < corrupt_probability_;
+    if (corrupt) {
       std::uniform_int_distribution<std::size_t> position(0, reply.bytes.size() - 1);
       std::uniform_int_distribution<int> mask(1, 255);
       reply.bytes[position(dice_)] ^= static_cast<std::uint8_t>(mask(dice_));
@@ -604,6 +609,10 @@ void SimulatedBus::set_corrupt_probability(double probability) {
 void SimulatedBus::corrupt_next_replies(unsigned count) {
   std::lock_guard lock(impl_->mutex_);
   impl_->corrupt_next_ += count;
+}
+
+void SimulatedBus::set_garbled(std::uint8_t id, bool garbled) {
+  impl_->for_id(id, [garbled](VirtualServo& servo) { servo.set_garbled(garbled); });
 }
 
 void SimulatedBus::set_reply_delay(std::uint8_t id, std::chrono::milliseconds extra) {

@@ -94,6 +94,9 @@ class SimulatedBus {
   void set_drop_probability(double probability);     // each reply dropped with probability p
   void set_corrupt_probability(double probability);  // each reply gets one byte flipped
   void corrupt_next_replies(unsigned count = 1);
+  // Every reply of this servo gets one byte flipped (the other servos stay clean) until
+  // cleared: a servo answering garbage.
+  void set_garbled(std::uint8_t id, bool garbled);
   // Extra delay on top of the wire time: the reply arrives after the host gave up.
   void set_reply_delay(std::uint8_t id, std::chrono::milliseconds extra);
   // The servo reports these ERROR / status bits (protocol's own bit meanings, SPEC §1) and

@@ -63,6 +63,9 @@ class VirtualServo {
   void set_offline(bool offline) { offline_ = offline; }
   bool offline() const { return offline_; }
   void set_extra_delay(Clock::duration extra) { extra_delay_ = extra; }
+  // Every reply leaves with a byte flipped: a servo whose transmitter sends garbage.
+  void set_garbled(bool garbled) { garbled_ = garbled; }
+  bool garbled() const { return garbled_; }
   void set_error_bits(std::uint8_t bits, Clock::time_point now);
 
   // Persistence (state file): the EEPROM as it would be after a power cycle, and the backup.
@@ -195,6 +198,7 @@ class VirtualServo {
 
   bool offline_ = false;
   Clock::duration extra_delay_{};
+  bool garbled_ = false;
   std::uint8_t injected_errors_ = 0;
   std::uint8_t pending_error_ = 0;  // d55d checksum bit, shown once
   bool persist_dirty_ = false;
