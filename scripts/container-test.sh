@@ -205,15 +205,59 @@ check "SMS_GATEWAY_LISTEN=0.0.0.0:5020 moves the listener; the healthcheck then 
 stop_and_check "$sim_ctr" "with --init"
 stop_and_check "$off_ctr" "without --init (sms-gateway is PID 1)"
 
+# --- SMS_GATEWAY_* variables read by sms-gateway itself (config/env.h) ---------------------------
+# JSON logs at debug level, the metrics endpoint, and an allow-list that admits the container's
+# own loopback (the HEALTHCHECK) but not the host: podman's port forwarding shows the host as the
+# bridge's address, and 192.0.2.0/24 is a documentation network nothing comes from.
+env_ctr=$run_id-env
+containers+=("$env_ctr")
+port=$(free_port)
+metrics_port=$(free_port)
+start_container --init --name "$env_ctr" -p "127.0.0.1:$port:502" -p "127.0.0.1:$metrics_port:9102" \
+  -e SMS_GATEWAY_LOG_FORMAT=json -e SMS_GATEWAY_LOG_LEVEL=debug -e SMS_GATEWAY_METRICS=0.0.0.0:9102 \
+  -e SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1 "${hardening[@]}" "$image"
+deadline=$(( $(date +%s) + 30 ))
+until curl -fs -o /dev/null "http://127.0.0.1:$metrics_port/healthz"; do
+  [ "$(date +%s)" -lt "$deadline" ] || { podman logs "$env_ctr" | tail -20 >&2; fail "SMS_GATEWAY_METRICS: no /healthz 200 within 30 s"; }
+  sleep 0.2
+done
+podman healthcheck run "$env_ctr" >/dev/null \
+  || fail "SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: the HEALTHCHECK (from 127.0.0.1 inside) was refused"
+if read_input_registers "$port" 255 0 1 >/dev/null; then
+  fail "SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: a read from the host was answered"
+fi
+curl -fsS "http://127.0.0.1:$metrics_port/metrics" >"$tmp/metrics.txt" || fail "GET /metrics"
+refused=$(awk '/^sms_gateway_tcp_connections_refused_total\{reason="allow"\}/ { print $2 }' "$tmp/metrics.txt")
+[ "${refused:-0}" -ge 1 ] 2>/dev/null || fail "/metrics: refused{reason=\"allow\"} = '${refused:-missing}' after a refused host read"
+grep -q '^sms_gateway_build_info{version="'"$want_version"'"} 1' "$tmp/metrics.txt" || fail "/metrics: no sms_gateway_build_info for $want_version"
+check "SMS_GATEWAY_METRICS=0.0.0.0:9102: /healthz 200, /metrics has build_info $want_version; SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: host refused (refused_total{reason=\"allow\"} = $refused), HEALTHCHECK healthy"
+command podman logs "$env_ctr" >"$tmp/env.log" 2>&1
+non_json=$(grep -c -v '^{"ts":"[^"]*","level":"[a-z]*",.*}$' "$tmp/env.log" || true)
+[ "$non_json" = 0 ] || { grep -v '^{"ts":' "$tmp/env.log" | head -5 >&2; fail "SMS_GATEWAY_LOG_FORMAT=json: $non_json log lines are not JSON objects"; }
+grep -q '"level":"debug"' "$tmp/env.log" || fail "SMS_GATEWAY_LOG_LEVEL=debug: no debug record in $(wc -l <"$tmp/env.log") log lines"
+grep -q 'from the environment:.*SMS_GATEWAY_METRICS' "$tmp/env.log" || fail "no log line naming the variables applied from the environment"
+check "SMS_GATEWAY_LOG_FORMAT=json, SMS_GATEWAY_LOG_LEVEL=debug: $(wc -l <"$tmp/env.log") log lines, every one a JSON object, debug records present"
+stop_and_check "$env_ctr" "JSON logs, metrics, allow-list"
+
+# An invalid variable stops the gateway before it serves: exit status 2, the variable named.
+set +e
+command podman run --rm --health-cmd none -e SMS_GATEWAY_MAX_CONNECTIONS=0 "$image" >"$tmp/bad-env.log" 2>&1
+code=$?
+set -e
+[ "$code" = 2 ] && grep -q 'SMS_GATEWAY_MAX_CONNECTIONS' "$tmp/bad-env.log" \
+  || { cat "$tmp/bad-env.log" >&2; fail "SMS_GATEWAY_MAX_CONNECTIONS=0: exit status $code (want 2, naming the variable)"; }
+check "SMS_GATEWAY_MAX_CONNECTIONS=0 refused: exit status 2, \"$(grep -m1 SMS_GATEWAY_MAX_CONNECTIONS "$tmp/bad-env.log" | cut -c1-90)...\""
+
 # --- a mounted config and a serial device --------------------------------------------------------
 # The image's own sms-sim runs on the host on a pty made to look like a USB adapter (root:dialout
 # 0660, as udev leaves /dev/ttyUSB0); the pty goes in as /dev/ttyUSB0 and the config is mounted
-# at /etc/sms-gateway/config.yaml. Its listen address is deliberately not 502: the entrypoint's
-# --listen must win.
+# at /etc/sms-gateway/config.yaml. Its listen address is deliberately not 502: the image's
+# SMS_GATEWAY_LISTEN must win.
 extract_ctr=$run_id-extract
 containers+=("$extract_ctr")
 podman create --health-cmd none --name "$extract_ctr" "$image" >/dev/null
 podman cp "$extract_ctr:/usr/local/bin/sms-sim" "$tmp/sms-sim"
+podman cp "$extract_ctr:/usr/local/bin/sms-gateway" "$tmp/sms-gateway"
 podman rm "$extract_ctr" >/dev/null
 if ! "$tmp/sms-sim" --help >/dev/null 2>&1; then
   echo "container-test: the image's sms-sim does not run on this host (runtime libraries?); serial part not checked" >&2
@@ -257,7 +301,7 @@ YAML
     wait_for_modbus "$port" "$unit" 10 1001 1 \
       || { podman logs "$serial_ctr" | tail -20 >&2; fail "servo unit $unit on the pty not online"; }
   done
-  check "config mounted -> entrypoint runs it on 0.0.0.0:502; servo units 1-3 online over the pty as /dev/ttyUSB0 (user sms through dialout) after $(elapsed "$t0") s"
+  check "config mounted -> entrypoint runs it, on 0.0.0.0:502 (SMS_GATEWAY_LISTEN); servo units 1-3 online over the pty as /dev/ttyUSB0 (user sms through dialout) after $(elapsed "$t0") s"
 
   # A write goes through the container to the servo and is acknowledged; a live read sees it.
   # sts address 42 = goal position; mbpoll numbers from 1 without -0.
@@ -270,9 +314,24 @@ YAML
   stop_and_check "$serial_ctr" "config mounted, with --init"
 fi
 
+# --- the systemd unit (no systemd runs here: checked offline) -------------------------------------
+unit=$context/deploy/sms-gateway.service
+if command -v systemd-analyze >/dev/null 2>&1 && [ -f "$unit" ]; then
+  # verify insists that ExecStart exists: point it at the image's binary.
+  sed "s#/usr/local/bin/sms-gateway#$tmp/sms-gateway#g" "$unit" >"$tmp/sms-gateway.service"
+  systemd-analyze verify "$tmp/sms-gateway.service" >"$tmp/verify.log" 2>&1 \
+    || { cat "$tmp/verify.log" >&2; fail "systemd-analyze verify deploy/sms-gateway.service"; }
+  [ ! -s "$tmp/verify.log" ] || { cat "$tmp/verify.log" >&2; fail "systemd-analyze verify: warnings"; }
+  exposure=$(systemd-analyze security --offline=yes --no-pager "$tmp/sms-gateway.service" 2>&1 \
+             | sed -n 's/.*Overall exposure level for [^:]*: \([0-9.]* [A-Z]*\).*/\1/p')
+  check "deploy/sms-gateway.service: systemd-analyze verify clean, security exposure ${exposure:-?} (offline)"
+  unit_checked=yes
+fi
+
 echo
 echo "container-test: passed in $(elapsed "$total_t0") s. Checked:"
 printf '  %s\n' "${checks[@]}"
 [ "$serial_checked" = yes ] || echo "NOT checked: the mounted config and the serial device (see above)"
+[ "${unit_checked:-no}" = yes ] || echo "NOT checked: the systemd unit (no systemd-analyze)"
 echo "Not checked here: a real USB adapter (--device), Docker itself, health checks on a timer"
-echo "(podman runs them only on request without systemd)."
+echo "(podman runs them only on request without systemd), the systemd unit under a running systemd."
