@@ -2,7 +2,10 @@
 // (SPEC §5), for 6, 20 and 60 simulated sts servos at 1 000 000 baud with wire timing on; then
 // what a silent servo costs the others (issue 4, bench (b)).
 //
-//   poll_cycle [--seconds 2] [--silent-seconds 5]
+//   poll_cycle [--seconds 2] [--silent-seconds 5] [--servos N] [--return-delay-us D]
+//
+// --servos and --return-delay-us pick one bus size / one return delay (0 = all); --silent-seconds 0
+// skips the silent-servo part.
 //
 // The gateway (sms-gateway, a child process) polls back to back (poll_period_ms 0) so every
 // cycle is pure bus work. The cycle time is what the gateway itself reports: gateway unit 255,
@@ -11,6 +14,12 @@
 // at 10 bits a character, plus N return delays (sts address 7, x 2 us). Efficiency = limit /
 // measured median cycle. Measured with return delay 0 (SPEC §5's example) and with the sts
 // factory default 250 (500 us).
+// The register says how long one cycle took, from its start to its last answer. The bus's
+// real poll rate also pays for the time between cycles and for the occasional long cycle (a
+// busy machine): cycle_mean_from_frame_rate is 1 / cycles per second, counted from the frames
+// answered in the window, and efficiency_throughput = limit / that.
+// The limit is the wire alone: it leaves out the time the pty and the simulator take to pass
+// the request over and the last answer back (a real adapter has its own latency instead).
 #include <algorithm>
 #include <iostream>
 #include <string>
@@ -69,6 +78,13 @@ Window sample(ModbusClient& client, std::chrono::milliseconds duration) {
   return window;
 }
 
+double mean(const std::vector<std::uint32_t>& values) {
+  if (values.empty()) return 0;
+  double sum = 0;
+  for (const auto value : values) sum += value;
+  return sum / static_cast<double>(values.size());
+}
+
 double median(std::vector<std::uint32_t> values) {
   if (values.empty()) return 0;
   std::sort(values.begin(), values.end());
@@ -100,9 +116,12 @@ void measure_cycle(unsigned servos, std::uint8_t return_delay, std::chrono::mill
   const std::string name = "poll_cycle.servos_" + std::to_string(servos) + ".return_delay_us_" +
                            std::to_string(static_cast<int>(return_delay * kReturnDelayUsPerUnit));
   print_figure(name + ".wire_limit", limit, "us");
+  const double from_rate = cycles_per_s > 0 ? 1e6 / cycles_per_s : 0;
   print_figure(name + ".cycle_median", measured, "us");
-  print_figure(name + ".cycle_mean_from_frame_rate", cycles_per_s > 0 ? 1e6 / cycles_per_s : 0, "us");
+  print_figure(name + ".cycle_mean_sampled", mean(window.cycle_us), "us");
+  print_figure(name + ".cycle_mean_from_frame_rate", from_rate, "us");
   print_figure(name + ".efficiency", measured > 0 ? 100.0 * limit / measured : 0, "%");
+  print_figure(name + ".efficiency_throughput", from_rate > 0 ? 100.0 * limit / from_rate : 0, "%");
   print_figure(name + ".timeouts", window.last.timeouts - window.first.timeouts, "frames");
   gateway.stop();
 }
@@ -177,11 +196,15 @@ void measure_silent_servo(std::chrono::milliseconds duration) {
 int main(int argc, char** argv) {
   double seconds = 2;
   double silent_seconds = 5;
+  double only_servos = 0;
+  double only_return_delay_us = -1;
   if (!parse_arguments(argc, argv,
                        "poll cycle time vs the SYNC READ wire-time limit for 6, 20, 60 servos at 1 Mbaud; the cost "
                        "of one silent servo",
                        {{"seconds", &seconds, "sampling time per bus size"},
-                        {"silent-seconds", &silent_seconds, "sampling time with and without the silent servo"}})) {
+                        {"silent-seconds", &silent_seconds, "sampling time with and without the silent servo (0: skip)"},
+                        {"servos", &only_servos, "only this bus size (6, 20 or 60; 0: all)"},
+                        {"return-delay-us", &only_return_delay_us, "only this return delay (0 or 500; -1: both)"}})) {
     return 2;
   }
   try {
@@ -189,11 +212,15 @@ int main(int argc, char** argv) {
     print_note("sms-gateway polling back to back (poll_period_ms 0); cycle = gateway unit 255 input register 102, "
                "sampled every 10 ms; limit = SYNC READ of 15 bytes, SPEC §5");
     for (const std::uint8_t return_delay : kReturnDelays) {
+      if (only_return_delay_us >= 0 && only_return_delay_us != return_delay * kReturnDelayUsPerUnit) continue;
       for (const unsigned servos : kServoCounts) {
+        if (only_servos > 0 && only_servos != servos) continue;
         measure_cycle(servos, return_delay, std::chrono::milliseconds(static_cast<long>(seconds * 1000)));
       }
     }
-    measure_silent_servo(std::chrono::milliseconds(static_cast<long>(silent_seconds * 1000)));
+    if (silent_seconds > 0) {
+      measure_silent_servo(std::chrono::milliseconds(static_cast<long>(silent_seconds * 1000)));
+    }
   } catch (const std::exception& error) {
     std::cerr << "poll_cycle: " << error.what() << "\n";
     return 1;

@@ -6,6 +6,7 @@
 #   scripts/bench.sh            # everything, the soak for 60 s (about 3 minutes in all)
 #   scripts/bench.sh --quick    # shorter runs, the soak for 10 s (about 1 minute)
 #   scripts/bench.sh soak       # only the named programs (cached_reads poll_cycle write_latency soak)
+#   SMS_BUILD_DIR=build-bench scripts/bench.sh   # another build directory (default build)
 #
 # Figures depend on the machine and on what else runs on it: compare a run with itself, not
 # with another machine. The README's "Performance (measured)" section has a reference run.
@@ -18,16 +19,19 @@ selected=()
 for argument in "$@"; do
   case "$argument" in
     --quick) quick=1 ;;
-    -h|--help) sed -n '2,11p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h|--help) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     cached_reads|poll_cycle|write_latency|soak) selected+=("$argument") ;;
     *) echo "bench.sh: unknown argument '$argument' (try --help)" >&2; exit 2 ;;
   esac
 done
 if ((${#selected[@]} > 0)); then programs=("${selected[@]}"); fi
 
-cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSMS_BUILD_TESTS=OFF -DSMS_BUILD_BENCH=ON \
-  -DSMS_SANITIZE=OFF >/dev/null
-cmake --build build --target sms-gateway "${programs[@]}" -j "$(nproc)"
+build_dir="${SMS_BUILD_DIR:-build}"
+# GCC 12 at -O2 reports -Warray-bounds / -Wrestrict inside libstdc++'s vector code that cannot
+# happen (false positives, seen in rtu_bus_engine.cpp); they stay warnings here, not errors.
+cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSMS_BUILD_TESTS=OFF -DSMS_BUILD_BENCH=ON \
+  -DSMS_SANITIZE=OFF "-DCMAKE_CXX_FLAGS=-Wno-error=array-bounds -Wno-error=restrict" >/dev/null
+cmake --build "$build_dir" --target sms-gateway "${programs[@]}" -j "$(nproc)"
 
 declare -A quick_options=(
   [cached_reads]="--seconds 1 --flood-seconds 1"
@@ -42,7 +46,7 @@ for program in "${programs[@]}"; do
   echo "# --- $program"
   options=()
   if ((quick)); then read -r -a options <<<"${quick_options[$program]}"; fi
-  if ! "build/bin/$program" "${options[@]}"; then
+  if ! "$build_dir/bin/$program" "${options[@]}"; then
     echo "# $program FAILED" >&2
     status=1
   fi
