@@ -6,6 +6,7 @@
 #   ./scripts/container-test.sh            # build context = the working tree
 #   ./scripts/container-test.sh --head     # build context = the committed HEAD (git archive)
 #   ./scripts/container-test.sh --context DIR   # build context = DIR (e.g. an unpacked release)
+#   ... --no-cache                          # rebuild every layer (apt steps included): cold build time
 #
 # Exits 0 with "skipped: podman not available" when podman is missing.
 # Environment: SMS_CONTAINER_DIR (default /tmp/ctr) holds podman's storage and configuration
@@ -24,13 +25,15 @@ if ! command -v mbpoll >/dev/null 2>&1; then
 fi
 
 context_mode=worktree
+build_options=()
 context=$repo
 while [ "$#" -gt 0 ]; do
   case "$1" in
     --head) context_mode="head" ;;
-    --context) [ "$#" -ge 2 ] || { echo "usage: $0 [--head | --context DIR]" >&2; exit 2; }
+    --no-cache) build_options+=(--no-cache) ;;
+    --context) [ "$#" -ge 2 ] || { echo "usage: $0 [--head | --context DIR] [--no-cache]" >&2; exit 2; }
                context_mode="directory $2"; context=$(cd "$2" && pwd); shift ;;
-    *) echo "usage: $0 [--head | --context DIR]" >&2; exit 2 ;;
+    *) echo "usage: $0 [--head | --context DIR] [--no-cache]" >&2; exit 2 ;;
   esac
   shift
 done
@@ -133,9 +136,16 @@ if [ "$context_mode" = head ]; then
   git -C "$repo" archive HEAD | tar -x -C "$context"
 fi
 t0=$(now)
-podman build --format docker -f "$context/docker/Dockerfile" -t "$image" "$context" >"$tmp/build.log" 2>&1 \
+# Each line of the build log gets the second it appeared, for the time of each step.
+podman build "${build_options[@]}" --format docker -f "$context/docker/Dockerfile" -t "$image" "$context" 2>&1 \
+  | while IFS= read -r line; do printf '%(%s)T %s\n' -1 "$line"; done >"$tmp/build.log" \
   || { tail -40 "$tmp/build.log" >&2; fail "podman build (context: $context_mode)"; }
-check "image built from the $context_mode in $(elapsed "$t0") s ($(podman image inspect --format '{{.Size}}' "$image" | awk '{ printf "%.0f MB", $1 / 1e6 }'))"
+# seconds from the step whose instruction matches $1 to the next step
+step_seconds() {
+  awk -v pattern="$1" '/ STEP [0-9]+\/[0-9]+: / { if (t) { print $1 - t; exit } if ($0 ~ pattern) t = $1 }' "$tmp/build.log"
+}
+check "image built from the $context_mode${build_options:+ (${build_options[*]})} in $(elapsed "$t0") s ($(podman image inspect --format '{{.Size}}' "$image" | awk '{ printf "%.0f MB", $1 / 1e6 }'));" \
+  "build-stage apt $(step_seconds 'RUN apt-get') s, compile $(step_seconds 'RUN cmake --build') s"
 
 # --- what the image declares and contains ------------------------------------------------------
 [ "$(podman image inspect --format '{{.Config.User}}' "$image")" = "sms" ] || fail "image USER is not sms"
@@ -204,49 +214,6 @@ check "SMS_GATEWAY_LISTEN=0.0.0.0:5020 moves the listener; the healthcheck then 
 
 stop_and_check "$sim_ctr" "with --init"
 stop_and_check "$off_ctr" "without --init (sms-gateway is PID 1)"
-
-# --- SMS_GATEWAY_* variables read by sms-gateway itself (config/env.h) ---------------------------
-# JSON logs at debug level, the metrics endpoint, and an allow-list that admits the container's
-# own loopback (the HEALTHCHECK) but not the host: podman's port forwarding shows the host as the
-# bridge's address, and 192.0.2.0/24 is a documentation network nothing comes from.
-env_ctr=$run_id-env
-containers+=("$env_ctr")
-port=$(free_port)
-metrics_port=$(free_port)
-start_container --init --name "$env_ctr" -p "127.0.0.1:$port:502" -p "127.0.0.1:$metrics_port:9102" \
-  -e SMS_GATEWAY_LOG_FORMAT=json -e SMS_GATEWAY_LOG_LEVEL=debug -e SMS_GATEWAY_METRICS=0.0.0.0:9102 \
-  -e SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1 "${hardening[@]}" "$image"
-deadline=$(( $(date +%s) + 30 ))
-until curl -fs -o /dev/null "http://127.0.0.1:$metrics_port/healthz"; do
-  [ "$(date +%s)" -lt "$deadline" ] || { podman logs "$env_ctr" | tail -20 >&2; fail "SMS_GATEWAY_METRICS: no /healthz 200 within 30 s"; }
-  sleep 0.2
-done
-podman healthcheck run "$env_ctr" >/dev/null \
-  || fail "SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: the HEALTHCHECK (from 127.0.0.1 inside) was refused"
-if read_input_registers "$port" 255 0 1 >/dev/null; then
-  fail "SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: a read from the host was answered"
-fi
-curl -fsS "http://127.0.0.1:$metrics_port/metrics" >"$tmp/metrics.txt" || fail "GET /metrics"
-refused=$(awk '/^sms_gateway_tcp_connections_refused_total\{reason="allow"\}/ { print $2 }' "$tmp/metrics.txt")
-[ "${refused:-0}" -ge 1 ] 2>/dev/null || fail "/metrics: refused{reason=\"allow\"} = '${refused:-missing}' after a refused host read"
-grep -q '^sms_gateway_build_info{version="'"$want_version"'"} 1' "$tmp/metrics.txt" || fail "/metrics: no sms_gateway_build_info for $want_version"
-check "SMS_GATEWAY_METRICS=0.0.0.0:9102: /healthz 200, /metrics has build_info $want_version; SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: host refused (refused_total{reason=\"allow\"} = $refused), HEALTHCHECK healthy"
-command podman logs "$env_ctr" >"$tmp/env.log" 2>&1
-non_json=$(grep -c -v '^{"ts":"[^"]*","level":"[a-z]*",.*}$' "$tmp/env.log" || true)
-[ "$non_json" = 0 ] || { grep -v '^{"ts":' "$tmp/env.log" | head -5 >&2; fail "SMS_GATEWAY_LOG_FORMAT=json: $non_json log lines are not JSON objects"; }
-grep -q '"level":"debug"' "$tmp/env.log" || fail "SMS_GATEWAY_LOG_LEVEL=debug: no debug record in $(wc -l <"$tmp/env.log") log lines"
-grep -q 'from the environment:.*SMS_GATEWAY_METRICS' "$tmp/env.log" || fail "no log line naming the variables applied from the environment"
-check "SMS_GATEWAY_LOG_FORMAT=json, SMS_GATEWAY_LOG_LEVEL=debug: $(wc -l <"$tmp/env.log") log lines, every one a JSON object, debug records present"
-stop_and_check "$env_ctr" "JSON logs, metrics, allow-list"
-
-# An invalid variable stops the gateway before it serves: exit status 2, the variable named.
-set +e
-command podman run --rm --health-cmd none -e SMS_GATEWAY_MAX_CONNECTIONS=0 "$image" >"$tmp/bad-env.log" 2>&1
-code=$?
-set -e
-[ "$code" = 2 ] && grep -q 'SMS_GATEWAY_MAX_CONNECTIONS' "$tmp/bad-env.log" \
-  || { cat "$tmp/bad-env.log" >&2; fail "SMS_GATEWAY_MAX_CONNECTIONS=0: exit status $code (want 2, naming the variable)"; }
-check "SMS_GATEWAY_MAX_CONNECTIONS=0 refused: exit status 2, \"$(grep -m1 SMS_GATEWAY_MAX_CONNECTIONS "$tmp/bad-env.log" | cut -c1-90)...\""
 
 # --- a mounted config and a serial device --------------------------------------------------------
 # The image's own sms-sim runs on the host on a pty made to look like a USB adapter (root:dialout
@@ -327,6 +294,50 @@ if command -v systemd-analyze >/dev/null 2>&1 && [ -f "$unit" ]; then
   check "deploy/sms-gateway.service: systemd-analyze verify clean, security exposure ${exposure:-?} (offline)"
   unit_checked=yes
 fi
+
+# --- SMS_GATEWAY_* variables read by sms-gateway itself (config/env.h) ---------------------------
+# JSON logs at debug level, the metrics endpoint, and an allow-list that admits the container's
+# own loopback (the HEALTHCHECK) but not the host: podman's port forwarding shows the host as the
+# bridge's address, and 192.0.2.0/24 is a documentation network nothing comes from.
+env_ctr=$run_id-env
+containers+=("$env_ctr")
+port=$(free_port)
+metrics_port=$(free_port)
+start_container --init --name "$env_ctr" -p "127.0.0.1:$port:502" -p "127.0.0.1:$metrics_port:9102" \
+  -e SMS_GATEWAY_LOG_FORMAT=json -e SMS_GATEWAY_LOG_LEVEL=debug -e SMS_GATEWAY_METRICS=0.0.0.0:9102 \
+  -e SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1 "${hardening[@]}" "$image"
+deadline=$(( $(date +%s) + 30 ))
+until curl -fs -o /dev/null "http://127.0.0.1:$metrics_port/healthz"; do
+  [ "$(date +%s)" -lt "$deadline" ] || { podman logs "$env_ctr" | tail -20 >&2; fail "SMS_GATEWAY_METRICS: no /healthz 200 within 30 s"; }
+  sleep 0.2
+done
+podman healthcheck run "$env_ctr" >/dev/null \
+  || fail "SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: the HEALTHCHECK (from 127.0.0.1 inside) was refused"
+if read_input_registers "$port" 255 0 1 >/dev/null; then
+  fail "SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: a read from the host was answered"
+fi
+curl -fsS "http://127.0.0.1:$metrics_port/metrics" >"$tmp/metrics.txt" || fail "GET /metrics"
+refused=$(awk '/^sms_gateway_tcp_connections_refused_total\{reason="allow"\}/ { print $2 }' "$tmp/metrics.txt")
+[ "${refused:-0}" -ge 1 ] 2>/dev/null || fail "/metrics: refused{reason=\"allow\"} = '${refused:-missing}' after a refused host read"
+grep -q '^sms_gateway_build_info{version="'"$want_version"'"} 1' "$tmp/metrics.txt" || fail "/metrics: no sms_gateway_build_info for $want_version"
+check "SMS_GATEWAY_METRICS=0.0.0.0:9102: /healthz 200, /metrics has build_info $want_version; SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: host refused (refused_total{reason=\"allow\"} = $refused), HEALTHCHECK healthy"
+command podman logs "$env_ctr" >"$tmp/env.log" 2>&1
+non_json=$(grep -c -v '^{"ts":"[^"]*","level":"[a-z]*",.*}$' "$tmp/env.log" || true)
+[ "$non_json" = 0 ] || { grep -v '^{"ts":' "$tmp/env.log" | head -5 >&2; fail "SMS_GATEWAY_LOG_FORMAT=json: $non_json log lines are not JSON objects"; }
+grep -q '"level":"debug"' "$tmp/env.log" || fail "SMS_GATEWAY_LOG_LEVEL=debug: no debug record in $(wc -l <"$tmp/env.log") log lines"
+grep -q 'from the environment:.*SMS_GATEWAY_METRICS' "$tmp/env.log" || fail "no log line naming the variables applied from the environment"
+check "SMS_GATEWAY_LOG_FORMAT=json, SMS_GATEWAY_LOG_LEVEL=debug: $(wc -l <"$tmp/env.log") log lines, every one a JSON object, debug records present"
+stop_and_check "$env_ctr" "JSON logs, metrics, allow-list"
+
+# An invalid variable stops the gateway before it serves: exit status 2, the variable named.
+set +e
+command podman run --rm --health-cmd none -e SMS_GATEWAY_MAX_CONNECTIONS=0 "$image" >"$tmp/bad-env.log" 2>&1
+code=$?
+set -e
+[ "$code" = 2 ] && grep -q 'SMS_GATEWAY_MAX_CONNECTIONS' "$tmp/bad-env.log" \
+  || { cat "$tmp/bad-env.log" >&2; fail "SMS_GATEWAY_MAX_CONNECTIONS=0: exit status $code (want 2, naming the variable)"; }
+check "SMS_GATEWAY_MAX_CONNECTIONS=0 refused: exit status 2, \"$(grep -m1 SMS_GATEWAY_MAX_CONNECTIONS "$tmp/bad-env.log" | cut -c1-90)...\""
+
 
 echo
 echo "container-test: passed in $(elapsed "$total_t0") s. Checked:"
