@@ -84,6 +84,7 @@ struct Job {
   std::vector<std::uint8_t> sync_ids;
   unsigned attempts = 1;
   bool client = false;  // from submit(): holds a slot of the bounded queue, completes on every outcome
+  SteadyClock::time_point queued_at{};  // internal jobs (poll, probe, discovery): when queued, see pop_job
   Completion done;
 };
 
@@ -170,6 +171,7 @@ class PacketBusEngine::Impl {
   void wait_for_reply();
   void on_readable(std::uint64_t token, const boost::system::error_code& error);
   void on_deadline(std::uint64_t token, const boost::system::error_code& error);
+  bool read_pending(std::uint64_t token);
   void process_events();
   void handle_frame(Packet frame);
   Verdict judge(const Active& active, const Packet& frame) const;
@@ -214,6 +216,7 @@ class PacketBusEngine::Impl {
   BusCounters counters_;
   PollScheduler scheduler_;
   std::chrono::nanoseconds quiet_gap_;
+  std::chrono::nanoseconds poll_overdue_;  // see pop_job
 
   asio::io_context io_{1};
   asio::executor_work_guard<asio::io_context::executor_type> work_;
@@ -301,6 +304,7 @@ PacketBusEngine::Impl::Impl(BusSettings settings)
       cache_(cache_entries(settings_)),
       scheduler_(poll_targets(settings_, rules_.has_sync_read), settings_.probe_period),
       quiet_gap_(wire_time(settings_.serial, 32) + 1ms),
+      poll_overdue_(std::max<std::chrono::nanoseconds>(settings_.poll_period, 10ms)),
       work_(asio::make_work_guard(io_)),
       descriptor_(io_),
       attempt_timer_(io_),
@@ -442,6 +446,19 @@ void PacketBusEngine::Impl::submit(BusOp op, Priority priority, Completion done)
 
 std::optional<Job> PacketBusEngine::Impl::pop_job() {
   std::lock_guard lock(queue_mutex_);
+  // Client operations go before polling, but not forever: the engine's own poll, probe or
+  // discovery transaction that has waited longer than one poll period (at least 10 ms) goes
+  // next, so a flood of live client requests cannot freeze the poll cache (FC04) or keep an
+  // offline servo from its probe. Jobs of one cycle are queued together, so the rest of the
+  // cycle follows; clients then have the bus until the next cycle is overdue. (Client jobs
+  // submitted at Priority::Poll keep strict priority order.)
+  auto& internal = queue_[static_cast<std::size_t>(Priority::Poll)];
+  if (!internal.empty() && !internal.front().client &&
+      SteadyClock::now() - internal.front().queued_at >= poll_overdue_) {
+    Job job = std::move(internal.front());
+    internal.pop_front();
+    return job;
+  }
   for (auto& level : queue_) {
     if (level.empty()) continue;
     Job job = std::move(level.front());
@@ -453,6 +470,7 @@ std::optional<Job> PacketBusEngine::Impl::pop_job() {
 }
 
 void PacketBusEngine::Impl::enqueue_internal(Job job) {
+  job.queued_at = SteadyClock::now();
   {
     std::lock_guard lock(queue_mutex_);
     queue_[static_cast<std::size_t>(Priority::Poll)].push_back(std::move(job));
@@ -565,10 +583,19 @@ void PacketBusEngine::Impl::wait_for_reply() {
 void PacketBusEngine::Impl::on_readable(std::uint64_t token, const boost::system::error_code& error) {
   if (error == asio::error::operation_aborted || token != token_ || !active_) return;
   if (error) return port_lost("waiting for " + settings_.serial.device + ": " + error.message());
+  if (!read_pending(token) || token != token_) return;  // port lost, finished, or a new attempt
+  wait_for_reply();
+}
+
+// Reads and decodes what the port holds now. False when the port was lost (already handled).
+bool PacketBusEngine::Impl::read_pending(std::uint64_t token) {
   for (;;) {
     const auto received = port_.read_available(rx_buffer_);
-    if (!received) return port_lost(received.error());
-    if (*received == 0) break;
+    if (!received) {
+      port_lost(received.error());
+      return false;
+    }
+    if (*received == 0) return true;
     const std::span<const std::uint8_t> bytes(rx_buffer_.data(), *received);
     if (spdlog::should_log(spdlog::level::trace)) spdlog::trace("bus {}: rx {}", settings_.name, spdlog::to_hex(bytes));
     decoder_.feed(bytes);
@@ -578,16 +605,19 @@ void PacketBusEngine::Impl::on_readable(std::uint64_t token, const boost::system
     }
     process_events();
     sync_discarded();
-    if (token != token_) return;  // finished, or a new attempt is under way
+    if (token != token_) return true;  // finished, or a new attempt is under way
     // A short read emptied the tty's buffer: what arrives later raises a new readiness edge,
     // so the extra read() that would say EAGAIN is skipped.
-    if (*received < rx_buffer_.size()) break;
+    if (*received < rx_buffer_.size()) return true;
   }
-  wait_for_reply();
 }
 
 void PacketBusEngine::Impl::on_deadline(std::uint64_t token, const boost::system::error_code& error) {
   if (error || token != token_ || !active_) return;
+  // When this thread ran late (a busy machine), the answer may be waiting in the port while
+  // the timer's handler runs first: read it before calling the attempt failed.
+  if (!read_pending(token) || token != token_ || !active_) return;
+  if (SteadyClock::now() < active_->deadline) return;  // bytes of a damaged answer moved the deadline
   boost::system::error_code ignored;
   descriptor_.cancel(ignored);  // this attempt's readiness wait
   Active& active = *active_;
@@ -1028,6 +1058,13 @@ void PacketBusEngine::Impl::discovery_step_done() {
 // ==== polling =============================================================================
 
 void PacketBusEngine::Impl::schedule_poll(SteadyClock::time_point when) {
+  if (when <= SteadyClock::now()) {
+    // Already due (back-to-back polling, or a cycle longer than the period): start it now. A
+    // timer armed for the past would still cost a sleep and a wake-up of this thread between
+    // two cycles, bus time lost on every cycle.
+    poll_timer_.cancel();
+    return start_poll_cycle();
+  }
   poll_timer_.expires_at(when);
   poll_timer_.async_wait([this](const boost::system::error_code& error) {
     if (!error) start_poll_cycle();
