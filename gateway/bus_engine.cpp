@@ -4,6 +4,7 @@
 #include <string>
 
 #include "gateway/packet_bus_engine.h"
+#include "gateway/rtu_bus_engine.h"
 
 namespace sms::gateway {
 
@@ -20,16 +21,15 @@ std::string_view to_string(BusStatus status) {
   return "?";
 }
 
-std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings) {
+std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::ModbusRtuOptions& modbus_rtu) {
   switch (settings.protocol) {
     case protocol::BusProtocol::Feetech:
     case protocol::BusProtocol::D55d:
       return std::make_unique<PacketBusEngine>(std::move(settings));
     case protocol::BusProtocol::ModbusRtu:
-      break;
+      return std::make_unique<RtuBusEngine>(std::move(settings), modbus_rtu);
   }
-  throw std::invalid_argument("bus " + settings.name + ": no bus engine for " +
-                              std::string(protocol::to_string(settings.protocol)) + " buses in this build");
+  throw std::invalid_argument("bus " + settings.name + ": unknown protocol");
 }
 
 }  // namespace sms::gateway

@@ -4,7 +4,7 @@
 // of every servo into its PollCache, discovers the servos at start and reopens a lost port by
 // itself. The Modbus TCP side talks to it through submit() and cache() only (gateway/bus.h).
 //
-//   auto engine = make_bus_engine(settings);   // settings: bus_settings_from(...) or by hand
+//   auto engine = make_bus_engine(settings);   // settings: bus_settings_for(...) or by hand
 //   engine->start();
 //   engine->submit(ReadOp{1, 56, 2}, Priority::ClientRead, [](BusResult r) { ... });
 //   engine->cache().copy(1, 56, bytes, &state);   // input registers: no bus traffic
@@ -18,6 +18,7 @@
 #include <string>
 #include <vector>
 
+#include "config/config.h"
 #include "gateway/bus.h"
 #include "gateway/bus_counters.h"
 #include "gateway/poll_cache.h"
@@ -75,9 +76,10 @@ class BusEngine {
   virtual bool discovered() const = 0;
 };
 
-// The engine for the bus's protocol: PacketBusEngine for feetech and d55d. Throws
-// std::invalid_argument for settings it cannot run (no engine for the protocol, a servo whose
-// table is not spoken on the bus, an empty poll block, duplicate IDs).
-std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings);
+// The engine for the bus's protocol: PacketBusEngine for feetech and d55d, RtuBusEngine (with
+// the bus's RS-485/RTS/byte-timeout options) for modbus-rtu. Throws std::invalid_argument for
+// settings it cannot run (a servo whose table is not spoken on the bus, an empty poll block,
+// duplicate IDs).
+std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::ModbusRtuOptions& modbus_rtu = {});
 
 }  // namespace sms::gateway

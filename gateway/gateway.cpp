@@ -1,21 +1,14 @@
 #include "gateway/gateway.h"
 
-#include <future>
 #include <stdexcept>
-#include <thread>
-
-#include <boost/asio/executor_work_guard.hpp>
-#include <boost/asio/io_context.hpp>
-#include <boost/asio/post.hpp>
-#include <spdlog/spdlog.h>
 
 #include "config/load.h"
+#include "gateway/metrics_server.h"
+#include "gateway/tcp_serving.h"
 #include "gateway/unit_router.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {
-
-namespace asio = boost::asio;
 
 namespace {
 
@@ -108,7 +101,7 @@ class Gateway::Impl {
     started_ = true;
     for (std::size_t i = 0; i < config_.buses.size(); ++i) {
       try {
-        engines_.push_back(make_bus_engine(bus_settings_for(config_, i)));
+        engines_.push_back(make_bus_engine(bus_settings_for(config_, i), config_.buses[i].modbus_rtu));
       } catch (const std::invalid_argument& error) {
         throw std::runtime_error("bus '" + config_.buses[i].name + "' (" +
                                  std::string(protocol::to_string(config_.buses[i].protocol)) +
@@ -118,51 +111,57 @@ class Gateway::Impl {
     std::vector<BusEngine*> engines;
     for (const auto& engine : engines_) engines.push_back(engine.get());
     router_ = std::make_unique<UnitRouter>(config_, engines,
-                                           [this](std::function<void()> work) { asio::post(io_, std::move(work)); });
+                                           [this](std::function<void()> work) { serving_.post(std::move(work)); });
 
     TcpServerOptions options;
     options.host = config_.modbus_tcp.listen.host;
     options.port = config_.modbus_tcp.listen.port;
     options.max_connections = config_.modbus_tcp.max_connections;
     options.idle_timeout = config_.modbus_tcp.idle_timeout;
-    server_ = std::make_unique<TcpServer>(io_, options, *router_);
+    options.allow = config_.modbus_tcp.allow;
+    options.traffic = &traffic_;
     // Listen before the buses start, so a port in use fails before any serial port is touched;
     // connections wait in the backlog until the io thread runs.
-    server_->start();
+    serving_.listen(options, *router_);
+    if (config_.logging.metrics_listen) {
+      metrics_server_ = std::make_unique<MetricsServer>(MetricsServerOptions{.listen = *config_.logging.metrics_listen},
+                                                        [this] { return metrics(); });
+      metrics_server_->start();
+    }
     for (const auto& engine : engines_) engine->start();
-    io_thread_ = std::thread([this] { io_.run(); });
+    serving_.run();
   }
+
+  MetricsSnapshot metrics() const {
+    std::vector<BusEngine*> engines;
+    for (const auto& engine : engines_) engines.push_back(engine.get());
+    return collect_metrics(config_, engines, server_stats(), traffic_, started_at_);
+  }
+
+  std::uint16_t metrics_port() const { return metrics_server_ ? metrics_server_->port() : 0; }
 
   void stop(std::chrono::milliseconds grace) {
     if (!started_ || stopped_) return;
     stopped_ = true;
-    if (server_ && io_thread_.joinable()) {
-      auto closed = std::make_shared<std::promise<void>>();
-      auto done = closed->get_future();
-      asio::post(io_, [this, closed] { server_->shutdown([closed] { closed->set_value(); }); });
-      if (done.wait_for(grace) != std::future_status::ready) {
-        spdlog::warn("stopping: connections still waiting for the bus after {}; closing them", duration_text(grace));
-        asio::post(io_, [this] { server_->close_all(); });
-      }
-    }
+    // Monitoring goes first: it reads the buses, which stop below.
+    if (metrics_server_) metrics_server_->stop();
+    serving_.drain(grace);
     for (const auto& engine : engines_) engine->stop();
-    work_.reset();
-    io_.stop();
-    if (io_thread_.joinable()) io_thread_.join();
+    serving_.stop();
   }
 
-  std::uint16_t port() const { return server_ ? server_->port() : 0; }
+  std::uint16_t port() const { return serving_.port(); }
   BusEngine& engine(std::size_t index) { return *engines_.at(index); }
-  TcpServerStats server_stats() const { return server_ ? server_->stats() : TcpServerStats{}; }
+  TcpServerStats server_stats() const { return serving_.stats(); }
 
  private:
   const config::Config& config_;
-  asio::io_context io_;
-  std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work_{io_.get_executor()};
+  const SteadyClock::time_point started_at_ = SteadyClock::now();
+  ModbusTrafficCounters traffic_;
+  std::unique_ptr<MetricsServer> metrics_server_;
   std::vector<std::unique_ptr<BusEngine>> engines_;
   std::unique_ptr<UnitRouter> router_;
-  std::unique_ptr<TcpServer> server_;
-  std::thread io_thread_;
+  TcpServing serving_;  // last: destroyed first, so no connection outlives the router
   bool started_ = false;
   bool stopped_ = false;
 };
@@ -175,5 +174,7 @@ void Gateway::stop(std::chrono::milliseconds grace) { impl_->stop(grace); }
 std::uint16_t Gateway::port() const { return impl_->port(); }
 BusEngine& Gateway::engine(std::size_t index) { return impl_->engine(index); }
 TcpServerStats Gateway::server_stats() const { return impl_->server_stats(); }
+MetricsSnapshot Gateway::metrics() const { return impl_->metrics(); }
+std::uint16_t Gateway::metrics_port() const { return impl_->metrics_port(); }
 
 }  // namespace sms::gateway

@@ -14,6 +14,7 @@
 
 #include "config/config.h"
 #include "gateway/bus_engine.h"
+#include "gateway/metrics.h"
 #include "gateway/tcp_server.h"
 
 namespace sms::gateway {
@@ -35,8 +36,9 @@ class Gateway {
   Gateway& operator=(const Gateway&) = delete;
 
   // Starts the bus engines (a missing serial port is not fatal: that bus starts down and is
-  // reopened by itself), then listens. Throws std::runtime_error when it cannot listen or a
-  // bus cannot be run at all.
+  // reopened by itself), then listens for Modbus TCP and, when logging.metrics_listen is set,
+  // for /metrics and /healthz. Throws std::runtime_error when it cannot listen or a bus cannot
+  // be run at all.
   void start();
   // Graceful stop, from any thread but the io thread: no new connections; requests being
   // answered finish (a write handed to a bus is completed and answered), connections close,
@@ -48,6 +50,10 @@ class Gateway {
   // The engine of config().buses[index] (tests, benchmarks).
   BusEngine& engine(std::size_t index);
   TcpServerStats server_stats() const;
+  // Everything /metrics shows, now.
+  MetricsSnapshot metrics() const;
+  // The metrics endpoint's bound port; 0 when it is off.
+  std::uint16_t metrics_port() const;
 
  private:
   class Impl;

@@ -12,12 +12,15 @@
 #include <iostream>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
 
+#include "config/env.h"
 #include "config/load.h"
 #include "gateway/gateway.h"
+#include "gateway/logging.h"
 #include "gateway/tool_cli.h"
 #include "simulator/simulated_bus.h"
 
@@ -34,17 +37,11 @@ struct Options {
   std::string config_file;
   bool simulate = false;
   std::string listen;
+  std::string metrics;
   std::string log_level;
   std::string check_config_file;
   bool version = false;
 };
-
-spdlog::level::level_enum spdlog_level(LogLevel level) {
-  constexpr spdlog::level::level_enum kLevels[] = {spdlog::level::trace, spdlog::level::debug, spdlog::level::info,
-                                                   spdlog::level::warn,  spdlog::level::err,   spdlog::level::critical,
-                                                   spdlog::level::off};
-  return kLevels[static_cast<std::size_t>(level)];
-}
 
 // --log-level wins over the configuration's logging.level.
 std::optional<LogLevel> log_level_from(const std::string& name) {
@@ -61,13 +58,35 @@ std::string summary(const Config& config) {
          config.modbus_tcp.listen.to_string() + ", gateway unit " + std::to_string(config.modbus_tcp.gateway_unit_id);
 }
 
+// SMS_GATEWAY_* variables over the configuration (config/env.h); false after printing why not.
+bool apply_environment(Config& config, std::vector<std::string>& applied) {
+  auto result = sms::config::apply_environment(config);
+  if (!result) {
+    std::cerr << "sms-gateway: environment: " << result.error() << "\n";
+    return false;
+  }
+  applied = std::move(*result);
+  return true;
+}
+
+std::string joined(const std::vector<std::string>& names) {
+  std::string text;
+  for (const auto& name : names) text += (text.empty() ? "" : ", ") + name;
+  return text;
+}
+
+// Checks the file and the environment variables the gateway would apply over it.
 int check_config(const std::string& path) {
-  const auto config = sms::config::load_config_file(path);
+  auto config = sms::config::load_config_file(path);
   if (!config) {
     std::cerr << config.error().to_string() << "\n";
     return kExitConfigError;
   }
-  std::cout << path << ": OK: " << summary(*config) << "\n";
+  std::vector<std::string> applied;
+  if (!apply_environment(*config, applied)) return kExitConfigError;
+  std::cout << path << ": OK: " << summary(*config);
+  if (!applied.empty()) std::cout << " (with " << joined(applied) << " from the environment)";
+  std::cout << "\n";
   return kExitOk;
 }
 
@@ -82,6 +101,15 @@ sigset_t block_stop_signals() {
   return signals;
 }
 
+std::string environment_help() {
+  std::string text;
+  for (const auto& variable : sms::config::environment_variables()) {
+    text += "  " + std::string(variable.name) + "=" + std::string(variable.form) + "  (" +
+            std::string(variable.setting) + ")\n";
+  }
+  return text;
+}
+
 int run_gateway(const Options& options) {
   const sigset_t stop_signals = block_stop_signals();
 
@@ -94,6 +122,15 @@ int run_gateway(const Options& options) {
     }
     listen = *parsed;
   }
+  std::optional<sms::config::HostPort> metrics;
+  if (!options.metrics.empty()) {
+    auto parsed = sms::config::parse_host_port(options.metrics);
+    if (!parsed) {
+      std::cerr << "sms-gateway: --metrics " << options.metrics << ": " << parsed.error() << "\n";
+      return kExitConfigError;
+    }
+    metrics = *parsed;
+  }
 
   std::optional<sms::simulator::SimulatedBus> simulated_bus;
   Config config;
@@ -105,8 +142,7 @@ int run_gateway(const Options& options) {
       std::cerr << "sms-gateway: cannot start the simulated bus: " << error.what() << "\n";
       return kExitRuntimeError;
     }
-    config = sms::gateway::simulated_config(simulated_bus->slave_path(),
-                                            listen.value_or(sms::config::HostPort{"127.0.0.1", 5020}));
+    config = sms::gateway::simulated_config(simulated_bus->slave_path(), sms::config::HostPort{"127.0.0.1", 5020});
   } else {
     auto loaded = sms::config::load_config_file(options.config_file);
     if (!loaded) {
@@ -114,10 +150,15 @@ int run_gateway(const Options& options) {
       return kExitConfigError;
     }
     config = std::move(*loaded);
-    if (listen) config.modbus_tcp.listen = *listen;
   }
+  // Precedence: command line, then environment, then the file (or the --simulate default).
+  std::vector<std::string> from_environment;
+  if (!apply_environment(config, from_environment)) return kExitConfigError;
+  if (listen) config.modbus_tcp.listen = *listen;
+  if (metrics) config.logging.metrics_listen = *metrics;
   if (!options.log_level.empty()) config.logging.level = *log_level_from(options.log_level);
-  spdlog::set_level(spdlog_level(config.logging.level));
+  sms::gateway::setup_logging(config.logging);
+  if (!from_environment.empty()) spdlog::info("from the environment: {}", joined(from_environment));
 
   if (options.simulate) {
     spdlog::info("simulated bus: 6 sts servos (IDs 1-6 = units 1-6), feetech at 1000000 bit/s on {}",
@@ -155,12 +196,16 @@ int main(int argc, char** argv) {
                    "baud; listens on 127.0.0.1:5020 unless --listen says otherwise");
   config_option->excludes(simulate_option);
   app.add_option("--listen", options.listen, "HOST:PORT to serve Modbus TCP on (overrides modbus_tcp.listen)");
+  app.add_option("--metrics", options.metrics,
+                 "HOST:PORT to serve /metrics (Prometheus) and /healthz on (overrides logging.metrics_listen)");
   app.add_option("--log-level", options.log_level, "trace, debug, info, warn, error, critical or off")
       ->check(CLI::IsMember({"trace", "debug", "info", "warn", "error", "critical", "off"}));
   auto* check_option = app.add_option("--check-config", options.check_config_file,
                                       "Validate a configuration file and exit (0 valid, 2 invalid)");
   check_option->excludes(simulate_option);
   app.add_flag("--version", options.version, "Print the version and exit");
+  app.footer("Environment (for containers; the command line wins over it, it wins over the file):\n" +
+             environment_help());
   // Subcommands run inside parse() and end it with their exit status; without one, the gateway runs.
   sms::gateway::add_tool_commands(app);
   app.require_subcommand(0, 1);

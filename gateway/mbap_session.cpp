@@ -82,7 +82,7 @@ void MbapSession::process_pending() {
     protocol::tcp::Frame frame = std::move(pending_.front());
     pending_.pop_front();
     in_flight_ = InFlight{next_serial_++, frame.transaction_id, frame.unit_id};
-    host_->count_request();
+    host_->count_request(frame.pdu);
     // May answer at once (deliver() runs inside) or later from a bus completion.
     host_->handler().handle(frame.unit_id, frame.pdu, Reply(shared_from_this(), in_flight_->serial));
   }
@@ -96,6 +96,7 @@ void MbapSession::deliver(std::uint64_t request_serial, Bytes response_pdu) {
     return;
   }
   if (!in_flight_ || in_flight_->serial != request_serial) return;  // answered already
+  host_->count_response(response_pdu);
   const Bytes adu = protocol::tcp::encode_mbap(in_flight_->transaction_id, in_flight_->unit_id, response_pdu);
   outbox_.insert(outbox_.end(), adu.begin(), adu.end());
   in_flight_.reset();

@@ -13,6 +13,7 @@
 #include <deque>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 
 #include <boost/asio/ip/tcp.hpp>
@@ -31,7 +32,8 @@ class SessionHost {
   virtual RequestHandler& handler() = 0;
   virtual const TcpServerOptions& options() const = 0;
   virtual void on_session_closed(const std::shared_ptr<MbapSession>& session) = 0;
-  virtual void count_request() = 0;
+  virtual void count_request(std::span<const std::uint8_t> pdu) = 0;
+  virtual void count_response(std::span<const std::uint8_t> pdu) = 0;
   virtual void count_bad_header() = 0;
   virtual void count_idle_close() = 0;
 

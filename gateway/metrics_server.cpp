@@ -22,6 +22,8 @@
 #include <boost/beast/http/write.hpp>
 #include <spdlog/spdlog.h>
 
+#include "gateway/listener.h"
+
 namespace sms::gateway {
 
 namespace asio = boost::asio;
@@ -112,27 +114,8 @@ class MetricsServer::Impl {
   void start() {
     if (started_) throw std::logic_error("MetricsServer::start called twice");
     started_ = true;
-    const std::string where = options_.listen.to_string();
-    const tcp::endpoint endpoint = resolve(where);
-    beast::error_code error;
-    acceptor_.open(endpoint.protocol(), error);
-    if (!error) acceptor_.set_option(tcp::acceptor::reuse_address(true), error);
-    if (!error) acceptor_.bind(endpoint, error);
-    if (!error) acceptor_.listen(asio::socket_base::max_listen_connections, error);
-    if (error) {
-      std::string advice;
-      if (error == asio::error::address_in_use) {
-        advice = "; another program is listening there: choose a free port with --metrics HOST:PORT or "
-                 "logging.metrics_listen";
-      } else if (error == asio::error::access_denied) {
-        advice = "; ports below 1024 need root or CAP_NET_BIND_SERVICE: use a port above 1023 (e.g. 9102)";
-      } else if (error == boost::system::errc::address_not_available) {
-        advice = "; no network interface of this machine has that address: use 127.0.0.1, 0.0.0.0 or an address "
-                 "this machine owns";
-      }
-      acceptor_.close(error);
-      throw std::runtime_error("cannot serve metrics on " + where + ": " + error.message() + advice);
-    }
+    open_listener(acceptor_, options_.listen.host, options_.listen.port,
+                  {"serve metrics", "--metrics HOST:PORT or logging.metrics_listen", 9102});
     port_ = acceptor_.local_endpoint().port();
     spdlog::info("metrics: serving /metrics and /healthz on http://{}", config::HostPort{options_.listen.host, port_}.to_string());
     accept();
@@ -162,19 +145,6 @@ class MetricsServer::Impl {
   void remove(MetricsSession* session) { sessions_.erase(session); }
 
  private:
-  tcp::endpoint resolve(const std::string& where) {
-    beast::error_code error;
-    const auto address = asio::ip::make_address(options_.listen.host, error);
-    if (!error) return {address, options_.listen.port};
-    tcp::resolver resolver(io_);
-    const auto results = resolver.resolve(options_.listen.host, std::to_string(options_.listen.port), error);
-    if (error || results.empty()) {
-      throw std::runtime_error("cannot serve metrics on " + where + ": the host does not resolve (" + error.message() +
-                               "); give an IP address such as 127.0.0.1 or 0.0.0.0");
-    }
-    return results.begin()->endpoint();
-  }
-
   void accept();
   void close_all();
 

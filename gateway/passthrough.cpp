@@ -2,22 +2,16 @@
 
 #include <algorithm>
 #include <array>
-#include <future>
 #include <stdexcept>
-#include <thread>
 
-#include <boost/asio/executor_work_guard.hpp>
-#include <boost/asio/io_context.hpp>
-#include <boost/asio/post.hpp>
 #include <spdlog/spdlog.h>
 
 #include "gateway/exceptions.h"
 #include "gateway/modbus_request.h"
 #include "gateway/rtu_bus_engine.h"
+#include "gateway/tcp_serving.h"
 
 namespace sms::gateway {
-
-namespace asio = boost::asio;
 
 namespace {
 
@@ -124,37 +118,26 @@ class ForwardGateway::Impl {
     settings.poll = false;
     engine_ = std::make_unique<RtuBusEngine>(std::move(settings), options_.rtu);
     handler_ = std::make_unique<ForwardHandler>(*engine_,
-                                                [this](std::function<void()> work) { asio::post(io_, std::move(work)); });
+                                                [this](std::function<void()> work) { serving_.post(std::move(work)); });
     TcpServerOptions server_options;
     server_options.host = options_.listen.host;
     server_options.port = options_.listen.port;
     server_options.max_connections = options_.max_connections;
     server_options.idle_timeout = options_.idle_timeout;
-    server_ = std::make_unique<TcpServer>(io_, server_options, *handler_);
-    server_->start();  // a port in use fails before the serial line is touched
+    serving_.listen(server_options, *handler_);  // a port in use fails before the serial line is touched
     engine_->start();
-    io_thread_ = std::thread([this] { io_.run(); });
+    serving_.run();
   }
 
   void stop(std::chrono::milliseconds grace) {
     if (!started_ || stopped_) return;
     stopped_ = true;
-    if (server_ && io_thread_.joinable()) {
-      auto closed = std::make_shared<std::promise<void>>();
-      auto done = closed->get_future();
-      asio::post(io_, [this, closed] { server_->shutdown([closed] { closed->set_value(); }); });
-      if (done.wait_for(grace) != std::future_status::ready) {
-        spdlog::warn("stopping: connections still waiting for the bus after {}; closing them", duration_text(grace));
-        asio::post(io_, [this] { server_->close_all(); });
-      }
-    }
+    serving_.drain(grace);
     if (engine_) engine_->stop();
-    work_.reset();
-    io_.stop();
-    if (io_thread_.joinable()) io_thread_.join();
+    serving_.stop();
   }
 
-  std::uint16_t port() const { return server_ ? server_->port() : 0; }
+  std::uint16_t port() const { return serving_.port(); }
   BusEngine& engine() {
     if (!engine_) throw std::logic_error("ForwardGateway::engine before start()");
     return *engine_;
@@ -162,12 +145,9 @@ class ForwardGateway::Impl {
 
  private:
   ForwardOptions options_;
-  asio::io_context io_;
-  std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work_{io_.get_executor()};
   std::unique_ptr<RtuBusEngine> engine_;
   std::unique_ptr<ForwardHandler> handler_;
-  std::unique_ptr<TcpServer> server_;
-  std::thread io_thread_;
+  TcpServing serving_;  // last: destroyed first, so no connection outlives the handler
   bool started_ = false;
   bool stopped_ = false;
 };

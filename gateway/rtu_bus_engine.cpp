@@ -16,7 +16,6 @@
 #include <mutex>
 #include <stdexcept>
 #include <thread>
-#include <type_traits>
 #include <variant>
 
 #include <fmt/format.h>
@@ -272,7 +271,9 @@ RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t
   }
   // libmodbus 3.1.6 returns 0 for a frame addressed from another slave (filtered before its CRC).
   if (received < 4 || answer[0] != slave) {
-    return {RtuOutcome::WrongSlave, {}, fmt::format("asked slave {}, a frame from another slave came", slave)};
+    RtuExchange exchange{RtuOutcome::WrongSlave, {}, fmt::format("asked slave {}, a frame from another slave came", slave)};
+    if (received >= 1) exchange.other_slave = answer[0];
+    return exchange;
   }
   return {RtuOutcome::Reply, Bytes(answer.begin() + 1, answer.begin() + received - 2), {}};
 }
@@ -314,7 +315,7 @@ RtuExchange RtuMaster::receive_until_silence(std::uint8_t slave, std::chrono::na
     return {RtuOutcome::Corrupt, {}, fmt::format("answer from slave {} with a wrong CRC: {}", slave, hex(frame))};
   }
   if (frame[0] != slave) {
-    return {RtuOutcome::WrongSlave, {}, fmt::format("asked slave {}, slave {} answered", slave, frame[0])};
+    return {RtuOutcome::WrongSlave, {}, fmt::format("asked slave {}, slave {} answered", slave, frame[0]), frame[0]};
   }
   return {RtuOutcome::Reply, Bytes(frame.begin() + 1, frame.end() - 2), {}};
 }
@@ -357,6 +358,7 @@ constexpr std::uint8_t kMaxSlave = 247;
 constexpr std::uint16_t kMaxReadRegisters = 125;
 constexpr std::uint16_t kMaxWriteRegisters = 123;
 constexpr std::size_t kMaxPdu = 253;
+constexpr std::uint8_t kBytesPerRegister = 2;
 
 // SMSMB identity (SPEC §2.4): 0x00 firmware version, 0x01 servo version, read at discovery.
 constexpr AddressBlock kSmsmbIdentity{0x00, 2};
@@ -469,21 +471,6 @@ std::vector<PollCache::ServoEntry> cache_entries(const BusSettings& settings) {
   return entries;
 }
 
-// SMSMB registers are two bytes each: the cache holds count x 2 bytes per servo and the unit
-// router copies count x 2 bytes out of it (unit_router.cpp, copy_from_cache). That needs
-// PollCache(entries, bytes_per_address); until poll_cache.h has that constructor the cache
-// holds one byte per register, store_block() refuses the blocks, and input-register reads
-// answer 0x0B (NoData) rather than wrong values.
-// (A template so that the branch not taken is never compiled.)
-template <typename Cache>
-Cache register_cache(std::span<const typename Cache::ServoEntry> entries) {
-  if constexpr (std::is_constructible_v<Cache, std::span<const typename Cache::ServoEntry>, std::uint8_t>) {
-    return Cache(entries, std::uint8_t{2});
-  } else {
-    return Cache(entries);
-  }
-}
-
 std::vector<PollTarget> poll_targets(const BusSettings& settings) {
   std::vector<PollTarget> targets;
   for (const auto& servo : settings.servos) targets.push_back({servo.servo_id, servo.poll_block, false});
@@ -497,7 +484,8 @@ class RtuBusEngine::Impl {
   Impl(BusSettings settings, config::ModbusRtuOptions options)
       : settings_(validated(std::move(settings))),
         master_(RtuLineSettings{settings_.serial, options}),
-        cache_(register_cache<PollCache>(cache_entries(settings_))),
+        // SMSMB registers are two bytes each (high byte first), as the unit router copies them.
+        cache_(cache_entries(settings_), kBytesPerRegister),
         scheduler_(poll_targets(settings_), settings_.probe_period) {}
   ~Impl() { stop(); }
 
@@ -1085,12 +1073,5 @@ bool RtuBusEngine::bus_up() const { return impl_->bus_up(); }
 BusCountersSnapshot RtuBusEngine::counters() const { return impl_->counters(); }
 const PollCache& RtuBusEngine::cache() const { return impl_->cache(); }
 bool RtuBusEngine::discovered() const { return impl_->discovered(); }
-
-std::unique_ptr<BusEngine> make_bus_engine(const config::BusConfig& bus, BusSettings settings) {
-  if (bus.protocol == protocol::BusProtocol::ModbusRtu) {
-    return std::make_unique<RtuBusEngine>(std::move(settings), bus.modbus_rtu);
-  }
-  return make_bus_engine(std::move(settings));
-}
 
 }  // namespace sms::gateway

@@ -28,6 +28,7 @@
 #include <chrono>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 
@@ -60,9 +61,15 @@ enum class RtuOutcome : std::uint8_t {
 std::string_view to_string(RtuOutcome outcome);
 
 struct RtuExchange {
-  RtuOutcome outcome = RtuOutcome::Timeout;
+  RtuOutcome outcome;
   protocol::Bytes pdu;  // Reply: function code first, no slave, no CRC
   std::string detail;   // what went wrong, for logs
+  std::optional<std::uint8_t> other_slave;  // WrongSlave: who answered, when the frame says so
+
+  // A constructor rather than an aggregate, so `{outcome, pdu, detail}` leaves other_slave empty.
+  RtuExchange(RtuOutcome result = RtuOutcome::Timeout, protocol::Bytes reply_pdu = {}, std::string what = {},
+              std::optional<std::uint8_t> answering_slave = std::nullopt)
+      : outcome(result), pdu(std::move(reply_pdu)), detail(std::move(what)), other_slave(answering_slave) {}
 };
 
 // One RTU line: not thread-safe, used by one thread (the bus thread, or a tool's main thread).
@@ -125,10 +132,5 @@ class RtuBusEngine final : public BusEngine {
   class Impl;
   std::unique_ptr<Impl> impl_;
 };
-
-// The engine for one configured bus: RtuBusEngine for modbus-rtu buses (with the bus's
-// RS-485/RTS/byte-timeout options from `bus`), else make_bus_engine(settings).
-// `settings` is bus_settings_for(config, index) of the same bus.
-std::unique_ptr<BusEngine> make_bus_engine(const config::BusConfig& bus, BusSettings settings);
 
 }  // namespace sms::gateway

@@ -11,7 +11,10 @@
 #include <boost/asio/steady_timer.hpp>
 #include <spdlog/spdlog.h>
 
+#include "gateway/access_policy.h"
+#include "gateway/listener.h"
 #include "gateway/mbap_session.h"
+#include "gateway/metrics.h"
 
 namespace sms::gateway {
 
@@ -21,35 +24,21 @@ using asio::ip::tcp;
 class TcpServer::Impl : public SessionHost, public std::enable_shared_from_this<TcpServer::Impl> {
  public:
   Impl(asio::io_context& io, TcpServerOptions options, RequestHandler& handler)
-      : io_(io), options_(std::move(options)), handler_(handler), acceptor_(io), retry_timer_(io) {}
+      : io_(io),
+        options_(std::move(options)),
+        handler_(handler),
+        access_(options_.allow),
+        acceptor_(io),
+        retry_timer_(io) {}
 
   void start() {
-    const tcp::endpoint endpoint = resolve();
-    const std::string where = options_.host + ":" + std::to_string(options_.port);
-    boost::system::error_code error;
-    acceptor_.open(endpoint.protocol(), error);
-    if (!error) acceptor_.set_option(tcp::acceptor::reuse_address(true), error);
-    if (!error) acceptor_.bind(endpoint, error);
-    if (!error) acceptor_.listen(asio::socket_base::max_listen_connections, error);
-    if (error) {
-      std::string advice;
-      if (error == asio::error::address_in_use) {
-        advice = "; another program (another sms-gateway?) is listening there: stop it, or choose a free port with "
-                 "--listen HOST:PORT or modbus_tcp.listen in the configuration";
-      } else if (error == asio::error::access_denied) {
-        advice = "; ports below 1024 need root or CAP_NET_BIND_SERVICE: run with that capability, or listen on a "
-                 "port above 1023 (e.g. --listen " + options_.host + ":5020)";
-      } else if (error == boost::system::errc::address_not_available) {
-        advice = "; no network interface of this machine has that address: use 0.0.0.0 (every interface), "
-                 "127.0.0.1, or an address this machine owns";
-      }
-      acceptor_.close(error);
-      throw std::runtime_error("cannot listen for Modbus TCP on " + where + ": " + error.message() + advice);
-    }
+    open_listener(acceptor_, options_.host, options_.port,
+                  {"listen for Modbus TCP", "--listen HOST:PORT or modbus_tcp.listen in the configuration", 5020});
     port_ = acceptor_.local_endpoint().port();
-    spdlog::info("modbus tcp: listening on {}:{} (at most {} connections, idle timeout {})", options_.host, port_,
-                 options_.max_connections,
-                 options_.idle_timeout.count() > 0 ? duration_text(options_.idle_timeout) : std::string("off"));
+    spdlog::info("modbus tcp: listening on {}:{} (at most {} connections, idle timeout {}, clients allowed: {})",
+                 options_.host, port_, options_.max_connections,
+                 options_.idle_timeout.count() > 0 ? duration_text(options_.idle_timeout) : std::string("off"),
+                 access_.describe());
     accept();
   }
 
@@ -87,9 +76,13 @@ class TcpServer::Impl : public SessionHost, public std::enable_shared_from_this<
     if (sessions_.size() < options_.max_connections) refusal_logged_ = false;
     notify_if_all_closed();
   }
-  void count_request() override {
+  void count_request(std::span<const std::uint8_t> pdu) override {
+    if (options_.traffic != nullptr) options_.traffic->count_request(pdu);
     std::lock_guard lock(stats_mutex_);
     ++stats_.requests;
+  }
+  void count_response(std::span<const std::uint8_t> pdu) override {
+    if (options_.traffic != nullptr) options_.traffic->count_response(pdu);
   }
   void count_bad_header() override {
     std::lock_guard lock(stats_mutex_);
@@ -101,20 +94,6 @@ class TcpServer::Impl : public SessionHost, public std::enable_shared_from_this<
   }
 
  private:
-  tcp::endpoint resolve() {
-    boost::system::error_code error;
-    const auto address = asio::ip::make_address(options_.host, error);
-    if (!error) return {address, options_.port};
-    tcp::resolver resolver(io_);
-    const auto results = resolver.resolve(options_.host, std::to_string(options_.port), error);
-    if (error || results.empty()) {
-      throw std::runtime_error("cannot listen for Modbus TCP on " + options_.host + ":" + std::to_string(options_.port) +
-                               ": the host does not resolve (" + error.message() +
-                               "); give an IP address such as 0.0.0.0 or 127.0.0.1");
-    }
-    return results.begin()->endpoint();
-  }
-
   void accept() {
     acceptor_.async_accept([self = shared_from_this()](const boost::system::error_code& error, tcp::socket socket) {
       self->on_accept(error, std::move(socket));
@@ -133,7 +112,9 @@ class TcpServer::Impl : public SessionHost, public std::enable_shared_from_this<
       });
       return;
     }
-    if (sessions_.size() >= options_.max_connections) {
+    if (!allowed(socket)) {
+      deny(std::move(socket));
+    } else if (sessions_.size() >= options_.max_connections) {
       refuse(std::move(socket));
     } else {
       auto session = std::make_shared<MbapSession>(std::move(socket), shared_from_this());
@@ -167,6 +148,40 @@ class TcpServer::Impl : public SessionHost, public std::enable_shared_from_this<
     socket.close(ignored);
   }
 
+  static IpAddress client_address(const tcp::endpoint& peer) {
+    const auto address = peer.address();
+    if (address.is_v4()) return IpAddress::v4(address.to_v4().to_bytes());
+    return IpAddress::v6(address.to_v6().to_bytes());
+  }
+
+  bool allowed(const tcp::socket& socket) const {
+    if (!access_.restricted()) return true;
+    boost::system::error_code error;
+    const auto peer = socket.remote_endpoint(error);
+    return !error && access_.allows(client_address(peer));  // a peer already gone is not let in either
+  }
+
+  // Not in modbus_tcp.allow: closed without a Modbus answer, as if nothing listened.
+  void deny(tcp::socket socket) {
+    {
+      std::lock_guard lock(stats_mutex_);
+      ++stats_.denied;
+    }
+    if (options_.traffic != nullptr) options_.traffic->count_denied_connection();
+    boost::system::error_code ignored;
+    const auto peer = socket.remote_endpoint(ignored);
+    const std::string address = peer.address().to_string();
+    // Each address is logged once (a client retrying in a loop must not flood the log); the
+    // set is bounded so a scan of many addresses cannot grow it without limit.
+    if (denial_logged_.size() < kMaxDenialsLogged && denial_logged_.insert(address).second) {
+      spdlog::warn("modbus tcp: refusing connection from {}: not in modbus_tcp.allow ({}); further refusals of this "
+                   "address are counted, not logged",
+                   address, access_.describe());
+    }
+    socket.shutdown(tcp::socket::shutdown_both, ignored);
+    socket.close(ignored);
+  }
+
   void stop_accepting() {
     boost::system::error_code ignored;
     acceptor_.close(ignored);
@@ -181,6 +196,9 @@ class TcpServer::Impl : public SessionHost, public std::enable_shared_from_this<
   asio::io_context& io_;
   const TcpServerOptions options_;
   RequestHandler& handler_;
+  const AccessPolicy access_;
+  static constexpr std::size_t kMaxDenialsLogged = 256;
+  std::set<std::string> denial_logged_;
   tcp::acceptor acceptor_;
   asio::steady_timer retry_timer_;
   std::uint16_t port_ = 0;

@@ -13,7 +13,9 @@
 #include <memory>
 #include <span>
 #include <string>
+#include <vector>
 
+#include "config/config.h"
 #include "protocol/packet.h"
 
 namespace boost::asio {
@@ -23,6 +25,7 @@ class io_context;
 namespace sms::gateway {
 
 using protocol::Bytes;
+class ModbusTrafficCounters;
 
 // Where the answer to one request goes. Copyable so it can ride in bus completions; only the
 // first send() for a request counts. Call send() on the server's io_context thread only.
@@ -63,12 +66,19 @@ struct TcpServerOptions {
   // Decoded requests a connection may have waiting behind the one being answered; past it the
   // session stops reading from the socket (TCP flow control pushes back on the client).
   std::size_t max_pipelined = 32;
+  // Client addresses allowed to connect (modbus_tcp.allow); empty: every client. Others are
+  // closed on accept without a Modbus answer.
+  std::vector<config::IpNetwork> allow;
+  // Where requests by function and answers by exception code are counted (/metrics); may be null.
+  // Must outlive the server.
+  ModbusTrafficCounters* traffic = nullptr;
 };
 
 struct TcpServerStats {
   std::size_t open_connections = 0;
   std::uint64_t accepted = 0;
   std::uint64_t refused = 0;     // over the connection limit
+  std::uint64_t denied = 0;      // not in the allow-list
   std::uint64_t requests = 0;
   std::uint64_t bad_headers = 0;  // connections closed for an MBAP header that is not Modbus
   std::uint64_t idle_closed = 0;

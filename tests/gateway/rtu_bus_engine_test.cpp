@@ -56,11 +56,6 @@ config::ModbusRtuOptions line_options() {
   return options;
 }
 
-// Whether this build's PollCache keeps two bytes per register (see rtu_bus_engine.cpp).
-bool cache_holds_registers() {
-  return std::is_constructible_v<PollCache, std::span<const PollCache::ServoEntry>, std::uint8_t>;
-}
-
 TEST(RtuRates, LibmodbusSetsOnlyItsOwnConstants) {
   EXPECT_TRUE(libmodbus_sets_rate(115'200));
   EXPECT_TRUE(libmodbus_sets_rate(9'600));
@@ -231,7 +226,6 @@ TEST_F(RtuEngineTest, DiscoveryReadsEachServosIdentity) {
 }
 
 TEST_F(RtuEngineTest, PollsTheFeedbackBlockIntoTheCacheWithOneFc03PerServo) {
-  if (!cache_holds_registers()) GTEST_SKIP() << "PollCache has no bytes-per-address constructor yet (see rtu_bus_engine.cpp)";
   start({1, 2});
   // The motion model rewrites present values on every access, so the feedback is changed the
   // way the servo itself would show it: an over-temperature fault sets status bit 2 (0x100)
@@ -288,16 +282,13 @@ TEST(RtuEngine, LostPortGoesDownAndComesBackWhenTheDeviceReturns) {
   engine.stop();
 }
 
-TEST(RtuEngine, FactoryBuildsTheRtuEngineForModbusRtuBusesOnly) {
-  config::BusConfig bus;
-  bus.name = "rtu";
-  bus.protocol = BusProtocol::ModbusRtu;
-  auto engine = make_bus_engine(bus, rtu_settings("/dev/null", {1}));
+TEST(RtuEngine, FactoryBuildsTheRtuEngineForModbusRtuBuses) {
+  auto engine = make_bus_engine(rtu_settings("/dev/null", {1}));
   EXPECT_NE(dynamic_cast<RtuBusEngine*>(engine.get()), nullptr);
   // A packet table on a modbus-rtu bus cannot be run.
   auto wrong = rtu_settings("/dev/null", {});
   wrong.servos.push_back({1, TableId::Sts, modbus_map::ByteOrder::LowFirst, AddressBlock{56, 15}});
-  EXPECT_THROW(make_bus_engine(bus, wrong), std::invalid_argument);
+  EXPECT_THROW(make_bus_engine(wrong), std::invalid_argument);
 }
 
 }  // namespace

@@ -1,5 +1,5 @@
 // A modbus-rtu bus of SMSMB servos through the MODBUS_MAP.md contract: a configuration ->
-// make_bus_engine(bus config, settings) (RtuBusEngine) -> UnitRouter -> Modbus TCP server,
+// Gateway (RtuBusEngine -> UnitRouter -> Modbus TCP server),
 // with libmodbus TCP clients, against the simulator's SMSMB servos on a pty. The native
 // profile of an smsmb unit is the SMSMB register map itself (SPEC §2.4).
 #include <gtest/gtest.h>
@@ -13,15 +13,8 @@
 #include <thread>
 #include <vector>
 
-#include <boost/asio/executor_work_guard.hpp>
-#include <boost/asio/io_context.hpp>
-#include <boost/asio/post.hpp>
-
 #include "config/load.h"
 #include "gateway/gateway.h"
-#include "gateway/rtu_bus_engine.h"
-#include "gateway/tcp_server.h"
-#include "gateway/unit_router.h"
 #include "simulator/simulated_bus.h"
 #include "tests/gateway/bus_test_support.h"
 
@@ -30,48 +23,21 @@ namespace {
 
 using namespace std::chrono_literals;
 using testing::wait_until;
-namespace asio = boost::asio;
 
-// The gateway's parts, assembled as gateway.cpp assembles them, with the engine chosen by
-// make_bus_engine(bus config, settings) so the bus's modbus-rtu options reach the engine.
+// The whole gateway (gateway.h) on a configuration with a modbus-rtu bus.
 class RtuGateway {
  public:
-  explicit RtuGateway(const std::string& yaml) {
-    auto loaded = config::load_config_string(yaml, "<rtu gateway test>");
-    if (!loaded) throw std::runtime_error(loaded.error().to_string());
-    config_ = std::move(*loaded);
-    for (std::size_t i = 0; i < config_.buses.size(); ++i) {
-      engines_.push_back(make_bus_engine(config_.buses[i], bus_settings_for(config_, i)));
-    }
-    std::vector<BusEngine*> engines;
-    for (auto& engine : engines_) engines.push_back(engine.get());
-    router_ = std::make_unique<UnitRouter>(config_, engines,
-                                           [this](std::function<void()> work) { asio::post(io_, std::move(work)); });
-    TcpServerOptions options;
-    options.port = 0;
-    server_ = std::make_unique<TcpServer>(io_, options, *router_);
-    server_->start();
-    for (auto& engine : engines_) engine->start();
-    thread_ = std::thread([this] { io_.run(); });
-  }
-  ~RtuGateway() {
-    asio::post(io_, [this] { server_->close_all(); });
-    for (auto& engine : engines_) engine->stop();
-    work_.reset();
-    io_.stop();
-    thread_.join();
-  }
-  std::uint16_t port() const { return server_->port(); }
-  BusEngine& engine() { return *engines_.front(); }
+  explicit RtuGateway(const std::string& yaml) : gateway_(load(yaml)) { gateway_.start(); }
+  std::uint16_t port() const { return gateway_.port(); }
+  BusEngine& engine() { return gateway_.engine(0); }
 
  private:
-  config::Config config_;
-  asio::io_context io_;
-  std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work_{io_.get_executor()};
-  std::vector<std::unique_ptr<BusEngine>> engines_;
-  std::unique_ptr<UnitRouter> router_;
-  std::unique_ptr<TcpServer> server_;
-  std::thread thread_;
+  static config::Config load(const std::string& yaml) {
+    auto loaded = config::load_config_string(yaml, "<rtu gateway test>");
+    if (!loaded) throw std::runtime_error(loaded.error().to_string());
+    return std::move(*loaded);
+  }
+  Gateway gateway_;
 };
 
 class Client {
@@ -93,7 +59,8 @@ class Client {
 };
 
 std::string config_yaml(const std::string& device) {
-  return "buses:\n"
+  return "modbus_tcp: {listen: \"127.0.0.1:0\"}\n"
+         "buses:\n"
          "  - name: lift\n"
          "    device: \"" + device + "\"\n"
          "    protocol: modbus-rtu\n"
@@ -181,9 +148,6 @@ TEST_F(RtuContractTest, RefusalsFollowTheContract) {
 }
 
 TEST_F(RtuContractTest, InputRegistersComeFromThePollCache) {
-  if (!std::is_constructible_v<PollCache, std::span<const PollCache::ServoEntry>, std::uint8_t>) {
-    GTEST_SKIP() << "PollCache has no bytes-per-address constructor yet (see rtu_bus_engine.cpp)";
-  }
   Client client(gateway_->port(), 12);
   const auto position = bus_->read_field(2, "present_position");  // at rest: the power-on position
   ASSERT_TRUE(position);

@@ -260,6 +260,34 @@ TEST_F(TcpServerTest, ConnectionsOverTheLimitAreAcceptedAndClosedAtOnce) {
   EXPECT_EQ(fifth.receive(11), one_register_answer(5, 1, 5));
 }
 
+config::IpNetwork network(const char* text) {
+  auto parsed = config::parse_ip_network(text);
+  if (!parsed) throw std::invalid_argument(parsed.error());
+  return *parsed;
+}
+
+TEST_F(TcpServerTest, ClientNotInTheAllowListIsClosedWithoutAnAnswerAndCounted) {
+  TcpServerOptions options;
+  options.allow = {network("192.168.10.0/24"), network("fd00::/8")};
+  start(options);
+  TestClient outsider(port());
+  outsider.send(read_request(1, 1, 1, 1));
+  EXPECT_TRUE(outsider.closed_by_peer());
+  EXPECT_TRUE(handler_.started().empty());  // the request never reached the handler
+  EXPECT_EQ(server_->stats().denied, 1u);
+  EXPECT_EQ(server_->stats().accepted, 0u);
+}
+
+TEST_F(TcpServerTest, ClientInTheAllowListIsServed) {
+  TcpServerOptions options;
+  options.allow = {network("192.168.10.0/24"), network("127.0.0.1")};
+  start(options);
+  TestClient insider(port());
+  insider.send(read_request(1, 1, 7, 1));
+  EXPECT_EQ(insider.receive(11), one_register_answer(1, 1, 7));
+  EXPECT_EQ(server_->stats().denied, 0u);
+}
+
 TEST_F(TcpServerTest, IdleConnectionIsClosedAfterTheTimeout) {
   TcpServerOptions options;
   options.idle_timeout = 150ms;
