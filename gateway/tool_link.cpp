@@ -150,6 +150,7 @@ class PacketLink final : public ServoLink {
         while (const auto event = decoder_.next()) {
           if (event->kind != protocol::DecodeEvent::Kind::Frame) {
             corrupt = true;
+            answer.damaged = true;
             continue;
           }
           const protocol::Packet& reply = event->packet;
@@ -161,6 +162,7 @@ class PacketLink final : public ServoLink {
           }
           if (reply.id != request.id) {
             corrupt = true;  // a late answer, or a servo that just took another ID
+            answer.other_ids.push_back(reply.id);
             continue;
           }
           answer.servo_status = reply.code;
@@ -325,6 +327,11 @@ class ModbusLink final : public ServoLink {
           answer.heard_anything = true;
           corrupt = true;
           last = exchange.detail;
+          if (exchange.other_slave) {
+            answer.other_ids.push_back(*exchange.other_slave);
+          } else {
+            answer.damaged = true;
+          }
           break;
         case RtuOutcome::PortError:
           answer.status = LinkStatus::PortError;

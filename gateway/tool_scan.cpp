@@ -4,6 +4,7 @@
 #include <array>
 #include <map>
 #include <set>
+#include <vector>
 
 #include <fmt/format.h>
 
@@ -132,10 +133,18 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
       }
     }
     std::size_t at_this_baud = 0;
-    for (const std::uint8_t id : ids) {
+    const std::size_t first_at_this_baud = report.found.size();
+    // IDs whose answer arrived in another ID's window: they answered late (a busy adapter or
+    // host). Asked again, waiting longer, after the pass, so one slow answer does not hide a
+    // servo.
+    std::set<std::uint8_t> answered_late;
+    std::set<std::uint8_t> seen;
+    const auto probe = [&](std::uint8_t id) -> Expected<bool> {
       LinkAnswer answer = link.ping(id);
       if (answer.status == LinkStatus::PortError) return unexpected(answer.detail);
-      if (!answer.ok() && !answer.heard_anything) continue;
+      seen.insert(id);
+      answered_late.insert(answer.other_ids.begin(), answer.other_ids.end());
+      if (!answer.ok() && !answer.heard_anything) return false;
       if (!answer.ok()) {
         // Only damaged answers: several transmitters at once, or a late answer overlapping
         // ours. Ask again, waiting longer, before calling it a collision.
@@ -144,14 +153,17 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
         answer = link.ping(id);
         link.set_latency(latency);
         if (answer.status == LinkStatus::PortError) return unexpected(answer.detail);
-        if (!answer.ok() && !answer.heard_anything) continue;
+        answered_late.insert(answer.other_ids.begin(), answer.other_ids.end());
+        if (!answer.ok() && !answer.damaged) return false;  // silence, or only other IDs' late answers
       }
       ScanFinding finding;
       finding.baud = baud;
       finding.id = id;
       if (answer.ok()) {
         finding.status = answer.servo_status;
+        link.set_attempts(attempts);  // the identity is worth a retry; a collision check is not
         finding.identity = read_identity(link, options.table, id);
+        link.set_attempts(1);
         finding.conflict = answers_collide(link, options.table, id);
         if (protocol == BusProtocol::ModbusRtu && answer.servo_status != 0) {
           finding.note = fmt::format("a Modbus slave, not an SMSMB servo (FC03 of register 0 answered exception 0x{:02X})",
@@ -166,6 +178,32 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
       }
       report.found.push_back(std::move(finding));
       ++at_this_baud;
+      return true;
+    };
+    std::set<std::uint8_t> found_here;
+    for (const std::uint8_t id : ids) {
+      auto probed = probe(id);
+      if (!probed) return unexpected(probed.error());
+      if (*probed) found_here.insert(id);
+    }
+    std::vector<std::uint8_t> second_look;
+    for (const std::uint8_t id : answered_late) {
+      if (seen.contains(id) && !found_here.contains(id)) second_look.push_back(id);
+    }
+    if (!second_look.empty()) {
+      const auto latency = link.settings().latency;
+      link.set_latency(latency + kConfirmExtraWait);
+      for (const std::uint8_t id : second_look) {
+        auto probed = probe(id);
+        if (!probed) {
+          link.set_latency(latency);
+          return unexpected(probed.error());
+        }
+        if (*probed) say(fmt::format("{:>8} bit/s: ID {} answered late; found on a second look", baud, id));
+      }
+      link.set_latency(latency);
+      std::sort(report.found.begin() + static_cast<std::ptrdiff_t>(first_at_this_baud), report.found.end(),
+                [](const ScanFinding& a, const ScanFinding& b) { return a.id < b.id; });
     }
     const auto took = std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - baud_started);
     say(fmt::format("{:>8} bit/s: {} found ({} IDs in {} ms)", baud, at_this_baud, ids.size(), took.count()));

@@ -203,7 +203,7 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
   }
   const LinkAnswer taken = ask_carefully(link, new_id);
   if (taken.status == LinkStatus::PortError) return unexpected(taken.detail);
-  if (taken.ok() || taken.heard_anything) {
+  if (taken.ok() || taken.damaged) {  // a late answer of another ID is no sign
     return unexpected(fmt::format(
         "ID {} is already taken: a servo answers on it at {} bit/s. Two servos on one ID answer together and "
         "cannot be told apart; pick a free ID (`sms-gateway scan` lists the taken ones)",
@@ -267,7 +267,7 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
     const LinkAnswer taken = ask_carefully(link, target.id);
     if (auto back = link.set_baud(old_baud); !back) return unexpected(back.error());
     if (taken.status == LinkStatus::PortError) return unexpected(taken.detail);
-    if (taken.ok() || taken.heard_anything) {
+    if (taken.ok() || taken.damaged) {  // a late answer of another ID is no sign
       return unexpected(fmt::format("ID {} is already taken at {} bit/s: another servo answers there. Give one of "
                                     "them another ID first (set-id)",
                                     target.id, new_baud));

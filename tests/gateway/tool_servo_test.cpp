@@ -67,6 +67,9 @@ struct PowerCycleCase {
   std::uint32_t new_baud;
 };
 
+// Test logs name the case, not its bytes.
+void PrintTo(const PowerCycleCase& c, std::ostream* out) { *out << c.name; }
+
 class PowerCycle : public ::testing::TestWithParam<PowerCycleCase> {
  protected:
   simulator::BusOptions options(const std::string& state) const {
