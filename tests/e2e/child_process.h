@@ -9,6 +9,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <condition_variable>
 #include <cstring>
@@ -25,7 +26,9 @@ namespace sms::e2e {
 
 class ChildProcess {
  public:
-  explicit ChildProcess(std::vector<std::string> argv) : argv_(std::move(argv)) {
+  // `extra_environment`: "NAME=value" entries added to (or replacing) this process's environment.
+  explicit ChildProcess(std::vector<std::string> argv, std::vector<std::string> extra_environment = {})
+      : argv_(std::move(argv)) {
     int out_pipe[2];
     if (::pipe2(out_pipe, O_CLOEXEC) != 0) throw std::runtime_error("pipe: " + std::string(std::strerror(errno)));
     posix_spawn_file_actions_t actions;
@@ -36,7 +39,18 @@ class ChildProcess {
     std::vector<char*> args;
     for (auto& arg : argv_) args.push_back(arg.data());
     args.push_back(nullptr);
-    const int error = ::posix_spawn(&pid_, args[0], &actions, nullptr, args.data(), environ);
+    std::vector<std::string> environment = std::move(extra_environment);
+    for (char** entry = environ; *entry != nullptr; ++entry) {
+      const std::string text = *entry;
+      const std::string name = text.substr(0, text.find('=') + 1);
+      const bool replaced = std::any_of(environment.begin(), environment.end(),
+                                        [&](const std::string& extra) { return extra.rfind(name, 0) == 0; });
+      if (!replaced) environment.push_back(text);
+    }
+    std::vector<char*> env;
+    for (auto& entry : environment) env.push_back(entry.data());
+    env.push_back(nullptr);
+    const int error = ::posix_spawn(&pid_, args[0], &actions, nullptr, args.data(), env.data());
     posix_spawn_file_actions_destroy(&actions);
     ::close(out_pipe[1]);
     if (error != 0) {

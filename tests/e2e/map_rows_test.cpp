@@ -53,6 +53,9 @@ const UnitRow kRows[] = {
      "present_position", 43, "brake", 42, "moving", d55d_vendor},
 };
 
+// Test logs name the row, not its bytes.
+void PrintTo(const UnitRow& row, std::ostream* out) { *out << row.label; }
+
 class MapRows : public ::testing::TestWithParam<UnitRow> {
  protected:
   static void SetUpTestSuite() { plant_ = std::make_unique<Plant>(); }
