@@ -121,10 +121,16 @@ void measure_gateway(const std::string& mode, std::chrono::milliseconds poll_per
     return outcome_of(modbus_read_registers(context, kFeedbackAddress, kFeedbackCount, registers.data()),
                       kFeedbackCount);
   });
-  for (const auto* totals : {&writes, &reads}) {
-    if (totals->errors > 0) throw std::runtime_error(mode + ": a request failed: " + totals->first_error);
+  // A failed request is counted, not fatal: on a busy machine the simulator's thread can miss
+  // the 20 ms response timeout a few times in a row (the gateway then answers 0x0B).
+  for (const auto& [kind, totals] : {std::pair{kWrite.name, &writes}, std::pair{kRead.name, &reads}}) {
+    if (totals->errors == 0) continue;
+    print_figure("write_latency." + kind + ".gateway_" + mode + ".failed", static_cast<double>(totals->errors),
+                 "requests");
+    print_note(mode + ": first failure: " + totals->first_error);
   }
-  if (write_count > 0 && applied != goal_for(write_count - 1)) {
+  // Without failures request i wrote goal_for(i): the last one acknowledged must be in the servo.
+  if (writes.errors == 0 && write_count > 0 && applied != goal_for(write_count - 1)) {
     throw std::runtime_error(mode + ": the last acknowledged goal position is not in the servo");
   }
   print_latency("write_latency." + kWrite.name + ".gateway_" + mode, summarize(writes.ok_ns), kWrite.wire_us,
