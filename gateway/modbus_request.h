@@ -9,23 +9,14 @@
 
 #include "gateway/exceptions.h"
 #include "protocol/expected.h"
+#include "protocol/modbus_pdu.h"
 #include "protocol/packet.h"
 
 namespace sms::gateway {
 
 using protocol::Bytes;
 
-namespace function_code {
-inline constexpr std::uint8_t kReadCoils = 0x01;
-inline constexpr std::uint8_t kReadDiscreteInputs = 0x02;
-inline constexpr std::uint8_t kReadHoldingRegisters = 0x03;
-inline constexpr std::uint8_t kReadInputRegisters = 0x04;
-inline constexpr std::uint8_t kWriteSingleCoil = 0x05;
-inline constexpr std::uint8_t kWriteSingleRegister = 0x06;
-inline constexpr std::uint8_t kWriteMultipleCoils = 0x0F;
-inline constexpr std::uint8_t kWriteMultipleRegisters = 0x10;
-inline constexpr std::uint8_t kReadWriteMultipleRegisters = 0x17;
-}  // namespace function_code
+namespace function_code = protocol::function_code;
 
 // Quantity limits of the Modbus application protocol (v1.1b3 §6).
 namespace limits {

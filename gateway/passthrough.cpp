@@ -18,12 +18,11 @@ namespace {
 namespace fc = function_code;
 constexpr std::uint8_t kBroadcastSlave = 0;
 constexpr std::uint8_t kMaxSlave = 247;
-constexpr std::uint8_t kReportSlaveId = 0x11;
 
 // Functions that only read: a broadcast of them is pointless (nobody answers).
 constexpr std::array<std::uint8_t, 6> kReadFunctions{fc::kReadCoils,          fc::kReadDiscreteInputs,
                                                      fc::kReadHoldingRegisters, fc::kReadInputRegisters,
-                                                     fc::kReadWriteMultipleRegisters, kReportSlaveId};
+                                                     fc::kReadWriteMultipleRegisters, fc::kReportServerId};
 
 // What the client is told for a broadcast write: the answer the slave would have given.
 struct BroadcastAnswerRule {

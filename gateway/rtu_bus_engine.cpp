@@ -25,6 +25,7 @@
 #include "gateway/poller.h"
 #include "gateway/serial_port_termios2.h"
 #include "modbus_map/tables.h"
+#include "protocol/modbus_pdu.h"
 #include "protocol/modbus_rtu.h"
 
 namespace sms::gateway {
@@ -346,12 +347,7 @@ RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_
 
 namespace {
 
-namespace function {
-constexpr std::uint8_t kReadHolding = 0x03;
-constexpr std::uint8_t kWriteSingle = 0x06;
-constexpr std::uint8_t kWriteMultiple = 0x10;
-constexpr std::uint8_t kExceptionBit = 0x80;
-}  // namespace function
+namespace fc = protocol::function_code;
 
 constexpr std::uint8_t kBroadcastSlave = 0;
 constexpr std::uint8_t kMaxSlave = 247;
@@ -432,7 +428,7 @@ std::uint32_t saturate_us(SteadyClock::duration duration) {
 }
 
 Bytes read_pdu(std::uint16_t address, std::uint16_t count) {
-  return {function::kReadHolding, static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address),
+  return {fc::kReadHoldingRegisters, static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address),
           static_cast<std::uint8_t>(count >> 8), static_cast<std::uint8_t>(count)};
 }
 
@@ -580,10 +576,10 @@ Job RtuBusEngine::Impl::make_client_job(BusOp&& op) const {
     const auto address_hi = static_cast<std::uint8_t>(write->address >> 8);
     const auto address_lo = static_cast<std::uint8_t>(write->address);
     if (registers == 1) {
-      job.pdu = {function::kWriteSingle, address_hi, address_lo, write->data[0], write->data[1]};
+      job.pdu = {fc::kWriteSingleRegister, address_hi, address_lo, write->data[0], write->data[1]};
       job.shape = ReplyShape::Echo;
     } else {
-      job.pdu = {function::kWriteMultiple, address_hi, address_lo, 0, static_cast<std::uint8_t>(registers),
+      job.pdu = {fc::kWriteMultipleRegisters, address_hi, address_lo, 0, static_cast<std::uint8_t>(registers),
                  static_cast<std::uint8_t>(write->data.size())};
       job.pdu.insert(job.pdu.end(), write->data.begin(), write->data.end());
       job.shape = ReplyShape::WriteMultiple;
@@ -902,7 +898,7 @@ BusResult RtuBusEngine::Impl::check_reply(const Job& job, Bytes reply) const {
     return BusResult{BusStatus::Corrupt, 0, {}, fmt::format("{}: {}: {}", where, what, hex(reply))};
   };
   if (reply.empty()) return corrupt("empty answer");
-  if (reply[0] == (requested | function::kExceptionBit)) {
+  if (reply[0] == (requested | fc::kExceptionBit)) {
     if (reply.size() != 2) return corrupt("malformed exception answer");
     if (job.forward_exceptions || (job.shape == ReplyShape::AnyOfFunction)) {
       return {BusStatus::Ok, reply[1], std::move(reply), {}};

@@ -14,6 +14,7 @@
 #include "protocol/d55d.h"
 #include "protocol/feetech.h"
 #include "protocol/instructions.h"
+#include "protocol/modbus_pdu.h"
 #include "protocol/stream_decoder.h"
 
 namespace sms::gateway {
@@ -49,6 +50,37 @@ const PacketRules& packet_rules(BusProtocol protocol) {
   }
   throw std::invalid_argument("no packet rules for " + std::string(protocol::to_string(protocol)));
 }
+
+// A retried request may be answered twice: the first attempt's answer comes late, is taken for
+// the second's, and the second's then looks like the answer to whatever is asked next (packets
+// carry no transaction number; a PING and a one-byte READ look alike). After an exchange that
+// had to retry, the next one first waits out one more reply timeout; what arrived meanwhile is
+// flushed before its request is written. Single-attempt exchanges (a scan) do not wait: a scan
+// finds late answers by their ID instead (tool_scan.cpp).
+class QuietLine {
+ public:
+  class Exchange {
+   public:
+    Exchange(QuietLine& line, std::chrono::nanoseconds reply_timeout) : line_(line), reply_timeout_(reply_timeout) {
+      std::this_thread::sleep_until(line_.quiet_until_);
+    }
+    ~Exchange() {
+      if (retried_) line_.quiet_until_ = std::chrono::steady_clock::now() + reply_timeout_;
+    }
+    Exchange(const Exchange&) = delete;
+    Exchange& operator=(const Exchange&) = delete;
+    // An attempt got no answer, or a damaged or foreign one, and another attempt follows.
+    void retrying() { retried_ = true; }
+
+   private:
+    QuietLine& line_;
+    std::chrono::nanoseconds reply_timeout_;
+    bool retried_ = false;
+  };
+
+ private:
+  std::chrono::steady_clock::time_point quiet_until_{};
+};
 
 detail::LineParity line_parity(config::Parity parity) {
   switch (parity) {
@@ -120,6 +152,7 @@ class PacketLink final : public ServoLink {
     const Bytes frame = protocol::encode(*rules_.format, request);
     const bool broadcast = request.id == protocol::kBroadcastId;
     const auto timeout = tool_reply_timeout(*this, frame.size(), protocol::kMinFrameSize + reply_params);
+    QuietLine::Exchange quiet(quiet_, timeout);
     LinkAnswer answer;
     bool corrupt = false;
     // Nothing answers a broadcast WRITE: never sent twice. A broadcast PING may be repeated.
@@ -178,6 +211,7 @@ class PacketLink final : public ServoLink {
         }
       }
       if (broadcast && answer.heard_anything) break;  // colliding answers: someone is there
+      if (attempt + 1 < attempts) quiet.retrying();
     }
     answer.status = corrupt ? LinkStatus::Corrupt : LinkStatus::Timeout;
     answer.detail = fmt::format("{} from ID {} at {} bit/s ({} attempt{})",
@@ -199,6 +233,7 @@ class PacketLink final : public ServoLink {
     return answer;
   }
 
+  QuietLine quiet_;
   LinkSettings settings_;
   const PacketRules& rules_;
   SerialPort port_;
@@ -207,12 +242,7 @@ class PacketLink final : public ServoLink {
 
 // ---- modbus-rtu -------------------------------------------------------------------------------
 
-namespace modbus_function {
-constexpr std::uint8_t kReadHolding = 0x03;
-constexpr std::uint8_t kWriteSingle = 0x06;
-constexpr std::uint8_t kWriteMultiple = 0x10;
-constexpr std::uint8_t kExceptionBit = 0x80;
-}  // namespace modbus_function
+namespace fc = protocol::function_code;
 
 class ModbusLink final : public ServoLink {
  public:
@@ -251,8 +281,8 @@ class ModbusLink final : public ServoLink {
     const auto hi = static_cast<std::uint8_t>(address >> 8);
     const auto lo = static_cast<std::uint8_t>(address);
     Bytes pdu = registers == 1
-                    ? Bytes{modbus_function::kWriteSingle, hi, lo, data[0], data[1]}
-                    : Bytes{modbus_function::kWriteMultiple, hi, lo, 0, static_cast<std::uint8_t>(registers),
+                    ? Bytes{fc::kWriteSingleRegister, hi, lo, data[0], data[1]}
+                    : Bytes{fc::kWriteMultipleRegisters, hi, lo, 0, static_cast<std::uint8_t>(registers),
                             static_cast<std::uint8_t>(data.size())};
     if (registers > 1) pdu.insert(pdu.end(), data.begin(), data.end());
     return exchange(id, pdu, 0, false);
@@ -268,7 +298,7 @@ class ModbusLink final : public ServoLink {
   }
 
   static Bytes read_pdu(std::uint16_t address, std::uint16_t count) {
-    return {modbus_function::kReadHolding, static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address),
+    return {fc::kReadHoldingRegisters, static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address),
             static_cast<std::uint8_t>(count >> 8), static_cast<std::uint8_t>(count)};
   }
 
@@ -285,15 +315,17 @@ class ModbusLink final : public ServoLink {
       answer.detail = sent.detail;
       return answer;
     }
+    QuietLine::Exchange quiet(quiet_, timeout);
     bool corrupt = false;
     std::string last;
     for (unsigned attempt = 0; attempt < settings_.attempts; ++attempt) {
+      if (attempt > 0) quiet.retrying();  // the attempt before went unanswered, or wrongly
       RtuExchange exchange = master_->transact(id, pdu, timeout);
       switch (exchange.outcome) {
         case RtuOutcome::Reply: {
           answer.heard_anything = true;
           const Bytes& reply = exchange.pdu;
-          if (reply.size() == 2 && reply[0] == (pdu[0] | modbus_function::kExceptionBit)) {
+          if (reply.size() == 2 && reply[0] == (pdu[0] | fc::kExceptionBit)) {
             answer.servo_status = reply[1];
             if (exception_is_answer) {
               answer.status = LinkStatus::Ok;
@@ -348,6 +380,7 @@ class ModbusLink final : public ServoLink {
     return answer;
   }
 
+  QuietLine quiet_;
   LinkSettings settings_;
   std::unique_ptr<RtuMaster> master_;
 };

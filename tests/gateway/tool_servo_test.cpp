@@ -35,7 +35,7 @@ std::unique_ptr<ServoLink> open_link(const std::string& device, BusProtocol prot
   settings.device = device;
   settings.protocol = protocol;
   settings.baud = baud;
-  settings.latency = 5ms;
+  settings.latency = 20ms;  // a pty and the simulator's thread on 2 shared cores, sanitizers on, CI load
   auto link = make_servo_link(settings);
   const auto opened = link->open();
   EXPECT_TRUE(opened) << (opened ? "" : opened.error());
