@@ -78,7 +78,7 @@ void MbapSession::on_read(const boost::system::error_code& error, std::size_t si
 void MbapSession::process_pending() {
   if (processing_) return;
   processing_ = true;
-  while (!closed_ && !in_flight_ && !pending_.empty()) {
+  while (!closed_ && !in_flight_ && !pending_.empty() && !answers_backed_up()) {
     protocol::tcp::Frame frame = std::move(pending_.front());
     pending_.pop_front();
     in_flight_ = InFlight{next_serial_++, frame.transaction_id, frame.unit_id};
@@ -105,11 +105,16 @@ void MbapSession::deliver(std::uint64_t request_serial, Bytes response_pdu) {
   close_when_done();
 }
 
+bool MbapSession::answers_backed_up() const {
+  return outbox_.size() + write_buffer_.size() >= host_->options().max_unsent_bytes;
+}
+
 void MbapSession::flush() {
   if (writing_ || outbox_.empty() || closed_) return;
   write_buffer_.swap(outbox_);
   outbox_.clear();
   writing_ = true;
+  write_started_ = std::chrono::steady_clock::now();
   boost::asio::async_write(socket_, boost::asio::buffer(write_buffer_),
                            [self = shared_from_this()](const boost::system::error_code& error, std::size_t) {
                              self->on_written(error);
@@ -128,6 +133,7 @@ void MbapSession::on_written(const boost::system::error_code& error) {
     return;
   }
   flush();
+  process_pending();  // requests held back while answers were backed up
   close_when_done();
 }
 
@@ -164,6 +170,12 @@ void MbapSession::on_idle_timer(const boost::system::error_code& error) {
   if (error || closed_) return;
   const auto idle = host_->options().idle_timeout;
   const auto now = std::chrono::steady_clock::now();
+  if (writing_ && now - write_started_ >= idle) {
+    spdlog::info("modbus tcp: connection {} has not taken its answers for {}; closing it", peer_, duration_text(idle));
+    host_->count_idle_close();
+    close();
+    return;
+  }
   // A request being answered is activity, however long the bus takes.
   if (busy()) {
     arm_idle_timer(now + idle);

@@ -6,7 +6,8 @@
 //   read -> MbapDecoder -> pending requests -> handler (one at a time) -> outbox -> write
 //
 // Answers are appended to the outbox in request order and written as they come; reading goes
-// on while a request is being answered (pipelining) until max_pipelined requests wait.
+// on while a request is being answered (pipelining) until max_pipelined requests wait, and no
+// request is started while max_unsent_bytes of answers wait for the client to read them.
 #include <array>
 #include <chrono>
 #include <cstdint>
@@ -71,6 +72,7 @@ class MbapSession : public std::enable_shared_from_this<MbapSession>, public Rep
   void arm_idle_timer(std::chrono::steady_clock::time_point deadline);
   void on_idle_timer(const boost::system::error_code& error);
   bool busy() const { return in_flight_.has_value() || !pending_.empty() || writing_; }
+  bool answers_backed_up() const;
 
   boost::asio::ip::tcp::socket socket_;
   boost::asio::steady_timer idle_timer_;
@@ -91,6 +93,7 @@ class MbapSession : public std::enable_shared_from_this<MbapSession>, public Rep
   bool draining_ = false;    // no more requests; close once the in-flight answer is written
   bool closed_ = false;
   std::chrono::steady_clock::time_point last_activity_;
+  std::chrono::steady_clock::time_point write_started_;  // of the write in progress
 };
 
 }  // namespace sms::gateway

@@ -66,6 +66,11 @@ struct TcpServerOptions {
   // Decoded requests a connection may have waiting behind the one being answered; past it the
   // session stops reading from the socket (TCP flow control pushes back on the client).
   std::size_t max_pipelined = 32;
+  // Answer bytes a connection may have waiting to be written; past it the session starts no
+  // new request until the client reads (so a client that never reads its answers cannot make
+  // the gateway buffer without bound). A client that takes none of its answers for the idle
+  // timeout is closed.
+  std::size_t max_unsent_bytes = 64 * 1024;
   // Client addresses allowed to connect (modbus_tcp.allow); empty: every client. Others are
   // closed on accept without a Modbus answer.
   std::vector<config::IpNetwork> allow;
