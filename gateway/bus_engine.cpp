@@ -3,6 +3,8 @@
 #include <stdexcept>
 #include <string>
 
+#include <spdlog/spdlog.h>
+
 #include "gateway/packet_bus_engine.h"
 #include "gateway/rtu_bus_engine.h"
 
@@ -19,6 +21,33 @@ std::string_view to_string(BusStatus status) {
     case BusStatus::Cancelled: return "cancelled";
   }
   return "?";
+}
+
+BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth) {
+  if (!accepting) return BusStatus::Cancelled;
+  if (!bus_up) return BusStatus::BusDown;
+  if (queued >= queue_depth) return BusStatus::QueueFull;
+  return BusStatus::Ok;
+}
+
+std::string refusal_detail(BusStatus refusal, const BusSettings& settings) {
+  switch (refusal) {
+    case BusStatus::Cancelled: return "bus " + settings.name + ": the bus engine is not running";
+    case BusStatus::BusDown:
+      return "bus " + settings.name + ": serial port " + settings.serial.device + " is not open (bus down)";
+    case BusStatus::QueueFull:
+      return "bus " + settings.name + ": " + std::to_string(settings.queue_depth) + " operations already queued";
+    default: return "bus " + settings.name + ": " + std::string(to_string(refusal));
+  }
+}
+
+void complete(const BusSettings& settings, Completion& done, BusResult result) {
+  if (!done) return;
+  try {
+    done(std::move(result));
+  } catch (const std::exception& error) {
+    spdlog::error("bus {}: a completion handler threw: {}", settings.name, error.what());
+  }
 }
 
 std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::ModbusRtuOptions& modbus_rtu) {

@@ -76,6 +76,16 @@ class BusEngine {
   virtual bool discovered() const = 0;
 };
 
+// What both engines do the same way around their queues.
+// Whether a bus takes a client operation now: Ok, or Cancelled (the engine is not running),
+// BusDown (the port is not open) or QueueFull (`queued` of `queue_depth` slots taken).
+BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth);
+// A refusal's text for logs and answers: "bus arm: 64 operations already queued".
+std::string refusal_detail(BusStatus refusal, const BusSettings& settings);
+// Runs `done` (if set) with `result`; a handler that throws is logged, never let loose on the
+// bus thread.
+void complete(const BusSettings& settings, Completion& done, BusResult result);
+
 // The engine for the bus's protocol: PacketBusEngine for feetech and d55d, RtuBusEngine (with
 // the bus's RS-485/RTS/byte-timeout options) for modbus-rtu. Throws std::invalid_argument for
 // settings it cannot run (a servo whose table is not spoken on the bus, an empty poll block,

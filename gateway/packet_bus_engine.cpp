@@ -413,13 +413,8 @@ void PacketBusEngine::Impl::submit(BusOp op, Priority priority, Completion done)
   BusStatus refusal = BusStatus::Ok;
   {
     std::lock_guard lock(queue_mutex_);
-    if (!accepting_) {
-      refusal = BusStatus::Cancelled;
-    } else if (!bus_up_.load()) {
-      refusal = BusStatus::BusDown;
-    } else if (client_jobs_queued_ >= settings_.queue_depth) {
-      refusal = BusStatus::QueueFull;
-    } else {
+    refusal = admission(accepting_, bus_up_.load(), client_jobs_queued_, settings_.queue_depth);
+    if (refusal == BusStatus::Ok) {
       queue_[static_cast<std::size_t>(priority)].push_back(std::move(job));
       ++client_jobs_queued_;
     }
@@ -428,20 +423,8 @@ void PacketBusEngine::Impl::submit(BusOp op, Priority priority, Completion done)
     kick();
     return;
   }
-  std::string detail;
-  switch (refusal) {
-    case BusStatus::Cancelled:
-      detail = "bus " + settings_.name + ": the bus engine is not running";
-      break;
-    case BusStatus::BusDown:
-      detail = "bus " + settings_.name + ": serial port " + settings_.serial.device + " is not open (bus down)";
-      break;
-    default:
-      counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
-      detail = "bus " + settings_.name + ": " + std::to_string(settings_.queue_depth) + " operations already queued";
-      break;
-  }
-  complete(job.done, BusResult{refusal, 0, {}, std::move(detail)});
+  if (refusal == BusStatus::QueueFull) counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
+  complete(job.done, BusResult{refusal, 0, {}, refusal_detail(refusal, settings_)});
 }
 
 std::optional<Job> PacketBusEngine::Impl::pop_job() {
@@ -482,14 +465,7 @@ void PacketBusEngine::Impl::kick() {
   asio::post(io_, [this] { start_next(); });
 }
 
-void PacketBusEngine::Impl::complete(Completion& done, BusResult result) {
-  if (!done) return;
-  try {
-    done(std::move(result));
-  } catch (const std::exception& error) {
-    spdlog::error("bus {}: a completion handler threw: {}", settings_.name, error.what());
-  }
-}
+void PacketBusEngine::Impl::complete(Completion& done, BusResult result) { gateway::complete(settings_, done, std::move(result)); }
 
 // ==== transactions ==========================================================================
 

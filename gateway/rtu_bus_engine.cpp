@@ -579,9 +579,16 @@ Job RtuBusEngine::Impl::make_client_job(BusOp&& op) const {
       job.pdu = {fc::kWriteSingleRegister, address_hi, address_lo, write->data[0], write->data[1]};
       job.shape = ReplyShape::Echo;
     } else {
-      job.pdu = {fc::kWriteMultipleRegisters, address_hi, address_lo, 0, static_cast<std::uint8_t>(registers),
-                 static_cast<std::uint8_t>(write->data.size())};
-      job.pdu.insert(job.pdu.end(), write->data.begin(), write->data.end());
+      // Sized once and filled in place (GCC 12 -O2 misreads an insert after a braced init as
+      // out of bounds: -Warray-bounds).
+      constexpr std::size_t kHeader = 6;
+      job.pdu.assign(kHeader + write->data.size(), 0);
+      job.pdu[0] = fc::kWriteMultipleRegisters;
+      job.pdu[1] = address_hi;
+      job.pdu[2] = address_lo;
+      job.pdu[4] = static_cast<std::uint8_t>(registers);
+      job.pdu[5] = static_cast<std::uint8_t>(write->data.size());
+      std::copy(write->data.begin(), write->data.end(), job.pdu.begin() + kHeader);
       job.shape = ReplyShape::WriteMultiple;
     }
     job.broadcast = write->servo_id == kBroadcastSlave || !write->expect_reply;
@@ -620,13 +627,8 @@ void RtuBusEngine::Impl::submit(BusOp op, Priority priority, Completion done) {
   BusStatus refusal = BusStatus::Ok;
   {
     std::lock_guard lock(mutex_);
-    if (!accepting_) {
-      refusal = BusStatus::Cancelled;
-    } else if (!bus_up_.load()) {
-      refusal = BusStatus::BusDown;
-    } else if (queued_ >= settings_.queue_depth) {
-      refusal = BusStatus::QueueFull;
-    } else {
+    refusal = admission(accepting_, bus_up_.load(), queued_, settings_.queue_depth);
+    if (refusal == BusStatus::Ok) {
       queue_[static_cast<std::size_t>(priority)].push_back(std::move(job));
       ++queued_;
     }
@@ -635,30 +637,11 @@ void RtuBusEngine::Impl::submit(BusOp op, Priority priority, Completion done) {
     wake_.notify_one();
     return;
   }
-  std::string detail;
-  switch (refusal) {
-    case BusStatus::Cancelled:
-      detail = "bus " + settings_.name + ": the bus engine is not running";
-      break;
-    case BusStatus::BusDown:
-      detail = "bus " + settings_.name + ": serial port " + settings_.serial.device + " is not open (bus down)";
-      break;
-    default:
-      counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
-      detail = "bus " + settings_.name + ": " + std::to_string(settings_.queue_depth) + " operations already queued";
-      break;
-  }
-  complete(job.done, BusResult{refusal, 0, {}, std::move(detail)});
+  if (refusal == BusStatus::QueueFull) counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
+  complete(job.done, BusResult{refusal, 0, {}, refusal_detail(refusal, settings_)});
 }
 
-void RtuBusEngine::Impl::complete(Completion& done, BusResult result) {
-  if (!done) return;
-  try {
-    done(std::move(result));
-  } catch (const std::exception& error) {
-    spdlog::error("bus {}: a completion handler threw: {}", settings_.name, error.what());
-  }
-}
+void RtuBusEngine::Impl::complete(Completion& done, BusResult result) { gateway::complete(settings_, done, std::move(result)); }
 
 void RtuBusEngine::Impl::fail_queued(BusStatus status, const std::string& detail) {
   std::vector<Job> failed;
