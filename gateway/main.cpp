@@ -12,6 +12,7 @@
 #include <iostream>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include <CLI/CLI.hpp>
@@ -110,26 +111,26 @@ std::string environment_help() {
   return text;
 }
 
+// A HOST:PORT option into `address` (left empty when the option was not given); false after
+// printing why the text is not an address.
+bool address_option(std::string_view option, const std::string& text, std::optional<sms::config::HostPort>& address) {
+  if (text.empty()) return true;
+  auto parsed = sms::config::parse_host_port(text);
+  if (!parsed) {
+    std::cerr << "sms-gateway: " << option << " " << text << ": " << parsed.error() << "\n";
+    return false;
+  }
+  address = *parsed;
+  return true;
+}
+
 int run_gateway(const Options& options) {
   const sigset_t stop_signals = block_stop_signals();
 
   std::optional<sms::config::HostPort> listen;
-  if (!options.listen.empty()) {
-    auto parsed = sms::config::parse_host_port(options.listen);
-    if (!parsed) {
-      std::cerr << "sms-gateway: --listen " << options.listen << ": " << parsed.error() << "\n";
-      return kExitConfigError;
-    }
-    listen = *parsed;
-  }
   std::optional<sms::config::HostPort> metrics;
-  if (!options.metrics.empty()) {
-    auto parsed = sms::config::parse_host_port(options.metrics);
-    if (!parsed) {
-      std::cerr << "sms-gateway: --metrics " << options.metrics << ": " << parsed.error() << "\n";
-      return kExitConfigError;
-    }
-    metrics = *parsed;
+  if (!address_option("--listen", options.listen, listen) || !address_option("--metrics", options.metrics, metrics)) {
+    return kExitConfigError;
   }
 
   std::optional<sms::simulator::SimulatedBus> simulated_bus;
