@@ -303,6 +303,56 @@ TEST_F(TcpServerTest, IdleConnectionIsClosedAfterTheTimeout) {
   EXPECT_EQ(server_->stats().idle_closed, 1u);
 }
 
+// A client that pipelines reads and never takes its answers: the server stops starting its
+// requests once 64 KiB of answers wait, and closes it when a write makes no progress for the
+// idle timeout. Others are served meanwhile.
+TEST_F(TcpServerTest, ClientThatTakesNoAnswersIsHeldBackThenClosedAfterTheIdleTimeout) {
+  TcpServerOptions options;
+  options.idle_timeout = 300ms;
+  start(options);
+  const int hoarder = ::socket(AF_INET, SOCK_STREAM, 0);
+  ASSERT_GE(hoarder, 0);
+  const int small = 4096;  // a small receive window: the answers back up quickly
+  ::setsockopt(hoarder, SOL_SOCKET, SO_RCVBUF, &small, sizeof small);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(port());
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(::connect(hoarder, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
+  // Up to 40 000 reads of 125 registers (10 MB of answers), sent for as long as the server takes them.
+  ByteVector burst;
+  for (std::uint16_t i = 0; i < 40000; ++i) {
+    const auto request = read_request(i, 1, 0, 125);
+    burst.insert(burst.end(), request.begin(), request.end());
+  }
+  std::size_t sent = 0;
+  const auto give_up = std::chrono::steady_clock::now() + 3s;
+  while (sent < burst.size() && std::chrono::steady_clock::now() < give_up) {
+    const ssize_t n = ::send(hoarder, burst.data() + sent, burst.size() - sent, MSG_DONTWAIT | MSG_NOSIGNAL);
+    if (n > 0) {
+      sent += static_cast<std::size_t>(n);
+    } else {
+      std::this_thread::sleep_for(10ms);
+    }
+  }
+  // Held back: far from every request was started.
+  EXPECT_LT(handler_.started().size(), 40000u);
+
+  TestClient other(port());
+  other.send(read_request(7, 1, 3, 1));
+  EXPECT_EQ(other.receive(11), one_register_answer(7, 1, 3));
+  other.close();
+
+  bool closed = false;
+  for (int wait = 0; wait < 1000 && !closed; ++wait) {
+    const auto stats = server_->stats();
+    closed = stats.open_connections == 0 && stats.idle_closed == 1;
+    std::this_thread::sleep_for(10ms);
+  }
+  EXPECT_TRUE(closed) << "the client taking no answers was not closed";
+  ::close(hoarder);
+}
+
 TEST_F(TcpServerTest, RequestTakingLongerThanTheIdleTimeoutIsStillAnswered) {
   handler_.delay_of = [](std::uint16_t) { return 400ms; };
   TcpServerOptions options;
