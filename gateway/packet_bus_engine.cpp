@@ -162,7 +162,6 @@ class PacketBusEngine::Impl {
   std::optional<Job> pop_job();
   void enqueue_internal(Job job);
   void kick();
-  void complete(Completion& done, BusResult result);
 
   // --- transactions (bus thread) ----------------------------------------------------------------
   void start_next();
@@ -424,7 +423,7 @@ void PacketBusEngine::Impl::submit(BusOp op, Priority priority, Completion done)
     return;
   }
   if (refusal == BusStatus::QueueFull) counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
-  complete(job.done, BusResult{refusal, 0, {}, refusal_detail(refusal, settings_)});
+  complete(settings_, job.done, BusResult{refusal, 0, {}, refusal_detail(refusal, settings_)});
 }
 
 std::optional<Job> PacketBusEngine::Impl::pop_job() {
@@ -465,8 +464,6 @@ void PacketBusEngine::Impl::kick() {
   asio::post(io_, [this] { start_next(); });
 }
 
-void PacketBusEngine::Impl::complete(Completion& done, BusResult result) { gateway::complete(settings_, done, std::move(result)); }
-
 // ==== transactions ==========================================================================
 
 bool PacketBusEngine::Impl::addressed_servo_offline(const Job& job) const {
@@ -482,7 +479,7 @@ void PacketBusEngine::Impl::start_next() {
       counters_.transactions.fetch_add(1, std::memory_order_relaxed);
       const auto detail = fmt::format("bus {}: servo {} is offline (it stopped answering; probed every {} ms)",
                                       settings_.name, job->servo_id, settings_.probe_period.count());
-      complete(job->done, BusResult{BusStatus::Timeout, 0, {}, detail});
+      complete(settings_, job->done, BusResult{BusStatus::Timeout, 0, {}, detail});
       continue;
     }
     active_.emplace(std::move(*job));
@@ -748,7 +745,7 @@ void PacketBusEngine::Impl::finish(BusStatus status, std::uint8_t servo_error, p
   if (active.job.reply == ReplyKind::SyncRead) {
     on_sync_read_finished(active);
   } else {
-    complete(active.job.done, BusResult{status, servo_error, std::move(data), std::move(detail)});
+    complete(settings_, active.job.done, BusResult{status, servo_error, std::move(data), std::move(detail)});
   }
   kick();
 }
@@ -859,9 +856,9 @@ void PacketBusEngine::Impl::port_lost(const std::string& reason) {
   const std::string detail = "bus " + settings_.name + ": " + reason;
   if (interrupted && interrupted->job.client) {
     counters_.transactions.fetch_add(1, std::memory_order_relaxed);
-    complete(interrupted->job.done, BusResult{BusStatus::BusDown, 0, {}, detail});
+    complete(settings_, interrupted->job.done, BusResult{BusStatus::BusDown, 0, {}, detail});
   }
-  for (auto& job : failed) complete(job.done, BusResult{BusStatus::BusDown, 0, {}, detail});
+  for (auto& job : failed) complete(settings_, job.done, BusResult{BusStatus::BusDown, 0, {}, detail});
   schedule_reopen();
 }
 
@@ -947,8 +944,8 @@ void PacketBusEngine::Impl::shutdown() {
   poll_timer_.cancel();
   reopen_timer_.cancel();
   const std::string detail = "bus " + settings_.name + ": the gateway is stopping";
-  if (interrupted && interrupted->job.client) complete(interrupted->job.done, BusResult{BusStatus::Cancelled, 0, {}, detail});
-  for (auto& job : cancelled) complete(job.done, BusResult{BusStatus::Cancelled, 0, {}, detail});
+  if (interrupted && interrupted->job.client) complete(settings_, interrupted->job.done, BusResult{BusStatus::Cancelled, 0, {}, detail});
+  for (auto& job : cancelled) complete(settings_, job.done, BusResult{BusStatus::Cancelled, 0, {}, detail});
   work_.reset();
   io_.stop();
 }

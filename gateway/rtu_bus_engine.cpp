@@ -497,7 +497,6 @@ class RtuBusEngine::Impl {
 
  private:
   Job make_client_job(BusOp&& op) const;
-  void complete(Completion& done, BusResult result);
 
   void run_thread();
   bool try_open();
@@ -638,10 +637,8 @@ void RtuBusEngine::Impl::submit(BusOp op, Priority priority, Completion done) {
     return;
   }
   if (refusal == BusStatus::QueueFull) counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
-  complete(job.done, BusResult{refusal, 0, {}, refusal_detail(refusal, settings_)});
+  complete(settings_, job.done, BusResult{refusal, 0, {}, refusal_detail(refusal, settings_)});
 }
-
-void RtuBusEngine::Impl::complete(Completion& done, BusResult result) { gateway::complete(settings_, done, std::move(result)); }
 
 void RtuBusEngine::Impl::fail_queued(BusStatus status, const std::string& detail) {
   std::vector<Job> failed;
@@ -653,7 +650,7 @@ void RtuBusEngine::Impl::fail_queued(BusStatus status, const std::string& detail
     }
     queued_ = 0;
   }
-  for (auto& job : failed) complete(job.done, BusResult{status, 0, {}, detail});
+  for (auto& job : failed) complete(settings_, job.done, BusResult{status, 0, {}, detail});
 }
 
 // ---- thread -----------------------------------------------------------------------------------
@@ -815,7 +812,7 @@ void RtuBusEngine::Impl::run_client_job(Job job) {
     result = execute(job);
   }
   counters_.transactions.fetch_add(1, std::memory_order_relaxed);
-  complete(job.done, std::move(result));
+  complete(settings_, job.done, std::move(result));
 }
 
 BusResult RtuBusEngine::Impl::execute(const Job& job) {
