@@ -250,7 +250,6 @@ void ModbusTrafficCounters::count_response(std::span<const std::uint8_t> pdu) {
   if (const auto code = protocol::tcp::exception_code_of(pdu)) exceptions_by_code_[*code].fetch_add(1, kRelaxed);
 }
 
-void ModbusTrafficCounters::count_denied_connection() { denied_connections_.fetch_add(1, kRelaxed); }
 
 ModbusTrafficSnapshot ModbusTrafficCounters::snapshot() const {
   ModbusTrafficSnapshot snapshot;
@@ -259,7 +258,6 @@ ModbusTrafficSnapshot ModbusTrafficCounters::snapshot() const {
     snapshot.exceptions_by_code[i] = exceptions_by_code_[i].load(kRelaxed);
   }
   snapshot.responses = responses_.load(kRelaxed);
-  snapshot.denied_connections = denied_connections_.load(kRelaxed);
   return snapshot;
 }
 
@@ -339,7 +337,7 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
   out.family(kRefused, MetricType::Counter,
              "Connections closed at once: over modbus_tcp.max_connections, or not in modbus_tcp.allow");
   out.sample(kRefused, {{"reason", "max_connections"}}, snapshot.tcp.refused);
-  out.sample(kRefused, {{"reason", "allow"}}, snapshot.traffic.denied_connections);
+  out.sample(kRefused, {{"reason", "allow"}}, snapshot.tcp.denied);
 
   render_requests(out, snapshot.traffic);
   constexpr std::string_view kResponses = "sms_gateway_modbus_responses_total";

@@ -31,7 +31,6 @@ struct ModbusTrafficSnapshot {
   std::array<std::uint64_t, 256> requests_by_function{};  // index: a request PDU's function code
   std::array<std::uint64_t, 256> exceptions_by_code{};    // index: an exception answer's code
   std::uint64_t responses = 0;                            // answers sent, normal and exception
-  std::uint64_t denied_connections = 0;                   // closed by the client allow-list
 };
 
 // Requests by function code and answers by exception code, counted by the Modbus TCP sessions
@@ -42,8 +41,6 @@ class ModbusTrafficCounters {
   void count_request(std::span<const std::uint8_t> pdu);
   // The answer PDU as sent; an exception answer (function | 0x80, code) also counts its code.
   void count_response(std::span<const std::uint8_t> pdu);
-  // A connection closed because its address is not in modbus_tcp.allow.
-  void count_denied_connection();
 
   ModbusTrafficSnapshot snapshot() const;
 
@@ -51,7 +48,6 @@ class ModbusTrafficCounters {
   std::array<std::atomic<std::uint64_t>, 256> requests_by_function_{};
   std::array<std::atomic<std::uint64_t>, 256> exceptions_by_code_{};
   std::atomic<std::uint64_t> responses_{0};
-  std::atomic<std::uint64_t> denied_connections_{0};
 };
 
 struct ServoMetrics {

@@ -167,7 +167,6 @@ class TcpServer::Impl : public SessionHost, public std::enable_shared_from_this<
       std::lock_guard lock(stats_mutex_);
       ++stats_.denied;
     }
-    if (options_.traffic != nullptr) options_.traffic->count_denied_connection();
     boost::system::error_code ignored;
     const auto peer = socket.remote_endpoint(ignored);
     const std::string address = peer.address().to_string();

@@ -73,8 +73,6 @@ class MetricsRender : public ::testing::Test {
     traffic_.count_response(pdu({0x90, 0x0B}));
     traffic_.count_response(pdu({0xC1, 0x01}));
     traffic_.count_response(pdu({0x83, 0x0C}));  // a code outside the standard table
-    traffic_.count_denied_connection();
-    traffic_.count_denied_connection();
   }
 
   MetricsSnapshot snapshot() const {
@@ -86,6 +84,7 @@ class MetricsRender : public ::testing::Test {
     snapshot.tcp = TcpServerStats{.open_connections = 3,
                                   .accepted = 40,
                                   .refused = 2,
+                                  .denied = 2,
                                   .requests = 7,
                                   .bad_headers = 1,
                                   .idle_closed = 5};
