@@ -9,7 +9,7 @@ packages=(
   libboost-dev libmodbus-dev libspdlog-dev libfmt-dev libyaml-cpp-dev
   libcli11-dev libgtest-dev libgmock-dev
   clang libclang-rt-14-dev
-  mbpoll socat python3-pymodbus python3-serial
+  mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio
 )
 
 missing=()

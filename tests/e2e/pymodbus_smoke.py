@@ -8,20 +8,9 @@ version (unit 255, input registers 0-2), and asks unit 99 (not configured) for e
 Prints one line per step; exits 0 only when every step gave what the contract says.
 """
 import sys
-import types
 
-# Debian's python3-pymodbus 3.0 imports serial_asyncio for its serial clients even when only TCP
-# is used, and only *recommends* python3-serial-asyncio. Without it, stand in an empty module:
-# this script never opens a serial port.
-try:
-    import serial_asyncio  # noqa: F401
-except ImportError:
-    stub = types.ModuleType("serial_asyncio")
-    stub.create_serial_connection = None
-    sys.modules["serial_asyncio"] = stub
-
-from pymodbus.client import ModbusTcpClient  # noqa: E402
-from pymodbus.pdu import ExceptionResponse  # noqa: E402
+from pymodbus.client import ModbusTcpClient
+from pymodbus.pdu import ExceptionResponse
 
 
 def main() -> int:
