@@ -187,6 +187,8 @@ class PacketBusEngine::Impl {
   // --- port ---------------------------------------------------------------------------------------
   Expected<Ok> open_port();
   void close_port();
+  std::vector<Job> take_client_jobs();
+  std::optional<Active> abandon_active();
   void port_lost(const std::string& reason);
   void schedule_reopen();
   void try_reopen();
@@ -824,29 +826,40 @@ void PacketBusEngine::Impl::close_port() {
   port_.close();
 }
 
+// Empties the queue and marks the bus down; returns the client jobs, which must be answered.
+// Poll and discovery work is dropped: it is rebuilt when the bus is back.
+std::vector<Job> PacketBusEngine::Impl::take_client_jobs() {
+  std::vector<Job> client_jobs;
+  std::lock_guard lock(queue_mutex_);
+  bus_up_.store(false);
+  for (auto& level : queue_) {
+    for (auto& job : level) {
+      if (job.client) client_jobs.push_back(std::move(job));
+    }
+    level.clear();
+  }
+  client_jobs_queued_ = 0;
+  return client_jobs;
+}
+
+// Forgets the transaction on the wire: its reply and its timer can no longer complete it.
+std::optional<PacketBusEngine::Impl::Active> PacketBusEngine::Impl::abandon_active() {
+  std::optional<Active> interrupted = std::move(active_);
+  active_.reset();
+  ++token_;
+  attempt_timer_.cancel();
+  poll_timer_.cancel();
+  return interrupted;
+}
+
 void PacketBusEngine::Impl::port_lost(const std::string& reason) {
   if (!port_.is_open()) return;
   spdlog::error("bus {}: {} — bus down; reopening every {} ms", settings_.name, reason, settings_.reopen_period.count());
   close_port();
   counters_.bus_down_events.fetch_add(1, std::memory_order_relaxed);
 
-  std::vector<Job> failed;
-  {
-    std::lock_guard lock(queue_mutex_);
-    bus_up_.store(false);
-    for (auto& level : queue_) {
-      for (auto& job : level) {
-        if (job.client) failed.push_back(std::move(job));
-      }
-      level.clear();  // poll and discovery work is rebuilt when the bus is back
-    }
-    client_jobs_queued_ = 0;
-  }
-  std::optional<Active> interrupted = std::move(active_);
-  active_.reset();
-  ++token_;
-  attempt_timer_.cancel();
-  poll_timer_.cancel();
+  std::vector<Job> failed = take_client_jobs();
+  std::optional<Active> interrupted = abandon_active();
   scheduler_.forget_all();
   cache_.set_all_offline();
   cycle_ = Cycle{};
@@ -925,23 +938,8 @@ void PacketBusEngine::Impl::stop() {
 
 void PacketBusEngine::Impl::shutdown() {
   close_port();
-  std::vector<Job> cancelled;
-  {
-    std::lock_guard lock(queue_mutex_);
-    bus_up_.store(false);
-    for (auto& level : queue_) {
-      for (auto& job : level) {
-        if (job.client) cancelled.push_back(std::move(job));
-      }
-      level.clear();
-    }
-    client_jobs_queued_ = 0;
-  }
-  std::optional<Active> interrupted = std::move(active_);
-  active_.reset();
-  ++token_;
-  attempt_timer_.cancel();
-  poll_timer_.cancel();
+  std::vector<Job> cancelled = take_client_jobs();
+  std::optional<Active> interrupted = abandon_active();
   reopen_timer_.cancel();
   const std::string detail = "bus " + settings_.name + ": the gateway is stopping";
   if (interrupted && interrupted->job.client) complete(settings_, interrupted->job.done, BusResult{BusStatus::Cancelled, 0, {}, detail});

@@ -93,15 +93,6 @@ char parity_letter(config::Parity parity) {
   return 'N';
 }
 
-detail::LineParity line_parity(config::Parity parity) {
-  switch (parity) {
-    case config::Parity::Even: return detail::LineParity::Even;
-    case config::Parity::Odd: return detail::LineParity::Odd;
-    case config::Parity::None: break;
-  }
-  return detail::LineParity::None;
-}
-
 std::string open_hint(int error) {
   switch (error) {
     case ENOENT:
@@ -185,7 +176,7 @@ Expected<Ok> RtuMaster::open() {
   (void)ioctl(fd, TIOCEXCL);
   // Every rate through termios2: libmodbus 3.1.6 would have set 9600 for 256000, 128000,
   // 56000, 14400 ... without a word (see the header).
-  if (const int error = detail::configure_raw_line(fd, serial.baud, line_parity(serial.parity), serial.stop_bits);
+  if (const int error = detail::configure_raw_line(fd, serial.baud, serial.parity, serial.stop_bits);
       error != 0) {
     return fail("cannot set " + where + ": " + std::strerror(error) + open_hint(error));
   }

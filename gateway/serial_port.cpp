@@ -16,15 +16,6 @@
 namespace sms::gateway {
 namespace {
 
-detail::LineParity line_parity(Parity parity) {
-  switch (parity) {
-    case Parity::Even: return detail::LineParity::Even;
-    case Parity::Odd: return detail::LineParity::Odd;
-    case Parity::None: break;
-  }
-  return detail::LineParity::None;
-}
-
 std::string errno_text(int error) { return std::strerror(error); }
 
 int poll_timeout_ms(std::chrono::nanoseconds timeout) {
@@ -90,7 +81,7 @@ Expected<Ok> SerialPort::open() {
   // transaction. Ptys and some drivers refuse it; that is not worth failing for.
   (void)::ioctl(fd, TIOCEXCL);
 
-  if (const int error = detail::configure_raw_line(fd, settings_.baud, line_parity(settings_.parity),
+  if (const int error = detail::configure_raw_line(fd, settings_.baud, settings_.parity,
                                                    settings_.stop_bits);
       error != 0) {
     ::close(fd);

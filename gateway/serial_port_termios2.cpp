@@ -6,9 +6,11 @@
 
 #include <cerrno>
 
+#include "config/config.h"
+
 namespace sms::gateway::detail {
 
-int configure_raw_line(int fd, std::uint32_t baud, LineParity parity, std::uint8_t stop_bits) {
+int configure_raw_line(int fd, std::uint32_t baud, config::Parity parity, std::uint8_t stop_bits) {
   termios2 settings{};
   if (ioctl(fd, TCGETS2, &settings) != 0) return errno;
   settings.c_iflag &= ~static_cast<tcflag_t>(IGNBRK | BRKINT | PARMRK | ISTRIP | INLCR | IGNCR | ICRNL | IXON |
@@ -17,9 +19,9 @@ int configure_raw_line(int fd, std::uint32_t baud, LineParity parity, std::uint8
   settings.c_lflag &= ~static_cast<tcflag_t>(ECHO | ECHONL | ICANON | ISIG | IEXTEN);
   settings.c_cflag &= ~static_cast<tcflag_t>(CSIZE | PARENB | PARODD | CSTOPB | CRTSCTS | CBAUD | (CBAUD << IBSHIFT));
   settings.c_cflag |= CS8 | CREAD | CLOCAL | BOTHER | (BOTHER << IBSHIFT);
-  if (parity != LineParity::None) {
+  if (parity != config::Parity::None) {
     settings.c_cflag |= PARENB;
-    if (parity == LineParity::Odd) settings.c_cflag |= PARODD;
+    if (parity == config::Parity::Odd) settings.c_cflag |= PARODD;
     // Drop characters with a parity error: the packet checksum then fails and the decoder
     // resynchronises, as for any other damaged frame.
     settings.c_iflag |= INPCK | IGNPAR;

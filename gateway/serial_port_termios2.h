@@ -4,13 +4,15 @@
 // <termios.h> declares, and the two cannot be included together.
 #include <cstdint>
 
-namespace sms::gateway::detail {
+namespace sms::config {
+enum class Parity : std::uint8_t;  // config/config.h; declared here to keep this header free of <termios.h> users
+}
 
-enum class LineParity : std::uint8_t { None, Even, Odd };
+namespace sms::gateway::detail {
 
 // Raw mode (no echo, no line editing, no flow control, no CR/LF mapping), 8 data bits,
 // receiver on, modem lines ignored, VMIN 1 / VTIME 0. Returns 0 or the errno of the ioctl.
-int configure_raw_line(int fd, std::uint32_t baud, LineParity parity, std::uint8_t stop_bits);
+int configure_raw_line(int fd, std::uint32_t baud, config::Parity parity, std::uint8_t stop_bits);
 
 // The output rate the driver holds now. Returns 0 or the errno of the ioctl.
 int read_line_speed(int fd, std::uint32_t& baud);

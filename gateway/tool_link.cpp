@@ -82,15 +82,6 @@ class QuietLine {
   std::chrono::steady_clock::time_point quiet_until_{};
 };
 
-detail::LineParity line_parity(config::Parity parity) {
-  switch (parity) {
-    case config::Parity::Even: return detail::LineParity::Even;
-    case config::Parity::Odd: return detail::LineParity::Odd;
-    case config::Parity::None: break;
-  }
-  return detail::LineParity::None;
-}
-
 SerialSettings serial_of(const LinkSettings& settings) {
   return SerialSettings{settings.device, settings.baud, settings.parity, settings.stop_bits};
 }
@@ -111,7 +102,7 @@ class PacketLink final : public ServoLink {
     settings_.baud = baud;
     if (!port_.is_open()) return Ok{};
     // On the open descriptor: a reopen can meet EBUSY while someone else holds the tty.
-    if (const int error = detail::configure_raw_line(port_.native_handle(), baud, line_parity(settings_.parity),
+    if (const int error = detail::configure_raw_line(port_.native_handle(), baud, settings_.parity,
                                                      settings_.stop_bits);
         error != 0) {
       return unexpected(fmt::format("cannot set {} to {} bit/s: {}", settings_.device, baud, std::strerror(error)));
