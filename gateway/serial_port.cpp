@@ -81,8 +81,7 @@ Expected<Ok> SerialPort::open() {
   // transaction. Ptys and some drivers refuse it; that is not worth failing for.
   (void)::ioctl(fd, TIOCEXCL);
 
-  if (const int error = detail::configure_raw_line(fd, settings_.baud, settings_.parity,
-                                                   settings_.stop_bits);
+  if (const int error = detail::configure_raw_line(fd, settings_.baud, settings_.parity, settings_.stop_bits);
       error != 0) {
     ::close(fd);
     return unexpected(describe_errno("cannot set raw " + std::to_string(settings_.baud) + " bit/s " +

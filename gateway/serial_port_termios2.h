@@ -5,7 +5,7 @@
 #include <cstdint>
 
 namespace sms::config {
-enum class Parity : std::uint8_t;  // config/config.h; declared here to keep this header free of <termios.h> users
+enum class Parity : std::uint8_t;  // defined in config/config.h; declared only, to keep this header light
 }
 
 namespace sms::gateway::detail {

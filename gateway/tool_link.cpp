@@ -102,8 +102,8 @@ class PacketLink final : public ServoLink {
     settings_.baud = baud;
     if (!port_.is_open()) return Ok{};
     // On the open descriptor: a reopen can meet EBUSY while someone else holds the tty.
-    if (const int error = detail::configure_raw_line(port_.native_handle(), baud, settings_.parity,
-                                                     settings_.stop_bits);
+    if (const int error =
+            detail::configure_raw_line(port_.native_handle(), baud, settings_.parity, settings_.stop_bits);
         error != 0) {
       return unexpected(fmt::format("cannot set {} to {} bit/s: {}", settings_.device, baud, std::strerror(error)));
     }
