@@ -42,7 +42,7 @@ class SessionHost {
   ~SessionHost() = default;
 };
 
-class MbapSession : public std::enable_shared_from_this<MbapSession>, public Reply::Target {
+class MbapSession final : public std::enable_shared_from_this<MbapSession>, public Reply::Target {
  public:
   MbapSession(boost::asio::ip::tcp::socket socket, std::shared_ptr<SessionHost> host);
 

@@ -21,7 +21,7 @@ namespace sms::gateway {
 namespace asio = boost::asio;
 using asio::ip::tcp;
 
-class TcpServer::Impl : public SessionHost, public std::enable_shared_from_this<TcpServer::Impl> {
+class TcpServer::Impl final : public SessionHost, public std::enable_shared_from_this<TcpServer::Impl> {
  public:
   Impl(asio::io_context& io, TcpServerOptions options, RequestHandler& handler)
       : io_(io),

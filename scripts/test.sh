@@ -1,13 +1,21 @@
 #!/usr/bin/env bash
-# The one command that runs every test: installs dependencies, builds with
+# The one command that runs every test: installs dependencies, builds with clang and
 # AddressSanitizer + UndefinedBehaviorSanitizer into build-asan/, runs ctest; then builds the
 # libFuzzer targets with clang into build-fuzz/ and runs each briefly (SMS_SKIP_FUZZ=1 skips them;
 # scripts/fuzz.sh is the longer run).
+# Why clang here: it compiles this code with the sanitizers about twice as fast as GCC 12 (the
+# build was more than half of the command's time) and its -Wall finds other mistakes; GCC 12 builds
+# the release programs (run command, container image) with the same -Werror flags.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install-deps.sh
 jobs=$(nproc)
-cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=Debug -DSMS_SANITIZE=ON -DSMS_BUILD_BENCH=OFF >/dev/null
+# A build-asan/ configured with another compiler is configured anew (CMake cannot switch in place).
+if [ -f build-asan/CMakeCache.txt ] && ! grep -q '^CMAKE_CXX_COMPILER:[A-Z]*=.*clang++' build-asan/CMakeCache.txt; then
+  rm -rf build-asan
+fi
+cmake -S . -B build-asan -G Ninja -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug -DSMS_SANITIZE=ON \
+  -DSMS_BUILD_BENCH=OFF >/dev/null
 cmake --build build-asan -j "$jobs"
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
 export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
