@@ -118,6 +118,12 @@ modbus_map::ByteOrder effective_byte_order(const ServoConfig& servo) {
   return modbus_map::table(*servo.table).default_byte_order;
 }
 
+modbus_map::StopAction effective_safe_stop(const ServoConfig& servo) {
+  if (!servo.table) return modbus_map::StopAction::None;
+  if (servo.safe_stop) return *servo.safe_stop;
+  return modbus_map::motion_spec(*servo.table).default_stop;
+}
+
 const BusConfig* find_bus(const Config& config, std::string_view name) {
   for (const auto& bus : config.buses) {
     if (bus.name == name) return &bus;
@@ -140,5 +146,7 @@ std::string_view to_string(LogFormat format) { return detail::name_of(detail::kL
 std::string_view to_string(modbus_map::ByteOrder order) {
   return detail::name_of(detail::kByteOrderNames, order);
 }
+std::string_view to_string(WatchdogFeed feed) { return detail::name_of(detail::kWatchdogFeedNames, feed); }
+std::string_view to_string(StartAction action) { return detail::name_of(detail::kStartActionNames, action); }
 
 }  // namespace sms::config

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "modbus_map/control_table.h"
+#include "modbus_map/motion.h"
 #include "protocol/bus_protocol.h"
 #include "protocol/expected.h"
 
@@ -93,6 +94,29 @@ struct ModbusRtuOptions {
   bool operator==(const ModbusRtuOptions&) const = default;
 };
 
+// Motion safety (README "Safety", docs/DECISIONS.md "Safety").
+// What feeds a bus's watchdog: any Modbus write to a unit on the bus (servo, passthrough, a
+// sync group member, its heartbeat register), or only a changed value in its heartbeat
+// register (gateway unit holding register 1000 + bus index), as drives count a PLC's toggle.
+enum class WatchdogFeed : std::uint8_t { AnyWrite, HeartbeatRegister };
+// What the gateway does to a bus's servos when it starts: leave them as found, hold where they
+// are, or switch their torque off.
+enum class StartAction : std::uint8_t { Keep, Hold, TorqueOff };
+
+inline constexpr std::int64_t kMinWatchdogTimeoutMs = 10;
+inline constexpr std::int64_t kMaxWatchdogTimeoutMs = 600000;
+// Gateway unit holding register of bus n's heartbeat (feed: heartbeat_register).
+inline constexpr std::uint16_t kHeartbeatRegisterBase = 1000;
+
+struct WatchdogConfig {
+  std::chrono::milliseconds timeout{200};
+  WatchdogFeed feed = WatchdogFeed::AnyWrite;
+  // Overrides every servo's safe_stop for a trip of this watchdog; empty: each servo's own.
+  std::optional<modbus_map::StopAction> action;
+
+  bool operator==(const WatchdogConfig&) const = default;
+};
+
 struct BusConfig {
   std::string name;
   std::string device;                   // /dev/ttyUSB0, /dev/serial/by-id/..., a pty path
@@ -109,6 +133,10 @@ struct BusConfig {
   std::chrono::milliseconds reopen_period{1000};         // a missing or lost port is retried this often
   PollSelection poll;
   ModbusRtuOptions modbus_rtu;          // used only when protocol is ModbusRtu
+  std::optional<WatchdogConfig> watchdog;  // empty: no watchdog on this bus
+  StartAction on_start = StartAction::Keep;
+  // What SIGTERM / SIGINT do to the bus's servos before the gateway lets go of the port.
+  modbus_map::StopAction on_stop = modbus_map::StopAction::Hold;
 
   bool operator==(const BusConfig&) const = default;
 };
@@ -133,6 +161,9 @@ struct ServoConfig {
   std::optional<std::uint8_t> response_level;
   bool read_only = false;               // client writes refused (0x02)
   std::string name;                     // label for logs and dumps, may be empty
+  // What a watchdog trip or the e-stop does to this servo; empty: the table's default
+  // (modbus_map::motion_spec(table).default_stop). Passthrough units are never stopped.
+  std::optional<modbus_map::StopAction> safe_stop;
 
   bool passthrough() const { return !table.has_value(); }
   bool operator==(const ServoConfig&) const = default;
@@ -187,5 +218,9 @@ std::string_view to_string(Profile profile);
 std::string_view to_string(LogLevel level);
 std::string_view to_string(LogFormat format);
 std::string_view to_string(modbus_map::ByteOrder order);  // "low-first", "high-first"
+std::string_view to_string(WatchdogFeed feed);
+std::string_view to_string(StartAction action);
+// The safe stop a servo gets: its own, else its table's default; None for passthrough units.
+modbus_map::StopAction effective_safe_stop(const ServoConfig& servo);
 
 }  // namespace sms::config

@@ -91,6 +91,23 @@ void emit_bus(YAML::Emitter& out, const BusConfig& bus) {
     key(out, "byte_timeout_ms");
     out << bus.modbus_rtu.byte_timeout.count();
   }
+  if (bus.watchdog) {
+    key(out, "watchdog");
+    out << YAML::Flow << YAML::BeginMap;
+    key(out, "timeout_ms");
+    out << bus.watchdog->timeout.count();
+    key(out, "feed");
+    out << std::string(to_string(bus.watchdog->feed));
+    if (bus.watchdog->action) {
+      key(out, "action");
+      out << std::string(modbus_map::to_string(*bus.watchdog->action));
+    }
+    out << YAML::EndMap;
+  }
+  key(out, "on_start");
+  out << std::string(to_string(bus.on_start));
+  key(out, "on_stop");
+  out << std::string(modbus_map::to_string(bus.on_stop));
   out << YAML::EndMap;
 }
 
@@ -121,6 +138,10 @@ void emit_servo(YAML::Emitter& out, const ServoConfig& servo) {
   if (!servo.name.empty()) {
     key(out, "name");
     quoted(out, servo.name);
+  }
+  if (servo.safe_stop) {
+    key(out, "safe_stop");
+    out << std::string(modbus_map::to_string(*servo.safe_stop));
   }
   out << YAML::EndMap;
 }

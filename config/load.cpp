@@ -32,15 +32,18 @@ using protocol::BusProtocol;
 constexpr std::array<std::string_view, 5> kTopKeys{"modbus_tcp", "buses", "servos", "sync_groups", "logging"};
 constexpr std::array<std::string_view, 6> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth", "allow"};
-constexpr std::array<std::string_view, 17> kBusKeys{
+constexpr std::array<std::string_view, 20> kBusKeys{
     "name",        "device",         "protocol",   "baud",  "parity", "stop_bits",    "response_timeout_ms",
     "retries",     "poll_period_ms", "offline_probe_period_ms",      "reopen_period_ms",
-    "poll_fields", "poll_range",     "rs485",      "rts",   "rts_delay_us",           "byte_timeout_ms"};
+    "poll_fields", "poll_range",     "rs485",      "rts",   "rts_delay_us",           "byte_timeout_ms",
+    "watchdog",    "on_start",       "on_stop"};
+constexpr std::array<std::string_view, 3> kWatchdogKeys{"timeout_ms", "feed", "action"};
 // Keys of kBusKeys that only a modbus-rtu bus takes.
 constexpr std::array<std::string_view, 4> kModbusRtuOnlyKeys{"rs485", "rts", "rts_delay_us", "byte_timeout_ms"};
 constexpr std::array<std::string_view, 2> kPollRangeKeys{"start", "count"};
-constexpr std::array<std::string_view, 9> kServoKeys{"unit",       "bus",           "id",        "table", "profile",
-                                                     "byte_order", "response_level", "read_only", "name"};
+constexpr std::array<std::string_view, 10> kServoKeys{"unit",       "bus",           "id",        "table", "profile",
+                                                      "byte_order", "response_level", "read_only", "name",
+                                                      "safe_stop"};
 constexpr std::array<std::string_view, 4> kSyncGroupKeys{"name", "field", "members", "holding_register_start"};
 constexpr std::array<std::string_view, 3> kLoggingKeys{"level", "format", "metrics_listen"};
 
@@ -603,6 +606,18 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
   if (const auto v = keys.find("byte_timeout_ms")) {
     bus.modbus_rtu.byte_timeout = duration<std::chrono::milliseconds>(*v, 1, 10000);
   }
+
+  if (const auto v = keys.find("watchdog")) {
+    const MapReader watchdog_keys(*this, *v, kWatchdogKeys);
+    WatchdogConfig watchdog;
+    watchdog.timeout = duration<std::chrono::milliseconds>(watchdog_keys.require("timeout_ms"), kMinWatchdogTimeoutMs,
+                                                            kMaxWatchdogTimeoutMs);
+    if (const auto feed = watchdog_keys.find("feed")) watchdog.feed = choice(*feed, detail::kWatchdogFeedNames);
+    if (const auto action = watchdog_keys.find("action")) watchdog.action = choice(*action, detail::kStopActionNames);
+    bus.watchdog = watchdog;
+  }
+  if (const auto v = keys.find("on_start")) bus.on_start = choice(*v, detail::kStartActionNames);
+  if (const auto v = keys.find("on_stop")) bus.on_stop = choice(*v, detail::kStopActionNames);
   return bus;
 }
 
@@ -743,6 +758,13 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
   }
 
   if (const auto v = keys.find("read_only")) servo.read_only = boolean(*v);
+  if (const auto v = keys.find("safe_stop")) {
+    if (!servo.table) {
+      fail(keys.key_mark("safe_stop"), value.path + ".safe_stop: a passthrough unit has no table the gateway "
+                                                    "could stop it with; remove the key");
+    }
+    servo.safe_stop = choice(*v, detail::kStopActionNames);
+  }
   if (const auto v = keys.find("name")) servo.name = string(*v);
   return servo;
 }
@@ -807,6 +829,14 @@ void Loader::parse_sync_groups(const Value& value, Config& config) {
                              std::to_string(other_first) + ".." + std::to_string(other_last) + ", " +
                              place(group_start_marks_[i]) + ")");
       }
+    }
+    // The heartbeat registers (README "Safety") are the gateway unit's too.
+    const std::size_t heartbeat_last = kHeartbeatRegisterBase + config.buses.size() - 1;
+    if (!config.buses.empty() && first <= heartbeat_last && kHeartbeatRegisterBase <= last) {
+      fail(start_mark, item.path + ".holding_register_start: registers " + std::to_string(first) + ".." +
+                           std::to_string(last) + " overlap the buses' watchdog heartbeat registers " +
+                           std::to_string(kHeartbeatRegisterBase) + ".." + std::to_string(heartbeat_last) +
+                           " (1000 + bus index); move the group");
     }
     config.sync_groups.push_back(std::move(group));
     group_start_marks_.push_back(start_mark);

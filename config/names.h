@@ -53,6 +53,23 @@ inline constexpr std::array<Named<modbus_map::ByteOrder>, 2> kByteOrderNames{{
     {"high-first", modbus_map::ByteOrder::HighFirst},
 }};
 
+inline constexpr std::array<Named<WatchdogFeed>, 2> kWatchdogFeedNames{{
+    {"any_write", WatchdogFeed::AnyWrite},
+    {"heartbeat_register", WatchdogFeed::HeartbeatRegister},
+}};
+
+inline constexpr std::array<Named<StartAction>, 3> kStartActionNames{{
+    {"keep", StartAction::Keep},
+    {"hold", StartAction::Hold},
+    {"torque_off", StartAction::TorqueOff},
+}};
+
+inline constexpr std::array<Named<modbus_map::StopAction>, 3> kStopActionNames{{
+    {"hold", modbus_map::StopAction::Hold},
+    {"torque_off", modbus_map::StopAction::TorqueOff},
+    {"none", modbus_map::StopAction::None},
+}};
+
 template <typename E, std::size_t N>
 constexpr std::string_view name_of(const std::array<Named<E>, N>& names, E value) {
   for (const auto& entry : names) {

@@ -21,7 +21,16 @@ namespace sms::gateway {
 using protocol::Bytes;
 
 // Lower value runs first (MODBUS_MAP.md: client writes, then client live reads, then polling).
-enum class Priority : std::uint8_t { ClientWrite = 0, ClientRead = 1, Poll = 2 };
+// Safety (the gateway's own safe stops, README "Safety") goes before everything and is not
+// bounded by the queue depth: a full queue must not keep a motor from stopping.
+enum class Priority : std::uint8_t { Safety = 0, ClientWrite = 1, ClientRead = 2, Poll = 3 };
+inline constexpr std::size_t kPriorityCount = 4;
+
+// A write that can set a motor moving carries the safety epoch of its bus at the time the
+// gateway admitted it (gateway/safety.h MotionGate); the engine refuses it (ServoRefused) when a
+// trip or the e-stop has changed the epoch since, so nothing queued before a stop runs after it.
+// 0: not a motion write.
+using MotionEpoch = std::uint64_t;
 
 // Addresses are bus addresses: bytes on packet buses, registers on modbus-rtu buses
 // (where `data` holds registers high byte first).
@@ -36,12 +45,16 @@ struct WriteOp {
   Bytes data;
   bool staged = false;        // REG WRITE (packet protocols): runs on ACTION
   bool expect_reply = true;   // false when the servo's response level says it does not answer writes
+  MotionEpoch motion_epoch = 0;
 };
-struct ActionOp {};           // broadcast ACTION: runs every staged write on the bus
+struct ActionOp {             // broadcast ACTION: runs every staged write on the bus
+  MotionEpoch motion_epoch = 0;
+};
 struct SyncWriteOp {          // one broadcast SYNC WRITE frame, no reply
   std::uint16_t address = 0;
   std::uint8_t length = 0;
   std::vector<protocol::SyncWriteEntry> entries;
+  MotionEpoch motion_epoch = 0;
 };
 struct PingOp {
   std::uint8_t servo_id = 0;
@@ -49,8 +62,12 @@ struct PingOp {
 struct RawPduOp {             // modbus-rtu passthrough: forward a PDU as it is
   std::uint8_t slave = 0;     // 0 = broadcast, no reply awaited
   Bytes pdu;
+  MotionEpoch motion_epoch = 0;
 };
 using BusOp = std::variant<ReadOp, WriteOp, ActionOp, SyncWriteOp, PingOp, RawPduOp>;
+
+// The op's motion epoch; 0 for reads and pings.
+MotionEpoch motion_epoch_of(const BusOp& op);
 
 enum class BusStatus : std::uint8_t {
   Ok,

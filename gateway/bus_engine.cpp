@@ -23,11 +23,30 @@ std::string_view to_string(BusStatus status) {
   return "?";
 }
 
-BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth) {
+BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth, Priority priority) {
   if (!accepting) return BusStatus::Cancelled;
   if (!bus_up) return BusStatus::BusDown;
-  if (queued >= queue_depth) return BusStatus::QueueFull;
+  if (queued >= queue_depth && priority != Priority::Safety) return BusStatus::QueueFull;
   return BusStatus::Ok;
+}
+
+MotionEpoch motion_epoch_of(const BusOp& op) {
+  return std::visit(
+      [](const auto& o) -> MotionEpoch {
+        if constexpr (requires { o.motion_epoch; }) {
+          return o.motion_epoch;
+        } else {
+          return 0;
+        }
+      },
+      op);
+}
+
+std::optional<BusResult> motion_refusal(const BusSettings& settings, MotionEpoch admitted) {
+  if (admitted == 0 || !settings.motion_gate || settings.motion_gate->admits(admitted)) return std::nullopt;
+  return BusResult{BusStatus::ServoRefused, 0, {},
+                   "bus " + settings.name + ": motion write dropped: a watchdog trip or the e-stop stopped the bus "
+                   "after it was accepted (README \"Safety\")"};
 }
 
 std::string refusal_detail(BusStatus refusal, const BusSettings& settings) {

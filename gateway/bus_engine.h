@@ -21,6 +21,7 @@
 #include "config/config.h"
 #include "gateway/bus.h"
 #include "gateway/bus_counters.h"
+#include "gateway/motion_gate.h"
 #include "gateway/poll_cache.h"
 #include "gateway/serial_port.h"
 #include "modbus_map/control_table.h"
@@ -51,6 +52,8 @@ struct BusSettings {
   bool discover = true;                          // PING and identity READs before polling starts
   bool poll = true;                              // cyclic polling into the cache (off: live operations only)
   std::vector<ServoSettings> servos;
+  // The safety rules' gate for this bus's motion writes (README "Safety"); empty: none.
+  std::shared_ptr<const MotionGate> motion_gate;
 };
 
 class BusEngine {
@@ -79,7 +82,12 @@ class BusEngine {
 // What both engines do the same way around their queues.
 // Whether a bus takes a client operation now: Ok, or Cancelled (the engine is not running),
 // BusDown (the port is not open) or QueueFull (`queued` of `queue_depth` slots taken).
-BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth);
+// Safety work is never QueueFull: a full queue must not keep a motor from stopping.
+BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth,
+                    Priority priority = Priority::ClientWrite);
+// Whether a job may go on the wire now: nullopt, or the refusal of a motion write that a trip or
+// the e-stop overtook while it was queued (ServoRefused -> 0x04, with the reason).
+std::optional<BusResult> motion_refusal(const BusSettings& settings, MotionEpoch admitted);
 // A refusal's text for logs and answers: "bus arm: 64 operations already queued".
 std::string refusal_detail(BusStatus refusal, const BusSettings& settings);
 // Runs `done` (if set) with `result`; a handler that throws is logged, never let loose on the

@@ -4,6 +4,7 @@
 
 #include "config/load.h"
 #include "gateway/metrics_server.h"
+#include "gateway/safety.h"
 #include "gateway/tcp_serving.h"
 #include "gateway/unit_router.h"
 #include "modbus_map/register_map.h"
@@ -78,6 +79,8 @@ config::Config simulated_config(const std::string& device, const config::HostPor
                      "    device: \"" + device + "\"\n"
                      "    protocol: feetech\n"
                      "    baud: 1000000\n"
+                     // A demonstration that moves motors: its watchdog is armed (README "Safety").
+                     "    watchdog: {timeout_ms: " + std::to_string(kSimulateWatchdog.count()) + ", feed: any_write}\n"
                      "servos:\n";
   for (int id = 1; id <= 6; ++id) {
     yaml += "  - {unit: " + std::to_string(id) + ", bus: sim, id: " + std::to_string(id) + ", table: sts}\n";
@@ -100,8 +103,11 @@ class Gateway::Impl {
     if (started_) throw std::logic_error("Gateway::start called twice");
     started_ = true;
     for (std::size_t i = 0; i < config_.buses.size(); ++i) {
+      gates_.push_back(std::make_shared<MotionGate>());
       try {
-        engines_.push_back(make_bus_engine(bus_settings_for(config_, i), config_.buses[i].modbus_rtu));
+        BusSettings settings = bus_settings_for(config_, i);
+        settings.motion_gate = gates_.back();
+        engines_.push_back(make_bus_engine(std::move(settings), config_.buses[i].modbus_rtu));
       } catch (const std::invalid_argument& error) {
         throw std::runtime_error("bus '" + config_.buses[i].name + "' (" +
                                  std::string(protocol::to_string(config_.buses[i].protocol)) +
@@ -110,8 +116,9 @@ class Gateway::Impl {
     }
     std::vector<BusEngine*> engines;
     for (const auto& engine : engines_) engines.push_back(engine.get());
-    router_ = std::make_unique<UnitRouter>(config_, engines,
-                                           [this](std::function<void()> work) { serving_.post(std::move(work)); });
+    safety_ = std::make_unique<SafetySupervisor>(config_, engines, gates_);
+    router_ = std::make_unique<UnitRouter>(
+        config_, engines, [this](std::function<void()> work) { serving_.post(std::move(work)); }, *safety_);
 
     TcpServerOptions options;
     options.host = config_.modbus_tcp.listen.host;
@@ -129,6 +136,7 @@ class Gateway::Impl {
       metrics_server_->start();
     }
     for (const auto& engine : engines_) engine->start();
+    safety_->start();
     serving_.run();
   }
 
@@ -146,6 +154,8 @@ class Gateway::Impl {
     // Monitoring goes first: it reads the buses, which stop below.
     if (metrics_server_) metrics_server_->stop();
     serving_.drain(grace);
+    // The servos get their on_stop action while the buses still run (README "Safety").
+    safety_->stop_for_shutdown(kOnStopBound);
     for (const auto& engine : engines_) engine->stop();
     serving_.stop();
   }
@@ -159,7 +169,11 @@ class Gateway::Impl {
   const SteadyClock::time_point started_at_ = SteadyClock::now();
   ModbusTrafficCounters traffic_;
   std::unique_ptr<MetricsServer> metrics_server_;
+  // How long SIGTERM waits for the on_stop frames before it lets go of the buses regardless.
+  static constexpr std::chrono::milliseconds kOnStopBound{2000};
+  std::vector<std::shared_ptr<MotionGate>> gates_;
   std::vector<std::unique_ptr<BusEngine>> engines_;
+  std::unique_ptr<SafetySupervisor> safety_;  // before the router, which holds a reference
   std::unique_ptr<UnitRouter> router_;
   TcpServing serving_;  // last: destroyed first, so no connection outlives the router
   bool started_ = false;

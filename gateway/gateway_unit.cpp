@@ -8,6 +8,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/exceptions.h"
+#include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
 
 namespace sms::gateway {
@@ -69,8 +70,12 @@ BusFacts bus_facts(const BusEngine& engine) {
 }
 
 GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> engines, PostFn post,
-                         std::chrono::steady_clock::time_point started)
-    : engines_(std::move(engines)), servo_count_(config.servos.size()), post_(std::move(post)), started_(started) {
+                         SafetySupervisor& safety, std::chrono::steady_clock::time_point started)
+    : engines_(std::move(engines)),
+      servo_count_(config.servos.size()),
+      post_(std::move(post)),
+      safety_(safety),
+      started_(started) {
   for (const auto& group_config : config.sync_groups) {
     SyncGroup group{group_config.name, group_config.holding_register_start, {}};
     for (const std::uint8_t unit : group_config.members) {
@@ -113,12 +118,29 @@ std::optional<std::vector<std::uint16_t>> GatewayUnit::input_registers(std::uint
   put_words(image, layout::kUptime, 2, static_cast<std::uint64_t>(uptime.count()));
   image[layout::kBusCount] = saturate16(engines_.size());
   image[layout::kServoCount] = saturate16(servo_count_);
+  const SafetyFacts safety = safety_.facts();
+  image[layout::kEStopLatched] = safety.estop_latched ? 1 : 0;
+  put_words(image, layout::kEStopCount, 2, safety.estops);
   for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
     const std::size_t block = layout::kFirstBusBlock + layout::kBusBlockSize * bus;
     // Only the blocks the request touches are worth the counters' atomics.
     if (block >= std::size_t{address} + count || block + layout::kBusBlockSize <= address) continue;
     const BusFacts facts = bus_facts(*engines_[bus]);
     for (const auto& entry : kBusFactRegisters) put_words(image, block + entry.offset, entry.words, entry.value(facts));
+    if (bus < safety.buses.size()) {
+      const BusSafetyFacts& watchdog = safety.buses[bus];
+      const std::size_t at = block + layout::kWatchdogState;
+      image[at] = static_cast<std::uint16_t>(watchdog.state);
+      image[at + 1] = watchdog.since_feed ? saturate16(static_cast<std::uint64_t>(std::max<std::int64_t>(
+                                                watchdog.since_feed->count(), 0)))
+                                          : std::uint16_t{0xFFFF};
+      put_words(image, at + 2, 2, watchdog.trips);
+      image[at + 4] = saturate16(static_cast<std::uint64_t>(watchdog.timeout.count()));
+      image[at + 5] = static_cast<std::uint16_t>(watchdog.last_cause);
+      put_words(image, at + 6, 2,
+                watchdog.last_stop_latency ? static_cast<std::uint64_t>(watchdog.last_stop_latency->count()) : 0);
+      image[at + 8] = watchdog.motion_blocked ? 1 : 0;
+    }
   }
   return std::vector<std::uint16_t>(image.begin() + address, image.begin() + address + count);
 }
@@ -130,25 +152,57 @@ void GatewayUnit::handle(const Request& request, const Reply& reply) {
                      const auto values = input_registers(read.address, read.count);
                      reply.send(values ? registers_response(read.function, *values)
                                        : exception_response(read.function, Fault::BadAddress));
+                   } else if (heartbeat_range(read.address, read.count)) {
+                     read_heartbeats(read.function, read.address, read.count, reply);
                    } else {
                      read_sync_registers(read.function, read.address, read.count, reply);
                    }
                  },
                  [&](const ReadBitsRequest& read) {
-                   // Coil 0 reads 0: ACTION is an event, not a state. No discrete inputs here.
-                   if (read.function == fc::kReadCoils && read.address == layout::kActionCoil && read.count == 1) {
-                     reply.send(bits_response(read.function, {false}));
-                   } else {
+                   const bool coils_read = read.function == fc::kReadCoils;
+                   const std::uint32_t end = std::uint32_t{read.address} + read.count;
+                   if (end > (coils_read ? layout::kCoilCount : layout::kDiscreteInputCount)) {
                      reply.send(exception_response(read.function, Fault::BadAddress));
+                     return;
                    }
+                   std::vector<bool> bits;
+                   if (coils_read) {
+                     bits = coils();
+                   } else {
+                     const SafetyFacts facts = safety_.facts();
+                     const bool blocked = std::any_of(facts.buses.begin(), facts.buses.end(),
+                                                      [](const BusSafetyFacts& b) { return b.motion_blocked; });
+                     bits = {facts.estop_latched, safety_.any_tripped(), blocked};
+                   }
+                   reply.send(bits_response(read.function, std::vector<bool>(bits.begin() + read.address,
+                                                                             bits.begin() + end)));
                  },
-                 [&](const WriteBitsRequest& write) { write_action_coil(write, reply); },
+                 [&](const WriteBitsRequest& write) { write_coil(write, reply); },
                  [&](const WriteRegistersRequest& write) {
-                   write_sync_registers(write, reply, [write](const Reply& r) { r.send(write_response(write)); });
+                   auto answer = [write](const Reply& r) { r.send(write_response(write)); };
+                   if (heartbeat_range(write.address, static_cast<std::uint16_t>(write.values.size()))) {
+                     write_heartbeats(write);
+                     reply.send(write_response(write));
+                     return;
+                   }
+                   write_sync_registers(write, reply, answer);
                  },
                  [&](const ReadWriteRegistersRequest& both) {
+                   if (heartbeat_range(both.write.address, static_cast<std::uint16_t>(both.write.values.size()))) {
+                     write_heartbeats(both.write);
+                     if (heartbeat_range(both.read.address, both.read.count)) {
+                       read_heartbeats(both.read.function, both.read.address, both.read.count, reply);
+                     } else {
+                       read_sync_registers(both.read.function, both.read.address, both.read.count, reply);
+                     }
+                     return;
+                   }
                    write_sync_registers(both.write, reply, [this, read = both.read](const Reply& r) {
-                     read_sync_registers(read.function, read.address, read.count, r);
+                     if (heartbeat_range(read.address, read.count)) {
+                       read_heartbeats(read.function, read.address, read.count, r);
+                     } else {
+                       read_sync_registers(read.function, read.address, read.count, r);
+                     }
                    });
                  },
              },
@@ -247,6 +301,39 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     }
     std::get<SyncWriteOp>(frame->op).entries.push_back(protocol::SyncWriteEntry{member->servo_id, std::move(*bytes)});
   }
+  // The safety rules per bus of the group: every write feeds, a motion field needs admission.
+  std::vector<MotionEpoch> epochs(engines_.size(), 0);
+  std::vector<bool> touched(engines_.size(), false);
+  for (const Frame& frame : frames) touched[frame.bus] = true;
+  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+    if (!touched[bus]) continue;
+    safety_.feed_write(bus);
+  }
+  std::vector<const SyncMember*> motion_member(engines_.size(), nullptr);
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+    if (modbus_map::is_motion_field(modbus_map::motion_spec(member->map.servo_table().id), member->field->name)) {
+      motion_member[member->bus] = member;
+    }
+  }
+  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+    if (motion_member[bus] == nullptr) continue;
+    auto admitted = safety_.admit_motion(bus);
+    if (!admitted) {
+      refusal_log_.refused("gateway unit sync group (" + std::string(motion_member[bus]->field->name) + ")",
+                           request.function, admitted.error());
+      reply.send(exception_response(request.function, Fault::ServoRefused));
+      return;
+    }
+    epochs[bus] = *admitted;
+  }
+  for (Frame& frame : frames) {
+    std::visit(
+        [&](auto& op) {
+          if constexpr (requires { op.motion_epoch; }) op.motion_epoch = epochs[frame.bus];
+        },
+        frame.op);
+  }
   auto join = BusJoin::create(frames.size(), post_,
                               [function = request.function, reply, after = std::move(after)](std::vector<BusResult> results) {
                                 if (const BusResult* failure = BusJoin::first_failure(results)) {
@@ -261,11 +348,74 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   }
 }
 
-void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply& reply) {
-  if (request.address != layout::kActionCoil || request.values.size() != 1) {
+std::vector<bool> GatewayUnit::coils() const {
+  // Coil 0 reads 0: ACTION is an event, not a state.
+  return {false, safety_.estop_latched(), safety_.any_tripped()};
+}
+
+bool GatewayUnit::heartbeat_range(std::uint16_t address, std::uint16_t count) const {
+  return address >= config::kHeartbeatRegisterBase && count >= 1 &&
+         std::size_t{address} + count <= config::kHeartbeatRegisterBase + engines_.size();
+}
+
+void GatewayUnit::read_heartbeats(std::uint8_t function, std::uint16_t address, std::uint16_t count,
+                                  const Reply& reply) const {
+  std::vector<std::uint16_t> values;
+  for (std::uint16_t i = 0; i < count; ++i) {
+    values.push_back(safety_.heartbeat_value(address - config::kHeartbeatRegisterBase + i).value_or(0));
+  }
+  reply.send(registers_response(function, values));
+}
+
+void GatewayUnit::write_heartbeats(const WriteRegistersRequest& request) {
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    safety_.feed_heartbeat(request.address - config::kHeartbeatRegisterBase + i, request.values[i]);
+  }
+}
+
+void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply) {
+  if (request.values.size() != 1) {  // each coil is a command of its own: one per request
     reply.send(exception_response(request.function, Fault::BadAddress));
     return;
   }
+  switch (request.address) {
+    case layout::kActionCoil:
+      write_action_coil(request, reply);
+      return;
+    case layout::kEStopCoil:
+      write_estop_coil(request, reply);
+      return;
+    case layout::kWatchdogCoil:
+      if (request.values[0]) {  // a trip comes from silence, not from a write
+        reply.send(exception_response(request.function, Fault::BadValue));
+        return;
+      }
+      safety_.rearm_watchdogs();
+      reply.send(write_response(request));
+      return;
+    default:
+      reply.send(exception_response(request.function, Fault::BadAddress));
+  }
+}
+
+void GatewayUnit::write_estop_coil(const WriteBitsRequest& request, const Reply& reply) {
+  if (!request.values[0]) {
+    safety_.reset_estop();
+    reply.send(write_response(request));
+    return;
+  }
+  // Answered once every bus has its stop frames on the wire; the latch holds either way.
+  safety_.estop(post_, [request, reply](bool ok) {
+    if (!ok) {
+      spdlog::error("gateway unit: e-stop latched, but a bus could not take its stop frames (see above)");
+      reply.send(exception_response(request.function, Fault::ServoRefused));
+      return;
+    }
+    reply.send(write_response(request));
+  });
+}
+
+void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply& reply) {
   // Staged writes exist on packet buses only: ACTION goes to those.
   std::vector<BusEngine*> packet_buses;
   for (BusEngine* engine : engines_) {
@@ -274,6 +424,19 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
   if (!request.values[0] || packet_buses.empty()) {  // writing 0 asks for nothing
     reply.send(write_response(request));
     return;
+  }
+  // ACTION runs staged moves: a motion write on every bus it goes to.
+  std::vector<MotionEpoch> epochs;
+  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+    if (engines_[bus]->settings().protocol == protocol::BusProtocol::ModbusRtu) continue;
+    safety_.feed_write(bus);
+    auto admitted = safety_.admit_motion(bus);
+    if (!admitted) {
+      refusal_log_.refused("gateway unit ACTION (coil 0)", request.function, admitted.error());
+      reply.send(exception_response(request.function, Fault::ServoRefused));
+      return;
+    }
+    epochs.push_back(*admitted);
   }
   auto join = BusJoin::create(packet_buses.size(), post_, [request, reply](std::vector<BusResult> results) {
     if (const BusResult* failure = BusJoin::first_failure(results)) {
@@ -284,7 +447,7 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
     reply.send(write_response(request));
   });
   for (std::size_t i = 0; i < packet_buses.size(); ++i) {
-    packet_buses[i]->submit(ActionOp{}, Priority::ClientWrite, join->completion(i));
+    packet_buses[i]->submit(ActionOp{epochs[i]}, Priority::ClientWrite, join->completion(i));
   }
 }
 

@@ -84,6 +84,7 @@ struct Job {
   std::vector<std::uint8_t> sync_ids;
   unsigned attempts = 1;
   bool client = false;  // from submit(): holds a slot of the bounded queue, completes on every outcome
+  MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
   SteadyClock::time_point queued_at{};  // internal jobs (poll, probe, discovery): when queued, see pop_job
   Completion done;
 };
@@ -234,7 +235,7 @@ class PacketBusEngine::Impl {
 
   // Shared with submitting threads.
   std::mutex queue_mutex_;
-  std::array<std::deque<Job>, 3> queue_;  // by Priority
+  std::array<std::deque<Job>, kPriorityCount> queue_;  // by Priority
   std::size_t client_jobs_queued_ = 0;
   bool accepting_ = false;
   std::atomic<bool> bus_up_{false};
@@ -409,12 +410,14 @@ std::string PacketBusEngine::Impl::describe(const Job& job) const {
 // ==== queue ===============================================================================
 
 void PacketBusEngine::Impl::submit(BusOp op, Priority priority, Completion done) {
+  const MotionEpoch motion_epoch = motion_epoch_of(op);
   Job job = make_client_job(std::move(op));
+  job.motion_epoch = motion_epoch;
   job.done = std::move(done);
   BusStatus refusal = BusStatus::Ok;
   {
     std::lock_guard lock(queue_mutex_);
-    refusal = admission(accepting_, bus_up_.load(), client_jobs_queued_, settings_.queue_depth);
+    refusal = admission(accepting_, bus_up_.load(), client_jobs_queued_, settings_.queue_depth, priority);
     if (refusal == BusStatus::Ok) {
       queue_[static_cast<std::size_t>(priority)].push_back(std::move(job));
       ++client_jobs_queued_;
@@ -477,6 +480,10 @@ void PacketBusEngine::Impl::start_next() {
   while (!active_ && port_.is_open()) {
     std::optional<Job> job = pop_job();
     if (!job) return;
+    if (auto refusal = motion_refusal(settings_, job->motion_epoch)) {
+      complete(settings_, job->done, std::move(*refusal));
+      continue;
+    }
     if (job->client && addressed_servo_offline(*job)) {
       counters_.transactions.fetch_add(1, std::memory_order_relaxed);
       const auto detail = fmt::format("bus {}: servo {} is offline (it stopped answering; probed every {} ms)",

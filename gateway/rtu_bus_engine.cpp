@@ -404,6 +404,7 @@ struct Job {
   bool forward_exceptions = false;  // RawPduOp: an exception PDU is the answer, passed on as it is
   unsigned attempts = 1;
   bool client = false;
+  MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
   Completion done;
 };
 
@@ -517,7 +518,7 @@ class RtuBusEngine::Impl {
 
   std::mutex mutex_;
   std::condition_variable wake_;
-  std::array<std::deque<Job>, 3> queue_;  // one per Priority; client jobs only
+  std::array<std::deque<Job>, kPriorityCount> queue_;  // one per Priority; client jobs only
   std::size_t queued_ = 0;
   bool accepting_ = false;
   bool stopping_ = false;
@@ -612,12 +613,14 @@ Job RtuBusEngine::Impl::make_client_job(BusOp&& op) const {
 }
 
 void RtuBusEngine::Impl::submit(BusOp op, Priority priority, Completion done) {
+  const MotionEpoch motion_epoch = motion_epoch_of(op);
   Job job = make_client_job(std::move(op));
+  job.motion_epoch = motion_epoch;
   job.done = std::move(done);
   BusStatus refusal = BusStatus::Ok;
   {
     std::lock_guard lock(mutex_);
-    refusal = admission(accepting_, bus_up_.load(), queued_, settings_.queue_depth);
+    refusal = admission(accepting_, bus_up_.load(), queued_, settings_.queue_depth, priority);
     if (refusal == BusStatus::Ok) {
       queue_[static_cast<std::size_t>(priority)].push_back(std::move(job));
       ++queued_;
@@ -793,7 +796,9 @@ std::chrono::nanoseconds RtuBusEngine::Impl::reply_timeout(const Job& job) const
 
 void RtuBusEngine::Impl::run_client_job(Job job) {
   BusResult result;
-  if (job.slave != kBroadcastSlave && scheduler_.presence(job.slave) == Presence::Offline) {
+  if (auto refusal = motion_refusal(settings_, job.motion_epoch)) {
+    result = std::move(*refusal);
+  } else if (job.slave != kBroadcastSlave && scheduler_.presence(job.slave) == Presence::Offline) {
     // As on packet buses: a client polling a dead servo must not make the bus pay timeouts;
     // the servo's probe brings it back within one probe period.
     result = BusResult{BusStatus::Timeout, 0, {},

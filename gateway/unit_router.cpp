@@ -6,6 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/exceptions.h"
+#include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
 
 namespace sms::gateway {
@@ -68,8 +69,9 @@ std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registe
   };
 }
 
-UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post)
-    : gateway_unit_id_(config.modbus_tcp.gateway_unit_id), post_(post) {
+UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post,
+                       SafetySupervisor& safety)
+    : gateway_unit_id_(config.modbus_tcp.gateway_unit_id), post_(post), safety_(safety) {
   for (const auto& servo : config.servos) {
     if (servo.bus_index >= engines.size() || engines[servo.bus_index] == nullptr) {
       throw std::invalid_argument("unit " + std::to_string(servo.unit_id) + ": bus '" + servo.bus + "' has no engine");
@@ -77,7 +79,7 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
     BusEngine* engine = engines[servo.bus_index];
     if (servo.passthrough()) {
       passthrough_[servo.unit_id] = std::make_unique<PassthroughUnit>(
-          PassthroughUnit{servo.unit_id, engine, servo.servo_id,
+          PassthroughUnit{servo.unit_id, engine, servo.servo_id, servo.bus_index,
                           "unit " + std::to_string(servo.unit_id) + " (bus " + servo.bus + ", slave " +
                               std::to_string(servo.servo_id) + ", passthrough)"});
       continue;
@@ -99,7 +101,7 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
         ServoUnit{servo.unit_id, servo.bus_index, engine, servo.servo_id, std::move(*map), poll_block,
                   servo.response_level, servo.read_only, std::move(label)});
   }
-  gateway_unit_ = std::make_unique<GatewayUnit>(config, std::move(engines), std::move(post));
+  gateway_unit_ = std::make_unique<GatewayUnit>(config, std::move(engines), std::move(post), safety);
 }
 
 const ServoUnit* UnitRouter::servo_unit(std::uint8_t unit_id) const { return units_[unit_id].get(); }
@@ -148,7 +150,20 @@ void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8
   }
   // Reads queue behind writes like any client read (MODBUS_MAP.md priorities).
   const bool read = function >= function_code::kReadCoils && function <= function_code::kReadInputRegisters;
-  unit.engine->submit(RawPduOp{unit.slave, Bytes(pdu.begin(), pdu.end())},
+  MotionEpoch epoch = 0;
+  if (!read) {
+    // The gateway cannot tell what a passthrough slave's registers do: every write may move
+    // something, so every write is under the safety rules (README "Safety").
+    safety_.feed_write(unit.bus_index);
+    auto admitted = safety_.admit_motion(unit.bus_index);
+    if (!admitted) {
+      refusal_log_.refused(unit.label, function, admitted.error());
+      reply.send(exception_response(function, Fault::ServoRefused));
+      return;
+    }
+    epoch = *admitted;
+  }
+  unit.engine->submit(RawPduOp{unit.slave, Bytes(pdu.begin(), pdu.end()), epoch},
                       read ? Priority::ClientRead : Priority::ClientWrite,
                       on_io_thread(post_, [&unit, function, reply](BusResult result) {
                         if (result.status != BusStatus::Ok) {
@@ -173,6 +188,7 @@ void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, con
   const bool writes = std::holds_alternative<WriteBitsRequest>(request) ||
                       std::holds_alternative<WriteRegistersRequest>(request) ||
                       std::holds_alternative<ReadWriteRegistersRequest>(request);
+  if (writes) safety_.feed_write(unit.bus_index);
   if (writes && unit.read_only) {
     spdlog::debug("modbus: {} is read-only in the configuration; write refused", unit.label);
     reply.send(exception_response(function, Fault::BadAddress));
@@ -358,14 +374,16 @@ struct WriteChain : std::enable_shared_from_this<WriteChain> {
   const ServoUnit* unit = nullptr;
   std::uint8_t function = 0;
   modbus_map::WritePlan plan;
+  MotionEpoch epoch = 0;
   std::size_t next = 0;
   Reply reply;
   std::function<void(const Reply&)> after;
   PostFn post;
 
-  WriteChain(const ServoUnit* u, std::uint8_t f, modbus_map::WritePlan p, Reply r, std::function<void(const Reply&)> a,
-             PostFn po)
-      : unit(u), function(f), plan(std::move(p)), reply(std::move(r)), after(std::move(a)), post(std::move(po)) {}
+  WriteChain(const ServoUnit* u, std::uint8_t f, modbus_map::WritePlan p, MotionEpoch e, Reply r,
+             std::function<void(const Reply&)> a, PostFn po)
+      : unit(u), function(f), plan(std::move(p)), epoch(e), reply(std::move(r)), after(std::move(a)),
+        post(std::move(po)) {}
 
   void step() {
     if (next == plan.writes.size()) {
@@ -373,7 +391,7 @@ struct WriteChain : std::enable_shared_from_this<WriteChain> {
       return;
     }
     const auto& write = plan.writes[next];
-    WriteOp op{unit->servo_id, write.address, write.data, plan.staged, expects_write_reply(*unit)};
+    WriteOp op{unit->servo_id, write.address, write.data, plan.staged, expects_write_reply(*unit), epoch};
     unit->engine->submit(std::move(op), Priority::ClientWrite,
                          on_io_thread(post, [self = shared_from_this()](BusResult result) {
                            if (result.status != BusStatus::Ok) {
@@ -392,8 +410,69 @@ struct WriteChain : std::enable_shared_from_this<WriteChain> {
 
 void UnitRouter::run_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
                             const Reply& reply, std::function<void(const Reply&)> after) {
-  auto chain = std::make_shared<WriteChain>(&unit, function, std::move(plan), reply, std::move(after), post_);
+  const modbus_map::MotionSpec& spec = modbus_map::motion_spec(unit.map.servo_table().id);
+  const modbus_map::ByteOrder order = unit.map.byte_order();
+  MotionEpoch epoch = 0;
+  // A staged write moves the servo at ACTION; it is refused as a motion write now too, so a
+  // latched gateway does not collect moves that a later ACTION would run.
+  if (const auto motion = modbus_map::motion_in_plan(spec, order, plan)) {
+    auto admitted = safety_.admit_motion(unit.bus_index);
+    if (!admitted) {
+      refusal_log_.refused(unit.label + " (" + *motion + ")", function, admitted.error());
+      reply.send(exception_response(function, Fault::ServoRefused));
+      return;
+    }
+    epoch = *admitted;
+  }
+  if (!plan.staged && modbus_map::switches_torque_on_without_goal(spec, order, plan)) {
+    hold_then_switch_torque_on(unit, function, std::move(plan), epoch, reply, std::move(after));
+    return;
+  }
+  run_admitted_writes(unit, function, std::move(plan), epoch, reply, std::move(after));
+}
+
+void UnitRouter::run_admitted_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
+                                     MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after) {
+  auto chain = std::make_shared<WriteChain>(&unit, function, std::move(plan), epoch, reply, std::move(after), post_);
   chain->step();
+}
+
+void UnitRouter::hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
+                                            MotionEpoch epoch, const Reply& reply,
+                                            std::function<void(const Reply&)> after) {
+  // "No jump on enable": a stale goal (or speed) in the servo would run the moment the torque
+  // comes on. Read the servo's state, write the hold of its goal block, then the request.
+  const modbus_map::MotionSpec& spec = modbus_map::motion_spec(unit.map.servo_table().id);
+  auto ranges = std::make_shared<std::vector<modbus_map::BusRange>>(modbus_map::stop_context_reads(spec));
+  auto join = BusJoin::create(
+      ranges->size(), post_,
+      [this, &unit, &spec, function, ranges, plan = std::move(plan), epoch, reply,
+       after = std::move(after)](std::vector<BusResult> results) mutable {
+        if (const BusResult* failure = BusJoin::first_failure(results)) {
+          spdlog::debug("modbus: {} FC{:02X}: reading the servo before switching its torque on: {}", unit.label,
+                        function, failure->detail);
+          reply.send(exception_response(function, fault_from(failure->status)));
+          return;
+        }
+        std::vector<protocol::Bytes> data;
+        for (auto& result : results) data.push_back(std::move(result.data));
+        const auto hold = modbus_map::plan_safe_stop(spec, modbus_map::StopAction::Hold, unit.map.byte_order(),
+                                                     modbus_map::StopContext{*ranges, data}, true);
+        if (!hold) {
+          spdlog::warn("modbus: {} FC{:02X}: torque on refused: {}", unit.label, function, hold.error());
+          reply.send(exception_response(function, Fault::ServoRefused));
+          return;
+        }
+        if (hold->drive != modbus_map::Drive::Step) {  // step mode: no goal is stale, none to hold
+          spdlog::debug("modbus: {}: torque on: {} first", unit.label, hold->what);
+          plan.writes.insert(plan.writes.begin(), hold->writes.begin(), hold->writes.end());
+        }
+        run_admitted_writes(unit, function, std::move(plan), epoch, reply, std::move(after));
+      });
+  for (std::size_t i = 0; i < ranges->size(); ++i) {
+    unit.engine->submit(ReadOp{unit.servo_id, (*ranges)[i].address, (*ranges)[i].count}, Priority::ClientWrite,
+                        join->completion(i));
+  }
 }
 
 bool expects_write_reply(const ServoUnit& unit) {

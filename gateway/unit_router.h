@@ -22,6 +22,7 @@
 #include "gateway/bus_join.h"
 #include "gateway/gateway_unit.h"
 #include "gateway/modbus_request.h"
+#include "gateway/safety.h"
 #include "gateway/tcp_server.h"
 #include "modbus_map/register_map.h"
 
@@ -77,6 +78,7 @@ struct PassthroughUnit {
   std::uint8_t unit_id = 0;
   BusEngine* engine = nullptr;
   std::uint8_t slave = 0;
+  std::size_t bus_index = 0;
   std::string label;
 };
 
@@ -84,7 +86,9 @@ class UnitRouter : public RequestHandler {
  public:
   // `engines[i]` runs config.buses[i] (the engine's settings give each servo's poll block).
   // Throws std::invalid_argument for a servo whose table/profile has no register map.
-  UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post);
+  // Every write passes `safety` (README "Safety"): it feeds the bus's watchdog, and a motion
+  // write is refused (0x04) while the e-stop is latched or the watchdog tripped.
+  UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post, SafetySupervisor& safety);
 
   void handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) override;
 
@@ -100,9 +104,16 @@ class UnitRouter : public RequestHandler {
   void read_input(const ServoUnit& unit, const ReadRegistersRequest& request, const Reply& reply);
   void read_coils(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply);
   void read_discrete(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply);
-  // Runs the plan's frames one after another (a refusal stops the rest), then `after`.
+  // The safety rules, then the plan's frames one after another (a refusal stops the rest), then
+  // `after`: a motion write is refused while motion is blocked; torque switched on without a
+  // goal gets goal := present position first ("no jump on enable").
   void run_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan, const Reply& reply,
                   std::function<void(const Reply&)> after);
+  void run_admitted_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
+                           MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after);
+  // Reads the servo's state and prepends the hold of its goal to `plan`, then runs it.
+  void hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
+                                  MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after);
   // Live reads of plan.reads, in order; `then` gets the replies' bytes.
   void run_reads(const ServoUnit& unit, std::uint8_t function, const modbus_map::ReadPlan& plan, const Reply& reply,
                  std::function<void(std::vector<protocol::Bytes>)> then);
@@ -118,6 +129,8 @@ class UnitRouter : public RequestHandler {
   std::uint8_t gateway_unit_id_ = 255;
   std::unique_ptr<GatewayUnit> gateway_unit_;
   PostFn post_;
+  SafetySupervisor& safety_;
+  MotionRefusalLog refusal_log_;
 };
 
 }  // namespace sms::gateway

@@ -83,7 +83,7 @@ servos: []
             "plant.yaml:5:5: unknown key `baudrate` in buses[0] (did you mean `baud`?); allowed keys here: name, "
             "device, protocol, baud, parity, stop_bits, response_timeout_ms, retries, poll_period_ms, "
             "offline_probe_period_ms, reopen_period_ms, poll_fields, poll_range, rs485, rts, rts_delay_us, "
-            "byte_timeout_ms");
+            "byte_timeout_ms, watchdog, on_start, on_stop");
 }
 
 TEST(ConfigErrors, UnknownServoKeyInAFlowMap) {
@@ -93,7 +93,7 @@ servos:
   - {bus: arm, id: 1, table: sts, mode: fast}
 )"),
             "plant.yaml:4:35: unknown key `mode` in servos[0]; allowed keys here: unit, bus, id, table, profile, "
-            "byte_order, response_level, read_only, name");
+            "byte_order, response_level, read_only, name, safe_stop");
 }
 
 TEST(ConfigErrors, UnknownKeyInModbusTcpAndLogging) {

@@ -268,6 +268,8 @@ buses:
     poll_period_ms: 20
     offline_probe_period_ms: 1000
     reopen_period_ms: 1000
+    on_start: keep
+    on_stop: hold
 servos:
   - unit: 1
     bus: arm

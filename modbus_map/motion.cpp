@@ -1,0 +1,307 @@
+#include "modbus_map/motion.h"
+
+#include <algorithm>
+#include <array>
+#include <stdexcept>
+
+#include "modbus_map/tables.h"
+
+namespace sms::modbus_map {
+namespace {
+
+// sts: 0 position, 1 constant speed, 2 open-loop PWM, 3 step (SPEC §2.1 address 33).
+constexpr DriveMode kStsModes[] = {
+    {0, Drive::Position}, {1, Drive::Velocity}, {2, Drive::Pwm}, {3, Drive::Step}};
+// sms1: 0 servo, 1 motor speed, 2 torque (run_time is the signed torque) (SPEC §2.2 address 35).
+constexpr DriveMode kSms1Modes[] = {{0, Drive::Position}, {1, Drive::Velocity}, {2, Drive::Pwm}};
+// SMSMB: 0 servo, 1 constant speed, 3 torque off on arrival (a position mode), 4 stepper (§2.4).
+constexpr DriveMode kSmsmbModes[] = {
+    {0, Drive::Position}, {1, Drive::Velocity}, {3, Drive::Position}, {4, Drive::Step}};
+
+constexpr std::string_view kStsMotionFields[] = {"operating_mode", "torque_enable", "goal_position", "goal_time",
+                                                 "goal_speed"};
+constexpr std::string_view kSms1MotionFields[] = {"operating_mode", "torque_switch", "goal_position", "run_time",
+                                                  "run_speed"};
+// d55d: both angle limits 0 select wheel mode; releasing the brake or waking the motor resumes
+// the goal it holds; homing turns the motor.
+constexpr std::string_view kD55dMotionFields[] = {"cw_angle_limit", "ccw_angle_limit", "goal_position", "run_speed",
+                                                  "brake", "sleep", "photo_switch_homing"};
+constexpr std::string_view kSmsmbMotionFields[] = {"mode", "goal_position", "torque_switch", "running_speed"};
+
+constexpr StoppingWrite kStsStops[] = {{"torque_enable", 0}};
+constexpr StoppingWrite kSms1Stops[] = {{"torque_switch", 0}};
+// d55d (SPEC §2.3): "a speed of 0 or a brake command stops it at once"; sleep lets go.
+constexpr StoppingWrite kD55dStops[] = {{"run_speed", 0}, {"brake", 1}, {"sleep", 1}};
+constexpr StoppingWrite kSmsmbStops[] = {{"torque_switch", 0}};
+
+constexpr std::array kMotionSpecs{
+    MotionSpec{TableId::Sts, "operating_mode", kStsModes, "min_angle_limit", "max_angle_limit", "torque_enable",
+               "goal_position", "goal_time", "goal_speed", "present_position", {"torque_enable", 0}, kStsMotionFields,
+               kStsStops, StopAction::Hold},
+    MotionSpec{TableId::Sms1, "operating_mode", kSms1Modes, "min_angle_limit", "max_angle_limit", "torque_switch",
+               "goal_position", "run_time", "run_speed", "present_position", {"torque_switch", 0}, kSms1MotionFields,
+               kSms1Stops, StopAction::Hold},
+    // d55d has no torque switch: run speed 0 is its own "stop without torque" (SPEC §2.3).
+    MotionSpec{TableId::D55d, "", {}, "cw_angle_limit", "ccw_angle_limit", "", "goal_position", "", "run_speed",
+               "present_position", {"run_speed", 0}, kD55dMotionFields, kD55dStops, StopAction::Hold},
+    MotionSpec{TableId::Smsmb, "mode", kSmsmbModes, "min_angle_limit", "max_angle_limit", "torque_switch",
+               "goal_position", "", "running_speed", "present_position", {"torque_switch", 0}, kSmsmbMotionFields,
+               kSmsmbStops, StopAction::Hold},
+};
+
+const FieldSpec& field_named(const MotionSpec& spec, std::string_view name) {
+  const FieldSpec* field = field_by_name(table(spec.table), name);
+  if (field == nullptr) {
+    throw std::logic_error("motion spec of table " + std::string(table(spec.table).name) + " names field '" +
+                           std::string(name) + "', which the table does not have");
+  }
+  return *field;
+}
+
+std::uint16_t span_of(const MotionSpec& spec, const FieldSpec& field) {
+  return address_span(table(spec.table).addressing, field);
+}
+
+// The byte offset of `field` inside data read from `range`, or nullopt when it is not inside.
+std::optional<std::size_t> offset_in(const MotionSpec& spec, const BusRange& range, const FieldSpec& field) {
+  if (field.addr < range.address || field.addr + span_of(spec, field) > range.end()) return std::nullopt;
+  return std::size_t{static_cast<std::size_t>(field.addr - range.address)} *
+         bytes_per_address(table(spec.table).addressing);
+}
+
+// Register tables are high byte first whatever the unit says; packet tables use `order`.
+ByteOrder field_order(const MotionSpec& spec, ByteOrder order) {
+  return table(spec.table).addressing == Addressing::Register ? ByteOrder::HighFirst : order;
+}
+
+std::optional<std::uint32_t> read_raw(const MotionSpec& spec, ByteOrder order, const StopContext& context,
+                                      std::string_view name) {
+  const FieldSpec& field = field_named(spec, name);
+  for (std::size_t i = 0; i < context.ranges.size() && i < context.data.size(); ++i) {
+    const auto offset = offset_in(spec, context.ranges[i], field);
+    if (!offset || *offset + field.size > context.data[i].size()) continue;
+    return load_raw(std::span(context.data[i]).subspan(*offset, field.size), field.size, field_order(spec, order));
+  }
+  return std::nullopt;
+}
+
+Expected<Drive> drive_of(const MotionSpec& spec, ByteOrder order, const StopContext& context) {
+  if (spec.mode.empty()) {
+    const auto min = read_raw(spec, order, context, spec.min_limit);
+    const auto max = read_raw(spec, order, context, spec.max_limit);
+    if (!min || !max) return unexpected(std::string("the angle limits were not read"));
+    return (*min == 0 && *max == 0) ? Drive::Velocity : Drive::Position;
+  }
+  const auto mode = read_raw(spec, order, context, spec.mode);
+  if (!mode) return unexpected(std::string("the operating mode was not read"));
+  for (const DriveMode& entry : spec.modes) {
+    if (entry.value == static_cast<std::int32_t>(*mode)) return entry.drive;
+  }
+  return unexpected("operating mode " + std::to_string(*mode) + " is not one this table documents");
+}
+
+BusWrite single_field_write(const MotionSpec& spec, ByteOrder order, const StoppingWrite& write) {
+  const FieldSpec& field = field_named(spec, write.field);
+  const auto raw = encode_value(field, write.value);
+  if (!raw) throw std::logic_error("stopping value out of range for " + std::string(write.field));
+  protocol::Bytes data(field.size, 0);
+  store_raw(data, field.size, field_order(spec, order), *raw);
+  return BusWrite{field.addr, std::move(data)};
+}
+
+}  // namespace
+
+std::string_view to_string(StopAction action) {
+  switch (action) {
+    case StopAction::Hold: return "hold";
+    case StopAction::TorqueOff: return "torque_off";
+    case StopAction::None: return "none";
+  }
+  return "?";
+}
+
+const MotionSpec& motion_spec(TableId id) {
+  for (const MotionSpec& spec : kMotionSpecs) {
+    if (spec.table == id) return spec;
+  }
+  throw std::logic_error("no motion spec for table " + std::string(table(id).name));
+}
+
+BusRange goal_block(const MotionSpec& spec) {
+  const FieldSpec& first = field_named(spec, spec.goal_position);
+  const FieldSpec& last = field_named(spec, spec.goal_speed);
+  std::uint32_t end = last.addr + span_of(spec, last);
+  if (!spec.goal_time.empty()) {
+    const FieldSpec& time = field_named(spec, spec.goal_time);
+    end = std::max<std::uint32_t>(end, time.addr + span_of(spec, time));
+  }
+  return BusRange{first.addr, static_cast<std::uint16_t>(end - first.addr)};
+}
+
+std::vector<BusRange> stop_context_reads(const MotionSpec& spec) {
+  std::vector<BusRange> needed;
+  const auto add_field = [&](std::string_view name) {
+    if (name.empty()) return;
+    const FieldSpec& field = field_named(spec, name);
+    needed.push_back(BusRange{field.addr, span_of(spec, field)});
+  };
+  if (spec.mode.empty()) {
+    add_field(spec.min_limit);
+    add_field(spec.max_limit);
+  } else {
+    add_field(spec.mode);
+  }
+  add_field(spec.torque);
+  needed.push_back(goal_block(spec));
+  add_field(spec.present_position);
+  std::sort(needed.begin(), needed.end(), [](const BusRange& a, const BusRange& b) { return a.address < b.address; });
+
+  // Merge ranges whose gap is small: one longer READ costs less than another transaction
+  // (a request and a reply header are about 10 bytes on the wire).
+  constexpr std::uint32_t kMergeGap = 16;
+  std::vector<BusRange> merged;
+  for (const BusRange& range : needed) {
+    if (!merged.empty() && range.address <= merged.back().end() + kMergeGap) {
+      const std::uint32_t end = std::max(merged.back().end(), range.end());
+      merged.back().count = static_cast<std::uint16_t>(end - merged.back().address);
+    } else {
+      merged.push_back(range);
+    }
+  }
+  return merged;
+}
+
+Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action, ByteOrder order,
+                                      const StopContext& context, bool torque_known_on) {
+  SafeStopPlan plan;
+  if (action == StopAction::None) {
+    plan.what = "none (configured)";
+    return plan;
+  }
+  const auto drive = drive_of(spec, order, context);
+  if (!drive) return unexpected(drive.error());
+  plan.drive = *drive;
+  if (!spec.torque.empty() && !torque_known_on) {
+    const auto torque = read_raw(spec, order, context, spec.torque);
+    if (!torque) return unexpected(std::string("the torque switch was not read"));
+    if (*torque == 0) {
+      // A motor without torque is not driving; a goal write would switch it on (STS firmware).
+      plan.what = "nothing to do (torque already off)";
+      return plan;
+    }
+  }
+  if (action == StopAction::TorqueOff || plan.drive == Drive::Step) {
+    plan.writes.push_back(single_field_write(spec, order, spec.torque_off));
+    plan.what = action == StopAction::TorqueOff
+                    ? std::string("torque off")
+                    : std::string("torque off (step mode: every goal is relative to the running target, none holds)");
+    return plan;
+  }
+
+  // Hold: the goal block as read, with the one field that stops this drive changed.
+  const BusRange block = goal_block(spec);
+  protocol::Bytes data;
+  for (std::size_t i = 0; i < context.ranges.size() && i < context.data.size(); ++i) {
+    if (!context.ranges[i].contains(block)) continue;
+    const std::size_t per = bytes_per_address(table(spec.table).addressing);
+    const std::size_t offset = std::size_t{static_cast<std::size_t>(block.address - context.ranges[i].address)} * per;
+    if (offset + block.count * per > context.data[i].size()) break;
+    data.assign(context.data[i].begin() + static_cast<std::ptrdiff_t>(offset),
+                context.data[i].begin() + static_cast<std::ptrdiff_t>(offset + block.count * per));
+    break;
+  }
+  if (data.empty()) return unexpected(std::string("the goal block was not read"));
+  const auto set_field = [&](std::string_view name, std::span<const std::uint8_t> bytes) {
+    const FieldSpec& field = field_named(spec, name);
+    const std::size_t offset =
+        std::size_t{static_cast<std::size_t>(field.addr - block.address)} * bytes_per_address(table(spec.table).addressing);
+    std::copy(bytes.begin(), bytes.end(), data.begin() + static_cast<std::ptrdiff_t>(offset));
+  };
+  const protocol::Bytes zero(2, 0);
+  switch (plan.drive) {
+    case Drive::Position: {
+      // The present position's bytes become the goal's: both fields share size and encoding.
+      const FieldSpec& present = field_named(spec, spec.present_position);
+      const auto raw = read_raw(spec, order, context, spec.present_position);
+      if (!raw) return unexpected(std::string("the present position was not read"));
+      protocol::Bytes bytes(present.size, 0);
+      store_raw(bytes, present.size, field_order(spec, order), *raw);
+      set_field(spec.goal_position, bytes);
+      plan.what = "hold (position mode: goal := present position " +
+                  std::to_string(decode_value(present, *raw)) + ")";
+      break;
+    }
+    case Drive::Velocity:
+      set_field(spec.goal_speed, std::span(zero).first(field_named(spec, spec.goal_speed).size));
+      plan.what = "hold (speed mode: speed := 0)";
+      break;
+    case Drive::Pwm:
+      if (spec.goal_time.empty()) return unexpected(std::string("PWM mode without a PWM field"));
+      set_field(spec.goal_time, std::span(zero).first(field_named(spec, spec.goal_time).size));
+      plan.what = "hold (PWM mode: duty := 0)";
+      break;
+    case Drive::Step:
+      break;  // handled above
+  }
+  plan.writes.push_back(BusWrite{block.address, std::move(data)});
+  return plan;
+}
+
+BusWrite torque_off_write(const MotionSpec& spec, ByteOrder order) {
+  return single_field_write(spec, order, spec.torque_off);
+}
+
+bool is_motion_field(const MotionSpec& spec, std::string_view field) {
+  return std::find(spec.motion_fields.begin(), spec.motion_fields.end(), field) != spec.motion_fields.end();
+}
+
+namespace {
+
+// The raw value a write puts into `field`, or nullopt when the write does not cover all of it.
+std::optional<std::uint32_t> written_raw(const MotionSpec& spec, ByteOrder order, const BusWrite& write,
+                                         const FieldSpec& field) {
+  const std::size_t per = bytes_per_address(table(spec.table).addressing);
+  const BusRange range{write.address, static_cast<std::uint16_t>(write.data.size() / per)};
+  const auto offset = offset_in(spec, range, field);
+  if (!offset || *offset + field.size > write.data.size()) return std::nullopt;
+  return load_raw(std::span(write.data).subspan(*offset, field.size), field.size, field_order(spec, order));
+}
+
+bool overlaps(const MotionSpec& spec, const BusWrite& write, const FieldSpec& field) {
+  const std::size_t per = bytes_per_address(table(spec.table).addressing);
+  const std::uint32_t end = write.address + static_cast<std::uint32_t>(write.data.size() / per);
+  return field.addr < end && field.addr + span_of(spec, field) > write.address;
+}
+
+}  // namespace
+
+std::optional<std::string> motion_in_plan(const MotionSpec& spec, ByteOrder order, const WritePlan& plan) {
+  for (const BusWrite& write : plan.writes) {
+    for (const std::string_view name : spec.motion_fields) {
+      const FieldSpec& field = field_named(spec, name);
+      if (!overlaps(spec, write, field)) continue;
+      const auto raw = written_raw(spec, order, write, field);
+      const bool stopping = raw && std::any_of(spec.stopping_writes.begin(), spec.stopping_writes.end(),
+                                               [&](const StoppingWrite& stop) {
+                                                 return stop.field == name && encode_value(field, stop.value) == raw;
+                                               });
+      if (!stopping) return std::string(name) + " (" + std::to_string(field.addr) + ")";
+    }
+  }
+  return std::nullopt;
+}
+
+bool switches_torque_on_without_goal(const MotionSpec& spec, ByteOrder order, const WritePlan& plan) {
+  if (spec.torque.empty()) return false;
+  const FieldSpec& torque = field_named(spec, spec.torque);
+  const FieldSpec& goal = field_named(spec, spec.goal_position);
+  bool torque_on = false;
+  for (const BusWrite& write : plan.writes) {
+    if (overlaps(spec, write, goal)) return false;
+    const auto raw = written_raw(spec, order, write, torque);
+    if (raw && *raw == 1) torque_on = true;
+  }
+  return torque_on;
+}
+
+}  // namespace sms::modbus_map
