@@ -843,3 +843,126 @@ TEST(ConfigErrors, NameWithControlCharacterOrBrokenUtf8IsRefused) {
 
 }  // namespace
 }  // namespace sms::config
+
+// ---- safety (README "Safety") ----
+
+namespace sms::config {
+namespace {
+
+TEST(ConfigErrors, WatchdogTimeoutOutOfRangeNamesTheValue) {
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000, watchdog: {timeout_ms: 5}}
+servos: []
+)"),
+            "plant.yaml:2:96: buses[0].watchdog.timeout_ms: 5 is outside 10..600000");
+}
+
+TEST(ConfigErrors, WatchdogNeedsATimeoutAndKnownKeysAndValues) {
+  EXPECT_EQ(error_text(R"(buses:
+  - name: arm
+    device: /dev/ttyUSB0
+    protocol: feetech
+    baud: 1000000
+    watchdog: {feed: any_write}
+servos: []
+)"),
+            "plant.yaml:6:15: missing required key `timeout_ms` in buses[0].watchdog");
+  EXPECT_EQ(error_text(R"(buses:
+  - name: arm
+    device: /dev/ttyUSB0
+    protocol: feetech
+    baud: 1000000
+    watchdog: {timeout_ms: 200, feed: heartbeat}
+servos: []
+)"),
+            "plant.yaml:6:39: buses[0].watchdog.feed: expected one of any_write, heartbeat_register, got `heartbeat`");
+  EXPECT_EQ(error_text(R"(buses:
+  - name: arm
+    device: /dev/ttyUSB0
+    protocol: feetech
+    baud: 1000000
+    watchdog: {timeout_ms: 200, timout: 3}
+servos: []
+)"),
+            "plant.yaml:6:33: unknown key `timout` in buses[0].watchdog; allowed keys here: timeout_ms, feed, action");
+  EXPECT_EQ(error_text(R"(buses:
+  - name: arm
+    device: /dev/ttyUSB0
+    protocol: feetech
+    baud: 1000000
+    watchdog: {timeout_ms: 200, action: brake}
+servos: []
+)"),
+            "plant.yaml:6:41: buses[0].watchdog.action: expected one of hold, torque_off, none, got `brake`");
+}
+
+TEST(ConfigErrors, StartStopAndSafeStopActionsAreChecked) {
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000, on_stop: park}
+servos: []
+)"),
+            "plant.yaml:2:82: buses[0].on_stop: expected one of hold, torque_off, none, got `park`");
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000, on_start: none}
+servos: []
+)"),
+            "plant.yaml:2:83: buses[0].on_start: expected one of keep, hold, torque_off, got `none`");
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {bus: arm, id: 1, table: sts, safe_stop: freeze}
+)"),
+            "plant.yaml:4:46: servos[0].safe_stop: expected one of hold, torque_off, none, got `freeze`");
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: io, device: /dev/ttyUSB0, protocol: modbus-rtu, baud: 115200}
+servos:
+  - {bus: io, id: 1, table: passthrough, safe_stop: hold}
+)"),
+            "plant.yaml:4:42: servos[0].safe_stop: a passthrough unit has no table the gateway could stop it with; "
+            "remove the key");
+}
+
+TEST(ConfigErrors, SyncGroupsMustLeaveTheHeartbeatRegistersFree) {
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {bus: arm, id: 1, table: sts}
+sync_groups:
+  - {name: goals, field: goal_position, members: [1], holding_register_start: 1000}
+)"),
+            "plant.yaml:6:79: sync_groups[0].holding_register_start: registers 1000..1000 overlap the buses' "
+            "watchdog heartbeat registers 1000..1000 (1000 + bus index); move the group");
+}
+
+TEST(ConfigLoadSafety, WatchdogAndActionsLoadWithTheirDefaults) {
+  const auto config = load_config_string(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000,
+     watchdog: {timeout_ms: 200, feed: heartbeat_register, action: torque_off}, on_start: hold, on_stop: none}
+  - {name: base, device: /dev/ttyUSB1, protocol: d55d, baud: 115200}
+servos:
+  - {bus: arm, id: 1, table: sts, safe_stop: torque_off}
+  - {bus: arm, id: 2, table: sts}
+)",
+                                         "plant.yaml");
+  ASSERT_TRUE(config) << config.error().to_string();
+  const BusConfig& arm = config->buses[0];
+  ASSERT_TRUE(arm.watchdog);
+  EXPECT_EQ(arm.watchdog->timeout, std::chrono::milliseconds{200});
+  EXPECT_EQ(arm.watchdog->feed, WatchdogFeed::HeartbeatRegister);
+  EXPECT_EQ(arm.watchdog->action, modbus_map::StopAction::TorqueOff);
+  EXPECT_EQ(arm.on_start, StartAction::Hold);
+  EXPECT_EQ(arm.on_stop, modbus_map::StopAction::None);
+  const BusConfig& base = config->buses[1];
+  EXPECT_FALSE(base.watchdog);
+  EXPECT_EQ(base.on_start, StartAction::Keep);
+  EXPECT_EQ(base.on_stop, modbus_map::StopAction::Hold);
+  EXPECT_EQ(effective_safe_stop(config->servos[0]), modbus_map::StopAction::TorqueOff);
+  EXPECT_EQ(effective_safe_stop(config->servos[1]), modbus_map::StopAction::Hold);
+  // Dumped and loaded back: the same configuration.
+  const auto again = load_config_string(dump_config(*config), "dump.yaml");
+  ASSERT_TRUE(again) << again.error().to_string();
+  EXPECT_EQ(*again, *config);
+}
+
+}  // namespace
+}  // namespace sms::config

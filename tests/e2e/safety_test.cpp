@@ -1,0 +1,271 @@
+// Motion safety end to end (issue 10, README "Safety"): the real sms-gateway on a configuration
+// file, the real sms-sim on a pty, libmodbus clients. For every protocol and a table of each
+// (feetech sts and sms1, d55d, modbus-rtu smsmb): a servo set turning at constant speed by a
+// client is stopped by the watchdog when the client vanishes or stops counting its heartbeat,
+// HMI reads do not keep it alive, the e-stop refuses motion writes with 0x04 until reset and
+// the reset moves nothing, SIGTERM performs on_stop, and torque on does not jump.
+#include <gtest/gtest.h>
+
+#include <signal.h>
+
+#include <atomic>
+#include <cstdio>
+#include <cstdlib>
+#include <thread>
+
+#include "tests/e2e/e2e_support.h"
+
+namespace sms::e2e {
+namespace {
+
+constexpr int kUnit = 1;
+constexpr int kGateway = 255;
+constexpr int kWatchdogTimeoutMs = 300;
+// Gateway unit registers (README "Safety"): bus 0's block starts at 100.
+constexpr int kBus0WatchdogState = 110;
+constexpr int kBus0Trips = 112;
+constexpr int kBus0LastCause = 115;
+constexpr int kEStopCoil = 1;
+constexpr int kWatchdogCoil = 2;
+constexpr int kHeartbeatRegister = 1000;
+constexpr std::uint16_t kTripped = 3;
+constexpr std::uint16_t kRunning = 2;
+
+struct Write {
+  int address;
+  std::uint16_t value;
+};
+
+struct Protocol {
+  std::string name;           // test name suffix
+  std::string sim_servo;      // sms-sim --servo
+  std::string bus_protocol;   // config
+  int baud;
+  std::string table;
+  std::vector<Write> spin;    // puts servo 1 into speed mode and turns it
+  Write goal;                 // a goal position write (a motion write)
+  Write harmless;             // a write that cannot move anything (allowed while latched)
+  std::optional<Write> torque_off;  // allowed while latched
+  std::string torque_field;   // sim field name, empty when the table has none
+  int goal_address;
+  int present_address;
+};
+
+void PrintTo(const Protocol& protocol, std::ostream* out) { *out << protocol.name; }
+
+std::string config_for(const Protocol& p, const std::string& pty, const std::string& bus_extra) {
+  return "buses:\n  - {name: line, device: \"" + pty + "\", protocol: " + p.bus_protocol +
+         ", baud: " + std::to_string(p.baud) + bus_extra + "}\nservos:\n  - {bus: line, id: 1, table: " + p.table +
+         "}\n";
+}
+
+std::string watchdog(const std::string& feed) {
+  return ", watchdog: {timeout_ms: " + std::to_string(kWatchdogTimeoutMs) + ", feed: " + feed + "}";
+}
+
+class Safety : public testing::TestWithParam<Protocol> {
+ protected:
+  void start(const std::string& bus_extra) {
+    sim_ = std::make_unique<SimProcess>(dir_, "sim", std::vector<std::string>{"--servo", GetParam().sim_servo});
+    gateway_ = std::make_unique<GatewayProcess>(
+        GatewayProcess::with_config(dir_, config_for(GetParam(), sim_->pty(), bus_extra), 1));
+    wait_until_polled(gateway_->port(), kUnit);
+  }
+
+  // Puts the servo in speed mode and waits until it turns.
+  void spin(ModbusClient& plc) {
+    for (const Write& write : GetParam().spin) {
+      const auto answer = plc.write_register(write.address, write.value);
+      ASSERT_TRUE(answer.ok()) << "write " << write.address << " := " << write.value << ": " << answer.error;
+    }
+    ASSERT_TRUE(eventually([&] { return sim_->field(1, "present_speed") != 0; }, 5s))
+        << "servo 1 never turned\n" << gateway_->process().output();
+  }
+
+  bool stopped() { return sim_->field(1, "present_speed") == 0; }
+
+  std::uint16_t gateway_register(int address) {
+    ModbusClient hmi(gateway_->port(), kGateway);
+    const auto answer = hmi.read_input(address, 1);
+    EXPECT_TRUE(answer.ok()) << answer.error;
+    return answer.ok() ? answer.values[0] : 0xFFFF;
+  }
+
+  TempDir dir_;
+  std::unique_ptr<SimProcess> sim_;
+  std::unique_ptr<GatewayProcess> gateway_;
+};
+
+TEST_P(Safety, WatchdogStopsTheServoWhenItsClientVanishesWhileHmiReadsGoOn) {
+  start(watchdog("any_write"));
+  {
+    ModbusClient plc(gateway_->port(), kUnit);
+    spin(plc);
+  }  // the PLC is gone: disconnected mid-move
+
+  // An HMI keeps reading (live and cached): reads never feed the watchdog.
+  std::atomic<bool> reading{true};
+  std::atomic<int> reads{0};
+  std::thread hmi([&] {
+    ModbusClient client(gateway_->port(), kUnit);
+    while (reading) {
+      if (client.read_input(GetParam().present_address, 1).ok() &&
+          client.read_holding(GetParam().goal_address, 1).ok()) {
+        ++reads;
+      }
+      std::this_thread::sleep_for(10ms);
+    }
+  });
+  const bool stopped_in_time = eventually([&] { return stopped(); }, 5s);
+  reading = false;
+  hmi.join();
+  ASSERT_TRUE(stopped_in_time) << gateway_->process().output();
+  EXPECT_GT(reads.load(), 0);
+  EXPECT_EQ(gateway_register(kBus0WatchdogState), kTripped);
+  EXPECT_EQ(gateway_register(kBus0Trips + 1), 1);
+  EXPECT_EQ(gateway_register(kBus0LastCause), 1);  // watchdog
+  EXPECT_TRUE(gateway_->process().wait_for_line("WATCHDOG TRIPPED", 2s));
+
+  // Tripped: motion writes refused with 0x04 until a client re-arms it; re-arming moves nothing.
+  ModbusClient plc(gateway_->port(), kUnit);
+  const auto refused = plc.write_register(GetParam().goal.address, GetParam().goal.value);
+  EXPECT_EQ(refused.exception, 0x04) << refused.error;
+  ModbusClient gateway(gateway_->port(), kGateway);
+  const auto tripped_coil = gateway.read_coils(kWatchdogCoil, 1);
+  ASSERT_TRUE(tripped_coil.ok());
+  EXPECT_EQ(tripped_coil.values[0], 1);
+  ASSERT_TRUE(gateway.write_coils(kWatchdogCoil, {0}).ok());
+  std::this_thread::sleep_for(100ms);
+  EXPECT_TRUE(stopped());
+  EXPECT_EQ(gateway_register(kBus0WatchdogState), 1);  // armed
+  const auto accepted = plc.write_register(GetParam().harmless.address, GetParam().harmless.value);
+  EXPECT_TRUE(accepted.ok()) << accepted.error;
+}
+
+TEST_P(Safety, FrozenPlcThatKeepsItsConnectionTripsTheHeartbeatWatchdog) {
+  start(watchdog("heartbeat_register"));
+  ModbusClient plc(gateway_->port(), kUnit);
+  spin(plc);
+  ModbusClient heartbeat(gateway_->port(), kGateway);
+  // A live PLC counts: 6 timeouts' worth of changing values keep the servo turning.
+  for (std::uint16_t count = 1; count <= 36; ++count) {
+    ASSERT_TRUE(heartbeat.write_register(kHeartbeatRegister, count).ok());
+    std::this_thread::sleep_for(50ms);
+  }
+  EXPECT_EQ(gateway_register(kBus0WatchdogState), kRunning) << gateway_->process().output();
+  EXPECT_FALSE(stopped());
+  // Frozen: the connection stays, the same value keeps arriving, the goal is read back.
+  const bool stopped_in_time = eventually(
+      [&] {
+        heartbeat.write_register(kHeartbeatRegister, 36);
+        plc.read_holding(GetParam().goal_address, 1);
+        return stopped();
+      },
+      5s);
+  ASSERT_TRUE(stopped_in_time) << gateway_->process().output();
+  EXPECT_EQ(gateway_register(kBus0WatchdogState), kTripped);
+  const auto read_back = heartbeat.read_holding(kHeartbeatRegister, 1);
+  ASSERT_TRUE(read_back.ok());
+  EXPECT_EQ(read_back.values[0], 36);
+}
+
+TEST_P(Safety, EStopRefusesMotionUntilResetAndTheResetMovesNothing) {
+  start("");
+  ModbusClient plc(gateway_->port(), kUnit);
+  spin(plc);
+  ModbusClient gateway(gateway_->port(), kGateway);
+  ASSERT_TRUE(gateway.write_coils(kEStopCoil, {1}).ok()) << gateway_->process().output();
+  ASSERT_TRUE(eventually([&] { return stopped(); }, 3s));
+  EXPECT_TRUE(gateway_->process().wait_for_line("E-STOP latched", 2s));
+
+  // Latched: every motion write refused, reads and harmless writes served.
+  const auto goal = plc.write_register(GetParam().goal.address, GetParam().goal.value);
+  EXPECT_EQ(goal.exception, 0x04) << goal.error;
+  for (const Write& write : GetParam().spin) {
+    const auto answer = plc.write_register(write.address, write.value);
+    if (write.value != 0) EXPECT_EQ(answer.exception, 0x04) << "write " << write.address;
+  }
+  EXPECT_TRUE(plc.read_holding(GetParam().goal_address, 1).ok());
+  EXPECT_TRUE(plc.read_input(GetParam().present_address, 1).ok());
+  EXPECT_TRUE(plc.write_register(GetParam().harmless.address, GetParam().harmless.value).ok());
+  if (GetParam().torque_off) {
+    EXPECT_TRUE(plc.write_register(GetParam().torque_off->address, GetParam().torque_off->value).ok());
+  }
+  const auto latched = gateway.read_coils(kEStopCoil, 1);
+  ASSERT_TRUE(latched.ok());
+  EXPECT_EQ(latched.values[0], 1);
+  const auto latched_input = gateway.read_discrete(0, 1);
+  ASSERT_TRUE(latched_input.ok());
+  EXPECT_EQ(latched_input.values[0], 1);
+  EXPECT_EQ(gateway_register(kBus0LastCause), 2);  // e-stop
+
+  // Reset: nothing moves; motion writes work again.
+  const long goal_before = sim_->field(1, "goal_position");
+  ASSERT_TRUE(gateway.write_coils(kEStopCoil, {0}).ok());
+  std::this_thread::sleep_for(200ms);
+  EXPECT_TRUE(stopped());
+  EXPECT_EQ(sim_->field(1, "goal_position"), goal_before);
+  const auto after = plc.write_register(GetParam().goal.address, GetParam().goal.value);
+  EXPECT_TRUE(after.ok()) << after.error;
+}
+
+TEST_P(Safety, SigtermPerformsOnStopBeforeTheGatewayExits) {
+  start(", on_stop: hold");
+  {
+    ModbusClient plc(gateway_->port(), kUnit);
+    spin(plc);
+  }
+  gateway_->process().signal(SIGTERM);
+  const auto status = gateway_->process().wait_exit(10s);
+  ASSERT_TRUE(status.has_value());
+  EXPECT_EQ(*status, 0) << gateway_->process().output();
+  EXPECT_TRUE(eventually([&] { return stopped(); }, 3s)) << gateway_->process().output();
+  EXPECT_NE(gateway_->process().output().find("safe stop (the gateway is stopping)"), std::string::npos)
+      << gateway_->process().output();
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    EveryProtocol, Safety,
+    testing::Values(
+        Protocol{"feetech_sts", "1:sts", "feetech", 1000000, "sts",
+                 {{33, 1}, {46, 1500}}, {42, 3000}, {41, 20}, Write{40, 0}, "torque_enable", 42, 56},
+        Protocol{"feetech_sms1", "1:sms1", "feetech", 1000000, "sms1",
+                 {{35, 1}, {40, 1}, {46, 1500}}, {42, 3000}, {48, 1}, Write{40, 0}, "torque_switch", 42, 56},
+        Protocol{"d55d", "1:d55d:d55d:115200", "d55d", 115200, "d55d",
+                 {{6, 0}, {8, 0}, {32, 300}}, {30, 90}, {34, 20}, std::nullopt, "", 30, 36},
+        Protocol{"modbus_rtu_smsmb", "1:smsmb:modbus-rtu:115200", "modbus-rtu", 115200, "smsmb",
+                 {{0x10, 1}, {0x81, 1}, {0x83, 500}}, {0x80, 3000}, {0x82, 20}, Write{0x81, 0}, "torque_switch",
+                 0x80, 0x101}),
+    [](const testing::TestParamInfo<Protocol>& info) { return info.param.name; });
+
+// "No jump on enable": a servo whose torque is off and whose goal is far from where it stands
+// holds where it is when a client switches its torque on.
+TEST(SafetyTorqueOn, TorqueOnHoldsThePresentPositionInsteadOfAStaleGoal) {
+  TempDir dir;
+  SimProcess sim(dir, "sim", {"--servo", "1:sts"});
+  auto gateway = GatewayProcess::with_config(
+      dir, "buses:\n  - {name: line, device: \"" + sim.pty() + "\", protocol: feetech, baud: 1000000}\n"
+           "servos:\n  - {bus: line, id: 1, table: sts}\nlogging: {level: debug}\n", 1);
+  wait_until_polled(gateway.port(), kUnit);
+  ModbusClient plc(gateway.port(), kUnit);
+  ASSERT_TRUE(plc.write_register(40, 0).ok());  // torque off
+  const long present = sim.field(1, "present_position");
+  // A stale goal far away, left in the servo's RAM behind the gateway's back.
+  const long stale = present > 2048 ? present - 1500 : present + 1500;
+  char set_goal[40];
+  std::snprintf(set_goal, sizeof set_goal, "set 1 42 %02lX %02lX", stale & 0xFF, (stale >> 8) & 0xFF);
+  ASSERT_EQ(sim.control(set_goal), "ok");
+  ASSERT_EQ(sim.field(1, "goal_position"), stale);
+  ASSERT_TRUE(plc.write_register(40, 1).ok()) << gateway.process().output();  // torque on
+  EXPECT_EQ(sim.field(1, "torque_enable"), 1);
+  // The gateway held the goal itself (the simulated firmware would too; a real one may not).
+  EXPECT_TRUE(gateway.process().wait_for_line("torque on: hold (position mode: goal := present position", 2s))
+      << gateway.process().output();
+  const long goal = sim.field(1, "goal_position");
+  EXPECT_LE(std::labs(goal - present), 2) << "goal " << goal << ", stood at " << present;
+  std::this_thread::sleep_for(300ms);
+  EXPECT_LE(std::labs(sim.field(1, "present_position") - present), 2);
+}
+
+}  // namespace
+}  // namespace sms::e2e
