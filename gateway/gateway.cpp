@@ -143,7 +143,9 @@ class Gateway::Impl {
   MetricsSnapshot metrics() const {
     std::vector<BusEngine*> engines;
     for (const auto& engine : engines_) engines.push_back(engine.get());
-    return collect_metrics(config_, engines, server_stats(), traffic_, started_at_);
+    if (!safety_) return collect_metrics(config_, engines, server_stats(), traffic_, started_at_);
+    const SafetyFacts safety = safety_->facts();
+    return collect_metrics(config_, engines, server_stats(), traffic_, started_at_, SteadyClock::now(), &safety);
   }
 
   std::uint16_t metrics_port() const { return metrics_server_ ? metrics_server_->port() : 0; }

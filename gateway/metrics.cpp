@@ -131,6 +131,36 @@ constexpr Family<BusMetrics> kBusFamilies[] = {
      [](const BusMetrics& b) -> std::optional<Value> { return b.counters.retries; }},
     {"sms_gateway_bus_transactions_total", MetricType::Counter, "Bus operations finished, whatever their outcome",
      [](const BusMetrics& b) -> std::optional<Value> { return b.counters.transactions; }},
+    // README "Safety".
+    {"sms_gateway_watchdog_state", MetricType::Gauge,
+     "The bus's watchdog: 1 armed, 2 running, 3 tripped (buses with a watchdog only)",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       if (!b.safety || b.safety->state == WatchdogState::Off) return std::nullopt;
+       return std::uint64_t{static_cast<std::uint8_t>(b.safety->state)};
+     }},
+    {"sms_gateway_watchdog_trips_total", MetricType::Counter, "Times the bus's watchdog tripped",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       if (!b.safety) return std::nullopt;
+       return b.safety->trips;
+     }},
+    {"sms_gateway_safe_stops_total", MetricType::Counter,
+     "Safe stops performed on the bus (watchdog, e-stop, on_start, on_stop)",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       if (!b.safety) return std::nullopt;
+       return b.safety->stops;
+     }},
+    {"sms_gateway_safe_stop_latency_seconds", MetricType::Gauge,
+     "Last safe stop: from the last feed (watchdog) or the request to its frames on the wire",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       if (!b.safety || !b.safety->last_stop_latency) return std::nullopt;
+       return seconds(*b.safety->last_stop_latency);
+     }},
+    {"sms_gateway_motion_blocked", MetricType::Gauge,
+     "1 while motion writes to the bus are refused (e-stop latched or watchdog tripped)",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       if (!b.safety) return std::nullopt;
+       return std::uint64_t{b.safety->motion_blocked ? 1u : 0u};
+     }},
     {"sms_gateway_bus_queue_full_total", MetricType::Counter,
      "Client requests refused because the bus queue was full (Modbus 0x06)",
      [](const BusMetrics& b) -> std::optional<Value> { return b.counters.queue_full; }},
@@ -292,7 +322,8 @@ BusMetrics read_bus_metrics(const config::Config& config, std::size_t bus_index,
 
 MetricsSnapshot collect_metrics(const config::Config& config, std::span<BusEngine* const> engines,
                                 const TcpServerStats& tcp, const ModbusTrafficCounters& traffic,
-                                SteadyClock::time_point started, SteadyClock::time_point now) {
+                                SteadyClock::time_point started, SteadyClock::time_point now,
+                                const SafetyFacts* safety) {
   MetricsSnapshot snapshot;
   snapshot.version = SMS_GATEWAY_VERSION;
   snapshot.uptime = std::chrono::duration_cast<std::chrono::seconds>(now - started);
@@ -300,6 +331,11 @@ MetricsSnapshot collect_metrics(const config::Config& config, std::span<BusEngin
     const BusEngine* engine = engines[i];
     if (engine == nullptr) continue;
     snapshot.buses.push_back(read_bus_metrics(config, i, engine->bus_up(), engine->counters(), engine->cache(), now));
+    if (safety != nullptr && i < safety->buses.size()) snapshot.buses.back().safety = safety->buses[i];
+  }
+  if (safety != nullptr) {
+    snapshot.estop_latched = safety->estop_latched;
+    snapshot.estops = safety->estops;
   }
   snapshot.tcp = tcp;
   snapshot.traffic = traffic.snapshot();
@@ -338,6 +374,12 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
              "Connections closed at once: over modbus_tcp.max_connections, or not in modbus_tcp.allow");
   out.sample(kRefused, {{"reason", "max_connections"}}, snapshot.tcp.refused);
   out.sample(kRefused, {{"reason", "allow"}}, snapshot.tcp.denied);
+
+  out.family("sms_gateway_estop_latched", MetricType::Gauge,
+             "1 while the e-stop (gateway unit coil 1) is latched: motion writes refused on every bus");
+  out.sample("sms_gateway_estop_latched", {}, std::uint64_t{snapshot.estop_latched ? 1u : 0u});
+  out.family("sms_gateway_estops_total", MetricType::Counter, "Times a client latched the e-stop");
+  out.sample("sms_gateway_estops_total", {}, snapshot.estops);
 
   render_requests(out, snapshot.traffic);
   constexpr std::string_view kResponses = "sms_gateway_modbus_responses_total";

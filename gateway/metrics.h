@@ -21,6 +21,7 @@
 #include "config/config.h"
 #include "gateway/bus_counters.h"
 #include "gateway/poll_cache.h"
+#include "gateway/safety.h"
 #include "gateway/tcp_server.h"
 
 namespace sms::gateway {
@@ -66,6 +67,7 @@ struct BusMetrics {
   BusCountersSnapshot counters;
   std::size_t servos_online = 0;
   std::vector<ServoMetrics> servos;  // the polled servos, in configuration order
+  std::optional<BusSafetyFacts> safety;  // README "Safety"; empty where no supervisor runs
 };
 
 struct MetricsSnapshot {
@@ -74,6 +76,8 @@ struct MetricsSnapshot {
   std::vector<BusMetrics> buses;
   TcpServerStats tcp;
   ModbusTrafficSnapshot traffic;
+  bool estop_latched = false;
+  std::uint64_t estops = 0;
 };
 
 // One bus of `config` as its cache and counters show it at `now`. Servos of the bus that the
@@ -82,9 +86,11 @@ BusMetrics read_bus_metrics(const config::Config& config, std::size_t bus_index,
                             const BusCountersSnapshot& counters, const PollCache& cache, SteadyClock::time_point now);
 
 // Everything, from the running parts. `engines[i]` runs config.buses[i].
+// `safety`: the supervisor's facts, when one runs.
 MetricsSnapshot collect_metrics(const config::Config& config, std::span<BusEngine* const> engines,
                                 const TcpServerStats& tcp, const ModbusTrafficCounters& traffic,
-                                SteadyClock::time_point started, SteadyClock::time_point now = SteadyClock::now());
+                                SteadyClock::time_point started, SteadyClock::time_point now = SteadyClock::now(),
+                                const SafetyFacts* safety = nullptr);
 
 // Prometheus text exposition format 0.0.4: "# HELP" and "# TYPE" for every family, then its
 // samples; one trailing newline. Names and units in docs/DECISIONS.md "Operations and security".

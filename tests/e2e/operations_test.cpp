@@ -136,5 +136,31 @@ TEST(Operations, LoopbackInTheAllowListIsServed) {
   EXPECT_TRUE(ModbusClient(port, 255).read_input(0, 1).ok());
 }
 
+TEST(Operations, SimulateArmsAWatchdogThatTripsAndShowsInMetrics) {
+  ChildProcess gateway({bin("sms-gateway"), "--simulate", "--listen", "127.0.0.1:0", "--metrics", "127.0.0.1:0"});
+  const std::uint16_t modbus_port = port_after(gateway, "listening on 127.0.0.1:");
+  const std::uint16_t metrics_port = port_after(gateway, "/healthz on http://127.0.0.1:");
+  ASSERT_TRUE(gateway.wait_for_line("watchdog armed: 1000 ms, fed by any_write", 15s)) << gateway.output();
+  ASSERT_TRUE(gateway.wait_for_line("servos online", 15s)) << gateway.output();
+  wait_until_polled(modbus_port, 1);
+  {
+    ModbusClient plc(modbus_port, 1);
+    ASSERT_TRUE(plc.write_register(42, 2500).ok());  // a move: the watchdog counts from here
+  }
+  ASSERT_TRUE(gateway.wait_for_line("WATCHDOG TRIPPED", 10s)) << gateway.output();
+  ASSERT_TRUE(gateway.wait_for_line("safe stop (watchdog) sent", 5s)) << gateway.output();
+
+  int status = 0;
+  const auto metrics = parse_exposition(http_get(metrics_port, "/metrics", &status));
+  ASSERT_EQ(status, 200);
+  const std::string bus = R"({bus="sim",protocol="feetech"})";
+  EXPECT_EQ(metrics.value("sms_gateway_watchdog_state" + bus), "3");
+  EXPECT_EQ(metrics.value("sms_gateway_watchdog_trips_total" + bus), "1");
+  EXPECT_EQ(metrics.value("sms_gateway_safe_stops_total" + bus), "1");
+  EXPECT_EQ(metrics.value("sms_gateway_motion_blocked" + bus), "1");
+  EXPECT_GT(std::stod(metrics.value("sms_gateway_safe_stop_latency_seconds" + bus)), 1.0);
+  EXPECT_EQ(metrics.value("sms_gateway_estop_latched"), "0");
+}
+
 }  // namespace
 }  // namespace sms::e2e
