@@ -3,6 +3,7 @@
 #include <string_view>
 
 #include "modbus_map/baud_tables.h"
+#include "modbus_map/motion.h"
 #include "modbus_map/register_map.h"
 #include "modbus_map/tables.h"
 
@@ -61,6 +62,30 @@ std::string protocol_text(const TableSpec& table) {
   return std::string(protocol::to_string(table.protocol));
 }
 
+// README "Safety": what the watchdog and the e-stop treat as motion, and how they stop a servo.
+void safety_text(std::string& out, const TableSpec& spec) {
+  const MotionSpec& motion = motion_spec(spec.id);
+  const auto names = [](auto&& items, auto&& text_of) {
+    std::string text;
+    for (const auto& item : items) text += (text.empty() ? "" : ", ") + text_of(item);
+    return text;
+  };
+  out += "Safety: motion writes (refused with 0x04 while the e-stop is latched or the bus's watchdog is tripped): " +
+         names(motion.motion_fields, [](std::string_view name) { return "`" + std::string(name) + "`"; }) +
+         "; writes that only stop (allowed then): " +
+         names(motion.stopping_writes,
+               [](const StoppingWrite& w) { return "`" + std::string(w.field) + "` = " + std::to_string(w.value); }) +
+         ". Safe stop default `" + std::string(to_string(motion.default_stop)) + "`: ";
+  const BusRange block = goal_block(motion);
+  out += "`hold` rewrites " + address_text(spec, block.address) + ".." + address_text(spec, block.end() - 1) +
+         " (position mode: `" + std::string(motion.goal_position) + "` := `" + std::string(motion.present_position) +
+         "`; speed mode: `" + std::string(motion.goal_speed) + "` := 0" +
+         (motion.goal_time.empty() ? std::string() : "; PWM mode: `" + std::string(motion.goal_time) + "` := 0") +
+         (motion.mode.empty() ? "; speed mode = both angle limits 0" : "; step mode: torque off") +
+         "), `torque_off` writes `" + std::string(motion.torque_off.field) + "` = " +
+         std::to_string(motion.torque_off.value) + ".\n\n";
+}
+
 void native_table(std::string& out, const TableSpec& spec) {
   const BusRange poll = default_poll_block(spec.id);
   out += "### Table `" + std::string(spec.name) + "`: " + std::string(spec.title) + "\n\n";
@@ -74,6 +99,7 @@ void native_table(std::string& out, const TableSpec& spec) {
   }
   out += " SYNC READ: " + std::string(spec.has_sync_read ? "yes" : "no") + ". Default poll block (input registers): " +
          address_text(spec, poll.address) + ".." + address_text(spec, poll.end() - 1) + ".\n\n";
+  safety_text(out, spec);
   out += "| addr | name | access | size | area | unit | encoding | range | default | bit | notes |\n";
   out += "|---|---|---|---|---|---|---|---|---|---|---|\n";
   for (const FieldSpec& field : spec.fields) {
@@ -192,7 +218,10 @@ std::string register_map_markdown() {
          "  address and addresses that are no field read as 0.\n"
          "- Signed values (sign-magnitude or two's complement on the bus) are two's-complement int16 on Modbus.\n"
          "- Packet buses (feetech, d55d): holding register 512 + a is the staged write (REG WRITE) of field a;\n"
-         "  gateway coil 0 runs every staged write (ACTION).\n"
+         "  gateway coil 0 runs every staged write (ACTION). A staged write of a motion field is a motion write.\n"
+         "- Safety (README \"Safety\"): gateway coil 1 is the e-stop latch (1 stops every bus and refuses motion\n"
+         "  writes with 0x04, 0 resets), coil 2 re-arms tripped watchdogs (write 0); holding register 1000 + n is\n"
+         "  bus n's watchdog heartbeat. Each table below names its motion writes and its safe stop.\n"
          "- Input registers serve the bus's poll block only (the default block is given per table); FC02\n"
          "  discrete inputs come from the poll cache when it holds them, else from the servo.\n"
          "- Exceptions: 0x02 for an address beyond the table, a read-only field, a write touching only gaps or\n"
