@@ -157,7 +157,7 @@ class Gateway::Impl {
     if (metrics_server_) metrics_server_->stop();
     serving_.drain(grace);
     // The servos get their on_stop action while the buses still run (README "Safety").
-    safety_->stop_for_shutdown(kOnStopBound);
+    if (safety_) safety_->stop_for_shutdown(kOnStopBound);
     for (const auto& engine : engines_) engine->stop();
     serving_.stop();
   }
