@@ -214,11 +214,12 @@ class SafetySupervisor::Impl {
     if (bus.gate->blocked()) {
       return unexpected("bus " + bus.name + ": motion is blocked while the gateway stops");
     }
-    // A motion command always has a running watchdog behind it, whatever feeds it.
-    WatchdogState armed = WatchdogState::Armed;
-    if (bus.state.compare_exchange_strong(armed, WatchdogState::Running)) {
+    // A motion command always has a running watchdog behind it, whatever feeds it. The count
+    // starts here: the time goes in before the state says Running (the safety thread reads both).
+    if (bus.state.load() == WatchdogState::Armed) {
       bus.last_feed.store(ticks(Clock::now()));
-      reschedule();
+      WatchdogState armed = WatchdogState::Armed;
+      if (bus.state.compare_exchange_strong(armed, WatchdogState::Running)) reschedule();
     }
     return bus.gate->epoch();
   }
