@@ -274,6 +274,15 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     BusOp op;
   };
   std::vector<Frame> frames;
+  // Like every write, it feeds the watchdogs of the buses it is for, whether it is taken or not.
+  std::vector<bool> fed(engines_.size(), false);
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+    if (member != nullptr && !fed[member->bus]) {
+      safety_.feed_write(member->bus);
+      fed[member->bus] = true;
+    }
+  }
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
     if (member == nullptr || member->read_only) {
@@ -301,14 +310,8 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     }
     std::get<SyncWriteOp>(frame->op).entries.push_back(protocol::SyncWriteEntry{member->servo_id, std::move(*bytes)});
   }
-  // The safety rules per bus of the group: every write feeds, a motion field needs admission.
+  // A motion field needs admission on every bus the write reaches.
   std::vector<MotionEpoch> epochs(engines_.size(), 0);
-  std::vector<bool> touched(engines_.size(), false);
-  for (const Frame& frame : frames) touched[frame.bus] = true;
-  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
-    if (!touched[bus]) continue;
-    safety_.feed_write(bus);
-  }
   std::vector<const SyncMember*> motion_member(engines_.size(), nullptr);
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));

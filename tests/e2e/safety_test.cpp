@@ -267,5 +267,43 @@ TEST(SafetyTorqueOn, TorqueOnHoldsThePresentPositionInsteadOfAStaleGoal) {
   EXPECT_LE(std::labs(sim.field(1, "present_position") - present), 2);
 }
 
+// The e-stop holds on every way in: sync groups, staged writes and ACTION, passthrough units.
+TEST(SafetyEStop, CoversSyncGroupsStagedWritesActionAndPassthroughUnits) {
+  TempDir dir;
+  SimProcess arm(dir, "arm", {"--servo", "1:sts", "--servo", "2:sts"});
+  SimProcess line(dir, "line", {"--servo", "7:smsmb:modbus-rtu:115200"});
+  auto gateway = GatewayProcess::with_config(
+      dir, "buses:\n"
+           "  - {name: arm, device: \"" + arm.pty() + "\", protocol: feetech, baud: 1000000}\n"
+           "  - {name: line, device: \"" + line.pty() + "\", protocol: modbus-rtu, baud: 115200}\n"
+           "servos:\n"
+           "  - {bus: arm, id: 1, table: sts}\n"
+           "  - {bus: arm, id: 2, table: sts}\n"
+           "  - {bus: line, id: 7, table: passthrough}\n"
+           "sync_groups:\n"
+           "  - {name: goals, field: goal_position, members: [1, 2], holding_register_start: 0}\n"
+           "  - {name: accelerations, field: acceleration, members: [1, 2], holding_register_start: 10}\n",
+      2);
+  wait_until_polled(gateway.port(), 1);
+  ModbusClient gateway_unit(gateway.port(), kGateway);
+  ModbusClient servo(gateway.port(), 1);
+  ModbusClient passthrough(gateway.port(), 7);
+  ASSERT_TRUE(servo.write_register(512 + 42, 1000).ok());  // staged before the e-stop
+  ASSERT_TRUE(gateway_unit.write_coils(kEStopCoil, {1}).ok()) << gateway.process().output();
+
+  EXPECT_EQ(gateway_unit.write_registers(0, {1000, 1000}).exception, 0x04);  // sync group of goals
+  EXPECT_TRUE(gateway_unit.write_registers(10, {5, 5}).ok());               // of accelerations: no motion
+  EXPECT_EQ(servo.write_register(512 + 42, 1500).exception, 0x04);          // staged goal
+  EXPECT_EQ(gateway_unit.write_coils(0, {1}).exception, 0x04);              // ACTION
+  EXPECT_EQ(passthrough.write_register(0x80, 1000).exception, 0x04);        // a foreign slave's write
+  EXPECT_TRUE(passthrough.read_holding(0x101, 1).ok());                     // its reads go on
+  EXPECT_EQ(arm.field(1, "goal_position"), arm.field(1, "present_position"));
+
+  ASSERT_TRUE(gateway_unit.write_coils(kEStopCoil, {0}).ok());
+  EXPECT_TRUE(gateway_unit.write_registers(0, {2100, 2100}).ok());
+  EXPECT_TRUE(passthrough.write_register(0x82, 10).ok());
+  EXPECT_TRUE(eventually([&] { return arm.field(2, "goal_position") == 2100; }, 2s));
+}
+
 }  // namespace
 }  // namespace sms::e2e
