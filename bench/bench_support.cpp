@@ -116,8 +116,9 @@ std::string gateway_yaml(const GatewaySetup& setup, std::uint16_t port) {
        << "    protocol: feetech\n"
        << "    baud: " << kBaud << "\n"
        << "    poll_period_ms: " << setup.poll_period.count() << "\n"
-       << "    offline_probe_period_ms: " << setup.probe_period.count() << "\n"
-       << "servos:\n";
+       << "    offline_probe_period_ms: " << setup.probe_period.count() << "\n";
+  if (setup.watchdog) yaml << "    watchdog: {timeout_ms: " << setup.watchdog->count() << ", feed: any_write}\n";
+  yaml << "servos:\n";
   for (unsigned id = 1; id <= setup.servos; ++id) yaml << "  - {bus: bench, id: " << id << ", table: sts}\n";
   yaml << "logging:\n  level: warn\n";
   return yaml.str();

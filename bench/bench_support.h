@@ -70,6 +70,8 @@ struct GatewaySetup {
   std::chrono::milliseconds probe_period{1000};
   std::size_t max_connections = 200;
   std::size_t request_queue_depth = 64;
+  // The bus's watchdog (README "Safety", feed any_write); empty: none.
+  std::optional<std::chrono::milliseconds> watchdog;
 };
 
 // The YAML configuration for `setup` listening on 127.0.0.1:`port`.

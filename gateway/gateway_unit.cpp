@@ -299,10 +299,12 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
       frames.push_back(Frame{member->bus, WriteOp{member->servo_id, member->field->addr, std::move(*bytes)}});
       continue;
     }
+    // As many members as one frame's LEN allows (83 of a 2-byte field); the rest take another.
     auto frame = std::find_if(frames.begin(), frames.end(), [&](const Frame& f) {
       const auto* sync = std::get_if<SyncWriteOp>(&f.op);
       return f.bus == member->bus && sync != nullptr && sync->address == member->field->addr &&
-             sync->length == member->field->size;
+             sync->length == member->field->size &&
+             sync->entries.size() < protocol::max_sync_write_servos(member->field->size);
     });
     if (frame == frames.end()) {
       frames.push_back(Frame{member->bus, SyncWriteOp{member->field->addr, member->field->size, {}}});

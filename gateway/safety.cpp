@@ -380,8 +380,7 @@ class SafetySupervisor::Impl {
     auto join = BusJoin::create(reads.size(), safety_post(), std::move(write_phase));
     for (std::size_t i = 0; i < reads.size(); ++i) {
       const StopTarget& target = bus.targets[reads[i].target];
-      bus.engine->submit(ReadOp{target.servo_id, reads[i].range.address, reads[i].range.count}, Priority::Safety,
-                         join->completion(i));
+      submit_safely(bus, ReadOp{target.servo_id, reads[i].range.address, reads[i].range.count}, join->completion(i));
     }
   }
 
@@ -396,11 +395,13 @@ class SafetySupervisor::Impl {
         frames.push_back(WriteOp{target.servo_id, write.address, std::move(write.data)});
         return;
       }
-      // One SYNC WRITE per write shape: every servo stopping the same way is in one frame.
+      // One SYNC WRITE per write shape: every servo stopping the same way is in one frame, as
+      // many as LEN allows (35 servos of a 6-byte goal block; more take another frame).
       const auto size = static_cast<std::uint8_t>(write.data.size());
       auto frame = std::find_if(frames.begin(), frames.end(), [&](const BusOp& op) {
         const auto* sync = std::get_if<SyncWriteOp>(&op);
-        return sync != nullptr && sync->address == write.address && sync->length == size;
+        return sync != nullptr && sync->address == write.address && sync->length == size &&
+               sync->entries.size() < protocol::max_sync_write_servos(size);
       });
       if (frame == frames.end()) {
         frames.push_back(SyncWriteOp{write.address, size, {}});
@@ -474,8 +475,16 @@ class SafetySupervisor::Impl {
       const BusResult* failure = BusJoin::first_failure(results);
       finish(failure == nullptr, failure ? failure->detail : std::string());
     });
-    for (std::size_t i = 0; i < frames.size(); ++i) {
-      bus.engine->submit(std::move(frames[i]), Priority::Safety, join->completion(i));
+    for (std::size_t i = 0; i < frames.size(); ++i) submit_safely(bus, std::move(frames[i]), join->completion(i));
+  }
+
+  // A stop must not die on an operation the bus refuses to express (a programming error):
+  // it becomes that operation's failure, said in the stop's log line.
+  void submit_safely(BusSafety& bus, BusOp op, Completion done) {
+    try {
+      bus.engine->submit(std::move(op), Priority::Safety, done);
+    } catch (const std::exception& error) {
+      done(BusResult{BusStatus::Corrupt, 0, {}, "bus " + bus.name + ": " + error.what()});
     }
   }
 

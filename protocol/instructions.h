@@ -47,6 +47,9 @@ struct SyncWriteEntry {
 // Broadcast frame: addr, L, (id, L bytes)...; throws std::invalid_argument when an entry's
 // size differs from `length`, std::length_error when the frame would not fit LEN.
 Packet sync_write(std::uint8_t address, std::uint8_t length, std::span<const SyncWriteEntry> entries);
+// How many servos one SYNC WRITE of `length` data bytes each can carry: 2 + n x (1 + length)
+// parameter bytes within LEN's limit (35 servos for a 6-byte block, 83 for one 2-byte field).
+constexpr std::size_t max_sync_write_servos(std::uint8_t length) { return (kMaxParams - 2) / (1U + length); }
 
 struct ReadRequest {
   std::uint8_t address = 0;

@@ -305,5 +305,30 @@ TEST(SafetyEStop, CoversSyncGroupsStagedWritesActionAndPassthroughUnits) {
   EXPECT_TRUE(eventually([&] { return arm.field(2, "goal_position") == 2100; }, 2s));
 }
 
+// 40 servos stopping the same way need two SYNC WRITE frames of the 6-byte goal block (LEN
+// carries 35): every one of them stops, and the gateway lives on.
+TEST(SafetyEStop, StopsMoreServosThanOneSyncWriteFrameCarries) {
+  constexpr int kServos = 40;
+  TempDir dir;
+  SimProcess sim(dir, "sim", {"--ids", "1-40"});
+  std::string yaml = "buses:\n  - {name: arm, device: \"" + sim.pty() + "\", protocol: feetech, baud: 1000000}\nservos:\n";
+  for (int id = 1; id <= kServos; ++id) yaml += "  - {bus: arm, id: " + std::to_string(id) + ", table: sts}\n";
+  auto gateway = GatewayProcess::with_config(dir, yaml, 1);
+  wait_until_polled(gateway.port(), kServos);
+  ModbusClient plc(gateway.port(), 1);
+  for (int id = 1; id <= kServos; ++id) {
+    plc.set_unit(id);
+    ASSERT_TRUE(plc.write_register(33, 1).ok());
+    ASSERT_TRUE(plc.write_register(46, 800).ok());
+  }
+  ASSERT_TRUE(eventually([&] { return sim.field(kServos, "present_speed") != 0; }, 3s));
+  ModbusClient gateway_unit(gateway.port(), kGateway);
+  ASSERT_TRUE(gateway_unit.write_coils(kEStopCoil, {1}).ok()) << gateway.process().output();
+  for (int id = 1; id <= kServos; ++id) {
+    EXPECT_TRUE(eventually([&] { return sim.field(id, "present_speed") == 0; }, 3s)) << "servo " << id;
+  }
+  EXPECT_TRUE(gateway_unit.read_input(0, 1).ok());
+}
+
 }  // namespace
 }  // namespace sms::e2e
