@@ -14,8 +14,21 @@ std::string HostPort::to_string() const {
   return (ipv6 ? "[" + host + "]" : host) + ":" + std::to_string(port);
 }
 
+namespace {
+
+// "\"text\"" built by appending: GCC 12 at -O3 misreads `"\"" + std::string(...)` as an
+// overlapping memcpy (-Wrestrict, GCC bug 105651).
+std::string in_quotes(std::string_view text) {
+  std::string quoted(1, '"');
+  quoted.append(text);
+  quoted.push_back('"');
+  return quoted;
+}
+
+}  // namespace
+
 Expected<HostPort> parse_host_port(std::string_view text) {
-  const std::string quoted = "\"" + std::string(text) + "\"";
+  const std::string quoted = in_quotes(text);
   std::string_view host;
   std::string_view port;
   if (text.starts_with('[')) {
@@ -81,7 +94,7 @@ std::string IpNetwork::to_string() const {
 }
 
 Expected<IpNetwork> parse_ip_network(std::string_view text) {
-  const std::string quoted = "\"" + std::string(text) + "\"";
+  const std::string quoted = in_quotes(text);
   const auto slash = text.find('/');
   const std::string address_text(text.substr(0, slash));
   IpNetwork network;

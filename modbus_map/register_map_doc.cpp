@@ -62,20 +62,32 @@ std::string protocol_text(const TableSpec& table) {
   return std::string(protocol::to_string(table.protocol));
 }
 
+// `name` in backticks, built by appending (GCC 12 -O3 misreads "`" + std::string(...) as an
+// overlapping memcpy: -Wrestrict, GCC bug 105651).
+std::string code(std::string_view name) {
+  std::string text(1, '`');
+  text.append(name);
+  text.push_back('`');
+  return text;
+}
+
 // README "Safety": what the watchdog and the e-stop treat as motion, and how they stop a servo.
 void safety_text(std::string& out, const TableSpec& spec) {
   const MotionSpec& motion = motion_spec(spec.id);
   const auto names = [](auto&& items, auto&& text_of) {
     std::string text;
-    for (const auto& item : items) text += (text.empty() ? "" : ", ") + text_of(item);
+    for (const auto& item : items) {
+      if (!text.empty()) text += ", ";
+      text += text_of(item);
+    }
     return text;
   };
-  out += "Safety: motion writes (refused with 0x04 while the e-stop is latched or the bus's watchdog is tripped): " +
-         names(motion.motion_fields, [](std::string_view name) { return "`" + std::string(name) + "`"; }) +
-         "; writes that only stop (allowed then): " +
-         names(motion.stopping_writes,
-               [](const StoppingWrite& w) { return "`" + std::string(w.field) + "` = " + std::to_string(w.value); }) +
-         ". Safe stop default `" + std::string(to_string(motion.default_stop)) + "`: ";
+  out += "Safety: motion writes (refused with 0x04 while the e-stop is latched or the bus's watchdog is tripped): ";
+  out += names(motion.motion_fields, [](std::string_view name) { return code(name); });
+  out += "; writes that only stop (allowed then): ";
+  out += names(motion.stopping_writes,
+               [](const StoppingWrite& w) { return code(w.field) + " = " + std::to_string(w.value); });
+  out += ". Safe stop default " + code(to_string(motion.default_stop)) + ": ";
   const BusRange block = goal_block(motion);
   out += "`hold` rewrites " + address_text(spec, block.address) + ".." + address_text(spec, block.end() - 1) +
          " (position mode: `" + std::string(motion.goal_position) + "` := `" + std::string(motion.present_position) +

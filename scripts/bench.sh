@@ -27,7 +27,7 @@ done
 if ((${#selected[@]} > 0)); then programs=("${selected[@]}"); fi
 
 build_dir="${SMS_BUILD_DIR:-build}"
-cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSMS_BUILD_TESTS=OFF -DSMS_BUILD_BENCH=ON \
+cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSMS_BUILD_TESTS=OFF -DSMS_BUILD_BENCH=ON -DSMS_WERROR=ON \
   -DSMS_SANITIZE=OFF >/dev/null
 cmake --build "$build_dir" --target sms-gateway "${programs[@]}" -j "$(nproc)"
 

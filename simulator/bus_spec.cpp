@@ -31,10 +31,19 @@ std::optional<double> parse_probability(std::string_view text) {
 
 namespace {
 
+// 'text' built by appending: GCC 12 at -O3 misreads `"'" + std::string(...)` as an overlapping
+// memcpy (-Wrestrict, GCC bug 105651).
+std::string quoted(std::string_view text) {
+  std::string out(1, '\'');
+  out.append(text);
+  out.push_back('\'');
+  return out;
+}
+
 Expected<std::uint8_t> parse_id(std::string_view text, std::string_view context) {
   const auto value = parse_number(text);
   if (!value || *value > 253) {
-    return unexpected("'" + std::string(text) + "' in '" + std::string(context) + "' is not a servo ID (0-253)");
+    return unexpected(quoted(text) + " in '" + std::string(context) + "' is not a servo ID (0-253)");
   }
   return static_cast<std::uint8_t>(*value);
 }
@@ -61,7 +70,7 @@ Expected<std::vector<std::uint8_t>> parse_id_list(std::string_view text) {
     if (dash != std::string_view::npos) {
       const auto end = parse_id(part.substr(dash + 1), text);
       if (!end || *end < *first) {
-        return unexpected("'" + std::string(part) + "' is not a range of servo IDs; write IDs as 1-6 or 1,3,7");
+        return unexpected(quoted(part) + " is not a range of servo IDs; write IDs as 1-6 or 1,3,7");
       }
       last = *end;
     }
@@ -88,7 +97,7 @@ std::uint32_t default_baud(BusProtocol protocol) {
 Expected<ServoConfig> parse_servo_spec(std::string_view text) {
   const auto parts = split(text, ':');
   const std::string usage = "; write a servo as ID:TABLE:PROTOCOL:BAUD, e.g. 3:sts:feetech:1000000";
-  if (parts.size() < 2 || parts.size() > 4) return unexpected("'" + std::string(text) + "' is not a servo" + usage);
+  if (parts.size() < 2 || parts.size() > 4) return unexpected(quoted(text) + " is not a servo" + usage);
   ServoConfig config;
   const auto id = parse_id(parts[0], text);
   if (!id) return unexpected(id.error() + usage);
@@ -110,7 +119,7 @@ Expected<ServoConfig> parse_servo_spec(std::string_view text) {
   config.baud = default_baud(config.protocol);
   if (parts.size() == 4) {
     const auto baud = parse_number(parts[3]);
-    if (!baud || *baud == 0) return unexpected("'" + std::string(parts[3]) + "' is not a baud rate" + usage);
+    if (!baud || *baud == 0) return unexpected(quoted(parts[3]) + " is not a baud rate" + usage);
     config.baud = *baud;
   }
   return config;
@@ -118,11 +127,11 @@ Expected<ServoConfig> parse_servo_spec(std::string_view text) {
 
 Expected<std::pair<std::uint8_t, std::uint32_t>> parse_id_value(std::string_view text) {
   const auto colon = text.find(':');
-  if (colon == std::string_view::npos) return unexpected("'" + std::string(text) + "' is not ID:VALUE");
+  if (colon == std::string_view::npos) return unexpected(quoted(text) + " is not ID:VALUE");
   const auto id = parse_id(text.substr(0, colon), text);
   if (!id) return unexpected(id.error());
   const auto value = parse_number(text.substr(colon + 1));
-  if (!value) return unexpected("'" + std::string(text.substr(colon + 1)) + "' in '" + std::string(text) +
+  if (!value) return unexpected(quoted(text.substr(colon + 1)) + " in '" + std::string(text) +
                                 "' is not a number");
   return std::pair{*id, *value};
 }

@@ -183,7 +183,9 @@ TEST_P(Safety, EStopRefusesMotionUntilResetAndTheResetMovesNothing) {
   EXPECT_EQ(goal.exception, 0x04) << goal.error;
   for (const Write& write : GetParam().spin) {
     const auto answer = plc.write_register(write.address, write.value);
-    if (write.value != 0) EXPECT_EQ(answer.exception, 0x04) << "write " << write.address;
+    if (write.value != 0) {
+      EXPECT_EQ(answer.exception, 0x04) << "write " << write.address;
+    }
   }
   EXPECT_TRUE(plc.read_holding(GetParam().goal_address, 1).ok());
   EXPECT_TRUE(plc.read_input(GetParam().present_address, 1).ok());
