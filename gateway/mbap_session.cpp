@@ -96,9 +96,11 @@ void MbapSession::deliver(std::uint64_t request_serial, Bytes response_pdu) {
     return;
   }
   if (!in_flight_ || in_flight_->serial != request_serial) return;  // answered already
-  host_->count_response(response_pdu);
-  const Bytes adu = protocol::tcp::encode_mbap(in_flight_->transaction_id, in_flight_->unit_id, response_pdu);
-  outbox_.insert(outbox_.end(), adu.begin(), adu.end());
+  if (!response_pdu.empty()) {  // empty: Reply::finish_without_answer()
+    host_->count_response(response_pdu);
+    const Bytes adu = protocol::tcp::encode_mbap(in_flight_->transaction_id, in_flight_->unit_id, response_pdu);
+    outbox_.insert(outbox_.end(), adu.begin(), adu.end());
+  }
   in_flight_.reset();
   flush();
   process_pending();

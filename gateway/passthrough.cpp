@@ -57,7 +57,7 @@ std::optional<Bytes> broadcast_answer(std::span<const std::uint8_t> pdu) {
 }
 
 void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uint8_t> pdu, const PostFn& post,
-                 const Reply& reply, const std::string& label) {
+                 const Reply& reply, const std::string& label, BroadcastReply broadcast_reply) {
   if (pdu.empty()) return;  // the MBAP reader never hands over an empty PDU
   const std::uint8_t function = pdu[0];
   std::optional<Bytes> broadcast;
@@ -69,12 +69,16 @@ void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uin
       return;
     }
   }
-  Completion done = on_io_thread(post, [reply, function, label, broadcast = std::move(broadcast)](BusResult result) {
+  const bool silent = broadcast && broadcast_reply == BroadcastReply::None;
+  Completion done = on_io_thread(post, [reply, function, label, silent, broadcast = std::move(broadcast)](BusResult result) {
     if (result.status != BusStatus::Ok) {
       spdlog::debug("passthrough: {} FC{:02X}: {}", label, function, result.detail);
+      // A broadcast's client expects no answer: an exception would be taken for the next one's.
+      if (silent) return reply.finish_without_answer();
       reply.send(exception_response(function, fault_from(result.status)));
       return;
     }
+    if (silent) return reply.finish_without_answer();
     reply.send(broadcast ? *broadcast : std::move(result.data));
   });
   try {
@@ -86,7 +90,8 @@ void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uin
   }
 }
 
-ForwardHandler::ForwardHandler(BusEngine& engine, PostFn post) : engine_(engine), post_(std::move(post)) {}
+ForwardHandler::ForwardHandler(BusEngine& engine, PostFn post, BroadcastReply broadcast_reply)
+    : engine_(engine), post_(std::move(post)), broadcast_reply_(broadcast_reply) {}
 
 void ForwardHandler::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) {
   if (pdu.empty()) return;
@@ -95,7 +100,8 @@ void ForwardHandler::handle(std::uint8_t unit_id, std::span<const std::uint8_t> 
     return;
   }
   forward_pdu(engine_, unit_id, pdu, post_, reply,
-              unit_id == kBroadcastSlave ? std::string("broadcast") : "slave " + std::to_string(unit_id));
+              unit_id == kBroadcastSlave ? std::string("broadcast") : "slave " + std::to_string(unit_id),
+              broadcast_reply_);
 }
 
 class ForwardGateway::Impl {
@@ -116,8 +122,8 @@ class ForwardGateway::Impl {
     settings.discover = false;
     settings.poll = false;
     engine_ = std::make_unique<RtuBusEngine>(std::move(settings), options_.rtu);
-    handler_ = std::make_unique<ForwardHandler>(*engine_,
-                                                [this](std::function<void()> work) { serving_.post(std::move(work)); });
+    handler_ = std::make_unique<ForwardHandler>(
+        *engine_, [this](std::function<void()> work) { serving_.post(std::move(work)); }, options_.broadcast_reply);
     TcpServerOptions server_options;
     server_options.host = options_.listen.host;
     server_options.port = options_.listen.port;

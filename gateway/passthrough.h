@@ -9,12 +9,14 @@
 // - The gateway's own exceptions (exception_code(), exceptions.h): 0x0B the slave did not
 //   answer through every retry, 0x0A its bus is down, 0x04 its answers stayed corrupt, 0x06 the
 //   bus queue is full.
-// - Slave 0 is an RTU broadcast: sent, no answer awaited. Decision: the TCP client still gets
-//   an answer once the frame has left (a TCP master would otherwise wait for its timeout, and
-//   the connection's next request behind it): the normal answer of a write (FC05/06 echo,
-//   FC15/16 address and quantity), the echo of the request for other functions (as FC08 and
-//   Feetech's 0x41 restart answer). Read functions (01 02 03 04 17, and 11 report slave ID) to
-//   unit 0 are answered 0x0A without bus traffic: nobody answers a broadcast read.
+// - Slave 0 is an RTU broadcast: sent, no answer awaited. As mbusd (the reference gateway) does
+//   by default, the TCP client gets no answer either: clients configured for broadcasts (e.g.
+//   pymodbus with broadcast enabled) expect none, and an unexpected one would be taken as the
+//   answer to their next request. With BroadcastReply::Answer (`--reply-on-broadcast`, mbusd's
+//   -b) the client gets one once the frame has left: the normal answer of a write (FC05/06
+//   echo, FC15/16 address and quantity), the echo of the request for other functions. Read
+//   functions (01 02 03 04 17, and 11 report slave ID) to unit 0 are answered 0x0A either way,
+//   without bus traffic: nobody answers a broadcast read.
 #include <chrono>
 #include <cstdint>
 #include <memory>
@@ -36,19 +38,21 @@ std::optional<Bytes> broadcast_answer(std::span<const std::uint8_t> pdu);
 // Forwards `pdu` to `slave` (0 = broadcast) on `engine` and answers `reply` on the io thread
 // (through `post`). `label` names the unit in logs ("unit 20 (bus rtu, slave 20)").
 // Call on the io thread.
+enum class BroadcastReply : std::uint8_t { None, Answer };
 void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uint8_t> pdu, const PostFn& post,
-                 const Reply& reply, const std::string& label);
+                 const Reply& reply, const std::string& label, BroadcastReply broadcast_reply = BroadcastReply::None);
 
 // `sms-gateway forward`: unit u (1-247) is RTU slave u, unit 0 the broadcast, any other unit
 // (248-255) is answered 0x0A.
 class ForwardHandler final : public RequestHandler {
  public:
-  ForwardHandler(BusEngine& engine, PostFn post);
+  ForwardHandler(BusEngine& engine, PostFn post, BroadcastReply broadcast_reply = BroadcastReply::None);
   void handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) override;
 
  private:
   BusEngine& engine_;
   PostFn post_;
+  BroadcastReply broadcast_reply_;
 };
 
 struct ForwardOptions {
@@ -60,6 +64,7 @@ struct ForwardOptions {
   config::HostPort listen{"127.0.0.1", 5020};
   std::size_t max_connections = 32;
   std::chrono::seconds idle_timeout{60};
+  BroadcastReply broadcast_reply = BroadcastReply::None;  // mbusd's default; -b / --reply-on-broadcast
 };
 
 // The whole `forward` program in one object (main and the tests use it the same way): an

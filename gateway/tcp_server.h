@@ -43,6 +43,9 @@ class Reply {
   Reply(std::shared_ptr<Target> target, std::uint64_t request_serial)
       : target_(std::move(target)), request_serial_(request_serial) {}
   void send(Bytes response_pdu) const { target_->deliver(request_serial_, std::move(response_pdu)); }
+  // The request is done and gets no answer (a broadcast, as Modbus TCP gateways answer them by
+  // default): the connection goes on with its next request.
+  void finish_without_answer() const { target_->deliver(request_serial_, {}); }
 
  private:
   std::shared_ptr<Target> target_;

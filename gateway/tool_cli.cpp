@@ -301,6 +301,8 @@ struct ForwardArgs {
   std::size_t max_connections = 32;
   std::size_t queue_depth = 64;
   std::string log_level = "info";
+  unsigned idle_timeout_s = 60;
+  bool reply_on_broadcast = false;
 };
 
 void add_forward(CLI::App& app) {
@@ -333,6 +335,11 @@ void add_forward(CLI::App& app) {
   command->add_option("--queue-depth", args->queue_depth, "Requests waiting for the line; past it 0x06 (busy)")
       ->check(CLI::Range(std::size_t{1}, std::size_t{100'000}))
       ->capture_default_str();
+  command->add_option("--idle-timeout-s", args->idle_timeout_s, "Close a client silent this long (0: never)")
+      ->check(CLI::Range(0U, 86'400U))
+      ->capture_default_str();
+  command->add_flag("-b,--reply-on-broadcast", args->reply_on_broadcast,
+                    "Answer writes to unit 0 once sent (default, as mbusd: no answer to a broadcast)");
   command->add_option("--log-level", args->log_level, "trace, debug, info, warn, error, critical or off")
       ->check(CLI::IsMember({"trace", "debug", "info", "warn", "error", "critical", "off"}))
       ->capture_default_str();
@@ -354,6 +361,8 @@ void add_forward(CLI::App& app) {
     options.listen = *listen;
     options.max_connections = args->max_connections;
     options.queue_depth = args->queue_depth;
+    options.idle_timeout = std::chrono::seconds{args->idle_timeout_s};
+    options.broadcast_reply = args->reply_on_broadcast ? BroadcastReply::Answer : BroadcastReply::None;
 
     // SIGINT/SIGTERM blocked in every thread, then waited for here.
     sigset_t stop_signals;
@@ -365,9 +374,10 @@ void add_forward(CLI::App& app) {
       ForwardGateway gateway(options);
       gateway.start();
       // The bound port: --listen HOST:0 picks a free one.
-      spdlog::info("forwarding Modbus TCP on {}:{} to {} at {} bit/s ({}{}{}): unit u -> slave u, unit 0 -> broadcast",
-                   listen->host, gateway.port(), args->device, args->baud, 8,
-                   parity_letter(options.serial.parity), args->stop_bits);
+      spdlog::info("forwarding Modbus TCP on {}:{} to {} at {} bit/s ({}{}{}): unit u -> slave u, unit 0 -> broadcast "
+                   "({})",
+                   listen->host, gateway.port(), args->device, args->baud, 8, parity_letter(options.serial.parity),
+                   args->stop_bits, args->reply_on_broadcast ? "answered once sent" : "not answered");
       int signal_number = 0;
       sigwait(&stop_signals, &signal_number);
       spdlog::info("{} received: answering the requests in flight, then stopping", strsignal(signal_number));

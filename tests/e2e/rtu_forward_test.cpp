@@ -48,11 +48,15 @@ TEST(ForwardProcess, ForwardsToSmsmbServosAtARateLibmodbusCannotSetAndStopsOnSig
   client.set_unit(5);
   EXPECT_EQ(client.read_holding(0x0A, 1).exception, 0x0B);
 
-  // Unit 0: an RTU broadcast, answered once sent.
-  client.set_unit(0);
-  ASSERT_TRUE(client.write_register(0x84, 700).ok());
-  EXPECT_TRUE(eventually([&] { return sim.field(1, "torque_limit") == 700 && sim.field(2, "torque_limit") == 700; }));
-  EXPECT_EQ(client.read_holding(0x84, 1).exception, 0x0A);
+  // Unit 0: an RTU broadcast, not answered (mbusd's default): the client times out, the servos
+  // have the value.
+  {
+    ModbusClient broadcaster(port, 0, 0.3);
+    EXPECT_FALSE(broadcaster.write_register(0x84, 700).ok());
+    EXPECT_TRUE(
+        eventually([&] { return sim.field(1, "torque_limit") == 700 && sim.field(2, "torque_limit") == 700; }));
+    EXPECT_EQ(broadcaster.read_holding(0x84, 1).exception, 0x0A);
+  }
 
   forward.signal(SIGTERM);
   EXPECT_EQ(forward.wait_exit(10s), 0) << forward.output();
@@ -82,6 +86,37 @@ TEST(ForwardProcess, SeveralClientsAtOnceAllGetTheirAnswers) {
     EXPECT_EQ(failures[static_cast<std::size_t>(unit - 1)], 0) << "unit " << unit;
     EXPECT_EQ(sim.field(unit, "torque_limit"), 100 + unit * 10 + 14);
   }
+  forward.signal(SIGTERM);
+  EXPECT_EQ(forward.wait_exit(10s), 0) << forward.output();
+}
+
+// mbusd's default, checked with a client configured for it (pymodbus, broadcast enabled): no
+// answer to a broadcast, so the reads right after it get their own answers.
+TEST(ForwardProcess, PymodbusWithBroadcastEnabledGetsNoAnswerToABroadcast) {
+  TempDir dir;
+  SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "1-2", "--baud", "115200"}, true);
+  ChildProcess forward({bin("sms-gateway"), "forward", "--device", sim.pty(), "--baud", "115200", "--listen",
+                        "127.0.0.1:0"});
+  const std::uint16_t port = start_forward(forward);
+  EXPECT_NE(forward.output().find("unit 0 -> broadcast (not answered)"), std::string::npos) << forward.output();
+  ChildProcess client({"/usr/bin/python3", std::string(SMS_SOURCE_DIR) + "/tests/e2e/pymodbus_broadcast.py",
+                       std::to_string(port)});
+  EXPECT_EQ(client.wait_exit(30s), 0) << client.output() << forward.output();
+  EXPECT_EQ(sim.field(2, "torque_limit"), 630);
+  forward.signal(SIGTERM);
+  EXPECT_EQ(forward.wait_exit(10s), 0) << forward.output();
+}
+
+// --reply-on-broadcast (mbusd -b), for clients that wait for every answer (libmodbus).
+TEST(ForwardProcess, ReplyOnBroadcastAnswersAWriteToUnitZeroOnceSent) {
+  TempDir dir;
+  SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "1-2", "--baud", "115200"}, true);
+  ChildProcess forward({bin("sms-gateway"), "forward", "--device", sim.pty(), "--baud", "115200", "--listen",
+                        "127.0.0.1:0", "--reply-on-broadcast"});
+  const std::uint16_t port = start_forward(forward);
+  ModbusClient client(port, 0);
+  ASSERT_TRUE(client.write_register(0x84, 640).ok()) << forward.output();
+  EXPECT_TRUE(eventually([&] { return sim.field(1, "torque_limit") == 640 && sim.field(2, "torque_limit") == 640; }));
   forward.signal(SIGTERM);
   EXPECT_EQ(forward.wait_exit(10s), 0) << forward.output();
 }

@@ -156,9 +156,11 @@ class TcpClient {
 
 class ForwardTest : public ::testing::Test {
  protected:
+  virtual BroadcastReply broadcast_reply() const { return BroadcastReply::None; }
   void SetUp() override {
     slave_ = std::make_unique<PlainRtuSlave>(line_.b(), 17);
     ForwardOptions options;
+    options.broadcast_reply = broadcast_reply();
     options.serial = SerialSettings{line_.a(), 115'200};
     options.rtu.byte_timeout = 20ms;
     options.response_timeout = 50ms;
@@ -217,7 +219,31 @@ TEST_F(ForwardTest, SilentSlaveIsAnswered0x0BAfterTheRetries) {
   EXPECT_EQ(forwarder_->engine().counters().timeouts, before + 3);  // first attempt + 2 retries
 }
 
-TEST_F(ForwardTest, UnitZeroIsAnRtuBroadcastAnsweredOnceSent) {
+// mbusd's default: a broadcast gets no answer. A libmodbus client (which waits for one) times
+// out, the frame is on the line all the same, and the connection's next request gets its own
+// answer — not a late one meant for the broadcast.
+TEST_F(ForwardTest, UnitZeroIsAnRtuBroadcastWithoutAnAnswer) {
+  TcpClient client(forwarder_->port(), 0);
+  modbus_set_response_timeout(*client, 0, 300'000);
+  EXPECT_EQ(modbus_write_register(*client, 7, 77), -1);
+  EXPECT_EQ(errno, ETIMEDOUT);
+  EXPECT_TRUE(wait_until([&] { return slave_->holding(7) == 77; }));
+  modbus_set_slave(*client, 17);
+  std::uint16_t read[2] = {};
+  ASSERT_EQ(modbus_read_registers(*client, 7, 2, read), 2) << modbus_strerror(errno);
+  EXPECT_EQ(read[0], 77);
+  // Nobody can answer a broadcast read: still 0x0A at once, without touching the line.
+  modbus_set_slave(*client, 0);
+  EXPECT_EQ(modbus_read_registers(*client, 7, 1, read), -1);
+  EXPECT_EQ(errno, EMBXGPATH);
+}
+
+class ForwardAnsweringBroadcastsTest : public ForwardTest {
+  BroadcastReply broadcast_reply() const override { return BroadcastReply::Answer; }
+};
+
+// --reply-on-broadcast (mbusd -b): for clients that wait for an answer, as libmodbus does.
+TEST_F(ForwardAnsweringBroadcastsTest, UnitZeroIsAnRtuBroadcastAnsweredOnceSent) {
   TcpClient client(forwarder_->port(), 0);
   ASSERT_EQ(modbus_write_register(*client, 7, 77), 1) << modbus_strerror(errno);
   EXPECT_TRUE(wait_until([&] { return slave_->holding(7) == 77; }));
