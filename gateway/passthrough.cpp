@@ -57,7 +57,8 @@ std::optional<Bytes> broadcast_answer(std::span<const std::uint8_t> pdu) {
 }
 
 void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uint8_t> pdu, const PostFn& post,
-                 const Reply& reply, const std::string& label, BroadcastReply broadcast_reply) {
+                 const Reply& reply, const std::string& label, BroadcastReply broadcast_reply,
+                 MotionEpoch motion_epoch) {
   if (pdu.empty()) return;  // the MBAP reader never hands over an empty PDU
   const std::uint8_t function = pdu[0];
   std::optional<Bytes> broadcast;
@@ -82,7 +83,7 @@ void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uin
     reply.send(broadcast ? *broadcast : std::move(result.data));
   });
   try {
-    engine.submit(RawPduOp{slave, Bytes(pdu.begin(), pdu.end())}, priority_of(function), std::move(done));
+    engine.submit(RawPduOp{slave, Bytes(pdu.begin(), pdu.end()), motion_epoch}, priority_of(function), std::move(done));
   } catch (const std::invalid_argument& error) {
     // A PDU the line cannot carry (over 253 bytes cannot come from MBAP; kept for safety).
     spdlog::warn("passthrough: {}: {}", label, error.what());

@@ -39,8 +39,10 @@ std::optional<Bytes> broadcast_answer(std::span<const std::uint8_t> pdu);
 // (through `post`). `label` names the unit in logs ("unit 20 (bus rtu, slave 20)").
 // Call on the io thread.
 enum class BroadcastReply : std::uint8_t { None, Answer };
+// `motion_epoch`: the safety rules' admission of a write to a passthrough unit (gateway/safety.h).
 void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uint8_t> pdu, const PostFn& post,
-                 const Reply& reply, const std::string& label, BroadcastReply broadcast_reply = BroadcastReply::None);
+                 const Reply& reply, const std::string& label, BroadcastReply broadcast_reply = BroadcastReply::None,
+                 MotionEpoch motion_epoch = 0);
 
 // `sms-gateway forward`: unit u (1-247) is RTU slave u, unit 0 the broadcast, any other unit
 // (248-255) is answered 0x0A.

@@ -5,7 +5,9 @@
 
 #include <spdlog/spdlog.h>
 
+#include "gateway/access_policy.h"
 #include "gateway/exceptions.h"
+#include "gateway/passthrough.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
 
@@ -79,7 +81,7 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
     BusEngine* engine = engines[servo.bus_index];
     if (servo.passthrough()) {
       passthrough_[servo.unit_id] = std::make_unique<PassthroughUnit>(
-          PassthroughUnit{servo.unit_id, engine, servo.servo_id, servo.bus_index,
+          PassthroughUnit{servo.unit_id, engine, servo.servo_id, servo.bus_index, servo.read_only,
                           "unit " + std::to_string(servo.unit_id) + " (bus " + servo.bus + ", slave " +
                               std::to_string(servo.servo_id) + ", passthrough)"});
       continue;
@@ -144,14 +146,13 @@ void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pd
 
 void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8_t> pdu, const Reply& reply) {
   const std::uint8_t function = pdu[0];
+  if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
   if (!unit.engine->bus_up()) {
     reply.send(exception_response(function, Fault::BusDown));
     return;
   }
-  // Reads queue behind writes like any client read (MODBUS_MAP.md priorities).
-  const bool read = function >= function_code::kReadCoils && function <= function_code::kReadInputRegisters;
   MotionEpoch epoch = 0;
-  if (!read) {
+  if (function_effect(function) != FunctionEffect::Reads) {
     // The gateway cannot tell what a passthrough slave's registers do: every write may move
     // something, so every write is under the safety rules (README "Safety").
     safety_.feed_write(unit.bus_index);
@@ -163,20 +164,17 @@ void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8
     }
     epoch = *admitted;
   }
-  unit.engine->submit(RawPduOp{unit.slave, Bytes(pdu.begin(), pdu.end()), epoch},
-                      read ? Priority::ClientRead : Priority::ClientWrite,
-                      on_io_thread(post_, [&unit, function, reply](BusResult result) {
-                        if (result.status != BusStatus::Ok) {
-                          spdlog::debug("modbus: {} FC{:02X}: {}", unit.label, function, result.detail);
-                          reply.send(exception_response(function, fault_from(result.status)));
-                          return;
-                        }
-                        if (result.data.empty()) {  // slaves are 1-247: an answer always has a PDU
-                          reply.send(exception_response(function, Fault::ServoCorrupt));
-                          return;
-                        }
-                        reply.send(std::move(result.data));
-                      }));
+  forward_pdu(*unit.engine, unit.slave, pdu, post_, reply, unit.label, BroadcastReply::None, epoch);
+}
+
+bool UnitRouter::refused_as_read_only(bool read_only, const std::string& label, std::uint8_t function,
+                                      const Reply& reply) const {
+  if (!read_only) return false;
+  const auto refusal = read_only_refusal(function);
+  if (!refusal) return false;
+  spdlog::debug("modbus: {} is read-only in the configuration; FC{:02X} refused", label, function);
+  reply.send(exception_response(function, *refusal));
+  return true;
 }
 
 void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply) {
@@ -189,11 +187,7 @@ void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, con
                       std::holds_alternative<WriteRegistersRequest>(request) ||
                       std::holds_alternative<ReadWriteRegistersRequest>(request);
   if (writes) safety_.feed_write(unit.bus_index);
-  if (writes && unit.read_only) {
-    spdlog::debug("modbus: {} is read-only in the configuration; write refused", unit.label);
-    reply.send(exception_response(function, Fault::BadAddress));
-    return;
-  }
+  if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
   std::visit(Overloaded{
                  [&](const ReadRegistersRequest& read) {
                    if (read.function == fc::kReadInputRegisters) {

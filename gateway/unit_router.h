@@ -79,6 +79,7 @@ struct PassthroughUnit {
   BusEngine* engine = nullptr;
   std::uint8_t slave = 0;
   std::size_t bus_index = 0;
+  bool read_only = false;  // read_only_refusal() decides, as for servo units
   std::string label;
 };
 
@@ -99,6 +100,8 @@ class UnitRouter : public RequestHandler {
   void dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, const Reply& reply);
   void handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply);
   void forward(const PassthroughUnit& unit, std::span<const std::uint8_t> pdu, const Reply& reply);
+  // One rule for servo and passthrough units (read_only_refusal): true when it answered.
+  bool refused_as_read_only(bool read_only, const std::string& label, std::uint8_t function, const Reply& reply) const;
   void read_holding(const ServoUnit& unit, std::uint8_t function, std::uint16_t start, std::uint16_t count,
                     const Reply& reply);
   void read_input(const ServoUnit& unit, const ReadRegistersRequest& request, const Reply& reply);

@@ -121,5 +121,35 @@ TEST(ForwardProcess, ReplyOnBroadcastAnswersAWriteToUnitZeroOnceSent) {
   EXPECT_EQ(forward.wait_exit(10s), 0) << forward.output();
 }
 
+// One read-only rule for servo and passthrough units (access_policy.h read_only_refusal): a
+// read-only passthrough unit forwards reads, refuses writes with 0x02 and functions whose
+// effect the gateway cannot know with 0x01, and nothing of those reaches the slave.
+TEST(PassthroughProcess, ReadOnlyPassthroughUnitForwardsReadsOnly) {
+  TempDir dir;
+  SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "7-8", "--baud", "115200"});
+  auto gateway = GatewayProcess::with_config(
+      dir, "buses:\n  - {name: line, device: \"" + sim.pty() + "\", protocol: modbus-rtu, baud: 115200}\n"
+           "servos:\n"
+           "  - {bus: line, id: 7, table: passthrough, read_only: true}\n"
+           "  - {bus: line, id: 8, table: passthrough}\n",
+      0);  // a line of passthrough units only is not discovered: no summary to wait for
+  const long before = sim.field(7, "torque_limit");
+  ModbusClient client(gateway.port(), 7);
+  const auto read = client.read_holding(0x84, 1);
+  ASSERT_TRUE(read.ok()) << read.error;
+  EXPECT_EQ(read.values[0], before);
+  EXPECT_EQ(client.write_register(0x84, 321).exception, 0x02);
+  EXPECT_EQ(client.write_registers(0x84, {321}).exception, 0x02);
+  const auto restart = client.raw({0x41}, 7);  // Feetech's restart: effect unknown to the gateway
+  EXPECT_EQ(restart.exception, 0x01);
+  const auto diagnostics = client.raw({0x08, 0x00, 0x01, 0x00, 0x00}, 7);  // 08/01 restarts a device
+  EXPECT_EQ(diagnostics.exception, 0x01);
+  EXPECT_EQ(sim.field(7, "torque_limit"), before);
+
+  client.set_unit(8);  // the same line's writable unit
+  ASSERT_TRUE(client.write_register(0x84, 321).ok());
+  EXPECT_EQ(sim.field(8, "torque_limit"), 321);
+}
+
 }  // namespace
 }  // namespace sms::e2e
