@@ -125,6 +125,33 @@ Expected<IpNetwork> parse_ip_network(std::string_view text) {
   return network;
 }
 
+std::string FrameGap::to_string() const {
+  switch (kind) {
+    case Kind::Spec: return "spec";
+    case Kind::Characters: return "3.5chars";
+    case Kind::Fixed: return std::to_string(fixed.count()) + "us";
+  }
+  return "spec";
+}
+
+Expected<FrameGap> parse_frame_gap(std::string_view text) {
+  if (text == "spec") return FrameGap{};
+  if (text == "3.5chars") return FrameGap{FrameGap::Kind::Characters, {}};
+  constexpr std::string_view kMicros = "us";
+  constexpr long kMaxMicros = 1'000'000;
+  if (text.size() > kMicros.size() && text.substr(text.size() - kMicros.size()) == kMicros) {
+    const std::string_view digits = text.substr(0, text.size() - kMicros.size());
+    long value = 0;
+    const auto [end, error] = std::from_chars(digits.data(), digits.data() + digits.size(), value);
+    if (error == std::errc{} && end == digits.data() + digits.size() && value >= 0 && value <= kMaxMicros) {
+      return FrameGap{FrameGap::Kind::Fixed, std::chrono::microseconds{value}};
+    }
+  }
+  return unexpected(in_quotes(text) + " is not a frame gap; write spec (3.5 characters, 1.75 ms above 19200 "
+                                      "bit/s), 3.5chars (3.5 characters at every rate) or a time such as 500us "
+                                      "(0us..1000000us)");
+}
+
 modbus_map::ByteOrder effective_byte_order(const ServoConfig& servo) {
   if (servo.byte_order) return *servo.byte_order;
   if (!servo.table) return modbus_map::ByteOrder::HighFirst;  // Modbus registers

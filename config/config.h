@@ -84,12 +84,27 @@ struct PollSelection {
   bool operator==(const PollSelection&) const = default;
 };
 
+// The silence the RTU master keeps after the last byte on the wire before it sends the next
+// frame (Modbus over serial line v1.02 §2.5.1.1: 3.5 characters, a fixed 1.75 ms above 19200
+// bit/s). Slaves that time their frames by 3.5 characters take the shorter gap at high rates.
+struct FrameGap {
+  enum class Kind : std::uint8_t { Spec, Characters, Fixed };
+  Kind kind = Kind::Spec;             // Spec: 3.5 characters, 1.75 ms above 19200 bit/s
+  std::chrono::microseconds fixed{0};  // Fixed only
+
+  std::string to_string() const;     // "spec", "3.5chars", "250us"
+  bool operator==(const FrameGap&) const = default;
+};
+// "spec", "3.5chars" or "<N>us" (0..1000000); the error says what is wrong and the valid forms.
+Expected<FrameGap> parse_frame_gap(std::string_view text);
+
 // Line settings only a modbus-rtu bus uses (libmodbus).
 struct ModbusRtuOptions {
   bool rs485 = false;                               // MODBUS_RTU_RS485 serial mode (TIOCSRS485)
   RtsMode rts = RtsMode::None;
   std::optional<std::chrono::microseconds> rts_delay;  // empty: libmodbus's one character time
   std::chrono::milliseconds byte_timeout{50};      // longest silence inside one reply
+  FrameGap frame_gap;                               // between frames, from the last byte on the wire
 
   bool operator==(const ModbusRtuOptions&) const = default;
 };

@@ -90,6 +90,8 @@ void emit_bus(YAML::Emitter& out, const BusConfig& bus) {
     }
     key(out, "byte_timeout_ms");
     out << bus.modbus_rtu.byte_timeout.count();
+    key(out, "frame_gap");
+    out << bus.modbus_rtu.frame_gap.to_string();
   }
   if (bus.watchdog) {
     key(out, "watchdog");

@@ -32,14 +32,15 @@ using protocol::BusProtocol;
 constexpr std::array<std::string_view, 5> kTopKeys{"modbus_tcp", "buses", "servos", "sync_groups", "logging"};
 constexpr std::array<std::string_view, 6> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth", "allow"};
-constexpr std::array<std::string_view, 20> kBusKeys{
+constexpr std::array<std::string_view, 21> kBusKeys{
     "name",        "device",         "protocol",   "baud",  "parity", "stop_bits",    "response_timeout_ms",
     "retries",     "poll_period_ms", "offline_probe_period_ms",      "reopen_period_ms",
     "poll_fields", "poll_range",     "rs485",      "rts",   "rts_delay_us",           "byte_timeout_ms",
-    "watchdog",    "on_start",       "on_stop"};
+    "frame_gap",   "watchdog",       "on_start",   "on_stop"};
 constexpr std::array<std::string_view, 3> kWatchdogKeys{"timeout_ms", "feed", "action"};
 // Keys of kBusKeys that only a modbus-rtu bus takes.
-constexpr std::array<std::string_view, 4> kModbusRtuOnlyKeys{"rs485", "rts", "rts_delay_us", "byte_timeout_ms"};
+constexpr std::array<std::string_view, 5> kModbusRtuOnlyKeys{"rs485", "rts", "rts_delay_us", "byte_timeout_ms",
+                                                              "frame_gap"};
 constexpr std::array<std::string_view, 2> kPollRangeKeys{"start", "count"};
 constexpr std::array<std::string_view, 10> kServoKeys{"unit",       "bus",           "id",        "table", "profile",
                                                       "byte_order", "response_level", "read_only", "name",
@@ -605,6 +606,13 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
   }
   if (const auto v = keys.find("byte_timeout_ms")) {
     bus.modbus_rtu.byte_timeout = duration<std::chrono::milliseconds>(*v, 1, 10000);
+  }
+  if (const auto v = keys.find("frame_gap")) {
+    const auto gap = v->node.IsScalar() ? parse_frame_gap(v->node.Scalar())
+                                        : Expected<FrameGap>(unexpected("expected spec, 3.5chars or a time such as "
+                                                                        "500us, got " + describe(v->node)));
+    if (!gap) fail(v->mark, v->path + ": " + gap.error());
+    bus.modbus_rtu.frame_gap = *gap;
   }
 
   if (const auto v = keys.find("watchdog")) {

@@ -52,9 +52,17 @@ bool libmodbus_sets_rate(std::uint32_t baud) {
   return std::find(kLibmodbusRates.begin(), kLibmodbusRates.end(), baud) != kLibmodbusRates.end();
 }
 
-std::chrono::nanoseconds rtu_frame_gap(const SerialSettings& serial) {
-  if (serial.baud > kFixedGapAbove) return kFixedFrameGap;
-  return wire_time(serial, 7) / 2;
+std::chrono::nanoseconds rtu_frame_gap(const SerialSettings& serial, const config::FrameGap& gap) {
+  const auto three_and_a_half_characters = wire_time(serial, 7) / 2;
+  switch (gap.kind) {
+    case config::FrameGap::Kind::Spec:
+      return serial.baud > kFixedGapAbove ? std::chrono::nanoseconds{kFixedFrameGap} : three_and_a_half_characters;
+    case config::FrameGap::Kind::Characters:
+      return three_and_a_half_characters;
+    case config::FrameGap::Kind::Fixed:
+      return gap.fixed;
+  }
+  return three_and_a_half_characters;
 }
 
 std::string_view to_string(RtuOutcome outcome) {
@@ -210,7 +218,7 @@ Expected<Ok> RtuMaster::open() {
 }
 
 void RtuMaster::wait_for_frame_gap() {
-  const auto ready = line_->quiet_since + rtu_frame_gap(settings_.serial);
+  const auto ready = line_->quiet_since + rtu_frame_gap(settings_.serial, settings_.options.frame_gap);
   const auto now = SteadyClock::now();
   if (ready > now) std::this_thread::sleep_for(ready - now);
 }

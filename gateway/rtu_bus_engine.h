@@ -47,8 +47,10 @@ struct RtuLineSettings {
 // True when libmodbus 3.1.6 would set `baud` itself (a Bxxx constant exists for it).
 bool libmodbus_sets_rate(std::uint32_t baud);
 
-// 3.5 character times, 1.75 ms above 19200 bit/s (Modbus over serial line v1.02 §2.5.1.1).
-std::chrono::nanoseconds rtu_frame_gap(const SerialSettings& serial);
+// The silence before the next frame: `gap` spec: 3.5 character times, 1.75 ms above 19200 bit/s
+// (Modbus over serial line v1.02 §2.5.1.1); 3.5chars: 3.5 character times at every rate; or a
+// fixed time. Counted from the last byte on the wire.
+std::chrono::nanoseconds rtu_frame_gap(const SerialSettings& serial, const config::FrameGap& gap = {});
 
 enum class RtuOutcome : std::uint8_t {
   Reply,       // a frame from the addressed slave with a valid CRC (possibly an exception PDU)

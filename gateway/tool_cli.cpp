@@ -303,6 +303,7 @@ struct ForwardArgs {
   std::string log_level = "info";
   unsigned idle_timeout_s = 60;
   bool reply_on_broadcast = false;
+  std::string frame_gap = "spec";
 };
 
 void add_forward(CLI::App& app) {
@@ -335,6 +336,10 @@ void add_forward(CLI::App& app) {
   command->add_option("--queue-depth", args->queue_depth, "Requests waiting for the line; past it 0x06 (busy)")
       ->check(CLI::Range(std::size_t{1}, std::size_t{100'000}))
       ->capture_default_str();
+  command->add_option("--frame-gap", args->frame_gap,
+                      "Silence before each frame, from the last byte on the wire: spec (3.5 characters, 1.75 ms "
+                      "above 19200 bit/s), 3.5chars, or a time such as 500us")
+      ->capture_default_str();
   command->add_option("--idle-timeout-s", args->idle_timeout_s, "Close a client silent this long (0: never)")
       ->check(CLI::Range(0U, 86'400U))
       ->capture_default_str();
@@ -347,6 +352,8 @@ void add_forward(CLI::App& app) {
     auto listen = config::parse_host_port(args->listen);
     if (!listen) fail("forward", "--listen " + args->listen + ": " + listen.error(), kExitUsage);
     if (args->rts_delay_us && args->rts == "none") fail("forward", "--rts-delay-us needs --rts up or down", kExitUsage);
+    const auto frame_gap = config::parse_frame_gap(args->frame_gap);
+    if (!frame_gap) fail("forward", "--frame-gap: " + frame_gap.error(), kExitUsage);
     spdlog::set_level(spdlog::level::from_str(args->log_level));
 
     ForwardOptions options;
@@ -356,6 +363,7 @@ void add_forward(CLI::App& app) {
     options.rtu.rts = rts_from(args->rts);
     if (args->rts_delay_us) options.rtu.rts_delay = std::chrono::microseconds{*args->rts_delay_us};
     options.rtu.byte_timeout = std::chrono::milliseconds{args->byte_timeout_ms};
+    options.rtu.frame_gap = *frame_gap;
     options.response_timeout = std::chrono::milliseconds{args->response_timeout_ms};
     options.retries = args->retries;
     options.listen = *listen;

@@ -197,7 +197,8 @@ std::string run_command(SimulatedBus& bus, const std::vector<std::string>& words
     const BusStats stats = bus.stats();
     return "requests=" + std::to_string(stats.requests) + " replies=" + std::to_string(stats.replies) +
            " dropped=" + std::to_string(stats.dropped) + " corrupted=" + std::to_string(stats.corrupted) +
-           " collisions=" + std::to_string(stats.collisions) + " checksum_errors=" + std::to_string(stats.checksum_errors);
+           " collisions=" + std::to_string(stats.collisions) + " checksum_errors=" + std::to_string(stats.checksum_errors) +
+           " merged_requests=" + std::to_string(stats.merged_requests);
   }
   return "error: unknown command '" + command + "'; " + std::string(kHelp);
 }

@@ -152,6 +152,8 @@ class SimulatedBus::Impl {
   void write_out();
   std::optional<Clock::time_point> next_deadline() const;
   Clock::duration rtu_silence() const;
+  // The servo's t3.5 between frames: 3.5 characters at every rate (no fixed 1.75 ms).
+  Clock::duration rtu_interframe() const;
   void save_state_if_dirty();
   std::uint32_t current_speed() const;
 
@@ -168,6 +170,7 @@ class SimulatedBus::Impl {
   protocol::StreamDecoder d55d_decoder_{protocol::kD55dFormat};
   protocol::rtu::RequestDecoder rtu_decoder_;
   std::uint32_t rtu_speed_ = 0;
+  bool rtu_merging_ = false;  // a request came too early: ignored until the line is silent
   Clock::time_point last_received_{};
   Clock::time_point wire_free_{};  // when the (virtual) wire is next idle
   std::vector<ScheduledReply> scheduled_;
@@ -287,6 +290,10 @@ std::uint32_t SimulatedBus::Impl::current_speed() const {
   }
 }
 
+Clock::duration SimulatedBus::Impl::rtu_interframe() const {
+  return character_time(std::max<std::uint32_t>(rtu_speed_, 1)) * 7 / 2;
+}
+
 Clock::duration SimulatedBus::Impl::rtu_silence() const {
   if (rtu_speed_ > kFixedSilenceAbove) return kFixedSilence;
   return character_time(std::max<std::uint32_t>(rtu_speed_, 1)) * 7 / 2;
@@ -367,6 +374,7 @@ void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::ti
   // The request occupies the wire from when it arrived (or when the wire became free). Without
   // timing the host may outrun the wire; the virtual wire then restarts at each arrival so it
   // never runs ahead of real time.
+  const Clock::time_point previous_frame_end = wire_free_;
   const Clock::time_point wire_start = timing_ ? std::max(wire_free_, now) : now;
   wire_free_ = wire_start + character_time(speed) * static_cast<long>(bytes.size());
   const Clock::time_point request_end = wire_free_;
@@ -399,15 +407,39 @@ void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::ti
     if (rtu_decoder_.buffered() > 0 && now >= last_received_ + rtu_silence()) {
       if (const auto event = rtu_decoder_.end_of_frame()) on_modbus(*event, speed, request_end, now);
     }
+    const bool silence_passed = now >= last_received_ + rtu_silence();
     last_received_ = now;
-    if (packet_frame) {
+    if (rtu_merging_ && silence_passed) rtu_merging_ = false;
+    // A slave's own t3.5 (issue 13): a request that starts before the line was silent for 3.5
+    // characters after the previous frame (a request, or a servo's reply) is heard as the tail of
+    // that frame, fails its CRC and is ignored — until the line falls silent again.
+    if (timing_ && !rtu_merging_ && rtu_decoder_.buffered() == 0 && now < previous_frame_end + rtu_interframe()) {
+      rtu_merging_ = true;
+      ++stats_.merged_requests;
+      spdlog::debug("sms-sim: modbus-rtu request {} us after the previous frame, less than 3.5 characters: "
+                    "merged with it and ignored",
+                    std::chrono::duration_cast<std::chrono::microseconds>(now - previous_frame_end).count());
+    }
+    if (rtu_merging_) {
+      rtu_decoder_.reset();
+    } else if (packet_frame) {
       // Another protocol's frame on a mixed bus: to the Modbus slaves it is noise that ends
       // whatever they were collecting. Without wire timing the host may follow it by less than
       // the 3.5-character silence, which would otherwise glue it to the next Modbus request.
       rtu_decoder_.reset();
     } else {
       rtu_decoder_.feed(bytes);
-      while (const auto event = rtu_decoder_.next()) on_modbus(*event, speed, request_end, now);
+      while (const auto event = rtu_decoder_.next()) {
+        on_modbus(*event, speed, request_end, now);
+        if (timing_ && event->kind == protocol::rtu::RequestDecoder::Event::Kind::Frame &&
+            rtu_decoder_.buffered() > 0) {
+          // The next request followed this one without any silence: merged with it, ignored.
+          rtu_merging_ = true;
+          ++stats_.merged_requests;
+          rtu_decoder_.reset();
+          break;
+        }
+      }
     }
   }
   save_state_if_dirty();

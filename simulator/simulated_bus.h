@@ -70,6 +70,9 @@ struct BusStats {
   std::uint64_t corrupted = 0;       // replies corrupted by fault injection
   std::uint64_t collisions = 0;      // replies that overlapped another on the wire
   std::uint64_t checksum_errors = 0; // request frames with a bad checksum or CRC
+  // Modbus-RTU requests that began less than 3.5 characters after the previous frame (wire
+  // timing on): a slave hears them as the tail of that frame and ignores them.
+  std::uint64_t merged_requests = 0;
 };
 
 class SimulatedBus {

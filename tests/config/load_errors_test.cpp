@@ -83,7 +83,7 @@ servos: []
             "plant.yaml:5:5: unknown key `baudrate` in buses[0] (did you mean `baud`?); allowed keys here: name, "
             "device, protocol, baud, parity, stop_bits, response_timeout_ms, retries, poll_period_ms, "
             "offline_probe_period_ms, reopen_period_ms, poll_fields, poll_range, rs485, rts, rts_delay_us, "
-            "byte_timeout_ms, watchdog, on_start, on_stop");
+            "byte_timeout_ms, frame_gap, watchdog, on_start, on_stop");
 }
 
 TEST(ConfigErrors, UnknownServoKeyInAFlowMap) {
@@ -962,6 +962,26 @@ servos:
   const auto again = load_config_string(dump_config(*config), "dump.yaml");
   ASSERT_TRUE(again) << again.error().to_string();
   EXPECT_EQ(*again, *config);
+}
+
+}  // namespace
+}  // namespace sms::config
+
+namespace sms::config {
+namespace {
+
+TEST(ConfigErrors, FrameGapNamesTheValidForms) {
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: line, device: /dev/ttyUSB0, protocol: modbus-rtu, baud: 115200, frame_gap: 2ms}
+servos: []
+)"),
+            "plant.yaml:2:87: buses[0].frame_gap: \"2ms\" is not a frame gap; write spec (3.5 characters, 1.75 ms "
+            "above 19200 bit/s), 3.5chars (3.5 characters at every rate) or a time such as 500us (0us..1000000us)");
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000, frame_gap: spec}
+servos: []
+)"),
+            "plant.yaml:2:73: buses[0]: `frame_gap` applies to modbus-rtu buses only; bus `arm` is feetech");
 }
 
 }  // namespace

@@ -70,6 +70,15 @@ TEST(RtuRates, FrameGapIsThreeAndAHalfCharactersUpTo19200ThenFixed) {
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 115'200}), 1750us);
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 19'200}), 1'822'917ns);  // 35 bits / 19200 /s, rounded up
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 9'600}), 3'645'833ns);  // 7'291'667 ns halved
+  // The configurable gaps (issue 13): 3.5 characters at every rate, or a fixed time.
+  const config::FrameGap characters{config::FrameGap::Kind::Characters, {}};
+  EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 115'200}, characters), 303'819ns);  // 35 bits / 115200 /s
+  EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 19'200}, characters), 1'822'917ns);
+  EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 115'200}, config::FrameGap{config::FrameGap::Kind::Fixed, 200us}), 200us);
+  EXPECT_EQ(config::parse_frame_gap("3.5chars")->kind, config::FrameGap::Kind::Characters);
+  EXPECT_EQ(config::parse_frame_gap("250us")->fixed, 250us);
+  EXPECT_FALSE(config::parse_frame_gap("250ms"));
+  EXPECT_FALSE(config::parse_frame_gap("2000000us"));
 }
 
 // Each rate of the SMSMB baud table (SPEC §3 modbus-rtu column): the simulated servo answers

@@ -4,6 +4,7 @@
 #include <modbus.h>
 
 #include <cerrno>
+#include <thread>
 
 #include "tests/simulator/sim_fixture.h"
 
@@ -219,6 +220,29 @@ TEST_F(SmsmbSim, StockLibmodbusRtuMasterTalksToIt) {
   EXPECT_EQ(errno, EMBXILFUN);
   EXPECT_EQ(modbus_read_registers(master.get(), 0x300, 1, input), -1);
   EXPECT_EQ(errno, EMBXILADD);
+}
+
+// A slave's own t3.5 (issue 13), with wire timing on: a request that starts less than 3.5
+// characters after the previous frame is heard as its tail and ignored; after a silence the
+// slave listens again.
+TEST_F(SmsmbSim, RequestCloserThanThreePointFiveCharactersToThePreviousFrameIsIgnored) {
+  BusOptions options = quick_options({smsmb(1)});
+  options.timing = true;
+  rig = std::make_unique<Rig>(options);
+  const Bytes read = protocol::rtu::frame(1, Bytes{0x03, 0x00, 0x80, 0x00, 0x01});
+  Bytes both = read;
+  both.insert(both.end(), read.begin(), read.end());  // back to back: no silence between them
+  std::this_thread::sleep_for(std::chrono::milliseconds(5));  // the line was just opened
+  host().send(both);
+  const Bytes answers = host().receive(std::chrono::milliseconds(30), std::chrono::milliseconds(300));
+  EXPECT_EQ(answers.size(), 7u) << "only the first request is answered";
+  EXPECT_EQ(rig->bus->stats().merged_requests, 1u);
+
+  // A silence longer than t3.5 first (3.5 characters at 115200 bit/s are 304 us): answered.
+  std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  host().send(read);
+  EXPECT_EQ(host().receive_exactly(7, std::chrono::milliseconds(300)).size(), 7u);
+  EXPECT_EQ(rig->bus->stats().merged_requests, 1u);
 }
 
 }  // namespace
