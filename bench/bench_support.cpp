@@ -91,6 +91,17 @@ simulator::BusOptions sts_bus(unsigned count) {
   return options;
 }
 
+simulator::BusOptions smsmb_bus(unsigned count, std::uint32_t baud) {
+  simulator::BusOptions options;
+  for (unsigned id = 1; id <= count; ++id) {
+    options.servos.push_back(simulator::ServoConfig{static_cast<std::uint8_t>(id), modbus_map::TableId::Smsmb,
+                                                    protocol::BusProtocol::ModbusRtu, baud});
+  }
+  options.timing = true;
+  options.seed = 1;
+  return options;
+}
+
 void set_return_delay(simulator::SimulatedBus& bus, unsigned count, std::uint8_t units) {
   const std::uint8_t value[] = {units};
   for (unsigned id = 1; id <= count; ++id) {
@@ -113,13 +124,15 @@ std::string gateway_yaml(const GatewaySetup& setup, std::uint16_t port) {
        << "buses:\n"
        << "  - name: bench\n"
        << "    device: \"" << setup.device << "\"\n"
-       << "    protocol: feetech\n"
-       << "    baud: " << kBaud << "\n"
+       << "    protocol: " << (setup.modbus_rtu_baud != 0 ? "modbus-rtu" : "feetech") << "\n"
+       << "    baud: " << (setup.modbus_rtu_baud != 0 ? setup.modbus_rtu_baud : kBaud) << "\n"
        << "    poll_period_ms: " << setup.poll_period.count() << "\n"
        << "    offline_probe_period_ms: " << setup.probe_period.count() << "\n";
   if (setup.watchdog) yaml << "    watchdog: {timeout_ms: " << setup.watchdog->count() << ", feed: any_write}\n";
+  if (setup.modbus_rtu_baud != 0) yaml << "    frame_gap: " << setup.frame_gap << "\n";
   yaml << "servos:\n";
-  for (unsigned id = 1; id <= setup.servos; ++id) yaml << "  - {bus: bench, id: " << id << ", table: sts}\n";
+  const char* table = setup.modbus_rtu_baud != 0 ? "smsmb" : "sts";
+  for (unsigned id = 1; id <= setup.servos; ++id) yaml << "  - {bus: bench, id: " << id << ", table: " << table << "}\n";
   yaml << "logging:\n  level: warn\n";
   return yaml.str();
 }

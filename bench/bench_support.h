@@ -58,6 +58,8 @@ double wire_us(std::size_t bytes, std::uint32_t baud = kBaud);
 
 // `count` sts servos, IDs 1..count, feetech at 1 Mbaud, wire timing on.
 simulator::BusOptions sts_bus(unsigned count);
+// `count` SMSMB servos (Modbus-RTU firmware), IDs 1..count, at `baud`, wire timing on.
+simulator::BusOptions smsmb_bus(unsigned count, std::uint32_t baud);
 // Writes the return delay (sts address 7, in 2 us units) of servos 1..count.
 void set_return_delay(simulator::SimulatedBus& bus, unsigned count, std::uint8_t units);
 
@@ -72,6 +74,10 @@ struct GatewaySetup {
   std::size_t request_queue_depth = 64;
   // The bus's watchdog (README "Safety", feed any_write); empty: none.
   std::optional<std::chrono::milliseconds> watchdog;
+  // A modbus-rtu bus of smsmb servos at this rate instead of feetech/sts at kBaud, with this
+  // frame_gap (config/README.md); 0: feetech.
+  std::uint32_t modbus_rtu_baud = 0;
+  std::string frame_gap = "spec";
 };
 
 // The YAML configuration for `setup` listening on 127.0.0.1:`port`.

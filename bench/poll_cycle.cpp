@@ -126,6 +126,52 @@ void measure_cycle(unsigned servos, std::uint8_t return_delay, std::chrono::mill
   gateway.stop();
 }
 
+// modbus-rtu (issue 13): one FC03 of the 8-register feedback block per servo and cycle, each
+// followed by the configured inter-frame gap. Limit = N x (8 request + 21 reply bytes on the
+// wire + the gap), return delay 0: what the gap setting allows, not only the wire.
+struct RtuGap {
+  std::string setting;  // config frame_gap
+  double gap_us;        // what it is at kRtuBaud
+};
+constexpr std::uint32_t kRtuBaud = 115'200;
+constexpr unsigned kRtuServos = 6;
+constexpr std::uint16_t kSmsmbReturnDelayRegister = 0x0C;
+
+void measure_rtu_cycle(const RtuGap& gap, std::chrono::milliseconds duration) {
+  sms::simulator::SimulatedBus bus(smsmb_bus(kRtuServos, kRtuBaud));
+  start_precise(bus);
+  const std::uint8_t zero[] = {0, 0};
+  for (unsigned id = 1; id <= kRtuServos; ++id) bus.write_memory(static_cast<std::uint8_t>(id), kSmsmbReturnDelayRegister, zero);
+  GatewaySetup setup;
+  setup.device = bus.slave_path();
+  setup.servos = kRtuServos;
+  setup.poll_period = 0ms;
+  setup.modbus_rtu_baud = kRtuBaud;
+  setup.frame_gap = gap.setting;
+  GatewayProcess gateway(setup);
+  gateway.wait_ready(kRtuServos);
+  ModbusClient client(gateway.port(), kGatewayUnit);
+  std::this_thread::sleep_for(200ms);
+  const auto merged_before = bus.stats().merged_requests;
+  const Window window = sample(client, duration);
+  const double per_servo_wire = wire_us(8 + 21, kRtuBaud);
+  const double limit = kRtuServos * (per_servo_wire + gap.gap_us);
+  const double measured = median(window.cycle_us);
+  const double cycles_per_s = per_second(window.first.frames_ok, window.last.frames_ok, window.seconds) / kRtuServos;
+  const double from_rate = cycles_per_s > 0 ? 1e6 / cycles_per_s : 0;
+  const std::string name = "poll_cycle.modbus_rtu.servos_6.baud_115200.frame_gap_" + gap.setting;
+  print_figure(name + ".wire_only", kRtuServos * per_servo_wire, "us");
+  print_figure(name + ".limit_with_gap", limit, "us");
+  print_figure(name + ".cycle_median", measured, "us");
+  print_figure(name + ".cycle_mean_from_frame_rate", from_rate, "us");
+  print_figure(name + ".efficiency", measured > 0 ? 100.0 * limit / measured : 0, "%");
+  print_figure(name + ".efficiency_throughput", from_rate > 0 ? 100.0 * limit / from_rate : 0, "%");
+  print_figure(name + ".wire_share", measured > 0 ? 100.0 * kRtuServos * per_servo_wire / measured : 0, "%");
+  print_figure(name + ".timeouts", window.last.timeouts - window.first.timeouts, "frames");
+  print_figure(name + ".merged_requests", static_cast<double>(bus.stats().merged_requests - merged_before), "");
+  gateway.stop();
+}
+
 void measure_silent_servo(std::chrono::milliseconds duration) {
   sms::simulator::SimulatedBus bus(sts_bus(kSilentBusServos));
   start_precise(bus);
@@ -198,13 +244,15 @@ int main(int argc, char** argv) {
   double silent_seconds = 5;
   double only_servos = 0;
   double only_return_delay_us = -1;
+  double rtu_seconds = 2;
   if (!parse_arguments(argc, argv,
                        "poll cycle time vs the SYNC READ wire-time limit for 6, 20, 60 servos at 1 Mbaud; the cost "
                        "of one silent servo",
                        {{"seconds", &seconds, "sampling time per bus size"},
                         {"silent-seconds", &silent_seconds, "sampling time with and without the silent servo (0: skip)"},
                         {"servos", &only_servos, "only this bus size (6, 20 or 60; 0: all)"},
-                        {"return-delay-us", &only_return_delay_us, "only this return delay (0 or 500; -1: both)"}})) {
+                        {"return-delay-us", &only_return_delay_us, "only this return delay (0 or 500; -1: both)"},
+                        {"rtu-seconds", &rtu_seconds, "sampling time per modbus-rtu frame gap setting (0: skip)"}})) {
     return 2;
   }
   try {
@@ -216,6 +264,14 @@ int main(int argc, char** argv) {
       for (const unsigned servos : kServoCounts) {
         if (only_servos > 0 && only_servos != servos) continue;
         measure_cycle(servos, return_delay, std::chrono::milliseconds(static_cast<long>(seconds * 1000)));
+      }
+    }
+    if (rtu_seconds > 0) {
+      print_note("modbus-rtu: 6 SMSMB servos at 115200 bit/s, FC03 of 8 registers each, return delay 0, with each "
+                 "frame_gap setting; limit = frames on the wire + one gap per transaction");
+      const double characters_us = 3.5 * 10 * 1e6 / kRtuBaud;
+      for (const RtuGap& gap : {RtuGap{"spec", 1750}, RtuGap{"3.5chars", characters_us}, RtuGap{"500us", 500}}) {
+        measure_rtu_cycle(gap, std::chrono::milliseconds(static_cast<long>(rtu_seconds * 1000)));
       }
     }
     if (silent_seconds > 0) {
