@@ -85,7 +85,7 @@ struct Job {
   unsigned attempts = 1;
   bool client = false;  // from submit(): holds a slot of the bounded queue, completes on every outcome
   MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
-  SteadyClock::time_point queued_at{};  // internal jobs (poll, probe, discovery): when queued, see pop_job
+  SteadyClock::time_point queued_at{};  // when queued: the age rule of pop_job
   Completion done;
 };
 
@@ -218,7 +218,7 @@ class PacketBusEngine::Impl {
   BusCounters counters_;
   PollScheduler scheduler_;
   std::chrono::nanoseconds quiet_gap_;
-  std::chrono::nanoseconds poll_overdue_;  // see pop_job
+  std::array<std::chrono::nanoseconds, kPriorityCount> age_limits_;  // per Priority, see pop_job
 
   asio::io_context io_{1};
   asio::executor_work_guard<asio::io_context::executor_type> work_;
@@ -306,7 +306,8 @@ PacketBusEngine::Impl::Impl(BusSettings settings)
       cache_(cache_entries(settings_)),
       scheduler_(poll_targets(settings_, rules_.has_sync_read), settings_.probe_period),
       quiet_gap_(wire_time(settings_.serial, 32) + 1ms),
-      poll_overdue_(std::max<std::chrono::nanoseconds>(settings_.poll_period, 10ms)),
+      age_limits_{std::chrono::nanoseconds{0}, kClientAgeLimit, kClientAgeLimit,
+                  std::max<std::chrono::nanoseconds>(settings_.poll_period, 10ms)},
       work_(asio::make_work_guard(io_)),
       descriptor_(io_),
       attempt_timer_(io_),
@@ -413,6 +414,7 @@ void PacketBusEngine::Impl::submit(BusOp op, Priority priority, Completion done)
   const MotionEpoch motion_epoch = motion_epoch_of(op);
   Job job = make_client_job(std::move(op));
   job.motion_epoch = motion_epoch;
+  job.queued_at = SteadyClock::now();
   job.done = std::move(done);
   BusStatus refusal = BusStatus::Ok;
   {
@@ -433,27 +435,19 @@ void PacketBusEngine::Impl::submit(BusOp op, Priority priority, Completion done)
 
 std::optional<Job> PacketBusEngine::Impl::pop_job() {
   std::lock_guard lock(queue_mutex_);
-  // Client operations go before polling, but not forever: the engine's own poll, probe or
-  // discovery transaction that has waited longer than one poll period (at least 10 ms) goes
-  // next, so a flood of live client requests cannot freeze the poll cache (FC04) or keep an
-  // offline servo from its probe. Jobs of one cycle are queued together, so the rest of the
-  // cycle follows; clients then have the bus until the next cycle is overdue. (Client jobs
-  // submitted at Priority::Poll keep strict priority order.)
-  auto& internal = queue_[static_cast<std::size_t>(Priority::Poll)];
-  if (!internal.empty() && !internal.front().client &&
-      SteadyClock::now() - internal.front().queued_at >= poll_overdue_) {
-    Job job = std::move(internal.front());
-    internal.pop_front();
-    return job;
-  }
-  for (auto& level : queue_) {
-    if (level.empty()) continue;
-    Job job = std::move(level.front());
-    level.pop_front();
-    if (job.client) --client_jobs_queued_;
-    return job;
-  }
-  return std::nullopt;
+  // next_level() (bus_engine.h): safe stops first; then whatever waited past its age limit,
+  // oldest first — client work after kClientAgeLimit, the engine's own poll, probe or discovery
+  // transaction after one poll period (at least 10 ms), so neither a flood of writes can starve
+  // a live read nor a flood of live requests freeze the poll cache (FC04) or keep an offline
+  // servo from its probe; else strict priority. Jobs of one poll cycle are queued together, so
+  // the rest of the cycle follows.
+  const auto level = next_level(queue_, age_limits_, SteadyClock::now());
+  if (!level) return std::nullopt;
+  auto& queue = queue_[*level];
+  Job job = std::move(queue.front());
+  queue.pop_front();
+  if (job.client) --client_jobs_queued_;
+  return job;
 }
 
 void PacketBusEngine::Impl::enqueue_internal(Job job) {
@@ -685,14 +679,12 @@ void PacketBusEngine::Impl::handle_frame(Packet frame) {
       }
       return accept_answer(std::move(frame));
     case Verdict::Refused:
-      // The refusal bits are about this instruction, not the servo's condition: the last
-      // status byte keeps only the rest (the client learns of the refusal from the result).
-      note_answer(frame.id, frame.code & ~rules_.refusal_bits);
+      note_answer(frame.id, frame.code);
       return finish(BusStatus::ServoRefused, frame.code, {},
                     fmt::format("bus {}: servo {} refused {} (ERROR 0x{:02X})", settings_.name, frame.id,
                                 describe(active.job), frame.code));
     case Verdict::RefusedDamaged:
-      note_answer(frame.id, frame.code & ~rules_.refusal_bits);
+      note_answer(frame.id, frame.code);
       active.refused_damaged = true;
       active.last_error = frame.code;
       attempt_timer_.cancel();
@@ -763,9 +755,15 @@ void PacketBusEngine::Impl::note_answer(std::uint8_t servo_id, std::uint8_t erro
   ServoCounters* counters = cache_.counters(servo_id);
   if (counters == nullptr) return;
   counters->replies_ok.fetch_add(1, std::memory_order_relaxed);
-  const auto previous = counters->last_status.exchange(error, std::memory_order_relaxed);
-  if (previous != error) {
-    spdlog::info("bus {}: servo {} status byte 0x{:02X} -> 0x{:02X}", settings_.name, servo_id, previous, error);
+  // One rule for every answer kind (status, data, acknowledgement, SYNC READ): the refusal bits
+  // speak of the instruction just answered (and the client learns of a refusal from its result),
+  // the rest of the byte of the servo's condition — only the condition is recorded and logged, so
+  // a servo that sets a refusal bit in every answer does not flip register 1000 between polls
+  // and writes (docs/DECISIONS.md "Gateway").
+  const auto condition = static_cast<std::uint8_t>(error & ~rules_.refusal_bits);
+  const auto previous = counters->last_status.exchange(condition, std::memory_order_relaxed);
+  if (previous != condition) {
+    spdlog::info("bus {}: servo {} status byte 0x{:02X} -> 0x{:02X}", settings_.name, servo_id, previous, condition);
   }
 }
 

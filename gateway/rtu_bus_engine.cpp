@@ -8,6 +8,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <bitset>
 #include <array>
 #include <atomic>
 #include <condition_variable>
@@ -413,6 +414,7 @@ struct Job {
   unsigned attempts = 1;
   bool client = false;
   MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
+  SteadyClock::time_point queued_at{};  // the age rule of next_client_job
   Completion done;
 };
 
@@ -420,6 +422,7 @@ enum class WorkKind : std::uint8_t { Identity, PollRead, Probe };
 struct Work {
   WorkKind kind;
   std::uint8_t servo_id;
+  SteadyClock::time_point queued_at = SteadyClock::now();  // the age rule of next_client_job
 };
 
 std::uint32_t saturate_us(SteadyClock::duration duration) {
@@ -526,7 +529,13 @@ class RtuBusEngine::Impl {
 
   std::mutex mutex_;
   std::condition_variable wake_;
+  std::bitset<256> poll_refusal_logged_;  // servos whose refused poll was logged (bus thread)
   std::array<std::deque<Job>, kPriorityCount> queue_;  // one per Priority; client jobs only
+  // next_client_job's age rule: client work after kClientAgeLimit, the engine's own work after
+  // one poll period (at least 10 ms).
+  static constexpr std::array<std::chrono::nanoseconds, kPriorityCount> client_age_limits_{
+      std::chrono::nanoseconds{0}, kClientAgeLimit, kClientAgeLimit, kClientAgeLimit};
+  std::chrono::nanoseconds internal_age_limit_ = std::max<std::chrono::nanoseconds>(settings_.poll_period, 10ms);
   std::size_t queued_ = 0;
   bool accepting_ = false;
   bool stopping_ = false;
@@ -624,6 +633,7 @@ void RtuBusEngine::Impl::submit(BusOp op, Priority priority, Completion done) {
   const MotionEpoch motion_epoch = motion_epoch_of(op);
   Job job = make_client_job(std::move(op));
   job.motion_epoch = motion_epoch;
+  job.queued_at = SteadyClock::now();
   job.done = std::move(done);
   BusStatus refusal = BusStatus::Ok;
   {
@@ -724,16 +734,24 @@ std::optional<Job> RtuBusEngine::Impl::next_client_job() {
   std::unique_lock lock(mutex_);
   for (;;) {
     if (stopping_) return std::nullopt;
-    for (auto& level : queue_) {
-      if (level.empty()) continue;
-      Job job = std::move(level.front());
-      level.pop_front();
+    // The same order as every bus (next_level(), bus_engine.h): safe stops first; the engine's
+    // own poll, probe or identity work that has waited one poll period (at least 10 ms) next,
+    // so a client flood cannot freeze the poll cache or keep an offline servo from its probe;
+    // then client work by priority, with the client age rule.
+    const auto now = SteadyClock::now();
+    const bool polling = discovered_.load() && settings_.poll && !settings_.servos.empty() && !cycle_running_;
+    const bool safety_waiting = !queue_[static_cast<std::size_t>(Priority::Safety)].empty();
+    const bool internal_overdue = (!work_.empty() && now - work_.front().queued_at >= internal_age_limit_) ||
+                                  (polling && now >= next_cycle_ + internal_age_limit_);
+    if (internal_overdue && !safety_waiting) return std::nullopt;
+    if (const auto level = next_level(queue_, client_age_limits_, now)) {
+      Job job = std::move(queue_[*level].front());
+      queue_[*level].pop_front();
       --queued_;
       return job;
     }
     if (!work_.empty()) return std::nullopt;
-    const bool polling = discovered_.load() && settings_.poll && !settings_.servos.empty() && !cycle_running_;
-    if (polling && SteadyClock::now() >= next_cycle_) return std::nullopt;
+    if (polling && now >= next_cycle_) return std::nullopt;
     if (polling) {
       wake_.wait_until(lock, next_cycle_);
     } else {
@@ -973,6 +991,7 @@ void RtuBusEngine::Impl::run_work(Work work) {
     case BusStatus::Ok: {
       const auto now = SteadyClock::now();
       cache_.store_block(work.servo_id, result.data, now);
+      poll_refusal_logged_.reset(work.servo_id);
       const AddressBlock& block = target->block;
       if (block.contains(kSmsmbStatusRegister, 1)) {
         const auto offset = static_cast<std::size_t>(kSmsmbStatusRegister - block.address) * 2;
@@ -985,7 +1004,12 @@ void RtuBusEngine::Impl::run_work(Work work) {
     }
     case BusStatus::ServoRefused:
       servo_answered(work.servo_id);
-      spdlog::warn("{} — check the poll range configured for this bus", result.detail);
+      // Once per episode, not every cycle: the configuration will not change by itself.
+      if (!poll_refusal_logged_.test(work.servo_id)) {
+        spdlog::warn("{} — check the poll range configured for this bus (said once until a poll succeeds)",
+                     result.detail);
+        poll_refusal_logged_.set(work.servo_id);
+      }
       break;
     case BusStatus::Timeout:
     case BusStatus::Corrupt:

@@ -1,0 +1,166 @@
+// Fair scheduling on both engines against the simulator on a pty (issue 11): a live read is
+// answered while writes flood the bus, the poll cache keeps being refreshed under a client
+// flood on a modbus-rtu bus too, and a servo that sets a refusal bit in every answer shows one
+// status byte, not a different one after each write. Bounded in count and time; no timed
+// assertion: the read must come back while the flood still runs.
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <mutex>
+#include <thread>
+
+#include "gateway/bus_engine.h"
+#include "simulator/simulated_bus.h"
+#include "tests/gateway/bus_test_support.h"
+
+namespace sms::gateway {
+namespace {
+
+using namespace std::chrono_literals;
+using modbus_map::TableId;
+using protocol::Bytes;
+using testing::transact;
+using testing::wait_until;
+
+struct EngineKind {
+  std::string name;
+  TableId table;
+  protocol::BusProtocol protocol;
+  std::uint32_t baud;
+  std::uint16_t write_field;  // a RAM field the flood writes (one byte, or one register)
+  AddressBlock read;          // what the live read asks for
+  Bytes value(std::uint8_t v) const { return table == TableId::Smsmb ? Bytes{0, v} : Bytes{v}; }
+};
+void PrintTo(const EngineKind& kind, std::ostream* out) { *out << kind.name; }
+
+class Fairness : public ::testing::TestWithParam<EngineKind> {
+ protected:
+  void start(bool poll) {
+    const EngineKind& kind = GetParam();
+    simulator::BusOptions options;
+    for (std::uint8_t id = 1; id <= 3; ++id) options.servos.push_back({id, kind.table, kind.protocol, kind.baud});
+    options.seed = 1;
+    simulator_ = std::make_unique<simulator::SimulatedBus>(options);
+    simulator_->start();
+    BusSettings settings = testing::bus_settings(simulator_->slave_path(), {1, 2, 3}, TableId::Sts, kind.baud);
+    settings.protocol = kind.protocol;
+    settings.servos.clear();
+    const auto block = modbus_map::default_poll_block(kind.table);
+    for (std::uint8_t id = 1; id <= 3; ++id) {
+      settings.servos.push_back({id, kind.table,
+                                 kind.table == TableId::Smsmb ? modbus_map::ByteOrder::HighFirst
+                                                              : modbus_map::ByteOrder::LowFirst,
+                                 AddressBlock{block.address, block.count}});
+    }
+    settings.poll = poll;
+    settings.discover = poll;
+    settings.queue_depth = 32;
+    engine_ = make_bus_engine(settings);
+    engine_->start();
+    ASSERT_TRUE(engine_->bus_up());
+    if (poll) ASSERT_TRUE(wait_until([&] { return engine_->discovered(); }, 5s));
+  }
+  void TearDown() override {
+    flooding_ = false;
+    if (flood_.joinable()) flood_.join();
+    if (engine_) engine_->stop();
+    if (simulator_) simulator_->stop();
+  }
+
+  // Keeps `depth` writes queued at all times until stopped or `limit` writes were answered.
+  void flood_writes(unsigned depth, unsigned limit) {
+    flooding_ = true;
+    flood_ = std::thread([this, depth, limit] {
+      std::atomic<unsigned> in_flight{0};
+      unsigned sent = 0;
+      while (flooding_ && written_ < limit) {
+        while (in_flight < depth && sent < limit) {
+          ++in_flight;
+          ++sent;
+          const auto id = static_cast<std::uint8_t>(1 + sent % 3);
+          engine_->submit(WriteOp{id, GetParam().write_field, GetParam().value(static_cast<std::uint8_t>(sent % 200))},
+                          Priority::ClientWrite, [&](BusResult) {
+                            ++written_;
+                            --in_flight;
+                          });
+        }
+        std::this_thread::sleep_for(100us);
+      }
+      while (in_flight > 0) std::this_thread::sleep_for(1ms);
+    });
+  }
+
+  std::unique_ptr<simulator::SimulatedBus> simulator_;
+  std::unique_ptr<BusEngine> engine_;
+  std::thread flood_;
+  std::atomic<bool> flooding_{false};
+  std::atomic<unsigned> written_{0};
+};
+
+TEST_P(Fairness, LiveReadIsAnsweredWhileWritesFloodTheBus) {
+  constexpr unsigned kFloodLimit = 3000;
+  start(false);
+  flood_writes(16, kFloodLimit);
+  ASSERT_TRUE(wait_until([&] { return written_.load() >= 20; }, 5s));  // the flood is on
+  std::atomic<bool> answered{false};
+  unsigned written_when_answered = 0;
+  engine_->submit(ReadOp{1, GetParam().read.address, GetParam().read.count}, Priority::ClientRead,
+                  [&](BusResult result) {
+                    EXPECT_EQ(result.status, BusStatus::Ok) << result.detail;
+                    written_when_answered = written_.load();
+                    answered = true;
+                  });
+  ASSERT_TRUE(wait_until([&] { return answered.load() || written_.load() >= kFloodLimit; }, 60s));
+  EXPECT_TRUE(answered.load()) << "the read waited behind the whole flood";
+  EXPECT_LT(written_when_answered, kFloodLimit) << "the read was answered only after the flood ended";
+  flooding_ = false;
+}
+
+TEST_P(Fairness, PollCacheIsRefreshedUnderAClientFlood) {
+  constexpr unsigned kFloodLimit = 3000;
+  start(true);
+  flood_writes(16, kFloodLimit);
+  ASSERT_TRUE(wait_until([&] { return written_.load() >= 20; }, 5s));
+  const auto before = engine_->counters().poll_cycles;
+  ASSERT_TRUE(wait_until([&] { return engine_->counters().poll_cycles >= before + 3 || written_.load() >= kFloodLimit; },
+                         60s));
+  EXPECT_GE(engine_->counters().poll_cycles, before + 3);
+  EXPECT_LT(written_.load(), kFloodLimit) << "polls ran only after the flood ended";
+  flooding_ = false;
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    BothEngines, Fairness,
+    ::testing::Values(EngineKind{"feetech_sts", TableId::Sts, protocol::BusProtocol::Feetech, 1'000'000, 41, {56, 15}},
+                      EngineKind{"d55d", TableId::D55d, protocol::BusProtocol::D55d, 115'200, 34, {36, 8}},
+                      EngineKind{"modbus_rtu_smsmb", TableId::Smsmb, protocol::BusProtocol::ModbusRtu, 115'200, 0x82,
+                                 {0x100, 8}}),
+    [](const ::testing::TestParamInfo<EngineKind>& info) { return info.param.name; });
+
+// One rule for the status byte: a servo that sets the refusal bit (feetech bit 4) in every answer
+// shows the same register-1000 byte after polls and after refused writes; the log says nothing.
+TEST(StatusByte, ARefusalBitInEveryAnswerDoesNotFlipTheRecordedStatus) {
+  testing::LogCapture log;
+  simulator::SimulatedBus bus(testing::simulated_servos({1}));
+  bus.start();
+  BusSettings settings = testing::bus_settings(bus.slave_path(), {1});
+  auto engine = make_bus_engine(settings);
+  engine->start();
+  ASSERT_TRUE(wait_until([&] { return engine->discovered(); }, 5s));
+  bus.set_error_bits(1, 0x10);
+  std::vector<std::uint8_t> seen;
+  for (int round = 0; round < 10; ++round) {
+    transact(*engine, WriteOp{1, 41, {static_cast<std::uint8_t>(10 + round)}});
+    seen.push_back(engine->cache().state(1)->counters.last_status);
+    const auto cycles = engine->counters().poll_cycles;
+    ASSERT_TRUE(wait_until([&] { return engine->counters().poll_cycles > cycles + 1; }, 2s));
+    seen.push_back(engine->cache().state(1)->counters.last_status);
+  }
+  for (const auto status : seen) EXPECT_EQ(status, seen.front());
+  EXPECT_FALSE(log.contains("status byte 0x00 -> 0x10")) << log.text();
+  engine->stop();
+  bus.stop();
+}
+
+}  // namespace
+}  // namespace sms::gateway
