@@ -21,12 +21,21 @@ namespace sms::gateway::testing {
 
 using namespace std::chrono_literals;
 
+// The protocol a table is spoken in (SPEC §1).
+inline protocol::BusProtocol protocol_of(modbus_map::TableId table) {
+  switch (table) {
+    case modbus_map::TableId::D55d: return protocol::BusProtocol::D55d;
+    case modbus_map::TableId::Smsmb: return protocol::BusProtocol::ModbusRtu;
+    default: return protocol::BusProtocol::Feetech;
+  }
+}
+
 // `count` servos of one table, IDs 1..count, all at `baud`.
 inline simulator::BusOptions simulated_servos(std::vector<std::uint8_t> ids,
                                               modbus_map::TableId table = modbus_map::TableId::Sts,
                                               std::uint32_t baud = 1'000'000) {
   simulator::BusOptions options;
-  const auto protocol = table == modbus_map::TableId::D55d ? protocol::BusProtocol::D55d : protocol::BusProtocol::Feetech;
+  const auto protocol = protocol_of(table);
   for (const auto id : ids) options.servos.push_back({id, table, protocol, baud});
   options.seed = 1;  // fault injection dice: the same faults on every run
   return options;
@@ -45,7 +54,7 @@ inline BusSettings bus_settings(std::string device, std::vector<std::uint8_t> id
                                 std::uint32_t baud = 1'000'000) {
   BusSettings settings;
   settings.name = "test";
-  settings.protocol = table == modbus_map::TableId::D55d ? protocol::BusProtocol::D55d : protocol::BusProtocol::Feetech;
+  settings.protocol = protocol_of(table);
   settings.serial.device = std::move(device);
   settings.serial.baud = baud;
   settings.response_timeout = 50ms;
@@ -54,11 +63,24 @@ inline BusSettings bus_settings(std::string device, std::vector<std::uint8_t> id
   settings.probe_period = 200ms;
   settings.reopen_period = 50ms;
   settings.queue_depth = 64;
-  for (const auto id : ids) {
-    settings.servos.push_back({id, table, modbus_map::ByteOrder::LowFirst, feedback_block(table)});
-  }
+  const auto order = table == modbus_map::TableId::Smsmb ? modbus_map::ByteOrder::HighFirst : modbus_map::ByteOrder::LowFirst;
+  for (const auto id : ids) settings.servos.push_back({id, table, order, feedback_block(table)});
   return settings;
 }
+
+// One engine under test, for suites run on every protocol: the table (its protocol follows),
+// the rate, a RAM field the tests write (one byte, or one register) and a block to read live.
+struct EngineKind {
+  std::string name;
+  modbus_map::TableId table;
+  std::uint32_t baud;
+  std::uint16_t field;
+  AddressBlock read{};
+  protocol::Bytes value(std::uint8_t v) const {
+    return table == modbus_map::TableId::Smsmb ? protocol::Bytes{0, v} : protocol::Bytes{v};
+  }
+};
+inline void PrintTo(const EngineKind& kind, std::ostream* out) { *out << kind.name; }
 
 template <typename Predicate>
 bool wait_until(Predicate predicate, std::chrono::milliseconds timeout = 3s) {

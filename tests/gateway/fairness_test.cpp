@@ -22,36 +22,15 @@ using protocol::Bytes;
 using testing::transact;
 using testing::wait_until;
 
-struct EngineKind {
-  std::string name;
-  TableId table;
-  protocol::BusProtocol protocol;
-  std::uint32_t baud;
-  std::uint16_t write_field;  // a RAM field the flood writes (one byte, or one register)
-  AddressBlock read;          // what the live read asks for
-  Bytes value(std::uint8_t v) const { return table == TableId::Smsmb ? Bytes{0, v} : Bytes{v}; }
-};
-void PrintTo(const EngineKind& kind, std::ostream* out) { *out << kind.name; }
+using testing::EngineKind;
 
 class Fairness : public ::testing::TestWithParam<EngineKind> {
  protected:
   void start(bool poll) {
     const EngineKind& kind = GetParam();
-    simulator::BusOptions options;
-    for (std::uint8_t id = 1; id <= 3; ++id) options.servos.push_back({id, kind.table, kind.protocol, kind.baud});
-    options.seed = 1;
-    simulator_ = std::make_unique<simulator::SimulatedBus>(options);
+    simulator_ = std::make_unique<simulator::SimulatedBus>(testing::simulated_servos({1, 2, 3}, kind.table, kind.baud));
     simulator_->start();
-    BusSettings settings = testing::bus_settings(simulator_->slave_path(), {1, 2, 3}, TableId::Sts, kind.baud);
-    settings.protocol = kind.protocol;
-    settings.servos.clear();
-    const auto block = modbus_map::default_poll_block(kind.table);
-    for (std::uint8_t id = 1; id <= 3; ++id) {
-      settings.servos.push_back({id, kind.table,
-                                 kind.table == TableId::Smsmb ? modbus_map::ByteOrder::HighFirst
-                                                              : modbus_map::ByteOrder::LowFirst,
-                                 AddressBlock{block.address, block.count}});
-    }
+    BusSettings settings = testing::bus_settings(simulator_->slave_path(), {1, 2, 3}, kind.table, kind.baud);
     settings.poll = poll;
     settings.discover = poll;
     settings.queue_depth = 32;
@@ -78,7 +57,7 @@ class Fairness : public ::testing::TestWithParam<EngineKind> {
           ++in_flight;
           ++sent;
           const auto id = static_cast<std::uint8_t>(1 + sent % 3);
-          engine_->submit(WriteOp{id, GetParam().write_field, GetParam().value(static_cast<std::uint8_t>(sent % 200))},
+          engine_->submit(WriteOp{id, GetParam().field, GetParam().value(static_cast<std::uint8_t>(sent % 200))},
                           Priority::ClientWrite, [&](BusResult) {
                             ++written_;
                             --in_flight;
@@ -131,10 +110,9 @@ TEST_P(Fairness, PollCacheIsRefreshedUnderAClientFlood) {
 
 INSTANTIATE_TEST_SUITE_P(
     BothEngines, Fairness,
-    ::testing::Values(EngineKind{"feetech_sts", TableId::Sts, protocol::BusProtocol::Feetech, 1'000'000, 41, {56, 15}},
-                      EngineKind{"d55d", TableId::D55d, protocol::BusProtocol::D55d, 115'200, 34, {36, 8}},
-                      EngineKind{"modbus_rtu_smsmb", TableId::Smsmb, protocol::BusProtocol::ModbusRtu, 115'200, 0x82,
-                                 {0x100, 8}}),
+    ::testing::Values(EngineKind{"feetech_sts", TableId::Sts, 1'000'000, 41, {56, 15}},
+                      EngineKind{"d55d", TableId::D55d, 115'200, 34, {36, 8}},
+                      EngineKind{"modbus_rtu_smsmb", TableId::Smsmb, 115'200, 0x82, {0x100, 8}}),
     [](const ::testing::TestParamInfo<EngineKind>& info) { return info.param.name; });
 
 // One rule for the status byte: a servo that sets the refusal bit (feetech bit 4) in every answer

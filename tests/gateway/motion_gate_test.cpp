@@ -22,36 +22,15 @@ using protocol::Bytes;
 using testing::transact;
 using testing::wait_until;
 
-struct EngineKind {
-  std::string name;
-  TableId table;
-  std::uint32_t baud;
-  std::uint16_t field;  // a one-register / one-byte RAM field written by the tests
-  Bytes value(std::uint8_t v) const { return table == TableId::Smsmb ? Bytes{0, v} : Bytes{v}; }
-};
-
-void PrintTo(const EngineKind& kind, std::ostream* out) { *out << kind.name; }
+using testing::EngineKind;
 
 class MotionGateTest : public ::testing::TestWithParam<EngineKind> {
  protected:
   void SetUp() override {
     const EngineKind& kind = GetParam();
-    simulator::BusOptions options;
-    const auto protocol = kind.table == TableId::Smsmb ? protocol::BusProtocol::ModbusRtu : protocol::BusProtocol::Feetech;
-    for (const std::uint8_t id : {1, 2}) options.servos.push_back({id, kind.table, protocol, kind.baud});
-    options.seed = 1;
-    simulator_ = std::make_unique<simulator::SimulatedBus>(options);
+    simulator_ = std::make_unique<simulator::SimulatedBus>(testing::simulated_servos({1, 2}, kind.table, kind.baud));
     simulator_->start();
-    BusSettings settings = testing::bus_settings(simulator_->slave_path(), {1, 2}, TableId::Sts, kind.baud);
-    settings.protocol = protocol;
-    settings.servos.clear();
-    for (const std::uint8_t id : {1, 2}) {
-      const auto block = modbus_map::default_poll_block(kind.table);
-      settings.servos.push_back({id, kind.table,
-                                 kind.table == TableId::Smsmb ? modbus_map::ByteOrder::HighFirst
-                                                              : modbus_map::ByteOrder::LowFirst,
-                                 AddressBlock{block.address, block.count}});
-    }
+    BusSettings settings = testing::bus_settings(simulator_->slave_path(), {1, 2}, kind.table, kind.baud);
     settings.response_timeout = 100ms;
     settings.queue_depth = 8;
     settings.poll = false;
