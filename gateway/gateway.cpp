@@ -13,23 +13,6 @@ namespace sms::gateway {
 
 namespace {
 
-struct ParityName {
-  config::Parity config;
-  Parity serial;
-};
-constexpr ParityName kParities[] = {
-    {config::Parity::None, Parity::None},
-    {config::Parity::Even, Parity::Even},
-    {config::Parity::Odd, Parity::Odd},
-};
-
-Parity serial_parity(config::Parity parity) {
-  for (const auto& entry : kParities) {
-    if (entry.config == parity) return entry.serial;
-  }
-  return Parity::None;
-}
-
 AddressBlock poll_block_of(const config::BusConfig& bus, const config::ServoConfig& servo) {
   const modbus_map::TableId table = *servo.table;
   modbus_map::BusRange range;
@@ -54,7 +37,7 @@ BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index
   settings.protocol = bus.protocol;
   settings.serial.device = bus.device;
   settings.serial.baud = bus.baud;
-  settings.serial.parity = serial_parity(bus.parity);
+  settings.serial.parity = bus.parity;  // one type from the configuration down to termios2
   settings.serial.stop_bits = bus.stop_bits;
   settings.response_timeout = bus.response_timeout;
   settings.retries = bus.retries;
