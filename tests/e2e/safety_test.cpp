@@ -250,14 +250,17 @@ TEST(SafetyTorqueOn, TorqueOnHoldsThePresentPositionInsteadOfAStaleGoal) {
            "servos:\n  - {bus: line, id: 1, table: sts}\nlogging: {level: debug}\n", 1);
   wait_until_polled(gateway.port(), kUnit);
   ModbusClient plc(gateway.port(), kUnit);
-  ASSERT_TRUE(plc.write_register(40, 0).ok());  // torque off
-  const long present = sim.field(1, "present_position");
-  // A stale goal far away, left in the servo's RAM behind the gateway's back.
-  const long stale = present > 2048 ? present - 1500 : present + 1500;
+  // A stale goal far away, left in the servo's RAM behind the gateway's back, with the torque off.
+  // A goal write switches an STS servo's torque on (and the simulated one starts moving), so the
+  // torque goes off right after it, wherever the motor then stands.
+  const long start = sim.field(1, "present_position");
+  const long stale = start > 2048 ? start - 1500 : start + 1500;
   char set_goal[40];
   std::snprintf(set_goal, sizeof set_goal, "set 1 42 %02lX %02lX", stale & 0xFF, (stale >> 8) & 0xFF);
   ASSERT_EQ(sim.control(set_goal), "ok");
+  ASSERT_EQ(sim.control("set 1 40 00"), "ok");  // torque off: the motor stops where it is
   ASSERT_EQ(sim.field(1, "goal_position"), stale);
+  const long present = sim.field(1, "present_position");
   ASSERT_TRUE(plc.write_register(40, 1).ok()) << gateway.process().output();  // torque on
   EXPECT_EQ(sim.field(1, "torque_enable"), 1);
   // The gateway held the goal itself (the simulated firmware would too; a real one may not).
