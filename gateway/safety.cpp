@@ -352,6 +352,9 @@ class SafetySupervisor::Impl {
   PostFn safety_post() {
     return [this](std::function<void()> work) { asio::post(io_, std::move(work)); };
   }
+  static PostFn run_here() {
+    return [](std::function<void()> work) { work(); };
+  }
 
   // Safety thread. Reads what the holds need, then sends the stop frames; `done(ok)` after the
   // last frame (ok: every frame went out).
@@ -377,7 +380,9 @@ class SafetySupervisor::Impl {
       write_phase({});
       return;
     }
-    auto join = BusJoin::create(reads.size(), safety_post(), std::move(write_phase));
+    // The write phase runs where the last read completes (the bus thread), so the stop frames are
+    // queued before the engine picks its next job: a poll due meanwhile cannot slip in between.
+    auto join = BusJoin::create(reads.size(), run_here(), std::move(write_phase));
     for (std::size_t i = 0; i < reads.size(); ++i) {
       const StopTarget& target = bus.targets[reads[i].target];
       submit_safely(bus, ReadOp{target.servo_id, reads[i].range.address, reads[i].range.count}, join->completion(i));

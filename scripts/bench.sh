@@ -36,7 +36,7 @@ declare -A quick_options=(
   [poll_cycle]="--seconds 1 --silent-seconds 3 --rtu-seconds 1"
   [write_latency]="--seconds 1"
   [soak]="--seconds 10"
-  [trip_latency]="--rounds 5"
+  [trip_latency]="--quick"
   [forward_overhead]="--seconds 1"
   [read_under_flood]="--seconds 2"
 )

@@ -117,6 +117,7 @@ class SimulatedBus::Impl {
   unsigned corrupt_next_ = 0;
   bool timing_ = true;
   BusStats stats_;
+  FrameObserver observer_;
 
   struct Slot {
     std::unique_ptr<VirtualServo> servo;
@@ -463,6 +464,7 @@ void SimulatedBus::Impl::on_packet(const protocol::PacketFormat& format, const p
     return;
   }
   ++stats_.requests;
+  if (observer_) observer_(ReceivedFrame{now, request_end, protocol, request.id, request.code, request.params});
   std::vector<std::uint8_t> sync_read_ids;
   if (protocol == BusProtocol::Feetech && request.code == protocol::feetech::kSyncRead) {
     if (const auto sync = protocol::feetech::parse_sync_read(request.params)) sync_read_ids = sync->ids;
@@ -489,6 +491,10 @@ void SimulatedBus::Impl::on_modbus(const protocol::rtu::RequestDecoder::Event& e
     return;
   }
   ++stats_.requests;
+  if (observer_ && !event.adu.pdu.empty()) {
+    observer_(ReceivedFrame{now, request_end, BusProtocol::ModbusRtu, event.adu.slave, event.adu.pdu.front(),
+                            Bytes(event.adu.pdu.begin() + 1, event.adu.pdu.end())});
+  }
   std::vector<Reply> replies;
   for (Slot& slot : slots_) {
     VirtualServo& servo = *slot.servo;
@@ -705,6 +711,11 @@ std::vector<ServoSummary> SimulatedBus::servos() const {
 BusStats SimulatedBus::stats() const {
   std::lock_guard lock(impl_->mutex_);
   return impl_->stats_;
+}
+
+void SimulatedBus::set_frame_observer(FrameObserver observer) {
+  std::lock_guard lock(impl_->mutex_);
+  impl_->observer_ = std::move(observer);
 }
 
 }  // namespace sms::simulator

@@ -12,6 +12,7 @@
 // share an ID (add_duplicate, or a mixed bus), the call applies to each of them.
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <span>
@@ -75,6 +76,22 @@ struct BusStats {
   std::uint64_t merged_requests = 0;
 };
 
+// One request frame the bus decoded (any servo, any protocol), for programs that time what a
+// host sends (bench/trip_latency). With wire timing on, `wire_end` is when the last byte of the
+// read that completed the frame ends on the modelled wire (several frames read at once share
+// it); without timing it is `arrived` plus the bytes' wire time all the same.
+struct ReceivedFrame {
+  std::chrono::steady_clock::time_point arrived;   // its last bytes were read from the line
+  std::chrono::steady_clock::time_point wire_end;
+  protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
+  std::uint8_t id = 0;    // packet ID (0xFE broadcast) or Modbus slave address
+  std::uint8_t code = 0;  // instruction, or Modbus function code
+  protocol::Bytes params; // packet parameters, or the Modbus PDU after the function code
+};
+// Runs on the bus thread with the bus locked, before the servos handle the frame: keep it short
+// and do not call the SimulatedBus from it.
+using FrameObserver = std::function<void(const ReceivedFrame&)>;
+
 class SimulatedBus {
  public:
   // Throws std::invalid_argument when a servo's table does not speak its protocol or its
@@ -125,6 +142,9 @@ class SimulatedBus {
 
   std::vector<ServoSummary> servos() const;
   BusStats stats() const;
+  // Called for every request frame decoded from now on (checksum errors excluded); an empty
+  // function removes it.
+  void set_frame_observer(FrameObserver observer);
 
  private:
   class Impl;
