@@ -1,15 +1,19 @@
 // forward_overhead: what `sms-gateway forward` adds to a Modbus-RTU transaction (issue 13): a
 // 10-register FC03 to one simulated SMSMB servo at 115 200 bit/s (wire timing on, return delay
-// 0), back to back, three ways on the same kind of pty:
-//   direct      a plain libmodbus RTU master on the pty (no gateway), keeping 3.5 characters
-//               (304 us) of silence before each request (libmodbus itself keeps none);
+// 0), back to back, two ways on the same kind of pty, for each --frame-gap setting (spec,
+// 3.5chars, 500us):
+//   direct      a plain libmodbus RTU master on the pty (no gateway), sleeping the same gap
+//               before each request (libmodbus itself keeps none), with the same 1 ns timer
+//               slack as the gateway's bus thread;
 //   forward     a libmodbus TCP client -> ForwardGateway (the code `sms-gateway forward` runs,
-//               in this process) -> the pty, once per --frame-gap setting.
-// The wire alone is 8 + 25 bytes = 2.86 ms. The inter-frame gap is paid between transactions,
-// so back-to-back requests show it: spec waits 1.75 ms above 19 200 bit/s, 3.5chars 0.30 ms.
+//               in this process) -> the pty, with that --frame-gap.
+// overhead_p50 = forward p50 - direct p50 with the same gap: what the gateway adds. The wire
+// alone is 8 + 25 bytes = 2.86 ms; the gap is paid between transactions, so back-to-back
+// requests show it: spec waits 1.75 ms above 19 200 bit/s, 3.5chars 0.30 ms.
 //
 //   forward_overhead [--seconds 2]
 #include <modbus/modbus.h>
+#include <sys/prctl.h>
 
 #include <iostream>
 #include <string>
@@ -19,6 +23,7 @@
 #include "bench/bench_support.h"
 #include "config/config.h"
 #include "gateway/passthrough.h"
+#include "gateway/rtu_bus_engine.h"
 
 namespace {
 
@@ -65,7 +70,13 @@ void print(const std::string& name, const LatencySummary& summary, std::uint64_t
   print_figure(name + ".p99", summary.p99_us, "us");
 }
 
-LatencySummary direct(std::chrono::milliseconds duration) {
+sms::config::FrameGap frame_gap(const std::string& setting) {
+  const auto gap = sms::config::parse_frame_gap(setting);
+  if (!gap) throw std::runtime_error(gap.error());
+  return *gap;
+}
+
+LatencySummary direct(const std::string& gap_setting, std::chrono::milliseconds duration) {
   std::unique_ptr<sms::simulator::SimulatedBus> bus;
   start_bus(bus);
   modbus_t* context = modbus_new_rtu(bus->slave_path().c_str(), kRate, 'N', 8, 1);
@@ -73,12 +84,18 @@ LatencySummary direct(std::chrono::milliseconds duration) {
   modbus_set_slave(context, kSlave);
   modbus_set_response_timeout(context, 0, 200'000);
   // libmodbus sends the next request as soon as it has the answer; a slave that keeps its t3.5
-  // (the simulator does) hears it as the tail of its own answer. The master keeps 3.5 characters.
+  // (the simulator does) hears it as the tail of its own answer. The master keeps the same gap
+  // as forward, timed as precisely (the gateway's bus thread runs with 1 ns timer slack).
+  const auto gap = std::chrono::duration_cast<std::chrono::microseconds>(
+      sms::gateway::rtu_frame_gap(sms::gateway::SerialSettings{bus->slave_path(), kRate}, frame_gap(gap_setting)));
+  const int previous_slack = ::prctl(PR_GET_TIMERSLACK, 0UL, 0UL, 0UL, 0UL);
+  ::prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);
   std::uint64_t failures = 0;
-  const auto summary = read_loop(context, duration, failures, std::chrono::microseconds{304});
+  const auto summary = read_loop(context, duration, failures, gap);
+  ::prctl(PR_SET_TIMERSLACK, static_cast<unsigned long>(previous_slack), 0UL, 0UL, 0UL);
   modbus_close(context);
   modbus_free(context);
-  print("forward_overhead.direct_libmodbus_rtu", summary, failures);
+  print("forward_overhead.direct_libmodbus_rtu.frame_gap_" + gap_setting, summary, failures);
   return summary;
 }
 
@@ -88,9 +105,7 @@ void through_forward(const std::string& gap_setting, std::chrono::milliseconds d
   sms::gateway::ForwardOptions options;
   options.serial = sms::gateway::SerialSettings{bus->slave_path(), kRate};
   options.listen = {"127.0.0.1", 0};
-  const auto gap = sms::config::parse_frame_gap(gap_setting);
-  if (!gap) throw std::runtime_error(gap.error());
-  options.rtu.frame_gap = *gap;
+  options.rtu.frame_gap = frame_gap(gap_setting);
   sms::gateway::ForwardGateway forward(options);
   forward.start();
   while (!forward.engine().bus_up()) std::this_thread::sleep_for(5ms);
@@ -115,8 +130,10 @@ int main(int argc, char** argv) {
     quiet_logs();
     const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
     print_figure("forward_overhead.wire", wire_us(8 + 5 + 2 * kCount, kRate), "us");
-    const LatencySummary bare = direct(duration);
-    for (const std::string gap : {"spec", "3.5chars"}) through_forward(gap, duration, bare);
+    for (const std::string gap : {"spec", "3.5chars", "500us"}) {
+      const LatencySummary bare = direct(gap, duration);
+      through_forward(gap, duration, bare);
+    }
   } catch (const std::exception& error) {
     std::cerr << "forward_overhead: " << error.what() << "\n";
     return 1;

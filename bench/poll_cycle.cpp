@@ -1,11 +1,13 @@
 // poll_cycle: the gateway's poll cycle time next to the wire-time limit of the frames it sends
 // (SPEC §5), for 6, 20 and 60 simulated sts servos at 1 000 000 baud with wire timing on; then
-// what a silent servo costs the others (issue 4, bench (b)).
+// what a silent servo costs the others (issue 4, bench (b)); then a modbus-rtu bus of 6 SMSMB
+// servos at 115 200 bit/s with each frame_gap setting (issue 13, bench (f)).
 //
-//   poll_cycle [--seconds 2] [--silent-seconds 5] [--servos N] [--return-delay-us D]
+//   poll_cycle [--seconds 2] [--silent-seconds 5] [--servos N] [--return-delay-us D] [--rtu-seconds 2]
 //
-// --servos and --return-delay-us pick one bus size / one return delay (0 = all); --silent-seconds 0
-// skips the silent-servo part.
+// --servos and --return-delay-us pick one bus size / one return delay (0 = all; the return delay
+// applies to the modbus-rtu part too); --seconds 0, --silent-seconds 0 and --rtu-seconds 0 skip
+// the feetech, the silent-servo and the modbus-rtu part.
 //
 // The gateway (sms-gateway, a child process) polls back to back (poll_period_ms 0) so every
 // cycle is pure bus work. The cycle time is what the gateway itself reports: gateway unit 255,
@@ -128,7 +130,7 @@ void measure_cycle(unsigned servos, std::uint8_t return_delay, std::chrono::mill
 
 // modbus-rtu (issue 13): one FC03 of the 8-register feedback block per servo and cycle, each
 // followed by the configured inter-frame gap. Limit = N x (8 request + 21 reply bytes on the
-// wire + the gap), return delay 0: what the gap setting allows, not only the wire.
+// wire + the servo's return delay + the gap): what the gap setting allows, not only the wire.
 struct RtuGap {
   std::string setting;  // config frame_gap
   double gap_us;        // what it is at kRtuBaud
@@ -136,12 +138,15 @@ struct RtuGap {
 constexpr std::uint32_t kRtuBaud = 115'200;
 constexpr unsigned kRtuServos = 6;
 constexpr std::uint16_t kSmsmbReturnDelayRegister = 0x0C;
+constexpr std::uint16_t kRtuReturnDelaysUs[] = {0, 500};  // SMSMB register 0x0C (1 us a unit), default 500
 
-void measure_rtu_cycle(const RtuGap& gap, std::chrono::milliseconds duration) {
+void measure_rtu_cycle(const RtuGap& gap, std::uint16_t return_delay_us, std::chrono::milliseconds duration) {
   sms::simulator::SimulatedBus bus(smsmb_bus(kRtuServos, kRtuBaud));
   start_precise(bus);
-  const std::uint8_t zero[] = {0, 0};
-  for (unsigned id = 1; id <= kRtuServos; ++id) bus.write_memory(static_cast<std::uint8_t>(id), kSmsmbReturnDelayRegister, zero);
+  // SMSMB register 0x0C: the return delay in us, high byte first (Modbus).
+  const std::uint8_t delay[] = {static_cast<std::uint8_t>(return_delay_us >> 8),
+                                static_cast<std::uint8_t>(return_delay_us & 0xFF)};
+  for (unsigned id = 1; id <= kRtuServos; ++id) bus.write_memory(static_cast<std::uint8_t>(id), kSmsmbReturnDelayRegister, delay);
   GatewaySetup setup;
   setup.device = bus.slave_path();
   setup.servos = kRtuServos;
@@ -155,11 +160,12 @@ void measure_rtu_cycle(const RtuGap& gap, std::chrono::milliseconds duration) {
   const auto merged_before = bus.stats().merged_requests;
   const Window window = sample(client, duration);
   const double per_servo_wire = wire_us(8 + 21, kRtuBaud);
-  const double limit = kRtuServos * (per_servo_wire + gap.gap_us);
+  const double limit = kRtuServos * (per_servo_wire + return_delay_us + gap.gap_us);
   const double measured = median(window.cycle_us);
   const double cycles_per_s = per_second(window.first.frames_ok, window.last.frames_ok, window.seconds) / kRtuServos;
   const double from_rate = cycles_per_s > 0 ? 1e6 / cycles_per_s : 0;
-  const std::string name = "poll_cycle.modbus_rtu.servos_6.baud_115200.frame_gap_" + gap.setting;
+  const std::string name = "poll_cycle.modbus_rtu.servos_6.baud_115200.return_delay_us_" +
+                           std::to_string(return_delay_us) + ".frame_gap_" + gap.setting;
   print_figure(name + ".wire_only", kRtuServos * per_servo_wire, "us");
   print_figure(name + ".limit_with_gap", limit, "us");
   print_figure(name + ".cycle_median", measured, "us");
@@ -260,6 +266,7 @@ int main(int argc, char** argv) {
     print_note("sms-gateway polling back to back (poll_period_ms 0); cycle = gateway unit 255 input register 102, "
                "sampled every 10 ms; limit = SYNC READ of 15 bytes, SPEC §5");
     for (const std::uint8_t return_delay : kReturnDelays) {
+      if (seconds <= 0) break;
       if (only_return_delay_us >= 0 && only_return_delay_us != return_delay * kReturnDelayUsPerUnit) continue;
       for (const unsigned servos : kServoCounts) {
         if (only_servos > 0 && only_servos != servos) continue;
@@ -267,11 +274,15 @@ int main(int argc, char** argv) {
       }
     }
     if (rtu_seconds > 0) {
-      print_note("modbus-rtu: 6 SMSMB servos at 115200 bit/s, FC03 of 8 registers each, return delay 0, with each "
-                 "frame_gap setting; limit = frames on the wire + one gap per transaction");
+      print_note("modbus-rtu: 6 SMSMB servos at 115200 bit/s, FC03 of 8 registers each, return delay 0 and 500 us "
+                 "(the SMSMB default), with each frame_gap setting; limit = frames on the wire + return delay + one "
+                 "gap per transaction");
       const double characters_us = 3.5 * 10 * 1e6 / kRtuBaud;
-      for (const RtuGap& gap : {RtuGap{"spec", 1750}, RtuGap{"3.5chars", characters_us}, RtuGap{"500us", 500}}) {
-        measure_rtu_cycle(gap, std::chrono::milliseconds(static_cast<long>(rtu_seconds * 1000)));
+      for (const std::uint16_t return_delay_us : kRtuReturnDelaysUs) {
+        if (only_return_delay_us >= 0 && only_return_delay_us != return_delay_us) continue;
+        for (const RtuGap& gap : {RtuGap{"spec", 1750}, RtuGap{"3.5chars", characters_us}, RtuGap{"500us", 500}}) {
+          measure_rtu_cycle(gap, return_delay_us, std::chrono::milliseconds(static_cast<long>(rtu_seconds * 1000)));
+        }
       }
     }
     if (silent_seconds > 0) {

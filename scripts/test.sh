@@ -5,7 +5,8 @@
 # scripts/fuzz.sh is the longer run).
 # Why clang here: it compiles this code with the sanitizers about twice as fast as GCC 12 (the
 # build was more than half of the command's time) and its -Wall finds other mistakes; GCC 12 builds
-# the release programs (run command, container image) with the same -Werror flags.
+# the benchmarks (scripts/bench.sh) and the container image with the same -Werror flags
+# (SMS_WERROR=ON; off by default, so the run command and packagers' builds never fail on a warning).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install-deps.sh

@@ -37,7 +37,9 @@ class Fairness : public ::testing::TestWithParam<EngineKind> {
     engine_ = make_bus_engine(settings);
     engine_->start();
     ASSERT_TRUE(engine_->bus_up());
-    if (poll) ASSERT_TRUE(wait_until([&] { return engine_->discovered(); }, 5s));
+    if (poll) {  // braces: ASSERT_TRUE expands to an if/else (GCC's -Wdangling-else)
+      ASSERT_TRUE(wait_until([&] { return engine_->discovered(); }, 5s));
+    }
   }
   void TearDown() override {
     flooding_ = false;

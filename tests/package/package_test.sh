@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The Debian package in a light form (README "Install"): CPack builds it from this build tree,
 # its metadata and files are checked, it is unpacked into a scratch root whose sms-gateway must
-# answer --version and --check-config, and its postinst runs against stand-in user tools that
-# record what it asks for (the real install, `apt install ./sms-gateway_*.deb`, changes the
-# machine's users: scripts/package.sh --install does it on demand).
+# answer --version and --check-config, its postinst runs against stand-in user tools that
+# record what it asks for, and apt-get resolves its dependencies in a simulation (the real
+# install, `apt install ./sms-gateway_*.deb`, changes the machine's users: scripts/package.sh
+# --install does it on demand).
 #
 #   package_test.sh CPACK_COMMAND BUILD_DIR SOURCE_DIR
 set -euo pipefail
@@ -47,7 +48,7 @@ control="$scratch/control"
 dpkg-deb -e "$deb" "$control"
 stand_ins="$scratch/bin"
 mkdir -p "$stand_ins"
-for tool in addgroup adduser systemctl; do
+for tool in addgroup adduser systemctl install rmdir; do
   printf '#!/bin/sh\necho "%s $*" >>"%s"\n' "$tool" "$scratch/calls" >"$stand_ins/$tool"
 done
 printf '#!/bin/sh\nexit 2\n' >"$stand_ins/getent"  # nothing known yet
@@ -57,6 +58,15 @@ calls=$(cat "$scratch/calls")
 grep -q '^addgroup --system --quiet sms$' <<<"$calls" || fail "postinst did not create the group: $calls"
 grep -q '^adduser --system --quiet --ingroup sms .* sms$' <<<"$calls" || fail "postinst did not create the user: $calls"
 grep -q '^adduser --quiet sms dialout$' <<<"$calls" || fail "postinst did not add sms to dialout: $calls"
+grep -q '^install -d -m 0755 /etc/sms-gateway$' <<<"$calls" || fail "postinst did not make /etc/sms-gateway: $calls"
 for script in prerm postrm; do sh -n "$control/$script" || fail "$script is not valid sh"; done
+
+# apt on this Debian 12 machine resolves every Depends (a shlibs name no package provides would
+# make `apt install ./sms-gateway_*.deb` fail on the box); a simulation changes nothing.
+if command -v apt-get >/dev/null; then
+  apt-get install --simulate "$deb" >"$scratch/apt.log" 2>&1 ||
+    { cat "$scratch/apt.log"; fail "apt-get cannot install the package (dependencies)"; }
+  grep -q '^Inst sms-gateway ' "$scratch/apt.log" || fail "apt-get would not install it: $(cat "$scratch/apt.log")"
+fi
 
 echo "package_test: $(basename "$deb") ok ($(du -k "$deb" | cut -f1) KiB)"
