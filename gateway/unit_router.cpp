@@ -146,16 +146,18 @@ void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pd
 
 void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8_t> pdu, const Reply& reply) {
   const std::uint8_t function = pdu[0];
+  const bool writes = function_effect(function) != FunctionEffect::Reads;
+  // Like a servo unit's: a write feeds the watchdog on arrival, whether it is then taken or not.
+  if (writes) safety_.feed_write(unit.bus_index);
   if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
   if (!unit.engine->bus_up()) {
     reply.send(exception_response(function, Fault::BusDown));
     return;
   }
   MotionEpoch epoch = 0;
-  if (function_effect(function) != FunctionEffect::Reads) {
+  if (writes) {
     // The gateway cannot tell what a passthrough slave's registers do: every write may move
     // something, so every write is under the safety rules (README "Safety").
-    safety_.feed_write(unit.bus_index);
     auto admitted = safety_.admit_motion(unit.bus_index);
     if (!admitted) {
       refusal_log_.refused(unit.label, function, admitted.error());
