@@ -22,6 +22,7 @@
 #include "config/load.h"
 #include "gateway/gateway.h"
 #include "gateway/logging.h"
+#include "gateway/tls.h"
 #include "gateway/tool_cli.h"
 #include "simulator/simulated_bus.h"
 
@@ -91,6 +92,16 @@ int check_config(const std::string& path) {
   }
   std::vector<std::string> applied;
   if (!apply_environment(*config, applied)) return kExitConfigError;
+  if (const auto& tls = config->modbus_tcp.tls) {
+    // The files as the gateway will load them: a missing key or a key of another certificate
+    // fails here (ExecStartPre), not at start.
+    try {
+      sms::gateway::make_tls_context(*tls);
+    } catch (const std::exception& error) {
+      std::cerr << path << ": " << error.what() << "\n";
+      return kExitConfigError;
+    }
+  }
   std::cout << path << ": OK: " << summary(*config);
   if (!applied.empty()) std::cout << " (with " << joined(applied) << " from the environment)";
   std::cout << "\n";

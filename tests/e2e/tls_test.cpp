@@ -192,6 +192,19 @@ TEST_F(Tls, PlainDisabledLeavesNothingOnThePlainPort) {
   EXPECT_TRUE(logged("plain Modbus TCP is off"));
 }
 
+TEST_F(Tls, CheckConfigLoadsTheTlsFiles) {
+  ChildProcess ok({bin("sms-gateway"), "--check-config", dir_->file("secure.yaml")});
+  EXPECT_EQ(ok.wait_exit(10s), 0) << ok.output();
+  const std::string broken = dir_->file("broken.yaml");
+  std::ofstream(broken) << substitute([&] {
+    std::ifstream in(dir_->file("secure.yaml"));
+    return std::string(std::istreambuf_iterator<char>(in), {});
+  }(), "/server.key", "/read.key");
+  ChildProcess refused({bin("sms-gateway"), "--check-config", broken});
+  EXPECT_EQ(refused.wait_exit(10s), 2);
+  EXPECT_NE(refused.output().find("modbus_tcp.tls.private_key"), std::string::npos) << refused.output();
+}
+
 TEST_F(Tls, CertificateOfAnotherCaIsRefusedAndLogged) {
   TlsClient client(certs_, "foreign", gateway_->port);
   EXPECT_FALSE(client.request(read_registers_pdu(kGoalPosition, 1)));
