@@ -23,6 +23,7 @@
 #include <boost/asio/write.hpp>
 
 #include "tests/e2e/e2e_support.h"
+#include "tests/gateway/metrics_http_client.h"
 
 namespace sms::e2e {
 namespace {
@@ -135,7 +136,13 @@ struct SecureGateway {
                              "  - {bus: line, id: 1, table: sts}\n";
     const std::string path = dir.file("secure.yaml");
     std::ofstream(path) << yaml;
-    process = std::make_unique<ChildProcess>(std::vector<std::string>{bin("sms-gateway"), "--config", path});
+    process = std::make_unique<ChildProcess>(
+        std::vector<std::string>{bin("sms-gateway"), "--config", path, "--metrics", "127.0.0.1:0"});
+    const std::string metrics_marker = "/healthz on http://127.0.0.1:";
+    const auto metrics_line = process->wait_for_line(metrics_marker, 15s);
+    if (!metrics_line) throw std::runtime_error("sms-gateway did not serve metrics:\n" + process->output());
+    metrics_port = static_cast<std::uint16_t>(
+        std::stoi(metrics_line->substr(metrics_line->find(metrics_marker) + metrics_marker.size())));
     const std::string marker = "modbus tcp security: listening on 127.0.0.1:";
     const auto line = process->wait_for_line(marker, 15s);
     if (!line) throw std::runtime_error("sms-gateway did not listen for TLS:\n" + process->output());
@@ -145,8 +152,18 @@ struct SecureGateway {
     }
   }
 
+  // One sample of /metrics, e.g. `sms_gateway_tls_handshakes_total{result="expired"}`.
+  std::string metric(const std::string& sample) const {
+    const auto response = gateway::testing::http_request(metrics_port, "GET", "/metrics");
+    const auto at = response.body.find("\n" + sample + " ");
+    if (at == std::string::npos) return "<absent>";
+    const auto start = at + sample.size() + 2;
+    return response.body.substr(start, response.body.find('\n', start) - start);
+  }
+
   std::unique_ptr<ChildProcess> process;
   std::uint16_t port = 0;
+  std::uint16_t metrics_port = 0;
 };
 
 class Tls : public testing::Test {
@@ -212,6 +229,7 @@ TEST_F(Tls, CertificateOfAnotherCaIsRefusedAndLogged) {
   ASSERT_TRUE(line) << log();
   EXPECT_NE(line->find("[unknown_ca]"), std::string::npos) << *line;
   EXPECT_NE(line->find("CN=plc-9"), std::string::npos) << *line;
+  EXPECT_EQ(gateway_->metric("sms_gateway_tls_handshakes_total{result=\"unknown_ca\"}"), "1");
 }
 
 TEST_F(Tls, ExpiredCertificateIsRefusedAndLogged) {
@@ -221,6 +239,7 @@ TEST_F(Tls, ExpiredCertificateIsRefusedAndLogged) {
   ASSERT_TRUE(line) << log();
   EXPECT_NE(line->find("certificate has expired"), std::string::npos) << *line;
   EXPECT_NE(line->find("[expired]"), std::string::npos) << *line;
+  EXPECT_EQ(gateway_->metric("sms_gateway_tls_handshakes_total{result=\"expired\"}"), "1");
 }
 
 TEST_F(Tls, CertificateWithoutRoleIsRefused) {
@@ -246,6 +265,7 @@ TEST_F(Tls, GarbageInsteadOfTlsClosesTheConnectionAndTheGatewayGoesOn) {
   const auto line = gateway_->process->wait_for_line("refused handshake from 127.0.0.1:", 5s);
   ASSERT_TRUE(line) << log();
   EXPECT_NE(line->find("[not_tls]"), std::string::npos) << *line;
+  EXPECT_EQ(gateway_->metric("sms_gateway_tls_handshakes_total{result=\"not_tls\"}"), "1");
   TlsClient client(certs_, "operate", gateway_->port);
   const auto answer = client.request(read_registers_pdu(kGoalPosition, 1));
   ASSERT_TRUE(answer);
@@ -266,6 +286,7 @@ TEST_F(Tls, ReadRoleReadsButItsWriteIsAnsweredIllegalFunctionAndNothingChanges) 
   std::this_thread::sleep_for(100ms);
   EXPECT_EQ(sim_->field(1, "goal_position"), before);
   EXPECT_TRUE(logged("role read may only read"));
+  EXPECT_EQ(gateway_->metric("sms_gateway_tls_requests_refused_total{role=\"read\"}"), "2");
 }
 
 TEST_F(Tls, OperateRoleMovesTheServoButCannotWriteEeprom) {
