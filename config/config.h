@@ -47,9 +47,41 @@ Expected<IpNetwork> parse_ip_network(std::string_view text);
 inline constexpr std::size_t kMaxConnectionsLimit = 4096;
 inline constexpr std::int64_t kMaxIdleTimeoutSeconds = 86400;
 
+// Modbus/TCP Security (README "Modbus/TCP Security"): what a client certificate may do.
+// Read: reads only (an HMI). Operate: also writes to RAM fields (motion, torque, the gateway
+// unit's coils and sync groups). Engineer: everything, EEPROM fields, ID and baud rate,
+// calibration included. None: no rights; a connection whose certificate gets no role is closed.
+enum class Role : std::uint8_t { None, Read, Operate, Engineer };
+
+// One entry of modbus_tcp.tls.roles: a certificate's subject CN or subjectAltName (DNS name,
+// e-mail, URI or IP address as text) and the role it gets when the certificate carries no
+// Modbus.org role extension (OID 1.3.6.1.4.1.50316.802.1).
+struct TlsRoleMapping {
+  std::string name;
+  Role role = Role::None;
+
+  bool operator==(const TlsRoleMapping&) const = default;
+};
+
+// The Modbus/TCP Security listener: TLS 1.2/1.3 with client certificates (mutual
+// authentication). The files are PEM; SIGHUP reloads them.
+struct TlsConfig {
+  HostPort listen;
+  std::string certificate;  // the gateway's certificate (chain), PEM
+  std::string private_key;  // its key, PEM, unencrypted
+  std::string ca;           // CA certificates client certificates must chain to, PEM
+  std::vector<TlsRoleMapping> roles;  // in file order; names unique
+  Role default_role = Role::None;     // for a certificate with no extension and no mapping
+
+  bool operator==(const TlsConfig&) const = default;
+};
+
 struct ModbusTcpConfig {
   // Local only by default, on an unprivileged port; a plant config says e.g. 0.0.0.0:502.
   HostPort listen{"127.0.0.1", 5020};
+  // false: no plain (unauthenticated) Modbus TCP listener; then `tls` is required.
+  bool plain = true;
+  std::optional<TlsConfig> tls;  // the Modbus/TCP Security listener; empty: none
   std::size_t max_connections = 32;
   std::chrono::seconds idle_timeout{60};  // 0: never close an idle client
   std::uint8_t gateway_unit_id = 255;     // the gateway's own unit (MODBUS_MAP.md)
@@ -235,6 +267,8 @@ std::string_view to_string(LogFormat format);
 std::string_view to_string(modbus_map::ByteOrder order);  // "low-first", "high-first"
 std::string_view to_string(WatchdogFeed feed);
 std::string_view to_string(StartAction action);
+std::string_view to_string(Role role);  // "none", "read", "operate", "engineer"
+std::optional<Role> role_from_name(std::string_view name);
 // The safe stop a servo gets: its own, else its table's default; None for passthrough units.
 modbus_map::StopAction effective_safe_stop(const ServoConfig& servo);
 

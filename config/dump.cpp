@@ -37,6 +37,30 @@ void emit_modbus_tcp(YAML::Emitter& out, const ModbusTcpConfig& tcp) {
     for (const auto& network : tcp.allow) quoted(out, network.to_string());
     out << YAML::EndSeq;
   }
+  key(out, "plain");
+  out << tcp.plain;
+  if (tcp.tls) {  // absent: no Modbus/TCP Security listener
+    key(out, "tls");
+    out << YAML::BeginMap;
+    key(out, "listen");
+    out << tcp.tls->listen.to_string();
+    key(out, "certificate");
+    quoted(out, tcp.tls->certificate);
+    key(out, "private_key");
+    quoted(out, tcp.tls->private_key);
+    key(out, "ca");
+    quoted(out, tcp.tls->ca);
+    key(out, "roles");
+    if (tcp.tls->roles.empty()) out << YAML::Flow;
+    out << YAML::BeginMap;
+    for (const auto& mapping : tcp.tls->roles) {
+      out << YAML::Key << YAML::DoubleQuoted << mapping.name << YAML::Value << std::string(to_string(mapping.role));
+    }
+    out << YAML::EndMap;
+    key(out, "default_role");
+    out << std::string(to_string(tcp.tls->default_role));
+    out << YAML::EndMap;
+  }
   out << YAML::EndMap;
 }
 

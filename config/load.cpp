@@ -30,8 +30,11 @@ using protocol::BusProtocol;
 // ---- the keys allowed at each place (config/README.md) ----
 
 constexpr std::array<std::string_view, 5> kTopKeys{"modbus_tcp", "buses", "servos", "sync_groups", "logging"};
-constexpr std::array<std::string_view, 6> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
-                                                         "gateway_unit_id", "request_queue_depth", "allow"};
+constexpr std::array<std::string_view, 8> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
+                                                         "gateway_unit_id", "request_queue_depth", "allow",
+                                                         "plain",           "tls"};
+constexpr std::array<std::string_view, 6> kTlsKeys{"listen", "certificate", "private_key",
+                                                   "ca",     "roles",       "default_role"};
 constexpr std::array<std::string_view, 21> kBusKeys{
     "name",        "device",         "protocol",   "baud",  "parity", "stop_bits",    "response_timeout_ms",
     "retries",     "poll_period_ms", "offline_probe_period_ms",      "reopen_period_ms",
@@ -358,6 +361,7 @@ class Loader {
 
  private:
   ModbusTcpConfig parse_modbus_tcp(const Value& value);
+  TlsConfig parse_tls(const Value& value);
   void parse_buses(const Value& value, Config& config);
   BusConfig parse_bus(const Value& value, BusPlaces& places);
   void parse_servos(const Value& value, Config& config);
@@ -486,7 +490,49 @@ ModbusTcpConfig Loader::parse_modbus_tcp(const Value& value) {
       tcp.allow.push_back(*network);
     }
   }
+  if (const auto v = keys.find("plain")) tcp.plain = boolean(*v);
+  if (const auto v = keys.find("tls")) tcp.tls = parse_tls(*v);
+  if (!tcp.plain && !tcp.tls) {
+    fail(keys.find("plain")->mark, value.path + ".plain: false leaves the gateway without a listener; configure " +
+                                       value.path + ".tls (Modbus/TCP Security) or remove the key");
+  }
+  if (tcp.plain && tcp.tls && tcp.tls->listen == tcp.listen) {
+    fail(keys.key_mark("tls"), value.path + ".tls.listen: " + tcp.listen.to_string() + " is also " + value.path +
+                                   ".listen (plain Modbus TCP); give TLS its own port (802 is Modbus/TCP Security's) "
+                                   "or set plain: false");
+  }
   return tcp;
+}
+
+TlsConfig Loader::parse_tls(const Value& value) {
+  const MapReader keys(*this, value, kTlsKeys);
+  TlsConfig tls;
+  tls.listen = host_port(keys.require("listen"));
+  tls.certificate = string(keys.require("certificate"));
+  tls.private_key = string(keys.require("private_key"));
+  tls.ca = string(keys.require("ca"));
+  if (const auto v = keys.find("roles")) {
+    if (!v->node.IsMap()) {
+      fail(v->mark, v->path + ": expected a map of certificate names (subject CN or subjectAltName) to roles "
+                              "(read, operate, engineer, none), e.g. {plc-1: operate}, got " + describe(v->node));
+    }
+    std::vector<YAML::Mark> marks;
+    for (const auto& entry : v->node) {
+      const YAML::Node& name_node = entry.first;
+      const Value name_value{name_node, name_node.Mark(), v->path};
+      const std::string name = string(name_value);
+      for (std::size_t i = 0; i < tls.roles.size(); ++i) {
+        if (tls.roles[i].name == name) {
+          fail(name_node.Mark(), v->path + ": `" + name + "` is given twice (first at " + place(marks[i]) + ")");
+        }
+      }
+      const Value role_value = entry_value(name_node, entry.second, v->path + "." + name);
+      tls.roles.push_back(TlsRoleMapping{name, choice(role_value, detail::kRoleNames)});
+      marks.push_back(name_node.Mark());
+    }
+  }
+  if (const auto v = keys.find("default_role")) tls.default_role = choice(*v, detail::kRoleNames);
+  return tls;
 }
 
 void Loader::parse_buses(const Value& value, Config& config) {

@@ -58,6 +58,13 @@ inline constexpr std::array<Named<WatchdogFeed>, 2> kWatchdogFeedNames{{
     {"heartbeat_register", WatchdogFeed::HeartbeatRegister},
 }};
 
+inline constexpr std::array<Named<Role>, 4> kRoleNames{{
+    {"none", Role::None},
+    {"read", Role::Read},
+    {"operate", Role::Operate},
+    {"engineer", Role::Engineer},
+}};
+
 inline constexpr std::array<Named<StartAction>, 3> kStartActionNames{{
     {"keep", StartAction::Keep},
     {"hold", StartAction::Hold},

@@ -1,11 +1,15 @@
 #include "gateway/gateway.h"
 
+#include <optional>
 #include <stdexcept>
+
+#include <spdlog/spdlog.h>
 
 #include "config/load.h"
 #include "gateway/metrics_server.h"
 #include "gateway/safety.h"
 #include "gateway/tcp_serving.h"
+#include "gateway/tls.h"
 #include "gateway/unit_router.h"
 #include "modbus_map/register_map.h"
 
@@ -112,7 +116,23 @@ class Gateway::Impl {
     options.traffic = &traffic_;
     // Listen before the buses start, so a port in use fails before any serial port is touched;
     // connections wait in the backlog until the io thread runs.
-    serving_.listen(options, *router_);
+    if (config_.modbus_tcp.plain) {
+      plain_index_ = serving_.listen(options, *router_);
+    } else {
+      spdlog::info("modbus tcp: plain Modbus TCP is off (modbus_tcp.plain: false); only Modbus/TCP Security serves");
+    }
+    if (const auto& tls = config_.modbus_tcp.tls) {
+      try {
+        tls_ = std::make_unique<TlsService>(*tls, config_, *router_);
+      } catch (const std::exception& error) {
+        throw std::runtime_error(std::string("cannot set up Modbus/TCP Security: ") + error.what());
+      }
+      TcpServerOptions secure = options;
+      secure.host = tls->listen.host;
+      secure.port = tls->listen.port;
+      secure.tls = tls_.get();
+      tls_index_ = serving_.listen(secure, *router_);
+    }
     if (config_.logging.metrics_listen) {
       metrics_server_ = std::make_unique<MetricsServer>(MetricsServerOptions{.listen = *config_.logging.metrics_listen},
                                                         [this] { return metrics(); });
@@ -126,9 +146,15 @@ class Gateway::Impl {
   MetricsSnapshot metrics() const {
     std::vector<BusEngine*> engines;
     for (const auto& engine : engines_) engines.push_back(engine.get());
-    if (!safety_) return collect_metrics(config_, engines, server_stats(), traffic_, started_at_);
-    const SafetyFacts safety = safety_->facts();
-    return collect_metrics(config_, engines, server_stats(), traffic_, started_at_, SteadyClock::now(), &safety);
+    MetricsSnapshot snapshot;
+    if (!safety_) {
+      snapshot = collect_metrics(config_, engines, server_stats(), traffic_, started_at_);
+    } else {
+      const SafetyFacts safety = safety_->facts();
+      snapshot = collect_metrics(config_, engines, server_stats(), traffic_, started_at_, SteadyClock::now(), &safety);
+    }
+    if (tls_) snapshot.tls = tls_->stats();
+    return snapshot;
   }
 
   std::uint16_t metrics_port() const { return metrics_server_ ? metrics_server_->port() : 0; }
@@ -145,7 +171,15 @@ class Gateway::Impl {
     serving_.stop();
   }
 
-  std::uint16_t port() const { return serving_.port(); }
+  std::uint16_t port() const { return plain_index_ ? serving_.port(*plain_index_) : 0; }
+  std::uint16_t tls_port() const { return tls_index_ ? serving_.port(*tls_index_) : 0; }
+  bool reload_tls() {
+    if (!tls_) {
+      spdlog::info("SIGHUP: nothing to reload (no modbus_tcp.tls)");
+      return false;
+    }
+    return tls_->reload();
+  }
   BusEngine& engine(std::size_t index) { return *engines_.at(index); }
   TcpServerStats server_stats() const { return serving_.stats(); }
 
@@ -160,6 +194,9 @@ class Gateway::Impl {
   std::vector<std::unique_ptr<BusEngine>> engines_;
   std::unique_ptr<SafetySupervisor> safety_;  // before the router, which holds a reference
   std::unique_ptr<UnitRouter> router_;
+  std::unique_ptr<TlsService> tls_;  // after the router it holds, before the sessions that use it
+  std::optional<std::size_t> plain_index_;
+  std::optional<std::size_t> tls_index_;
   TcpServing serving_;  // last: destroyed first, so no connection outlives the router
   bool started_ = false;
   bool stopped_ = false;
@@ -171,6 +208,8 @@ Gateway::~Gateway() = default;
 void Gateway::start() { impl_->start(); }
 void Gateway::stop(std::chrono::milliseconds grace) { impl_->stop(grace); }
 std::uint16_t Gateway::port() const { return impl_->port(); }
+std::uint16_t Gateway::tls_port() const { return impl_->tls_port(); }
+bool Gateway::reload_tls() { return impl_->reload_tls(); }
 BusEngine& Gateway::engine(std::size_t index) { return impl_->engine(index); }
 TcpServerStats Gateway::server_stats() const { return impl_->server_stats(); }
 MetricsSnapshot Gateway::metrics() const { return impl_->metrics(); }

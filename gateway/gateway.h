@@ -47,7 +47,13 @@ class Gateway {
   // then the buses stop. After `grace` the remaining connections are closed regardless.
   void stop(std::chrono::milliseconds grace = std::chrono::seconds{5});
 
+  // The plain Modbus TCP port; 0 when modbus_tcp.plain is false.
   std::uint16_t port() const;
+  // The Modbus/TCP Security port; 0 without modbus_tcp.tls.
+  std::uint16_t tls_port() const;
+  // SIGHUP: loads the TLS certificate, key and CA files again (new handshakes use them; on
+  // failure the old ones stay and the log says why). False when it failed or there is no TLS.
+  bool reload_tls();
   const config::Config& config() const { return config_; }
   // The engine of config().buses[index] (tests, benchmarks).
   BusEngine& engine(std::size_t index);

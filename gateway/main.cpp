@@ -22,6 +22,7 @@
 #include "config/load.h"
 #include "gateway/gateway.h"
 #include "gateway/logging.h"
+#include "gateway/tls.h"
 #include "gateway/tool_cli.h"
 #include "simulator/simulated_bus.h"
 
@@ -54,9 +55,15 @@ std::optional<LogLevel> log_level_from(const std::string& name) {
 }
 
 std::string summary(const Config& config) {
+  std::string listeners;
+  if (config.modbus_tcp.plain) listeners = "Modbus TCP on " + config.modbus_tcp.listen.to_string();
+  if (config.modbus_tcp.tls) {
+    listeners += (listeners.empty() ? "" : ", ") + std::string("Modbus/TCP Security on ") +
+                 config.modbus_tcp.tls->listen.to_string();
+  }
   return std::to_string(config.buses.size()) + " bus(es), " + std::to_string(config.servos.size()) + " servo(s), " +
-         std::to_string(config.sync_groups.size()) + " sync group(s); Modbus TCP on " +
-         config.modbus_tcp.listen.to_string() + ", gateway unit " + std::to_string(config.modbus_tcp.gateway_unit_id);
+         std::to_string(config.sync_groups.size()) + " sync group(s); " + listeners + ", gateway unit " +
+         std::to_string(config.modbus_tcp.gateway_unit_id);
 }
 
 // SMS_GATEWAY_* variables over the configuration (config/env.h); false after printing why not.
@@ -85,19 +92,30 @@ int check_config(const std::string& path) {
   }
   std::vector<std::string> applied;
   if (!apply_environment(*config, applied)) return kExitConfigError;
+  if (const auto& tls = config->modbus_tcp.tls) {
+    // The files as the gateway will load them: a missing key or a key of another certificate
+    // fails here (ExecStartPre), not at start.
+    try {
+      sms::gateway::make_tls_context(*tls);
+    } catch (const std::exception& error) {
+      std::cerr << path << ": " << error.what() << "\n";
+      return kExitConfigError;
+    }
+  }
   std::cout << path << ": OK: " << summary(*config);
   if (!applied.empty()) std::cout << " (with " << joined(applied) << " from the environment)";
   std::cout << "\n";
   return kExitOk;
 }
 
-// Blocks SIGINT/SIGTERM in every thread (call before any thread starts) and returns the set
-// so main can sigwait() for them.
+// Blocks SIGINT/SIGTERM (stop) and SIGHUP (reload the TLS files) in every thread (call before
+// any thread starts) and returns the set so main can sigwait() for them.
 sigset_t block_stop_signals() {
   sigset_t signals;
   sigemptyset(&signals);
   sigaddset(&signals, SIGINT);
   sigaddset(&signals, SIGTERM);
+  sigaddset(&signals, SIGHUP);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
   return signals;
 }
@@ -172,7 +190,12 @@ int run_gateway(const Options& options) {
     sms::gateway::Gateway gateway(std::move(config));
     gateway.start();
     int signal_number = 0;
-    sigwait(&stop_signals, &signal_number);
+    for (;;) {
+      sigwait(&stop_signals, &signal_number);
+      if (signal_number != SIGHUP) break;
+      spdlog::info("SIGHUP received: reloading the Modbus/TCP Security certificate, key and CA");
+      gateway.reload_tls();
+    }
     spdlog::info("{} received: finishing the requests in flight, then stopping", strsignal(signal_number));
     gateway.stop();
   } catch (const std::exception& error) {

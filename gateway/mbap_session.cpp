@@ -3,10 +3,13 @@
 #include <boost/asio/write.hpp>
 #include <spdlog/spdlog.h>
 
+#include "gateway/tls.h"
+
 namespace sms::gateway {
 namespace {
 
-std::string endpoint_text(const boost::asio::ip::tcp::socket& socket) {
+template <typename Socket>
+std::string endpoint_text(const Socket& socket) {
   boost::system::error_code error;
   const auto endpoint = socket.remote_endpoint(error);
   if (error) return "(unknown peer)";
@@ -15,38 +18,84 @@ std::string endpoint_text(const boost::asio::ip::tcp::socket& socket) {
 
 }  // namespace
 
-MbapSession::MbapSession(boost::asio::ip::tcp::socket socket, std::shared_ptr<SessionHost> host)
-    : socket_(std::move(socket)),
-      idle_timer_(socket_.get_executor()),
+template <typename Stream>
+MbapSession<Stream>::MbapSession(Stream stream, std::shared_ptr<SessionHost> host, std::shared_ptr<void> keep_alive)
+    : keep_alive_(std::move(keep_alive)),
+      stream_(std::move(stream)),
+      idle_timer_(stream_.get_executor()),
       host_(std::move(host)),
-      peer_(endpoint_text(socket_)),
+      peer_(endpoint_text(stream_.lowest_layer())),
       last_activity_(std::chrono::steady_clock::now()) {}
 
-void MbapSession::start() {
+template <typename Stream>
+void MbapSession<Stream>::start() {
   boost::system::error_code ignored;
   // Modbus answers are small and latency matters more than packet count.
-  socket_.set_option(boost::asio::ip::tcp::no_delay(true), ignored);
+  socket().set_option(boost::asio::ip::tcp::no_delay(true), ignored);
+  if constexpr (kTls) {
+    handshaking_ = true;
+    arm_idle_timer(std::chrono::steady_clock::now() + kHandshakeTimeout);
+    stream_.async_handshake(boost::asio::ssl::stream_base::server,
+                            [self = this->shared_from_this()](const boost::system::error_code& error) {
+                              self->on_handshake(error);
+                            });
+  } else {
+    handler_ = &host_->handler();
+    begin_serving();
+  }
+}
+
+template <typename Stream>
+void MbapSession<Stream>::on_handshake(const boost::system::error_code& error) {
+  handshaking_ = false;
+  if (closed_) return;  // timed out, or the server stopped
+  if constexpr (kTls) {
+    if (error) {
+      host_->tls()->handshake_failed(error, stream_.native_handle(), peer_);
+      close();
+      return;
+    }
+    own_handler_ = host_->tls()->admit(stream_.native_handle(), peer_);
+    if (!own_handler_) {
+      close();
+      return;
+    }
+    admitted_ = true;
+    handler_ = own_handler_.get();
+    last_activity_ = std::chrono::steady_clock::now();
+    begin_serving();
+  }
+}
+
+template <typename Stream>
+void MbapSession<Stream>::begin_serving() {
   const auto idle = host_->options().idle_timeout;
-  if (idle.count() > 0) arm_idle_timer(last_activity_ + idle);
+  if (idle.count() > 0) {
+    arm_idle_timer(last_activity_ + idle);
+  } else {
+    idle_timer_.cancel();
+  }
   read_some();
 }
 
-void MbapSession::read_some() {
-  if (closed_ || draining_ || reading_ || decoder_.failed()) return;
+template <typename Stream>
+void MbapSession<Stream>::read_some() {
+  if (closed_ || draining_ || reading_ || handshaking_ || decoder_.failed()) return;
   if (pending_.size() >= host_->options().max_pipelined) return;  // resumed by process_pending
   reading_ = true;
-  socket_.async_read_some(boost::asio::buffer(read_buffer_),
-                          [self = shared_from_this()](const boost::system::error_code& error, std::size_t size) {
+  stream_.async_read_some(boost::asio::buffer(read_buffer_),
+                          [self = this->shared_from_this()](const boost::system::error_code& error, std::size_t size) {
                             self->on_read(error, size);
                           });
 }
 
-void MbapSession::on_read(const boost::system::error_code& error, std::size_t size) {
+template <typename Stream>
+void MbapSession<Stream>::on_read(const boost::system::error_code& error, std::size_t size) {
   reading_ = false;
   if (closed_) return;
   if (error) {
     if (error != boost::asio::error::eof && error != boost::asio::error::connection_reset &&
-        error != boost::asio::error::operation_aborted) {
+        error != boost::asio::error::operation_aborted && error != boost::asio::ssl::error::stream_truncated) {
       spdlog::warn("modbus tcp: connection {}: read failed: {}", peer_, error.message());
     }
     // The client is gone: nothing more can be answered. Bus work already handed over still
@@ -75,7 +124,8 @@ void MbapSession::on_read(const boost::system::error_code& error, std::size_t si
   close_when_done();
 }
 
-void MbapSession::process_pending() {
+template <typename Stream>
+void MbapSession<Stream>::process_pending() {
   if (processing_) return;
   processing_ = true;
   while (!closed_ && !in_flight_ && !pending_.empty() && !answers_backed_up()) {
@@ -84,13 +134,14 @@ void MbapSession::process_pending() {
     in_flight_ = InFlight{next_serial_++, frame.transaction_id, frame.unit_id};
     host_->count_request(frame.pdu);
     // May answer at once (deliver() runs inside) or later from a bus completion.
-    host_->handler().handle(frame.unit_id, frame.pdu, Reply(shared_from_this(), in_flight_->serial));
+    handler_->handle(frame.unit_id, frame.pdu, Reply(this->shared_from_this(), in_flight_->serial));
   }
   processing_ = false;
   read_some();  // resumes reading if the pipeline limit had paused it
 }
 
-void MbapSession::deliver(std::uint64_t request_serial, Bytes response_pdu) {
+template <typename Stream>
+void MbapSession<Stream>::deliver(std::uint64_t request_serial, Bytes response_pdu) {
   if (closed_) {
     spdlog::debug("modbus tcp: connection {} closed before its answer was ready; answer dropped", peer_);
     return;
@@ -107,23 +158,26 @@ void MbapSession::deliver(std::uint64_t request_serial, Bytes response_pdu) {
   close_when_done();
 }
 
-bool MbapSession::answers_backed_up() const {
+template <typename Stream>
+bool MbapSession<Stream>::answers_backed_up() const {
   return outbox_.size() + write_buffer_.size() >= host_->options().max_unsent_bytes;
 }
 
-void MbapSession::flush() {
+template <typename Stream>
+void MbapSession<Stream>::flush() {
   if (writing_ || outbox_.empty() || closed_) return;
   write_buffer_.swap(outbox_);
   outbox_.clear();
   writing_ = true;
   write_started_ = std::chrono::steady_clock::now();
-  boost::asio::async_write(socket_, boost::asio::buffer(write_buffer_),
-                           [self = shared_from_this()](const boost::system::error_code& error, std::size_t) {
+  boost::asio::async_write(stream_, boost::asio::buffer(write_buffer_),
+                           [self = this->shared_from_this()](const boost::system::error_code& error, std::size_t) {
                              self->on_written(error);
                            });
 }
 
-void MbapSession::on_written(const boost::system::error_code& error) {
+template <typename Stream>
+void MbapSession<Stream>::on_written(const boost::system::error_code& error) {
   writing_ = false;
   write_buffer_.clear();
   if (closed_) return;
@@ -139,37 +193,49 @@ void MbapSession::on_written(const boost::system::error_code& error) {
   close_when_done();
 }
 
-void MbapSession::drain() {
+template <typename Stream>
+void MbapSession<Stream>::drain() {
   if (closed_) return;
   draining_ = true;
   pending_.clear();  // never started, never answered: the client cannot take them as done
   close_when_done();
 }
 
-void MbapSession::close_when_done() {
+template <typename Stream>
+void MbapSession<Stream>::close_when_done() {
   if (draining_ && !closed_ && !in_flight_ && pending_.empty() && !writing_ && outbox_.empty()) close();
 }
 
-void MbapSession::close() {
+template <typename Stream>
+void MbapSession<Stream>::close() {
   if (closed_) return;
   closed_ = true;
   pending_.clear();
   boost::system::error_code ignored;
-  socket_.shutdown(boost::asio::ip::tcp::socket::shutdown_both, ignored);
-  socket_.close(ignored);
+  // TLS: no close_notify exchange; a Modbus client learns of the close from the TCP FIN.
+  socket().shutdown(boost::asio::ip::tcp::socket::shutdown_both, ignored);
+  socket().close(ignored);
   idle_timer_.cancel();
-  host_->on_session_closed(shared_from_this());
+  if (admitted_) host_->tls()->connection_closed();
+  host_->on_session_closed(this->shared_from_this());
 }
 
-void MbapSession::arm_idle_timer(std::chrono::steady_clock::time_point deadline) {
+template <typename Stream>
+void MbapSession<Stream>::arm_idle_timer(std::chrono::steady_clock::time_point deadline) {
   idle_timer_.expires_at(deadline);
-  idle_timer_.async_wait([self = shared_from_this()](const boost::system::error_code& error) {
+  idle_timer_.async_wait([self = this->shared_from_this()](const boost::system::error_code& error) {
     self->on_idle_timer(error);
   });
 }
 
-void MbapSession::on_idle_timer(const boost::system::error_code& error) {
+template <typename Stream>
+void MbapSession<Stream>::on_idle_timer(const boost::system::error_code& error) {
   if (error || closed_) return;
+  if (handshaking_) {
+    if constexpr (kTls) host_->tls()->handshake_timed_out(peer_);
+    close();
+    return;
+  }
   const auto idle = host_->options().idle_timeout;
   const auto now = std::chrono::steady_clock::now();
   if (writing_ && now - write_started_ >= idle) {
@@ -191,5 +257,8 @@ void MbapSession::on_idle_timer(const boost::system::error_code& error) {
   }
   arm_idle_timer(last_activity_ + idle);
 }
+
+template class MbapSession<boost::asio::ip::tcp::socket>;
+template class MbapSession<boost::asio::ssl::stream<boost::asio::ip::tcp::socket>>;
 
 }  // namespace sms::gateway

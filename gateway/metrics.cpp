@@ -375,6 +375,28 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
   out.sample(kRefused, {{"reason", "max_connections"}}, snapshot.tcp.refused);
   out.sample(kRefused, {{"reason", "allow"}}, snapshot.tcp.denied);
 
+  if (snapshot.tls) {
+    const TlsStats& tls = *snapshot.tls;
+    constexpr std::string_view kHandshakes = "sms_gateway_tls_handshakes_total";
+    out.family(kHandshakes, MetricType::Counter,
+               "Modbus/TCP Security handshakes by outcome (ok, expired, unknown_ca, no_certificate, not_tls, ...)");
+    for (std::size_t i = 0; i < kHandshakeResults.size(); ++i) {
+      out.sample(kHandshakes, {{"result", std::string(kHandshakeResults[i])}}, tls.handshakes[i]);
+    }
+    out.family("sms_gateway_tls_connections", MetricType::Gauge,
+               "Modbus/TCP Security connections open now (handshake done, role given)");
+    out.sample("sms_gateway_tls_connections", {}, std::uint64_t{tls.open_connections});
+    constexpr std::string_view kRefusedRequests = "sms_gateway_tls_requests_refused_total";
+    out.family(kRefusedRequests, MetricType::Counter,
+               "Requests answered with an exception because the certificate's role may not make them");
+    out.sample(kRefusedRequests, {{"role", "read"}}, tls.requests_refused_read);
+    out.sample(kRefusedRequests, {{"role", "operate"}}, tls.requests_refused_operate);
+    constexpr std::string_view kReloads = "sms_gateway_tls_reloads_total";
+    out.family(kReloads, MetricType::Counter, "Certificate reloads (SIGHUP) by outcome; a failed one keeps the old files");
+    out.sample(kReloads, {{"result", "ok"}}, tls.reloads_ok);
+    out.sample(kReloads, {{"result", "failed"}}, tls.reloads_failed);
+  }
+
   out.family("sms_gateway_estop_latched", MetricType::Gauge,
              "1 while the e-stop (gateway unit coil 1) is latched: motion writes refused on every bus");
   out.sample("sms_gateway_estop_latched", {}, std::uint64_t{snapshot.estop_latched ? 1u : 0u});

@@ -23,6 +23,7 @@
 #include "gateway/poll_cache.h"
 #include "gateway/safety.h"
 #include "gateway/tcp_server.h"
+#include "gateway/tls_stats.h"
 
 namespace sms::gateway {
 
@@ -75,6 +76,7 @@ struct MetricsSnapshot {
   std::chrono::seconds uptime{0};
   std::vector<BusMetrics> buses;
   TcpServerStats tcp;
+  std::optional<TlsStats> tls;  // empty without modbus_tcp.tls
   ModbusTrafficSnapshot traffic;
   bool estop_latched = false;
   std::uint64_t estops = 0;

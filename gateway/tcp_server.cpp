@@ -15,6 +15,7 @@
 #include "gateway/listener.h"
 #include "gateway/mbap_session.h"
 #include "gateway/metrics.h"
+#include "gateway/tls.h"
 
 namespace sms::gateway {
 
@@ -32,6 +33,18 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
         retry_timer_(io) {}
 
   void start() {
+    if (options_.tls != nullptr) {
+      open_listener(acceptor_, options_.host, options_.port,
+                    {"listen for Modbus/TCP Security", "modbus_tcp.tls.listen in the configuration", 8020});
+      port_ = acceptor_.local_endpoint().port();
+      spdlog::info("modbus tcp security: listening on {}:{} (TLS 1.2/1.3, client certificates of CA {} required; at "
+                   "most {} connections, idle timeout {}, clients allowed: {})",
+                   options_.host, port_, options_.tls->settings().ca, options_.max_connections,
+                   options_.idle_timeout.count() > 0 ? duration_text(options_.idle_timeout) : std::string("off"),
+                   access_.describe());
+      accept();
+      return;
+    }
     open_listener(acceptor_, options_.host, options_.port,
                   {"listen for Modbus TCP", "--listen HOST:PORT or modbus_tcp.listen in the configuration", 5020});
     port_ = acceptor_.local_endpoint().port();
@@ -66,7 +79,8 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
   // SessionHost
   RequestHandler& handler() override { return handler_; }
   const TcpServerOptions& options() const override { return options_; }
-  void on_session_closed(const std::shared_ptr<MbapSession>& session) override {
+  TlsService* tls() override { return options_.tls; }
+  void on_session_closed(const std::shared_ptr<Session>& session) override {
     if (sessions_.erase(session) == 0) return;
     spdlog::debug("modbus tcp: {} disconnected ({} open)", session->peer(), sessions_.size());
     {
@@ -117,7 +131,14 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
     } else if (sessions_.size() >= options_.max_connections) {
       refuse(std::move(socket));
     } else {
-      auto session = std::make_shared<MbapSession>(std::move(socket), shared_from_this());
+      std::shared_ptr<Session> session;
+      if (options_.tls != nullptr) {
+        auto context = options_.tls->context();  // the one loaded last (SIGHUP reloads it)
+        session = std::make_shared<TlsSession>(asio::ssl::stream<tcp::socket>(std::move(socket), *context),
+                                               shared_from_this(), context);
+      } else {
+        session = std::make_shared<PlainSession>(std::move(socket), shared_from_this());
+      }
       sessions_.insert(session);
       {
         std::lock_guard lock(stats_mutex_);
@@ -201,7 +222,7 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
   tcp::acceptor acceptor_;
   asio::steady_timer retry_timer_;
   std::uint16_t port_ = 0;
-  std::set<std::shared_ptr<MbapSession>> sessions_;
+  std::set<std::shared_ptr<Session>> sessions_;
   bool refusal_logged_ = false;
   std::function<void()> on_all_closed_;
 

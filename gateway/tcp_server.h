@@ -26,6 +26,7 @@ namespace sms::gateway {
 
 using protocol::Bytes;
 class ModbusTrafficCounters;
+class TlsService;
 
 // Where the answer to one request goes. Copyable so it can ride in bus completions; only the
 // first send() for a request counts. Call send() on the server's io_context thread only.
@@ -80,6 +81,10 @@ struct TcpServerOptions {
   // Where requests by function and answers by exception code are counted (/metrics); may be null.
   // Must outlive the server.
   ModbusTrafficCounters* traffic = nullptr;
+  // Modbus/TCP Security (gateway/tls.h): every connection first completes a TLS handshake with
+  // a client certificate, and its requests go to the handler the service gives it (the role's
+  // rights in front of the server's handler). nullptr: plain Modbus TCP. Must outlive the server.
+  TlsService* tls = nullptr;
 };
 
 struct TcpServerStats {

@@ -30,8 +30,9 @@ class TcpServing {
   // Runs `work` on the io thread (bus completions come back this way).
   void post(std::function<void()> work);
   // Binds and listens; connections wait in the backlog until run(). Throws std::runtime_error
-  // naming the address and what to do. Call once.
-  void listen(TcpServerOptions options, RequestHandler& handler);
+  // naming the address and what to do. Called once per listener (plain Modbus TCP, Modbus/TCP
+  // Security); returns the listener's index for port(index).
+  std::size_t listen(TcpServerOptions options, RequestHandler& handler);
   // Starts the io thread.
   void run();
   // Graceful part of a stop: no new connections; each connection's request in flight is
@@ -41,8 +42,8 @@ class TcpServing {
   // Idempotent.
   void stop();
 
-  std::uint16_t port() const;
-  TcpServerStats stats() const;
+  std::uint16_t port(std::size_t index = 0) const;  // 0 when there is no such listener
+  TcpServerStats stats() const;                     // summed over the listeners
 
  private:
   class Impl;

@@ -252,6 +252,7 @@ TEST(ConfigLoad, DumpWritesTheDefaultsOut) {
   idle_timeout_s: 60
   gateway_unit_id: 255
   request_queue_depth: 64
+  plain: true
 buses:
   - name: arm
     device: "/dev/ttyUSB0"
