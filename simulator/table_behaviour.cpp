@@ -279,7 +279,9 @@ constexpr TableBehaviour kSts{
     .checksum_bit = 0,
     .temperature_bit = feetech::error_bit::kTemperature,
     .overvoltage_bit = feetech::error_bit::kVoltage,
-    .error_mask = 0x2F,  // bit 4 is unused (wiki memory-sts)
+    // Bit 4 is unused by current firmware (wiki memory-sts) but doc 001 names it "angle": a
+    // fault injection may still set it, as an older firmware would.
+    .error_mask = 0x3F,
     .torque_on_status_bit = 0,
     .d55d_response_levels = false,
     .speed_zero_stops = false,

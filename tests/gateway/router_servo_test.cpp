@@ -79,7 +79,7 @@ TEST_F(Router, FactRegistersDescribeTheServo) {
   EXPECT_EQ(facts.values[0], 0);       // status byte
   EXPECT_EQ(facts.values[1], 1);       // online
   EXPECT_LT(facts.values[2], 1000);    // cache age ms (polled every 10 ms)
-  EXPECT_EQ(facts.values[3], 0x082A);  // model 8.42 as read at discovery
+  EXPECT_EQ(facts.values[3], 10760);   // model word (SM40BL) as read at discovery
   EXPECT_GT((facts.values[4] << 16) | facts.values[5], 1);  // replies OK
   EXPECT_EQ(facts.values[6], 0);       // timeouts, high word
   EXPECT_EQ(facts.values[7], 0);
