@@ -113,7 +113,7 @@ TEST_F(Router, AddressAndValueExceptions) {
   EXPECT_EQ(client.write_register(56, 1).exception, 0x02);    // present position is read-only
   EXPECT_EQ(client.write_register(43, 1).exception, 0x02);    // only the second byte of goal position
   EXPECT_EQ(client.read_holding(200, 1).exception, 0x02);     // beyond the table
-  EXPECT_EQ(*sim().read_field(1, "torque_enable"), 1);        // nothing was written
+  EXPECT_EQ(*sim().read_field(1, "torque_enable"), 0);        // nothing was written (power-on 0)
 }
 
 TEST_F(Router, UnsupportedFunctionIs01OnEveryUnit) {
