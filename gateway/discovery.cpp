@@ -14,6 +14,34 @@ const IdentityLayout* identity_layout(modbus_map::TableId table) {
   return found == kIdentityLayouts.end() ? nullptr : &*found;
 }
 
+std::optional<modbus_map::TableId> table_from_byte_order_flag(modbus_map::TableId assumed,
+                                                              std::span<const std::uint8_t> bytes) {
+  using modbus_map::TableId;
+  if (assumed != TableId::Sts && assumed != TableId::Scs) return std::nullopt;
+  if (bytes.size() <= kByteOrderFlagAddress) return std::nullopt;
+  switch (bytes[kByteOrderFlagAddress]) {
+    case 0: return TableId::Sts;
+    case 1: return TableId::Scs;
+    default: return std::nullopt;
+  }
+}
+
+std::string_view model_name(std::uint16_t model_number) {
+  // Model numbers as the SDKs read addresses 3-4 (LeRobot's Feetech MODEL_NUMBER_TABLE; the
+  // SM40BL readout "8.42" of doc 001 §15 is 10760 read as one word).
+  struct KnownModel {
+    std::uint16_t number;
+    std::string_view name;
+  };
+  static constexpr KnownModel kKnownModels[] = {
+      {777, "STS3215"}, {2825, "STS3250"}, {10760, "SM40BL"}, {11272, "SM8512BL"}, {1284, "SCS0009"},
+  };
+  for (const KnownModel& model : kKnownModels) {
+    if (model.number == model_number) return model.name;
+  }
+  return {};
+}
+
 namespace {
 
 std::optional<std::uint16_t> decode_field(const std::optional<IdentityField>& field,
@@ -42,6 +70,10 @@ std::string format_identity_value(const IdentityLayout* layout, bool model, std:
   if (!value) return "-";
   const std::optional<IdentityField> field = layout == nullptr ? std::nullopt : (model ? layout->model : layout->firmware);
   if (field && field->format == IdentityFormat::MajorMinor) return fmt::format("{}.{}", *value >> 8, *value & 0xFF);
+  if (field && field->format == IdentityFormat::ModelNumber) {
+    const std::string_view name = model_name(*value);
+    return name.empty() ? fmt::format("{}", *value) : fmt::format("{} ({})", *value, name);
+  }
   // A two-byte version word reads best in hex (sms1 V1.01 is 0x0101).
   if (field && field->size == 2) return fmt::format("0x{:04X}", *value);
   return fmt::format("{}", *value);

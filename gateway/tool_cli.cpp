@@ -136,7 +136,7 @@ void add_line_options(CLI::App& command, LineArgs& args, bool baud_required) {
       ->capture_default_str();
   command.add_option("--table", args.table, "The servos' table: sts or sms1 (feetech), d55d, smsmb (modbus-rtu); "
                                             "default the protocol's usual one")
-      ->check(CLI::IsMember({"sts", "sms1", "d55d", "smsmb"}));
+      ->check(CLI::IsMember({"sts", "sms1", "scs", "d55d", "smsmb"}));
 }
 
 LinkSettings link_settings(const LineArgs& args) {

@@ -30,12 +30,13 @@ constexpr std::chrono::milliseconds kConfirmExtraWait{20};
 constexpr std::uint16_t kSmsmbIdentityRegister = 0x00;
 constexpr std::uint16_t kSmsmbIdentityCount = 2;
 
-std::string identity_text(const ScanReport& report, const ServoIdentity& identity, bool model) {
-  const IdentityLayout* layout = identity_layout(report.table);
-  return format_identity_value(layout, model, model ? identity.model : identity.firmware);
+std::string identity_text(const ScanFinding& finding, bool model) {
+  const IdentityLayout* layout = identity_layout(finding.table);
+  return format_identity_value(layout, model, model ? finding.identity.model : finding.identity.firmware);
 }
 
-ServoIdentity read_identity(ServoLink& link, TableId table_id, std::uint8_t id) {
+// The identity, and the table the servo speaks when its byte-order flag tells (SCS or STS/SMS).
+ServoIdentity read_identity(ServoLink& link, TableId& table_id, std::uint8_t id) {
   const auto& table = modbus_map::table(table_id);
   if (table.addressing == modbus_map::Addressing::Register) {
     const LinkAnswer answer = link.read(id, kSmsmbIdentityRegister, kSmsmbIdentityCount);
@@ -49,7 +50,13 @@ ServoIdentity read_identity(ServoLink& link, TableId table_id, std::uint8_t id) 
   if (layout == nullptr) return {};
   const LinkAnswer answer = link.read(id, layout->read.address, layout->read.count);
   if (!answer.ok()) return {};
-  return decode_identity(*layout, answer.data, table.default_byte_order);
+  if (layout->read.address == 0) {
+    if (const auto spoken = table_from_byte_order_flag(table_id, answer.data)) {
+      table_id = *spoken;
+      layout = identity_layout(table_id);
+    }
+  }
+  return decode_identity(*layout, answer.data, modbus_map::table(table_id).default_byte_order);
 }
 
 // How many of `reads` reads of present_position come back damaged.
@@ -159,12 +166,18 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
       ScanFinding finding;
       finding.baud = baud;
       finding.id = id;
+      finding.table = options.table;
       if (answer.ok()) {
         finding.status = answer.servo_status;
         link.set_attempts(attempts);  // the identity is worth a retry; a collision check is not
-        finding.identity = read_identity(link, options.table, id);
+        finding.identity = read_identity(link, finding.table, id);
         link.set_attempts(1);
         finding.conflict = answers_collide(link, options.table, id);
+        if (finding.table != options.table) {
+          finding.note = fmt::format("table {}: address 2 says {} byte first",
+                                     modbus_map::table(finding.table).name,
+                                     finding.table == TableId::Scs ? "high" : "low");
+        }
         if (protocol == BusProtocol::ModbusRtu && answer.servo_status != 0) {
           finding.note = fmt::format("a Modbus slave, not an SMSMB servo (FC03 of register 0 answered exception 0x{:02X})",
                                      answer.servo_status);
@@ -217,7 +230,7 @@ std::string format_scan(const ScanReport& report) {
   std::string text = fmt::format("{:>8}  {:>3}  {:<8}  {:<8}  {}\n", "baud", "id", "model", "firmware", "note");
   for (const ScanFinding& finding : report.found) {
     text += fmt::format("{:>8}  {:>3}  {:<8}  {:<8}  {}\n", finding.baud, finding.id,
-                        identity_text(report, finding.identity, true), identity_text(report, finding.identity, false),
+                        identity_text(finding, true), identity_text(finding, false),
                         finding.note);
   }
   const auto conflicts = std::count_if(report.found.begin(), report.found.end(),
@@ -230,7 +243,6 @@ std::string format_scan(const ScanReport& report) {
 }
 
 std::string scan_config_yaml(const ScanReport& report, const LinkSettings& link) {
-  const auto& table = modbus_map::table(report.table);
   // The bus runs at the rate where most servos answer cleanly (the faster one on a tie).
   std::map<std::uint32_t, std::size_t> clean_per_baud;
   for (const ScanFinding& finding : report.found) {
@@ -247,7 +259,8 @@ std::string scan_config_yaml(const ScanReport& report, const LinkSettings& link)
   }
   std::string yaml = fmt::format(
       "# Written by `sms-gateway scan` on {} ({}): {} servo(s) at {} bit/s.\n"
-      "# Check each servo's table (a scan cannot tell sts from sms1) and the unit numbers, then:\n"
+      "# Check each servo's table (a scan tells scs from sts by address 2, not sts from sms1) and the\n"
+      "# unit numbers, then:\n"
       "#   sms-gateway --check-config THIS_FILE && sms-gateway --config THIS_FILE\n"
       "# Every key and its default: config/README.md.\n\n"
       "modbus_tcp:\n  listen: 127.0.0.1:5020\n\n"
@@ -264,8 +277,8 @@ std::string scan_config_yaml(const ScanReport& report, const LinkSettings& link)
   }
   std::string later;
   for (const ScanFinding& finding : report.found) {
-    const std::string identity = fmt::format("model {}, firmware {}", identity_text(report, finding.identity, true),
-                                             identity_text(report, finding.identity, false));
+    const std::string identity =
+        fmt::format("model {}, firmware {}", identity_text(finding, true), identity_text(finding, false));
     if (finding.conflict) {
       later += fmt::format("# ID {} at {} bit/s: two or more servos answer; give them distinct IDs (set-id) and "
                            "scan again\n",
@@ -286,8 +299,8 @@ std::string scan_config_yaml(const ScanReport& report, const LinkSettings& link)
       while (units.count(unit) != 0) ++unit;
       units.insert(unit);
     }
-    servos += fmt::format("  - {{unit: {}, bus: bus1, id: {}, table: {}}}   # {}\n", unit, finding.id, table.name,
-                          identity);
+    servos += fmt::format("  - {{unit: {}, bus: bus1, id: {}, table: {}}}   # {}\n", unit, finding.id,
+                          modbus_map::table(finding.table).name, identity);
   }
   yaml += servos.empty() ? "\nservos: []   # no servo answered cleanly\n" : "\nservos:\n" + servos;
   if (!later.empty()) yaml += "\n" + later;

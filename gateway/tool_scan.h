@@ -37,6 +37,9 @@ struct ScanOptions {
 struct ScanFinding {
   std::uint32_t baud = 0;
   std::uint8_t id = 0;
+  // The table the servo speaks: the scan's, or scs / sts as the servo's byte-order flag
+  // (address 2) says when scanning a feetech bus.
+  modbus_map::TableId table = modbus_map::TableId::Sts;
   ServoIdentity identity;
   std::uint8_t status = 0;  // ERROR byte of the PING answer; modbus-rtu: exception code (not an SMSMB servo)
   bool conflict = false;    // two or more servos answer on this ID

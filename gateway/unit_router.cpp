@@ -34,6 +34,7 @@ struct WriteReplyLevel {
 constexpr WriteReplyLevel kWriteReplyLevels[] = {
     {TableId::Sts, 1},   // 0: only READ and PING answered
     {TableId::Sms1, 1},  // 0: only READ and PING answered
+    {TableId::Scs, 1},   // 0: only READ and PING answered
     {TableId::D55d, 2},  // 0 never, 1 READ only, 2 all except broadcast
     {TableId::Smsmb, 0},
 };

@@ -11,7 +11,7 @@
 
 namespace sms::modbus_map {
 
-enum class TableId : std::uint8_t { Sts, Sms1, D55d, Smsmb };
+enum class TableId : std::uint8_t { Sts, Sms1, D55d, Smsmb, Scs };
 
 enum class Access : std::uint8_t { ReadOnly, WriteOnly, ReadWrite };
 enum class Area : std::uint8_t { Eeprom, Ram };
@@ -55,7 +55,7 @@ struct FieldSpec {
 
 struct TableSpec {
   TableId id;
-  std::string_view name;        // "sts", "sms1", "d55d", "smsmb"
+  std::string_view name;        // "sts", "sms1", "d55d", "smsmb", "scs"
   std::string_view title;       // human title for docs
   protocol::BusProtocol protocol;  // the only bus protocol this table is spoken over
   Addressing addressing;

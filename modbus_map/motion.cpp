@@ -26,6 +26,10 @@ constexpr std::string_view kSms1MotionFields[] = {"operating_mode", "torque_swit
 // the goal it holds; homing turns the motor.
 constexpr std::string_view kD55dMotionFields[] = {"cw_angle_limit", "ccw_angle_limit", "goal_position", "run_speed",
                                                   "brake", "sleep", "photo_switch_homing"};
+// scs has no mode byte: both angle limits 0 select the open-loop motor (SCSCL SDK PWMMode).
+constexpr DriveMode kScsLimitsZeroDrive[] = {{0, Drive::Pwm}};
+constexpr std::string_view kScsMotionFields[] = {"min_angle_limit", "max_angle_limit", "torque_enable",
+                                                 "goal_position", "goal_time", "goal_speed"};
 constexpr std::string_view kSmsmbMotionFields[] = {"mode", "goal_position", "torque_switch", "running_speed"};
 
 constexpr StoppingWrite kStsStops[] = {{"torque_enable", 0}};
@@ -33,6 +37,7 @@ constexpr StoppingWrite kSms1Stops[] = {{"torque_switch", 0}};
 // d55d (SPEC §2.3): "a speed of 0 or a brake command stops it at once"; sleep lets go.
 constexpr StoppingWrite kD55dStops[] = {{"run_speed", 0}, {"brake", 1}, {"sleep", 1}};
 constexpr StoppingWrite kSmsmbStops[] = {{"torque_switch", 0}};
+constexpr StoppingWrite kScsStops[] = {{"torque_enable", 0}};
 
 constexpr std::array kMotionSpecs{
     MotionSpec{TableId::Sts, "operating_mode", kStsModes, "min_angle_limit", "max_angle_limit", "torque_enable",
@@ -47,6 +52,9 @@ constexpr std::array kMotionSpecs{
     MotionSpec{TableId::Smsmb, "mode", kSmsmbModes, "min_angle_limit", "max_angle_limit", "torque_switch",
                "goal_position", "", "running_speed", "present_position", {"torque_switch", 0}, kSmsmbMotionFields,
                kSmsmbStops, StopAction::Hold},
+    MotionSpec{TableId::Scs, "", kScsLimitsZeroDrive, "min_angle_limit", "max_angle_limit", "torque_enable",
+               "goal_position", "goal_time", "goal_speed", "present_position", {"torque_enable", 0}, kScsMotionFields,
+               kScsStops, StopAction::Hold},
 };
 
 const FieldSpec& field_named(const MotionSpec& spec, std::string_view name) {
@@ -90,7 +98,8 @@ Expected<Drive> drive_of(const MotionSpec& spec, ByteOrder order, const StopCont
     const auto min = read_raw(spec, order, context, spec.min_limit);
     const auto max = read_raw(spec, order, context, spec.max_limit);
     if (!min || !max) return unexpected(std::string("the angle limits were not read"));
-    return (*min == 0 && *max == 0) ? Drive::Velocity : Drive::Position;
+    const Drive limits_zero = spec.modes.empty() ? Drive::Velocity : spec.modes.front().drive;
+    return (*min == 0 && *max == 0) ? limits_zero : Drive::Position;
   }
   const auto mode = read_raw(spec, order, context, spec.mode);
   if (!mode) return unexpected(std::string("the operating mode was not read"));

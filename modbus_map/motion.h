@@ -46,7 +46,8 @@ struct StoppingWrite {
 
 struct MotionSpec {
   TableId table;
-  // Operating-mode field; empty: position mode, velocity mode when both angle limits are 0.
+  // Operating-mode field; empty: position mode, and when both angle limits are 0 the drive of
+  // the one entry of `modes` (none: velocity, d55d wheel mode; scs: PWM).
   std::string_view mode;
   std::span<const DriveMode> modes;
   std::string_view min_limit;

@@ -47,6 +47,7 @@ constexpr std::array kDefaultPollBlocks{
     PollBlockDefault{TableId::Sms1, {56, 15}},
     PollBlockDefault{TableId::D55d, {36, 14}},
     PollBlockDefault{TableId::Smsmb, kSmsmbFeedbackRegisters},
+    PollBlockDefault{TableId::Scs, {56, 15}},
 };
 
 Unexpected<MapError> fail(ModbusException code, std::string message) {
@@ -177,6 +178,8 @@ std::span<const CounterpartLink> smsmb_links(TableId servo_table) {
   switch (servo_table) {
     case TableId::Sts: return tables::kStsSmsmbLinks;
     case TableId::Sms1: return tables::kSms1SmsmbLinks;
+    // scs: 10-bit positions and its own speed unit; an SMSMB program would drive it wrong.
+    case TableId::Scs:
     case TableId::D55d:
     case TableId::Smsmb: break;
   }

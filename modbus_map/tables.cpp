@@ -7,6 +7,7 @@
 #include <string>
 
 #include "modbus_map/tables/d55d.h"
+#include "modbus_map/tables/scs.h"
 #include "modbus_map/tables/sms1.h"
 #include "modbus_map/tables/smsmb.h"
 #include "modbus_map/tables/sts.h"
@@ -57,8 +58,19 @@ constexpr TableSpec kSmsmb{
     .has_sync_read = false,
 };
 
+constexpr TableSpec kScs{
+    .id = TableId::Scs,
+    .name = "scs",
+    .title = "SCS servos (Feetech SCSCL SDK; high byte first)",
+    .protocol = BusProtocol::Feetech,
+    .addressing = Addressing::Byte,
+    .default_byte_order = ByteOrder::HighFirst,
+    .fields = tables::kScsFields,
+    .has_sync_read = false,  // SYNC READ is STS/SMS only (SPEC §1.1)
+};
+
 // In TableId order.
-constexpr std::array<const TableSpec*, 4> kTables{&kSts, &kSms1, &kD55d, &kSmsmb};
+constexpr std::array<const TableSpec*, 5> kTables{&kSts, &kSms1, &kD55d, &kSmsmb, &kScs};
 
 constexpr bool tables_in_id_order() {
   for (std::size_t i = 0; i < kTables.size(); ++i) {

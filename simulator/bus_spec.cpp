@@ -103,7 +103,7 @@ Expected<ServoConfig> parse_servo_spec(std::string_view text) {
   if (!id) return unexpected(id.error() + usage);
   config.id = *id;
   const auto table = modbus_map::table_from_name(parts[1]);
-  if (!table) return unexpected("unknown table '" + std::string(parts[1]) + "' (sts, sms1, d55d, smsmb)" + usage);
+  if (!table) return unexpected("unknown table '" + std::string(parts[1]) + "' (sts, sms1, scs, d55d, smsmb)" + usage);
   config.table = *table;
   config.protocol = protocol_of(*table);
   if (parts.size() >= 3 && !parts[2].empty()) {

@@ -64,7 +64,7 @@ std::vector<ServoConfig> build_servos(const std::optional<std::string>& protocol
   std::optional<modbus_map::TableId> table;
   if (table_name) {
     table = modbus_map::table_from_name(*table_name);
-    if (!table) throw CLI::ValidationError("--table", "'" + *table_name + "': use sts, sms1, d55d or smsmb");
+    if (!table) throw CLI::ValidationError("--table", "'" + *table_name + "': use sts, sms1, scs, d55d or smsmb");
   }
   if (table && protocol && protocol_of(*table) != *protocol) {
     throw CLI::ValidationError("--table", "table " + *table_name + " is spoken over " +
@@ -115,7 +115,7 @@ int main(int argc, char** argv) {
 
   app.add_option("--protocol", protocol_name, "Bus protocol of the --ids servos: feetech, d55d or modbus-rtu "
                                               "(default: the table's, else feetech)");
-  app.add_option("--table", table_name, "Control table of the --ids servos: sts, sms1, d55d or smsmb "
+  app.add_option("--table", table_name, "Control table of the --ids servos: sts, sms1, scs, d55d or smsmb "
                                         "(default: sts / d55d / smsmb by protocol)");
   auto* ids_option = app.add_option("--ids", ids, "Servo IDs: 1-6, 1,3,7 or 1-3,7")->capture_default_str();
   app.add_option("--baud", baud, "Baud of the --ids servos (default: 1000000 feetech, 115200 d55d and modbus-rtu)");

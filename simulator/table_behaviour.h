@@ -56,6 +56,7 @@ enum class Role : std::uint8_t {
   Homing,
   ClearUnload,
   PhotoSwitchState,
+  Phase,  // sts: bit 2 selects the speed unit
   Count,
 };
 
@@ -86,13 +87,19 @@ struct SimulatedDefault {
 struct TableBehaviour {
   modbus_map::TableId table;
   std::span<const RoleBinding> roles;
-  std::span<const ModeBinding> modes;  // empty: position mode, wheel (velocity) mode when both limits are 0
+  // Empty: position mode, `limits_zero_mode` when both angle limits are 0.
+  std::span<const ModeBinding> modes;
+  ControlMode limits_zero_mode;  // d55d: wheel (velocity); scs: open-loop motor (PWM)
   std::span<const std::uint8_t> instructions;  // packet instruction codes the firmware knows
   std::span<const SimulatedDefault> simulated_defaults;
 
   double return_delay_us_per_unit;
+  std::int32_t return_delay_floor;      // smaller values act as this one (sts: 50 = 100 µs); 0: none
   double degrees_per_position_unit;     // 0: angle-resolution field × 0.1° (d55d)
   double degrees_per_s_per_speed_unit;  // 0: one position unit per second (d55d)
+  // When not 0: the phase byte bit that switches the speed unit to one position unit per
+  // second (sts phase bit 2: 0 = 0.732 rpm, 1 = 1 step/s; Feetech wiki memory-sts).
+  std::uint8_t phase_bit_speed_in_steps;
   double degrees_per_s2_per_accel_unit;  // acceleration field unit; unused without the role
   double top_speed_degrees_per_s;        // what goal speed 0 ("maximum") means
   std::int32_t steps_per_turn;           // single-turn positions wrap at this; 0: no wrap

@@ -170,7 +170,8 @@ std::uint32_t VirtualServo::baud() const {
 }
 
 Clock::duration VirtualServo::return_delay() const {
-  const double micros = get(Role::ReturnDelay) * behaviour_->return_delay_us_per_unit;
+  const std::int32_t units = std::max(get(Role::ReturnDelay), behaviour_->return_delay_floor);
+  const double micros = units * behaviour_->return_delay_us_per_unit;
   return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double, std::micro>(micros));
 }
 
@@ -228,17 +229,30 @@ VirtualServo::WriteResult VirtualServo::write_checked(std::uint16_t address, std
     }
     if (touched.empty() || touched.back() != spec) touched.push_back(spec);
   }
-  if (check != WriteCheck::Backdoor) {
-    const bool factory_locked = get(Role::Lock) != kFactoryUnlock;
+  const bool factory_locked = get(Role::Lock) != kFactoryUnlock;
+  const auto writable = [&](const FieldSpec& spec) {
+    return spec.access != Access::ReadOnly &&
+           !(behaviour_->factory_area_start != 0 && spec.addr >= behaviour_->factory_area_start && factory_locked);
+  };
+  // SMSMB answers a refused write with an exception, d55d with its instruction bit: either way
+  // nothing is written. Feetech firmware flags nothing (status bit 4 is unused): a field that
+  // is read-only or would get a value outside its range keeps its value, the rest lands.
+  const bool refuse_whole = check == WriteCheck::Modbus || behaviour_->refused_bit != 0;
+  if (check == WriteCheck::Backdoor) {
+    // tests: anything inside the table lands
+  } else if (refuse_whole) {
     for (const FieldSpec* spec : touched) {
-      if (spec->access == Access::ReadOnly) return WriteResult::NotWritable;
-      if (behaviour_->factory_area_start != 0 && spec->addr >= behaviour_->factory_area_start && factory_locked) {
-        return WriteResult::NotWritable;
-      }
+      if (!writable(*spec)) return WriteResult::NotWritable;
     }
     for (const FieldSpec* spec : touched) {
       if (!ServoMemory::accepts(*spec, trial.raw(*spec))) return WriteResult::BadValue;
     }
+  } else {
+    std::erase_if(touched, [&](const FieldSpec* spec) {
+      if (writable(*spec) && ServoMemory::accepts(*spec, trial.raw(*spec))) return false;
+      trial.set_raw(*spec, memory_.raw(*spec));
+      return true;
+    });
   }
   if (check == WriteCheck::DryRun) return WriteResult::Ok;
   const ServoMemory before = memory_;
@@ -262,11 +276,16 @@ double VirtualServo::degrees_per_unit() const {
   return std::max(resolution, 1) * 0.1;
 }
 
+double VirtualServo::degrees_per_s_per_speed_unit() const {
+  const std::uint8_t phase_bit = behaviour_->phase_bit_speed_in_steps;
+  if (phase_bit != 0 && (get(Role::Phase) & phase_bit) != 0) return degrees_per_unit();  // 1 step/s
+  return behaviour_->degrees_per_s_per_speed_unit;
+}
+
 double VirtualServo::speed_units(std::int32_t speed_field_value) const {
   const double magnitude = std::abs(static_cast<double>(speed_field_value));
-  const double per_second = behaviour_->degrees_per_s_per_speed_unit > 0
-                                ? units(magnitude * behaviour_->degrees_per_s_per_speed_unit)
-                                : magnitude;
+  const double unit = degrees_per_s_per_speed_unit();
+  const double per_second = unit > 0 ? units(magnitude * unit) : magnitude;
   return std::copysign(std::min(per_second, units(behaviour_->top_speed_degrees_per_s)),
                        static_cast<double>(speed_field_value));
 }
@@ -287,8 +306,10 @@ MotionLimits VirtualServo::motion_limits(std::int32_t speed_field_value) const {
 
 ControlMode VirtualServo::control_mode() const {
   if (behaviour_->modes.empty()) {
-    // d55d: both angle limits 0 = speed (wheel) mode (doc 002 §3.2).
-    return get(Role::MinLimit) == 0 && get(Role::MaxLimit) == 0 ? ControlMode::Velocity : ControlMode::Position;
+    // No mode byte: both angle limits 0 select the other mode (d55d wheel, doc 002 §3.2; scs
+    // open-loop motor, SCSCL SDK PWMMode).
+    return get(Role::MinLimit) == 0 && get(Role::MaxLimit) == 0 ? behaviour_->limits_zero_mode
+                                                                  : ControlMode::Position;
   }
   const std::int32_t mode = get(Role::Mode);
   for (const ModeBinding& binding : behaviour_->modes) {
@@ -355,6 +376,8 @@ void VirtualServo::stop_commands() {
 
 void VirtualServo::apply_written(const ServoMemory& before, std::span<const FieldSpec* const> written) {
   bool goal_written = false;
+  bool speed_written = false;
+  bool duty_written = false;
   bool motion_changed = false;
   bool torque_switched_on = false;
   for (const FieldSpec* spec : written) {
@@ -365,11 +388,17 @@ void VirtualServo::apply_written(const ServoMemory& before, std::span<const Fiel
       case Role::GoalPosition:
         goal_written = true;
         break;
+      case Role::GoalSpeed:
+        speed_written = true;
+        motion_changed = true;
+        break;
+      case Role::GoalTime:
+        duty_written = true;
+        motion_changed = true;
+        break;
       case Role::Mode:
       case Role::MinLimit:
       case Role::MaxLimit:
-      case Role::GoalSpeed:
-      case Role::GoalTime:
       case Role::Acceleration:
       case Role::Deceleration:
       case Role::TorqueLimit:
@@ -436,9 +465,16 @@ void VirtualServo::apply_written(const ServoMemory& before, std::span<const Fiel
         break;
     }
   }
-  if (goal_written && field(Role::TorqueEnable) != nullptr && get(Role::TorqueEnable) == 0) {
-    // A position command switches the torque on, as after a protection trip (doc 001 §15,
-    // address 28: "write a position command again to lift the protection").
+  // The command of the present mode: a goal position, a speed in constant-speed mode, a duty
+  // in PWM mode.
+  const ControlMode mode = control_mode();
+  const bool commanded = goal_written || (speed_written && mode == ControlMode::Velocity) ||
+                         (duty_written && mode == ControlMode::Pwm);
+  if (commanded && field(Role::TorqueEnable) != nullptr && get(Role::TorqueEnable) != 1) {
+    // A command switches the torque on, as after a protection trip (doc 001 §15, address 28:
+    // "write a position command again to lift the protection"), from damping (2) too; Feetech's
+    // own examples (FTServo_Linux WriteSpe, SCSCL WritePWM) command speed and PWM without
+    // enabling the torque first.
     put(Role::TorqueEnable, 1);
   } else if (torque_switched_on && !goal_written) {
     normalise_single_turn();
@@ -669,9 +705,8 @@ void VirtualServo::refresh_present() {
   put(Role::PresentGoal, shown(motion_.target()));
 
   const double velocity = motion_.velocity();
-  const double speed_field = behaviour_->degrees_per_s_per_speed_unit > 0
-                                 ? velocity * degrees_per_unit() / behaviour_->degrees_per_s_per_speed_unit
-                                 : velocity;
+  const double speed_unit = degrees_per_s_per_speed_unit();
+  const double speed_field = speed_unit > 0 ? velocity * degrees_per_unit() / speed_unit : velocity;
   put(Role::PresentSpeed, std::lround(speed_field));
 
   const double load = load_permille();
@@ -1005,6 +1040,11 @@ VirtualServo::ModbusOutcome VirtualServo::on_read_holding(std::span<const std::u
   const std::uint16_t quantity = be16(pdu, 3);
   if (quantity < 1 || quantity > kMaxReadRegisters) return {{}, kIllegalValue};
   if (!memory_.contains(address, quantity)) return {{}, kIllegalAddress};
+  // A register that is no field is not there to read (wiki memory-smsmb lists only the
+  // defined registers; the firmware answers 0x02 rather than a made-up 0).
+  for (std::uint32_t reg = address; reg < std::uint32_t{address} + quantity; ++reg) {
+    if (modbus_map::field_covering(*table_, static_cast<std::uint16_t>(reg)) == nullptr) return {{}, kIllegalAddress};
+  }
   const auto bytes = memory_.wire(address, quantity);
   Bytes reply{0x03, static_cast<std::uint8_t>(bytes.size())};
   reply.insert(reply.end(), bytes.begin(), bytes.end());

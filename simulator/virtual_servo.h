@@ -164,6 +164,8 @@ class VirtualServo {
   double units(double degrees) const { return degrees / degrees_per_unit(); }
   MotionLimits motion_limits(std::int32_t speed_field_value) const;
   double speed_units(std::int32_t speed_field_value) const;  // signed units/s, 0 = maximum applied
+  // The speed fields' unit; sts: chosen by the phase byte.
+  double degrees_per_s_per_speed_unit() const;
   std::uint8_t error_bits() const;
 
   const modbus_map::TableSpec* table_;

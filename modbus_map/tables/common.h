@@ -25,5 +25,8 @@ inline constexpr Area Ram = Area::Ram;
 
 // Torque enable on Feetech servos: 0 off, 1 on, 128 mid-point calibration (SPEC §2.1, §1.1).
 inline constexpr std::array<std::int32_t, 3> kTorqueEnableValues{0, 1, 128};
+// STS/SMS/SCS firmware also knows 2: damping, the motor free but braked (Feetech wiki memory-sts).
+inline constexpr std::array<std::int32_t, 4> kTorqueEnableWithDampingValues{0, 1, 2, 128};
+inline constexpr std::array<std::int32_t, 3> kTorqueSwitchWithDampingValues{0, 1, 2};
 
 }  // namespace sms::modbus_map::tables

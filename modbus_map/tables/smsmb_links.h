@@ -35,7 +35,7 @@ inline constexpr std::array<ValueMapping, 3> kLockMapping{{
     {128, 0, MapDirection::WriteOnly},
 }};
 // Status bits 0-3 and 5 mean the same on both; SMSMB bit 4 (torque on) is not in the feedback
-// block and sts bit 4 (angle) has no SMSMB bit, so it reads 0.
+// block and Feetech packet servos leave bit 4 unused, so it reads 0.
 inline constexpr std::uint16_t kStatusMask = 0b0010'1111;
 
 inline constexpr std::array kStsSmsmbLinks{
@@ -58,8 +58,8 @@ inline constexpr std::array kStsSmsmbLinks{
     CounterpartLink{.reg = 0x80, .field_addr = 42},
     CounterpartLink{.reg = 0x81, .field_addr = 40},
     CounterpartLink{.reg = 0x82, .field_addr = 41, .notes = "8.79 °/s² = 100 steps/s²"},
-    CounterpartLink{.reg = 0x83, .field_addr = 46, .conversion = Conversion::Scale, .scale_num = 1, .scale_den = 50,
-                    .notes = "0.732 rpm = 50 steps/s"},
+    CounterpartLink{.reg = 0x83, .field_addr = 46,
+                    .notes = "0.732 rpm on both at the factory phase (18 bit 2 clear)"},
     CounterpartLink{.reg = 0x84, .field_addr = 48},
     CounterpartLink{.reg = 0x85, .field_addr = 55, .conversion = Conversion::ValueMap, .values = kLockMapping},
     CounterpartLink{.reg = 0x86, .field_addr = 40, .conversion = Conversion::FaultReset,
@@ -67,8 +67,8 @@ inline constexpr std::array kStsSmsmbLinks{
     CounterpartLink{.reg = 0x100, .field_addr = 65, .conversion = Conversion::StatusBits,
                     .status_mask = kStatusMask},
     CounterpartLink{.reg = 0x101, .field_addr = 56},
-    CounterpartLink{.reg = 0x102, .field_addr = 58, .conversion = Conversion::Scale, .scale_num = 1,
-                    .scale_den = 50, .notes = "0.732 rpm = 50 steps/s"},
+    CounterpartLink{.reg = 0x102, .field_addr = 58,
+                    .notes = "0.732 rpm on both at the factory phase (18 bit 2 clear)"},
     CounterpartLink{.reg = 0x103, .field_addr = 60},
     CounterpartLink{.reg = 0x104, .field_addr = 62},
     CounterpartLink{.reg = 0x105, .field_addr = 63},

@@ -432,7 +432,8 @@ servos:
             "max_angle_limit, max_temperature, max_input_voltage, min_input_voltage, max_torque, pwm_phase_mode, "
             "unload_conditions, led_alarm_conditions, p_gain, d_gain, i_gain, min_pwm, cw_insensitive_zone, "
             "ccw_insensitive_zone, integral_limit, differential_sampling_factor, torque_step, position_step, "
-            "position_correction, operating_mode, protection_current, torque_switch, goal_position, run_time, "
+            "position_correction, operating_mode, protection_current, torque_switch, acceleration, goal_position, "
+            "run_time, "
             "run_speed, lock, present_position, present_speed, present_load, present_voltage, "
             "present_temperature, reg_write_flag, error, moving, present_goal_position, present_current");
 }
@@ -582,7 +583,7 @@ TEST(ConfigErrors, UnknownTableListsTheTables) {
 servos:
   - {bus: arm, id: 1, table: sts3215}
 )"),
-            "plant.yaml:4:30: servos[0].table: unknown table `sts3215`; allowed: sts, sms1, d55d, smsmb, "
+            "plant.yaml:4:30: servos[0].table: unknown table `sts3215`; allowed: sts, sms1, d55d, smsmb, scs, "
             "passthrough");
 }
 
@@ -638,6 +639,23 @@ servos:
 )"),
             "plant.yaml:5:30: servos[1].table: sms1 servos cannot run at 19200 bit/s (bus `arm`): their baud table "
             "ends at code 7 (38400 bit/s)");
+}
+
+TEST(ConfigErrors, ScsServosStopAtBaudCode7AndHaveNoSmsmbProfile) {
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: head, device: /dev/ttyUSB0, protocol: feetech, baud: 19200}
+servos:
+  - {bus: head, id: 1, table: scs}
+)"),
+            "plant.yaml:4:31: servos[0].table: scs servos cannot run at 19200 bit/s (bus `head`): their baud table "
+            "ends at code 7 (38400 bit/s)");
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: head, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {bus: head, id: 1, table: scs, profile: smsmb}
+)"),
+            "plant.yaml:4:45: servos[0].profile: profile smsmb shows sts and sms1 servos as SMSMB servos; this "
+            "servo's table is scs");
 }
 
 TEST(ConfigErrors, SmsmbProfileOnAD55dServo) {

@@ -352,6 +352,7 @@ TEST(ConfigLoad, EffectiveByteOrderFollowsTableUnlessOverridden) {
   servo.byte_order = ByteOrder::HighFirst;
   EXPECT_EQ(effective_byte_order(servo), ByteOrder::HighFirst);
   EXPECT_EQ(effective_byte_order(ServoConfig{.table = TableId::Smsmb}), ByteOrder::HighFirst);
+  EXPECT_EQ(effective_byte_order(ServoConfig{.table = TableId::Scs}), ByteOrder::HighFirst);  // SCSCL SDK End = 1
   EXPECT_EQ(effective_byte_order(ServoConfig{}), ByteOrder::HighFirst);  // passthrough
 }
 

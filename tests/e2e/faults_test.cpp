@@ -657,8 +657,8 @@ TEST(Faults, TwoHundredConcurrentClientsAreAllAnsweredAndOneOverTheLimitIsRefuse
   constexpr std::array<Field, 8> kFields{{{21, "p_gain"},
                                           {22, "d_gain"},
                                           {23, "i_gain"},
-                                          {26, "cw_dead_band"},
-                                          {27, "ccw_dead_band"},
+                                          {25, "integral_limit"},   // 26/27 dead bands stop at 16
+                                          {35, "protection_time"},
                                           {37, "speed_p_gain"},
                                           {39, "speed_i_gain"},
                                           {41, "acceleration"}}};

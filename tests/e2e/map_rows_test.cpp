@@ -36,7 +36,8 @@ struct UnitRow {
   long (*identity)(SimProcess&, int id);
 };
 
-long sts_model(SimProcess& sim, int id) { return (sim.field(id, "model_major") << 8) | sim.field(id, "model_minor"); }
+// The model word at 3-4, low byte (3) first, as Feetech's SDKs read it (docs/DECISIONS.md).
+long sts_model(SimProcess& sim, int id) { return (sim.field(id, "model_minor") << 8) | sim.field(id, "model_major"); }
 long sms1_version(SimProcess& sim, int id) { return sim.field(id, "software_version"); }
 long d55d_vendor(SimProcess& sim, int id) { return sim.field(id, "vendor_code"); }
 

@@ -14,19 +14,37 @@ namespace {
 using modbus_map::ByteOrder;
 using modbus_map::TableId;
 
-TEST(Discovery, StsIdentityIsFirmwareAndModelMajorMinor) {
+TEST(Discovery, StsIdentityIsFirmwareMajorMinorAndTheModelWord) {
   const IdentityLayout* layout = identity_layout(TableId::Sts);
   ASSERT_NE(layout, nullptr);
   EXPECT_EQ(layout->read, (AddressBlock{0, 9}));
-  // Addresses 0-8: firmware 2.48, (2 is no field), model 8.42, ID 1, baud code 0, return
-  // delay 250, response level 1.
+  // Addresses 0-8: firmware 2.48, byte-order flag 0, model 8 / 42 (one word low byte first:
+  // 10760, the SM40BL), ID 1, baud code 0, return delay 250, response level 1.
   const std::vector<std::uint8_t> bytes{0x02, 0x30, 0x00, 0x08, 0x2A, 0x01, 0x00, 0xFA, 0x01};
   const ServoIdentity identity = decode_identity(*layout, bytes, ByteOrder::LowFirst);
   EXPECT_EQ(decode_response_level(*layout, bytes), 1);
   EXPECT_EQ(identity.firmware, 0x0230);
-  EXPECT_EQ(identity.model, 0x082A);
-  EXPECT_EQ(format_identity_value(layout, true, identity.model), "8.42");
+  EXPECT_EQ(identity.model, 10760);
+  EXPECT_EQ(format_identity_value(layout, true, identity.model), "10760 (SM40BL)");
+  EXPECT_EQ(format_identity_value(layout, true, 4242), "4242");  // a model without a known name
   EXPECT_EQ(format_identity_value(layout, false, identity.firmware), "2.48");
+}
+
+TEST(Discovery, ScsModelWordIsHighByteFirst) {
+  const IdentityLayout* layout = identity_layout(TableId::Scs);
+  ASSERT_NE(layout, nullptr);
+  const std::vector<std::uint8_t> bytes{0x01, 0x00, 0x01, 0x05, 0x04, 0x01, 0x00, 0x00, 0x01};
+  EXPECT_EQ(decode_identity(*layout, bytes, ByteOrder::HighFirst).model, 1284);
+  EXPECT_EQ(format_identity_value(layout, true, 1284), "1284 (SCS0009)");
+}
+
+TEST(Discovery, ByteOrderFlagTellsScsFromSts) {
+  const std::vector<std::uint8_t> scs{0x01, 0x00, 0x01};
+  const std::vector<std::uint8_t> sts{0x02, 0x30, 0x00};
+  EXPECT_EQ(table_from_byte_order_flag(TableId::Sts, scs), TableId::Scs);
+  EXPECT_EQ(table_from_byte_order_flag(TableId::Scs, sts), TableId::Sts);
+  EXPECT_EQ(table_from_byte_order_flag(TableId::Sts, std::vector<std::uint8_t>{0x02, 0x30}), std::nullopt);
+  EXPECT_EQ(table_from_byte_order_flag(TableId::Sms1, scs), std::nullopt);  // sms1 has no flag
 }
 
 TEST(Discovery, Sms1SoftwareVersionFollowsTheServosByteOrder) {
@@ -82,13 +100,13 @@ TEST(Discovery, SummaryHasOneLinePerServo) {
   std::vector<DiscoveredServo> servos(2);
   servos[0].servo_id = 1;
   servos[0].online = true;
-  servos[0].identity = {0x082A, 0x0230};
+  servos[0].identity = {10760, 0x0230};
   servos[1].servo_id = 12;
   servos[1].detail = "no answer to PING (3 attempts)";
   const std::string text = format_discovery_summary({"arm", "/dev/ttyUSB0", "feetech", 1'000'000, servos});
   EXPECT_EQ(text,
             "bus arm: /dev/ttyUSB0, feetech at 1000000 bit/s, 1 of 2 servos online\n"
-            "  servo   1  sts   online   model 8.42   firmware 2.48   status 0x00\n"
+            "  servo   1  sts   online   model 10760 (SM40BL) firmware 2.48   status 0x00\n"
             "  servo  12  sts   OFFLINE  no answer to PING (3 attempts)");
 }
 

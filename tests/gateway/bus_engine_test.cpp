@@ -126,14 +126,24 @@ TEST_F(BusEngineTest, PingIsAnswered) {
   EXPECT_EQ(result.servo_error, 0);
 }
 
-TEST_F(BusEngineTest, WriteToAReadOnlyFieldIsRefusedWithTheServosErrorByte) {
+TEST_F(BusEngineTest, AnAnswerWithBit4IsARefusalWithTheServosErrorByte) {
   start({1});
-  // Present position (56) is read-only: STS firmware answers with bit 4 set.
-  const BusResult result = transact(*engine_, WriteOp{1, 56, {0x00, 0x01}});
+  // Doc 001 names status bit 4 "angle / out of range"; current Feetech firmware leaves it unused
+  // (docs/DECISIONS.md "Vendor fidelity"). A servo that sets it is taken at its word.
+  simulator_->set_error_bits(1, 0x10);
+  const BusResult result = transact(*engine_, WriteOp{1, 41, {0x01}});
   EXPECT_EQ(result.status, BusStatus::ServoRefused) << result.detail;
   EXPECT_EQ(result.servo_error & 0x10, 0x10);
-  EXPECT_NE(result.detail.find("servo 1 refused WRITE at 56"), std::string::npos) << result.detail;
+  EXPECT_NE(result.detail.find("servo 1 refused WRITE at 41"), std::string::npos) << result.detail;
   EXPECT_EQ(engine_->counters().retries, 0U);  // a refusal is an answer, not a reason to retry
+}
+
+TEST_F(BusEngineTest, WriteToAReadOnlyFieldIsAnsweredAndLandsNothing) {
+  start({1});
+  // Present position (56) is read-only: Feetech firmware answers with its plain status byte.
+  const BusResult result = transact(*engine_, WriteOp{1, 56, {0x00, 0x01}});
+  EXPECT_EQ(result.status, BusStatus::Ok) << result.detail;
+  EXPECT_EQ(simulator_->read_memory(1, 56, 2), (protocol::Bytes{0x00, 0x08}));
 }
 
 TEST_F(BusEngineTest, ReadingThroughTheD55dProtocolUsesTheSameEngine) {

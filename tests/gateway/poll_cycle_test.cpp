@@ -163,10 +163,10 @@ TEST_F(PollCycleTest, DiscoveryLogsOneSummaryAndStoresIdentities) {
   EXPECT_TRUE(log.contains("bus test: " + simulator_->slave_path() +
                            ", feetech at 1000000 bit/s, 2 of 3 servos online"))
       << log.text();
-  EXPECT_TRUE(log.contains("servo   1  sts   online   model 8.42   firmware 2.48   status 0x00")) << log.text();
+  EXPECT_TRUE(log.contains("servo   1  sts   online   model 10760 (SM40BL) firmware 2.48   status 0x00")) << log.text();
   EXPECT_TRUE(log.contains("servo   7  sts   OFFLINE  no answer to PING (3 attempts)")) << log.text();
   const auto state = engine_->cache().state(2);
-  EXPECT_EQ(state->identity.model, 0x082A);
+  EXPECT_EQ(state->identity.model, 10760);  // 8 / 42 read as one word, low byte first
   EXPECT_EQ(state->identity.firmware, 0x0230);
   EXPECT_FALSE(engine_->cache().state(7)->online);
 }
@@ -207,7 +207,7 @@ TEST_F(PollCycleTest, ServoFoundLaterGetsItsIdentityRead) {
 
   simulator_->set_offline(2, false);
   ASSERT_TRUE(wait_until([&] { return engine_->cache().state(2)->identity.model.has_value(); }, 2s));
-  EXPECT_EQ(engine_->cache().state(2)->identity.model, 0x082A);
+  EXPECT_EQ(engine_->cache().state(2)->identity.model, 10760);
 }
 
 }  // namespace

@@ -79,7 +79,7 @@ TEST_F(Router, FactRegistersDescribeTheServo) {
   EXPECT_EQ(facts.values[0], 0);       // status byte
   EXPECT_EQ(facts.values[1], 1);       // online
   EXPECT_LT(facts.values[2], 1000);    // cache age ms (polled every 10 ms)
-  EXPECT_EQ(facts.values[3], 0x082A);  // model 8.42 as read at discovery
+  EXPECT_EQ(facts.values[3], 10760);   // model word (SM40BL) as read at discovery
   EXPECT_GT((facts.values[4] << 16) | facts.values[5], 1);  // replies OK
   EXPECT_EQ(facts.values[6], 0);       // timeouts, high word
   EXPECT_EQ(facts.values[7], 0);
@@ -113,7 +113,7 @@ TEST_F(Router, AddressAndValueExceptions) {
   EXPECT_EQ(client.write_register(56, 1).exception, 0x02);    // present position is read-only
   EXPECT_EQ(client.write_register(43, 1).exception, 0x02);    // only the second byte of goal position
   EXPECT_EQ(client.read_holding(200, 1).exception, 0x02);     // beyond the table
-  EXPECT_EQ(*sim().read_field(1, "torque_enable"), 1);        // nothing was written
+  EXPECT_EQ(*sim().read_field(1, "torque_enable"), 0);        // nothing was written (power-on 0)
 }
 
 TEST_F(Router, UnsupportedFunctionIs01OnEveryUnit) {

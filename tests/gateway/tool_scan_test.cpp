@@ -73,10 +73,12 @@ TEST(Scan, FindsFeetechServosAtNonDefaultRatesAndSkipsSilentRates) {
   const ScanFinding* slow = finding(*report, 76'800, 7);
   ASSERT_NE(slow, nullptr);
   EXPECT_FALSE(slow->conflict);
-  // Identity as the servo holds it: model at addresses 3-4, firmware at 0-1 (SPEC §2.1).
+  // Identity as the servo holds it: the model word at addresses 3-4, low byte first as the SDKs
+  // read it; firmware major.minor at 0-1 (SPEC §2.1).
   const auto memory = bus.read_memory(7, 0, 5);
   ASSERT_TRUE(memory);
-  EXPECT_EQ(slow->identity.model, static_cast<std::uint16_t>((*memory)[3] << 8 | (*memory)[4]));
+  EXPECT_EQ(slow->identity.model, static_cast<std::uint16_t>((*memory)[4] << 8 | (*memory)[3]));
+  EXPECT_EQ(slow->table, TableId::Sts);
   EXPECT_EQ(slow->identity.firmware, static_cast<std::uint16_t>((*memory)[0] << 8 | (*memory)[1]));
   EXPECT_EQ(report->skipped_bauds, std::vector<std::uint32_t>{250'000});
 }

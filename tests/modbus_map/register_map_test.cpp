@@ -291,7 +291,7 @@ TEST(Exceptions, WriteToAReadOnlyFieldIs02EvenInsideALongerWrite) {
 
 TEST(Exceptions, WriteTouchingOnlyGapsOrSecondBytesIs02) {
   const RegisterMap sts = make(TableId::Sts);
-  expect_exception(write(sts, 2, {0}), ModbusException::IllegalDataAddress, "touches no field");
+  expect_exception(write(sts, 53, {0}), ModbusException::IllegalDataAddress, "touches no field");
   expect_exception(write(sts, 50, {0, 0, 0}), ModbusException::IllegalDataAddress, "touches no field");
   expect_exception(write(sts, 43, {0}), ModbusException::IllegalDataAddress, "second byte of goal_position (42)");
   expect_exception(write(sts, 49, {0, 0}), ModbusException::IllegalDataAddress, "second byte of torque_limit (48)");
@@ -318,18 +318,20 @@ TEST(Exceptions, QuantityOverTheModbusLimitsIs02) {
 
 TEST(Exceptions, ValueOutsideTheRangeIs03) {
   const RegisterMap sts = make(TableId::Sts);
-  expect_exception(write(sts, 13, {300}), ModbusException::IllegalDataValue, "max_temperature (13) of table sts is outside 0..254");
+  expect_exception(write(sts, 13, {300}), ModbusException::IllegalDataValue, "max_temperature (13) of table sts is outside 0..100");
   expect_exception(write(sts, 31, {5000}), ModbusException::IllegalDataValue, "outside -2047..2047");
   expect_exception(write(sts, 42, {30720}), ModbusException::IllegalDataValue);
   expect_exception(write(sts, 16, {0xFFFF}), ModbusException::IllegalDataValue, "value 65535");
-  expect_exception(write(sts, 40, {2}), ModbusException::IllegalDataValue, "not one of 0 1 128");
+  expect_exception(write(sts, 40, {3}), ModbusException::IllegalDataValue, "not one of 0 1 2 128");
+  EXPECT_TRUE(write(sts, 40, {2}));  // damping (wiki memory-sts)
   EXPECT_TRUE(write(sts, 40, {128}));
 }
 
 TEST(Exceptions, AddressErrorsWinOverValueErrors) {
   const RegisterMap sts = make(TableId::Sts);
-  // 13 has a bad value, 18 (phase) is read-only: 0x02, as a Modbus server checks addresses first.
-  expect_exception(write(sts, 13, {300, 70, 70, 1000, 0, 0}), ModbusException::IllegalDataAddress, "phase");
+  // 56 has a bad value (no: it is read-only), 55 gets 300: 0x02, as a Modbus server checks
+  // addresses first.
+  expect_exception(write(sts, 55, {300, 0}), ModbusException::IllegalDataAddress, "present_position");
 }
 
 TEST(Profiles, NamesAndUnsupportedCombinations) {

@@ -51,14 +51,14 @@ TEST(SmsmbProfile, FeedbackInputRegistersComeFromTheStsPollBlock) {
   ASSERT_EQ(plan->reads, (std::vector<BusRange>{{56, 15}}));
   const std::vector<Bytes> cache{{
       0x64, 0x80,  // 56 present position -100 (sign bit 15)
-      0x18, 0x05,  // 58 present speed 1304 steps/s -> 26 × 0.732 rpm
+      0x1A, 0x00,  // 58 present speed 26 × 0.732 rpm, the unit of both (factory phase)
       0x2C, 0x05,  // 60 present load -300 (sign bit 10)
       0x79,        // 62 12.1 V
       0x1E,        // 63 30 °C
-      0xAA,        // 64 no field
-      0x35,        // 65 status: voltage, temperature, angle (bit 4), overload
+      0x01,        // 64 REG WRITE flag (not in the SMSMB block)
+      0x35,        // 65 status: voltage, temperature, unused bit 4, overload
       0x01,        // 66 moving
-      0xAA, 0xAA,  // 67, 68 no field
+      0x00, 0x08,  // 67 present goal (not in the SMSMB block)
       0x64, 0x00,  // 69 current 100
   }};
   EXPECT_EQ(*sts.registers_from(*plan, cache),
@@ -81,7 +81,7 @@ TEST(SmsmbProfile, ControlRegistersReadFromOneStsRead) {
       0x0A,                          // 41 acceleration
       0xE8, 0x83,                    // 42 goal position -1000
       0x00, 0x00,                    // 44 goal time
-      0xC4, 0x09,                    // 46 goal speed 2500 steps/s -> 50 × 0.732 rpm
+      0x32, 0x00,                    // 46 goal speed 50 × 0.732 rpm, as on SMSMB
       0xF4, 0x01,                    // 48 torque limit 500
       0xAA, 0xAA, 0xAA, 0xAA, 0xAA,  // 50-54 no field
       0x00,                          // 55 lock
@@ -95,7 +95,7 @@ TEST(SmsmbProfile, ControlRegisterWritesBecomeStsFramesWithoutGapBytes) {
   ASSERT_TRUE(plan) << plan.error().message;
   EXPECT_EQ(plan->writes, (std::vector<BusWrite>{
                               {40, {0x01, 0x0A, 0xE8, 0x83}},  // torque, accel, goal -1000 (0x83E8)
-                              {46, {0xF4, 0x81, 0xF4, 0x01}},  // speed -10 × 50 = -500 (0x81F4), limit 500
+                              {46, {0x0A, 0x80, 0xF4, 0x01}},  // speed -10 (0x800A), limit 500
                               {55, {0x00}},                    // lock
                           }));
 }
@@ -207,12 +207,14 @@ TEST(SmsmbProfile, ScaledRegistersRoundHalfAwayFromZero) {
   EXPECT_EQ(delay->writes, (std::vector<BusWrite>{{7, {0x33}}}));
   expect_exception(write(sts, 0x0C, {501}), ModbusException::IllegalDataValue, "outside 0..500");
   EXPECT_EQ(read(sts, 0x0C, 1, {7, 1}, {0xFA}), std::vector<std::uint16_t>{500});
-  const auto fastest = write(sts, 0x83, {655});  // 655 × 50 = 32750 steps/s
+  // sms1 speeds are 0.087 °/s: 50 of them make SMSMB's 0.732 rpm.
+  const RegisterMap sms1 = profile_of(TableId::Sms1);
+  const auto fastest = write(sms1, 0x83, {655});  // 655 × 50 = 32750
   ASSERT_TRUE(fastest);
   EXPECT_EQ(fastest->writes, (std::vector<BusWrite>{{46, {0xEE, 0x7F}}}));
-  expect_exception(write(sts, 0x83, {656}), ModbusException::IllegalDataValue, "outside -655..655");
-  EXPECT_EQ(read(sts, 0x102, 1, {58, 2}, {0x19, 0x80}), std::vector<std::uint16_t>{0xFFFF});  // -25 -> -1
-  EXPECT_EQ(read(sts, 0x102, 1, {58, 2}, {0x18, 0x00}), std::vector<std::uint16_t>{0});       // 24 -> 0
+  expect_exception(write(sms1, 0x83, {656}), ModbusException::IllegalDataValue, "outside -655..655");
+  EXPECT_EQ(read(sms1, 0x102, 1, {58, 2}, {0x19, 0x80}), std::vector<std::uint16_t>{0xFFFF});  // -25 -> -1
+  EXPECT_EQ(read(sms1, 0x102, 1, {58, 2}, {0x18, 0x00}), std::vector<std::uint16_t>{0});       // 24 -> 0
   const auto torque = write(sts, 0x190, {205});  // 20.5 % -> 21 %
   ASSERT_TRUE(torque);
   EXPECT_EQ(torque->writes, (std::vector<BusWrite>{{34, {0x15}}}));
@@ -240,8 +242,11 @@ TEST(SmsmbProfile, RegistersWithoutCounterpartAre02AloneAndZeroInsideAReadRange)
 
 TEST(SmsmbProfile, ReadOnlyCounterpartsRefuseWrites) {
   const RegisterMap sts = profile_of(TableId::Sts);
-  expect_exception(write(sts, 0x188, {0}), ModbusException::IllegalDataAddress, "table sts field phase");
   expect_exception(write(sts, 0x100, {0}), ModbusException::IllegalDataAddress, "read-only");
+  // The phase byte is writable on both (Feetech wiki memory-sts: RW, "change with care").
+  const auto sts_phase = write(sts, 0x188, {4});
+  ASSERT_TRUE(sts_phase);
+  EXPECT_EQ(sts_phase->writes, (std::vector<BusWrite>{{18, {0x04}}}));
   const auto sms1_phase = write(profile_of(TableId::Sms1), 0x188, {1});
   ASSERT_TRUE(sms1_phase);
   EXPECT_EQ(sms1_phase->writes, (std::vector<BusWrite>{{18, {0x01}}}));
@@ -291,9 +296,14 @@ TEST(SmsmbProfile, LinksAreDataNamingRealFields) {
   const RegisterEntry* speed = sts.entry_at(0x83);
   ASSERT_NE(speed, nullptr);
   EXPECT_EQ(speed->counterpart->name, "goal_speed");
-  EXPECT_EQ(speed->link->conversion, Conversion::Scale);
-  EXPECT_EQ(speed->min, -655);
-  EXPECT_EQ(speed->max, 655);
+  EXPECT_NE(speed->link->conversion, Conversion::Scale) << "0.732 rpm on both";
+  const RegisterMap sms1 = profile_of(TableId::Sms1);
+  const RegisterEntry* sms1_speed = sms1.entry_at(0x83);
+  ASSERT_NE(sms1_speed, nullptr);
+  EXPECT_EQ(sms1_speed->counterpart->name, "run_speed");
+  EXPECT_EQ(sms1_speed->link->conversion, Conversion::Scale);
+  EXPECT_EQ(sms1_speed->min, -655);
+  EXPECT_EQ(sms1_speed->max, 655);
   EXPECT_EQ(sts.entry_at(0x14)->counterpart->addr, 37);
   EXPECT_EQ(sts.entry_at(0x15)->counterpart->addr, 39);
   EXPECT_EQ(sts.entry_at(0x180)->counterpart, nullptr);

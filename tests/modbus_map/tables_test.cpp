@@ -67,7 +67,11 @@ TEST(TableChecks, EveryShippedTablePassesThem) {
 // --- the tables --------------------------------------------------------------------------------
 
 TEST(Tables, AreFoundByIdAndName) {
-  ASSERT_EQ(all_tables().size(), 4u);
+  ASSERT_EQ(all_tables().size(), 5u);
+  EXPECT_EQ(table(TableId::Scs).name, "scs");
+  EXPECT_EQ(table_from_name("scs"), TableId::Scs);
+  EXPECT_EQ(table(TableId::Scs).default_byte_order, ByteOrder::HighFirst);  // SCSCL SDK End = 1
+  EXPECT_FALSE(table(TableId::Scs).has_sync_read);
   EXPECT_EQ(table(TableId::Sts).name, "sts");
   EXPECT_EQ(table(TableId::Sms1).name, "sms1");
   EXPECT_EQ(table(TableId::D55d).name, "d55d");
@@ -95,7 +99,7 @@ TEST(Tables, FieldAtFindsFirstAddressesOnly) {
   ASSERT_NE(field_at(sts, 42), nullptr);
   EXPECT_EQ(field_at(sts, 42)->name, "goal_position");
   EXPECT_EQ(field_at(sts, 43), nullptr);  // second byte
-  EXPECT_EQ(field_at(sts, 2), nullptr);   // gap
+  EXPECT_EQ(field_at(sts, 53), nullptr);  // gap
   EXPECT_EQ(field_at(sts, 71), nullptr);  // beyond
   EXPECT_EQ(field_at(sts, 0)->name, "firmware_major");
 }
@@ -107,7 +111,8 @@ TEST(Tables, FieldCoveringFindsBothBytesOfATwoByteField) {
   EXPECT_EQ(field_covering(sts, 70)->name, "present_current");
   EXPECT_EQ(field_covering(sts, 50), nullptr);
   EXPECT_EQ(field_covering(sts, 71), nullptr);
-  EXPECT_EQ(field_covering(sts, 2), nullptr);
+  EXPECT_EQ(field_covering(sts, 53), nullptr);  // a gap
+  EXPECT_EQ(field_covering(sts, 2)->name, "byte_order_flag");
   // A register table: one address per field.
   const TableSpec& smsmb = table(TableId::Smsmb);
   EXPECT_EQ(field_covering(smsmb, 0x80)->name, "goal_position");
@@ -212,20 +217,23 @@ TEST(TwosComplement, SignExtendsOverTheFieldSize) {
 }
 
 TEST(Unsigned, OneByteFieldsStopAt254AndRefuseNegatives) {
-  const FieldSpec& max_temperature = sts_field(13);
-  EXPECT_EQ(encode_value(max_temperature, 254), 254u);
-  EXPECT_EQ(encode_value(max_temperature, 255), std::nullopt);
-  EXPECT_EQ(encode_value(max_temperature, 300), std::nullopt);
-  EXPECT_EQ(encode_value(max_temperature, -1), std::nullopt);
-  EXPECT_EQ(decode_value(max_temperature, 0x1FF), 255);  // only the field's byte counts
+  const FieldSpec& max_input_voltage = sts_field(14);
+  EXPECT_EQ(encode_value(max_input_voltage, 254), 254u);
+  EXPECT_EQ(encode_value(max_input_voltage, 255), std::nullopt);
+  EXPECT_EQ(encode_value(max_input_voltage, 300), std::nullopt);
+  EXPECT_EQ(encode_value(max_input_voltage, -1), std::nullopt);
+  EXPECT_EQ(decode_value(max_input_voltage, 0x1FF), 255);  // only the field's byte counts
+  // Where Feetech documents a narrower range it wins: max temperature 0-100 (wiki memory-sts).
+  EXPECT_EQ(encode_value(sts_field(13), 101), std::nullopt);
 }
 
-TEST(AllowedValues, TorqueEnableTakesZeroOneAndCalibrationOnly) {
+TEST(AllowedValues, TorqueEnableTakesZeroOneDampingAndCalibrationOnly) {
   const FieldSpec& torque = sts_field(40);
   EXPECT_EQ(encode_value(torque, 0), 0u);
   EXPECT_EQ(encode_value(torque, 1), 1u);
+  EXPECT_EQ(encode_value(torque, 2), 2u);  // damping (wiki memory-sts)
   EXPECT_EQ(encode_value(torque, 128), 0x80u);
-  EXPECT_EQ(encode_value(torque, 2), std::nullopt);
+  EXPECT_EQ(encode_value(torque, 3), std::nullopt);
   EXPECT_EQ(encode_value(torque, 127), std::nullopt);
   EXPECT_EQ(encode_value(torque, 129), std::nullopt);
 }

@@ -45,8 +45,9 @@ TEST(SimulatedBusTiming, ReplyNeverArrivesBeforeItsWireTime) {
   BusOptions options = quick_options({sts(1, 38'400)});
   options.timing = true;
   Rig rig(options);
-  // READ 56..70: 8 request + 21 reply bytes at 38400 = 7.55 ms, + return delay 250 × 2 µs.
-  const double wire_ms = (8 + 21) * 10.0 / 38'400 * 1000 + 0.5;
+  // READ 56..70: 8 request + 21 reply bytes at 38400 = 7.55 ms, + the factory return delay 0,
+  // which acts as 50 × 2 µs (wiki memory-sts address 7).
+  const double wire_ms = (8 + 21) * 10.0 / 38'400 * 1000 + 0.1;
   for (int round = 0; round < 10; ++round) {
     const auto sent = Clock::now();
     rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 15)));
@@ -79,8 +80,9 @@ TEST(SimulatedBusTiming, SyncReadRepliesFollowEachOtherWithTheirReturnDelays) {
   const Bytes replies = rig.host->receive_exactly(3 * 21);
   const double took = elapsed_ms(sent);
   ASSERT_EQ(replies.size(), 63U);
-  // SPEC §5: (8 + N) request bytes + N × (6 + L) reply bytes + N return delays.
-  EXPECT_GE(took, (11 + 63) * 10.0 / 115'200 * 1000 + 3 * 0.5);
+  // SPEC §5: (8 + N) request bytes + N × (6 + L) reply bytes + N return delays (100 µs each:
+  // the factory 0 acts as 50 × 2 µs).
+  EXPECT_GE(took, (11 + 63) * 10.0 / 115'200 * 1000 + 3 * 0.1);
   const auto packets = decode_all(kFeetechFormat, replies);
   ASSERT_EQ(packets.size(), 3U);
   EXPECT_EQ(packets[0].id, 1);

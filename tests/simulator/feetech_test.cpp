@@ -46,13 +46,16 @@ TEST_F(FeetechSim, ReadsPresentPosition2048AfterPowerOn) {
 TEST_F(FeetechSim, ReadsTheConfiguredIdentityFields) {
   start({sts(7, 115'200)});
   rig->host->set_baud(115'200);
-  // ID 7, baud code 4 (115200), return delay 250, response level 1 (SPEC §2.1, §3).
-  EXPECT_EQ(read(7, 5, 4), (Bytes{7, 4, 250, 1}));
+  // ID 7, baud code 4 (115200), return delay 0 (Feetech's factory value; acts as 50), response
+  // level 1 (SPEC §2.1, §3, docs/DECISIONS.md "Vendor fidelity").
+  EXPECT_EQ(read(7, 5, 4), (Bytes{7, 4, 0, 1}));
 }
 
-TEST_F(FeetechSim, ReadOutsideTheTableIsRefused) {
+TEST_F(FeetechSim, ReadOutsideTheTableAnswersWithoutData) {
   start({sts(1)});
-  EXPECT_EQ(ask(protocol::read(1, 200, 10)), status(1, feetech::error_bit::kAngle));
+  // Feetech firmware has no error bit for a bad request (status bit 4 is unused): the answer
+  // carries the status bits only, and no data.
+  EXPECT_EQ(ask(protocol::read(1, 200, 10)), status(1, 0));
 }
 
 TEST_F(FeetechSim, WorkedWriteFrameMovesTheServoToItsGoal) {
@@ -71,28 +74,29 @@ TEST_F(FeetechSim, WorkedWriteFrameMovesTheServoToItsGoal) {
 
 TEST_F(FeetechSim, GoalSpeedLimitsHowFastItMoves) {
   start({sts(1)});
-  write(1, 46, {0xC8, 0x00});  // 200 steps/s
+  write(1, 46, {0x04, 0x00});  // 4 × 0.732 rpm (the factory unit) ≈ 200 steps/s
   write(1, 42, {0x00, 0x09});  // 2304: 256 steps away, ~1.3 s
   std::this_thread::sleep_for(std::chrono::milliseconds(300));
   const Bytes speed = read(1, 58, 2);
-  EXPECT_EQ(speed, (Bytes{0xC8, 0x00})) << "present speed = goal speed once cruising";
+  EXPECT_EQ(speed, (Bytes{0x04, 0x00})) << "present speed = goal speed once cruising";
   const Bytes position = read(1, 56, 2);
   const int present = position.size() == 2 ? position[0] | position[1] << 8 : 0;
   EXPECT_GT(present, 2048 + 40);
   EXPECT_LT(present, 2048 + 120);
 }
 
-TEST_F(FeetechSim, WriteToReadOnlyFieldIsRefusedAndNothingWritten) {
+TEST_F(FeetechSim, WriteToReadOnlyFieldIsIgnoredAndNothingWritten) {
   start({sts(1)});
-  // Present position (56, read-only) and goal in one frame: neither lands.
-  EXPECT_EQ(ask(protocol::write(1, 56, Bytes{0x00, 0x04})), status(1, feetech::error_bit::kAngle));
+  // Present position (56) is read-only: the write does not land, and Feetech firmware flags
+  // nothing (status bit 4 is unused; docs/DECISIONS.md "Vendor fidelity").
+  EXPECT_EQ(ask(protocol::write(1, 56, Bytes{0x00, 0x04})), status(1, 0));
   EXPECT_EQ(read(1, 56, 2), (Bytes{0x00, 0x08}));
 }
 
-TEST_F(FeetechSim, ValueOutsideTheFieldRangeIsRefused) {
+TEST_F(FeetechSim, ValueOutsideTheFieldRangeIsNotStored) {
   start({sts(1)});
-  // Response level is 0 or 1.
-  EXPECT_EQ(ask(protocol::write(1, 8, Bytes{7})), status(1, feetech::error_bit::kAngle));
+  // Response level is 0 or 1; the field keeps its value, no error bit.
+  EXPECT_EQ(ask(protocol::write(1, 8, Bytes{7})), status(1, 0));
   EXPECT_EQ(read(1, 8, 1), Bytes{1});
 }
 
@@ -136,9 +140,11 @@ TEST_F(FeetechSim, RegWriteIsHeldUntilAction) {
   EXPECT_EQ(read(1, 41, 1), Bytes{33});
 }
 
-TEST_F(FeetechSim, RegWriteOfReadOnlyFieldIsRefused) {
+TEST_F(FeetechSim, RegWriteOfReadOnlyFieldLandsNothingOnAction) {
   start({sts(1)});
-  EXPECT_EQ(ask(protocol::reg_write(1, 62, Bytes{100})), status(1, feetech::error_bit::kAngle));
+  EXPECT_EQ(ask(protocol::reg_write(1, 62, Bytes{100})), status(1, 0));
+  EXPECT_EQ(ask(protocol::action(1)), status(1, 0));
+  EXPECT_NE(read(1, 62, 1), Bytes{100});
 }
 
 TEST_F(FeetechSim, SyncWriteSetsEachListedServo) {
@@ -258,9 +264,9 @@ TEST_F(FeetechSim, CalibrationIsKeptOverRebootWhateverTheLock) {
 TEST_F(FeetechSim, ConstantSpeedModeTurnsAtTheSignedGoalSpeed) {
   start({sts(1)});
   write(1, 33, {1});
-  write(1, 46, {0xE8, 0x83});  // -1000 steps/s, direction bit 15
+  write(1, 46, {0x14, 0x80});  // -20 × 0.732 rpm (≈ -1000 steps/s), direction bit 15
   std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  EXPECT_EQ(read(1, 58, 2), (Bytes{0xE8, 0x83}));
+  EXPECT_EQ(read(1, 58, 2), (Bytes{0x14, 0x80}));
   EXPECT_EQ(read(1, 66, 1), Bytes{1});
   write(1, 46, {0, 0});
   EXPECT_EQ(read(1, 58, 2), (Bytes{0, 0}));
@@ -274,7 +280,7 @@ TEST_F(FeetechSim, PwmModeRunsOpenLoopOnGoalTime) {
   const Bytes speed = read(1, 58, 2);
   ASSERT_EQ(speed.size(), 2U);
   EXPECT_NE(speed[1] & 0x80, 0) << "turning the negative way";
-  EXPECT_GT(speed[0] | (speed[1] & 0x7F) << 8, 1000);
+  EXPECT_GT(speed[0] | (speed[1] & 0x7F) << 8, 20) << "half the top speed (88 × 0.732 rpm)";
 }
 
 TEST_F(FeetechSim, StepModeMovesByEachGoalWritten) {
@@ -365,7 +371,10 @@ TEST_F(FeetechSim, Sms1TorqueModeRunsOnRunTime) {
 
 TEST_F(FeetechSim, Sms1FirmwareDoesNotKnowCalibrate) {
   start({sms1(1)});
-  EXPECT_EQ(ask(feetech::calibrate(1)), status(1, feetech::error_bit::kAngle));
+  // Answered with the status bits only (no Feetech error bit says "unknown instruction"), and
+  // nothing calibrated.
+  EXPECT_EQ(ask(feetech::calibrate(1, 1024)), status(1, 0));
+  EXPECT_EQ(read(1, 56, 2), (Bytes{0x00, 0x08}));
 }
 
 }  // namespace

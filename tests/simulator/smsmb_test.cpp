@@ -83,6 +83,20 @@ TEST_F(SmsmbSim, ReadBeyondTheMapIsIllegalAddress) {
   EXPECT_EQ(exchange({0x01, 0x03, 0x02, 0x00, 0x00, 0x01, 0x85, 0xB2}), (Bytes{0x01, 0x83, 0x02, 0xC0, 0xF1}));
 }
 
+TEST_F(SmsmbSim, ReadOfAnUndefinedRegisterIsIllegalAddress) {
+  start({smsmb(1)});
+  // Registers 0x04-0x09 are no field (wiki memory-smsmb): not a made-up 0 but exception 0x02,
+  // alone or inside a range that starts on a defined register.
+  for (const std::uint16_t first : {std::uint16_t{0x04}, std::uint16_t{0x00}}) {
+    const std::uint16_t count = first == 0x04 ? 1 : 0x0C;
+    const Bytes pdu{0x03, 0x00, static_cast<std::uint8_t>(first), 0x00, static_cast<std::uint8_t>(count)};
+    const Bytes reply = exchange(protocol::rtu::frame(1, pdu));
+    ASSERT_GE(reply.size(), 3U) << "register " << first;
+    EXPECT_EQ(reply[1], 0x83) << "register " << first;
+    EXPECT_EQ(reply[2], 0x02) << "register " << first;
+  }
+}
+
 TEST_F(SmsmbSim, ReadOfZeroRegistersIsIllegalValue) {
   start({smsmb(1)});
   EXPECT_EQ(exchange({0x01, 0x03, 0x00, 0x0A, 0x00, 0x00, 0x65, 0xC8}), (Bytes{0x01, 0x83, 0x03, 0x01, 0x31}));
