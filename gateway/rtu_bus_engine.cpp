@@ -741,14 +741,25 @@ std::optional<Job> RtuBusEngine::Impl::next_client_job() {
     // The same order as every bus (next_level(), bus_engine.h): safe stops first; the engine's
     // own poll, probe or identity work that has waited one poll period (at least 10 ms) next,
     // so a client flood cannot freeze the poll cache or keep an offline servo from its probe;
-    // then client work by priority, with the client age rule.
+    // then client work by priority, with the client age rule. Overdue work of both kinds goes
+    // oldest first, as next_level() orders it.
     const auto now = SteadyClock::now();
     const bool polling = discovered_.load() && settings_.poll && !settings_.servos.empty() && !cycle_running_;
     const bool safety_waiting = !queue_[static_cast<std::size_t>(Priority::Safety)].empty();
-    const bool internal_overdue = (!work_.empty() && now - work_.front().queued_at >= internal_age_limit_) ||
-                                  (polling && now >= next_cycle_ + internal_age_limit_);
-    if (internal_overdue && !safety_waiting) return std::nullopt;
-    if (const auto level = next_level(queue_, client_age_limits_, now)) {
+    // Since when the engine's own work waits: its first queued item, else the due poll cycle.
+    std::optional<SteadyClock::time_point> internal_since;
+    if (!work_.empty()) {
+      internal_since = work_.front().queued_at;
+    } else if (polling) {
+      internal_since = next_cycle_;
+    }
+    const auto level = next_level(queue_, client_age_limits_, now);
+    if (!safety_waiting && internal_since && now - *internal_since >= internal_age_limit_) {
+      const bool older_client_overdue = level && now - queue_[*level].front().queued_at >= client_age_limits_[*level] &&
+                                        queue_[*level].front().queued_at < *internal_since;
+      if (!older_client_overdue) return std::nullopt;
+    }
+    if (level) {
       Job job = std::move(queue_[*level].front());
       queue_[*level].pop_front();
       --queued_;

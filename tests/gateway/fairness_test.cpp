@@ -7,6 +7,7 @@
 
 #include <atomic>
 #include <mutex>
+#include <string>
 #include <thread>
 
 #include "gateway/bus_engine.h"
@@ -141,6 +142,73 @@ TEST(StatusByte, ARefusalBitInEveryAnswerDoesNotFlipTheRecordedStatus) {
   engine->stop();
   bus.stop();
 }
+
+// The rule for the status byte, on both packet protocols: a servo that reports a condition (bit 0,
+// feetech: voltage, d55d: over-temperature) together with a refusal bit in every answer shows the
+// condition alone in register 1000 after polls and after refused writes alike, and the log says
+// so once when the condition appears and once when it goes, however many answers came between.
+struct StatusCase {
+  std::string name;
+  TableId table;
+  std::uint32_t baud;
+  std::uint16_t field;          // a RAM field written by the test
+  std::uint8_t refusal_bit;     // set in every answer: writes are refused
+  std::uint8_t condition_bit;   // the servo's condition, recorded and logged
+};
+inline void PrintTo(const StatusCase& c, std::ostream* out) { *out << c.name; }
+
+class StatusByteRule : public ::testing::TestWithParam<StatusCase> {};
+
+std::size_t occurrences(const std::string& text, const std::string& needle) {
+  std::size_t count = 0;
+  for (auto at = text.find(needle); at != std::string::npos; at = text.find(needle, at + needle.size())) ++count;
+  return count;
+}
+
+TEST_P(StatusByteRule, OneByteForEveryAnswerKindAndOneLogLinePerChangeOfCondition) {
+  const StatusCase& param = GetParam();
+  testing::LogCapture log;
+  simulator::SimulatedBus bus(testing::simulated_servos({1}, param.table, param.baud));
+  bus.start();
+  auto engine = make_bus_engine(testing::bus_settings(bus.slave_path(), {1}, param.table, param.baud));
+  engine->start();
+  ASSERT_TRUE(wait_until([&] { return engine->discovered(); }, 5s));
+  const auto status = [&] { return engine->cache().state(1)->counters.last_status; };
+  const auto two_poll_cycles = [&] {
+    const auto cycles = engine->counters().poll_cycles;
+    return wait_until([&] { return engine->counters().poll_cycles > cycles + 1; }, 2s);
+  };
+  const auto write = [&](std::uint8_t value) {
+    return transact(*engine, WriteOp{1, param.field, {value}});
+  };
+  ASSERT_EQ(write(1).status, BusStatus::Ok);  // the servo answers writes
+
+  bus.set_error_bits(1, static_cast<std::uint8_t>(param.refusal_bit | param.condition_bit));
+  for (std::uint8_t round = 0; round < 5; ++round) {
+    EXPECT_EQ(write(round).status, BusStatus::ServoRefused);
+    EXPECT_EQ(status(), param.condition_bit) << "after a refused write, round " << int{round};
+    ASSERT_TRUE(two_poll_cycles());
+    EXPECT_EQ(status(), param.condition_bit) << "after polls, round " << int{round};
+  }
+  bus.set_error_bits(1, param.refusal_bit);  // the condition is gone, the refusals stay
+  for (std::uint8_t round = 0; round < 3; ++round) {
+    ASSERT_TRUE(two_poll_cycles());
+    EXPECT_EQ(status(), 0) << "after polls, round " << int{round};
+    EXPECT_EQ(write(round).status, BusStatus::ServoRefused);
+    EXPECT_EQ(status(), 0) << "after a refused write, round " << int{round};
+  }
+  const std::string text = log.text();
+  EXPECT_EQ(occurrences(text, "servo 1 status byte 0x00 -> 0x01"), 1U) << text;
+  EXPECT_EQ(occurrences(text, "servo 1 status byte 0x01 -> 0x00"), 1U) << text;
+  EXPECT_EQ(occurrences(text, "status byte"), 2U) << text;
+  engine->stop();
+  bus.stop();
+}
+
+INSTANTIATE_TEST_SUITE_P(PacketProtocols, StatusByteRule,
+                         ::testing::Values(StatusCase{"feetech_sts", TableId::Sts, 1'000'000, 41, 0x10, 0x01},
+                                           StatusCase{"d55d", TableId::D55d, 115'200, 34, 0x20, 0x01}),
+                         [](const ::testing::TestParamInfo<StatusCase>& info) { return info.param.name; });
 
 }  // namespace
 }  // namespace sms::gateway
