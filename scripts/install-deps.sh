@@ -8,6 +8,7 @@ packages=(
   build-essential cmake ninja-build pkg-config dpkg-dev
   libboost-dev libmodbus-dev libspdlog-dev libfmt-dev libyaml-cpp-dev
   libcli11-dev libgtest-dev libgmock-dev libssl-dev openssl
+  libmosquitto-dev mosquitto libprotobuf-dev protobuf-compiler
   clang libclang-rt-14-dev
   mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio
 )
