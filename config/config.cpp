@@ -192,3 +192,11 @@ std::string_view to_string(Role role) { return detail::name_of(detail::kRoleName
 std::optional<Role> role_from_name(std::string_view name) { return detail::value_of(detail::kRoleNames, name); }
 
 }  // namespace sms::config
+
+namespace sms::config {
+
+std::string sparkplug_device_id(const ServoConfig& servo) {
+  return servo.name.empty() ? "unit-" + std::to_string(servo.unit_id) : servo.name;
+}
+
+}  // namespace sms::config

@@ -244,12 +244,55 @@ struct LoggingConfig {
   bool operator==(const LoggingConfig&) const = default;
 };
 
+// MQTT Sparkplug B northbound (README "MQTT Sparkplug B"): the gateway is one Sparkplug edge
+// node on an existing broker; every table servo is a device.
+struct MqttTlsConfig {
+  std::string ca;           // CA certificates the broker's certificate must chain to, PEM
+  std::string certificate;  // the gateway's client certificate, PEM; empty: none
+  std::string private_key;  // its key, PEM, unencrypted; given with `certificate`
+
+  bool operator==(const MqttTlsConfig&) const = default;
+};
+
+// Field deadband of DDATA: a change smaller than `deadband` (in register units) is not sent.
+struct MqttDeadband {
+  std::string field;
+  std::uint32_t deadband = 0;
+
+  bool operator==(const MqttDeadband&) const = default;
+};
+
+struct MqttConfig {
+  HostPort broker;                  // the broker's host:port (1883 plain, 8883 TLS by custom)
+  std::string group_id;             // Sparkplug group ID
+  std::string edge_node_id;         // Sparkplug edge node ID
+  std::string client_id;            // MQTT client ID; empty: "sms-gateway-<edge_node_id>"
+  std::string username;             // empty: none
+  std::string password_file;        // the password's file (first line); empty: none
+  std::optional<MqttTlsConfig> tls;
+  std::chrono::seconds keepalive{30};
+  // The rights of DCMD/NCMD writes (the Modbus/TCP Security roles): read refuses every write,
+  // operate allows RAM fields and the e-stop, engineer everything.
+  Role role = Role::Operate;
+  std::chrono::milliseconds data_period{100};  // how often the poll cache is checked for changes
+  std::chrono::seconds report_period{0};       // every metric again this often; 0: changes only
+  std::vector<MqttDeadband> deadbands;         // in file order, fields unique
+  std::chrono::milliseconds reconnect_min{500};
+  std::chrono::milliseconds reconnect_max{30000};
+
+  bool operator==(const MqttConfig&) const = default;
+};
+
+// The Sparkplug device ID of a servo unit: its name, else "unit-<N>".
+std::string sparkplug_device_id(const ServoConfig& servo);
+
 struct Config {
   ModbusTcpConfig modbus_tcp;
   std::vector<BusConfig> buses;
   std::vector<ServoConfig> servos;
   std::vector<SyncGroupConfig> sync_groups;
   LoggingConfig logging;
+  std::optional<MqttConfig> mqtt;  // empty: no MQTT
 
   bool operator==(const Config&) const = default;
 };

@@ -64,6 +64,58 @@ void emit_modbus_tcp(YAML::Emitter& out, const ModbusTcpConfig& tcp) {
   out << YAML::EndMap;
 }
 
+void emit_mqtt(YAML::Emitter& out, const MqttConfig& mqtt) {
+  key(out, "mqtt");
+  out << YAML::BeginMap;
+  key(out, "broker");
+  out << mqtt.broker.to_string();
+  key(out, "group_id");
+  quoted(out, mqtt.group_id);
+  key(out, "edge_node_id");
+  quoted(out, mqtt.edge_node_id);
+  key(out, "client_id");
+  quoted(out, mqtt.client_id);
+  if (!mqtt.username.empty()) {
+    key(out, "username");
+    quoted(out, mqtt.username);
+  }
+  if (!mqtt.password_file.empty()) {
+    key(out, "password_file");
+    quoted(out, mqtt.password_file);
+  }
+  if (mqtt.tls) {
+    key(out, "tls");
+    out << YAML::BeginMap;
+    key(out, "ca");
+    quoted(out, mqtt.tls->ca);
+    if (!mqtt.tls->certificate.empty()) {
+      key(out, "certificate");
+      quoted(out, mqtt.tls->certificate);
+      key(out, "private_key");
+      quoted(out, mqtt.tls->private_key);
+    }
+    out << YAML::EndMap;
+  }
+  key(out, "keepalive_s");
+  out << mqtt.keepalive.count();
+  key(out, "role");
+  out << std::string(to_string(mqtt.role));
+  key(out, "data_period_ms");
+  out << mqtt.data_period.count();
+  key(out, "report_period_s");
+  out << mqtt.report_period.count();
+  key(out, "deadband");
+  if (mqtt.deadbands.empty()) out << YAML::Flow;
+  out << YAML::BeginMap;
+  for (const auto& band : mqtt.deadbands) out << YAML::Key << band.field << YAML::Value << band.deadband;
+  out << YAML::EndMap;
+  key(out, "reconnect_min_ms");
+  out << mqtt.reconnect_min.count();
+  key(out, "reconnect_max_ms");
+  out << mqtt.reconnect_max.count();
+  out << YAML::EndMap;
+}
+
 void emit_bus(YAML::Emitter& out, const BusConfig& bus) {
   out << YAML::BeginMap;
   key(out, "name");
@@ -221,6 +273,7 @@ std::string dump_config(const Config& config) {
   for (const auto& group : config.sync_groups) emit_sync_group(out, group);
   out << YAML::EndSeq;
   emit_logging(out, config.logging);
+  if (config.mqtt) emit_mqtt(out, *config.mqtt);
   out << YAML::EndMap;
   return std::string(out.c_str()) + "\n";
 }

@@ -29,7 +29,7 @@ using protocol::BusProtocol;
 
 // ---- the keys allowed at each place (config/README.md) ----
 
-constexpr std::array<std::string_view, 5> kTopKeys{"modbus_tcp", "buses", "servos", "sync_groups", "logging"};
+constexpr std::array<std::string_view, 6> kTopKeys{"modbus_tcp", "buses", "servos", "sync_groups", "logging", "mqtt"};
 constexpr std::array<std::string_view, 8> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth", "allow",
                                                          "plain",           "tls"};
@@ -50,6 +50,11 @@ constexpr std::array<std::string_view, 10> kServoKeys{"unit",       "bus",      
                                                       "safe_stop"};
 constexpr std::array<std::string_view, 4> kSyncGroupKeys{"name", "field", "members", "holding_register_start"};
 constexpr std::array<std::string_view, 3> kLoggingKeys{"level", "format", "metrics_listen"};
+constexpr std::array<std::string_view, 15> kMqttKeys{
+    "broker",      "group_id",       "edge_node_id",  "client_id",     "username",
+    "password_file", "tls",          "keepalive_s",   "role",          "data_period_ms",
+    "report_period_s", "deadband",   "reconnect_min_ms", "reconnect_max_ms", "enabled"};
+constexpr std::array<std::string_view, 3> kMqttTlsKeys{"ca", "certificate", "private_key"};
 
 constexpr std::string_view kPassthroughTable = "passthrough";
 constexpr std::uint8_t kMaxUnitId = 247;            // Modbus slave addresses
@@ -370,6 +375,7 @@ class Loader {
   void parse_sync_groups(const Value& value, Config& config);
   SyncGroupConfig parse_sync_group(const MapReader& keys, const Config& config);
   LoggingConfig parse_logging(const Value& value);
+  std::optional<MqttConfig> parse_mqtt(const Value& value, const Config& config);
 
   std::string file_;
   std::optional<YAML::Mark> gateway_unit_mark_;
@@ -454,6 +460,7 @@ Config Loader::load(const YAML::Node& root) {
   check_poll_selections(config);
   if (const auto value = sections.find("sync_groups")) parse_sync_groups(*value, config);
   if (const auto value = sections.find("logging")) config.logging = parse_logging(*value);
+  if (const auto value = sections.find("mqtt")) config.mqtt = parse_mqtt(*value, config);
   return config;
 }
 
@@ -533,6 +540,105 @@ TlsConfig Loader::parse_tls(const Value& value) {
   }
   if (const auto v = keys.find("default_role")) tls.default_role = choice(*v, detail::kRoleNames);
   return tls;
+}
+
+// A Sparkplug ID (group, edge node, device): MQTT topic levels, so no '/', '+' or '#'.
+bool valid_sparkplug_id(std::string_view id) { return !id.empty() && id.find_first_of("/+#") == std::string_view::npos; }
+
+std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& config) {
+  const MapReader keys(*this, value, kMqttKeys);
+  // `enabled: false` keeps a section in the file without connecting (a broker not there yet).
+  if (const auto v = keys.find("enabled"); v && !boolean(*v)) return std::nullopt;
+  MqttConfig mqtt;
+  mqtt.broker = host_port(keys.require("broker"));
+  const auto id = [&](std::string_view key) {
+    const Value v = keys.require(key);
+    std::string text = string(v);
+    if (!valid_sparkplug_id(text)) {
+      fail(v.mark, v.path + ": `" + text + "` cannot be a Sparkplug ID: it is an MQTT topic level, so no '/', '+' "
+                                           "or '#'");
+    }
+    return text;
+  };
+  mqtt.group_id = id("group_id");
+  mqtt.edge_node_id = id("edge_node_id");
+  mqtt.client_id = "sms-gateway-" + mqtt.edge_node_id;
+  if (const auto v = keys.find("client_id")) mqtt.client_id = string(*v);
+  if (const auto v = keys.find("username")) mqtt.username = string(*v);
+  if (const auto v = keys.find("password_file")) {
+    if (mqtt.username.empty()) fail(v->mark, v->path + ": a password needs a username; add " + value.path + ".username");
+    mqtt.password_file = string(*v);
+  }
+  if (const auto v = keys.find("tls")) {
+    const MapReader tls_keys(*this, *v, kMqttTlsKeys);
+    MqttTlsConfig tls;
+    tls.ca = string(tls_keys.require("ca"));
+    const auto certificate = tls_keys.find("certificate");
+    const auto key = tls_keys.find("private_key");
+    if (certificate.has_value() != key.has_value()) {
+      fail(v->mark, v->path + ": certificate and private_key go together (a client certificate for the broker); "
+                              "give both or neither");
+    }
+    if (certificate) tls.certificate = string(*certificate);
+    if (key) tls.private_key = string(*key);
+    mqtt.tls = std::move(tls);
+  }
+  if (const auto v = keys.find("keepalive_s")) mqtt.keepalive = duration<std::chrono::seconds>(*v, 5, 3600);
+  if (const auto v = keys.find("role")) mqtt.role = choice(*v, detail::kRoleNames);
+  if (const auto v = keys.find("data_period_ms")) mqtt.data_period = duration<std::chrono::milliseconds>(*v, 10, 60000);
+  if (const auto v = keys.find("report_period_s")) mqtt.report_period = duration<std::chrono::seconds>(*v, 0, 86400);
+  if (const auto v = keys.find("reconnect_min_ms")) mqtt.reconnect_min = duration<std::chrono::milliseconds>(*v, 100, 60000);
+  if (const auto v = keys.find("reconnect_max_ms")) {
+    mqtt.reconnect_max = duration<std::chrono::milliseconds>(*v, 100, 3600000);
+  }
+  if (mqtt.reconnect_max < mqtt.reconnect_min) {
+    fail(keys.key_mark("reconnect_max_ms"), value.path + ".reconnect_max_ms: " +
+                                                std::to_string(mqtt.reconnect_max.count()) + " is below reconnect_min_ms (" +
+                                                std::to_string(mqtt.reconnect_min.count()) + ")");
+  }
+  if (const auto v = keys.find("deadband")) {
+    if (!v->node.IsMap()) {
+      fail(v->mark, v->path + ": expected a map of field names to deadbands in register units, e.g. "
+                              "{present_position: 2}, got " + describe(v->node));
+    }
+    std::vector<YAML::Mark> marks;
+    for (const auto& entry : v->node) {
+      const YAML::Node& name_node = entry.first;
+      const std::string field = string(Value{name_node, name_node.Mark(), v->path});
+      bool known = false;
+      for (const auto* table : modbus_map::all_tables()) {
+        for (const auto& spec : table->fields) known = known || spec.name == field;
+      }
+      if (!known) fail(name_node.Mark(), v->path + ": `" + field + "` is not a field of any table (docs/REGISTER_MAP.md "
+                                                                   "lists each table's fields)");
+      for (std::size_t i = 0; i < mqtt.deadbands.size(); ++i) {
+        if (mqtt.deadbands[i].field == field) {
+          fail(name_node.Mark(), v->path + ": `" + field + "` is given twice (first at " + place(marks[i]) + ")");
+        }
+      }
+      const auto band = integer(entry_value(name_node, entry.second, v->path + "." + field), 0, 65535);
+      mqtt.deadbands.push_back(MqttDeadband{field, static_cast<std::uint32_t>(band)});
+      marks.push_back(name_node.Mark());
+    }
+  }
+  // Every table servo is a device; its ID must be a topic level and unique.
+  for (std::size_t i = 0; i < config.servos.size(); ++i) {
+    const auto& servo = config.servos[i];
+    if (servo.passthrough()) continue;
+    const std::string device = sparkplug_device_id(servo);
+    if (!valid_sparkplug_id(device)) {
+      fail(servo_places_[i].item, servo_places_[i].path + ".name: `" + device + "` cannot be a Sparkplug device ID "
+                                  "(mqtt is configured): no '/', '+' or '#'");
+    }
+    for (std::size_t j = 0; j < i; ++j) {
+      if (!config.servos[j].passthrough() && sparkplug_device_id(config.servos[j]) == device) {
+        fail(servo_places_[i].item, servo_places_[i].path + ".name: Sparkplug device ID `" + device + "` is also " +
+                                        servo_places_[j].path + "'s (" + place(servo_places_[j].item) +
+                                        "); names must be unique when mqtt is configured");
+      }
+    }
+  }
+  return mqtt;
 }
 
 void Loader::parse_buses(const Value& value, Config& config) {
