@@ -179,6 +179,50 @@ Bytes write_response(const WriteRegistersRequest& request) {
   return out;
 }
 
+Bytes request_pdu(const Request& request) {
+  Bytes out;
+  const auto header = [&out](std::uint8_t function, std::uint16_t address, std::uint16_t count) {
+    out.push_back(function);
+    append_u16(out, address);
+    append_u16(out, count);
+  };
+  std::visit(
+      [&](const auto& r) {
+        using T = std::decay_t<decltype(r)>;
+        if constexpr (std::is_same_v<T, ReadBitsRequest> || std::is_same_v<T, ReadRegistersRequest>) {
+          header(r.function, r.address, r.count);
+        } else if constexpr (std::is_same_v<T, WriteBitsRequest>) {
+          if (r.function == fc::kWriteSingleCoil) {
+            out = write_response(r);  // FC05's answer echoes its request
+            return;
+          }
+          header(r.function, r.address, static_cast<std::uint16_t>(r.values.size()));
+          out.push_back(static_cast<std::uint8_t>((r.values.size() + 7) / 8));
+          for (std::size_t i = 0; i < r.values.size(); i += 8) {
+            std::uint8_t byte = 0;
+            for (std::size_t b = 0; b < 8 && i + b < r.values.size(); ++b) byte |= r.values[i + b] ? 1u << b : 0u;
+            out.push_back(byte);
+          }
+        } else if constexpr (std::is_same_v<T, WriteRegistersRequest>) {
+          if (r.function == fc::kWriteSingleRegister) {
+            out = write_response(r);  // FC06's answer echoes its request
+            return;
+          }
+          header(r.function, r.address, static_cast<std::uint16_t>(r.values.size()));
+          out.push_back(static_cast<std::uint8_t>(r.values.size() * 2));
+          for (const auto value : r.values) append_u16(out, value);
+        } else {
+          header(fc::kReadWriteMultipleRegisters, r.read.address, r.read.count);
+          append_u16(out, r.write.address);
+          append_u16(out, static_cast<std::uint16_t>(r.write.values.size()));
+          out.push_back(static_cast<std::uint8_t>(r.write.values.size() * 2));
+          for (const auto value : r.write.values) append_u16(out, value);
+        }
+      },
+      request);
+  return out;
+}
+
 Bytes exception_response(std::uint8_t function, Fault fault) {
   return protocol::tcp::exception_pdu(function, exception_code(fault));
 }

@@ -65,6 +65,10 @@ Expected<Request, Fault> parse_request(std::span<const std::uint8_t> pdu);
 
 std::uint8_t function_of(const Request& request);
 
+// The PDU of a request: parse_request's inverse (internal clients such as the Sparkplug node ask
+// the router as a Modbus client would). The request must be well-formed (quantities in range).
+Bytes request_pdu(const Request& request);
+
 // Response PDUs.
 Bytes bits_response(std::uint8_t function, const std::vector<bool>& values);  // 01 02
 Bytes registers_response(std::uint8_t function, std::span<const std::uint16_t> values);  // 03 04 23

@@ -115,6 +115,32 @@ TEST(ModbusRequest, MalformedPdus) {
   EXPECT_EQ(parse({0x17, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x01, 0x02, 0x00}).error(), Fault::MalformedRequest);
 }
 
+// request_pdu is parse_request's inverse for every kind the parser takes.
+TEST(ModbusRequest, RequestPduParsesBackToTheSameRequest) {
+  const std::vector<Request> requests{
+      ReadBitsRequest{0x01, 10, 17},
+      ReadBitsRequest{0x02, 1008, 1},
+      ReadRegistersRequest{0x03, 0, 125},
+      ReadRegistersRequest{0x04, 1000, 8},
+      WriteBitsRequest{0x05, 1, {true}},
+      WriteBitsRequest{0x05, 2, {false}},
+      WriteBitsRequest{0x0F, 3, {true, false, true, true, false, false, false, true, true}},
+      WriteRegistersRequest{0x06, 42, {0xFFFE}},
+      WriteRegistersRequest{0x10, 40, {1, 2, 3}},
+      ReadWriteRegistersRequest{ReadRegistersRequest{0x17, 56, 4}, WriteRegistersRequest{0x17, 42, {7, 8}}},
+  };
+  for (const auto& request : requests) {
+    const auto pdu = request_pdu(request);
+    const auto parsed = parse_request(pdu);
+    ASSERT_TRUE(parsed) << "function " << int(function_of(request));
+    EXPECT_EQ(request_pdu(*parsed), pdu) << "function " << int(function_of(request));
+    EXPECT_EQ(function_of(*parsed), function_of(request));
+  }
+  EXPECT_EQ(request_pdu(ReadRegistersRequest{0x04, 0x0100, 8}), (Bytes{0x04, 0x01, 0x00, 0x00, 0x08}));
+  EXPECT_EQ(request_pdu(WriteRegistersRequest{0x06, 42, {0x1234}}), (Bytes{0x06, 0x00, 0x2A, 0x12, 0x34}));
+  EXPECT_EQ(request_pdu(WriteBitsRequest{0x05, 1, {true}}), (Bytes{0x05, 0x00, 0x01, 0xFF, 0x00}));
+}
+
 TEST(ModbusResponse, BitsArePackedLowBitFirst) {
   EXPECT_EQ(bits_response(0x01, {true, false, true, true, false, false, true, true, true, false}),
             (Bytes{0x01, 0x02, 0xCD, 0x01}));
