@@ -8,6 +8,7 @@
 #include "config/load.h"
 #include "gateway/metrics_server.h"
 #include "gateway/safety.h"
+#include "gateway/sparkplug_node.h"
 #include "gateway/tcp_serving.h"
 #include "gateway/tls.h"
 #include "gateway/unit_router.h"
@@ -138,6 +139,10 @@ class Gateway::Impl {
                                                         [this] { return metrics(); });
       metrics_server_->start();
     }
+    if (config_.mqtt) {
+      sparkplug_ = std::make_unique<SparkplugNode>(config_, serving_.io(), *router_);
+      sparkplug_->start();  // throws for an unreadable password or TLS file; the broker may be down
+    }
     for (const auto& engine : engines_) engine->start();
     safety_->start();
     serving_.run();
@@ -154,6 +159,7 @@ class Gateway::Impl {
       snapshot = collect_metrics(config_, engines, server_stats(), traffic_, started_at_, SteadyClock::now(), &safety);
     }
     if (tls_) snapshot.tls = tls_->stats();
+    if (sparkplug_) snapshot.mqtt = sparkplug_->stats();
     return snapshot;
   }
 
@@ -164,6 +170,8 @@ class Gateway::Impl {
     stopped_ = true;
     // Monitoring goes first: it reads the buses, which stop below.
     if (metrics_server_) metrics_server_->stop();
+    // The node says goodbye (NDEATH) and takes no more commands.
+    if (sparkplug_) sparkplug_->stop();
     serving_.drain(grace);
     // The servos get their on_stop action while the buses still run (README "Safety").
     if (safety_) safety_->stop_for_shutdown(kOnStopBound);
@@ -195,6 +203,7 @@ class Gateway::Impl {
   std::unique_ptr<SafetySupervisor> safety_;  // before the router, which holds a reference
   std::unique_ptr<UnitRouter> router_;
   std::unique_ptr<TlsService> tls_;  // after the router it holds, before the sessions that use it
+  std::unique_ptr<SparkplugNode> sparkplug_;  // after the router it asks; its callbacks end with the io thread
   std::optional<std::size_t> plain_index_;
   std::optional<std::size_t> tls_index_;
   TcpServing serving_;  // last: destroyed first, so no connection outlives the router

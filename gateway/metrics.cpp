@@ -397,6 +397,34 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
     out.sample(kReloads, {{"result", "failed"}}, tls.reloads_failed);
   }
 
+  if (snapshot.mqtt) {
+    const SparkplugStats& mqtt = *snapshot.mqtt;
+    out.family("sms_gateway_mqtt_connected", MetricType::Gauge, "1 while the Sparkplug edge node has a broker session");
+    out.sample("sms_gateway_mqtt_connected", {}, std::uint64_t{mqtt.link.connected ? 1u : 0u});
+    constexpr std::string_view kSessions = "sms_gateway_mqtt_sessions_total";
+    out.family(kSessions, MetricType::Counter,
+               "Broker sessions by event: connected, failed (attempt without a session), lost");
+    out.sample(kSessions, {{"event", "connected"}}, mqtt.link.connects);
+    out.sample(kSessions, {{"event", "failed"}}, mqtt.link.connect_failures);
+    out.sample(kSessions, {{"event", "lost"}}, mqtt.link.disconnects);
+    constexpr std::string_view kMessages = "sms_gateway_mqtt_messages_published_total";
+    out.family(kMessages, MetricType::Counter, "Sparkplug messages published by type");
+    constexpr std::array<std::string_view, 6> kTypes{"NBIRTH", "NDEATH", "DBIRTH", "DDEATH", "NDATA", "DDATA"};
+    for (std::size_t i = 0; i < kTypes.size(); ++i) out.sample(kMessages, {{"type", std::string(kTypes[i])}}, mqtt.published[i]);
+    out.family("sms_gateway_mqtt_publish_failures_total", MetricType::Counter,
+               "Messages not handed to the broker (no session at the time)");
+    out.sample("sms_gateway_mqtt_publish_failures_total", {}, mqtt.link.publish_failures);
+    constexpr std::string_view kCommands = "sms_gateway_mqtt_commands_total";
+    out.family(kCommands, MetricType::Counter, "NCMD/DCMD metrics by result (refused: see the log for why)");
+    out.sample(kCommands, {{"result", "ok"}}, mqtt.commands_ok);
+    out.sample(kCommands, {{"result", "refused"}}, mqtt.commands_refused);
+    out.family("sms_gateway_mqtt_bad_messages_total", MetricType::Counter,
+               "Messages on the command topics that are not a Sparkplug payload or name no device of this node");
+    out.sample("sms_gateway_mqtt_bad_messages_total", {}, mqtt.bad_messages);
+    out.family("sms_gateway_mqtt_devices_online", MetricType::Gauge, "Devices born (DBIRTH sent) on the broker now");
+    out.sample("sms_gateway_mqtt_devices_online", {}, std::uint64_t{mqtt.devices_online});
+  }
+
   out.family("sms_gateway_estop_latched", MetricType::Gauge,
              "1 while the e-stop (gateway unit coil 1) is latched: motion writes refused on every bus");
   out.sample("sms_gateway_estop_latched", {}, std::uint64_t{snapshot.estop_latched ? 1u : 0u});

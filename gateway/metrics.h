@@ -20,6 +20,7 @@
 
 #include "config/config.h"
 #include "gateway/bus_counters.h"
+#include "gateway/mqtt_stats.h"
 #include "gateway/poll_cache.h"
 #include "gateway/safety.h"
 #include "gateway/tcp_server.h"
@@ -77,6 +78,7 @@ struct MetricsSnapshot {
   std::vector<BusMetrics> buses;
   TcpServerStats tcp;
   std::optional<TlsStats> tls;  // empty without modbus_tcp.tls
+  std::optional<SparkplugStats> mqtt;  // empty without mqtt
   ModbusTrafficSnapshot traffic;
   bool estop_latched = false;
   std::uint64_t estops = 0;

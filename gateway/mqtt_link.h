@@ -22,6 +22,7 @@
 #include <vector>
 
 #include "config/config.h"
+#include "gateway/mqtt_stats.h"
 #include "protocol/packet.h"
 
 struct mosquitto;
@@ -48,15 +49,6 @@ struct MqttWill {
   bool retain = false;
 };
 
-struct MqttLinkStats {
-  bool connected = false;
-  std::uint64_t connects = 0;          // sessions established (CONNACK accepted)
-  std::uint64_t connect_failures = 0;  // attempts that did not get a session
-  std::uint64_t disconnects = 0;       // sessions lost (not counting stop())
-  std::uint64_t published = 0;
-  std::uint64_t publish_failures = 0;  // publish() while not connected, or refused by the library
-  std::uint64_t received = 0;
-};
 
 class MqttLink {
  public:

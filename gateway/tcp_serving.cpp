@@ -21,6 +21,7 @@ class TcpServing::Impl {
   ~Impl() { stop(); }
 
   void post(std::function<void()> work) { asio::post(io_, std::move(work)); }
+  asio::io_context& io() { return io_; }
 
   std::size_t listen(TcpServerOptions options, RequestHandler& handler) {
     if (thread_.joinable()) throw std::logic_error("TcpServing::listen called after run");
@@ -86,6 +87,7 @@ class TcpServing::Impl {
 TcpServing::TcpServing() : impl_(std::make_unique<Impl>()) {}
 TcpServing::~TcpServing() = default;
 void TcpServing::post(std::function<void()> work) { impl_->post(std::move(work)); }
+boost::asio::io_context& TcpServing::io() { return impl_->io(); }
 std::size_t TcpServing::listen(TcpServerOptions options, RequestHandler& handler) {
   return impl_->listen(std::move(options), handler);
 }

@@ -18,6 +18,10 @@
 
 #include "gateway/tcp_server.h"
 
+namespace boost::asio {
+class io_context;
+}
+
 namespace sms::gateway {
 
 class TcpServing {
@@ -29,6 +33,8 @@ class TcpServing {
 
   // Runs `work` on the io thread (bus completions come back this way).
   void post(std::function<void()> work);
+  // The io_context the thread runs: for parts that live on the io thread (the Sparkplug node).
+  boost::asio::io_context& io();
   // Binds and listens; connections wait in the backlog until run(). Throws std::runtime_error
   // naming the address and what to do. Called once per listener (plain Modbus TCP, Modbus/TCP
   // Security); returns the listener's index for port(index).

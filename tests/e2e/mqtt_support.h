@@ -1,0 +1,162 @@
+#pragma once
+// MQTT test parts: a real Mosquitto broker (Debian's /usr/sbin/mosquitto) on an ephemeral
+// loopback port, and a Sparkplug host stand-in that records every message under spBv1.0/#
+// (decoded with protocol/sparkplug, itself checked against protoc) and publishes commands.
+#include <mosquitto.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <fstream>
+#include <functional>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "protocol/sparkplug/sparkplug.h"
+#include "tests/e2e/e2e_support.h"
+
+namespace sms::e2e {
+
+inline std::uint16_t free_port() {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address);
+  socklen_t length = sizeof address;
+  ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length);
+  ::close(fd);
+  return ntohs(address.sin_port);
+}
+
+// One mosquitto process; `extra` lines go into its listener's configuration (TLS, passwords).
+class MosquittoBroker {
+ public:
+  MosquittoBroker(const TempDir& dir, std::string extra = "allow_anonymous true\n")
+      : config_(dir.file("mosquitto-" + std::to_string(++count_) + ".conf")), port_(free_port()), extra_(std::move(extra)) {
+    start();
+  }
+  void start() {
+    std::ofstream(config_) << "listener " << port_ << " 127.0.0.1\n" << extra_ << "persistence false\n";
+    process_ = std::make_unique<ChildProcess>(std::vector<std::string>{"/usr/sbin/mosquitto", "-c", config_, "-v"});
+    if (!process_->wait_for_line("running", 10s)) throw std::runtime_error("mosquitto did not start:\n" + process_->output());
+  }
+  void kill() {
+    process_->signal(SIGKILL);
+    process_->wait_exit(5s);
+  }
+  std::uint16_t port() const { return port_; }
+  ChildProcess& process() { return *process_; }
+
+ private:
+  static inline int count_ = 0;
+  std::string config_;
+  std::uint16_t port_;
+  std::string extra_;
+  std::unique_ptr<ChildProcess> process_;
+};
+
+struct SparkplugMessage {
+  sparkplug::Topic topic;
+  sparkplug::Payload payload;
+  std::chrono::steady_clock::time_point arrived;
+
+  const sparkplug::Metric* metric(const std::string& name) const {
+    for (const auto& m : payload.metrics) {
+      if (m.name == name) return &m;
+    }
+    return nullptr;
+  }
+};
+
+struct HostOptions {
+  std::string username, password, ca;  // ca: TLS when set
+};
+
+class SparkplugHost {
+ public:
+  explicit SparkplugHost(std::uint16_t port, HostOptions options = {}) {
+    mosquitto_lib_init();
+    client_ = mosquitto_new(nullptr, true, this);
+    if (!options.username.empty()) mosquitto_username_pw_set(client_, options.username.c_str(), options.password.c_str());
+    if (!options.ca.empty()) mosquitto_tls_set(client_, options.ca.c_str(), nullptr, nullptr, nullptr, nullptr);
+    mosquitto_connect_callback_set(client_, [](mosquitto* c, void* self, int rc) {
+      if (rc == 0) mosquitto_subscribe(c, nullptr, "spBv1.0/#", 1);
+      static_cast<SparkplugHost*>(self)->subscribed_ = rc == 0;
+    });
+    mosquitto_message_callback_set(client_, [](mosquitto*, void* self, const mosquitto_message* message) {
+      static_cast<SparkplugHost*>(self)->record(message);
+    });
+    if (mosquitto_connect(client_, "localhost", port, 30) != MOSQ_ERR_SUCCESS) throw std::runtime_error("host: cannot connect");
+    mosquitto_loop_start(client_);
+    if (!eventually([&] { return subscribed_.load(); })) throw std::runtime_error("host: not subscribed");
+    std::this_thread::sleep_for(100ms);  // SUBACK
+  }
+  ~SparkplugHost() {
+    mosquitto_disconnect(client_);
+    mosquitto_loop_stop(client_, true);
+    mosquitto_destroy(client_);
+  }
+
+  // The first message since `from` (an index into everything received) that `match` accepts.
+  std::optional<SparkplugMessage> wait(std::function<bool(const SparkplugMessage&)> match,
+                                       std::chrono::milliseconds timeout = 10s, std::size_t from = 0) {
+    std::unique_lock lock(mutex_);
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    for (std::size_t i = from;;) {
+      for (; i < messages_.size(); ++i) {
+        if (match(messages_[i])) return messages_[i];
+      }
+      if (changed_.wait_until(lock, deadline) == std::cv_status::timeout && i == messages_.size()) return std::nullopt;
+    }
+  }
+  std::size_t count() {
+    std::lock_guard lock(mutex_);
+    return messages_.size();
+  }
+  std::string summary() {
+    std::lock_guard lock(mutex_);
+    std::string text;
+    for (const auto& m : messages_) text += sparkplug::topic_text(m.topic) + " (" + std::to_string(m.payload.metrics.size()) + " metrics)\n";
+    return text;
+  }
+
+  void command(sparkplug::MessageType type, const std::string& group, const std::string& node, const std::string& device,
+               std::vector<sparkplug::Metric> metrics) {
+    sparkplug::Payload payload;
+    payload.timestamp = 1;
+    payload.metrics = std::move(metrics);
+    raw(sparkplug::topic_text({group, type, node, device}), sparkplug::encode(payload));
+  }
+  void raw(const std::string& topic, const std::vector<std::uint8_t>& bytes) {
+    mosquitto_publish(client_, nullptr, topic.c_str(), static_cast<int>(bytes.size()), bytes.data(), 1, false);
+  }
+
+ private:
+  void record(const mosquitto_message* message) {
+    const auto topic = sparkplug::parse_topic(message->topic);
+    if (!topic) return;
+    const auto* bytes = static_cast<const std::uint8_t*>(message->payload);
+    const auto payload = sparkplug::decode(std::span<const std::uint8_t>(bytes, static_cast<std::size_t>(message->payloadlen)));
+    if (!payload) return;
+    std::lock_guard lock(mutex_);
+    messages_.push_back(SparkplugMessage{*topic, *payload, std::chrono::steady_clock::now()});
+    changed_.notify_all();
+  }
+
+  mosquitto* client_ = nullptr;
+  std::atomic<bool> subscribed_{false};
+  std::mutex mutex_;
+  std::condition_variable changed_;
+  std::vector<SparkplugMessage> messages_;
+};
+
+inline std::function<bool(const SparkplugMessage&)> is(sparkplug::MessageType type, const std::string& device = "") {
+  return [type, device](const SparkplugMessage& m) { return m.topic.type == type && m.topic.device == device; };
+}
+
+}  // namespace sms::e2e

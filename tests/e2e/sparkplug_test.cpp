@@ -1,0 +1,262 @@
+// MQTT Sparkplug B end to end (issue 14, README "MQTT Sparkplug B"): a real Mosquitto broker on
+// loopback, the real sms-gateway and sms-sim, and a Sparkplug host stand-in (libmosquitto).
+// Births and deaths follow the servos, data follows the poll cache, commands move the simulated
+// servo through the same rules as Modbus writes, and the broker going away loses nothing.
+#include <gtest/gtest.h>
+
+#include <signal.h>
+
+#include "tests/e2e/mqtt_support.h"
+
+namespace sms::e2e {
+namespace {
+
+namespace sp = sparkplug;
+using sp::MessageType;
+
+constexpr const char* kGroup = "plant";
+constexpr const char* kNode = "gw1";
+
+std::string gateway_yaml(const std::string& pty, std::uint16_t broker, const std::string& mqtt_extra = "") {
+  return "buses:\n"
+         "  - {name: arm, device: \"" + pty + "\", protocol: feetech, baud: 1000000, poll_period_ms: 20,\n"
+         "     offline_probe_period_ms: 50}\n"
+         "servos:\n"
+         "  - {unit: 1, bus: arm, id: 1, table: sts, name: shoulder}\n"
+         "  - {unit: 2, bus: arm, id: 2, table: sts}\n"
+         "mqtt:\n"
+         "  broker: \"127.0.0.1:" + std::to_string(broker) + "\"\n"
+         "  group_id: plant\n"
+         "  edge_node_id: gw1\n"
+         "  data_period_ms: 20\n"
+         "  reconnect_min_ms: 100\n"
+         "  reconnect_max_ms: 400\n" + mqtt_extra;
+}
+
+std::optional<std::int64_t> int_of(const sp::Metric* metric) {
+  if (metric == nullptr) return std::nullopt;
+  return sp::integer_value(metric->value);
+}
+
+std::string text_of(const sp::Metric* metric) {
+  if (metric == nullptr) return "<no metric>";
+  if (const auto* s = std::get_if<std::string>(&metric->value)) return *s;
+  return "<not a string>";
+}
+
+struct Plant {
+  TempDir dir;
+  MosquittoBroker broker{dir};
+  SimProcess sim{dir, "sim", {"--ids", "1-2"}};
+  SparkplugHost host{broker.port()};
+};
+
+TEST(Sparkplug, BirthsCarryEveryFieldAndDeathsFollowTheServo) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+
+  const auto nbirth = plant.host.wait(is(MessageType::NBirth));
+  ASSERT_TRUE(nbirth) << plant.host.summary() << gateway.process().output();
+  EXPECT_EQ(nbirth->topic.group, kGroup);
+  EXPECT_EQ(nbirth->topic.edge_node, kNode);
+  EXPECT_EQ(nbirth->payload.seq, 0u);
+  ASSERT_TRUE(int_of(nbirth->metric("bdSeq")));
+  ASSERT_NE(nbirth->metric("Node Control/Rebirth"), nullptr);
+  EXPECT_EQ(int_of(nbirth->metric("Gateway/E-Stop")), 0);
+  ASSERT_NE(nbirth->metric("Gateway/Heartbeat/arm"), nullptr);
+
+  for (const std::string device : {"shoulder", "unit-2"}) {
+    const auto dbirth = plant.host.wait(is(MessageType::DBirth, device));
+    ASSERT_TRUE(dbirth) << device << "\n" << plant.host.summary();
+    const auto* position = dbirth->metric("present_position");
+    ASSERT_NE(position, nullptr);
+    EXPECT_EQ(position->type, sp::DataType::Int16);  // sts positions are signed
+    EXPECT_TRUE(position->read_only);
+    EXPECT_EQ(position->eng_unit, "steps");
+    const int id = device == "shoulder" ? 1 : 2;
+    EXPECT_EQ(int_of(position), plant.sim.field(id, "present_position"));
+    const auto* goal = dbirth->metric("goal_position");
+    ASSERT_NE(goal, nullptr);
+    EXPECT_FALSE(goal->read_only);
+    EXPECT_EQ(int_of(goal), plant.sim.field(id, "goal_position"));
+    EXPECT_NE(dbirth->metric("Gateway/Status"), nullptr);
+    EXPECT_NE(dbirth->metric("Gateway/Last Command"), nullptr);
+  }
+
+  // The servo stops answering: DDEATH; it answers again: a new DBIRTH.
+  const std::size_t before = plant.host.count();
+  plant.sim.control("offline 2");
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DDeath, "unit-2"), 10s, before)) << plant.host.summary();
+  const std::size_t dead = plant.host.count();
+  plant.sim.control("online 2");
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "unit-2"), 10s, dead)) << plant.host.summary();
+  EXPECT_FALSE(plant.host.wait(is(MessageType::DDeath, "shoulder"), 100ms));
+
+  // Every message after NBIRTH carries the next seq (0..255).
+  std::uint64_t expected = 0;
+  bool in_order = true;
+  plant.host.wait([&](const SparkplugMessage& m) {
+    if (m.topic.type == MessageType::NBirth) expected = 0;
+    in_order = in_order && m.payload.seq == expected;
+    expected = (expected + 1) % 256;
+    return false;
+  }, 0ms);
+  EXPECT_TRUE(in_order) << plant.host.summary();
+}
+
+TEST(Sparkplug, DcmdMovesTheServoAndDdataFollows) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary();
+
+  std::size_t from = plant.host.count();
+  plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder",
+                     {sp::Metric::uint16("torque_enable", 1), sp::Metric::int16("goal_position", 3000)});
+  // The acknowledgement: the written value and the command's result in DDATA.
+  const auto ack = plant.host.wait([](const SparkplugMessage& m) {
+    return m.topic.type == MessageType::DData && m.topic.device == "shoulder" && m.metric("goal_position") != nullptr;
+  }, 10s, from);
+  ASSERT_TRUE(ack) << plant.host.summary() << gateway.process().output();
+  EXPECT_EQ(int_of(ack->metric("goal_position")), 3000);
+  EXPECT_EQ(text_of(ack->metric("Gateway/Last Command")), "ok: goal_position := 3000");
+  EXPECT_EQ(plant.sim.field(1, "goal_position"), 3000);
+  EXPECT_EQ(plant.sim.field(1, "torque_enable"), 1);
+
+  // The simulated servo moves; DDATA reports its position from the poll cache until it is there.
+  const auto arrived = plant.host.wait([](const SparkplugMessage& m) {
+    const auto* position = m.metric("present_position");
+    return m.topic.type == MessageType::DData && m.topic.device == "shoulder" && position != nullptr &&
+           std::llabs(sp::integer_value(position->value).value_or(0) - 3000) <= 2;
+  }, 20s, from);
+  ASSERT_TRUE(arrived) << plant.host.summary();
+  ASSERT_TRUE(arrived->metric("present_position")->timestamp);  // when the poll read it
+
+  // Refusals: a read-only field, an EEPROM field for role operate, a value out of range. The
+  // servo keeps its value each time; Gateway/Last Command says why.
+  const auto refused = [&](sp::Metric metric, const std::string& expected) {
+    const std::size_t at = plant.host.count();
+    plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {metric});
+    const auto answer = plant.host.wait([](const SparkplugMessage& m) {
+      return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
+    }, 10s, at);
+    ASSERT_TRUE(answer) << metric.name;
+    EXPECT_NE(text_of(answer->metric("Gateway/Last Command")).find(expected), std::string::npos)
+        << text_of(answer->metric("Gateway/Last Command"));
+  };
+  const long max_temperature = plant.sim.field(1, "max_temperature");
+  refused(sp::Metric::int16("present_position", 5), "refused: present_position: read-only");
+  refused(sp::Metric::uint16("max_temperature", 60), "exception 0x02");
+  refused(sp::Metric::uint16("torque_enable", 5), "exception 0x03");  // 0, 1 or 128
+  refused(sp::Metric::string("goal_position", "fast"), "needs a whole number");
+  EXPECT_EQ(plant.sim.field(1, "goal_position"), 3000);
+  EXPECT_EQ(plant.sim.field(1, "max_temperature"), max_temperature);
+  EXPECT_EQ(plant.sim.field(1, "torque_enable"), 1);
+}
+
+TEST(Sparkplug, EstopOverNcmdBlocksMotionCommands) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary();
+  const long goal = plant.sim.field(1, "goal_position");
+
+  std::size_t from = plant.host.count();
+  plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::boolean("Gateway/E-Stop", true)});
+  const auto latched = plant.host.wait([](const SparkplugMessage& m) {
+    return m.topic.type == MessageType::NData && m.metric("Gateway/E-Stop") != nullptr;
+  }, 10s, from);
+  ASSERT_TRUE(latched) << plant.host.summary();
+  EXPECT_EQ(int_of(latched->metric("Gateway/E-Stop")), 1);
+
+  from = plant.host.count();
+  plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {sp::Metric::int16("goal_position", 1000)});
+  const auto answer = plant.host.wait([](const SparkplugMessage& m) {
+    return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
+  }, 10s, from);
+  ASSERT_TRUE(answer) << plant.host.summary();
+  EXPECT_NE(text_of(answer->metric("Gateway/Last Command")).find("exception 0x04"), std::string::npos)
+      << text_of(answer->metric("Gateway/Last Command"));
+  EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
+
+  // Garbage on the command topic and an unknown device: logged, counted, nothing written.
+  plant.host.raw("spBv1.0/plant/DCMD/gw1/shoulder", {0xFF, 0xFF, 0xFF});
+  plant.host.command(MessageType::DCmd, kGroup, kNode, "elbow", {sp::Metric::int16("goal_position", 1000)});
+  EXPECT_TRUE(gateway.process().wait_for_line("not a Sparkplug B payload", 5s)) << gateway.process().output();
+  EXPECT_TRUE(gateway.process().wait_for_line("no device `elbow`", 5s)) << gateway.process().output();
+  EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
+}
+
+TEST(Sparkplug, BrokerDownAndBackGivesNewBirthsAndAKilledGatewayItsDeath) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+  const auto first = plant.host.wait(is(MessageType::NBirth));
+  ASSERT_TRUE(first) << plant.host.summary();
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder")));
+  const auto first_bd_seq = int_of(first->metric("bdSeq"));
+
+  plant.broker.kill();
+  ASSERT_TRUE(gateway.process().wait_for_line("mqtt: lost the broker", 10s)) << gateway.process().output();
+  // Modbus goes on while the broker is away.
+  ModbusClient modbus(gateway.port(), 1);
+  ASSERT_TRUE(modbus.write_register(42, 1500).ok());
+  EXPECT_EQ(plant.sim.field(1, "goal_position"), 1500);
+  std::this_thread::sleep_for(300ms);  // a few reconnect attempts against a closed port
+
+  plant.broker.start();
+  SparkplugHost host(plant.broker.port());
+  const auto again = host.wait(is(MessageType::NBirth), 15s);
+  ASSERT_TRUE(again) << host.summary() << gateway.process().output();
+  EXPECT_NE(int_of(again->metric("bdSeq")), first_bd_seq);
+  const auto reborn = host.wait(is(MessageType::DBirth, "shoulder"));
+  ASSERT_TRUE(reborn);
+  EXPECT_EQ(int_of(reborn->metric("goal_position")), 1500);  // what happened meanwhile
+
+  // A gateway that dies without a goodbye: the broker publishes its will, NDEATH with the bdSeq
+  // of the NBIRTH it belongs to.
+  gateway.process().signal(SIGKILL);
+  const auto death = host.wait(is(MessageType::NDeath), 60s);
+  ASSERT_TRUE(death) << host.summary();
+  EXPECT_EQ(int_of(death->metric("bdSeq")), int_of(again->metric("bdSeq")));
+}
+
+TEST(Sparkplug, TlsAndCredentialsToTheBrokerAndARefusedPassword) {
+  TempDir dir;
+  const std::string certs = dir.file("certs");
+  ASSERT_EQ(std::system((std::string(SMS_SOURCE_DIR) + "/tests/e2e/make_test_certs.sh " + certs).c_str()), 0);
+  // mosquitto started as root reads its files as user mosquitto: let it.
+  for (const auto& path : {dir.file(""), certs}) {
+    std::filesystem::permissions(path, std::filesystem::perms::others_read | std::filesystem::perms::others_exec,
+                                 std::filesystem::perm_options::add);
+  }
+  for (const auto& entry : std::filesystem::directory_iterator(certs)) {
+    std::filesystem::permissions(entry.path(), std::filesystem::perms::others_read, std::filesystem::perm_options::add);
+  }
+  const std::string passwords = dir.file("passwords");
+  std::ofstream(passwords) << "";
+  ASSERT_EQ(std::system(("/usr/bin/mosquitto_passwd -b " + passwords + " gateway s3cret").c_str()), 0);
+  ASSERT_EQ(std::system(("/usr/bin/mosquitto_passwd -b " + passwords + " scada h0st").c_str()), 0);
+  std::filesystem::permissions(passwords, std::filesystem::perms::others_read, std::filesystem::perm_options::add);
+  MosquittoBroker broker(dir, "allow_anonymous false\npassword_file " + passwords + "\ncafile " + certs +
+                                  "/ca.crt\ncertfile " + certs + "/server.crt\nkeyfile " + certs + "/server.key\n");
+  SimProcess sim(dir, "sim", {"--ids", "1-2"});
+  SparkplugHost host(broker.port(), HostOptions{"scada", "h0st", certs + "/ca.crt"});
+  std::ofstream(dir.file("gateway.password")) << "s3cret\n";
+  std::ofstream(dir.file("wrong.password")) << "guess\n";
+
+  const auto yaml = [&](const std::string& password_file) {
+    return substitute(gateway_yaml(sim.pty(), broker.port(),
+                                   "  username: gateway\n  password_file: " + password_file + "\n  tls: {ca: " + certs +
+                                       "/ca.crt}\n"),
+                      "127.0.0.1:" + std::to_string(broker.port()), "localhost:" + std::to_string(broker.port()));
+  };
+  {
+    auto refused = GatewayProcess::with_config(dir, yaml(dir.file("wrong.password")), 1);
+    EXPECT_TRUE(refused.process().wait_for_line("the broker refused the connection", 10s)) << refused.process().output();
+    EXPECT_FALSE(host.wait(is(MessageType::NBirth), 500ms));
+  }
+  auto gateway = GatewayProcess::with_config(dir, yaml(dir.file("gateway.password")), 1);
+  ASSERT_TRUE(host.wait(is(MessageType::NBirth))) << host.summary() << gateway.process().output();
+  ASSERT_TRUE(host.wait(is(MessageType::DBirth, "shoulder"))) << host.summary();
+}
+
+}  // namespace
+}  // namespace sms::e2e
