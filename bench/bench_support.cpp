@@ -133,7 +133,7 @@ std::string gateway_yaml(const GatewaySetup& setup, std::uint16_t port) {
   yaml << "servos:\n";
   const char* table = setup.modbus_rtu_baud != 0 ? "smsmb" : "sts";
   for (unsigned id = 1; id <= setup.servos; ++id) yaml << "  - {bus: bench, id: " << id << ", table: " << table << "}\n";
-  yaml << "logging:\n  level: warn\n";
+  yaml << "logging:\n  level: warn\n" << setup.extra_yaml;
   return yaml.str();
 }
 

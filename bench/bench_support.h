@@ -78,6 +78,7 @@ struct GatewaySetup {
   // frame_gap (config/README.md); 0: feetech.
   std::uint32_t modbus_rtu_baud = 0;
   std::string frame_gap = "spec";
+  std::string extra_yaml;  // appended to the configuration (e.g. an mqtt section)
 };
 
 // The YAML configuration for `setup` listening on 127.0.0.1:`port`.
