@@ -22,6 +22,7 @@
 #include "config/load.h"
 #include "gateway/gateway.h"
 #include "gateway/logging.h"
+#include "gateway/sparkplug_node.h"
 #include "gateway/tls.h"
 #include "gateway/tool_cli.h"
 #include "simulator/simulated_bus.h"
@@ -63,7 +64,10 @@ std::string summary(const Config& config) {
   }
   return std::to_string(config.buses.size()) + " bus(es), " + std::to_string(config.servos.size()) + " servo(s), " +
          std::to_string(config.sync_groups.size()) + " sync group(s); " + listeners + ", gateway unit " +
-         std::to_string(config.modbus_tcp.gateway_unit_id);
+         std::to_string(config.modbus_tcp.gateway_unit_id) +
+         (config.mqtt ? "; Sparkplug B node " + config.mqtt->group_id + "/" + config.mqtt->edge_node_id + " on broker " +
+                            config.mqtt->broker.to_string()
+                      : std::string());
 }
 
 // SMS_GATEWAY_* variables over the configuration (config/env.h); false after printing why not.
@@ -97,6 +101,14 @@ int check_config(const std::string& path) {
     // fails here (ExecStartPre), not at start.
     try {
       sms::gateway::make_tls_context(*tls);
+    } catch (const std::exception& error) {
+      std::cerr << path << ": " << error.what() << "\n";
+      return kExitConfigError;
+    }
+  }
+  if (const auto& mqtt = config->mqtt) {
+    try {
+      sms::gateway::read_mqtt_files(*mqtt);
     } catch (const std::exception& error) {
       std::cerr << path << ": " << error.what() << "\n";
       return kExitConfigError;

@@ -36,14 +36,10 @@ std::uint64_t epoch_ms() {
           .count());
 }
 
-std::string read_password(const std::string& path) {
+std::ifstream open_mqtt_file(const std::string& key, const std::string& path) {
   std::ifstream in(path);
-  if (!in) throw std::runtime_error("mqtt.password_file: cannot read " + path + " (check that it exists and the gateway may read it)");
-  std::string line;
-  std::getline(in, line);
-  if (!line.empty() && line.back() == '\r') line.pop_back();
-  if (line.empty()) throw std::runtime_error("mqtt.password_file: " + path + " is empty; the password is its first line");
-  return line;
+  if (!in) throw std::runtime_error(key + ": cannot read " + path + " (check that it exists and the gateway may read it)");
+  return in;
 }
 
 // A Modbus answer: registers or bits, or the exception code and why.
@@ -91,6 +87,25 @@ sp::Metric field_metric(const std::string& name, const RegisterEntry& entry, std
 
 }  // namespace
 
+std::string read_mqtt_files(const config::MqttConfig& mqtt) {
+  if (mqtt.tls) {
+    open_mqtt_file("mqtt.tls.ca", mqtt.tls->ca);
+    if (!mqtt.tls->certificate.empty()) {
+      open_mqtt_file("mqtt.tls.certificate", mqtt.tls->certificate);
+      open_mqtt_file("mqtt.tls.private_key", mqtt.tls->private_key);
+    }
+  }
+  if (mqtt.password_file.empty()) return {};
+  auto in = open_mqtt_file("mqtt.password_file", mqtt.password_file);
+  std::string line;
+  std::getline(in, line);
+  if (!line.empty() && line.back() == '\r') line.pop_back();
+  if (line.empty()) {
+    throw std::runtime_error("mqtt.password_file: " + mqtt.password_file + " is empty; the password is its first line");
+  }
+  return line;
+}
+
 class SparkplugNode::Impl final : public Reply::Target, public std::enable_shared_from_this<SparkplugNode::Impl> {
  public:
   Impl(const config::Config& config, asio::io_context& io, UnitRouter& router)
@@ -111,7 +126,7 @@ class SparkplugNode::Impl final : public Reply::Target, public std::enable_share
     options.broker = settings_.broker;
     options.client_id = settings_.client_id;
     options.username = settings_.username;
-    if (!settings_.password_file.empty()) options.password = read_password(settings_.password_file);
+    options.password = read_mqtt_files(settings_);
     options.tls = settings_.tls;
     options.keepalive = settings_.keepalive;
     options.reconnect_min = settings_.reconnect_min;

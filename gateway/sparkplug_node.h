@@ -48,6 +48,11 @@ inline constexpr std::string_view kHeartbeatPrefix = "Gateway/Heartbeat/";      
 inline constexpr std::string_view kVersion = "Gateway/Version";
 }  // namespace sparkplug_metric
 
+// The files `mqtt` names, read as the node will read them: the password (first line of
+// password_file; empty without one) and the TLS files. Throws std::runtime_error naming the key,
+// the file and what to do. sms-gateway --check-config runs it too.
+std::string read_mqtt_files(const config::MqttConfig& mqtt);
+
 class SparkplugNode {
  public:
   // `router` answers the node's requests on `io`'s thread; both outlive the node.

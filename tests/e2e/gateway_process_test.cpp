@@ -315,7 +315,7 @@ TEST(GatewayProcess, ConfigErrorNamesFileLineAndColumn) {
 }
 
 TEST(GatewayProcess, CheckConfigAcceptsTheShippedExamples) {
-  for (const char* example : {"simulated.yaml", "mixed.yaml"}) {
+  for (const char* example : {"simulated.yaml", "mixed.yaml", "mqtt.yaml"}) {
     ChildProcess check({bin("sms-gateway"), "--check-config", std::string(SMS_SOURCE_DIR) + "/config/examples/" + example});
     EXPECT_EQ(check.wait_exit(10s), std::optional<int>{0}) << check.output();
     EXPECT_NE(check.output().find("OK"), std::string::npos) << check.output();

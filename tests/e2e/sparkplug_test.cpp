@@ -185,6 +185,52 @@ TEST(Sparkplug, EstopOverNcmdBlocksMotionCommands) {
   EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
 }
 
+TEST(Sparkplug, RebirthAndHeartbeatOverNcmd) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(
+      plant.dir,
+      substitute(gateway_yaml(plant.sim.pty(), plant.broker.port()), "offline_probe_period_ms: 50}",
+                 "offline_probe_period_ms: 50,\n     watchdog: {timeout_ms: 600, feed: heartbeat_register}}"),
+      1);
+  const auto first = plant.host.wait(is(MessageType::NBirth));
+  ASSERT_TRUE(first) << plant.host.summary() << gateway.process().output();
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "unit-2")));
+
+  // Rebirth: NBIRTH again (same bdSeq: same session, seq from 0), then every DBIRTH.
+  std::size_t from = plant.host.count();
+  plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::boolean("Node Control/Rebirth", true)});
+  const auto again = plant.host.wait(is(MessageType::NBirth), 10s, from);
+  ASSERT_TRUE(again) << plant.host.summary();
+  EXPECT_EQ(again->payload.seq, 0u);
+  EXPECT_EQ(int_of(again->metric("bdSeq")), int_of(first->metric("bdSeq")));
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"), 10s, from));
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "unit-2"), 10s, from));
+
+  // The heartbeat register through NCMD feeds the watchdog: a changing value every 100 ms keeps it
+  // from tripping for well over its 600 ms timeout, and motion commands pass meanwhile.
+  for (int beat = 1; beat <= 12; ++beat) {
+    plant.host.command(MessageType::NCmd, kGroup, kNode, "",
+                       {sp::Metric::uint16("Gateway/Heartbeat/arm", static_cast<std::uint16_t>(beat))});
+    std::this_thread::sleep_for(100ms);
+  }
+  EXPECT_FALSE(plant.host.wait([](const SparkplugMessage& m) {
+    const auto* tripped = m.metric("Gateway/Watchdog Tripped");
+    return m.topic.type == MessageType::NData && tripped != nullptr && sp::integer_value(tripped->value) == 1;
+  }, 0ms, from)) << gateway.process().output();
+  // Heartbeats stop: the watchdog trips, NDATA says so, and re-arming over NCMD clears it.
+  const auto tripped = plant.host.wait([](const SparkplugMessage& m) {
+    const auto* metric = m.metric("Gateway/Watchdog Tripped");
+    return m.topic.type == MessageType::NData && metric != nullptr && sp::integer_value(metric->value) == 1;
+  }, 10s, from);
+  ASSERT_TRUE(tripped) << plant.host.summary() << gateway.process().output();
+  from = plant.host.count();
+  plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::boolean("Gateway/Watchdog Tripped", false)});
+  ASSERT_TRUE(plant.host.wait([](const SparkplugMessage& m) {
+    const auto* metric = m.metric("Gateway/Watchdog Tripped");
+    return m.topic.type == MessageType::NData && metric != nullptr && sp::integer_value(metric->value) == 0;
+  }, 10s, from)) << plant.host.summary() << gateway.process().output();
+}
+
 TEST(Sparkplug, BrokerDownAndBackGivesNewBirthsAndAKilledGatewayItsDeath) {
   Plant plant;
   auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
@@ -256,6 +302,25 @@ TEST(Sparkplug, TlsAndCredentialsToTheBrokerAndARefusedPassword) {
   auto gateway = GatewayProcess::with_config(dir, yaml(dir.file("gateway.password")), 1);
   ASSERT_TRUE(host.wait(is(MessageType::NBirth))) << host.summary() << gateway.process().output();
   ASSERT_TRUE(host.wait(is(MessageType::DBirth, "shoulder"))) << host.summary();
+}
+
+TEST(Sparkplug, TlsToAPlainBrokerIsLoggedAndModbusGoesOn) {
+  TempDir dir;
+  const std::string certs = dir.file("certs");
+  ASSERT_EQ(std::system((std::string(SMS_SOURCE_DIR) + "/tests/e2e/make_test_certs.sh " + certs).c_str()), 0);
+  MosquittoBroker broker(dir);  // plain MQTT: the gateway's TLS handshake gets MQTT bytes back
+  SimProcess sim(dir, "sim", {"--ids", "1-2"});
+  auto gateway = GatewayProcess::with_config(
+      dir, gateway_yaml(sim.pty(), broker.port(), "  tls: {ca: " + certs + "/ca.crt}\n"), 1);
+  ASSERT_TRUE(gateway.process().wait_for_line("mqtt: cannot connect to broker", 10s)) << gateway.process().output();
+  ModbusClient modbus(gateway.port(), 1);
+  EXPECT_TRUE(modbus.read_input(56, 2).ok());
+  std::this_thread::sleep_for(500ms);  // several attempts: logged once, no crash
+  EXPECT_TRUE(modbus.read_input(56, 2).ok());
+  const std::string output = gateway.process().output();
+  std::size_t lines = 0;
+  for (std::size_t at = 0; (at = output.find("mqtt: cannot connect", at)) != std::string::npos; ++at) ++lines;
+  EXPECT_EQ(lines, 1u) << output;
 }
 
 }  // namespace

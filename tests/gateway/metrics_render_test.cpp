@@ -178,6 +178,40 @@ TEST_F(MetricsRender, TcpConnectionCounters) {
   EXPECT_EQ(e.types.at("sms_gateway_tcp_connections"), "gauge");
 }
 
+TEST_F(MetricsRender, MqttFamiliesOnlyWithMqtt) {
+  auto with = snapshot();
+  EXPECT_EQ(render_prometheus(with).find("sms_gateway_mqtt_"), std::string::npos);
+  SparkplugStats mqtt;
+  mqtt.link.connected = true;
+  mqtt.link.connects = 3;
+  mqtt.link.connect_failures = 7;
+  mqtt.link.disconnects = 2;
+  mqtt.link.publish_failures = 4;
+  mqtt.published[0] = 3;   // NBIRTH
+  mqtt.published[2] = 12;  // DBIRTH
+  mqtt.published[5] = 900; // DDATA
+  mqtt.commands_ok = 11;
+  mqtt.commands_refused = 5;
+  mqtt.bad_messages = 1;
+  mqtt.devices_online = 6;
+  with.mqtt = mqtt;
+  const auto e = parse_exposition(render_prometheus(with));
+  EXPECT_EQ(e.value("sms_gateway_mqtt_connected"), "1");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_sessions_total{event=\"connected\"}"), "3");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_sessions_total{event=\"failed\"}"), "7");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_sessions_total{event=\"lost\"}"), "2");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_messages_published_total{type=\"NBIRTH\"}"), "3");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_messages_published_total{type=\"DBIRTH\"}"), "12");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_messages_published_total{type=\"DDATA\"}"), "900");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_messages_published_total{type=\"NDEATH\"}"), "0");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_publish_failures_total"), "4");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_commands_total{result=\"ok\"}"), "11");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_commands_total{result=\"refused\"}"), "5");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_bad_messages_total"), "1");
+  EXPECT_EQ(e.value("sms_gateway_mqtt_devices_online"), "6");
+  EXPECT_EQ(e.types.at("sms_gateway_mqtt_sessions_total"), "counter");
+}
+
 TEST_F(MetricsRender, RequestsByFunctionShowTheContractsFunctionsEvenAtZero) {
   const auto e = parse_exposition(render_prometheus(snapshot()));
   EXPECT_EQ(e.value("sms_gateway_modbus_requests_total{function=\"3\",name=\"read_holding_registers\"}"), "4");
