@@ -10,6 +10,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <limits>
 #include <map>
 #include <span>
@@ -364,6 +365,23 @@ class Loader {
     return items;
   }
 
+  // A map of names to values ({plc-1: operate}): `expected` describes it for the error; each
+  // name is a non-empty string given once; `each` gets the name, its mark and its value.
+  void named_map(const Value& value, const std::string& expected,
+                 const std::function<void(const std::string&, const YAML::Mark&, const Value&)>& each) const {
+    if (!value.node.IsMap()) fail(value.mark, value.path + ": expected " + expected + ", got " + describe(value.node));
+    std::vector<std::pair<std::string, YAML::Mark>> seen;
+    for (const auto& entry : value.node) {
+      const YAML::Node& name_node = entry.first;
+      const std::string name = string(Value{name_node, name_node.Mark(), value.path});
+      for (const auto& [other, mark] : seen) {
+        if (other == name) fail(name_node.Mark(), value.path + ": `" + name + "` is given twice (first at " + place(mark) + ")");
+      }
+      seen.emplace_back(name, name_node.Mark());
+      each(name, name_node.Mark(), entry_value(name_node, entry.second, value.path + "." + name));
+    }
+  }
+
  private:
   ModbusTcpConfig parse_modbus_tcp(const Value& value);
   TlsConfig parse_tls(const Value& value);
@@ -519,24 +537,11 @@ TlsConfig Loader::parse_tls(const Value& value) {
   tls.private_key = string(keys.require("private_key"));
   tls.ca = string(keys.require("ca"));
   if (const auto v = keys.find("roles")) {
-    if (!v->node.IsMap()) {
-      fail(v->mark, v->path + ": expected a map of certificate names (subject CN or subjectAltName) to roles "
-                              "(read, operate, engineer, none), e.g. {plc-1: operate}, got " + describe(v->node));
-    }
-    std::vector<YAML::Mark> marks;
-    for (const auto& entry : v->node) {
-      const YAML::Node& name_node = entry.first;
-      const Value name_value{name_node, name_node.Mark(), v->path};
-      const std::string name = string(name_value);
-      for (std::size_t i = 0; i < tls.roles.size(); ++i) {
-        if (tls.roles[i].name == name) {
-          fail(name_node.Mark(), v->path + ": `" + name + "` is given twice (first at " + place(marks[i]) + ")");
-        }
-      }
-      const Value role_value = entry_value(name_node, entry.second, v->path + "." + name);
-      tls.roles.push_back(TlsRoleMapping{name, choice(role_value, detail::kRoleNames)});
-      marks.push_back(name_node.Mark());
-    }
+    named_map(*v, "a map of certificate names (subject CN or subjectAltName) to roles (read, operate, engineer, "
+                  "none), e.g. {plc-1: operate}",
+              [&](const std::string& name, const YAML::Mark&, const Value& role) {
+                tls.roles.push_back(TlsRoleMapping{name, choice(role, detail::kRoleNames)});
+              });
   }
   if (const auto v = keys.find("default_role")) tls.default_role = choice(*v, detail::kRoleNames);
   return tls;
@@ -597,29 +602,18 @@ std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& c
                                                 std::to_string(mqtt.reconnect_min.count()) + ")");
   }
   if (const auto v = keys.find("deadband")) {
-    if (!v->node.IsMap()) {
-      fail(v->mark, v->path + ": expected a map of field names to deadbands in register units, e.g. "
-                              "{present_position: 2}, got " + describe(v->node));
-    }
-    std::vector<YAML::Mark> marks;
-    for (const auto& entry : v->node) {
-      const YAML::Node& name_node = entry.first;
-      const std::string field = string(Value{name_node, name_node.Mark(), v->path});
-      bool known = false;
-      for (const auto* table : modbus_map::all_tables()) {
-        for (const auto& spec : table->fields) known = known || spec.name == field;
-      }
-      if (!known) fail(name_node.Mark(), v->path + ": `" + field + "` is not a field of any table (docs/REGISTER_MAP.md "
-                                                                   "lists each table's fields)");
-      for (std::size_t i = 0; i < mqtt.deadbands.size(); ++i) {
-        if (mqtt.deadbands[i].field == field) {
-          fail(name_node.Mark(), v->path + ": `" + field + "` is given twice (first at " + place(marks[i]) + ")");
-        }
-      }
-      const auto band = integer(entry_value(name_node, entry.second, v->path + "." + field), 0, 65535);
-      mqtt.deadbands.push_back(MqttDeadband{field, static_cast<std::uint32_t>(band)});
-      marks.push_back(name_node.Mark());
-    }
+    named_map(*v, "a map of field names to deadbands in register units, e.g. {present_position: 2}",
+              [&](const std::string& field, const YAML::Mark& mark, const Value& band) {
+                bool known = false;
+                for (const auto* table : modbus_map::all_tables()) {
+                  for (const auto& spec : table->fields) known = known || spec.name == field;
+                }
+                if (!known) {
+                  fail(mark, v->path + ": `" + field + "` is not a field of any table (docs/REGISTER_MAP.md lists "
+                                       "each table's fields)");
+                }
+                mqtt.deadbands.push_back(MqttDeadband{field, static_cast<std::uint32_t>(integer(band, 0, 65535))});
+              });
   }
   // Every table servo is a device; its ID must be a topic level and unique.
   for (std::size_t i = 0; i < config.servos.size(); ++i) {

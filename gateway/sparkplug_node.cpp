@@ -274,9 +274,13 @@ class SparkplugNode::Impl final : public Reply::Target, public std::enable_share
 
   // ---- requests to the router, as a Modbus client ----
 
+  // Commands pass the role's rights first; the node's own reads (what it publishes) do not: the
+  // role says what the hosts may change, not what the node reports.
   void ask(std::uint8_t unit_id, const Request& request, std::function<void(const Answer&)> done) {
     const Bytes pdu = request_pdu(request);
-    if (const auto refusal = policy_.refusal(settings_.role, unit_id, pdu)) {
+    const bool command = !std::holds_alternative<ReadBitsRequest>(request) &&
+                         !std::holds_alternative<ReadRegistersRequest>(request);
+    if (const auto refusal = command ? policy_.refusal(settings_.role, unit_id, pdu) : std::nullopt) {
       return done(Answer{exception_response(function_of(request), refusal->fault),
                          "role " + std::string(config::to_string(settings_.role)) + " may not: " + refusal->reason});
     }

@@ -231,6 +231,24 @@ TEST(Sparkplug, RebirthAndHeartbeatOverNcmd) {
   }, 10s, from)) << plant.host.summary() << gateway.process().output();
 }
 
+TEST(Sparkplug, RoleReadPublishesButRefusesEveryCommand) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port(), "  role: read\n"), 1);
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary() << gateway.process().output();
+  const long goal = plant.sim.field(1, "goal_position");
+  const std::size_t from = plant.host.count();
+  plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {sp::Metric::int16("goal_position", 1234)});
+  const auto answer = plant.host.wait([](const SparkplugMessage& m) {
+    return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
+  }, 10s, from);
+  ASSERT_TRUE(answer) << plant.host.summary();
+  EXPECT_NE(text_of(answer->metric("Gateway/Last Command")).find("exception 0x01"), std::string::npos)
+      << text_of(answer->metric("Gateway/Last Command"));
+  EXPECT_NE(text_of(answer->metric("Gateway/Last Command")).find("role read"), std::string::npos)
+      << text_of(answer->metric("Gateway/Last Command"));
+  EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
+}
+
 TEST(Sparkplug, BrokerDownAndBackGivesNewBirthsAndAKilledGatewayItsDeath) {
   Plant plant;
   auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
