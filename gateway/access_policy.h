@@ -16,7 +16,7 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 
 namespace sms::gateway {
 

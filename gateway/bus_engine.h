@@ -2,7 +2,7 @@
 // One engine per servo bus: it owns the serial port, runs bus operations strictly one at a
 // time on its own thread in priority order (FIFO within a priority), polls the feedback block
 // of every servo into its PollCache, discovers the servos at start and reopens a lost port by
-// itself. The Modbus TCP side talks to it through submit() and cache() only (gateway/bus.h).
+// itself. The Modbus TCP side talks to it through submit() and cache() only (gateway/bus_operations.h).
 //
 //   auto engine = make_bus_engine(settings);   // settings: bus_settings_for(...) or by hand
 //   engine->start();
@@ -22,7 +22,7 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/bus.h"
+#include "gateway/bus_operations.h"
 #include "gateway/bus_counters.h"
 #include "gateway/motion_gate.h"
 #include "gateway/poll_cache.h"

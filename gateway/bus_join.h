@@ -9,7 +9,7 @@
 #include <mutex>
 #include <vector>
 
-#include "gateway/bus.h"
+#include "gateway/bus_operations.h"
 
 namespace sms::gateway {
 

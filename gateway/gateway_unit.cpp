@@ -7,7 +7,7 @@
 
 #include <spdlog/spdlog.h>
 
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
 

@@ -7,7 +7,7 @@
 #include <variant>
 #include <vector>
 
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 #include "protocol/expected.h"
 #include "protocol/modbus_pdu.h"
 #include "protocol/packet.h"

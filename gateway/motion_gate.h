@@ -9,7 +9,7 @@
 #include <atomic>
 #include <cstdint>
 
-#include "gateway/bus.h"
+#include "gateway/bus_operations.h"
 
 namespace sms::gateway {
 

@@ -25,7 +25,7 @@
 #include <variant>
 
 #include "gateway/discovery.h"
-#include "gateway/poller.h"
+#include "gateway/poll_scheduler.h"
 #include "modbus_map/tables.h"
 #include "protocol/d55d.h"
 #include "protocol/feetech.h"

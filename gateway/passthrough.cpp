@@ -6,7 +6,7 @@
 
 #include <spdlog/spdlog.h>
 
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 #include "gateway/modbus_request.h"
 #include "gateway/rtu_bus_engine.h"
 #include "gateway/tcp_serving.h"

@@ -28,7 +28,7 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {

@@ -24,7 +24,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/discovery.h"
-#include "gateway/poller.h"
+#include "gateway/poll_scheduler.h"
 #include "gateway/serial_port_termios2.h"
 #include "modbus_map/tables.h"
 #include "protocol/modbus_pdu.h"

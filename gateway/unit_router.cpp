@@ -6,7 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/access_policy.h"
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 #include "gateway/passthrough.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"

@@ -20,7 +20,7 @@
 #include <vector>
 
 #include "fuzz_support.h"
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 #include "gateway/modbus_request.h"
 #include "protocol/modbus_tcp.h"
 

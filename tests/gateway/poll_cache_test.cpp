@@ -8,7 +8,7 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/poller.h"
+#include "gateway/poll_scheduler.h"
 
 namespace sms::gateway {
 namespace {

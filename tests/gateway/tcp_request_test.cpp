@@ -2,7 +2,7 @@
 // written out by hand from the Modbus application protocol v1.1b3 §6.
 #include <gtest/gtest.h>
 
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 #include "gateway/modbus_request.h"
 
 namespace sms::gateway {

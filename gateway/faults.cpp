@@ -1,4 +1,4 @@
-#include "gateway/exceptions.h"
+#include "gateway/faults.h"
 
 #include <array>
 #include <stdexcept>

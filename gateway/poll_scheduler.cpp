@@ -1,4 +1,4 @@
-#include "gateway/poller.h"
+#include "gateway/poll_scheduler.h"
 
 #include <algorithm>
 #include <utility>

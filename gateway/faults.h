@@ -6,7 +6,7 @@
 #include <span>
 #include <string_view>
 
-#include "gateway/bus.h"
+#include "gateway/bus_operations.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {
