@@ -20,6 +20,7 @@
 #include "config/names.h"
 #include "modbus_map/baud_tables.h"
 #include "modbus_map/tables.h"
+#include "protocol/modbus_pdu.h"
 
 namespace sms::config {
 namespace {
@@ -60,8 +61,9 @@ constexpr std::array<std::string_view, 3> kMqttTlsKeys{"ca", "certificate", "pri
 constexpr std::string_view kPassthroughTable = "passthrough";
 constexpr std::uint8_t kMaxUnitId = 247;            // Modbus slave addresses
 constexpr std::uint8_t kMaxPacketServoId = 253;     // 254 is the broadcast ID (SPEC §1)
-constexpr std::size_t kMaxWriteRegisters = 123;     // FC16 limit: a sync group is one FC16 write
-constexpr std::uint16_t kMaxRtuReadRegisters = 125; // FC03 limit on a modbus-rtu bus
+// A sync group is one FC16 write; a modbus-rtu poll block one FC03.
+constexpr std::size_t kMaxWriteRegisters = protocol::modbus_limits::kWriteRegisters;
+constexpr std::uint16_t kMaxRtuReadRegisters = protocol::modbus_limits::kReadRegisters;
 constexpr std::uint16_t kMaxPacketReadBytes = 253;  // READ reply LEN = count + 2 fits one byte
 
 // Where the loader is: a node, the place to blame for it, and its path in the document.

@@ -19,14 +19,7 @@ using protocol::Bytes;
 namespace function_code = protocol::function_code;
 
 // Quantity limits of the Modbus application protocol (v1.1b3 §6).
-namespace limits {
-inline constexpr std::uint16_t kReadBits = 2000;
-inline constexpr std::uint16_t kReadRegisters = 125;
-inline constexpr std::uint16_t kWriteBits = 1968;
-inline constexpr std::uint16_t kWriteRegisters = 123;
-inline constexpr std::uint16_t kReadWriteRead = 125;
-inline constexpr std::uint16_t kReadWriteWrite = 121;
-}  // namespace limits
+namespace limits = protocol::modbus_limits;
 
 struct ReadBitsRequest {  // 01 coils, 02 discrete inputs
   std::uint8_t function = 0;

@@ -352,8 +352,8 @@ namespace fc = protocol::function_code;
 
 constexpr std::uint8_t kBroadcastSlave = 0;
 constexpr std::uint8_t kMaxSlave = 247;
-constexpr std::uint16_t kMaxReadRegisters = 125;
-constexpr std::uint16_t kMaxWriteRegisters = 123;
+constexpr std::uint16_t kMaxReadRegisters = protocol::modbus_limits::kReadRegisters;
+constexpr std::uint16_t kMaxWriteRegisters = protocol::modbus_limits::kWriteRegisters;
 constexpr std::size_t kMaxPdu = 253;
 constexpr std::uint8_t kBytesPerRegister = 2;
 

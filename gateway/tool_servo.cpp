@@ -8,6 +8,7 @@
 
 #include "modbus_map/baud_tables.h"
 #include "modbus_map/tables.h"
+#include "protocol/modbus_pdu.h"
 
 namespace sms::gateway {
 
@@ -46,7 +47,7 @@ constexpr std::array<MidpointCalibration, 2> kCalibrations{{
 
 // Packet tables read in chunks of at most this many bytes (one READ each).
 constexpr std::uint16_t kDumpChunkBytes = 128;
-constexpr std::uint16_t kMaxReadRegisters = 125;
+constexpr std::uint16_t kMaxReadRegisters = protocol::modbus_limits::kReadRegisters;
 
 modbus_map::ByteOrder order_of(const TableSpec& table) {
   return table.addressing == Addressing::Register ? modbus_map::ByteOrder::HighFirst : table.default_byte_order;

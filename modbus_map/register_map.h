@@ -21,6 +21,7 @@
 
 #include "modbus_map/control_table.h"
 #include "protocol/expected.h"
+#include "protocol/modbus_pdu.h"
 #include "protocol/packet.h"
 
 namespace sms::modbus_map {
@@ -51,12 +52,7 @@ std::string_view to_string(Profile profile);  // "native", "smsmb"
 std::optional<Profile> profile_from_name(std::string_view name);
 
 // Quantity limits of the Modbus application protocol.
-namespace modbus_limits {
-inline constexpr std::uint16_t kReadRegisters = 125;
-inline constexpr std::uint16_t kWriteRegisters = 123;
-inline constexpr std::uint16_t kReadBits = 2000;
-inline constexpr std::uint16_t kWriteBits = 1968;
-}  // namespace modbus_limits
+namespace modbus_limits = protocol::modbus_limits;
 
 // Holding register 512 + a is the staged (REG WRITE) write of field a (packet buses only).
 inline constexpr std::uint16_t kStagedWriteBase = 512;

@@ -1,6 +1,7 @@
 #pragma once
-// Modbus function codes (Modbus application protocol v1.1b3 §6), shared by the TCP side, the
-// RTU master and the tools. Header only, no code.
+// Modbus function codes and quantity limits (Modbus application protocol v1.1b3 §6): the one
+// home of both, shared by the register map, the TCP side, the RTU master and the tools. Header
+// only, no code.
 #include <cstdint>
 
 namespace sms::protocol::function_code {
@@ -19,3 +20,14 @@ inline constexpr std::uint8_t kReadWriteMultipleRegisters = 0x17;
 inline constexpr std::uint8_t kExceptionBit = 0x80;
 
 }  // namespace sms::protocol::function_code
+
+namespace sms::protocol::modbus_limits {
+
+inline constexpr std::uint16_t kReadBits = 2000;
+inline constexpr std::uint16_t kReadRegisters = 125;
+inline constexpr std::uint16_t kWriteBits = 1968;
+inline constexpr std::uint16_t kWriteRegisters = 123;
+inline constexpr std::uint16_t kReadWriteRead = 125;   // FC23's read half
+inline constexpr std::uint16_t kReadWriteWrite = 121;  // FC23's write half
+
+}  // namespace sms::protocol::modbus_limits

@@ -12,6 +12,7 @@
 #include "modbus_map/tables.h"
 #include "protocol/feetech.h"
 #include "protocol/instructions.h"
+#include "protocol/modbus_pdu.h"
 
 namespace sms::simulator {
 
@@ -61,8 +62,8 @@ constexpr std::int32_t kTorqueCalibrate = 128;
 constexpr std::uint8_t kIllegalFunction = 0x01;
 constexpr std::uint8_t kIllegalAddress = 0x02;
 constexpr std::uint8_t kIllegalValue = 0x03;
-constexpr std::uint16_t kMaxReadRegisters = 125;
-constexpr std::uint16_t kMaxWriteRegisters = 123;
+constexpr std::uint16_t kMaxReadRegisters = protocol::modbus_limits::kReadRegisters;
+constexpr std::uint16_t kMaxWriteRegisters = protocol::modbus_limits::kWriteRegisters;
 
 double seconds_between(Clock::time_point from, Clock::time_point to) {
   return std::chrono::duration<double>(to - from).count();
