@@ -22,8 +22,8 @@
 
 #include "bench/bench_support.h"
 #include "config/config.h"
-#include "gateway/passthrough.h"
-#include "gateway/rtu_bus_engine.h"
+#include "gateway/units/passthrough.h"
+#include "gateway/bus/rtu_bus_engine.h"
 
 namespace {
 

@@ -20,7 +20,7 @@
 #include <modbus/modbus.h>
 
 #include "bench/bench_support.h"
-#include "gateway/serial_port.h"
+#include "gateway/bus/serial_port.h"
 #include "protocol/instructions.h"
 #include "protocol/packet.h"
 

@@ -6,12 +6,12 @@
 #include <spdlog/spdlog.h>
 
 #include "config/load.h"
-#include "gateway/metrics_server.h"
-#include "gateway/safety.h"
-#include "gateway/sparkplug_node.h"
-#include "gateway/tcp_serving.h"
-#include "gateway/tls.h"
-#include "gateway/unit_router.h"
+#include "gateway/observability/metrics_server.h"
+#include "gateway/units/safety.h"
+#include "gateway/mqtt/sparkplug_node.h"
+#include "gateway/modbus_tcp/tcp_serving.h"
+#include "gateway/modbus_tcp/tls.h"
+#include "gateway/units/unit_router.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {

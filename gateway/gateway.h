@@ -13,9 +13,9 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/bus_engine.h"
-#include "gateway/metrics.h"
-#include "gateway/tcp_server.h"
+#include "gateway/bus/bus_engine.h"
+#include "gateway/observability/metrics.h"
+#include "gateway/modbus_tcp/tcp_server.h"
 
 namespace sms::gateway {
 

@@ -5,7 +5,7 @@
 //   sms-gateway --check-config gateway.yaml
 //
 // Integrator tools (scan, set-id, set-baud, calibrate-middle, dump) and the transparent
-// forwarder come as subcommands (gateway/tool_cli.h); without a subcommand the gateway runs.
+// forwarder come as subcommands (gateway/tools/tool_cli.h); without a subcommand the gateway runs.
 #include <signal.h>
 
 #include <chrono>
@@ -21,10 +21,10 @@
 #include "config/env.h"
 #include "config/load.h"
 #include "gateway/gateway.h"
-#include "gateway/logging.h"
-#include "gateway/sparkplug_node.h"
-#include "gateway/tls.h"
-#include "gateway/tool_cli.h"
+#include "gateway/observability/logging.h"
+#include "gateway/mqtt/sparkplug_node.h"
+#include "gateway/modbus_tcp/tls.h"
+#include "gateway/tools/tool_cli.h"
 #include "simulator/simulated_bus.h"
 
 namespace {

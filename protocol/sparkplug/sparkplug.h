@@ -1,6 +1,6 @@
 #pragma once
 // Sparkplug B (Eclipse Sparkplug 3.0.0) as pure functions: topics and payloads, bytes in and
-// bytes out. No MQTT client, no sockets, no clock: the edge node (gateway/sparkplug_node.h)
+// bytes out. No MQTT client, no sockets, no clock: the edge node (gateway/mqtt/sparkplug_node.h)
 // decides what to send and when.
 //
 //   Topic topic{.group = "plant", .type = MessageType::DData, .edge_node = "gw1", .device = "arm1"};

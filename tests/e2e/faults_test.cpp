@@ -636,7 +636,7 @@ TEST(Faults, ClientThatNeverReadsItsAnswersCannotMakeTheGatewayBufferWithoutBoun
   EXPECT_LT(growth, kMaxGrowthMiB)
       << "sms-gateway grew by " << growth << " MiB holding answers for a client that reads none (" << waiting()
       << " of " << sent << " request bytes still unread): a session must stop reading requests while its unsent "
-      << "answers exceed a bound (gateway/mbap_session.cpp: outbox_ grows without limit)";
+      << "answers exceed a bound (gateway/modbus_tcp/mbap_session.cpp: outbox_ grows without limit)";
   EXPECT_TRUE(witness.answered_now()) << witness.failure();
   hoarder.close();
   EXPECT_TRUE(witness.answered_now()) << witness.failure();

@@ -71,7 +71,7 @@ TEST(Operations, EnvironmentSetsListenMetricsAndJsonLogs) {
 
   gateway.signal(SIGTERM);
   ASSERT_EQ(gateway.wait_exit(10s), std::optional<int>{0}) << gateway.output();
-  // Every line is one JSON object with the four keys, in order (gateway/logging.h).
+  // Every line is one JSON object with the four keys, in order (gateway/observability/logging.h).
   const auto lines = lines_of(gateway.output());
   ASSERT_GE(lines.size(), 4U);
   for (const auto& line : lines) {

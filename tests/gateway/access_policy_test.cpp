@@ -4,7 +4,7 @@
 
 #include <string>
 
-#include "gateway/access_policy.h"
+#include "gateway/modbus_tcp/access_policy.h"
 
 namespace sms::gateway {
 namespace {

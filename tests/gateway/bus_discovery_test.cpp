@@ -1,6 +1,6 @@
 // Identity decoding and the discovery summary text (the engine's discovery itself runs
 // against the simulator in poll_cycle_test.cpp).
-#include "gateway/discovery.h"
+#include "gateway/bus/discovery.h"
 
 #include <gtest/gtest.h>
 

@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "bus_test_support.h"
-#include "gateway/packet_bus_engine.h"
+#include "gateway/bus/packet_bus_engine.h"
 
 namespace sms::gateway {
 namespace {

@@ -1,6 +1,6 @@
 // SerialPort on a real pty: raw mode at exotic rates, flushing, loss of the other side, and
 // the errors an integration engineer sees for a wrong `device`.
-#include "gateway/serial_port.h"
+#include "gateway/bus/serial_port.h"
 
 #include <fcntl.h>
 #include <gtest/gtest.h>

@@ -13,7 +13,7 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/bus_engine.h"
+#include "gateway/bus/bus_engine.h"
 #include "modbus_map/register_map.h"
 #include "simulator/simulated_bus.h"
 

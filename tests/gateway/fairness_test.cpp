@@ -10,7 +10,7 @@
 #include <string>
 #include <thread>
 
-#include "gateway/bus_engine.h"
+#include "gateway/bus/bus_engine.h"
 #include "simulator/simulated_bus.h"
 #include "tests/gateway/bus_test_support.h"
 

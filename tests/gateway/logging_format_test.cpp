@@ -10,7 +10,7 @@
 #include <spdlog/sinks/base_sink.h>
 #include <spdlog/spdlog.h>
 
-#include "gateway/logging.h"
+#include "gateway/observability/logging.h"
 
 namespace sms::gateway {
 namespace {

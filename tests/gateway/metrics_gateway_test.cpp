@@ -7,7 +7,7 @@
 #include <string>
 #include <thread>
 
-#include "gateway/metrics_server.h"
+#include "gateway/observability/metrics_server.h"
 #include "tests/gateway/metrics_http_client.h"
 #include "tests/gateway/router_fixture.h"
 

@@ -8,7 +8,7 @@
 #include <vector>
 
 #include "config/load.h"
-#include "gateway/metrics.h"
+#include "gateway/observability/metrics.h"
 #include "tests/gateway/metrics_http_client.h"
 
 // Designated initializers leave the members a test does not name at their defaults, on purpose.

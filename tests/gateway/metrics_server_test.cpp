@@ -14,7 +14,7 @@
 #include <string>
 #include <thread>
 
-#include "gateway/metrics_server.h"
+#include "gateway/observability/metrics_server.h"
 #include "tests/gateway/metrics_http_client.h"
 
 // Designated initializers leave the members a test does not name at their defaults, on purpose.

@@ -8,8 +8,8 @@
 #include <string>
 #include <vector>
 
-#include "gateway/bus_engine.h"
-#include "gateway/motion_gate.h"
+#include "gateway/bus/bus_engine.h"
+#include "gateway/bus/motion_gate.h"
 #include "simulator/simulated_bus.h"
 #include "tests/gateway/bus_test_support.h"
 

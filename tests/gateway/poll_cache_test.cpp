@@ -1,5 +1,5 @@
 // PollCache: what the Modbus TCP threads read, and PollScheduler: what a poll cycle sends.
-#include "gateway/poll_cache.h"
+#include "gateway/bus/poll_cache.h"
 
 #include <gtest/gtest.h>
 
@@ -8,7 +8,7 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/poll_scheduler.h"
+#include "gateway/bus/poll_scheduler.h"
 
 namespace sms::gateway {
 namespace {

@@ -1,10 +1,10 @@
-// The rights of the Modbus/TCP Security roles (gateway/role_policy.h): what read, operate and
+// The rights of the Modbus/TCP Security roles (gateway/modbus_tcp/role_policy.h): what read, operate and
 // engineer may ask of servo units, passthrough units and the gateway unit, and which exception
 // a refusal is (0x01 for a function class the role lacks, 0x02 for an address it may not write).
 #include <gtest/gtest.h>
 
 #include "config/load.h"
-#include "gateway/role_policy.h"
+#include "gateway/modbus_tcp/role_policy.h"
 
 namespace sms::gateway {
 namespace {

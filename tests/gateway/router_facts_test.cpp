@@ -2,7 +2,7 @@
 // unit"): values written out by hand.
 #include <gtest/gtest.h>
 
-#include "gateway/unit_router.h"
+#include "gateway/units/unit_router.h"
 
 namespace sms::gateway {
 namespace {

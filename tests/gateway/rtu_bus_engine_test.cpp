@@ -11,8 +11,8 @@
 #include <string_view>
 #include <vector>
 
-#include "gateway/bus_engine.h"
-#include "gateway/rtu_bus_engine.h"
+#include "gateway/bus/bus_engine.h"
+#include "gateway/bus/rtu_bus_engine.h"
 #include "simulator/simulated_bus.h"
 #include "tests/gateway/bus_test_support.h"
 

@@ -18,8 +18,8 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/passthrough.h"
-#include "gateway/rtu_bus_engine.h"
+#include "gateway/units/passthrough.h"
+#include "gateway/bus/rtu_bus_engine.h"
 #include "simulator/simulated_bus.h"
 #include "tests/gateway/bus_test_support.h"
 

@@ -3,7 +3,7 @@
 // first), else strict priority.
 #include <gtest/gtest.h>
 
-#include "gateway/bus_engine.h"
+#include "gateway/bus/bus_engine.h"
 
 namespace sms::gateway {
 namespace {

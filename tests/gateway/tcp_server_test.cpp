@@ -2,7 +2,7 @@
 // connection limit, idle timeout, clients vanishing mid-request, graceful shutdown. The
 // handler here answers from a script (the router is tested elsewhere); answers that model bus
 // work arrive later from a timer, as bus completions do.
-#include "gateway/tcp_server.h"
+#include "gateway/modbus_tcp/tcp_server.h"
 
 #include <gtest/gtest.h>
 

@@ -10,8 +10,8 @@
 #include <vector>
 
 #include "config/load.h"
-#include "gateway/tool_link.h"
-#include "gateway/tool_scan.h"
+#include "gateway/tools/tool_link.h"
+#include "gateway/tools/tool_scan.h"
 #include "simulator/simulated_bus.h"
 
 namespace sms::gateway {

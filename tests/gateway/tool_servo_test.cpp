@@ -10,8 +10,8 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/tool_link.h"
-#include "gateway/tool_servo.h"
+#include "gateway/tools/tool_link.h"
+#include "gateway/tools/tool_servo.h"
 #include "modbus_map/tables.h"
 #include "simulator/simulated_bus.h"
 

@@ -1,0 +1,135 @@
+#pragma once
+// One engine per servo bus: it owns the serial port, runs bus operations strictly one at a
+// time on its own thread in priority order (FIFO within a priority), polls the feedback block
+// of every servo into its PollCache, discovers the servos at start and reopens a lost port by
+// itself. The Modbus TCP side talks to it through submit() and cache() only (gateway/bus/bus_operations.h).
+//
+//   auto engine = make_bus_engine(settings);   // settings: bus_settings_for(...) or by hand
+//   engine->start();
+//   engine->submit(ReadOp{1, 56, 2}, Priority::ClientRead, [](BusResult r) { ... });
+//   engine->cache().copy(1, 56, bytes, &state);   // input registers: no bus traffic
+//
+// Completions run on the bus thread, except QueueFull, BusDown while the port is down, and
+// Cancelled after stop(): those run synchronously inside submit(), on the caller's thread,
+// before submit() returns. Never call submit() while holding a lock the completion takes.
+#include <array>
+#include <chrono>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "config/config.h"
+#include "gateway/bus/bus_operations.h"
+#include "gateway/bus/bus_counters.h"
+#include "gateway/bus/motion_gate.h"
+#include "gateway/bus/poll_cache.h"
+#include "gateway/bus/serial_port.h"
+#include "modbus_map/control_table.h"
+#include "protocol/bus_protocol.h"
+
+namespace sms::gateway {
+
+struct ServoSettings {
+  std::uint8_t servo_id = 1;
+  modbus_map::TableId table = modbus_map::TableId::Sts;
+  modbus_map::ByteOrder byte_order = modbus_map::ByteOrder::LowFirst;  // for identity values
+  AddressBlock poll_block;  // feedback block polled into the cache (bus addresses)
+};
+
+struct BusSettings {
+  std::string name;
+  protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
+  SerialSettings serial;
+  // Time a servo may take to start answering beyond the frames' wire time: its return delay
+  // (sts: address 7 x 2 us; d55d: address 5 x 500 us) plus the adapter's latency (an FTDI
+  // adapter holds short replies up to its latency timer, 16 ms by default).
+  std::chrono::milliseconds response_timeout{20};
+  unsigned retries = 2;                          // attempts after the first one
+  std::chrono::milliseconds poll_period{20};     // start of one cycle to the next; 0 = back to back
+  std::chrono::milliseconds probe_period{1000};  // an offline servo is asked once per period
+  std::chrono::milliseconds reopen_period{1000}; // a lost or missing port is retried this often
+  std::size_t queue_depth = 64;                  // client operations waiting, all priorities
+  bool discover = true;                          // PING and identity READs before polling starts
+  bool poll = true;                              // cyclic polling into the cache (off: live operations only)
+  std::vector<ServoSettings> servos;
+  // The safety rules' gate for this bus's motion writes (README "Safety"); empty: none.
+  std::shared_ptr<const MotionGate> motion_gate;
+};
+
+class BusEngine {
+ public:
+  virtual ~BusEngine() = default;
+
+  // Opens the port (a missing port is logged and retried: the bus starts down), starts the
+  // bus thread, runs discovery, then polls. Call once.
+  virtual void start() = 0;
+  // Fails what is queued with Cancelled, closes the port, joins the thread. Idempotent.
+  virtual void stop() = 0;
+
+  // Queues one operation; see the header comment for where `done` runs. Throws
+  // std::invalid_argument for an operation this bus cannot express (e.g. RawPduOp on a packet
+  // bus, a READ of the broadcast ID, a count beyond the packet limits): a programming error.
+  virtual void submit(BusOp op, Priority priority, Completion done) = 0;
+
+  virtual const BusSettings& settings() const = 0;
+  virtual bool bus_up() const = 0;
+  virtual BusCountersSnapshot counters() const = 0;
+  virtual const PollCache& cache() const = 0;
+  // True once discovery has finished for the current bus-up period (tests, readiness).
+  virtual bool discovered() const = 0;
+};
+
+// What both engines do the same way around their queues.
+// Whether a bus takes a client operation now: Ok, or Cancelled (the engine is not running),
+// BusDown (the port is not open) or QueueFull (`queued` of `queue_depth` slots taken).
+// Safety work is never QueueFull: a full queue must not keep a motor from stopping.
+BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth,
+                    Priority priority = Priority::ClientWrite);
+// Whether a job may go on the wire now: nullopt, or the refusal of a motion write that a trip or
+// the e-stop overtook while it was queued (ServoRefused -> 0x04, with the reason).
+std::optional<BusResult> motion_refusal(const BusSettings& settings, MotionEpoch admitted);
+// A refusal's text for logs and answers: "bus arm: 64 operations already queued".
+std::string refusal_detail(BusStatus refusal, const BusSettings& settings);
+// Runs `done` (if set) with `result`; a handler that throws is logged, never let loose on the
+// bus thread.
+void complete(const BusSettings& settings, Completion& done, BusResult result);
+
+// The order in which a bus takes its queued work (docs/DECISIONS.md "Gateway", Priorities), over
+// one FIFO queue per Priority whose jobs carry `queued_at`:
+// 1. safe stops (Priority::Safety), always first;
+// 2. else the job that has waited longest among those past their level's age limit
+//    (`age_limits[priority]`): no kind of work waits without bound behind another — a live read
+//    behind a flood of writes, a poll behind a flood of live reads;
+// 3. else strict priority, FIFO within a priority (a connection's writes keep their order).
+// Returns the priority level to take the front of, or nullopt when every queue is empty.
+template <typename Job>
+std::optional<std::size_t> next_level(const std::array<std::deque<Job>, kPriorityCount>& queues,
+                                      const std::array<std::chrono::nanoseconds, kPriorityCount>& age_limits,
+                                      SteadyClock::time_point now) {
+  constexpr auto kSafety = static_cast<std::size_t>(Priority::Safety);
+  if (!queues[kSafety].empty()) return kSafety;
+  std::optional<std::size_t> overdue;
+  for (std::size_t level = kSafety + 1; level < kPriorityCount; ++level) {
+    if (queues[level].empty() || now - queues[level].front().queued_at < age_limits[level]) continue;
+    if (!overdue || queues[level].front().queued_at < queues[*overdue].front().queued_at) overdue = level;
+  }
+  if (overdue) return overdue;
+  for (std::size_t level = 0; level < kPriorityCount; ++level) {
+    if (!queues[level].empty()) return level;
+  }
+  return std::nullopt;
+}
+// How long a client operation may wait behind higher-priority client work before it goes next
+// (rule 2 above): a few transactions at 1 Mbit/s, one at slow rates.
+inline constexpr std::chrono::milliseconds kClientAgeLimit{2};
+
+// The engine for the bus's protocol: PacketBusEngine for feetech and d55d, RtuBusEngine (with
+// the bus's RS-485/RTS/byte-timeout options) for modbus-rtu. Throws std::invalid_argument for
+// settings it cannot run (a servo whose table is not spoken on the bus, an empty poll block,
+// duplicate IDs).
+std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::ModbusRtuOptions& modbus_rtu = {});
+
+}  // namespace sms::gateway

@@ -1,0 +1,86 @@
+#pragma once
+// Who may talk to the gateway, and what a read-only unit may be asked. Modbus has no
+// authentication, so the gateway's access control is the bind address, this client allow-list
+// (modbus_tcp.allow) and read-only units (servos[].read_only). Pure: no sockets, no Asio.
+//
+//   AccessPolicy policy(config.modbus_tcp.allow);
+//   if (!policy.allows(client_address)) { close the connection; }
+//
+//   if (const auto refusal = read_only_refusal(function)) reply with exception_code(*refusal);
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "config/config.h"
+#include "gateway/modbus_tcp/faults.h"
+
+namespace sms::gateway {
+
+// A client's address as the socket reports it.
+struct IpAddress {
+  config::IpNetwork::Family family = config::IpNetwork::Family::V4;
+  std::array<std::uint8_t, 16> bytes{};  // network byte order; IPv4 uses the first 4 bytes
+
+  static IpAddress v4(const std::array<std::uint8_t, 4>& bytes);
+  static IpAddress v6(const std::array<std::uint8_t, 16>& bytes);
+  // "192.168.10.7", "fd00::1", "::ffff:10.0.0.1"; nullopt for anything else.
+  static std::optional<IpAddress> parse(std::string_view text);
+
+  // An IPv4 client on a dual-stack IPv6 listener arrives as ::ffff:a.b.c.d: that is a.b.c.d.
+  IpAddress unmapped() const;
+  std::string to_string() const;
+  friend bool operator==(const IpAddress&, const IpAddress&) = default;
+};
+
+// True when `address` lies in `network` (families must match; see IpAddress::unmapped()).
+bool contains(const config::IpNetwork& network, const IpAddress& address);
+
+class AccessPolicy {
+ public:
+  AccessPolicy() = default;  // every client
+  explicit AccessPolicy(std::vector<config::IpNetwork> allow);
+
+  // True when no allow-list is configured, or the (unmapped) address is in one of its networks.
+  bool allows(const IpAddress& address) const;
+  bool restricted() const { return !allow_.empty(); }
+  // For the startup log line: "every client" or "192.168.10.0/24, fd00::/8".
+  std::string describe() const;
+
+ private:
+  std::vector<config::IpNetwork> allow_;
+};
+
+// What a Modbus function does to the unit it is sent to, so that a read-only unit can refuse
+// everything that may change it.
+enum class FunctionEffect : std::uint8_t {
+  Reads,    // only reads
+  Writes,   // writes (FC23 writes and reads: it writes)
+  Unknown,  // diagnostics, vendor functions, codes the gateway does not know: may change state
+};
+
+struct ModbusFunction {
+  std::uint8_t code;
+  std::string_view name;  // Modbus Application Protocol v1.1b3 name, snake_case (metrics labels)
+  FunctionEffect effect;
+  bool served;            // served for table units (MODBUS_MAP.md "A servo unit")
+};
+
+// The public function codes of the Modbus specification, ascending by code.
+std::span<const ModbusFunction> modbus_functions();
+// nullptr when `code` is not a public Modbus function.
+const ModbusFunction* find_modbus_function(std::uint8_t code);
+// The effect of `code`; Unknown for codes not in the table.
+FunctionEffect function_effect(std::uint8_t code);
+
+// Whether a read-only unit answers `function` itself: nullopt when it may be served (reads),
+// BadAddress (0x02) for writes, as a write to a read-only field is answered (MODBUS_MAP.md),
+// UnsupportedFunction (0x01) for functions whose effect the gateway cannot know (passthrough
+// units forward any code; a read-only one forwards reads only). docs/DECISIONS.md "Operations
+// and security".
+std::optional<Fault> read_only_refusal(std::uint8_t function);
+
+}  // namespace sms::gateway

@@ -1,0 +1,77 @@
+#pragma once
+// What a Modbus/TCP Security role may ask (README "Modbus/TCP Security", docs/DECISIONS.md
+// "Operations and security"). Pure: no sockets, no Asio. The TLS listener puts a RoleGate in
+// front of the same UnitRouter the plain listener uses, so every request that passes still goes
+// through the safety rules; a refused request never reaches the router.
+//
+//   RolePolicy policy(config);
+//   if (const auto refusal = policy.refusal(Role::Operate, unit_id, pdu)) reply exception_code(refusal->fault);
+//
+// Rights:
+//   read      functions that only read (01 02 03 04, and 07 11 12 17 20 24 on passthrough units)
+//   operate   also writes that change RAM: goals, speeds, torque on/off, acceleration, gains in
+//             RAM, staged writes and ACTION, the gateway unit's coils (e-stop, re-arm), its
+//             heartbeat registers and sync groups of RAM fields; the standard write functions
+//             (05 06 15 16 22 23) on passthrough units
+//   engineer  everything: EEPROM fields (ID, baud rate, limits, offsets, mode ...), the `lock`
+//             field, mid-point calibration (torque field := 128, SMSMB fault-reset bit 2), sync
+//             groups of EEPROM fields, and functions of unknown effect (08, 21, 43, vendor codes)
+// Refusals: a function the role has no right to at all (read: every write; operate: functions
+// of unknown effect) is 0x01 illegal function; a write function the role may use, aimed at an
+// address it may not write (operate: an EEPROM field), is 0x02 illegal data address.
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "config/config.h"
+#include "gateway/modbus_tcp/faults.h"
+#include "modbus_map/register_map.h"
+
+namespace sms::gateway {
+
+struct RoleRefusal {
+  Fault fault = Fault::UnsupportedFunction;  // 0x01 or 0x02
+  std::string reason;                        // for the log: "writes EEPROM field id (5)"
+};
+
+class RolePolicy {
+ public:
+  // Builds the register maps of the configuration's servo units (as the router does).
+  explicit RolePolicy(const config::Config& config);
+
+  // nullopt: `role` may make the request (the router still decides everything else: unknown
+  // units, malformed PDUs, read-only units and fields, the safety rules). A request the policy
+  // cannot classify (malformed, an unknown unit, an address the map refuses anyway) is let
+  // through to the router, which refuses it without writing.
+  std::optional<RoleRefusal> refusal(config::Role role, std::uint8_t unit_id, std::span<const std::uint8_t> pdu) const;
+
+ private:
+  struct Unit {
+    modbus_map::RegisterMap map;
+  };
+  struct GroupBlock {
+    std::uint16_t start = 0;
+    std::uint16_t count = 0;
+    std::string name;
+    std::string field;
+    bool engineer_only = false;
+  };
+
+  std::optional<RoleRefusal> servo_write_refusal(const Unit& unit, std::span<const std::uint8_t> pdu) const;
+  std::optional<RoleRefusal> gateway_write_refusal(std::span<const std::uint8_t> pdu) const;
+
+  std::array<std::unique_ptr<Unit>, 256> units_{};
+  std::array<bool, 256> passthrough_{};
+  std::uint8_t gateway_unit_id_ = 255;
+  std::vector<GroupBlock> groups_;
+};
+
+// Whether writing `field` of a servo's table needs the engineer role whatever the value: EEPROM
+// fields and the `lock` field (it only decides whether EEPROM writes persist).
+bool engineer_only_field(const modbus_map::FieldSpec& field);
+
+}  // namespace sms::gateway

@@ -1,0 +1,131 @@
+#pragma once
+// The Modbus TCP server: listens, accepts up to a limit of connections (extra ones are
+// accepted and closed at once), and runs one MbapSession per connection. Each session decodes
+// MBAP frames, hands their PDUs to a RequestHandler one at a time and writes the answers back
+// in request order with the transaction ids echoed, so pipelined requests are answered in
+// order and a connection's writes reach the buses in the order they arrived.
+//
+// Threading: everything here runs on the io_context passed in, which must be run by a single
+// thread (the sessions rely on it instead of strands). Asio stays out of this header.
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "config/config.h"
+#include "protocol/packet.h"
+
+namespace boost::asio {
+class io_context;
+}
+
+namespace sms::gateway {
+
+using protocol::Bytes;
+class ModbusTrafficCounters;
+class TlsService;
+
+// Where the answer to one request goes. Copyable so it can ride in bus completions; only the
+// first send() for a request counts. Call send() on the server's io_context thread only.
+// When the client has gone meanwhile the answer is dropped (the work itself still happened).
+class Reply {
+ public:
+  class Target {
+   public:
+    virtual void deliver(std::uint64_t request_serial, Bytes response_pdu) = 0;
+
+   protected:
+    ~Target() = default;
+  };
+
+  Reply(std::shared_ptr<Target> target, std::uint64_t request_serial)
+      : target_(std::move(target)), request_serial_(request_serial) {}
+  void send(Bytes response_pdu) const { target_->deliver(request_serial_, std::move(response_pdu)); }
+  // The request is done and gets no answer (a broadcast, as Modbus TCP gateways answer them by
+  // default): the connection goes on with its next request.
+  void finish_without_answer() const { target_->deliver(request_serial_, {}); }
+
+ private:
+  std::shared_ptr<Target> target_;
+  std::uint64_t request_serial_;
+};
+
+// Answers requests. Called on the io_context thread, one request at a time per connection
+// (the next request of a connection is handed over only after reply.send()). reply.send()
+// may be called before handle() returns (answers from memory) or later (bus work).
+class RequestHandler {
+ public:
+  virtual ~RequestHandler() = default;
+  virtual void handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) = 0;
+};
+
+struct TcpServerOptions {
+  std::string host = "127.0.0.1";
+  std::uint16_t port = 502;  // 0: any free port (tests); port() says which
+  std::size_t max_connections = 32;
+  std::chrono::milliseconds idle_timeout{std::chrono::seconds{60}};  // 0: never close idle clients
+  // Decoded requests a connection may have waiting behind the one being answered; past it the
+  // session stops reading from the socket (TCP flow control pushes back on the client).
+  std::size_t max_pipelined = 32;
+  // Answer bytes a connection may have waiting to be written; past it the session starts no
+  // new request until the client reads (so a client that never reads its answers cannot make
+  // the gateway buffer without bound). A client that takes none of its answers for the idle
+  // timeout is closed.
+  std::size_t max_unsent_bytes = 64 * 1024;
+  // Client addresses allowed to connect (modbus_tcp.allow); empty: every client. Others are
+  // closed on accept without a Modbus answer.
+  std::vector<config::IpNetwork> allow;
+  // Where requests by function and answers by exception code are counted (/metrics); may be null.
+  // Must outlive the server.
+  ModbusTrafficCounters* traffic = nullptr;
+  // Modbus/TCP Security (gateway/modbus_tcp/tls.h): every connection first completes a TLS handshake with
+  // a client certificate, and its requests go to the handler the service gives it (the role's
+  // rights in front of the server's handler). nullptr: plain Modbus TCP. Must outlive the server.
+  TlsService* tls = nullptr;
+};
+
+struct TcpServerStats {
+  std::size_t open_connections = 0;
+  std::uint64_t accepted = 0;
+  std::uint64_t refused = 0;     // over the connection limit
+  std::uint64_t denied = 0;      // not in the allow-list
+  std::uint64_t requests = 0;
+  std::uint64_t bad_headers = 0;  // connections closed for an MBAP header that is not Modbus
+  std::uint64_t idle_closed = 0;
+};
+
+// "60 s", "150 ms": for log lines.
+std::string duration_text(std::chrono::milliseconds duration);
+
+class TcpServer {
+ public:
+  TcpServer(boost::asio::io_context& io, TcpServerOptions options, RequestHandler& handler);
+  ~TcpServer();  // closes the listener and every connection at once
+  TcpServer(const TcpServer&) = delete;
+  TcpServer& operator=(const TcpServer&) = delete;
+
+  // Binds and listens. Throws std::runtime_error naming the address and what to do when the
+  // address cannot be resolved or bound (port in use, permission for ports below 1024).
+  void start();
+  // The bound port (the real one when the options asked for 0).
+  std::uint16_t port() const;
+  // Graceful stop: no new connections; each session finishes the request it is answering,
+  // writes the answer, then closes (requests queued behind it were never answered and are
+  // dropped). `done` runs on the io_context once every connection is closed.
+  void shutdown(std::function<void()> done);
+  // Closes every connection now, answered or not (the bus work in flight still completes).
+  void close_all();
+
+  // Thread-safe snapshot.
+  TcpServerStats stats() const;
+
+  class Impl;
+
+ private:
+  std::shared_ptr<Impl> impl_;
+};
+
+}  // namespace sms::gateway

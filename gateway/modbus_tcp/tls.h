@@ -1,0 +1,95 @@
+#pragma once
+// Modbus/TCP Security (README "Modbus/TCP Security"): the TLS context of the secure listener
+// (TLS 1.2/1.3, client certificate required and verified against the configured CA), the role
+// a client certificate gets, and the RoleGate put in front of the unit router for each secure
+// connection. Internal to gateway/ (Asio and OpenSSL in the header are fine here).
+//
+//   TlsService tls(config.modbus_tcp.tls, config, router);  // throws std::runtime_error: bad file
+//   options.tls = &tls;                                      // TcpServer does the handshakes
+//   tls.reload();                                            // SIGHUP: new handshakes use the new files
+#include <array>
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include <boost/asio/ssl/context.hpp>
+
+#include "config/config.h"
+#include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/modbus_tcp/tcp_server.h"
+#include "gateway/modbus_tcp/tls_stats.h"
+
+namespace sms::gateway {
+
+// The OID of the Modbus.org "MB/TCP Security" role extension: an ASN.1 UTF8String holding the
+// role name.
+inline constexpr std::string_view kRoleExtensionOid = "1.3.6.1.4.1.50316.802.1";
+
+// What the gateway reads from a client certificate.
+struct PeerCertificate {
+  std::string subject;                        // one line, "CN=plc-1,O=Plant"
+  std::string common_name;                    // empty when the subject has none
+  std::vector<std::string> alt_names;         // DNS names, e-mail addresses, URIs, IP addresses
+  std::optional<std::string> role_extension;  // the role extension's text, when present
+};
+PeerCertificate read_certificate(X509* certificate);
+
+struct RoleDecision {
+  config::Role role = config::Role::None;
+  std::string source;  // "role extension", "roles[plc-1] (CN)", "default_role", or why none
+};
+// The role extension when present (its text must be read, operate or engineer; anything else
+// gives no role), else the first `roles` entry naming the CN or a subjectAltName, else
+// default_role.
+RoleDecision role_for(const config::TlsConfig& settings, const PeerCertificate& certificate);
+
+// A server context: TLS 1.2 minimum, the certificate chain and key, client certificates
+// required and verified against the CA file, no session resumption (a reloaded CA applies to
+// every new connection). Throws std::runtime_error naming the file and what is wrong.
+std::shared_ptr<boost::asio::ssl::context> make_tls_context(const config::TlsConfig& settings);
+
+class TlsService {
+ public:
+  // Loads the files (throws std::runtime_error when it cannot). `router` answers the requests
+  // the role rights let through; it must outlive the service.
+  TlsService(const config::TlsConfig& settings, const config::Config& config, RequestHandler& router);
+
+  const config::TlsConfig& settings() const { return settings_; }
+  // The context for the next handshake (thread-safe).
+  std::shared_ptr<boost::asio::ssl::context> context() const;
+  // Loads the files again (any thread). On success new handshakes use them; on failure the old
+  // context stays and the log says why. True on success.
+  bool reload();
+
+  // After a handshake that succeeded: the handler for the connection (a RoleGate over the
+  // router), or nullptr after logging and counting why the client is refused (no role).
+  std::unique_ptr<RequestHandler> admit(SSL* ssl, const std::string& peer);
+  // A handshake that failed: one log line with the reason and the peer, counted.
+  void handshake_failed(const boost::system::error_code& error, SSL* ssl, const std::string& peer);
+  void handshake_timed_out(const std::string& peer);
+  void connection_closed();
+
+  void count_refusal(config::Role role);
+  TlsStats stats() const;
+
+ private:
+  void count(std::string_view result);
+  std::string describe_context() const;
+
+  const config::TlsConfig settings_;
+  RequestHandler& router_;
+  const RolePolicy policy_;
+  mutable std::mutex mutex_;
+  std::shared_ptr<boost::asio::ssl::context> context_;
+  std::string certificate_expiry_;  // "2034-05-01 12:00:00 GMT", for the log
+  TlsStats stats_;  // under mutex_
+};
+
+}  // namespace sms::gateway

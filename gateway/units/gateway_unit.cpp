@@ -1,0 +1,460 @@
+#include "gateway/units/gateway_unit.h"
+
+#include <algorithm>
+#include <array>
+#include <limits>
+#include <stdexcept>
+
+#include <spdlog/spdlog.h>
+
+#include "gateway/units/bus_faults.h"
+#include "gateway/modbus_tcp/faults.h"
+#include "modbus_map/motion.h"
+#include "modbus_map/tables.h"
+
+namespace sms::gateway {
+namespace {
+
+namespace fc = function_code;
+namespace layout = gateway_unit_layout;
+
+template <typename... Ts>
+struct Overloaded : Ts... {
+  using Ts::operator()...;
+};
+template <typename... Ts>
+Overloaded(Ts...) -> Overloaded<Ts...>;
+
+std::uint16_t saturate16(std::uint64_t value) {
+  return static_cast<std::uint16_t>(std::min<std::uint64_t>(value, 0xFFFF));
+}
+
+// One entry of bus n's block: `words` registers (2 = 32 bits, high word first).
+struct BusFactRegister {
+  std::uint16_t offset;
+  std::uint8_t words;
+  std::uint64_t (*value)(const BusFacts&);
+};
+// MODBUS_MAP.md "The gateway unit", input registers 100 + 20·n ...; 32-bit counters wrap.
+constexpr std::array kBusFactRegisters{
+    BusFactRegister{0, 1, [](const BusFacts& f) -> std::uint64_t { return f.up ? 1 : 0; }},
+    BusFactRegister{1, 1, [](const BusFacts& f) -> std::uint64_t { return saturate16(f.baud / 100); }},
+    BusFactRegister{2, 1, [](const BusFacts& f) -> std::uint64_t { return saturate16(f.last_poll_cycle_us); }},
+    BusFactRegister{3, 1, [](const BusFacts& f) -> std::uint64_t { return saturate16(f.servos_online); }},
+    BusFactRegister{4, 2, [](const BusFacts& f) -> std::uint64_t { return f.frames_ok; }},
+    BusFactRegister{6, 2, [](const BusFacts& f) -> std::uint64_t { return f.timeouts; }},
+    BusFactRegister{8, 2, [](const BusFacts& f) -> std::uint64_t { return f.checksum_errors; }},
+};
+
+void put_words(std::vector<std::uint16_t>& image, std::size_t at, std::uint8_t words, std::uint64_t value) {
+  if (words == 2) {
+    image[at] = static_cast<std::uint16_t>((value >> 16) & 0xFFFF);
+    image[at + 1] = static_cast<std::uint16_t>(value & 0xFFFF);
+  } else {
+    image[at] = static_cast<std::uint16_t>(value & 0xFFFF);
+  }
+}
+
+}  // namespace
+
+BusFacts bus_facts(const BusEngine& engine) {
+  const BusCountersSnapshot counters = engine.counters();
+  BusFacts facts;
+  facts.up = engine.bus_up();
+  facts.baud = engine.settings().serial.baud;
+  facts.last_poll_cycle_us = counters.last_poll_cycle_us;
+  facts.servos_online = engine.cache().online_count();
+  facts.frames_ok = counters.frames_ok;
+  facts.timeouts = counters.timeouts;
+  facts.checksum_errors = counters.checksum_errors;
+  return facts;
+}
+
+GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> engines, PostFn post,
+                         SafetySupervisor& safety, std::chrono::steady_clock::time_point started)
+    : engines_(std::move(engines)),
+      servo_count_(config.servos.size()),
+      post_(std::move(post)),
+      safety_(safety),
+      started_(started) {
+  for (const auto& group_config : config.sync_groups) {
+    SyncGroup group{group_config.name, group_config.holding_register_start, {}};
+    for (const std::uint8_t unit : group_config.members) {
+      const config::ServoConfig* servo = config::find_unit(config, unit);
+      if (servo == nullptr || servo->passthrough()) {
+        throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) +
+                                    " is not a configured servo with a control table");
+      }
+      const auto& table = modbus_map::table(*servo->table);
+      const modbus_map::FieldSpec* field = modbus_map::field_by_name(table, group_config.field);
+      if (field == nullptr || field->access == modbus_map::Access::ReadOnly) {
+        throw std::invalid_argument("sync group '" + group_config.name + "': table " + std::string(table.name) +
+                                    " of unit " + std::to_string(unit) + " has no writable field '" +
+                                    group_config.field + "'");
+      }
+      if (servo->bus_index >= engines_.size()) {
+        throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) +
+                                    " is on a bus without an engine");
+      }
+      auto map = modbus_map::RegisterMap::create(*servo->table, modbus_map::Profile::Native,
+                                                 config::effective_byte_order(*servo));
+      if (!map) throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) + ": " + map.error());
+      group.members.push_back(SyncMember{unit, servo->bus_index, servo->servo_id, field, std::move(*map), servo->read_only});
+    }
+    groups_.push_back(std::move(group));
+  }
+}
+
+std::optional<std::vector<std::uint16_t>> GatewayUnit::input_registers(std::uint16_t address,
+                                                                       std::uint16_t count) const {
+  const std::size_t end = layout::kFirstBusBlock + layout::kBusBlockSize * engines_.size();
+  if (std::size_t{address} + count > end) return std::nullopt;
+
+  // The whole image is small (100 + 20 per bus registers); addresses with nothing read as 0.
+  std::vector<std::uint16_t> image(end, 0);
+  image[layout::kVersion + 0] = SMS_GATEWAY_VERSION_MAJOR;
+  image[layout::kVersion + 1] = SMS_GATEWAY_VERSION_MINOR;
+  image[layout::kVersion + 2] = SMS_GATEWAY_VERSION_PATCH;
+  const auto uptime = std::chrono::duration_cast<std::chrono::seconds>(std::chrono::steady_clock::now() - started_);
+  put_words(image, layout::kUptime, 2, static_cast<std::uint64_t>(uptime.count()));
+  image[layout::kBusCount] = saturate16(engines_.size());
+  image[layout::kServoCount] = saturate16(servo_count_);
+  const SafetyFacts safety = safety_.facts();
+  image[layout::kEStopLatched] = safety.estop_latched ? 1 : 0;
+  put_words(image, layout::kEStopCount, 2, safety.estops);
+  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+    const std::size_t block = layout::kFirstBusBlock + layout::kBusBlockSize * bus;
+    // Only the blocks the request touches are worth the counters' atomics.
+    if (block >= std::size_t{address} + count || block + layout::kBusBlockSize <= address) continue;
+    const BusFacts facts = bus_facts(*engines_[bus]);
+    for (const auto& entry : kBusFactRegisters) put_words(image, block + entry.offset, entry.words, entry.value(facts));
+    if (bus < safety.buses.size()) {
+      const BusSafetyFacts& watchdog = safety.buses[bus];
+      const std::size_t at = block + layout::kWatchdogState;
+      image[at] = static_cast<std::uint16_t>(watchdog.state);
+      image[at + 1] = watchdog.since_feed ? saturate16(static_cast<std::uint64_t>(std::max<std::int64_t>(
+                                                watchdog.since_feed->count(), 0)))
+                                          : std::uint16_t{0xFFFF};
+      put_words(image, at + 2, 2, watchdog.trips);
+      image[at + 4] = saturate16(static_cast<std::uint64_t>(watchdog.timeout.count()));
+      image[at + 5] = static_cast<std::uint16_t>(watchdog.last_cause);
+      put_words(image, at + 6, 2,
+                watchdog.last_stop_latency ? static_cast<std::uint64_t>(watchdog.last_stop_latency->count()) : 0);
+      image[at + 8] = watchdog.motion_blocked ? 1 : 0;
+    }
+  }
+  return std::vector<std::uint16_t>(image.begin() + address, image.begin() + address + count);
+}
+
+void GatewayUnit::handle(const Request& request, const Reply& reply) {
+  std::visit(Overloaded{
+                 [&](const ReadRegistersRequest& read) {
+                   if (read.function == fc::kReadInputRegisters) {
+                     const auto values = input_registers(read.address, read.count);
+                     reply.send(values ? registers_response(read.function, *values)
+                                       : exception_response(read.function, Fault::BadAddress));
+                   } else if (heartbeat_range(read.address, read.count)) {
+                     read_heartbeats(read.function, read.address, read.count, reply);
+                   } else {
+                     read_sync_registers(read.function, read.address, read.count, reply);
+                   }
+                 },
+                 [&](const ReadBitsRequest& read) {
+                   const bool coils_read = read.function == fc::kReadCoils;
+                   const std::uint32_t end = std::uint32_t{read.address} + read.count;
+                   if (end > (coils_read ? layout::kCoilCount : layout::kDiscreteInputCount)) {
+                     reply.send(exception_response(read.function, Fault::BadAddress));
+                     return;
+                   }
+                   std::vector<bool> bits;
+                   if (coils_read) {
+                     bits = coils();
+                   } else {
+                     const SafetyFacts facts = safety_.facts();
+                     const bool blocked = std::any_of(facts.buses.begin(), facts.buses.end(),
+                                                      [](const BusSafetyFacts& b) { return b.motion_blocked; });
+                     bits = {facts.estop_latched, safety_.any_tripped(), blocked};
+                   }
+                   reply.send(bits_response(read.function, std::vector<bool>(bits.begin() + read.address,
+                                                                             bits.begin() + end)));
+                 },
+                 [&](const WriteBitsRequest& write) { write_coil(write, reply); },
+                 [&](const WriteRegistersRequest& write) {
+                   auto answer = [write](const Reply& r) { r.send(write_response(write)); };
+                   if (heartbeat_range(write.address, static_cast<std::uint16_t>(write.values.size()))) {
+                     write_heartbeats(write);
+                     reply.send(write_response(write));
+                     return;
+                   }
+                   write_sync_registers(write, reply, answer);
+                 },
+                 [&](const ReadWriteRegistersRequest& both) {
+                   if (heartbeat_range(both.write.address, static_cast<std::uint16_t>(both.write.values.size()))) {
+                     write_heartbeats(both.write);
+                     if (heartbeat_range(both.read.address, both.read.count)) {
+                       read_heartbeats(both.read.function, both.read.address, both.read.count, reply);
+                     } else {
+                       read_sync_registers(both.read.function, both.read.address, both.read.count, reply);
+                     }
+                     return;
+                   }
+                   write_sync_registers(both.write, reply, [this, read = both.read](const Reply& r) {
+                     if (heartbeat_range(read.address, read.count)) {
+                       read_heartbeats(read.function, read.address, read.count, r);
+                     } else {
+                       read_sync_registers(read.function, read.address, read.count, r);
+                     }
+                   });
+                 },
+             },
+             request);
+}
+
+const GatewayUnit::SyncMember* GatewayUnit::sync_member_at(std::uint16_t address) const {
+  for (const auto& group : groups_) {
+    if (address >= group.start && address < group.start + group.members.size()) {
+      return &group.members[address - group.start];
+    }
+  }
+  return nullptr;
+}
+
+void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count,
+                                      const Reply& reply) {
+  std::vector<const SyncMember*> members;
+  for (std::uint32_t a = address; a < std::uint32_t{address} + count; ++a) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(a));
+    if (member == nullptr) {
+      reply.send(exception_response(function, Fault::BadAddress));
+      return;
+    }
+    members.push_back(member);
+  }
+  // Each member's value is read and converted by its own native register map.
+  std::vector<modbus_map::ReadPlan> plans;
+  for (const SyncMember* member : members) {
+    auto plan = member->map.plan_holding_read(member->field->addr, 1);
+    if (!plan || plan->reads.size() != 1) {
+      reply.send(exception_response(function, Fault::BadAddress));
+      return;
+    }
+    plans.push_back(std::move(*plan));
+  }
+  auto join = BusJoin::create(members.size(), post_,
+                              [function, members, plans, reply](std::vector<BusResult> results) {
+                                if (const BusResult* failure = BusJoin::first_failure(results)) {
+                                  reply.send(exception_response(function, fault_from(failure->status)));
+                                  return;
+                                }
+                                std::vector<std::uint16_t> values;
+                                for (std::size_t i = 0; i < members.size(); ++i) {
+                                  const protocol::Bytes replies[] = {results[i].data};
+                                  const auto value = members[i]->map.registers_from(plans[i], replies);
+                                  if (!value) {
+                                    reply.send(exception_response(function, fault_from(value.error().code)));
+                                    return;
+                                  }
+                                  values.push_back(value->at(0));
+                                }
+                                reply.send(registers_response(function, values));
+                              });
+  for (std::size_t i = 0; i < members.size(); ++i) {
+    const auto& range = plans[i].reads.front();
+    engines_[members[i]->bus]->submit(ReadOp{members[i]->servo_id, range.address, range.count}, Priority::ClientRead,
+                                      join->completion(i));
+  }
+}
+
+void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,
+                                       std::function<void(const Reply&)> after) {
+  // Validate everything before the first frame: a refused write changes nothing.
+  // Packet buses: one SYNC WRITE per bus (per field address, should tables differ); modbus-rtu
+  // has no SYNC WRITE, so its members get one acknowledged write each.
+  struct Frame {
+    std::size_t bus;
+    BusOp op;
+  };
+  std::vector<Frame> frames;
+  // Like every write, it feeds the watchdogs of the buses it is for, whether it is taken or not.
+  std::vector<bool> fed(engines_.size(), false);
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+    if (member != nullptr && !fed[member->bus]) {
+      safety_.feed_write(member->bus);
+      fed[member->bus] = true;
+    }
+  }
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+    if (member == nullptr || member->read_only) {
+      reply.send(exception_response(request.function, Fault::BadAddress));
+      return;
+    }
+    auto bytes = member->map.field_bytes(*member->field, request.values[i]);
+    if (!bytes) {
+      spdlog::debug("gateway unit: sync group register {}: {}", request.address + i, bytes.error().message);
+      reply.send(exception_response(request.function, fault_from(bytes.error().code)));
+      return;
+    }
+    if (engines_[member->bus]->settings().protocol == protocol::BusProtocol::ModbusRtu) {
+      frames.push_back(Frame{member->bus, WriteOp{member->servo_id, member->field->addr, std::move(*bytes)}});
+      continue;
+    }
+    // As many members as one frame's LEN allows (83 of a 2-byte field); the rest take another.
+    auto frame = std::find_if(frames.begin(), frames.end(), [&](const Frame& f) {
+      const auto* sync = std::get_if<SyncWriteOp>(&f.op);
+      return f.bus == member->bus && sync != nullptr && sync->address == member->field->addr &&
+             sync->length == member->field->size &&
+             sync->entries.size() < protocol::max_sync_write_servos(member->field->size);
+    });
+    if (frame == frames.end()) {
+      frames.push_back(Frame{member->bus, SyncWriteOp{member->field->addr, member->field->size, {}}});
+      frame = std::prev(frames.end());
+    }
+    std::get<SyncWriteOp>(frame->op).entries.push_back(protocol::SyncWriteEntry{member->servo_id, std::move(*bytes)});
+  }
+  // A motion field needs admission on every bus the write reaches.
+  std::vector<MotionEpoch> epochs(engines_.size(), 0);
+  std::vector<const SyncMember*> motion_member(engines_.size(), nullptr);
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+    if (modbus_map::is_motion_field(modbus_map::motion_spec(member->map.servo_table().id), member->field->name)) {
+      motion_member[member->bus] = member;
+    }
+  }
+  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+    if (motion_member[bus] == nullptr) continue;
+    auto admitted = safety_.admit_motion(bus);
+    if (!admitted) {
+      refusal_log_.refused("gateway unit sync group (" + std::string(motion_member[bus]->field->name) + ")",
+                           request.function, admitted.error());
+      reply.send(exception_response(request.function, Fault::ServoRefused));
+      return;
+    }
+    epochs[bus] = *admitted;
+  }
+  for (Frame& frame : frames) {
+    std::visit(
+        [&](auto& op) {
+          if constexpr (requires { op.motion_epoch; }) op.motion_epoch = epochs[frame.bus];
+        },
+        frame.op);
+  }
+  auto join = BusJoin::create(frames.size(), post_,
+                              [function = request.function, reply, after = std::move(after)](std::vector<BusResult> results) {
+                                if (const BusResult* failure = BusJoin::first_failure(results)) {
+                                  spdlog::warn("gateway unit: sync group write failed: {}", failure->detail);
+                                  reply.send(exception_response(function, fault_from(failure->status)));
+                                  return;
+                                }
+                                after(reply);
+                              });
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    engines_[frames[i].bus]->submit(std::move(frames[i].op), Priority::ClientWrite, join->completion(i));
+  }
+}
+
+std::vector<bool> GatewayUnit::coils() const {
+  // Coil 0 reads 0: ACTION is an event, not a state.
+  return {false, safety_.estop_latched(), safety_.any_tripped()};
+}
+
+bool GatewayUnit::heartbeat_range(std::uint16_t address, std::uint16_t count) const {
+  return address >= config::kHeartbeatRegisterBase && count >= 1 &&
+         std::size_t{address} + count <= config::kHeartbeatRegisterBase + engines_.size();
+}
+
+void GatewayUnit::read_heartbeats(std::uint8_t function, std::uint16_t address, std::uint16_t count,
+                                  const Reply& reply) const {
+  std::vector<std::uint16_t> values;
+  for (std::uint16_t i = 0; i < count; ++i) {
+    values.push_back(safety_.heartbeat_value(address - config::kHeartbeatRegisterBase + i).value_or(0));
+  }
+  reply.send(registers_response(function, values));
+}
+
+void GatewayUnit::write_heartbeats(const WriteRegistersRequest& request) {
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    safety_.feed_heartbeat(request.address - config::kHeartbeatRegisterBase + i, request.values[i]);
+  }
+}
+
+void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply) {
+  if (request.values.size() != 1) {  // each coil is a command of its own: one per request
+    reply.send(exception_response(request.function, Fault::BadAddress));
+    return;
+  }
+  switch (request.address) {
+    case layout::kActionCoil:
+      write_action_coil(request, reply);
+      return;
+    case layout::kEStopCoil:
+      write_estop_coil(request, reply);
+      return;
+    case layout::kWatchdogCoil:
+      if (request.values[0]) {  // a trip comes from silence, not from a write
+        reply.send(exception_response(request.function, Fault::BadValue));
+        return;
+      }
+      safety_.rearm_watchdogs();
+      reply.send(write_response(request));
+      return;
+    default:
+      reply.send(exception_response(request.function, Fault::BadAddress));
+  }
+}
+
+void GatewayUnit::write_estop_coil(const WriteBitsRequest& request, const Reply& reply) {
+  if (!request.values[0]) {
+    safety_.reset_estop();
+    reply.send(write_response(request));
+    return;
+  }
+  // Answered once every bus has its stop frames on the wire; the latch holds either way.
+  safety_.estop(post_, [request, reply](bool ok) {
+    if (!ok) {
+      spdlog::error("gateway unit: e-stop latched, but a bus could not take its stop frames (see above)");
+      reply.send(exception_response(request.function, Fault::ServoRefused));
+      return;
+    }
+    reply.send(write_response(request));
+  });
+}
+
+void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply& reply) {
+  // Staged writes exist on packet buses only: ACTION goes to those.
+  std::vector<BusEngine*> packet_buses;
+  for (BusEngine* engine : engines_) {
+    if (engine->settings().protocol != protocol::BusProtocol::ModbusRtu) packet_buses.push_back(engine);
+  }
+  if (!request.values[0] || packet_buses.empty()) {  // writing 0 asks for nothing
+    reply.send(write_response(request));
+    return;
+  }
+  // ACTION runs staged moves: a motion write on every bus it goes to.
+  std::vector<MotionEpoch> epochs;
+  for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+    if (engines_[bus]->settings().protocol == protocol::BusProtocol::ModbusRtu) continue;
+    safety_.feed_write(bus);
+    auto admitted = safety_.admit_motion(bus);
+    if (!admitted) {
+      refusal_log_.refused("gateway unit ACTION (coil 0)", request.function, admitted.error());
+      reply.send(exception_response(request.function, Fault::ServoRefused));
+      return;
+    }
+    epochs.push_back(*admitted);
+  }
+  auto join = BusJoin::create(packet_buses.size(), post_, [request, reply](std::vector<BusResult> results) {
+    if (const BusResult* failure = BusJoin::first_failure(results)) {
+      spdlog::warn("gateway unit: ACTION failed on a bus: {}", failure->detail);
+      reply.send(exception_response(request.function, fault_from(failure->status)));
+      return;
+    }
+    reply.send(write_response(request));
+  });
+  for (std::size_t i = 0; i < packet_buses.size(); ++i) {
+    packet_buses[i]->submit(ActionOp{epochs[i]}, Priority::ClientWrite, join->completion(i));
+  }
+}
+
+}  // namespace sms::gateway

@@ -1,0 +1,114 @@
+#pragma once
+// The gateway's own Modbus unit (255 by default; MODBUS_MAP.md "The gateway unit"):
+// - input registers 0-2 version, 3-4 uptime s, 5/6 buses/servos, 100 + 20·n the facts of bus n;
+// - coil 0: writing 1 sends ACTION on every bus (runs every staged REG WRITE at once);
+// - coils 1-2, discrete inputs 0-2, input registers 10-12 and 100 + 20·n + 10..18, holding
+//   registers 1000 + n: the safety rules (README "Safety");
+// - holding registers of the configured sync groups: one register per member; a write of a
+//   group's registers becomes one SYNC WRITE frame per bus, read gives the members' live values.
+// Runs on the io thread like the rest of the TCP side; bus completions come back through PostFn.
+#include <chrono>
+#include <cstdint>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "config/config.h"
+#include "gateway/bus/bus_engine.h"
+#include "gateway/bus/bus_join.h"
+#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/units/safety.h"
+#include "gateway/modbus_tcp/tcp_server.h"
+#include "modbus_map/control_table.h"
+#include "modbus_map/register_map.h"
+
+namespace sms::gateway {
+
+// Register offsets inside bus n's block of input registers (100 + 20·n).
+namespace gateway_unit_layout {
+inline constexpr std::uint16_t kVersion = 0;     // 0-2 major, minor, patch
+inline constexpr std::uint16_t kUptime = 3;      // 3-4 seconds, high word first
+inline constexpr std::uint16_t kBusCount = 5;
+inline constexpr std::uint16_t kServoCount = 6;
+inline constexpr std::uint16_t kFirstBusBlock = 100;
+inline constexpr std::uint16_t kBusBlockSize = 20;
+inline constexpr std::uint16_t kActionCoil = 0;
+// Safety (README "Safety"): coil 1 e-stop latch (1 latches and stops every bus, 0 resets), coil 2
+// watchdogs (reads 1 while any is tripped; 0 re-arms them); discrete inputs 0 e-stop latched,
+// 1 any watchdog tripped, 2 motion blocked on any bus.
+inline constexpr std::uint16_t kEStopCoil = 1;
+inline constexpr std::uint16_t kWatchdogCoil = 2;
+inline constexpr std::uint16_t kCoilCount = 3;
+inline constexpr std::uint16_t kDiscreteInputCount = 3;
+// Input registers 10 e-stop latched, 11-12 e-stops (32-bit).
+inline constexpr std::uint16_t kEStopLatched = 10;
+inline constexpr std::uint16_t kEStopCount = 11;
+// Inside bus n's block (100 + 20·n): 10 watchdog state (0 off, 1 armed, 2 running, 3 tripped),
+// 11 ms since the last feed (65535: never or longer), 12-13 trips, 14 timeout ms, 15 cause of
+// the last safe stop (0 none, 1 watchdog, 2 e-stop, 3 on_start, 4 on_stop), 16-17 its latency µs
+// (last feed or request -> frames on the wire), 18 motion blocked.
+inline constexpr std::uint16_t kWatchdogState = 10;
+}  // namespace gateway_unit_layout
+
+// What the gateway unit shows about one bus (input registers 100 + 20·n ...).
+struct BusFacts {
+  bool up = false;
+  std::uint32_t baud = 0;
+  std::uint32_t last_poll_cycle_us = 0;
+  std::size_t servos_online = 0;
+  std::uint64_t frames_ok = 0;
+  std::uint64_t timeouts = 0;
+  std::uint64_t checksum_errors = 0;  // checksum and framing errors
+};
+BusFacts bus_facts(const BusEngine& engine);
+
+class GatewayUnit {
+ public:
+  // `engines[i]` runs config.buses[i]. Throws std::invalid_argument when a sync group names a
+  // unit or field the configuration does not have (the config loader rejects those first).
+  GatewayUnit(const config::Config& config, std::vector<BusEngine*> engines, PostFn post, SafetySupervisor& safety,
+              std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now());
+
+  void handle(const Request& request, const Reply& reply);
+
+  // The input registers [address, address + count), or nullopt when the range leaves them.
+  std::optional<std::vector<std::uint16_t>> input_registers(std::uint16_t address, std::uint16_t count) const;
+
+ private:
+  struct SyncMember {
+    std::uint8_t unit_id = 0;
+    std::size_t bus = 0;
+    std::uint8_t servo_id = 0;
+    const modbus_map::FieldSpec* field = nullptr;
+    modbus_map::RegisterMap map;  // native map of the member's table and byte order: value rules
+    bool read_only = false;
+  };
+  struct SyncGroup {
+    std::string name;
+    std::uint16_t start = 0;
+    std::vector<SyncMember> members;
+  };
+
+  const SyncMember* sync_member_at(std::uint16_t address) const;
+  void read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count, const Reply& reply);
+  void write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,
+                            std::function<void(const Reply&)> after);
+  void write_coil(const WriteBitsRequest& request, const Reply& reply);
+  void write_action_coil(const WriteBitsRequest& request, const Reply& reply);
+  void write_estop_coil(const WriteBitsRequest& request, const Reply& reply);
+  std::vector<bool> coils() const;
+  // Holding registers 1000 + n: bus n's watchdog heartbeat.
+  bool heartbeat_range(std::uint16_t address, std::uint16_t count) const;
+  void read_heartbeats(std::uint8_t function, std::uint16_t address, std::uint16_t count, const Reply& reply) const;
+  void write_heartbeats(const WriteRegistersRequest& request);
+
+  std::vector<BusEngine*> engines_;
+  std::vector<SyncGroup> groups_;
+  std::size_t servo_count_ = 0;
+  PostFn post_;
+  SafetySupervisor& safety_;
+  MotionRefusalLog refusal_log_;
+  std::chrono::steady_clock::time_point started_;
+};
+
+}  // namespace sms::gateway

@@ -1,0 +1,538 @@
+#include "gateway/units/safety.h"
+
+#include <algorithm>
+#include <condition_variable>
+#include <future>
+#include <map>
+#include <mutex>
+#include <thread>
+
+#include <boost/asio/executor_work_guard.hpp>
+#include <boost/asio/io_context.hpp>
+#include <boost/asio/post.hpp>
+#include <boost/asio/steady_timer.hpp>
+#include <spdlog/spdlog.h>
+
+#include "gateway/bus/bus_join.h"
+#include "modbus_map/motion.h"
+
+namespace sms::gateway {
+namespace {
+
+namespace asio = boost::asio;
+using modbus_map::StopAction;
+using Clock = std::chrono::steady_clock;
+
+constexpr std::int64_t kNever = std::numeric_limits<std::int64_t>::min();
+constexpr std::uint32_t kNoHeartbeat = 0x10000;  // above every register value
+
+std::int64_t ticks(Clock::time_point when) {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(when.time_since_epoch()).count();
+}
+Clock::time_point from_ticks(std::int64_t value) { return Clock::time_point(std::chrono::nanoseconds(value)); }
+
+// One servo a safe stop covers.
+struct StopTarget {
+  std::uint8_t unit_id = 0;
+  std::uint8_t servo_id = 0;
+  const modbus_map::MotionSpec* spec = nullptr;
+  modbus_map::ByteOrder order = modbus_map::ByteOrder::LowFirst;
+  StopAction action = StopAction::Hold;
+  std::vector<modbus_map::BusRange> context;  // what to read before a hold
+};
+
+struct BusSafety {
+  std::size_t index = 0;
+  std::string name;
+  BusEngine* engine = nullptr;
+  std::shared_ptr<MotionGate> gate;
+  bool packet = true;  // SYNC WRITE exists
+  std::optional<config::WatchdogConfig> watchdog;
+  config::StartAction on_start = config::StartAction::Keep;
+  StopAction on_stop = StopAction::Hold;
+  std::vector<StopTarget> targets;  // unit order
+
+  std::atomic<WatchdogState> state{WatchdogState::Off};
+  std::atomic<std::int64_t> last_feed{kNever};
+  std::atomic<std::uint32_t> heartbeat{kNoHeartbeat};
+  std::atomic<std::uint64_t> trips{0};
+  std::atomic<std::uint64_t> stops{0};
+  std::atomic<StopCause> last_cause{StopCause::None};
+  std::atomic<std::int64_t> last_latency_us{-1};
+};
+
+std::string targets_text(const std::vector<std::string>& parts) {
+  std::string text;
+  for (const auto& part : parts) {
+    if (!text.empty()) text += "; ";
+    text += part;
+  }
+  return text;
+}
+
+}  // namespace
+
+std::string_view to_string(WatchdogState state) {
+  switch (state) {
+    case WatchdogState::Off: return "off";
+    case WatchdogState::Armed: return "armed";
+    case WatchdogState::Running: return "running";
+    case WatchdogState::Tripped: return "tripped";
+  }
+  return "?";
+}
+
+std::string_view to_string(StopCause cause) {
+  switch (cause) {
+    case StopCause::None: return "none";
+    case StopCause::Watchdog: return "watchdog";
+    case StopCause::EStop: return "e-stop";
+    case StopCause::Start: return "on_start";
+    case StopCause::Shutdown: return "on_stop";
+  }
+  return "?";
+}
+
+void MotionRefusalLog::refused(std::string_view who, std::uint8_t function, std::string_view why) {
+  const auto now = Clock::now();
+  if (last_ != Clock::time_point{} && now - last_ < std::chrono::seconds{1}) {
+    ++suppressed_;
+    return;
+  }
+  spdlog::warn("safety: {} FC{:02X}: motion write refused (0x04): {}{}", who, function, why,
+               suppressed_ == 0 ? std::string() : " (" + std::to_string(suppressed_) + " more refused since the last line)");
+  last_ = now;
+  suppressed_ = 0;
+}
+
+class SafetySupervisor::Impl {
+ public:
+  Impl(const config::Config& config, std::vector<BusEngine*> engines, std::vector<std::shared_ptr<MotionGate>> gates)
+      : timer_(io_) {
+    if (engines.size() != config.buses.size() || gates.size() != config.buses.size()) {
+      throw std::invalid_argument("safety: one engine and one motion gate per bus");
+    }
+    for (std::size_t i = 0; i < config.buses.size(); ++i) {
+      const config::BusConfig& bus_config = config.buses[i];
+      auto bus = std::make_unique<BusSafety>();
+      bus->index = i;
+      bus->name = bus_config.name;
+      bus->engine = engines[i];
+      bus->gate = gates[i];
+      bus->packet = bus_config.protocol != protocol::BusProtocol::ModbusRtu;
+      bus->watchdog = bus_config.watchdog;
+      bus->on_start = bus_config.on_start;
+      bus->on_stop = bus_config.on_stop;
+      bus->state = bus_config.watchdog ? WatchdogState::Armed : WatchdogState::Off;
+      std::vector<const config::ServoConfig*> servos;
+      for (const auto& servo : config.servos) {
+        if (servo.bus_index == i && !servo.passthrough()) servos.push_back(&servo);
+      }
+      std::sort(servos.begin(), servos.end(),
+                [](const auto* a, const auto* b) { return a->unit_id < b->unit_id; });
+      for (const config::ServoConfig* servo : servos) {
+        const auto& spec = modbus_map::motion_spec(*servo->table);
+        bus->targets.push_back(StopTarget{servo->unit_id, servo->servo_id, &spec, config::effective_byte_order(*servo),
+                                          config::effective_safe_stop(*servo), modbus_map::stop_context_reads(spec)});
+      }
+      buses_.push_back(std::move(bus));
+    }
+  }
+
+  ~Impl() { stop_thread(); }
+
+  void start() {
+    thread_ = std::thread([this] { io_.run(); });
+    for (const auto& bus : buses_) {
+      if (bus->watchdog) {
+        spdlog::info("safety: bus {}: watchdog armed: {} ms, fed by {}, then {}", bus->name,
+                     bus->watchdog->timeout.count(), config::to_string(bus->watchdog->feed),
+                     bus->watchdog->action ? std::string(modbus_map::to_string(*bus->watchdog->action))
+                                           : std::string("each servo's safe_stop"));
+      }
+      if (bus->on_start == config::StartAction::Keep) continue;
+      const StopAction action =
+          bus->on_start == config::StartAction::Hold ? StopAction::Hold : StopAction::TorqueOff;
+      asio::post(io_, [this, index = bus->index, action] {
+        run_stop(index, StopCause::Start, action, Clock::now(), "on_start", nullptr);
+      });
+    }
+  }
+
+  void stop_for_shutdown(std::chrono::milliseconds bound) {
+    if (shutdown_done_.exchange(true) || !thread_.joinable()) return;
+    for (const auto& bus : buses_) bus->gate->block();
+    auto remaining = std::make_shared<std::atomic<std::size_t>>(buses_.size());
+    auto finished = std::make_shared<std::promise<void>>();
+    auto all_done = finished->get_future();
+    if (buses_.empty()) finished->set_value();
+    for (const auto& bus : buses_) {
+      asio::post(io_, [this, index = bus->index, action = bus->on_stop, remaining, finished] {
+        run_stop(index, StopCause::Shutdown, action, Clock::now(), "the gateway is stopping",
+                 [remaining, finished](bool) {
+                   if (remaining->fetch_sub(1) == 1) finished->set_value();
+                 });
+      });
+    }
+    if (all_done.wait_for(bound) != std::future_status::ready) {
+      spdlog::error("safety: on_stop did not finish within {} ms; stopping the buses anyway", bound.count());
+    }
+    stop_thread();
+  }
+
+  void feed_write(std::size_t index) {
+    BusSafety& bus = *buses_.at(index);
+    if (!bus.watchdog || bus.watchdog->feed != config::WatchdogFeed::AnyWrite) return;
+    feed(bus);
+  }
+
+  void feed_heartbeat(std::size_t index, std::uint16_t value) {
+    BusSafety& bus = *buses_.at(index);
+    const std::uint32_t previous = bus.heartbeat.exchange(value);
+    if (!bus.watchdog) return;
+    // A frozen PLC repeats its last value: only a change counts. Any write counts under any_write.
+    if (bus.watchdog->feed == config::WatchdogFeed::AnyWrite || previous != value) feed(bus);
+  }
+
+  std::optional<std::uint16_t> heartbeat_value(std::size_t index) const {
+    const std::uint32_t value = buses_.at(index)->heartbeat.load();
+    if (value == kNoHeartbeat) return std::nullopt;
+    return static_cast<std::uint16_t>(value);
+  }
+
+  Expected<MotionEpoch> admit_motion(std::size_t index) {
+    BusSafety& bus = *buses_.at(index);
+    if (estop_latched_.load()) {
+      return unexpected("bus " + bus.name +
+                        ": the e-stop is latched; motion writes are refused until it is reset (gateway unit coil 1 := 0)");
+    }
+    if (bus.state.load() == WatchdogState::Tripped) {
+      return unexpected("bus " + bus.name + ": its watchdog tripped (no feed for " +
+                        std::to_string(bus.watchdog->timeout.count()) +
+                        " ms); motion writes are refused until it is re-armed (gateway unit coil 2 := 0)");
+    }
+    if (bus.gate->blocked()) {
+      return unexpected("bus " + bus.name + ": motion is blocked while the gateway stops");
+    }
+    // A motion command always has a running watchdog behind it, whatever feeds it. The count
+    // starts here: the time goes in before the state says Running (the safety thread reads both).
+    if (bus.state.load() == WatchdogState::Armed) {
+      bus.last_feed.store(ticks(Clock::now()));
+      WatchdogState armed = WatchdogState::Armed;
+      if (bus.state.compare_exchange_strong(armed, WatchdogState::Running)) reschedule();
+    }
+    return bus.gate->epoch();
+  }
+
+  void estop(PostFn post, std::function<void(bool)> done) {
+    const bool already = estop_latched_.exchange(true);
+    for (const auto& bus : buses_) bus->gate->block();
+    if (!already) {
+      estops_.fetch_add(1);
+      spdlog::warn("safety: E-STOP latched by a Modbus client (gateway unit coil 1): every bus stops; motion writes "
+                   "are refused until coil 1 is written 0");
+    }
+    const auto requested = Clock::now();
+    auto remaining = std::make_shared<std::atomic<std::size_t>>(buses_.size());
+    auto all_ok = std::make_shared<std::atomic<bool>>(true);
+    auto finish = [post, done = std::move(done), all_ok]() { post([done, ok = all_ok->load()] { done(ok); }); };
+    if (buses_.empty()) {
+      finish();
+      return;
+    }
+    for (const auto& bus : buses_) {
+      asio::post(io_, [this, index = bus->index, requested, remaining, all_ok, finish] {
+        run_stop(index, StopCause::EStop, std::nullopt, requested, "e-stop",
+                 [remaining, all_ok, finish](bool ok) {
+                   if (!ok) all_ok->store(false);
+                   if (remaining->fetch_sub(1) == 1) finish();
+                 });
+      });
+    }
+  }
+
+  void reset_estop() {
+    if (!estop_latched_.exchange(false)) return;
+    spdlog::warn("safety: e-stop reset by a Modbus client; nothing moved, motion writes are accepted again");
+    for (const auto& bus : buses_) {
+      if (bus->state.load() != WatchdogState::Tripped) bus->gate->unblock();
+    }
+  }
+
+  void rearm_watchdogs() {
+    for (const auto& bus : buses_) {
+      WatchdogState tripped = WatchdogState::Tripped;
+      if (!bus->state.compare_exchange_strong(tripped, WatchdogState::Armed)) continue;
+      spdlog::info("safety: bus {}: watchdog re-armed by a Modbus client; nothing moved", bus->name);
+      if (!estop_latched_.load()) bus->gate->unblock();
+    }
+  }
+
+  SafetyFacts facts() const {
+    SafetyFacts facts;
+    facts.estop_latched = estop_latched_.load();
+    facts.estops = estops_.load();
+    const auto now = Clock::now();
+    for (const auto& bus : buses_) {
+      BusSafetyFacts f;
+      f.state = bus->state.load();
+      if (const auto last = bus->last_feed.load(); last != kNever) {
+        f.since_feed = std::chrono::duration_cast<std::chrono::milliseconds>(now - from_ticks(last));
+      }
+      f.timeout = bus->watchdog ? bus->watchdog->timeout : std::chrono::milliseconds{0};
+      f.trips = bus->trips.load();
+      f.stops = bus->stops.load();
+      f.last_cause = bus->last_cause.load();
+      if (const auto us = bus->last_latency_us.load(); us >= 0) f.last_stop_latency = std::chrono::microseconds{us};
+      f.motion_blocked = bus->gate->blocked();
+      facts.buses.push_back(f);
+    }
+    return facts;
+  }
+
+  bool estop_latched() const { return estop_latched_.load(); }
+  bool any_tripped() const {
+    return std::any_of(buses_.begin(), buses_.end(),
+                       [](const auto& bus) { return bus->state.load() == WatchdogState::Tripped; });
+  }
+  std::size_t bus_count() const { return buses_.size(); }
+  std::optional<std::chrono::milliseconds> watchdog_timeout(std::size_t index) const {
+    const auto& bus = *buses_.at(index);
+    if (!bus.watchdog) return std::nullopt;
+    return bus.watchdog->timeout;
+  }
+
+ private:
+  void feed(BusSafety& bus) {
+    bus.last_feed.store(ticks(Clock::now()));
+    WatchdogState armed = WatchdogState::Armed;
+    if (bus.state.compare_exchange_strong(armed, WatchdogState::Running)) reschedule();
+  }
+
+  void reschedule() {
+    asio::post(io_, [this] { check_watchdogs(); });
+  }
+
+  // Safety thread: trips what is overdue, then sleeps until the next deadline. Feeds only move
+  // deadlines later, so waking at the earliest one known is enough.
+  void check_watchdogs() {
+    const auto now = Clock::now();
+    std::optional<Clock::time_point> next;
+    for (const auto& bus : buses_) {
+      if (bus->state.load() != WatchdogState::Running) continue;
+      const auto last = from_ticks(bus->last_feed.load());
+      const auto deadline = last + bus->watchdog->timeout;
+      if (now < deadline) {
+        if (!next || deadline < *next) next = deadline;
+        continue;
+      }
+      WatchdogState running = WatchdogState::Running;
+      if (!bus->state.compare_exchange_strong(running, WatchdogState::Tripped)) continue;
+      bus->gate->block();
+      bus->trips.fetch_add(1);
+      const auto silent = std::chrono::duration_cast<std::chrono::milliseconds>(now - last);
+      spdlog::warn("safety: bus {}: WATCHDOG TRIPPED: no {} for {} ms (timeout {} ms); stopping its servos; motion "
+                   "writes are refused until a client re-arms it (gateway unit coil 2 := 0)",
+                   bus->name,
+                   bus->watchdog->feed == config::WatchdogFeed::AnyWrite
+                       ? std::string("write")
+                       : "change of heartbeat register " +
+                             std::to_string(config::kHeartbeatRegisterBase + bus->index),
+                   silent.count(), bus->watchdog->timeout.count());
+      run_stop(bus->index, StopCause::Watchdog, bus->watchdog->action, last, "watchdog", nullptr);
+    }
+    if (next) {
+      timer_.expires_at(*next);
+      timer_.async_wait([this](const boost::system::error_code& error) {
+        if (!error) check_watchdogs();
+      });
+    }
+  }
+
+  PostFn safety_post() {
+    return [this](std::function<void()> work) { asio::post(io_, std::move(work)); };
+  }
+  static PostFn run_here() {
+    return [](std::function<void()> work) { work(); };
+  }
+
+  // Safety thread. Reads what the holds need, then sends the stop frames; `done(ok)` after the
+  // last frame (ok: every frame went out).
+  void run_stop(std::size_t index, StopCause cause, std::optional<StopAction> override, Clock::time_point since,
+                std::string reason, std::function<void(bool)> done) {
+    BusSafety& bus = *buses_[index];
+    struct PendingRead {
+      std::size_t target;
+      modbus_map::BusRange range;
+    };
+    std::vector<PendingRead> reads;
+    for (std::size_t t = 0; t < bus.targets.size(); ++t) {
+      const StopTarget& target = bus.targets[t];
+      if (override.value_or(target.action) != StopAction::Hold) continue;
+      for (const auto& range : target.context) reads.push_back(PendingRead{t, range});
+    }
+    auto write_phase = [this, index, cause, override, since, reason, done, reads](std::vector<BusResult> results) {
+      std::map<std::size_t, std::vector<const BusResult*>> by_target;
+      for (std::size_t i = 0; i < reads.size(); ++i) by_target[reads[i].target].push_back(&results[i]);
+      send_stop_frames(index, cause, override, since, reason, done, by_target);
+    };
+    if (reads.empty()) {
+      write_phase({});
+      return;
+    }
+    // The write phase runs where the last read completes (the bus thread), so the stop frames are
+    // queued before the engine picks its next job: a poll due meanwhile cannot slip in between.
+    auto join = BusJoin::create(reads.size(), run_here(), std::move(write_phase));
+    for (std::size_t i = 0; i < reads.size(); ++i) {
+      const StopTarget& target = bus.targets[reads[i].target];
+      submit_safely(bus, ReadOp{target.servo_id, reads[i].range.address, reads[i].range.count}, join->completion(i));
+    }
+  }
+
+  void send_stop_frames(std::size_t index, StopCause cause, std::optional<StopAction> override,
+                        Clock::time_point since, const std::string& reason, const std::function<void(bool)>& done,
+                        const std::map<std::size_t, std::vector<const BusResult*>>& context) {
+    BusSafety& bus = *buses_[index];
+    std::vector<std::string> report;
+    std::vector<BusOp> frames;
+    const auto add_write = [&](const StopTarget& target, modbus_map::BusWrite write) {
+      if (!bus.packet) {
+        frames.push_back(WriteOp{target.servo_id, write.address, std::move(write.data)});
+        return;
+      }
+      // One SYNC WRITE per write shape: every servo stopping the same way is in one frame, as
+      // many as LEN allows (35 servos of a 6-byte goal block; more take another frame).
+      const auto size = static_cast<std::uint8_t>(write.data.size());
+      auto frame = std::find_if(frames.begin(), frames.end(), [&](const BusOp& op) {
+        const auto* sync = std::get_if<SyncWriteOp>(&op);
+        return sync != nullptr && sync->address == write.address && sync->length == size &&
+               sync->entries.size() < protocol::max_sync_write_servos(size);
+      });
+      if (frame == frames.end()) {
+        frames.push_back(SyncWriteOp{write.address, size, {}});
+        frame = std::prev(frames.end());
+      }
+      std::get<SyncWriteOp>(*frame).entries.push_back(protocol::SyncWriteEntry{target.servo_id, std::move(write.data)});
+    };
+    for (std::size_t t = 0; t < bus.targets.size(); ++t) {
+      const StopTarget& target = bus.targets[t];
+      const StopAction action = override.value_or(target.action);
+      const std::string who = "servo " + std::to_string(target.servo_id);
+      if (action == StopAction::None) {
+        report.push_back(who + " none");
+        continue;
+      }
+      if (action == StopAction::TorqueOff) {
+        add_write(target, modbus_map::torque_off_write(*target.spec, target.order));
+        report.push_back(who + " torque off");
+        continue;
+      }
+      std::vector<protocol::Bytes> data;
+      std::string failure;
+      const auto found = context.find(t);
+      if (found != context.end()) {
+        for (const BusResult* result : found->second) {
+          if (result->status != BusStatus::Ok) {
+            failure = result->detail.empty() ? std::string(gateway::to_string(result->status)) : result->detail;
+            break;
+          }
+          data.push_back(result->data);
+        }
+      }
+      Expected<modbus_map::SafeStopPlan> plan = unexpected(failure);
+      if (failure.empty()) {
+        plan = modbus_map::plan_safe_stop(*target.spec, action, target.order,
+                                          modbus_map::StopContext{target.context, data});
+      }
+      if (!plan) {
+        // Without its state no hold can be computed; an unknown motion must still end.
+        spdlog::error("safety: bus {}: {}: cannot hold it ({}); switching its torque off instead", bus.name, who,
+                      plan.error());
+        add_write(target, modbus_map::torque_off_write(*target.spec, target.order));
+        report.push_back(who + " torque off (state unreadable)");
+        continue;
+      }
+      for (auto& write : plan->writes) add_write(target, std::move(write));
+      report.push_back(who + " " + plan->what);
+    }
+
+    const auto finish = [this, index, cause, since, reason, done, report](bool ok, const std::string& failure) {
+      BusSafety& b = *buses_[index];
+      const auto latency = std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - since);
+      b.stops.fetch_add(1);
+      b.last_cause.store(cause);
+      b.last_latency_us.store(latency.count());
+      if (ok) {
+        spdlog::warn("safety: bus {}: safe stop ({}) sent {:.1f} ms after {}: {}", b.name, reason,
+                     static_cast<double>(latency.count()) / 1000.0,
+                     cause == StopCause::Watchdog ? "the last feed" : "the request", targets_text(report));
+      } else {
+        spdlog::error("safety: bus {}: safe stop ({}) FAILED: {}; planned: {}", b.name, reason, failure,
+                      targets_text(report));
+      }
+      if (done) done(ok);
+    };
+    if (frames.empty()) {
+      finish(true, "");
+      return;
+    }
+    auto join = BusJoin::create(frames.size(), safety_post(), [finish](std::vector<BusResult> results) {
+      const BusResult* failure = BusJoin::first_failure(results);
+      finish(failure == nullptr, failure ? failure->detail : std::string());
+    });
+    for (std::size_t i = 0; i < frames.size(); ++i) submit_safely(bus, std::move(frames[i]), join->completion(i));
+  }
+
+  // A stop must not die on an operation the bus refuses to express (a programming error):
+  // it becomes that operation's failure, said in the stop's log line.
+  void submit_safely(BusSafety& bus, BusOp op, Completion done) {
+    try {
+      bus.engine->submit(std::move(op), Priority::Safety, done);
+    } catch (const std::exception& error) {
+      done(BusResult{BusStatus::Corrupt, 0, {}, "bus " + bus.name + ": " + error.what()});
+    }
+  }
+
+  void stop_thread() {
+    if (!thread_.joinable()) return;
+    asio::post(io_, [this] { timer_.cancel(); });
+    work_.reset();
+    io_.stop();
+    thread_.join();
+  }
+
+  asio::io_context io_;
+  asio::executor_work_guard<asio::io_context::executor_type> work_ = asio::make_work_guard(io_);
+  asio::steady_timer timer_;
+  std::thread thread_;
+  std::vector<std::unique_ptr<BusSafety>> buses_;
+  std::atomic<bool> estop_latched_{false};
+  std::atomic<std::uint64_t> estops_{0};
+  std::atomic<bool> shutdown_done_{false};
+};
+
+SafetySupervisor::SafetySupervisor(const config::Config& config, std::vector<BusEngine*> engines,
+                                   std::vector<std::shared_ptr<MotionGate>> gates)
+    : impl_(std::make_unique<Impl>(config, std::move(engines), std::move(gates))) {}
+SafetySupervisor::~SafetySupervisor() = default;
+
+void SafetySupervisor::start() { impl_->start(); }
+void SafetySupervisor::stop_for_shutdown(std::chrono::milliseconds bound) { impl_->stop_for_shutdown(bound); }
+void SafetySupervisor::feed_write(std::size_t bus) { impl_->feed_write(bus); }
+void SafetySupervisor::feed_heartbeat(std::size_t bus, std::uint16_t value) { impl_->feed_heartbeat(bus, value); }
+std::optional<std::uint16_t> SafetySupervisor::heartbeat_value(std::size_t bus) const {
+  return impl_->heartbeat_value(bus);
+}
+Expected<MotionEpoch> SafetySupervisor::admit_motion(std::size_t bus) { return impl_->admit_motion(bus); }
+void SafetySupervisor::estop(PostFn post, std::function<void(bool)> done) { impl_->estop(std::move(post), std::move(done)); }
+void SafetySupervisor::reset_estop() { impl_->reset_estop(); }
+void SafetySupervisor::rearm_watchdogs() { impl_->rearm_watchdogs(); }
+SafetyFacts SafetySupervisor::facts() const { return impl_->facts(); }
+bool SafetySupervisor::estop_latched() const { return impl_->estop_latched(); }
+bool SafetySupervisor::any_tripped() const { return impl_->any_tripped(); }
+std::size_t SafetySupervisor::bus_count() const { return impl_->bus_count(); }
+std::optional<std::chrono::milliseconds> SafetySupervisor::watchdog_timeout(std::size_t bus) const {
+  return impl_->watchdog_timeout(bus);
+}
+
+}  // namespace sms::gateway

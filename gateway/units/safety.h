@@ -1,0 +1,128 @@
+#pragma once
+// Motion safety (issue 10, README "Safety"): per-bus watchdogs, the e-stop latch, safe stops,
+// and the start and stop actions. The supervisor runs its own thread, so a watchdog trips on
+// time even while the Modbus io thread is busy; every safe stop goes to the bus engines at
+// Priority::Safety (before any client work, never refused for a full queue).
+//
+// Rules, in one place:
+// - A bus's watchdog is armed at start and after a re-arm, and starts counting at the first
+//   feed or the first motion write on the bus. `timeout` after the last feed it trips: the bus's
+//   MotionGate blocks (new motion writes: 0x04; queued ones are dropped by the engine), every
+//   servo of the bus gets its safe stop once, and the state stays `tripped` until a re-arm.
+// - The e-stop latch blocks every bus and stops every servo; only a reset clears it, and a reset
+//   (like a re-arm) moves nothing.
+// - A safe stop reads each servo's mode, torque, goal block and present position (one READ on
+//   packet tables), then writes: on packet buses one SYNC WRITE frame per distinct write shape
+//   (one frame when all servos stop the same way), on modbus-rtu buses one write per servo in
+//   unit order. A servo that cannot be read gets its torque switched off.
+//
+//   SafetySupervisor safety(config, engines, gates);
+//   safety.start();                               // on_start actions, watchdog thread
+//   auto epoch = safety.admit_motion(bus, what);  // io thread, before a motion write
+//   safety.feed_write(bus);                       // io thread, on every write request
+//   safety.stop_for_shutdown(2s);                 // on_stop actions, then no more motion
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "config/config.h"
+#include "gateway/bus/bus_engine.h"
+#include "gateway/bus/motion_gate.h"
+#include "protocol/expected.h"
+
+namespace sms::gateway {
+
+enum class WatchdogState : std::uint8_t {
+  Off = 0,      // no watchdog on this bus
+  Armed = 1,    // waiting for the first feed or motion write
+  Running = 2,  // counting: tripped `timeout` after the last feed
+  Tripped = 3,  // stopped the bus; motion refused until re-armed
+};
+std::string_view to_string(WatchdogState state);
+
+// What a safe stop was for (logs, unit 255 register, metrics).
+enum class StopCause : std::uint8_t { None = 0, Watchdog = 1, EStop = 2, Start = 3, Shutdown = 4 };
+std::string_view to_string(StopCause cause);
+
+struct BusSafetyFacts {
+  WatchdogState state = WatchdogState::Off;
+  std::optional<std::chrono::milliseconds> since_feed;  // nullopt: never fed
+  std::chrono::milliseconds timeout{0};
+  std::uint64_t trips = 0;
+  std::uint64_t stops = 0;                 // safe stops performed on this bus, every cause
+  StopCause last_cause = StopCause::None;
+  std::optional<std::chrono::microseconds> last_stop_latency;  // last feed (or request) -> frames on the wire
+  bool motion_blocked = false;
+};
+
+struct SafetyFacts {
+  bool estop_latched = false;
+  std::uint64_t estops = 0;
+  std::vector<BusSafetyFacts> buses;
+};
+
+// Refused motion writes, logged as a warning at most once a second (a PLC writing cyclically
+// into a latched gateway would otherwise fill the log); the lines in between are counted and
+// said in the next one. io thread only.
+class MotionRefusalLog {
+ public:
+  void refused(std::string_view who, std::uint8_t function, std::string_view why);
+
+ private:
+  std::chrono::steady_clock::time_point last_{};
+  std::uint64_t suppressed_ = 0;
+};
+
+class SafetySupervisor {
+ public:
+  // `engines[i]` runs config.buses[i]; `gates[i]` is the gate its engine checks
+  // (BusSettings::motion_gate).
+  SafetySupervisor(const config::Config& config, std::vector<BusEngine*> engines,
+                   std::vector<std::shared_ptr<MotionGate>> gates);
+  ~SafetySupervisor();  // stops the thread; no stop is performed
+  SafetySupervisor(const SafetySupervisor&) = delete;
+  SafetySupervisor& operator=(const SafetySupervisor&) = delete;
+
+  // Starts the watchdog thread and performs each bus's on_start action. Call after the engines
+  // have started.
+  void start();
+  // SIGTERM / SIGINT: blocks motion on every bus, performs each bus's on_stop action and waits
+  // for the frames (at most `bound`). Call before the engines stop. Idempotent.
+  void stop_for_shutdown(std::chrono::milliseconds bound);
+
+  // --- the Modbus side (io thread) ---------------------------------------------------------------
+  // A write request for a unit on `bus` arrived (feeds a watchdog whose feed is any_write).
+  void feed_write(std::size_t bus);
+  // Holding register 1000 + bus written: feeds when `value` differs from the last one.
+  void feed_heartbeat(std::size_t bus, std::uint16_t value);
+  std::optional<std::uint16_t> heartbeat_value(std::size_t bus) const;
+  // Before a motion write on `bus`: the epoch the write carries, or why it is refused (the
+  // caller answers 0x04 and logs it). An armed watchdog starts counting here.
+  Expected<MotionEpoch> admit_motion(std::size_t bus);
+
+  // Gateway unit coil 1: latch and stop every bus; `done(ok)` runs through `post` once every
+  // stop frame has been sent (ok false when a bus could not take its frames).
+  using PostFn = std::function<void(std::function<void()>)>;
+  void estop(PostFn post, std::function<void(bool ok)> done);
+  void reset_estop();
+  // Gateway unit coil 2 := 0: every tripped watchdog back to armed. Moves nothing.
+  void rearm_watchdogs();
+
+  SafetyFacts facts() const;
+  bool estop_latched() const;
+  bool any_tripped() const;
+  std::size_t bus_count() const;
+  std::optional<std::chrono::milliseconds> watchdog_timeout(std::size_t bus) const;
+
+ private:
+  class Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace sms::gateway
