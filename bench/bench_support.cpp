@@ -54,6 +54,14 @@ void print_note(std::string_view text) {
 
 // --- latency ---------------------------------------------------------------------------------
 
+void print_latency(const std::string& name, const LatencySummary& summary, LatencyUnit unit, bool with_max) {
+  const double scale = unit == LatencyUnit::Ms ? 1e-3 : 1.0;
+  const std::string_view label = unit == LatencyUnit::Ms ? "ms" : "us";
+  print_figure(name + ".p50", summary.p50_us * scale, label);
+  print_figure(name + ".p99", summary.p99_us * scale, label);
+  if (with_max) print_figure(name + ".max", summary.max_us * scale, label);
+}
+
 LatencySummary summarize(std::vector<std::uint32_t>& samples_ns) {
   LatencySummary summary;
   summary.count = samples_ns.size();

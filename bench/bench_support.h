@@ -41,6 +41,10 @@ struct LatencySummary {
 };
 // Sorts `samples_ns` in place.
 LatencySummary summarize(std::vector<std::uint32_t>& samples_ns);
+// `name.p50`, `name.p99` and (with `with_max`) `name.max`, in µs or in ms.
+enum class LatencyUnit : std::uint8_t { Us, Ms };
+void print_latency(const std::string& name, const LatencySummary& summary, LatencyUnit unit = LatencyUnit::Us,
+                   bool with_max = true);
 std::uint32_t to_ns(Clock::duration duration);
 
 // --- the bus and its wire time (SPEC §5) -----------------------------------------------------

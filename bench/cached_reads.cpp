@@ -158,9 +158,7 @@ Throughput measure_reads(const std::string& server, std::uint16_t port, unsigned
   result.latency = summarize(totals.ok_ns);
   const std::string name = "cached_reads." + server + ".clients_" + std::to_string(clients);
   print_figure(name + ".requests_per_s", result.requests_per_s, "req/s");
-  print_figure(name + ".p50", result.latency.p50_us, "us");
-  print_figure(name + ".p99", result.latency.p99_us, "us");
-  print_figure(name + ".max", result.latency.max_us, "us");
+  print_latency(name, result.latency);
   if (totals.errors > 0) {
     print_figure(name + ".errors", static_cast<double>(totals.errors), "requests");
     print_note(name + ": first error: " + totals.first_error);

@@ -191,12 +191,9 @@ int main(int argc, char** argv) {
     print_figure("mqtt.ddata_per_s", static_cast<double>(observed.ddata) / elapsed, "msg/s");
     print_figure("mqtt.metrics_per_s", static_cast<double>(observed.metrics) / elapsed, "metrics/s");
     const auto poll = summarize(observed.poll_to_host_ns);
-    print_figure("mqtt.poll_to_host.p50", poll.p50_us / 1000, "ms");
-    print_figure("mqtt.poll_to_host.p99", poll.p99_us / 1000, "ms");
-    print_figure("mqtt.poll_to_host.max", poll.max_us / 1000, "ms");
+    print_latency("mqtt.poll_to_host", poll, LatencyUnit::Ms);
     const auto write = summarize(observed.write_to_host_ns);
-    print_figure("mqtt.write_to_first_move.p50", write.p50_us / 1000, "ms");
-    print_figure("mqtt.write_to_first_move.p99", write.p99_us / 1000, "ms");
+    print_latency("mqtt.write_to_first_move", write, LatencyUnit::Ms, false);
     print_figure("mqtt.write_to_first_move.count", static_cast<double>(write.count), "moves");
     return gateway.stop() == 0 ? 0 : 1;
   } catch (const std::exception& error) {

@@ -77,9 +77,7 @@ int main(int argc, char** argv) {
     const auto writes = summarize(writers.ok_ns);
     print_figure("read_under_flood.reads", static_cast<double>(reads.count), "");
     print_figure("read_under_flood.read_errors", static_cast<double>(read_errors), "");
-    print_figure("read_under_flood.read.p50", reads.p50_us, "us");
-    print_figure("read_under_flood.read.p99", reads.p99_us, "us");
-    print_figure("read_under_flood.read.max", reads.max_us, "us");
+    print_latency("read_under_flood.read", reads);
     print_figure("read_under_flood.writes_per_s", static_cast<double>(writes.count) / std::max(writers.seconds, 1e-9),
                  "req/s");
     print_figure("read_under_flood.write.p50", writes.p50_us, "us");

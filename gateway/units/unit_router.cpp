@@ -160,15 +160,20 @@ void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8
   if (writes) {
     // The gateway cannot tell what a passthrough slave's registers do: every write may move
     // something, so every write is under the safety rules (README "Safety").
-    auto admitted = safety_.admit_motion(unit.bus_index);
-    if (!admitted) {
-      refusal_log_.refused(unit.label, function, admitted.error());
-      reply.send(exception_response(function, Fault::ServoRefused));
-      return;
-    }
+    const auto admitted = admit_motion(unit.bus_index, unit.label, function, reply);
+    if (!admitted) return;
     epoch = *admitted;
   }
   forward_pdu(*unit.engine, unit.slave, pdu, post_, reply, unit.label, BroadcastReply::None, epoch);
+}
+
+std::optional<MotionEpoch> UnitRouter::admit_motion(std::size_t bus_index, const std::string& what,
+                                                    std::uint8_t function, const Reply& reply) {
+  auto admitted = safety_.admit_motion(bus_index);
+  if (admitted) return *admitted;
+  refusal_log_.refused(what, function, admitted.error());
+  reply.send(exception_response(function, Fault::ServoRefused));
+  return std::nullopt;
 }
 
 bool UnitRouter::refused_as_read_only(bool read_only, const std::string& label, std::uint8_t function,
@@ -414,12 +419,8 @@ void UnitRouter::run_writes(const ServoUnit& unit, std::uint8_t function, modbus
   // A staged write moves the servo at ACTION; it is refused as a motion write now too, so a
   // latched gateway does not collect moves that a later ACTION would run.
   if (const auto motion = modbus_map::motion_in_plan(spec, order, plan)) {
-    auto admitted = safety_.admit_motion(unit.bus_index);
-    if (!admitted) {
-      refusal_log_.refused(unit.label + " (" + *motion + ")", function, admitted.error());
-      reply.send(exception_response(function, Fault::ServoRefused));
-      return;
-    }
+    const auto admitted = admit_motion(unit.bus_index, unit.label + " (" + *motion + ")", function, reply);
+    if (!admitted) return;
     epoch = *admitted;
   }
   if (!plan.staged && modbus_map::switches_torque_on_without_goal(spec, order, plan)) {

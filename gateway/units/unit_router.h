@@ -100,6 +100,11 @@ class UnitRouter : public RequestHandler {
   void dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, const Reply& reply);
   void handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply);
   void forward(const PassthroughUnit& unit, std::span<const std::uint8_t> pdu, const Reply& reply);
+  // The safety rules' admission of a motion write on `bus_index` (servo and passthrough units
+  // alike): its epoch, or nullopt after answering 0x04 (the refusal logged at most once a
+  // second, naming `what`).
+  std::optional<MotionEpoch> admit_motion(std::size_t bus_index, const std::string& what, std::uint8_t function,
+                                          const Reply& reply);
   // One rule for servo and passthrough units (read_only_refusal): true when it answered.
   bool refused_as_read_only(bool read_only, const std::string& label, std::uint8_t function, const Reply& reply) const;
   void read_holding(const ServoUnit& unit, std::uint8_t function, std::uint16_t start, std::uint16_t count,

@@ -5,14 +5,12 @@
 #include <string>
 
 #include "config/load.h"
+#include "tests/config/config_test_support.h"
 
 namespace sms::config {
 namespace {
 
-std::string mqtt_error(const std::string& yaml) {
-  const auto config = load_config_string(yaml, "plant.yaml");
-  return config ? "<loaded>" : config.error().to_string();
-}
+using testing::error_text;
 
 const std::string kServos = R"(buses:
   - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
@@ -93,23 +91,23 @@ TEST(LoadMqtt, ReadsEveryKeyAndDumpsBackTheSame) {
 
 TEST(LoadMqtt, RefusesWithPlaces) {
   const std::string head = kServos + "mqtt:\n  broker: \"127.0.0.1:1883\"\n";
-  EXPECT_EQ(mqtt_error(head + "  group_id: a/b\n  edge_node_id: gw\n"),
+  EXPECT_EQ(error_text(head + "  group_id: a/b\n  edge_node_id: gw\n"),
             "plant.yaml:8:13: mqtt.group_id: `a/b` cannot be a Sparkplug ID: it is an MQTT topic level, so no "
             "'/', '+' or '#'");
-  EXPECT_EQ(mqtt_error(head + "  group_id: g\n"), "plant.yaml:7:3: missing required key `edge_node_id` in mqtt");
-  EXPECT_EQ(mqtt_error(head + "  group_id: g\n  edge_node_id: gw\n  deadband: {present_postion: 2}\n"),
+  EXPECT_EQ(error_text(head + "  group_id: g\n"), "plant.yaml:7:3: missing required key `edge_node_id` in mqtt");
+  EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  deadband: {present_postion: 2}\n"),
             "plant.yaml:10:14: mqtt.deadband: `present_postion` is not a field of any table (docs/REGISTER_MAP.md "
             "lists each table's fields)");
-  EXPECT_EQ(mqtt_error(head + "  group_id: g\n  edge_node_id: gw\n  password_file: /p\n"),
+  EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  password_file: /p\n"),
             "plant.yaml:10:18: mqtt.password_file: a password needs a username; add mqtt.username");
-  EXPECT_EQ(mqtt_error(head + "  group_id: g\n  edge_node_id: gw\n  tls: {ca: /ca, certificate: /c}\n"),
+  EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  tls: {ca: /ca, certificate: /c}\n"),
             "plant.yaml:10:8: mqtt.tls: certificate and private_key go together (a client certificate for the "
             "broker); give both or neither");
-  EXPECT_EQ(mqtt_error(head + "  group_id: g\n  edge_node_id: gw\n  reconnect_min_ms: 5000\n  reconnect_max_ms: 1000\n"),
+  EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  reconnect_min_ms: 5000\n  reconnect_max_ms: 1000\n"),
             "plant.yaml:11:3: mqtt.reconnect_max_ms: 1000 is below reconnect_min_ms (5000)");
-  EXPECT_EQ(mqtt_error(head + "  group_id: g\n  edge_node_id: gw\n  role: admin\n"),
+  EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  role: admin\n"),
             "plant.yaml:10:9: mqtt.role: expected one of none, read, operate, engineer, got `admin`");
-  EXPECT_EQ(mqtt_error(head + "  group_id: g\n  edge_node_id: gw\n  last_will: x\n"),
+  EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  last_will: x\n"),
             "plant.yaml:10:3: unknown key `last_will` in mqtt; allowed keys here: broker, group_id, edge_node_id, "
             "client_id, username, password_file, tls, keepalive_s, role, data_period_ms, report_period_s, "
             "deadband, reconnect_min_ms, reconnect_max_ms, enabled");
@@ -117,14 +115,14 @@ TEST(LoadMqtt, RefusesWithPlaces) {
 
 TEST(LoadMqtt, ServoNamesMustBeUniqueDeviceIds) {
   const std::string mqtt = "mqtt: {broker: \"127.0.0.1:1883\", group_id: g, edge_node_id: gw}\n";
-  EXPECT_EQ(mqtt_error(R"(buses:
+  EXPECT_EQ(error_text(R"(buses:
   - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
 servos:
   - {bus: arm, id: 1, table: sts, name: "left/arm"}
 )" + mqtt),
             "plant.yaml:4:5: servos[0].name: `left/arm` cannot be a Sparkplug device ID (mqtt is configured): no "
             "'/', '+' or '#'");
-  EXPECT_EQ(mqtt_error(R"(buses:
+  EXPECT_EQ(error_text(R"(buses:
   - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
 servos:
   - {bus: arm, id: 1, table: sts, name: unit-2}

@@ -6,21 +6,13 @@
 #include <string_view>
 
 #include "config/load.h"
+#include "tests/config/config_test_support.h"
 
 namespace sms::config {
 namespace {
 
-std::string error_text(std::string_view yaml) {
-  const auto config = load_config_string(yaml, "plant.yaml");
-  if (config) return "<loaded>";
-  return config.error().to_string();
-}
-
-constexpr std::string_view kBusAndServo = R"(buses:
-  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
-servos:
-  - {bus: arm, id: 1, table: sts}
-)";
+using testing::error_text;
+using testing::kBusAndServo;
 
 Config load_or_fail(const std::string& yaml) {
   auto config = load_config_string(yaml, "plant.yaml");
@@ -112,7 +104,7 @@ TEST(ConfigOperations, AllowListIsReadInOrder) {
     - 192.168.10.0/24
     - "fd00::/8"
     - 127.0.0.1
-)" + std::string(kBusAndServo));
+)" + kBusAndServo);
   ASSERT_EQ(config.modbus_tcp.allow.size(), 3u);
   EXPECT_EQ(config.modbus_tcp.allow[0].to_string(), "192.168.10.0/24");
   EXPECT_EQ(config.modbus_tcp.allow[1].to_string(), "fd00::/8");
@@ -120,7 +112,7 @@ TEST(ConfigOperations, AllowListIsReadInOrder) {
 }
 
 TEST(ConfigOperations, WithoutAllowEveryClientMayConnect) {
-  const Config config = load_or_fail(std::string(kBusAndServo));
+  const Config config = load_or_fail(kBusAndServo);
   EXPECT_TRUE(config.modbus_tcp.allow.empty());
   EXPECT_EQ(config.logging.format, LogFormat::Plain);
 }
@@ -128,14 +120,14 @@ TEST(ConfigOperations, WithoutAllowEveryClientMayConnect) {
 TEST(ConfigOperations, AllowRejectionsPointAtTheItem) {
   EXPECT_EQ(error_text(R"(modbus_tcp:
   allow: [10.0.0.0/8, 192.168.1.0/33]
-)" + std::string(kBusAndServo)),
+)" + kBusAndServo),
             "plant.yaml:2:23: modbus_tcp.allow[1]: \"192.168.1.0/33\": the prefix length after '/' must be 0..32 for "
             "an IPv4 network");
   EXPECT_EQ(error_text(R"(modbus_tcp:
   allow:
     - 10.0.0.0/8
     - 192.168.10.7/24
-)" + std::string(kBusAndServo)),
+)" + kBusAndServo),
             "plant.yaml:4:7: modbus_tcp.allow[1]: \"192.168.10.7/24\" has address bits set below its /24 prefix; the "
             "network is 192.168.10.0/24 (or give /32 for the one address)");
 }
@@ -143,15 +135,15 @@ TEST(ConfigOperations, AllowRejectionsPointAtTheItem) {
 TEST(ConfigOperations, AllowMustBeANonEmptyListOfStrings) {
   EXPECT_EQ(error_text(R"(modbus_tcp:
   allow: []
-)" + std::string(kBusAndServo)),
+)" + kBusAndServo),
             "plant.yaml:2:10: modbus_tcp.allow: empty; remove the key to let every client connect");
   EXPECT_EQ(error_text(R"(modbus_tcp:
   allow: 10.0.0.0/8
-)" + std::string(kBusAndServo)),
+)" + kBusAndServo),
             "plant.yaml:2:10: modbus_tcp.allow: expected a list, got `10.0.0.0/8`");
   EXPECT_EQ(error_text(R"(modbus_tcp:
   allow: [{net: 10.0.0.0/8}]
-)" + std::string(kBusAndServo)),
+)" + kBusAndServo),
             "plant.yaml:2:11: modbus_tcp.allow[0]: expected a string, got a map");
 }
 
@@ -161,7 +153,7 @@ TEST(ConfigOperations, AllowRefusesTheSameNetworkTwice) {
     - 10.0.0.7
     - 192.168.0.0/16
     - 10.0.0.7/32
-)" + std::string(kBusAndServo)),
+)" + kBusAndServo),
             "plant.yaml:5:7: modbus_tcp.allow[2]: 10.0.0.7/32 is already listed as modbus_tcp.allow[0] (line 3, "
             "column 7)");
 }
@@ -169,21 +161,21 @@ TEST(ConfigOperations, AllowRefusesTheSameNetworkTwice) {
 // ---- logging.format ----
 
 TEST(ConfigOperations, LogFormatPlainOrJson) {
-  const Config json = load_or_fail(std::string(kBusAndServo) + "logging:\n  format: json\n");
+  const Config json = load_or_fail(kBusAndServo + "logging:\n  format: json\n");
   EXPECT_EQ(json.logging.format, LogFormat::Json);
-  const Config plain = load_or_fail(std::string(kBusAndServo) + "logging:\n  format: plain\n");
+  const Config plain = load_or_fail(kBusAndServo + "logging:\n  format: plain\n");
   EXPECT_EQ(plain.logging.format, LogFormat::Plain);
 }
 
 TEST(ConfigOperations, LogFormatRejectionNamesTheChoices) {
-  EXPECT_EQ(error_text(std::string(kBusAndServo) + "logging:\n  format: logfmt\n"),
+  EXPECT_EQ(error_text(kBusAndServo + "logging:\n  format: logfmt\n"),
             "plant.yaml:6:11: logging.format: expected one of plain, json, got `logfmt`");
 }
 
 TEST(ConfigOperations, DumpWritesAllowAndFormatAndLoadsBackEqual) {
   const Config config = load_or_fail(R"(modbus_tcp:
   allow: [192.168.10.0/24, "fd00::/8"]
-)" + std::string(kBusAndServo) + "logging:\n  format: json\n");
+)" + kBusAndServo + "logging:\n  format: json\n");
   const std::string dumped = dump_config(config);
   EXPECT_NE(dumped.find("  allow: [\"192.168.10.0/24\", \"fd00::/8\"]\n"), std::string::npos) << dumped;
   EXPECT_NE(dumped.find("  format: json\n"), std::string::npos) << dumped;

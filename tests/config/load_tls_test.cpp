@@ -6,21 +6,13 @@
 #include <string_view>
 
 #include "config/load.h"
+#include "tests/config/config_test_support.h"
 
 namespace sms::config {
 namespace {
 
-std::string error_text(const std::string& yaml) {
-  const auto config = load_config_string(yaml, "plant.yaml");
-  if (config) return "<loaded>";
-  return config.error().to_string();
-}
-
-const std::string kBusAndServo = R"(buses:
-  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
-servos:
-  - {bus: arm, id: 1, table: sts}
-)";
+using testing::error_text;
+using testing::kBusAndServo;
 
 const std::string kTls = R"(modbus_tcp:
   listen: "0.0.0.0:502"
