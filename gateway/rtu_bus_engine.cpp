@@ -1011,7 +1011,13 @@ void RtuBusEngine::Impl::run_work(Work work) {
       if (block.contains(kSmsmbStatusRegister, 1)) {
         const auto offset = static_cast<std::size_t>(kSmsmbStatusRegister - block.address) * 2;
         if (ServoCounters* counters = cache_.counters(work.servo_id)) {
-          counters->last_status.store(result.data[offset + 1], std::memory_order_relaxed);
+          // Logged once per change, as on packet buses (docs/DECISIONS.md "Gateway", the status byte).
+          const std::uint8_t status = result.data[offset + 1];
+          const auto previous = counters->last_status.exchange(status, std::memory_order_relaxed);
+          if (previous != status) {
+            spdlog::info("bus {}: servo {} status byte 0x{:02X} -> 0x{:02X}", settings_.name, work.servo_id, previous,
+                         status);
+          }
         }
       }
       servo_answered(work.servo_id);
