@@ -816,16 +816,18 @@ void RtuBusEngine::Impl::bus_came_up() {
 
 void RtuBusEngine::Impl::port_lost(const std::string& reason) {
   master_.close();
-  bus_up_.store(false);
   counters_.bus_down_events.fetch_add(1, std::memory_order_relaxed);
+  // Before the bus reads down: whoever sees bus_up() false sees the loss counted and every
+  // servo offline too.
+  cache_.set_all_offline();
+  discovered_.store(false);
+  bus_up_.store(false);
   spdlog::error("bus {}: serial port lost ({}); reopening every {} ms", settings_.name, reason,
                 settings_.reopen_period.count());
   open_failure_logged_ = true;  // the loss is the message; do not repeat it for each reopen attempt
-  cache_.set_all_offline();
   scheduler_.forget_all();
   work_.clear();
   cycle_running_ = false;
-  discovered_.store(false);
   fail_queued(BusStatus::BusDown, "bus " + settings_.name + ": serial port " + settings_.serial.device + " lost");
 }
 
