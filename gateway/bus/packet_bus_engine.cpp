@@ -862,14 +862,15 @@ void PacketBusEngine::Impl::port_lost(const std::string& reason) {
   spdlog::error("bus {}: {} — bus down; reopening every {} ms", settings_.name, reason, settings_.reopen_period.count());
   close_port();
   counters_.bus_down_events.fetch_add(1, std::memory_order_relaxed);
+  // Before the bus reads down: whoever sees bus_up() false sees every servo offline too.
+  cache_.set_all_offline();
+  discovered_.store(false);
 
   std::vector<Job> failed = take_client_jobs();
   std::optional<Active> interrupted = abandon_active();
   scheduler_.forget_all();
-  cache_.set_all_offline();
   cycle_ = Cycle{};
   discovery_ = Discovery{};
-  discovered_.store(false);
 
   const std::string detail = "bus " + settings_.name + ": " + reason;
   if (interrupted && interrupted->job.client) {

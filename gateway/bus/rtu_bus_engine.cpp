@@ -816,16 +816,18 @@ void RtuBusEngine::Impl::bus_came_up() {
 
 void RtuBusEngine::Impl::port_lost(const std::string& reason) {
   master_.close();
-  bus_up_.store(false);
   counters_.bus_down_events.fetch_add(1, std::memory_order_relaxed);
+  // Before the bus reads down: whoever sees bus_up() false sees the loss counted and every
+  // servo offline too.
+  cache_.set_all_offline();
+  discovered_.store(false);
+  bus_up_.store(false);
   spdlog::error("bus {}: serial port lost ({}); reopening every {} ms", settings_.name, reason,
                 settings_.reopen_period.count());
   open_failure_logged_ = true;  // the loss is the message; do not repeat it for each reopen attempt
-  cache_.set_all_offline();
   scheduler_.forget_all();
   work_.clear();
   cycle_running_ = false;
-  discovered_.store(false);
   fail_queued(BusStatus::BusDown, "bus " + settings_.name + ": serial port " + settings_.serial.device + " lost");
 }
 
@@ -1011,7 +1013,13 @@ void RtuBusEngine::Impl::run_work(Work work) {
       if (block.contains(kSmsmbStatusRegister, 1)) {
         const auto offset = static_cast<std::size_t>(kSmsmbStatusRegister - block.address) * 2;
         if (ServoCounters* counters = cache_.counters(work.servo_id)) {
-          counters->last_status.store(result.data[offset + 1], std::memory_order_relaxed);
+          // Logged once per change, as on packet buses (docs/DECISIONS.md "Gateway", the status byte).
+          const std::uint8_t status = result.data[offset + 1];
+          const auto previous = counters->last_status.exchange(status, std::memory_order_relaxed);
+          if (previous != status) {
+            spdlog::info("bus {}: servo {} status byte 0x{:02X} -> 0x{:02X}", settings_.name, work.servo_id, previous,
+                         status);
+          }
         }
       }
       servo_answered(work.servo_id);
