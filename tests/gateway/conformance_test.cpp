@@ -25,7 +25,7 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/exceptions.h"
+#include "gateway/units/bus_faults.h"
 #include "tests/gateway/bus_test_support.h"
 #include "tests/support/engine_conformance.h"
 

@@ -18,7 +18,7 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/bus_engine.h"
+#include "gateway/bus/bus_engine.h"
 #include "protocol/instructions.h"
 #include "simulator/simulated_bus.h"
 #include "tests/gateway/bus_test_support.h"
