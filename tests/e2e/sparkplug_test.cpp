@@ -282,6 +282,33 @@ TEST(Sparkplug, BrokerDownAndBackGivesNewBirthsAndAKilledGatewayItsDeath) {
   EXPECT_EQ(int_of(death->metric("bdSeq")), int_of(again->metric("bdSeq")));
 }
 
+// A command the broker delivered is carried out, in order, even when the broker dies while the
+// gateway is still working through it: 1000 goal writes in one DCMD; the broker is killed once the
+// first has reached the servo; the last value lands, and the next DBIRTH reports it.
+TEST(Sparkplug, ADeliveredCommandIsCarriedOutWhenTheBrokerDiesMeanwhile) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary();
+  ModbusClient modbus(gateway.port(), 1);
+  ASSERT_TRUE(modbus.write_register(42, 0).ok());  // a goal none of the commands has
+  std::vector<sp::Metric> writes;
+  for (int i = 0; i < 1000; ++i) writes.push_back(sp::Metric::int16("goal_position", static_cast<std::int16_t>(100 + i)));
+  writes.push_back(sp::Metric::int16("goal_position", 2222));
+  plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", writes);
+  ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") >= 100; }, 10s)) << gateway.process().output();
+  plant.broker.kill();
+  EXPECT_NE(plant.sim.field(1, "goal_position"), 2222) << "all writes were done before the broker died";
+  ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 2222; }, 10s))
+      << "goal " << plant.sim.field(1, "goal_position") << "\n" << gateway.process().output();
+
+  plant.broker.start();
+  SparkplugHost host(plant.broker.port());
+  const auto reborn = host.wait(is(MessageType::DBirth, "shoulder"), 15s);
+  ASSERT_TRUE(reborn) << host.summary() << gateway.process().output();
+  EXPECT_EQ(int_of(reborn->metric("goal_position")), 2222);
+  EXPECT_EQ(text_of(reborn->metric("Gateway/Last Command")), "ok: goal_position := 2222");
+}
+
 TEST(Sparkplug, TlsAndCredentialsToTheBrokerAndARefusedPassword) {
   TempDir dir;
   const std::string certs = dir.file("certs");
