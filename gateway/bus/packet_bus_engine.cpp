@@ -727,10 +727,9 @@ void PacketBusEngine::Impl::note_written(const Packet& request) {
   const auto apply = [this](std::uint8_t servo_id, std::uint8_t address, std::span<const std::uint8_t> data) {
     const ServoSettings* target = servo(servo_id);
     const IdentityLayout* layout = target == nullptr ? nullptr : identity_layout(target->table);
-    if (layout == nullptr) return;
-    const std::uint16_t level_address = layout->response_level_address();
-    if (level_address < address || level_address >= address + data.size()) return;
-    cache_.set_response_level(servo_id, data[level_address - address]);
+    const auto level_address = layout == nullptr ? std::nullopt : layout->response_level_address();
+    if (!level_address || *level_address < address || *level_address >= address + data.size()) return;
+    cache_.set_response_level(servo_id, data[*level_address - address]);
   };
   if (request.code == protocol::common::kWrite && request.params.size() >= 2) {
     const auto data = std::span<const std::uint8_t>(request.params).subspan(1);
