@@ -62,8 +62,8 @@ ServoIdentity decode_identity(const IdentityLayout& layout, std::span<const std:
 }
 
 std::optional<std::uint8_t> decode_response_level(const IdentityLayout& layout, std::span<const std::uint8_t> bytes) {
-  if (layout.response_level_offset >= bytes.size()) return std::nullopt;
-  return bytes[layout.response_level_offset];
+  if (!layout.response_level_offset || *layout.response_level_offset >= bytes.size()) return std::nullopt;
+  return bytes[*layout.response_level_offset];
 }
 
 std::string format_identity_value(const IdentityLayout* layout, bool model, std::optional<std::uint16_t> value) {

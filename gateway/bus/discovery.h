@@ -28,18 +28,24 @@ struct IdentityField {
 };
 struct IdentityLayout {
   modbus_map::TableId table;
-  AddressBlock read;  // one READ covering every field below
+  AddressBlock read;  // one READ covering every field below (bus addresses: registers on smsmb)
   std::optional<IdentityField> model;
   std::optional<IdentityField> firmware;
-  std::uint8_t response_level_offset;  // the table's `response_level` field, one byte
+  // The table's `response_level` field (one byte) in the bytes read; SMSMB servos have none
+  // (a Modbus slave answers every unicast request).
+  std::optional<std::uint8_t> response_level_offset;
 
-  std::uint16_t response_level_address() const { return static_cast<std::uint16_t>(read.address + response_level_offset); }
+  std::optional<std::uint16_t> response_level_address() const {
+    if (!response_level_offset) return std::nullopt;
+    return static_cast<std::uint16_t>(read.address + *response_level_offset);
+  }
 };
 
 // sts and scs: firmware 0-1, byte-order flag 2, model number 3-4, response level 8 (SPEC §2.1,
 // modbus_map/tables/scs.h); sms1: software version 3-4, response level 8 (§2.2); d55d: vendor
-// code 0, software version 2, response level 16 (§2.3). SMSMB servos are not on packet buses.
-inline constexpr std::array<IdentityLayout, 4> kIdentityLayouts{{
+// code 0, software version 2, response level 16 (§2.3); smsmb: registers 0x00 firmware version
+// and 0x01 servo (model) version, two bytes each, high byte first (§2.4).
+inline constexpr std::array<IdentityLayout, 5> kIdentityLayouts{{
     {modbus_map::TableId::Sts, {0, 9}, IdentityField{3, 2, IdentityFormat::ModelNumber},
      IdentityField{0, 2, IdentityFormat::MajorMinor}, 8},
     {modbus_map::TableId::Scs, {0, 9}, IdentityField{3, 2, IdentityFormat::ModelNumber},
@@ -47,6 +53,8 @@ inline constexpr std::array<IdentityLayout, 4> kIdentityLayouts{{
     {modbus_map::TableId::Sms1, {3, 6}, std::nullopt, IdentityField{0, 2, IdentityFormat::Value}, 5},
     {modbus_map::TableId::D55d, {0, 17}, IdentityField{0, 1, IdentityFormat::Value},
      IdentityField{2, 1, IdentityFormat::Value}, 16},
+    {modbus_map::TableId::Smsmb, {0, 2}, IdentityField{2, 2, IdentityFormat::Value},
+     IdentityField{0, 2, IdentityFormat::Value}, std::nullopt},
 }};
 
 const IdentityLayout* identity_layout(modbus_map::TableId table);

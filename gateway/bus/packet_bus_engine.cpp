@@ -25,6 +25,7 @@
 #include <variant>
 
 #include "gateway/bus/discovery.h"
+#include "gateway/bus/packet_rules.h"
 #include "gateway/bus/poll_scheduler.h"
 #include "modbus_map/tables.h"
 #include "protocol/d55d.h"
@@ -40,41 +41,13 @@ namespace {
 using namespace std::chrono_literals;
 using protocol::Packet;
 
-// What distinguishes the two packet protocols beyond framing (SPEC §1.1, §1.2). See the
-// header for the refusal decision.
-struct ProtocolRules {
-  protocol::BusProtocol protocol;
-  const protocol::PacketFormat* format;
-  std::uint8_t refusal_bits;  // in an answer to WRITE / REG WRITE, or to a READ without its data
-  std::uint8_t damaged_bits;  // the refusal bits that say "your frame arrived damaged": retried
-  bool has_sync_read;
-  std::size_t max_ping_params;  // d55d's PING answer may carry one byte (SPEC §1.2 decision)
-  std::optional<std::string_view> (*instruction_name)(std::uint8_t code);
-};
-
-constexpr std::array<ProtocolRules, 2> kProtocolRules{{
-    {protocol::BusProtocol::Feetech, &protocol::kFeetechFormat, protocol::feetech::error_bit::kAngle, 0, true, 0,
-     &protocol::feetech::instruction_name},
-    {protocol::BusProtocol::D55d, &protocol::kD55dFormat,
-     protocol::d55d::error_bit::kInstruction | protocol::d55d::error_bit::kChecksum,
-     protocol::d55d::error_bit::kChecksum, false, 1, &protocol::d55d::instruction_name},
-}};
-
-const ProtocolRules& rules_for(const BusSettings& settings) {
-  for (const auto& rules : kProtocolRules) {
-    if (rules.protocol == settings.protocol) return rules;
+const PacketRules& rules_for(const BusSettings& settings) {
+  if (settings.protocol == protocol::BusProtocol::ModbusRtu) {
+    throw std::invalid_argument("bus " + settings.name + ": the packet bus engine drives feetech and d55d buses, not " +
+                                std::string(protocol::to_string(settings.protocol)));
   }
-  throw std::invalid_argument("bus " + settings.name + ": the packet bus engine drives feetech and d55d buses, not " +
-                              std::string(protocol::to_string(settings.protocol)));
+  return packet_rules(settings.protocol);
 }
-
-enum class ReplyKind : std::uint8_t {
-  None,      // broadcast, or a write the servo does not answer: done once on the wire
-  Ack,       // a status packet without parameters (WRITE, REG WRITE)
-  Data,      // a status packet with exactly `count` parameters (READ)
-  Ping,      // a status packet (PING)
-  SyncRead,  // one Data answer from each listed ID
-};
 
 struct Job {
   Packet request;
@@ -87,13 +60,6 @@ struct Job {
   MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
   SteadyClock::time_point queued_at{};  // when queued: the age rule of pop_job
   Completion done;
-};
-
-enum class Verdict : std::uint8_t {
-  NotOurs,         // valid frame, but not the answer: another ID, another shape, a late reply
-  Answer,
-  Refused,         // the servo answered with a refusal bit
-  RefusedDamaged,  // the servo says our frame arrived damaged: send it again
 };
 
 std::string join_ids(std::span<const std::uint8_t> ids) {
@@ -213,7 +179,7 @@ class PacketBusEngine::Impl {
   const ServoSettings* servo(std::uint8_t servo_id) const;
 
   BusSettings settings_;
-  const ProtocolRules& rules_;
+  const PacketRules& rules_;
   PollCache cache_;
   BusCounters counters_;
   PollScheduler scheduler_;
@@ -630,28 +596,11 @@ void PacketBusEngine::Impl::process_events() {
 
 Verdict PacketBusEngine::Impl::judge(const Active& active, const Packet& frame) const {
   const Job& job = active.job;
-  const auto refusal = [&] {
-    return (frame.code & rules_.refusal_bits & ~rules_.damaged_bits) != 0 ? Verdict::Refused : Verdict::RefusedDamaged;
-  };
-  switch (job.reply) {
-    case ReplyKind::None:
-      return Verdict::NotOurs;
-    case ReplyKind::Ack:
-      if (frame.id != job.servo_id) return Verdict::NotOurs;
-      if ((frame.code & rules_.refusal_bits) != 0) return refusal();
-      return frame.params.empty() ? Verdict::Answer : Verdict::NotOurs;
-    case ReplyKind::Data:
-      if (frame.id != job.servo_id) return Verdict::NotOurs;
-      if (frame.params.size() == job.count) return Verdict::Answer;
-      return (frame.code & rules_.refusal_bits) != 0 ? refusal() : Verdict::NotOurs;
-    case ReplyKind::Ping:
-      if (frame.id != job.servo_id) return Verdict::NotOurs;
-      return frame.params.size() <= rules_.max_ping_params ? Verdict::Answer : Verdict::NotOurs;
-    case ReplyKind::SyncRead:
-      if (!active.sync_expected.test(frame.id) || active.sync_answered.test(frame.id)) return Verdict::NotOurs;
-      return frame.params.size() == job.count ? Verdict::Answer : Verdict::NotOurs;
+  if (job.reply == ReplyKind::SyncRead &&
+      (!active.sync_expected.test(frame.id) || active.sync_answered.test(frame.id))) {
+    return Verdict::NotOurs;
   }
-  return Verdict::NotOurs;
+  return judge_reply(rules_, job.reply, job.servo_id, job.count, frame);
 }
 
 void PacketBusEngine::Impl::handle_frame(Packet frame) {
@@ -778,10 +727,9 @@ void PacketBusEngine::Impl::note_written(const Packet& request) {
   const auto apply = [this](std::uint8_t servo_id, std::uint8_t address, std::span<const std::uint8_t> data) {
     const ServoSettings* target = servo(servo_id);
     const IdentityLayout* layout = target == nullptr ? nullptr : identity_layout(target->table);
-    if (layout == nullptr) return;
-    const std::uint16_t level_address = layout->response_level_address();
-    if (level_address < address || level_address >= address + data.size()) return;
-    cache_.set_response_level(servo_id, data[level_address - address]);
+    const auto level_address = layout == nullptr ? std::nullopt : layout->response_level_address();
+    if (!level_address || *level_address < address || *level_address >= address + data.size()) return;
+    cache_.set_response_level(servo_id, data[*level_address - address]);
   };
   if (request.code == protocol::common::kWrite && request.params.size() >= 2) {
     const auto data = std::span<const std::uint8_t>(request.params).subspan(1);

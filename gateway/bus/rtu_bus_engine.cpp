@@ -357,8 +357,8 @@ constexpr std::uint16_t kMaxWriteRegisters = protocol::modbus_limits::kWriteRegi
 constexpr std::size_t kMaxPdu = 253;
 constexpr std::uint8_t kBytesPerRegister = 2;
 
-// SMSMB identity (SPEC §2.4): 0x00 firmware version, 0x01 servo version, read at discovery.
-constexpr AddressBlock kSmsmbIdentity{0x00, 2};
+// SMSMB identity (SPEC §2.4, discovery.h): read at discovery; its first register answers PINGs.
+const IdentityLayout& smsmb_identity() { return *identity_layout(modbus_map::TableId::Smsmb); }
 // SMSMB status register: its low byte is what input register 1000 shows as "last status".
 constexpr std::uint16_t kSmsmbStatusRegister = 0x100;
 
@@ -606,7 +606,7 @@ Job RtuBusEngine::Impl::make_client_job(BusOp&& op) const {
       throw std::invalid_argument(where + "PING goes to slaves 1-247, not " + std::to_string(ping->servo_id));
     }
     job.slave = ping->servo_id;
-    job.pdu = read_pdu(kSmsmbIdentity.address, 1);
+    job.pdu = read_pdu(smsmb_identity().read.address, 1);
     job.shape = ReplyShape::AnyOfFunction;
   } else if (auto* raw = std::get_if<RawPduOp>(&op)) {
     if (raw->pdu.empty() || raw->pdu.size() > kMaxPdu) {
@@ -955,8 +955,8 @@ void RtuBusEngine::Impl::run_work(Work work) {
   job.slave = work.servo_id;
   job.shape = ReplyShape::Registers;
   if (work.kind == WorkKind::Identity) {
-    job.pdu = read_pdu(kSmsmbIdentity.address, kSmsmbIdentity.count);
-    job.registers = kSmsmbIdentity.count;
+    job.pdu = read_pdu(smsmb_identity().read.address, smsmb_identity().read.count);
+    job.registers = smsmb_identity().read.count;
     job.attempts = 1 + settings_.retries;
   } else {
     job.pdu = read_pdu(target->block.address, target->block.count);
@@ -972,10 +972,7 @@ void RtuBusEngine::Impl::run_work(Work work) {
     auto found = std::find_if(discovery_.begin(), discovery_.end(),
                               [&](const DiscoveredServo& servo) { return servo.servo_id == work.servo_id; });
     if (result.status == BusStatus::Ok) {
-      // SPEC §2.4: register 0 firmware version, register 1 servo (model) version.
-      ServoIdentity identity;
-      identity.model = static_cast<std::uint16_t>(result.data[2] << 8 | result.data[3]);
-      identity.firmware = static_cast<std::uint16_t>(result.data[0] << 8 | result.data[1]);
+      const ServoIdentity identity = decode_identity(smsmb_identity(), result.data, modbus_map::ByteOrder::HighFirst);
       cache_.set_identity(work.servo_id, identity);
       servo_answered(work.servo_id);
       if (found != discovery_.end()) {

@@ -8,6 +8,7 @@
 
 #include <fmt/format.h>
 
+#include "gateway/bus/packet_rules.h"
 #include "gateway/bus/rtu_bus_engine.h"
 #include "gateway/bus/serial_port.h"
 #include "gateway/bus/serial_port_termios2.h"
@@ -30,26 +31,6 @@ constexpr std::array<ToolProtocol, 3> kToolProtocols{{
     {BusProtocol::D55d, TableId::D55d, 0, 253, protocol::kBroadcastId, 8000us, true},
     {BusProtocol::ModbusRtu, TableId::Smsmb, 1, 247, 0, 500us, false},
 }};
-
-// Which ERROR bits say "refused" in the answer to a WRITE (packet_bus_engine.h, decision on
-// refusals): feetech bit 4, d55d instruction (bit 5) and checksum (bit 4) errors.
-struct PacketRules {
-  BusProtocol protocol;
-  const protocol::PacketFormat* format;
-  std::uint8_t refusal_bits;
-};
-constexpr std::array<PacketRules, 2> kPacketRules{{
-    {BusProtocol::Feetech, &protocol::kFeetechFormat, protocol::feetech::error_bit::kAngle},
-    {BusProtocol::D55d, &protocol::kD55dFormat,
-     protocol::d55d::error_bit::kInstruction | protocol::d55d::error_bit::kChecksum},
-}};
-
-const PacketRules& packet_rules(BusProtocol protocol) {
-  for (const auto& rules : kPacketRules) {
-    if (rules.protocol == protocol) return rules;
-  }
-  throw std::invalid_argument("no packet rules for " + std::string(protocol::to_string(protocol)));
-}
 
 // A retried request may be answered twice: the first attempt's answer comes late, is taken for
 // the second's, and the second's then looks like the answer to whatever is asked next (packets
@@ -146,6 +127,8 @@ class PacketLink final : public ServoLink {
     QuietLine::Exchange quiet(quiet_, timeout);
     LinkAnswer answer;
     bool corrupt = false;
+    bool refused_damaged = false;  // an answer said our frame arrived damaged (d55d checksum bit)
+    const ReplyKind kind = expect == Expect::Ping ? ReplyKind::Ping : expect == Expect::Read ? ReplyKind::Data : ReplyKind::Ack;
     // Nothing answers a broadcast WRITE: never sent twice. A broadcast PING may be repeated.
     const unsigned attempts = broadcast && expect != Expect::Ping ? 1 : settings_.attempts;
     for (unsigned attempt = 0; attempt < attempts; ++attempt) {
@@ -159,7 +142,8 @@ class PacketLink final : public ServoLink {
         return answer;
       }
       const auto deadline = std::chrono::steady_clock::now() + timeout;
-      for (;;) {
+      bool send_again = false;
+      while (!send_again) {
         const auto left = deadline - std::chrono::steady_clock::now();
         if (left <= 0ns) break;
         auto readable = port_.wait_readable(left);
@@ -190,19 +174,33 @@ class PacketLink final : public ServoLink {
             continue;
           }
           answer.servo_status = reply.code;
-          if (expect == Expect::Read && reply.params.size() != reply_params) {
-            if ((reply.code & rules_.refusal_bits) != 0) return refused(std::move(answer), "READ");
-            corrupt = true;
-            continue;
+          // The engine's rule (packet_rules.h): refusals, d55d's "arrived damaged", PING shapes.
+          switch (judge_reply(rules_, kind, request.id, reply_params, reply)) {
+            case Verdict::Answer:
+              answer.status = LinkStatus::Ok;
+              answer.data = reply.params;
+              return answer;
+            case Verdict::Refused:
+              return refused(std::move(answer), expect == Expect::Read ? "READ" : expect == Expect::Write ? "WRITE" : "PING");
+            case Verdict::RefusedDamaged:
+              refused_damaged = true;  // our frame arrived damaged: send it again now
+              send_again = true;
+              break;
+            case Verdict::NotOurs:
+              corrupt = true;
+              break;
           }
-          if (expect == Expect::Write && (reply.code & rules_.refusal_bits) != 0) return refused(std::move(answer), "WRITE");
-          answer.status = LinkStatus::Ok;
-          answer.data = reply.params;
-          return answer;
+          if (send_again) break;
         }
       }
       if (broadcast && answer.heard_anything) break;  // colliding answers: someone is there
       if (attempt + 1 < attempts) quiet.retrying();
+    }
+    if (refused_damaged) {
+      answer.detail = fmt::format("the servo said our frame arrived damaged (ERROR byte 0x{:02X}); {} attempt{} sent",
+                                  answer.servo_status, attempts, attempts == 1 ? "" : "s");
+      answer.status = LinkStatus::Refused;
+      return answer;
     }
     answer.status = corrupt ? LinkStatus::Corrupt : LinkStatus::Timeout;
     answer.detail = fmt::format("{} from ID {} at {} bit/s ({} attempt{})",

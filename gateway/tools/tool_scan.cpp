@@ -26,9 +26,6 @@ constexpr unsigned kProbeAttempts = 3;
 constexpr std::chrono::milliseconds kProbeExtraWait{20};
 // Reads that confirm a suspected ID conflict wait this much longer.
 constexpr std::chrono::milliseconds kConfirmExtraWait{20};
-// SMSMB identity (SPEC §2.4): register 0 firmware version, register 1 servo (model) version.
-constexpr std::uint16_t kSmsmbIdentityRegister = 0x00;
-constexpr std::uint16_t kSmsmbIdentityCount = 2;
 
 std::string identity_text(const ScanFinding& finding, bool model) {
   const IdentityLayout* layout = identity_layout(finding.table);
@@ -37,15 +34,6 @@ std::string identity_text(const ScanFinding& finding, bool model) {
 
 // The identity, and the table the servo speaks when its byte-order flag tells (SCS or STS/SMS).
 ServoIdentity read_identity(ServoLink& link, TableId& table_id, std::uint8_t id) {
-  const auto& table = modbus_map::table(table_id);
-  if (table.addressing == modbus_map::Addressing::Register) {
-    const LinkAnswer answer = link.read(id, kSmsmbIdentityRegister, kSmsmbIdentityCount);
-    if (!answer.ok() || answer.data.size() != 4) return {};
-    ServoIdentity identity;
-    identity.model = static_cast<std::uint16_t>(answer.data[2] << 8 | answer.data[3]);
-    identity.firmware = static_cast<std::uint16_t>(answer.data[0] << 8 | answer.data[1]);
-    return identity;
-  }
   const IdentityLayout* layout = identity_layout(table_id);
   if (layout == nullptr) return {};
   const LinkAnswer answer = link.read(id, layout->read.address, layout->read.count);
