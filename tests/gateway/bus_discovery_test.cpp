@@ -4,6 +4,8 @@
 
 #include <gtest/gtest.h>
 
+#include <array>
+
 #include <vector>
 
 #include "modbus_map/tables.h"
@@ -88,13 +90,31 @@ TEST(Discovery, ShortIdentityReadYieldsNoValues) {
 TEST(Discovery, ResponseLevelOffsetsPointAtTheTablesResponseLevelField) {
   for (const auto& layout : kIdentityLayouts) {
     const auto* field = modbus_map::field_by_name(modbus_map::table(layout.table), "response_level");
+    if (layout.table == TableId::Smsmb) {  // a Modbus slave answers every unicast request
+      EXPECT_EQ(field, nullptr);
+      EXPECT_FALSE(layout.response_level_offset);
+      continue;
+    }
     ASSERT_NE(field, nullptr);
     EXPECT_EQ(layout.response_level_address(), field->addr) << modbus_map::table(layout.table).name;
-    EXPECT_LT(layout.response_level_offset, layout.read.count);
+    ASSERT_TRUE(layout.response_level_offset);
+    EXPECT_LT(*layout.response_level_offset, layout.read.count);
   }
 }
 
-TEST(Discovery, SmsmbServosHaveNoPacketIdentityLayout) { EXPECT_EQ(identity_layout(TableId::Smsmb), nullptr); }
+// SMSMB (SPEC §2.4): register 0x00 firmware version, 0x01 servo (model) version, high byte first;
+// the RTU engine and the scan read them through this row.
+TEST(Discovery, SmsmbIdentityIsRegistersZeroAndOne) {
+  const IdentityLayout* layout = identity_layout(TableId::Smsmb);
+  ASSERT_NE(layout, nullptr);
+  EXPECT_EQ(layout->read, (AddressBlock{0x00, 2}));
+  const std::array<std::uint8_t, 4> registers{0x01, 0x03, 0x00, 0x2A};  // firmware 0x0103, model 42
+  const ServoIdentity identity = decode_identity(*layout, registers, modbus_map::ByteOrder::HighFirst);
+  EXPECT_EQ(identity.firmware, 0x0103);
+  EXPECT_EQ(identity.model, 42);
+  EXPECT_EQ(format_identity_value(layout, false, identity.firmware), "0x0103");
+  EXPECT_FALSE(decode_response_level(*layout, registers));
+}
 
 TEST(Discovery, SummaryHasOneLinePerServo) {
   std::vector<DiscoveredServo> servos(2);
