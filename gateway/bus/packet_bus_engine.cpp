@@ -25,6 +25,7 @@
 #include <variant>
 
 #include "gateway/bus/discovery.h"
+#include "gateway/bus/job_queue.h"
 #include "gateway/bus/packet_rules.h"
 #include "gateway/bus/poll_scheduler.h"
 #include "modbus_map/tables.h"
@@ -201,8 +202,7 @@ class PacketBusEngine::Impl {
 
   // Shared with submitting threads.
   std::mutex queue_mutex_;
-  std::array<std::deque<Job>, kPriorityCount> queue_;  // by Priority
-  std::size_t client_jobs_queued_ = 0;
+  JobQueue<Job> queue_;
   bool accepting_ = false;
   std::atomic<bool> bus_up_{false};
   std::atomic<bool> discovered_{false};
@@ -380,23 +380,10 @@ void PacketBusEngine::Impl::submit(BusOp op, Priority priority, Completion done)
   const MotionEpoch motion_epoch = motion_epoch_of(op);
   Job job = make_client_job(std::move(op));
   job.motion_epoch = motion_epoch;
-  job.queued_at = SteadyClock::now();
   job.done = std::move(done);
-  BusStatus refusal = BusStatus::Ok;
-  {
-    std::lock_guard lock(queue_mutex_);
-    refusal = admission(accepting_, bus_up_.load(), client_jobs_queued_, settings_.queue_depth, priority);
-    if (refusal == BusStatus::Ok) {
-      queue_[static_cast<std::size_t>(priority)].push_back(std::move(job));
-      ++client_jobs_queued_;
-    }
-  }
-  if (refusal == BusStatus::Ok) {
+  if (queue_client_job(settings_, counters_, queue_mutex_, queue_, std::move(job), priority, accepting_, bus_up_.load())) {
     kick();
-    return;
   }
-  if (refusal == BusStatus::QueueFull) counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
-  complete(settings_, job.done, BusResult{refusal, 0, {}, refusal_detail(refusal, settings_)});
 }
 
 std::optional<Job> PacketBusEngine::Impl::pop_job() {
@@ -407,20 +394,15 @@ std::optional<Job> PacketBusEngine::Impl::pop_job() {
   // a live read nor a flood of live requests freeze the poll cache (FC04) or keep an offline
   // servo from its probe; else strict priority. Jobs of one poll cycle are queued together, so
   // the rest of the cycle follows.
-  const auto level = next_level(queue_, age_limits_, SteadyClock::now());
+  const auto level = queue_.next(age_limits_, SteadyClock::now());
   if (!level) return std::nullopt;
-  auto& queue = queue_[*level];
-  Job job = std::move(queue.front());
-  queue.pop_front();
-  if (job.client) --client_jobs_queued_;
-  return job;
+  return queue_.pop(*level);
 }
 
 void PacketBusEngine::Impl::enqueue_internal(Job job) {
-  job.queued_at = SteadyClock::now();
   {
     std::lock_guard lock(queue_mutex_);
-    queue_[static_cast<std::size_t>(Priority::Poll)].push_back(std::move(job));
+    queue_.push_internal(std::move(job), Priority::Poll);
   }
   kick();
 }
@@ -782,17 +764,9 @@ void PacketBusEngine::Impl::close_port() {
 // Empties the queue and marks the bus down; returns the client jobs, which must be answered.
 // Poll and discovery work is dropped: it is rebuilt when the bus is back.
 std::vector<Job> PacketBusEngine::Impl::take_client_jobs() {
-  std::vector<Job> client_jobs;
   std::lock_guard lock(queue_mutex_);
   bus_up_.store(false);
-  for (auto& level : queue_) {
-    for (auto& job : level) {
-      if (job.client) client_jobs.push_back(std::move(job));
-    }
-    level.clear();
-  }
-  client_jobs_queued_ = 0;
-  return client_jobs;
+  return queue_.take_clients();
 }
 
 // Forgets the transaction on the wire: its reply and its timer can no longer complete it.

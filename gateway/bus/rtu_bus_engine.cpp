@@ -24,6 +24,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/discovery.h"
+#include "gateway/bus/job_queue.h"
 #include "gateway/bus/poll_scheduler.h"
 #include "gateway/bus/serial_port_termios2.h"
 #include "modbus_map/tables.h"
@@ -531,13 +532,12 @@ class RtuBusEngine::Impl {
   std::mutex mutex_;
   std::condition_variable wake_;
   std::bitset<256> poll_refusal_logged_;  // servos whose refused poll was logged (bus thread)
-  std::array<std::deque<Job>, kPriorityCount> queue_;  // one per Priority; client jobs only
+  JobQueue<Job> queue_;  // client jobs only (the engine's own work is in work_)
   // next_client_job's age rule: client work after kClientAgeLimit, the engine's own work after
   // one poll period (at least 10 ms).
   static constexpr std::array<std::chrono::nanoseconds, kPriorityCount> client_age_limits_{
       std::chrono::nanoseconds{0}, kClientAgeLimit, kClientAgeLimit, kClientAgeLimit};
   std::chrono::nanoseconds internal_age_limit_ = std::max<std::chrono::nanoseconds>(settings_.poll_period, 10ms);
-  std::size_t queued_ = 0;
   bool accepting_ = false;
   bool stopping_ = false;
   std::thread thread_;
@@ -634,34 +634,17 @@ void RtuBusEngine::Impl::submit(BusOp op, Priority priority, Completion done) {
   const MotionEpoch motion_epoch = motion_epoch_of(op);
   Job job = make_client_job(std::move(op));
   job.motion_epoch = motion_epoch;
-  job.queued_at = SteadyClock::now();
   job.done = std::move(done);
-  BusStatus refusal = BusStatus::Ok;
-  {
-    std::lock_guard lock(mutex_);
-    refusal = admission(accepting_, bus_up_.load(), queued_, settings_.queue_depth, priority);
-    if (refusal == BusStatus::Ok) {
-      queue_[static_cast<std::size_t>(priority)].push_back(std::move(job));
-      ++queued_;
-    }
-  }
-  if (refusal == BusStatus::Ok) {
+  if (queue_client_job(settings_, counters_, mutex_, queue_, std::move(job), priority, accepting_, bus_up_.load())) {
     wake_.notify_one();
-    return;
   }
-  if (refusal == BusStatus::QueueFull) counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
-  complete(settings_, job.done, BusResult{refusal, 0, {}, refusal_detail(refusal, settings_)});
 }
 
 void RtuBusEngine::Impl::fail_queued(BusStatus status, const std::string& detail) {
   std::vector<Job> failed;
   {
     std::lock_guard lock(mutex_);
-    for (auto& level : queue_) {
-      for (auto& job : level) failed.push_back(std::move(job));
-      level.clear();
-    }
-    queued_ = 0;
+    failed = queue_.take_clients();
   }
   for (auto& job : failed) complete(settings_, job.done, BusResult{status, 0, {}, detail});
 }
@@ -710,7 +693,7 @@ void RtuBusEngine::Impl::run_thread() {
         {
           std::lock_guard lock(mutex_);
           if (stopping_) {
-            if (job) queue_[0].push_front(std::move(*job));  // failed with the rest below
+            if (job) queue_.push_front(std::move(*job), Priority::Safety);  // failed with the rest below
             break;
           }
         }
@@ -745,7 +728,7 @@ std::optional<Job> RtuBusEngine::Impl::next_client_job() {
     // oldest first, as next_level() orders it.
     const auto now = SteadyClock::now();
     const bool polling = discovered_.load() && settings_.poll && !settings_.servos.empty() && !cycle_running_;
-    const bool safety_waiting = !queue_[static_cast<std::size_t>(Priority::Safety)].empty();
+    const bool safety_waiting = !queue_.empty(Priority::Safety);
     // Since when the engine's own work waits: its first queued item, else the due poll cycle.
     std::optional<SteadyClock::time_point> internal_since;
     if (!work_.empty()) {
@@ -753,18 +736,13 @@ std::optional<Job> RtuBusEngine::Impl::next_client_job() {
     } else if (polling) {
       internal_since = next_cycle_;
     }
-    const auto level = next_level(queue_, client_age_limits_, now);
+    const auto level = queue_.next(client_age_limits_, now);
     if (!safety_waiting && internal_since && now - *internal_since >= internal_age_limit_) {
-      const bool older_client_overdue = level && now - queue_[*level].front().queued_at >= client_age_limits_[*level] &&
-                                        queue_[*level].front().queued_at < *internal_since;
+      const bool older_client_overdue = level && now - queue_.front(*level).queued_at >= client_age_limits_[*level] &&
+                                        queue_.front(*level).queued_at < *internal_since;
       if (!older_client_overdue) return std::nullopt;
     }
-    if (level) {
-      Job job = std::move(queue_[*level].front());
-      queue_[*level].pop_front();
-      --queued_;
-      return job;
-    }
+    if (level) return queue_.pop(*level);
     if (!work_.empty()) return std::nullopt;
     if (polling && now >= next_cycle_) return std::nullopt;
     if (polling) {
