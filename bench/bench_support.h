@@ -57,6 +57,11 @@ inline constexpr std::uint16_t kFeedbackAddress = 56;
 inline constexpr std::uint16_t kFeedbackCount = 15;
 inline constexpr std::uint16_t kReturnDelayAddress = 7;  // sts: x 2 us
 inline constexpr double kReturnDelayUsPerUnit = 2.0;
+// The fastest an sts servo answers: "values below 50 act as 50" (100 us; wiki memory-sts address
+// 7, docs/DECISIONS.md "Vendor fidelity"), as the simulator models it. The benchmarks set this
+// and count it in their wire models, so "0" never hides 100 us per transaction.
+inline constexpr std::uint8_t kStsFastestReturnDelay = 50;
+inline constexpr double kStsFastestReturnDelayUs = kStsFastestReturnDelay * kReturnDelayUsPerUnit;
 
 double wire_us(std::size_t bytes, std::uint32_t baud = kBaud);
 

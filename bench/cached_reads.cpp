@@ -212,7 +212,7 @@ void measure_flood(std::uint16_t port, std::chrono::milliseconds duration, int n
   print_figure(name + ".bus_frames_ok", after.frames_ok - before.frames_ok, "frames");
   print_figure(name + ".bus_timeouts", after.timeouts - before.timeouts, "frames");
   print_figure(name + ".bus_transaction_mean", 1e6 * totals.seconds / std::max(1.0, static_cast<double>(after.frames_ok - before.frames_ok)), "us");
-  print_figure(name + ".bus_transaction_wire_model", wire_us(8 + 6 + kFeedbackCount) + 250 * kReturnDelayUsPerUnit, "us");
+  print_figure(name + ".bus_transaction_wire_model", wire_us(8 + 6 + kFeedbackCount) + kStsFastestReturnDelayUs, "us");
   print_figure(name + ".servo1_cache_age_max", max_cache_age_ms, "ms");
   if (totals.errors > 0) print_note(name + ": first other error: " + totals.first_error);
 }

@@ -36,7 +36,7 @@ using namespace sms::bench;
 using namespace std::chrono_literals;
 
 constexpr unsigned kServoCounts[] = {6, 20, 60};
-constexpr std::uint8_t kReturnDelays[] = {0, 250};  // sts address 7 units (x 2 us)
+constexpr std::uint8_t kReturnDelays[] = {kStsFastestReturnDelay, 250};  // sts address 7 units (x 2 us)
 constexpr unsigned kSilentBusServos = 6;
 constexpr std::uint8_t kSilentServo = 3;
 constexpr auto kSampleEvery = 10ms;
@@ -181,7 +181,7 @@ void measure_rtu_cycle(const RtuGap& gap, std::uint16_t return_delay_us, std::ch
 void measure_silent_servo(std::chrono::milliseconds duration) {
   sms::simulator::SimulatedBus bus(sts_bus(kSilentBusServos));
   start_precise(bus);
-  set_return_delay(bus, kSilentBusServos, 0);
+  set_return_delay(bus, kSilentBusServos, kStsFastestReturnDelay);
   GatewaySetup setup;
   setup.device = bus.slave_path();
   setup.servos = kSilentBusServos;
@@ -213,7 +213,7 @@ void measure_silent_servo(std::chrono::milliseconds duration) {
   const double back_ms = std::chrono::duration<double, std::milli>(Clock::now() - came_back).count();
 
   const unsigned online = kSilentBusServos - 1;
-  const double limit = sync_read_limit_us(online, 0);
+  const double limit = sync_read_limit_us(online, kStsFastestReturnDelay);
   const double measured = median(one_offline.cycle_us);
   const double probes_per_s =
       per_second(one_offline.silent_first.timeouts, one_offline.silent_last.timeouts, one_offline.seconds);
@@ -224,7 +224,7 @@ void measure_silent_servo(std::chrono::milliseconds duration) {
                                      all_online.seconds);
   const double rate_one_off = per_second(one_offline.watched_first.replies_ok, one_offline.watched_last.replies_ok,
                                          one_offline.seconds);
-  const std::string name = "silent_servo.servos_6.return_delay_us_0";
+  const std::string name = "silent_servo.servos_6.return_delay_us_100";
   print_figure(name + ".detected_offline_after", detection_ms, "ms");
   print_figure(name + ".others.wire_limit", limit, "us");
   print_figure(name + ".others.cycle_median", measured, "us");
@@ -257,7 +257,7 @@ int main(int argc, char** argv) {
                        {{"seconds", &seconds, "sampling time per bus size"},
                         {"silent-seconds", &silent_seconds, "sampling time with and without the silent servo (0: skip)"},
                         {"servos", &only_servos, "only this bus size (6, 20 or 60; 0: all)"},
-                        {"return-delay-us", &only_return_delay_us, "only this return delay (0 or 500; -1: both)"},
+                        {"return-delay-us", &only_return_delay_us, "only this return delay (100 or 500; -1: both)"},
                         {"rtu-seconds", &rtu_seconds, "sampling time per modbus-rtu frame gap setting (0: skip)"}})) {
     return 2;
   }

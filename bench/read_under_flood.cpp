@@ -6,8 +6,8 @@
 //   read_under_flood [--seconds 5]
 //
 // Printed: the reader's p50 / p99 / max latency and how many reads it got, the writers'
-// throughput, and one bus transaction's wire time for scale (an FC06 is 150 us on the wire, the
-// FC03 of 15 registers 290 us). The rule (docs/DECISIONS.md "Gateway"): a client read waits at
+// throughput, and one bus transaction's time for scale (an FC06 is 150 us on the wire, the FC03
+// of 15 registers 290 us, each + 100 us return delay: the fastest an sts servo answers). The rule (docs/DECISIONS.md "Gateway"): a client read waits at
 // most 2 ms behind higher-priority work before it goes next, oldest first.
 #include <modbus/modbus.h>
 
@@ -37,7 +37,7 @@ int main(int argc, char** argv) {
     quiet_logs();
     sms::simulator::SimulatedBus bus(sts_bus(kServos));
     start_precise(bus);
-    set_return_delay(bus, kServos, 0);
+    set_return_delay(bus, kServos, kStsFastestReturnDelay);
     GatewaySetup setup;
     setup.device = bus.slave_path();
     setup.servos = kServos;
@@ -82,7 +82,7 @@ int main(int argc, char** argv) {
                  "req/s");
     print_figure("read_under_flood.write.p50", writes.p50_us, "us");
     print_figure("read_under_flood.write_busy_0x06", static_cast<double>(writers.busy_ns.size()), "");
-    print_figure("read_under_flood.wire.fc03_feedback", wire_us(8 + 6 + kFeedbackCount), "us");
+    print_figure("read_under_flood.wire.fc03_feedback", wire_us(8 + 6 + kFeedbackCount) + kStsFastestReturnDelayUs, "us");
   } catch (const std::exception& error) {
     std::cerr << "read_under_flood: " << error.what() << "\n";
     return 1;

@@ -5,7 +5,7 @@
 //   soak [--seconds 60]
 //
 // The gateway (sms-gateway, a child process, so its RSS is its own) drives 6 simulated sts
-// servos at 1 Mbaud with their factory return delay; the simulator runs in this process.
+// servos at 1 Mbaud with their factory return delay (0: 100 us, the sts floor); the simulator runs in this process.
 // Each client owns registers nobody else writes — client k: unit 1 + k % 6, slot k / 6:
 //   slot 0: FC06 acceleration (41);  FC16 41..42 acceleration, goal position
 //   slot 1: FC06 goal speed (46);    FC16 44..46 goal time, (45: second byte of 44), goal speed
@@ -166,7 +166,7 @@ int main(int argc, char** argv) {
     setup.servos = kServos;
     GatewayProcess gateway(setup);
     gateway.wait_ready(kServos);
-    print_note("sms-gateway, 6 simulated sts servos at 1 Mbaud (return delay 500 us), poll period 20 ms; 16 "
+    print_note("sms-gateway, 6 simulated sts servos at 1 Mbaud (factory return delay 0, answered after 100 us: the sts floor), poll period 20 ms; 16 "
                "libmodbus clients; RSS = VmRSS of the gateway process, sampled every second");
 
     std::vector<ClientState> states(kClients);

@@ -3,7 +3,7 @@
 //   trip_latency [--rounds 30] [--timeout-ms 100] [--servos N] [--quick]
 //
 // Issue 10, README "Safety". The real sms-gateway runs as a child process (bench_support) on a
-// simulated bus in this process (sts servos, 1 000 000 baud, wire timing on, return delay 0), its
+// simulated bus in this process (sts servos, 1 000 000 baud, wire timing on, return delay 100 us: the sts floor), its
 // bus configured `watchdog: {timeout_ms: T, feed: any_write}`. Each round a client writes
 // operating_mode (33) := 1 and goal_speed (46) := 1000 to every servo (the servos turn), then goes
 // silent: the time it sent its last write is the last feed (the gateway counts from that write's
@@ -157,7 +157,7 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
   FrameLog log;  // outlives the bus, whose thread calls it
   sms::simulator::SimulatedBus bus(sts_bus(servos));
   start_precise(bus);
-  set_return_delay(bus, servos, 0);
+  set_return_delay(bus, servos, kStsFastestReturnDelay);
   bus.set_frame_observer([&log](const sms::simulator::ReceivedFrame& frame) { log.record(frame); });
   GatewaySetup setup;
   setup.device = bus.slave_path();
@@ -200,9 +200,11 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
     const auto first_read = std::find_if(frames->begin(), frames->end(), [](const Frame& f) { return f.code == kRead; });
     const Clock::time_point stop_start = first_read != frames->end() ? first_read->arrived : end.arrived;
     const Clock::time_point deadline = last_feed + timeout;
-    // The last stop READ's reply has left the wire at `reads_end` (return delay 0); the first
-    // SYNC WRITE follows the safety thread's hand-over of the write phase to the bus engine.
+    // The last stop READ's reply has left the wire at `reads_end` (the reply's frames carry their
+    // return delay already); the first SYNC WRITE follows the safety thread's hand-over of the
+    // write phase to the bus engine. The floor counts each READ's return delay (100 us).
     std::size_t floor_bytes = 0;
+    double floor_extra_us = 0;
     std::optional<Clock::time_point> reads_end;
     std::optional<Clock::time_point> first_write;
     std::size_t polls = 0;
@@ -216,6 +218,7 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
       if (frame->code == kRead && frame->params.size() == 2) {
         const std::size_t reply = kStatusBytes + frame->params[1];
         floor_bytes += reply;
+        floor_extra_us += kStsFastestReturnDelayUs;
         reads_end = frame->wire_end + std::chrono::microseconds(static_cast<long>(wire_us(reply)));
         result.polls_in_reads += polls;
         polls = 0;
@@ -231,7 +234,7 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
     beyond_ns.push_back(to_ns(std::max(end.wire_end - deadline, Clock::duration::zero())));
     wake_ns.push_back(to_ns(std::max(stop_start - deadline, Clock::duration::zero())));
     stop_ns.push_back(to_ns(end.wire_end - stop_start));
-    floor_ns.push_back(static_cast<std::uint32_t>(wire_us(floor_bytes) * 1000.0));
+    floor_ns.push_back(static_cast<std::uint32_t>((wire_us(floor_bytes) + floor_extra_us) * 1000.0));
     if (!all_stopped(bus, servos)) ++result.not_stopped;
 
     // The gateway's own figure: stored when its engine has finished the stop frames.

@@ -4,9 +4,9 @@
 //
 //   write_latency [--seconds 3]
 //
-// Model: (request + reply bytes) x 10 / baud + return delay (0 here). FC06 to goal_position
-// (42) is one WRITE of 2 bytes: 9 request + 6 reply bytes = 150 us. FC03 of 56+15 is one READ:
-// 8 + 21 bytes = 290 us.
+// Model: (request + reply bytes) x 10 / baud + return delay (100 us here, the fastest an sts
+// servo answers). FC06 to goal_position (42) is one WRITE of 2 bytes: 9 request + 6 reply bytes
+// = 150 us + 100 us. FC03 of 56+15 is one READ: 8 + 21 bytes = 290 us + 100 us.
 // "direct" is the same frame written by this program to a second simulated bus through the
 // gateway's own SerialPort class (flush, write, wait for the whole reply): the pty and the
 // simulator's cost, which a real adapter replaces by its own latency.
@@ -41,8 +41,8 @@ struct Transaction {
   std::string name;
   double wire_us;
 };
-const Transaction kWrite{"fc06_goal_position", wire_us(kWriteRequestBytes + kAckBytes)};
-const Transaction kRead{"fc03_feedback_block", wire_us(kReadRequestBytes + kReadReplyBytes)};
+const Transaction kWrite{"fc06_goal_position", wire_us(kWriteRequestBytes + kAckBytes) + kStsFastestReturnDelayUs};
+const Transaction kRead{"fc03_feedback_block", wire_us(kReadRequestBytes + kReadReplyBytes) + kStsFastestReturnDelayUs};
 
 // The same bus transaction without the gateway: flush, write, wait for `reply_bytes`.
 LatencySummary direct_latency(sms::gateway::SerialPort& port, const sms::protocol::Bytes& frame,
@@ -75,7 +75,7 @@ struct Direct {
 Direct measure_direct(std::chrono::milliseconds duration) {
   sms::simulator::SimulatedBus bus(sts_bus(1));
   start_precise(bus);
-  set_return_delay(bus, 1, 0);
+  set_return_delay(bus, 1, kStsFastestReturnDelay);
   sms::gateway::SerialPort port(sms::gateway::SerialSettings{bus.slave_path(), kBaud});
   if (const auto opened = port.open(); !opened) throw std::runtime_error("direct: " + opened.error());
   const std::uint8_t goal[] = {0xD0, 0x07};  // 2000, low byte first
@@ -102,7 +102,7 @@ void measure_gateway(const std::string& mode, std::chrono::milliseconds poll_per
                      std::chrono::milliseconds duration, const Direct& direct) {
   sms::simulator::SimulatedBus bus(sts_bus(1));
   start_precise(bus);
-  set_return_delay(bus, 1, 0);
+  set_return_delay(bus, 1, kStsFastestReturnDelay);
   GatewaySetup setup;
   setup.device = bus.slave_path();
   setup.servos = 1;
