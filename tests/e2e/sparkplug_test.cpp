@@ -249,6 +249,20 @@ TEST(Sparkplug, RoleReadPublishesButRefusesEveryCommand) {
   EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
 }
 
+TEST(Sparkplug, AStoppingGatewaySendsItsOwnNdeath) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+  const auto birth = plant.host.wait(is(MessageType::NBirth));
+  ASSERT_TRUE(birth) << plant.host.summary();
+  gateway.process().signal(SIGTERM);
+  ASSERT_EQ(gateway.process().wait_exit(10s), std::optional<int>{0}) << gateway.process().output();
+  // Sent by the gateway before its DISCONNECT (a clean disconnect makes the broker drop the will).
+  const auto death = plant.host.wait(is(MessageType::NDeath), 5s);
+  ASSERT_TRUE(death) << plant.host.summary();
+  EXPECT_EQ(int_of(death->metric("bdSeq")), int_of(birth->metric("bdSeq")));
+  EXPECT_FALSE(death->payload.seq);  // NDEATH carries no seq (spec)
+}
+
 TEST(Sparkplug, BrokerDownAndBackGivesNewBirthsAndAKilledGatewayItsDeath) {
   Plant plant;
   auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
