@@ -177,6 +177,8 @@ class Gateway::Impl {
     if (safety_) safety_->stop_for_shutdown(kOnStopBound);
     for (const auto& engine : engines_) engine->stop();
     serving_.stop();
+    // The io thread has ended; the node's timer must go before the io_context it was made on.
+    sparkplug_.reset();
   }
 
   std::uint16_t port() const { return plain_index_ ? serving_.port(*plain_index_) : 0; }

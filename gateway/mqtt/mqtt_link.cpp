@@ -79,7 +79,7 @@ void MqttLink::run() {
     }
     const bool was_connected = connected_.exchange(false);
     if (was_connected) {
-      if (stopping_) break;
+      if (stopping_ || closing_) break;
       ++disconnects_;
       spdlog::warn("mqtt: lost the broker {}; reconnecting", broker.to_string());
       events_.disconnected("connection to " + broker.to_string() + " lost");
@@ -168,6 +168,7 @@ void MqttLink::stop(std::optional<MqttWill> last, std::chrono::milliseconds grac
   if (connected_) {
     if (last) publish(last->topic, last->payload, last->qos, last->retain);
     // DISCONNECT leaves after what was queued before it; the broker then drops the will.
+    closing_ = true;
     mosquitto_disconnect(client_);
     std::unique_lock lock(mutex_);
     wake_.wait_for(lock, grace, [this] { return session_lost_.load(); });

@@ -86,6 +86,7 @@ class MqttLink {
   mosquitto* client_ = nullptr;
   std::thread thread_;
   std::atomic<bool> stopping_{false};
+  std::atomic<bool> closing_{false};  // stop() sent DISCONNECT: the session's end is not a loss
   std::atomic<bool> connected_{false};
   std::atomic<bool> session_lost_{false};
   std::mutex mutex_;  // backoff wait and stop

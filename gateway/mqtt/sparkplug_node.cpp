@@ -106,7 +106,7 @@ std::string read_mqtt_files(const config::MqttConfig& mqtt) {
   return line;
 }
 
-class SparkplugNode::Impl final : public Reply::Target, public std::enable_shared_from_this<SparkplugNode::Impl> {
+class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugNode::Impl> {
  public:
   Impl(const config::Config& config, asio::io_context& io, UnitRouter& router)
       : config_(config), settings_(*config.mqtt), io_(io), router_(router), policy_(config), timer_(io) {
@@ -133,6 +133,7 @@ class SparkplugNode::Impl final : public Reply::Target, public std::enable_share
     options.reconnect_max = settings_.reconnect_max;
     options.subscriptions = {topic(sp::MessageType::NCmd), topic(sp::MessageType::DCmd, "+")};
     std::weak_ptr<Impl> weak = shared_from_this();
+    replies_ = std::make_shared<Replies>(weak);
     MqttLink::Events events;
     events.will = [this] { return death_will(); };
     events.connected = [this, weak] {
@@ -167,7 +168,8 @@ class SparkplugNode::Impl final : public Reply::Target, public std::enable_share
     return copy;
   }
 
-  void deliver(std::uint64_t serial, Bytes response_pdu) override {
+  // The router's answer to request `serial` (io thread), through Replies.
+  void deliver(std::uint64_t serial, Bytes response_pdu) {
     const auto it = pending_.find(serial);
     if (it == pending_.end()) return;
     auto done = std::move(it->second);
@@ -176,6 +178,20 @@ class SparkplugNode::Impl final : public Reply::Target, public std::enable_share
   }
 
  private:
+  // Where the router's answers go. A Reply keeps its target alive for as long as the work runs
+  // (a bus completion may come after the node is gone): that target is this small forwarder, not
+  // the node, so the node (and its timer) never outlives the io_context it was made on.
+  class Replies final : public Reply::Target {
+   public:
+    explicit Replies(std::weak_ptr<Impl> node) : node_(std::move(node)) {}
+    void deliver(std::uint64_t serial, Bytes response_pdu) override {
+      if (auto node = node_.lock()) node->deliver(serial, std::move(response_pdu));
+    }
+
+   private:
+    std::weak_ptr<Impl> node_;
+  };
+
   struct MetricSlot {
     std::string name;
     const RegisterEntry* entry = nullptr;
@@ -286,7 +302,7 @@ class SparkplugNode::Impl final : public Reply::Target, public std::enable_share
     }
     const std::uint64_t serial = next_serial_++;
     pending_.emplace(serial, std::move(done));
-    router_.handle(unit_id, pdu, Reply(shared_from_this(), serial));
+    router_.handle(unit_id, pdu, Reply(replies_, serial));
   }
 
   // Runs `reads` one after the other; `done` gets their answers (stops at the first failure).
@@ -664,6 +680,7 @@ class SparkplugNode::Impl final : public Reply::Target, public std::enable_share
   RolePolicy policy_;
   asio::steady_timer timer_;
   std::unique_ptr<MqttLink> link_;
+  std::shared_ptr<Replies> replies_;
   std::vector<Device> devices_;
   std::vector<std::string> heartbeats_;
   std::unordered_map<std::uint64_t, std::function<void(const Answer&)>> pending_;

@@ -65,7 +65,7 @@ class SparkplugNode {
   // is down). Throws std::runtime_error saying which file or setting is wrong.
   void start();
   // From any thread but the io thread, before the io thread stops: NDEATH, DISCONNECT, and no
-  // more publishing. Idempotent.
+  // more publishing. Idempotent. Destroy the node before its io_context (its timer lives there).
   void stop();
 
   SparkplugStats stats() const;  // thread-safe

@@ -44,6 +44,17 @@ std::string text_of(const sp::Metric* metric) {
   return "<not a string>";
 }
 
+// Sends one DCMD to device `shoulder` and returns its Gateway/Last Command as the next DDATA
+// carrying one reports it ("<none>" when none came within 10 s).
+std::string command_result(SparkplugHost& host, sp::Metric metric) {
+  const std::size_t from = host.count();
+  host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {std::move(metric)});
+  const auto answer = host.wait([](const SparkplugMessage& m) {
+    return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
+  }, 10s, from);
+  return answer ? text_of(answer->metric("Gateway/Last Command")) : "<none>\n" + host.summary();
+}
+
 struct Plant {
   TempDir dir;
   MosquittoBroker broker{dir};
@@ -134,14 +145,8 @@ TEST(Sparkplug, DcmdMovesTheServoAndDdataFollows) {
   // Refusals: a read-only field, an EEPROM field for role operate, a value out of range. The
   // servo keeps its value each time; Gateway/Last Command says why.
   const auto refused = [&](sp::Metric metric, const std::string& expected) {
-    const std::size_t at = plant.host.count();
-    plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {metric});
-    const auto answer = plant.host.wait([](const SparkplugMessage& m) {
-      return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
-    }, 10s, at);
-    ASSERT_TRUE(answer) << metric.name;
-    EXPECT_NE(text_of(answer->metric("Gateway/Last Command")).find(expected), std::string::npos)
-        << text_of(answer->metric("Gateway/Last Command"));
+    const std::string result = command_result(plant.host, metric);
+    EXPECT_NE(result.find(expected), std::string::npos) << metric.name << ": " << result;
   };
   const long max_temperature = plant.sim.field(1, "max_temperature");
   refused(sp::Metric::int16("present_position", 5), "refused: present_position: read-only");
@@ -167,14 +172,8 @@ TEST(Sparkplug, EstopOverNcmdBlocksMotionCommands) {
   ASSERT_TRUE(latched) << plant.host.summary();
   EXPECT_EQ(int_of(latched->metric("Gateway/E-Stop")), 1);
 
-  from = plant.host.count();
-  plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {sp::Metric::int16("goal_position", 1000)});
-  const auto answer = plant.host.wait([](const SparkplugMessage& m) {
-    return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
-  }, 10s, from);
-  ASSERT_TRUE(answer) << plant.host.summary();
-  EXPECT_NE(text_of(answer->metric("Gateway/Last Command")).find("exception 0x04"), std::string::npos)
-      << text_of(answer->metric("Gateway/Last Command"));
+  const std::string result = command_result(plant.host, sp::Metric::int16("goal_position", 1000));
+  EXPECT_NE(result.find("exception 0x04"), std::string::npos) << result;
   EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
 
   // Garbage on the command topic and an unknown device: logged, counted, nothing written.
@@ -236,16 +235,9 @@ TEST(Sparkplug, RoleReadPublishesButRefusesEveryCommand) {
   auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port(), "  role: read\n"), 1);
   ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary() << gateway.process().output();
   const long goal = plant.sim.field(1, "goal_position");
-  const std::size_t from = plant.host.count();
-  plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {sp::Metric::int16("goal_position", 1234)});
-  const auto answer = plant.host.wait([](const SparkplugMessage& m) {
-    return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
-  }, 10s, from);
-  ASSERT_TRUE(answer) << plant.host.summary();
-  EXPECT_NE(text_of(answer->metric("Gateway/Last Command")).find("exception 0x01"), std::string::npos)
-      << text_of(answer->metric("Gateway/Last Command"));
-  EXPECT_NE(text_of(answer->metric("Gateway/Last Command")).find("role read"), std::string::npos)
-      << text_of(answer->metric("Gateway/Last Command"));
+  const std::string result = command_result(plant.host, sp::Metric::int16("goal_position", 1234));
+  EXPECT_NE(result.find("exception 0x01"), std::string::npos) << result;
+  EXPECT_NE(result.find("role read"), std::string::npos) << result;
   EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
 }
 
