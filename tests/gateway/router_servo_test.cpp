@@ -3,8 +3,10 @@
 // (MODBUS_MAP.md) promises and checks it on the servo's own memory where a write is involved.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <future>
+#include <mutex>
 #include <thread>
 
 #include "tests/gateway/router_fixture.h"
@@ -325,6 +327,42 @@ TEST_F(Router, PipelinedWritesOfOneConnectionApplyInOrder) {
   }
   EXPECT_EQ(client.receive(11), (ByteVector{0x00, 0x63, 0x00, 0x00, 0x00, 0x05, 0x01, 0x03, 0x02, 0x00, 0x77}));
   EXPECT_EQ(*sim().read_field(1, "goal_position"), 119);
+}
+
+// Per-connection fairness (docs/DECISIONS.md "Gateway"): a session hands the router one request
+// at a time, so a connection has at most one operation in a bus queue. One client pipelining 20
+// slow writes cannot make another connection's request wait for them: on the wire it comes
+// second or third, not twenty-first.
+TEST_F(Router, APipeliningClientCannotMakeAnotherConnectionWaitForItsBurst) {
+  start(config_with(kQuietBus, kTwoServos), sts_bus(2));
+  gateway_->wait_until_polled(1);
+  gateway_->wait_until_polled(2);
+  std::mutex mutex;
+  std::vector<std::uint8_t> ids;  // request frames on the wire, by servo
+  sim().set_frame_observer([&](const simulator::ReceivedFrame& frame) {
+    std::lock_guard lock(mutex);
+    ids.push_back(frame.id);
+  });
+  sim().set_reply_delay(1, 20ms);  // each of the burst's writes holds the bus 20 ms
+  TestClient chatty(port());
+  ByteVector burst;
+  for (std::uint8_t i = 0; i < 20; ++i) {
+    burst.insert(burst.end(), {0x00, i, 0x00, 0x00, 0x00, 0x06, 0x01, 0x06, 0x00, 0x2A, 0x00, static_cast<std::uint8_t>(100 + i)});
+  }
+  chatty.send(burst);
+  ASSERT_TRUE(eventually([&] {
+    std::lock_guard lock(mutex);
+    return !ids.empty();
+  }));  // the burst's first write is on the wire
+  TestClient other(port());
+  other.send({0x00, 0x77, 0x00, 0x00, 0x00, 0x06, 0x02, 0x03, 0x00, 0x2A, 0x00, 0x01});  // unit 2: goal
+  EXPECT_EQ(other.receive(11).size(), 11u);
+  for (int i = 0; i < 20; ++i) EXPECT_EQ(chatty.receive(12).size(), 12u);
+  sim().set_frame_observer({});
+  std::lock_guard lock(mutex);
+  const auto position = std::find(ids.begin(), ids.end(), 2) - ids.begin();
+  EXPECT_LE(position, 2) << "the other connection's read went on the wire after " << position << " of the burst's writes";
+  EXPECT_EQ(std::count(ids.begin(), ids.end(), 1), 20);
 }
 
 TEST_F(Router, WriteOfAClientThatLeftIsStillApplied) {
