@@ -134,14 +134,15 @@ class Gateway::Impl {
       secure.tls = tls_.get();
       tls_index_ = serving_.listen(secure, *router_);
     }
+    // Before the metrics endpoint, whose thread reads the node's counters.
+    if (config_.mqtt) {
+      sparkplug_ = std::make_unique<SparkplugNode>(config_, serving_.io(), *router_);
+      sparkplug_->start();  // throws for an unreadable password or TLS file; the broker may be down
+    }
     if (config_.logging.metrics_listen) {
       metrics_server_ = std::make_unique<MetricsServer>(MetricsServerOptions{.listen = *config_.logging.metrics_listen},
                                                         [this] { return metrics(); });
       metrics_server_->start();
-    }
-    if (config_.mqtt) {
-      sparkplug_ = std::make_unique<SparkplugNode>(config_, serving_.io(), *router_);
-      sparkplug_->start();  // throws for an unreadable password or TLS file; the broker may be down
     }
     for (const auto& engine : engines_) engine->start();
     safety_->start();
