@@ -364,6 +364,9 @@ TEST(Sparkplug, TlsToAPlainBrokerIsLoggedAndModbusGoesOn) {
   auto gateway = GatewayProcess::with_config(
       dir, gateway_yaml(sim.pty(), broker.port(), "  tls: {ca: " + certs + "/ca.crt}\n"), 1);
   ASSERT_TRUE(gateway.process().wait_for_line("mqtt: cannot connect to broker", 10s)) << gateway.process().output();
+  // The MQTT failure can be logged before the first poll cycle has filled the cache (which
+  // answers 0x0B until then): wait for it, as every cached read in these tests does.
+  wait_until_polled(gateway.port(), 1);
   ModbusClient modbus(gateway.port(), 1);
   EXPECT_TRUE(modbus.read_input(56, 2).ok());
   std::this_thread::sleep_for(500ms);  // several attempts: logged once, no crash
