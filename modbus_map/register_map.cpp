@@ -7,26 +7,13 @@
 #include "modbus_map/baud_tables.h"
 #include "modbus_map/tables.h"
 #include "modbus_map/tables/smsmb_links.h"
+#include "protocol/modbus_pdu.h"
 
 namespace sms::modbus_map {
 namespace {
 
 using protocol::BusProtocol;
 using protocol::Bytes;
-
-struct ExceptionName {
-  ModbusException code;
-  std::string_view name;
-};
-constexpr std::array kExceptionNames{
-    ExceptionName{ModbusException::IllegalFunction, "illegal function"},
-    ExceptionName{ModbusException::IllegalDataAddress, "illegal data address"},
-    ExceptionName{ModbusException::IllegalDataValue, "illegal data value"},
-    ExceptionName{ModbusException::ServerDeviceFailure, "server device failure"},
-    ExceptionName{ModbusException::ServerDeviceBusy, "server device busy"},
-    ExceptionName{ModbusException::GatewayPathUnavailable, "gateway path unavailable"},
-    ExceptionName{ModbusException::GatewayTargetFailedToRespond, "gateway target device failed to respond"},
-};
 
 struct ProfileName {
   Profile profile;
@@ -121,10 +108,7 @@ class BusImage {
 }  // namespace
 
 std::string_view to_string(ModbusException code) {
-  for (const auto& entry : kExceptionNames) {
-    if (entry.code == code) return entry.name;
-  }
-  return "unknown exception";
+  return protocol::modbus_exception_name(static_cast<std::uint8_t>(code));
 }
 
 std::string_view to_string(Profile profile) {

@@ -12,37 +12,6 @@ using Family = config::IpNetwork::Family;
 // ::ffff:0:0/96 (RFC 4291 §2.5.5.2): an IPv4 address as seen on an IPv6 socket.
 constexpr std::array<std::uint8_t, 12> kV4MappedPrefix{0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0xFF, 0xFF};
 
-// Modbus Application Protocol Specification v1.1b3 §5.1 (public function codes).
-constexpr ModbusFunction kFunctions[] = {
-    {0x01, "read_coils", FunctionEffect::Reads, true},
-    {0x02, "read_discrete_inputs", FunctionEffect::Reads, true},
-    {0x03, "read_holding_registers", FunctionEffect::Reads, true},
-    {0x04, "read_input_registers", FunctionEffect::Reads, true},
-    {0x05, "write_single_coil", FunctionEffect::Writes, true},
-    {0x06, "write_single_register", FunctionEffect::Writes, true},
-    {0x07, "read_exception_status", FunctionEffect::Reads, false},
-    {0x08, "diagnostics", FunctionEffect::Unknown, false},  // sub-function 01 restarts the device
-    {0x0B, "get_comm_event_counter", FunctionEffect::Reads, false},
-    {0x0C, "get_comm_event_log", FunctionEffect::Reads, false},
-    {0x0F, "write_multiple_coils", FunctionEffect::Writes, true},
-    {0x10, "write_multiple_registers", FunctionEffect::Writes, true},
-    {0x11, "report_server_id", FunctionEffect::Reads, false},
-    {0x14, "read_file_record", FunctionEffect::Reads, false},
-    {0x15, "write_file_record", FunctionEffect::Writes, false},
-    {0x16, "mask_write_register", FunctionEffect::Writes, false},
-    {0x17, "read_write_multiple_registers", FunctionEffect::Writes, true},
-    {0x18, "read_fifo_queue", FunctionEffect::Reads, false},
-    {0x2B, "encapsulated_interface_transport", FunctionEffect::Unknown, false},  // MEI 0x0D carries anything
-};
-
-constexpr bool functions_ascending() {
-  for (std::size_t i = 1; i < std::size(kFunctions); ++i) {
-    if (kFunctions[i - 1].code >= kFunctions[i].code) return false;
-  }
-  return true;
-}
-static_assert(functions_ascending(), "kFunctions is searched by code in ascending order");
-
 }  // namespace
 
 IpAddress IpAddress::v4(const std::array<std::uint8_t, 4>& bytes) {
@@ -111,20 +80,6 @@ std::string AccessPolicy::describe() const {
     text += network.to_string();
   }
   return text;
-}
-
-std::span<const ModbusFunction> modbus_functions() { return kFunctions; }
-
-const ModbusFunction* find_modbus_function(std::uint8_t code) {
-  const auto* found = std::lower_bound(std::begin(kFunctions), std::end(kFunctions), code,
-                                       [](const ModbusFunction& function, std::uint8_t c) { return function.code < c; });
-  if (found == std::end(kFunctions) || found->code != code) return nullptr;
-  return found;
-}
-
-FunctionEffect function_effect(std::uint8_t code) {
-  const ModbusFunction* function = find_modbus_function(code);
-  return function ? function->effect : FunctionEffect::Unknown;
 }
 
 std::optional<Fault> read_only_refusal(std::uint8_t function) {

@@ -17,6 +17,7 @@
 
 #include "config/config.h"
 #include "gateway/modbus_tcp/faults.h"
+#include "protocol/modbus_pdu.h"
 
 namespace sms::gateway {
 
@@ -54,27 +55,11 @@ class AccessPolicy {
   std::vector<config::IpNetwork> allow_;
 };
 
-// What a Modbus function does to the unit it is sent to, so that a read-only unit can refuse
-// everything that may change it.
-enum class FunctionEffect : std::uint8_t {
-  Reads,    // only reads
-  Writes,   // writes (FC23 writes and reads: it writes)
-  Unknown,  // diagnostics, vendor functions, codes the gateway does not know: may change state
-};
-
-struct ModbusFunction {
-  std::uint8_t code;
-  std::string_view name;  // Modbus Application Protocol v1.1b3 name, snake_case (metrics labels)
-  FunctionEffect effect;
-  bool served;            // served for table units (MODBUS_MAP.md "A servo unit")
-};
-
-// The public function codes of the Modbus specification, ascending by code.
-std::span<const ModbusFunction> modbus_functions();
-// nullptr when `code` is not a public Modbus function.
-const ModbusFunction* find_modbus_function(std::uint8_t code);
-// The effect of `code`; Unknown for codes not in the table.
-FunctionEffect function_effect(std::uint8_t code);
+// The Modbus function table lives in protocol/modbus_pdu.h.
+using protocol::find_modbus_function;
+using protocol::function_effect;
+using protocol::FunctionEffect;
+using protocol::ModbusFunction;
 
 // Whether a read-only unit answers `function` itself: nullopt when it may be served (reads),
 // BadAddress (0x02) for writes, as a write to a read-only field is answered (MODBUS_MAP.md),

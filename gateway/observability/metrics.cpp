@@ -7,6 +7,7 @@
 #include "gateway/modbus_tcp/access_policy.h"
 #include "gateway/bus/bus_engine.h"
 #include "protocol/bus_protocol.h"
+#include "protocol/modbus_pdu.h"
 #include "protocol/modbus_tcp.h"
 
 namespace sms::gateway {
@@ -199,32 +200,6 @@ constexpr Family<TcpServerStats> kTcpFamilies[] = {
      [](const TcpServerStats& t) -> std::optional<Value> { return t.bad_headers; }},
 };
 
-// Modbus Application Protocol v1.1b3 §7; `contract`: a code MODBUS_MAP.md says the gateway
-// answers, always shown (at 0) so that rate() works from the start.
-struct ExceptionName {
-  std::uint8_t code;
-  std::string_view name;
-  bool contract;
-};
-constexpr ExceptionName kExceptionNames[] = {
-    {0x01, "illegal_function", true},
-    {0x02, "illegal_data_address", true},
-    {0x03, "illegal_data_value", true},
-    {0x04, "server_device_failure", true},
-    {0x05, "acknowledge", false},
-    {0x06, "server_device_busy", true},
-    {0x08, "memory_parity_error", false},
-    {0x0A, "gateway_path_unavailable", true},
-    {0x0B, "gateway_target_device_failed_to_respond", true},
-};
-
-const ExceptionName* find_exception_name(std::uint8_t code) {
-  for (const auto& entry : kExceptionNames) {
-    if (entry.code == code) return &entry;
-  }
-  return nullptr;
-}
-
 std::string hex_code(std::uint8_t code) {
   constexpr char kDigits[] = "0123456789ABCDEF";
   return {'0', 'x', kDigits[code >> 4], kDigits[code & 0x0F]};
@@ -255,12 +230,14 @@ void render_exceptions(Exposition& out, const ModbusTrafficSnapshot& traffic) {
   constexpr std::string_view kName = "sms_gateway_modbus_exceptions_total";
   out.family(kName, MetricType::Counter, "Modbus exception answers sent, by exception code");
   for (unsigned code = 0; code < traffic.exceptions_by_code.size(); ++code) {
-    const auto* exception = find_exception_name(static_cast<std::uint8_t>(code));
+    const auto* exception = protocol::find_modbus_exception(static_cast<std::uint8_t>(code));
     const std::uint64_t count = traffic.exceptions_by_code[code];
+    // The codes MODBUS_MAP.md says the gateway answers with are always shown (at 0), so that
+    // rate() works from the start.
     if (count == 0 && !(exception && exception->contract)) continue;
     out.sample(kName,
                {{"code", hex_code(static_cast<std::uint8_t>(code))},
-                {"name", std::string(exception ? exception->name : "unknown")}},
+                {"name", std::string(exception ? exception->label : "unknown")}},
                count);
   }
 }

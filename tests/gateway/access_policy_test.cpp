@@ -157,7 +157,7 @@ TEST(ReadOnlyUnit, FunctionsOfUnknownEffectAreRefusedWith01) {
 }
 
 TEST(ModbusFunctions, TableIsAscendingAndFindsByCode) {
-  const auto functions = modbus_functions();
+  const auto& functions = protocol::kModbusFunctions;
   ASSERT_FALSE(functions.empty());
   for (std::size_t i = 1; i < functions.size(); ++i) EXPECT_LT(functions[i - 1].code, functions[i].code);
   const ModbusFunction* holding = find_modbus_function(0x03);
@@ -174,7 +174,7 @@ TEST(ModbusFunctions, TableIsAscendingAndFindsByCode) {
 
 TEST(ModbusFunctions, ServedSetIsTheContractsFunctionCodes) {
   std::vector<int> served;
-  for (const auto& function : modbus_functions()) {
+  for (const auto& function : protocol::kModbusFunctions) {
     if (function.served) served.push_back(function.code);
   }
   // MODBUS_MAP.md "A servo unit": 01 02 03 04 05 06 15 16 23.
