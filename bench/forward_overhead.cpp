@@ -23,7 +23,7 @@
 #include "bench/bench_support.h"
 #include "config/config.h"
 #include "gateway/units/passthrough.h"
-#include "gateway/bus/rtu_bus_engine.h"
+#include "gateway/bus/rtu_master.h"
 
 namespace {
 

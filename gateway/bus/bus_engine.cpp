@@ -5,8 +5,9 @@
 
 #include <spdlog/spdlog.h>
 
-#include "gateway/bus/packet_bus_engine.h"
-#include "gateway/bus/rtu_bus_engine.h"
+#include "gateway/bus/engine_core.h"
+#include "gateway/bus/packet_transactor.h"
+#include "gateway/bus/rtu_transactor.h"
 
 namespace sms::gateway {
 
@@ -70,12 +71,21 @@ void complete(const BusSettings& settings, Completion& done, BusResult result) {
 }
 
 std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::ModbusRtuOptions& modbus_rtu) {
+  const auto timing = [](const BusSettings& bus) {
+    return TransactionTiming{bus.response_timeout, "bus " + bus.name + ": "};
+  };
   switch (settings.protocol) {
     case protocol::BusProtocol::Feetech:
     case protocol::BusProtocol::D55d:
-      return std::make_unique<PacketBusEngine>(std::move(settings));
+      return std::make_unique<EngineCore<PacketTransactor>>(
+          std::move(settings), [&](const BusSettings& bus, BusCounters& counters) {
+            return std::make_unique<PacketTransactor>(bus.protocol, bus.serial, timing(bus), counters);
+          });
     case protocol::BusProtocol::ModbusRtu:
-      return std::make_unique<RtuBusEngine>(std::move(settings), modbus_rtu);
+      return std::make_unique<EngineCore<RtuTransactor>>(
+          std::move(settings), [&](const BusSettings& bus, BusCounters& counters) {
+            return std::make_unique<RtuTransactor>(RtuLineSettings{bus.serial, modbus_rtu}, timing(bus), counters);
+          });
   }
   throw std::invalid_argument("bus " + settings.name + ": unknown protocol");
 }

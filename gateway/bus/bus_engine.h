@@ -82,7 +82,7 @@ class BusEngine {
   virtual bool discovered() const = 0;
 };
 
-// What both engines do the same way around their queues.
+// What every bus does around its queue (the engine core and the tests use these).
 // Whether a bus takes a client operation now: Ok, or Cancelled (the engine is not running),
 // BusDown (the port is not open) or QueueFull (`queued` of `queue_depth` slots taken).
 // Safety work is never QueueFull: a full queue must not keep a motor from stopping.
@@ -126,10 +126,10 @@ std::optional<std::size_t> next_level(const std::array<std::deque<Job>, kPriorit
 // (rule 2 above): a few transactions at 1 Mbit/s, one at slow rates.
 inline constexpr std::chrono::milliseconds kClientAgeLimit{2};
 
-// The engine for the bus's protocol: PacketBusEngine for feetech and d55d, RtuBusEngine (with
-// the bus's RS-485/RTS/byte-timeout options) for modbus-rtu. Throws std::invalid_argument for
-// settings it cannot run (a servo whose table is not spoken on the bus, an empty poll block,
-// duplicate IDs).
+// The engine for the bus's protocol: EngineCore (engine_core.h) with PacketTransactor for feetech
+// and d55d, with RtuTransactor (and the bus's RS-485/RTS/byte-timeout options) for modbus-rtu.
+// Throws std::invalid_argument for settings it cannot run (a servo whose table is not spoken on
+// the bus, an empty poll block, duplicate IDs).
 std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::ModbusRtuOptions& modbus_rtu = {});
 
 }  // namespace sms::gateway

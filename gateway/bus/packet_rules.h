@@ -2,7 +2,7 @@
 // What distinguishes the two packet protocols beyond framing (SPEC §1.1, §1.2), and the one rule
 // for what a received frame is to the transaction waiting for it. The bus engine and the
 // integrator tools both judge frames here, so they agree on refusals, on d55d's "your frame
-// arrived damaged" (sent again) and on PING answers. Pure: no I/O. packet_bus_engine.h has the
+// arrived damaged" (sent again) and on PING answers. Pure: no I/O. packet_transactor.h has the
 // refusal decision.
 #include <cstddef>
 #include <cstdint>

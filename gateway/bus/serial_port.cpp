@@ -6,8 +6,10 @@
 #include <termios.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
+#include <ctime>
 #include <string>
 #include <utility>
 
@@ -165,13 +167,28 @@ Expected<std::size_t> SerialPort::read_available(std::span<std::uint8_t> buffer)
 Expected<bool> SerialPort::wait_readable(std::chrono::nanoseconds timeout) {
   if (fd_ < 0) return unexpected(settings_.device + " is not open");
   pollfd entry{fd_, POLLIN, 0};
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
   for (;;) {
-    const int ready = ::poll(&entry, 1, poll_timeout_ms(timeout));
+    // ppoll: a reply deadline is often a millisecond or two away; poll() would round it up.
+    const auto left = std::max<std::chrono::nanoseconds>(deadline - std::chrono::steady_clock::now(), {});
+    const timespec wait{static_cast<time_t>(left.count() / 1'000'000'000),
+                        static_cast<long>(left.count() % 1'000'000'000)};
+    const int ready = ::ppoll(&entry, 1, &wait, nullptr);
     if (ready < 0 && errno == EINTR) continue;
     if (ready < 0) return unexpected(describe_errno("cannot wait for", errno));
     // POLLHUP/POLLERR count as readable: the read then reports what went wrong.
     return ready > 0;
   }
+}
+
+Expected<Ok> SerialPort::set_baud(std::uint32_t baud) {
+  settings_.baud = baud;
+  if (fd_ < 0) return Ok{};
+  if (const int error = detail::configure_raw_line(fd_, baud, settings_.parity, settings_.stop_bits); error != 0) {
+    return unexpected(describe_errno("cannot set the rate of", error));
+  }
+  actual_baud_ = baud;
+  return Ok{};
 }
 
 }  // namespace sms::gateway

@@ -2,7 +2,7 @@
 // A serial line to a servo bus: a tty (USB/RS-485 adapter, or a pty slave such as the
 // simulator's) in raw mode at any bit rate of the protocols' baud tables (SPEC §3) —
 // 76 800, 128 000, 256 000 … are set with termios2/BOTHER. The descriptor is non-blocking;
-// the bus engine waits for readiness with Asio and reads what is there.
+// the bus transactor waits for readiness with poll and reads what is there.
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
@@ -57,8 +57,12 @@ class SerialPort {
   // What is available now, without blocking: 0 when nothing is. An error means the device is
   // gone (unplugged adapter, EIO, a pty whose master closed): close and reopen later.
   Expected<std::size_t> read_available(std::span<std::uint8_t> buffer);
-  // Waits up to `timeout` for bytes to read (or for the device to fail). False on timeout.
+  // Waits up to `timeout` (to the microsecond) for bytes to read (or for the device to fail).
+  // False on timeout.
   Expected<bool> wait_readable(std::chrono::nanoseconds timeout);
+  // Changes the rate: on the open descriptor at once (a reopen could meet EBUSY while someone
+  // else holds the tty), else for the next open().
+  Expected<Ok> set_baud(std::uint32_t baud);
 
  private:
   std::string describe_errno(std::string_view action, int error) const;

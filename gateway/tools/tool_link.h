@@ -1,9 +1,10 @@
 #pragma once
 // The integrator tools' line to the servos (scan, set-id, set-baud, calibrate-middle, dump):
 // one servo transaction at a time, synchronously, on the tool's own thread — no engine, no
-// queue, no polling. One interface for the three bus protocols:
-//   feetech / d55d: PING, READ, WRITE packets through SerialPort and the stream decoder;
-//   modbus-rtu:     FC03 / FC06 / FC16 through RtuMaster (libmodbus).
+// queue, no polling, but the engine's own transactors (gateway/bus/transactor.h), so tools and
+// gateway frame, judge, retry and refuse alike. One interface for the three bus protocols:
+//   feetech / d55d: PING, READ, WRITE packets (PacketTransactor);
+//   modbus-rtu:     FC03 / FC06 / FC16 (RtuTransactor, libmodbus).
 // Addresses and counts are bus addresses: bytes on packet buses, registers on modbus-rtu
 // (data then holds registers high byte first).
 //

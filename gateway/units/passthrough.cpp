@@ -9,7 +9,7 @@
 #include "gateway/units/bus_faults.h"
 #include "gateway/modbus_tcp/faults.h"
 #include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/bus/rtu_bus_engine.h"
+#include "gateway/bus/bus_engine.h"
 #include "gateway/modbus_tcp/tcp_serving.h"
 
 namespace sms::gateway {
@@ -123,7 +123,7 @@ class ForwardGateway::Impl {
     settings.queue_depth = options_.queue_depth;
     settings.discover = false;
     settings.poll = false;
-    engine_ = std::make_unique<RtuBusEngine>(std::move(settings), options_.rtu);
+    engine_ = make_bus_engine(std::move(settings), options_.rtu);
     handler_ = std::make_unique<ForwardHandler>(
         *engine_, [this](std::function<void()> work) { serving_.post(std::move(work)); }, options_.broadcast_reply);
     TcpServerOptions server_options;
@@ -152,7 +152,7 @@ class ForwardGateway::Impl {
 
  private:
   ForwardOptions options_;
-  std::unique_ptr<RtuBusEngine> engine_;
+  std::unique_ptr<BusEngine> engine_;
   std::unique_ptr<ForwardHandler> handler_;
   TcpServing serving_;  // last: destroyed first, so no connection outlives the handler
   bool started_ = false;

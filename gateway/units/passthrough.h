@@ -5,7 +5,7 @@
 // So sms-gateway can replace a plain Modbus TCP -> RTU gateway.
 //
 // - Requests from every TCP connection are serialised on the bus by its engine's queue
-//   (RtuBusEngine: one exchange at a time, retries on CRC mismatch and timeouts).
+//   (the bus engine with RtuTransactor: one exchange at a time, retries on CRC mismatch and timeouts).
 // - The gateway's own exceptions (exception_code(), faults.h): 0x0B the slave did not
 //   answer through every retry, 0x0A its bus is down, 0x04 its answers stayed corrupt, 0x06 the
 //   bus queue is full.
@@ -70,7 +70,7 @@ struct ForwardOptions {
 };
 
 // The whole `forward` program in one object (main and the tests use it the same way): an
-// RtuBusEngine without servos, the ForwardHandler and the Modbus TCP server on an io thread.
+// A modbus-rtu bus engine without servos, the ForwardHandler and the Modbus TCP server on an io thread.
 class ForwardGateway {
  public:
   explicit ForwardGateway(ForwardOptions options);

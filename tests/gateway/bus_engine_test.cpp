@@ -1,7 +1,7 @@
-// PacketBusEngine against the real simulator on a pty: round trips of every operation,
-// refusals, timeouts and retries, damaged and late replies, queue order and back-pressure,
-// custom bit rates. Polling is off here (poll_*_test.cpp covers it) so that every frame on the
-// line is one the test asked for.
+// The packet bus engine (EngineCore<PacketTransactor>) against the real simulator on a pty:
+// round trips of every operation, refusals, timeouts and retries, damaged and late replies,
+// queue order and back-pressure, custom bit rates. Polling is off here (poll_*_test.cpp covers
+// it) so that every frame on the line is one the test asked for.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "bus_test_support.h"
-#include "gateway/bus/packet_bus_engine.h"
+#include "gateway/bus/bus_engine.h"
 
 namespace sms::gateway {
 namespace {
@@ -368,7 +368,9 @@ TEST_F(BusEngineTest, StopCancelsWhatIsQueued) {
   engine_->stop();
   std::lock_guard lock(mutex);
   ASSERT_EQ(statuses.size(), 4U);  // every completion ran, none was lost
-  EXPECT_EQ(std::count(statuses.begin(), statuses.end(), BusStatus::Cancelled), 4);
+  // The transaction on the wire when stop() came ends with its own result (a write on the wire
+  // may have been carried out: it is not reported cancelled); what still waited is Cancelled.
+  EXPECT_GE(std::count(statuses.begin(), statuses.end(), BusStatus::Cancelled), 3);
   bool after_stop = false;
   engine_->submit(ReadOp{1, 5, 1}, Priority::ClientRead, [&](BusResult result) {
     after_stop = result.status == BusStatus::Cancelled;

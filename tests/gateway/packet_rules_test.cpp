@@ -1,4 +1,4 @@
-// The one rule the packet engine and the integrator tools judge received frames by
+// The one rule the packet transactor (gateway and integrator tools) judges received frames by
 // (gateway/bus/packet_rules.h), case by case for both packet protocols.
 #include "gateway/bus/packet_rules.h"
 

@@ -1,4 +1,4 @@
-// RtuBusEngine and RtuMaster against the simulator's SMSMB servos on a pty: every rate of the
+// The modbus-rtu bus engine (EngineCore<RtuTransactor>) and RtuMaster against the simulator's SMSMB servos on a pty: every rate of the
 // Modbus baud table (libmodbus alone would run 256000, 128000, 56000 and 14400 at 9600), FC03
 // reads, FC06/FC16 writes, broadcast, exceptions, retries, polling into the cache, offline and
 // back, a lost port, the frame gap against a slave that keeps its own t3.5.
@@ -12,7 +12,9 @@
 #include <vector>
 
 #include "gateway/bus/bus_engine.h"
-#include "gateway/bus/rtu_bus_engine.h"
+#include "gateway/bus/engine_core.h"
+#include "gateway/bus/rtu_master.h"
+#include "gateway/bus/rtu_transactor.h"
 #include "simulator/simulated_bus.h"
 #include "tests/gateway/bus_test_support.h"
 
@@ -177,7 +179,7 @@ class RtuEngineTest : public ::testing::Test {
   void start(std::vector<std::uint8_t> ids, std::uint32_t baud = 115'200) {
     bus_ = std::make_unique<simulator::SimulatedBus>(smsmb_servos(ids, baud));
     bus_->start();
-    engine_ = std::make_unique<RtuBusEngine>(rtu_settings(bus_->slave_path(), ids, baud), line_options());
+    engine_ = make_bus_engine(rtu_settings(bus_->slave_path(), ids, baud), line_options());
     engine_->start();
     ASSERT_TRUE(wait_until([&] { return engine_->discovered(); })) << "discovery did not finish";
   }
@@ -185,7 +187,7 @@ class RtuEngineTest : public ::testing::Test {
     if (engine_) engine_->stop();
   }
   std::unique_ptr<simulator::SimulatedBus> bus_;
-  std::unique_ptr<RtuBusEngine> engine_;
+  std::unique_ptr<BusEngine> engine_;
 };
 
 TEST_F(RtuEngineTest, ReadsHoldingRegistersWithFc03) {
@@ -318,7 +320,8 @@ TEST(RtuEngine, LostPortGoesDownAndComesBackWhenTheDeviceReturns) {
   options.link = link;
   auto bus = std::make_unique<simulator::SimulatedBus>(options);
   bus->start();
-  RtuBusEngine engine(rtu_settings(link, {1}), line_options());
+  const auto engine_owner = make_bus_engine(rtu_settings(link, {1}), line_options());
+  BusEngine& engine = *engine_owner;
   engine.start();
   ASSERT_TRUE(wait_until([&] { return engine.discovered(); }));
   bus->stop();
@@ -336,7 +339,7 @@ TEST(RtuEngine, LostPortGoesDownAndComesBackWhenTheDeviceReturns) {
 
 TEST(RtuEngine, FactoryBuildsTheRtuEngineForModbusRtuBuses) {
   auto engine = make_bus_engine(rtu_settings("/dev/null", {1}));
-  EXPECT_NE(dynamic_cast<RtuBusEngine*>(engine.get()), nullptr);
+  EXPECT_NE(dynamic_cast<EngineCore<RtuTransactor>*>(engine.get()), nullptr);
   // A packet table on a modbus-rtu bus cannot be run.
   auto wrong = rtu_settings("/dev/null", {});
   wrong.servos.push_back({1, TableId::Sts, modbus_map::ByteOrder::LowFirst, AddressBlock{56, 15}});

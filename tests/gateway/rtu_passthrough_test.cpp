@@ -19,7 +19,7 @@
 #include <vector>
 
 #include "gateway/units/passthrough.h"
-#include "gateway/bus/rtu_bus_engine.h"
+#include "gateway/bus/rtu_master.h"
 #include "simulator/simulated_bus.h"
 #include "tests/gateway/bus_test_support.h"
 

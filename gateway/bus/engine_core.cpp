@@ -1,0 +1,561 @@
+#include "gateway/bus/engine_core.h"
+
+#include <pthread.h>
+#include <sys/prctl.h>
+
+#include <fmt/format.h>
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <limits>
+#include <stdexcept>
+#include <utility>
+
+#include "gateway/bus/packet_transactor.h"
+#include "gateway/bus/rtu_transactor.h"
+#include "modbus_map/tables.h"
+
+namespace sms::gateway {
+
+using namespace std::chrono_literals;
+
+namespace {
+
+std::uint32_t saturate_us(SteadyClock::duration duration) {
+  const auto us = std::chrono::duration_cast<std::chrono::microseconds>(duration).count();
+  return static_cast<std::uint32_t>(std::clamp<std::int64_t>(us, 0, std::numeric_limits<std::uint32_t>::max()));
+}
+
+// What every bus checks of its settings; the transactor's own limits come from Transactor::check_servo.
+template <class Transactor>
+const BusSettings& validated(const BusSettings& settings) {
+  const std::string where = "bus " + settings.name + ": ";
+  if (settings.serial.baud == 0) throw std::invalid_argument(where + "baud must not be 0");
+  if (settings.queue_depth == 0) throw std::invalid_argument(where + "queue depth must be at least 1");
+  std::bitset<256> seen;
+  for (const auto& servo : settings.servos) {
+    const auto& table = modbus_map::table(servo.table);
+    const std::string who = where + "servo " + std::to_string(servo.servo_id) + " (" + std::string(table.name) + "): ";
+    if (table.protocol != settings.protocol) {
+      throw std::invalid_argument(who + "its table is spoken over " + std::string(protocol::to_string(table.protocol)) +
+                                  ", not over this " + std::string(protocol::to_string(settings.protocol)) + " bus");
+    }
+    if (seen.test(servo.servo_id)) throw std::invalid_argument(who + "configured twice on this bus");
+    seen.set(servo.servo_id);
+    if (const std::string problem = Transactor::check_servo(servo); !problem.empty()) {
+      throw std::invalid_argument(who + problem);
+    }
+  }
+  return settings;
+}
+
+std::vector<PollCache::ServoEntry> cache_entries(const BusSettings& settings) {
+  std::vector<PollCache::ServoEntry> entries;
+  for (const auto& servo : settings.servos) entries.push_back({servo.servo_id, servo.poll_block});
+  return entries;
+}
+
+std::vector<PollTarget> poll_targets(const BusSettings& settings, bool protocol_has_sync_read) {
+  std::vector<PollTarget> targets;
+  for (const auto& servo : settings.servos) {
+    const bool sync = protocol_has_sync_read && modbus_map::table(servo.table).has_sync_read;
+    targets.push_back({servo.servo_id, servo.poll_block, sync});
+  }
+  return targets;
+}
+
+}  // namespace
+
+template <class Transactor>
+EngineCore<Transactor>::EngineCore(BusSettings settings, const TransactorFactory& make_transactor)
+    : settings_(validated<Transactor>(settings)),
+      transactor_(make_transactor(settings_, counters_)),
+      cache_(cache_entries(settings_), Transactor::kBytesPerAddress),
+      scheduler_(poll_targets(settings_, transactor_->has_sync_read()), settings_.probe_period),
+      age_limits_{std::chrono::nanoseconds{0}, kClientAgeLimit, kClientAgeLimit,
+                  std::max<std::chrono::nanoseconds>(settings_.poll_period, 10ms)} {}
+
+template <class Transactor>
+EngineCore<Transactor>::~EngineCore() {
+  stop();
+}
+
+// ==== queue and thread ========================================================================
+
+template <class Transactor>
+void EngineCore<Transactor>::submit(BusOp op, Priority priority, Completion done) {
+  Job job;
+  job.motion_epoch = motion_epoch_of(op);
+  job.request = transactor_->prepare(std::move(op), attempts());  // const: safe on the caller's thread
+  job.done = std::move(done);
+  if (queue_client_job(settings_, counters_, mutex_, queue_, std::move(job), priority, accepting_, bus_up_.load())) {
+    wake_.notify();
+  }
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::enqueue_internal(Job job) {
+  std::lock_guard lock(mutex_);
+  queue_.push_internal(std::move(job), Priority::Poll);
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::start() {
+  {
+    std::lock_guard lock(mutex_);
+    if (accepting_ || thread_.joinable()) throw std::logic_error("bus " + settings_.name + ": started twice");
+    accepting_ = true;
+  }
+  // Opened here, before the thread runs, so bus_up() is true on return when the port exists.
+  try_open();
+  thread_ = std::thread([this] { run_thread(); });
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::stop() {
+  {
+    std::lock_guard lock(mutex_);
+    accepting_ = false;
+    stopping_ = true;
+  }
+  wake_.notify();
+  if (!thread_.joinable()) return;
+  if (std::this_thread::get_id() == thread_.get_id()) {
+    throw std::logic_error("bus " + settings_.name + ": stop() called from the bus thread (inside a completion)");
+  }
+  thread_.join();
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::run_thread() {
+  // "bus <name>" in top -H / gdb; Linux limits thread names to 15 characters.
+  ::pthread_setname_np(::pthread_self(), ("bus " + settings_.name).substr(0, 15).c_str());
+  // Reply deadlines and the RTU frame gap are waited for in ppoll/sleeps of a millisecond or
+  // less: Linux's default 50 us timer slack would be line time lost on each.
+  ::prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);
+  for (;;) {
+    try {
+      run_loop();
+      break;
+    } catch (const std::exception& error) {
+      spdlog::critical("bus {}: internal error on the bus thread: {}", settings_.name, error.what());
+    }
+  }
+  shutdown();
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::run_loop() {
+  for (;;) {
+    if (!transactor_->is_open()) {
+      wake_.wait(SteadyClock::now() + settings_.reopen_period);  // or earlier, for stop()
+      {
+        std::lock_guard lock(mutex_);
+        if (stopping_) return;
+      }
+      try_open();
+      continue;
+    }
+    start_poll_cycle_if_due();
+    std::optional<Job> job = next_job();
+    if (job) {
+      run(std::move(*job));
+      continue;
+    }
+    std::lock_guard lock(mutex_);
+    if (stopping_) return;
+  }
+}
+
+// Waits for the next job; nullopt when stopping or when the next poll cycle is due.
+template <class Transactor>
+std::optional<typename EngineCore<Transactor>::Job> EngineCore<Transactor>::next_job() {
+  for (;;) {
+    std::optional<SteadyClock::time_point> wake_at;
+    {
+      std::lock_guard lock(mutex_);
+      if (stopping_) return std::nullopt;
+      const auto now = SteadyClock::now();
+      // next_level() (bus_engine.h): safe stops first; then whatever waited past its age limit,
+      // oldest first; else strict priority, FIFO within a priority.
+      if (const auto level = queue_.next(age_limits_, now)) return queue_.pop(*level);
+      if (poll_due(now)) return std::nullopt;
+      // Asleep until a job is submitted or the next cycle falls due (never a time already past:
+      // poll_due() would have said so).
+      if (settings_.poll && discovered_.load() && !cycle_.running) wake_at = next_cycle_;
+    }
+    wake_.wait(wake_at);
+  }
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::run(Job job) {
+  if (auto refusal = motion_refusal(settings_, job.motion_epoch)) {
+    complete(settings_, job.done, std::move(*refusal));
+    return;
+  }
+  const std::uint8_t target = Transactor::target(job.request);
+  if (job.client && !Transactor::broadcast(job.request) && scheduler_.presence(target) == Presence::Offline) {
+    // A client polling a dead servo must not make the bus pay timeouts; the servo's probe
+    // brings it back within one probe period.
+    counters_.transactions.fetch_add(1, std::memory_order_relaxed);
+    complete(settings_, job.done,
+             BusResult{BusStatus::Timeout, 0, {},
+                       fmt::format("bus {}: servo {} is offline (it stopped answering; probed every {} ms)",
+                                   settings_.name, target, settings_.probe_period.count())});
+    return;
+  }
+  sync_answered_.reset();
+  BusResult result = transactor_->execute(job.request, events_);
+  counters_.transactions.fetch_add(1, std::memory_order_relaxed);
+  if (result.status == BusStatus::BusDown) {
+    const std::string reason = std::move(result.detail);
+    port_lost(reason);  // drops the engine's own work: it is rebuilt when the bus is back
+    if (job.client) complete(settings_, job.done, BusResult{BusStatus::BusDown, 0, {}, "bus " + settings_.name + ": " + reason});
+    return;
+  }
+  if (result.status == BusStatus::Ok) {
+    note_written(job.request);
+  } else {
+    spdlog::debug("{}", result.detail);
+  }
+  complete(settings_, job.done, std::move(result));
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::shutdown() {
+  transactor_->close();
+  std::vector<Job> cancelled;
+  {
+    std::lock_guard lock(mutex_);
+    bus_up_.store(false);
+    cancelled = queue_.take_clients();
+  }
+  const std::string detail = "bus " + settings_.name + ": the gateway is stopping";
+  for (auto& job : cancelled) complete(settings_, job.done, BusResult{BusStatus::Cancelled, 0, {}, detail});
+}
+
+// ==== port ======================================================================================
+
+template <class Transactor>
+bool EngineCore<Transactor>::try_open() {
+  const auto opened = transactor_->open();
+  if (!opened) {
+    if (!open_failure_logged_) {
+      spdlog::error("bus {}: {}; retrying every {} ms", settings_.name, opened.error(), settings_.reopen_period.count());
+      open_failure_logged_ = true;
+    } else {
+      spdlog::debug("bus {}: still cannot open: {}", settings_.name, opened.error());
+    }
+    return false;
+  }
+  open_failure_logged_ = false;
+  spdlog::info("bus {}: {} open, {}", settings_.name, settings_.serial.device, transactor_->line_description());
+  {
+    std::lock_guard lock(mutex_);
+    bus_up_.store(true);
+  }
+  begin_discovery();
+  return true;
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::port_lost(const std::string& reason) {
+  spdlog::error("bus {}: {} — bus down; reopening every {} ms", settings_.name, reason, settings_.reopen_period.count());
+  transactor_->close();
+  counters_.bus_down_events.fetch_add(1, std::memory_order_relaxed);
+  // Before the bus reads down: whoever sees bus_up() false sees the loss logged and counted and
+  // every servo offline too.
+  cache_.set_all_offline();
+  discovered_.store(false);
+  std::vector<Job> failed;
+  {
+    std::lock_guard lock(mutex_);
+    bus_up_.store(false);
+    failed = queue_.take_clients();
+  }
+  scheduler_.forget_all();
+  cycle_ = Cycle{};
+  next_cycle_.reset();
+  discovery_ = Discovery{};
+  const std::string detail = "bus " + settings_.name + ": " + reason;
+  for (auto& job : failed) complete(settings_, job.done, BusResult{BusStatus::BusDown, 0, {}, detail});
+}
+
+// ==== discovery ===================================================================================
+
+template <class Transactor>
+const ServoSettings* EngineCore<Transactor>::servo(std::uint8_t servo_id) const {
+  for (const auto& each : settings_.servos) {
+    if (each.servo_id == servo_id) return &each;
+  }
+  return nullptr;
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::begin_discovery() {
+  discovered_.store(false);
+  discovery_ = Discovery{};
+  for (const auto& each : settings_.servos) {
+    DiscoveredServo found;
+    found.servo_id = each.servo_id;
+    found.table = each.table;
+    discovery_.servos.push_back(std::move(found));
+  }
+  if (!settings_.discover || settings_.servos.empty()) {
+    discovered_.store(true);
+    next_cycle_ = SteadyClock::now();
+    return;
+  }
+  for (std::size_t index = 0; index < settings_.servos.size(); ++index) {
+    Job job;
+    job.request = transactor_->ping_request(settings_.servos[index].servo_id, attempts());
+    job.done = [this, index](BusResult result) { on_discovery_ping(index, result); };
+    ++discovery_.pending;
+    enqueue_internal(std::move(job));
+  }
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::on_discovery_ping(std::size_t index, const BusResult& result) {
+  DiscoveredServo& found = discovery_.servos.at(index);
+  if (result.status == BusStatus::Ok) {
+    found.online = true;
+    // A Modbus PING answered with an exception carries its code there, not a status.
+    if (Transactor::kAnswersCarryStatus) found.status = result.servo_error;
+    servo_answered(found.servo_id);
+    if (identity_layout(found.table) != nullptr) read_identity(found.servo_id, index);
+  } else {
+    found.detail = result.status == BusStatus::Timeout ? fmt::format("no answer to PING ({} attempts)", attempts())
+                                                       : fmt::format("{} answering PING", to_string(result.status));
+    servo_silent(found.servo_id, found.detail, false);
+  }
+  discovery_step_done();
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::read_identity(std::uint8_t servo_id, std::optional<std::size_t> discovery_index) {
+  const ServoSettings* settings = servo(servo_id);
+  const IdentityLayout* layout = settings == nullptr ? nullptr : identity_layout(settings->table);
+  if (layout == nullptr) return;
+  Job job;
+  job.request = transactor_->read_request(servo_id, layout->read, attempts());
+  job.done = [this, servo_id, discovery_index, layout, order = settings->byte_order,
+              table = settings->table](BusResult result) {
+    if (result.status == BusStatus::Ok) {
+      const ServoIdentity identity = decode_identity(*layout, result.data, order);
+      cache_.set_identity(servo_id, identity);
+      cache_.set_response_level(servo_id, decode_response_level(*layout, result.data));
+      identity_known_.set(servo_id);
+      if (discovery_index) discovery_.servos.at(*discovery_index).identity = identity;
+    } else if (result.status == BusStatus::ServoRefused && !identity_refusal_logged_.test(servo_id)) {
+      identity_refusal_logged_.set(servo_id);
+      spdlog::warn("{} — is servo {} really a {} servo (its identity READ was refused)?", result.detail, servo_id,
+                   modbus_map::table(table).name);
+    }
+    if (discovery_index) discovery_step_done();
+  };
+  if (discovery_index) ++discovery_.pending;
+  enqueue_internal(std::move(job));
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::discovery_step_done() {
+  if (discovery_.pending == 0 || --discovery_.pending > 0) return;
+  spdlog::info("{}", format_discovery_summary({settings_.name, settings_.serial.device, transactor_->protocol_name(),
+                                               settings_.serial.baud, discovery_.servos}));
+  discovered_.store(true);
+  next_cycle_ = SteadyClock::now();
+}
+
+// ==== polling and presence ==========================================================================
+
+template <class Transactor>
+bool EngineCore<Transactor>::poll_due(SteadyClock::time_point now) const {
+  return settings_.poll && discovered_.load() && !cycle_.running && next_cycle_ && now >= *next_cycle_;
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::start_poll_cycle_if_due() {
+  const auto now = SteadyClock::now();
+  if (!poll_due(now)) return;
+  const PollCyclePlan plan = scheduler_.plan_cycle(now);
+  if (plan.empty()) {
+    // Nobody to poll and no probe due yet: wake up for the next probe.
+    const auto due = scheduler_.next_probe_due();
+    next_cycle_ = due ? std::optional(std::max(*due, now + settings_.poll_period)) : std::nullopt;
+    return;
+  }
+  cycle_ = Cycle{true, now, 0};
+  next_cycle_.reset();
+  for (const auto& sync : plan.sync_reads) {
+    Job job;
+    job.request = transactor_->sync_read_request(sync.block, sync.ids);
+    job.done = [this, ids = sync.ids](const BusResult&) { on_sync_read_finished(ids); };
+    ++cycle_.outstanding;
+    enqueue_internal(std::move(job));
+  }
+  for (const auto id : plan.reads) enqueue_poll_read(id, false);
+  for (const auto id : plan.probes) enqueue_poll_read(id, true);
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::enqueue_poll_read(std::uint8_t servo_id, bool probe) {
+  const PollTarget* target = scheduler_.target(servo_id);
+  if (target == nullptr) return;
+  Job job;
+  // A probe is one attempt: an offline servo costs at most one timeout per probe period.
+  job.request = transactor_->read_request(servo_id, target->block, probe ? 1 : attempts());
+  job.done = [this, servo_id, probe](BusResult result) { on_poll_read(servo_id, probe, result); };
+  ++cycle_.outstanding;
+  enqueue_internal(std::move(job));
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::on_poll_read(std::uint8_t servo_id, bool probe, const BusResult& result) {
+  switch (result.status) {
+    case BusStatus::Ok: {
+      cache_.store_block(servo_id, result.data, SteadyClock::now());
+      if (const PollTarget* target = scheduler_.target(servo_id)) {
+        if (const auto status = transactor_->status_in_block(target->block, result.data)) note_status(servo_id, *status);
+      }
+      poll_refusal_logged_.reset(servo_id);
+      servo_answered(servo_id);
+      break;
+    }
+    case BusStatus::ServoRefused:
+      servo_answered(servo_id);
+      // Once per episode, not every cycle: the configuration will not change by itself.
+      if (!poll_refusal_logged_.test(servo_id)) {
+        poll_refusal_logged_.set(servo_id);
+        spdlog::warn("{} — check the poll block configured for its table (said once until a poll succeeds)",
+                     result.detail);
+      }
+      break;
+    case BusStatus::Timeout:
+    case BusStatus::Corrupt:
+      servo_silent(servo_id, probe ? "probe unanswered" : result.detail, true);
+      break;
+    default:
+      break;
+  }
+  poll_job_done();
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::on_sync_read_finished(const std::vector<std::uint8_t>& ids) {
+  // Whoever stayed silent in the SYNC READ is read on its own, with retries, in this cycle:
+  // only a failed READ takes a servo offline.
+  for (const auto id : ids) {
+    if (sync_answered_.test(id)) continue;
+    note_timeout(id);
+    enqueue_poll_read(id, false);
+  }
+  poll_job_done();
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::poll_job_done() {
+  if (!cycle_.running || --cycle_.outstanding > 0) return;
+  const auto now = SteadyClock::now();
+  cycle_.running = false;
+  counters_.poll_cycles.fetch_add(1, std::memory_order_relaxed);
+  counters_.last_poll_cycle_us.store(saturate_us(now - cycle_.started), std::memory_order_relaxed);
+  const bool anyone_online =
+      std::any_of(scheduler_.targets().begin(), scheduler_.targets().end(),
+                  [this](const PollTarget& target) { return scheduler_.presence(target.servo_id) != Presence::Offline; });
+  next_cycle_ = anyone_online ? std::optional(cycle_.started + settings_.poll_period) : scheduler_.next_probe_due();
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::servo_answered(std::uint8_t servo_id) {
+  // Logged before the cache shows it: whoever sees the servo online finds the line in the log.
+  const PresenceChange change = scheduler_.answered(servo_id);
+  if (change == PresenceChange::CameOnline) {
+    spdlog::info("bus {}: servo {} answers again: online", settings_.name, servo_id);
+  }
+  cache_.set_online(servo_id, true);
+  if (change == PresenceChange::CameOnline && !identity_known_.test(servo_id)) {
+    read_identity(servo_id, std::nullopt);
+  }
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::servo_silent(std::uint8_t servo_id, const std::string& reason, bool log) {
+  const PresenceChange change = scheduler_.silent(servo_id, SteadyClock::now());
+  if (log && change == PresenceChange::WentOffline) {
+    spdlog::warn("bus {}: servo {} offline ({}); probing it every {} ms", settings_.name, servo_id, reason,
+                 settings_.probe_period.count());
+  }
+  cache_.set_online(servo_id, false);
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::note_status(std::uint8_t servo_id, std::uint8_t status) {
+  ServoCounters* counters = cache_.counters(servo_id);
+  if (counters == nullptr) return;
+  // One rule for every answer kind (status, data, acknowledgement, SYNC READ, a polled status
+  // register): the refusal bits speak of the instruction just answered (the client learns of a
+  // refusal from its result), the rest of the byte of the servo's condition — only the condition
+  // is recorded and logged, once per change (docs/DECISIONS.md "Gateway", the status byte).
+  // The bus thread is the only writer; logged before it shows, like every change of state here.
+  const auto condition = static_cast<std::uint8_t>(status & ~transactor_->refusal_bits());
+  const auto previous = counters->last_status.load(std::memory_order_relaxed);
+  if (previous == condition) return;
+  spdlog::info("bus {}: servo {} status byte 0x{:02X} -> 0x{:02X}", settings_.name, servo_id, previous, condition);
+  counters->last_status.store(condition, std::memory_order_relaxed);
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::note_timeout(std::uint8_t servo_id) {
+  counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
+  if (ServoCounters* counters = cache_.counters(servo_id)) counters->timeouts.fetch_add(1, std::memory_order_relaxed);
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::note_written(const Request& request) {
+  // Keeps the cached response levels true when a client changes one (REG WRITE takes effect
+  // only at ACTION and is not followed).
+  const auto apply = [this](std::uint8_t servo_id, std::uint16_t address, std::span<const std::uint8_t> data) {
+    const ServoSettings* target = servo(servo_id);
+    const IdentityLayout* layout = target == nullptr ? nullptr : identity_layout(target->table);
+    const auto level_address = layout == nullptr ? std::nullopt : layout->response_level_address();
+    if (!level_address || *level_address < address || *level_address >= address + data.size()) return;
+    cache_.set_response_level(servo_id, data[*level_address - address]);
+  };
+  transactor_->for_each_write(request, [&](std::uint8_t servo_id, std::uint16_t address,
+                                           std::span<const std::uint8_t> data) {
+    if (!Transactor::broadcast_id(servo_id)) return apply(servo_id, address, data);
+    for (const auto& each : settings_.servos) apply(each.servo_id, address, data);
+  });
+}
+
+// ==== what transactions report ====================================================================
+
+template <class Transactor>
+void EngineCore<Transactor>::Events::answered(std::uint8_t servo_id, std::optional<std::uint8_t> status) {
+  ServoCounters* counters = core_.cache_.counters(servo_id);
+  if (counters == nullptr) return;
+  counters->replies_ok.fetch_add(1, std::memory_order_relaxed);
+  if (status) core_.note_status(servo_id, *status);
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::Events::unanswered(std::uint8_t servo_id) {
+  if (ServoCounters* counters = core_.cache_.counters(servo_id)) {
+    counters->timeouts.fetch_add(1, std::memory_order_relaxed);
+  }
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::Events::sync_answer(std::uint8_t servo_id, std::span<const std::uint8_t> data) {
+  core_.sync_answered_.set(servo_id);
+  if (core_.servo(servo_id) == nullptr) return;
+  core_.cache_.store_block(servo_id, data, SteadyClock::now());
+  core_.servo_answered(servo_id);
+}
+
+template class EngineCore<PacketTransactor>;
+template class EngineCore<RtuTransactor>;
+
+}  // namespace sms::gateway

@@ -1,0 +1,155 @@
+#pragma once
+// The one bus engine, for every protocol: EngineCore<PacketTransactor> runs feetech and d55d
+// buses, EngineCore<RtuTransactor> modbus-rtu buses (make_bus_engine, bus_engine.h, picks).
+// The core owns everything that is the same on every bus:
+// - the job queue (job_queue.h) with its priorities, age rule and per-connection order, bounded
+//   admission (QueueFull -> 0x06) and the safety rules' motion gate;
+// - presence: online / offline / probe (poll_scheduler.h), the offline short-cut for clients;
+// - poll cycles and their accounting, discovery (PING, then the identity READ) and its summary;
+// - the status byte rule (one rule for every answer kind, logged once per change);
+// - port loss and reopen.
+// The transactor (transactor.h) does one transaction of its protocol, synchronously.
+//
+// Threading (decided on measurement, docs/DECISIONS.md "One engine core"): one thread per bus
+// runs a plain loop — take the next job, run its transaction to the end (blocking in ppoll or
+// libmodbus), complete it — and sleeps (wakeup.h) when there is nothing to do until a job is
+// submitted or the next poll cycle is due. The poll cycle's jobs are queued at
+// the first transaction boundary after it falls due, so they age like everything else.
+// Completions run on the bus thread, except QueueFull, BusDown while the port is down, and
+// Cancelled after stop(), which run inside submit() on the caller's thread.
+#include <array>
+#include <atomic>
+#include <bitset>
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <span>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "gateway/bus/bus_engine.h"
+#include "gateway/bus/discovery.h"
+#include "gateway/bus/job_queue.h"
+#include "gateway/bus/poll_scheduler.h"
+#include "gateway/bus/transactor.h"
+#include "gateway/bus/wakeup.h"
+
+namespace sms::gateway {
+
+template <class Transactor>
+class EngineCore final : public BusEngine {
+ public:
+  using TransactorFactory = std::function<std::unique_ptr<Transactor>(const BusSettings&, BusCounters&)>;
+
+  // Throws std::invalid_argument for settings it cannot run (see make_bus_engine).
+  EngineCore(BusSettings settings, const TransactorFactory& make_transactor);
+  ~EngineCore() override;
+  EngineCore(const EngineCore&) = delete;
+  EngineCore& operator=(const EngineCore&) = delete;
+
+  void start() override;
+  void stop() override;
+  void submit(BusOp op, Priority priority, Completion done) override;
+
+  const BusSettings& settings() const override { return settings_; }
+  bool bus_up() const override { return bus_up_.load(); }
+  BusCountersSnapshot counters() const override { return counters_.snapshot(); }
+  const PollCache& cache() const override { return cache_; }
+  bool discovered() const override { return discovered_.load(); }
+
+ private:
+  using Request = typename Transactor::Request;
+  struct Job {
+    Request request;
+    bool client = false;  // from submit(): holds a slot of the bounded queue, completes on every outcome
+    MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
+    SteadyClock::time_point queued_at{};  // the age rule (next_level, bus_engine.h)
+    Completion done;
+  };
+  // What a transaction tells the core about single servos.
+  class Events final : public TransactionEvents {
+   public:
+    explicit Events(EngineCore& core) : core_(core) {}
+    void answered(std::uint8_t servo_id, std::optional<std::uint8_t> status) override;
+    void unanswered(std::uint8_t servo_id) override;
+    void sync_answer(std::uint8_t servo_id, std::span<const std::uint8_t> data) override;
+
+   private:
+    EngineCore& core_;
+  };
+
+  // --- thread and queue -----------------------------------------------------------------------
+  void run_thread();
+  void run_loop();
+  std::optional<Job> next_job();
+  void enqueue_internal(Job job);
+  void run(Job job);
+  void shutdown();
+
+  // --- port -------------------------------------------------------------------------------------
+  bool try_open();
+  void port_lost(const std::string& reason);
+
+  // --- discovery, presence, polling ----------------------------------------------------------------
+  void begin_discovery();
+  void on_discovery_ping(std::size_t index, const BusResult& result);
+  void read_identity(std::uint8_t servo_id, std::optional<std::size_t> discovery_index);
+  void discovery_step_done();
+  bool poll_due(SteadyClock::time_point now) const;
+  void start_poll_cycle_if_due();
+  void enqueue_poll_read(std::uint8_t servo_id, bool probe);
+  void on_poll_read(std::uint8_t servo_id, bool probe, const BusResult& result);
+  void on_sync_read_finished(const std::vector<std::uint8_t>& ids);
+  void poll_job_done();
+  void servo_answered(std::uint8_t servo_id);
+  void servo_silent(std::uint8_t servo_id, const std::string& reason, bool log);
+  void note_status(std::uint8_t servo_id, std::uint8_t status);
+  void note_timeout(std::uint8_t servo_id);
+  void note_written(const Request& request);
+  const ServoSettings* servo(std::uint8_t servo_id) const;
+  unsigned attempts() const { return 1 + settings_.retries; }
+
+  const BusSettings settings_;
+  BusCounters counters_;
+  std::unique_ptr<Transactor> transactor_;
+  PollCache cache_;
+  PollScheduler scheduler_;  // bus thread only
+  // Per Priority: how long a job may wait before it goes ahead of higher priorities (next_level):
+  // client work after kClientAgeLimit, the engine's own poll, probe or discovery work after one
+  // poll period (at least 10 ms).
+  std::array<std::chrono::nanoseconds, kPriorityCount> age_limits_;
+  Events events_{*this};
+
+  // Shared with submitting threads.
+  std::mutex mutex_;
+  Wakeup wake_;
+  JobQueue<Job> queue_;
+  bool accepting_ = false;
+  bool stopping_ = false;
+  std::atomic<bool> bus_up_{false};
+  std::atomic<bool> discovered_{false};
+  std::thread thread_;
+
+  // Bus thread only (and start(), before the thread runs).
+  struct Cycle {
+    bool running = false;
+    SteadyClock::time_point started{};
+    std::size_t outstanding = 0;
+  } cycle_;
+  std::optional<SteadyClock::time_point> next_cycle_;  // when the next poll cycle is due; none: not scheduled
+  struct Discovery {
+    std::vector<DiscoveredServo> servos;
+    std::size_t pending = 0;
+  } discovery_;
+  std::bitset<256> identity_known_;
+  std::bitset<256> poll_refusal_logged_;  // servos whose refused poll was logged, until a poll succeeds
+  std::bitset<256> identity_refusal_logged_;
+  std::bitset<256> sync_answered_;  // members that answered the SYNC READ under way
+  bool open_failure_logged_ = false;
+};
+
+}  // namespace sms::gateway
