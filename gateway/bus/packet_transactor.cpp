@@ -264,7 +264,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
     auto deadline = original_deadline;
     std::size_t frames = 0;
     bool quiet_wait = false;  // after a damaged answer: waiting for the line to go quiet
-    bool heard = false;
+    bool heard = false;  // a frame other than our own echo, or a damaged one, came back
     std::optional<Packet> echo_candidate;
     std::optional<BusResult> outcome;
     bool send_again = false;
@@ -295,8 +295,12 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
       } else {
         verdict = judge_reply(rules_, request.reply, request.servo_id, request.count, frame);
       }
+      const bool echo = frame == request.packet;
+      if (!echo) heard = true;
       const bool first = frames++ == 0;
-      if (verdict == Verdict::Answer && first && frame == request.packet) {
+      // A frame identical to our request that cannot be its answer: this adapter echoes.
+      if (echo && verdict == Verdict::NotOurs) adapter_echoes_ = true;
+      if (verdict == Verdict::Answer && first && echo) {
         // Byte for byte our request: an adapter echoing what we sent. Hold it; it is the answer
         // only if nothing else comes before the deadline.
         echo_candidate = std::move(frame);
@@ -305,7 +309,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
       switch (verdict) {
         case Verdict::NotOurs:
           counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
-          events.foreign(frame.id);
+          if (!echo) events.foreign(frame.id);  // an adapter's echo of our request is nobody's answer
           if (spdlog::should_log(spdlog::level::debug)) {
             spdlog::debug("{}ignored a frame from ID {} (ERROR 0x{:02X}, {} bytes) while waiting for {}", timing_.label,
                           frame.id, frame.code, frame.params.size(), describe(request));
@@ -315,6 +319,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
           if (echo_candidate) {
             counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
             echo_candidate.reset();
+            adapter_echoes_ = true;  // our frame came back, then the answer
           }
           return accept(std::move(frame));
         case Verdict::Refused:
@@ -344,7 +349,6 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
         const auto received = port_.read_available(rx_buffer_);
         if (!received) return port_lost(received.error());
         if (*received == 0) break;
-        heard = true;
         const std::span<const std::uint8_t> bytes(rx_buffer_.data(), *received);
         if (spdlog::should_log(spdlog::level::trace)) spdlog::trace("{}rx {}", timing_.label, spdlog::to_hex(bytes));
         decoder_.feed(bytes);
@@ -360,6 +364,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
           // A damaged frame (checksum, or a LEN no frame can have).
           counters_.checksum_errors.fetch_add(1, std::memory_order_relaxed);
           summary.damaged_any = true;
+          heard = true;
           events.damaged();
           if (request.reply != ReplyKind::SyncRead && event->packet.id == request.servo_id && !quiet_wait) {
             // Our servo's answer arrived damaged: no valid one follows. Retry as soon as the
@@ -377,8 +382,10 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
     }
     if (outcome) return std::move(*outcome);
     if (send_again) continue;  // our frame arrived damaged: send it again now
-    if (echo_candidate) {
-      // What looked like our own echo was the only frame: it was the answer after all.
+    if (echo_candidate && !adapter_echoes_) {
+      // What looked like our own echo was the only frame, and this adapter has never echoed:
+      // it was the answer after all (a PING answered with ERROR 0x01 is byte for byte the
+      // request).
       accept(std::move(*echo_candidate));
       if (outcome) return std::move(*outcome);
     }

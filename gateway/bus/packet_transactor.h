@@ -9,7 +9,10 @@
 // - the decoder hunts for the header and resynchronises after garbage; only a frame from the
 //   addressed ID with the expected shape is the answer — a late reply from another servo, or a
 //   reply of another length, is counted as stray and waited past; a frame identical to the
-//   request (an adapter's echo) is taken only if nothing else comes;
+//   request (an adapter's echo) is taken only if nothing else comes and the adapter has not
+//   been seen to echo (a frame identical to a request that it cannot answer, or one followed
+//   by the answer): behind an echoing adapter, the echo of a PING to an absent servo is not
+//   taken for its answer;
 // - after a damaged answer from the addressed servo no valid one follows: the attempt ends as
 //   soon as the line is quiet (transmitting into the tail of a frame would collide);
 // - the answer to every unicast WRITE is consumed before the next transmit; broadcasts (ACTION,
@@ -128,6 +131,7 @@ class PacketTransactor {
   BusCounters& counters_;
   protocol::StreamDecoder decoder_;
   std::size_t decoder_discarded_seen_ = 0;
+  bool adapter_echoes_ = false;  // learnt: this line hands our own frames back
   std::chrono::nanoseconds quiet_gap_;
   std::array<std::uint8_t, 512> rx_buffer_{};
 };

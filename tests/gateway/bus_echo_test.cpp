@@ -12,12 +12,14 @@
 #include <thread>
 
 #include "bus_test_support.h"
+#include "gateway/tools/tool_link.h"
 #include "simulator/serial_line.h"
 
 namespace sms::gateway {
 namespace {
 
 using namespace testing;
+using namespace std::chrono_literals;
 using protocol::Bytes;
 
 class EchoingAdapter {
@@ -104,10 +106,45 @@ TEST_F(EchoTest, EchoedTwoByteReadIsNotTakenForItsData) {
   EXPECT_EQ(result.data, (Bytes{0x08, 0x2A}));  // sts model 8.42
 }
 
+TEST_F(EchoTest, EchoedPingOfAnAbsentServoIsNotTakenForItsAnswer) {
+  ASSERT_EQ(transact(*engine_, PingOp{1}).status, BusStatus::Ok);  // the echo and then the answer: it echoes
+  const BusResult absent = transact(*engine_, PingOp{9});
+  EXPECT_EQ(absent.status, BusStatus::Timeout) << absent.detail;
+}
+
 TEST_F(EchoTest, WritesAreAcknowledgedThroughAnEchoingAdapter) {
   const BusResult result = transact(*engine_, WriteOp{1, 42, {0x00, 0x09}});
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
   EXPECT_EQ(simulator_.read_memory(1, 42, 2), (Bytes{0x00, 0x09}));
+}
+
+// The integrator tools run the engine's transactor, so they see through the echo the same way:
+// the echo of a PING to an absent ID is nobody's answer (not even "something was heard", which
+// would tell the scan a servo collided there).
+TEST_F(EchoTest, ToolLinkSeesThroughTheEchoLikeTheEngine) {
+  engine_->stop();  // one program on the line at a time: the port is opened exclusively
+  LinkSettings settings;
+  settings.device = adapter_->host_path();
+  settings.protocol = protocol::BusProtocol::Feetech;
+  settings.baud = 1'000'000;
+  settings.latency = 20ms;  // a pty, a relay thread and the simulator on 2 shared cores
+  const auto link = make_servo_link(settings);
+  const auto opened = link->open();
+  ASSERT_TRUE(opened) << opened.error();
+
+  const LinkAnswer present = link->ping(1);
+  EXPECT_EQ(present.status, LinkStatus::Ok) << present.detail;
+  EXPECT_EQ(present.servo_status, 0x00);  // the servo's answer, not the echo's "ERROR 0x01"
+  const LinkAnswer absent = link->ping(9);
+  EXPECT_EQ(absent.status, LinkStatus::Timeout) << absent.detail;
+  EXPECT_FALSE(absent.heard_anything);
+  EXPECT_TRUE(absent.other_ids.empty());
+  // Both servos answer a broadcast PING at once: their answers collide, but someone is there.
+  const LinkAnswer anyone = link->ping(protocol::kBroadcastId);
+  EXPECT_TRUE(anyone.heard_anything) << anyone.detail;
+  const LinkAnswer model = link->read(2, 3, 2);
+  ASSERT_EQ(model.status, LinkStatus::Ok) << model.detail;
+  EXPECT_EQ(model.data, (Bytes{0x08, 0x2A}));
 }
 
 }  // namespace

@@ -126,6 +126,17 @@ TEST_F(BusEngineTest, PingIsAnswered) {
   EXPECT_EQ(result.servo_error, 0);
 }
 
+TEST_F(BusEngineTest, PingAnswerByteForByteTheRequestIsTakenOnALineThatDoesNotEcho) {
+  start({1});
+  // ERROR 0x01 (voltage) makes the answer FF FF 01 02 01 FB: the PING request itself. On a line
+  // never seen to echo it is the servo's answer (bus_echo_test.cpp: behind an echoing adapter
+  // the same bytes alone are only the echo).
+  simulator_->set_error_bits(1, 0x01);
+  const BusResult result = transact(*engine_, PingOp{1});
+  ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
+  EXPECT_EQ(result.servo_error, 0x01);
+}
+
 TEST_F(BusEngineTest, AnAnswerWithBit4IsARefusalWithTheServosErrorByte) {
   start({1});
   // Doc 001 names status bit 4 "angle / out of range"; current Feetech firmware leaves it unused
