@@ -132,22 +132,23 @@ PacketTransactor::Request PacketTransactor::sync_read_request(AddressBlock block
 }
 
 PacketTransactor::Request PacketTransactor::prepare(BusOp&& op, unsigned attempts) const {
-  auto require = [&](bool condition, const std::string& what) {
-    if (!condition) throw std::invalid_argument(timing_.label + what);
-  };
+  // Messages are built only for a request that is refused: this runs for every client request.
+  const auto refuse = [this](const std::string& what) { return std::invalid_argument(timing_.label + what); };
   Request request;
   request.attempts = attempts;
   if (auto* read = std::get_if<ReadOp>(&op)) {
-    require(read->servo_id < protocol::kBroadcastId, "READ needs one servo ID (0-253), not the broadcast ID");
-    require(read->address <= 0xFF, "READ address " + std::to_string(read->address) + " is not a byte address");
-    require(read->count >= 1 && read->count <= protocol::kMaxParams,
-            "READ of " + std::to_string(read->count) + " bytes: one READ returns 1-253 bytes");
+    if (read->servo_id >= protocol::kBroadcastId) throw refuse("READ needs one servo ID (0-253), not the broadcast ID");
+    if (read->address > 0xFF) throw refuse("READ address " + std::to_string(read->address) + " is not a byte address");
+    if (read->count < 1 || read->count > protocol::kMaxParams) {
+      throw refuse("READ of " + std::to_string(read->count) + " bytes: one READ returns 1-253 bytes");
+    }
     return read_request(read->servo_id, {read->address, read->count}, attempts);
   }
   if (auto* write = std::get_if<WriteOp>(&op)) {
-    require(write->address <= 0xFF, "WRITE address " + std::to_string(write->address) + " is not a byte address");
-    require(!write->data.empty() && write->data.size() < protocol::kMaxParams,
-            "WRITE of " + std::to_string(write->data.size()) + " bytes: one WRITE carries 1-252 bytes");
+    if (write->address > 0xFF) throw refuse("WRITE address " + std::to_string(write->address) + " is not a byte address");
+    if (write->data.empty() || write->data.size() >= protocol::kMaxParams) {
+      throw refuse("WRITE of " + std::to_string(write->data.size()) + " bytes: one WRITE carries 1-252 bytes");
+    }
     const auto address = static_cast<std::uint8_t>(write->address);
     request.packet = write->staged ? protocol::reg_write(write->servo_id, address, write->data)
                                    : protocol::write(write->servo_id, address, write->data);
@@ -158,19 +159,22 @@ PacketTransactor::Request PacketTransactor::prepare(BusOp&& op, unsigned attempt
   } else if (std::holds_alternative<ActionOp>(op)) {
     request.packet = protocol::action();
   } else if (auto* sync = std::get_if<SyncWriteOp>(&op)) {
-    require(sync->address <= 0xFF, "SYNC WRITE address " + std::to_string(sync->address) + " is not a byte address");
-    require(!sync->entries.empty(), "SYNC WRITE without servos");
+    if (sync->address > 0xFF) {
+      throw refuse("SYNC WRITE address " + std::to_string(sync->address) + " is not a byte address");
+    }
+    if (sync->entries.empty()) throw refuse("SYNC WRITE without servos");
     try {
       request.packet = protocol::sync_write(static_cast<std::uint8_t>(sync->address), sync->length, sync->entries);
     } catch (const std::exception& error) {
-      throw std::invalid_argument(timing_.label + "SYNC WRITE: " + error.what());
+      throw refuse(std::string("SYNC WRITE: ") + error.what());
     }
   } else if (auto* ping = std::get_if<PingOp>(&op)) {
-    require(ping->servo_id < protocol::kBroadcastId, "PING needs one servo ID (0-253): answers to a broadcast collide");
+    if (ping->servo_id >= protocol::kBroadcastId) {
+      throw refuse("PING needs one servo ID (0-253): answers to a broadcast collide");
+    }
     return ping_request(ping->servo_id, attempts);
   } else {
-    throw std::invalid_argument(timing_.label + "a raw Modbus PDU cannot be sent on a " +
-                                std::string(protocol::to_string(rules_.protocol)) + " bus");
+    throw refuse("a raw Modbus PDU cannot be sent on a " + std::string(protocol::to_string(rules_.protocol)) + " bus");
   }
   // Nothing tells whether an unanswered frame arrived: it is never sent twice.
   if (request.reply == ReplyKind::None) request.attempts = 1;
