@@ -12,6 +12,7 @@ namespace sms::protocol::rtu {
 
 // slave(1) + PDU(<= 253) + CRC(2) (Modbus over serial line v1.02 §2.5.1).
 inline constexpr std::size_t kMaxAduSize = 256;
+inline constexpr std::size_t kMaxPduSize = kMaxAduSize - 3;
 // slave + function + CRC: the shortest frame (FC 0x11 and 0x41 requests).
 inline constexpr std::size_t kMinAduSize = 4;
 

@@ -28,7 +28,7 @@ std::uint32_t saturate_us(SteadyClock::duration duration) {
 
 // What every bus checks of its settings; the transactor's own limits come from Transactor::check_servo.
 template <class Transactor>
-const BusSettings& validated(const BusSettings& settings) {
+BusSettings validated(BusSettings settings) {
   const std::string where = "bus " + settings.name + ": ";
   if (settings.serial.baud == 0) throw std::invalid_argument(where + "baud must not be 0");
   if (settings.queue_depth == 0) throw std::invalid_argument(where + "queue depth must be at least 1");
@@ -68,7 +68,7 @@ std::vector<PollTarget> poll_targets(const BusSettings& settings, bool protocol_
 
 template <class Transactor>
 EngineCore<Transactor>::EngineCore(BusSettings settings, const TransactorFactory& make_transactor)
-    : settings_(validated<Transactor>(settings)),
+    : settings_(validated<Transactor>(std::move(settings))),
       transactor_(make_transactor(settings_, counters_)),
       cache_(cache_entries(settings_), Transactor::kBytesPerAddress),
       scheduler_(poll_targets(settings_, transactor_->has_sync_read()), settings_.probe_period),
@@ -406,19 +406,20 @@ void EngineCore<Transactor>::enqueue_poll_read(std::uint8_t servo_id, bool probe
   Job job;
   // A probe is one attempt: an offline servo costs at most one timeout per probe period.
   job.request = transactor_->read_request(servo_id, target->block, probe ? 1 : attempts());
-  job.done = [this, servo_id, probe](BusResult result) { on_poll_read(servo_id, probe, result); };
+  job.done = [this, servo_id, probe, block = target->block](BusResult result) {
+    on_poll_read(servo_id, block, probe, result);
+  };
   ++cycle_.outstanding;
   enqueue_internal(std::move(job));
 }
 
 template <class Transactor>
-void EngineCore<Transactor>::on_poll_read(std::uint8_t servo_id, bool probe, const BusResult& result) {
+void EngineCore<Transactor>::on_poll_read(std::uint8_t servo_id, AddressBlock block, bool probe,
+                                          const BusResult& result) {
   switch (result.status) {
     case BusStatus::Ok: {
       cache_.store_block(servo_id, result.data, SteadyClock::now());
-      if (const PollTarget* target = scheduler_.target(servo_id)) {
-        if (const auto status = transactor_->status_in_block(target->block, result.data)) note_status(servo_id, *status);
-      }
+      if (const auto status = transactor_->status_in_block(block, result.data)) note_status(servo_id, *status);
       poll_refusal_logged_.reset(servo_id);
       servo_answered(servo_id);
       break;
@@ -509,7 +510,7 @@ void EngineCore<Transactor>::note_status(std::uint8_t servo_id, std::uint8_t sta
 template <class Transactor>
 void EngineCore<Transactor>::note_timeout(std::uint8_t servo_id) {
   counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
-  if (ServoCounters* counters = cache_.counters(servo_id)) counters->timeouts.fetch_add(1, std::memory_order_relaxed);
+  events_.unanswered(servo_id);
 }
 
 template <class Transactor>
@@ -549,8 +550,9 @@ void EngineCore<Transactor>::Events::unanswered(std::uint8_t servo_id) {
 
 template <class Transactor>
 void EngineCore<Transactor>::Events::sync_answer(std::uint8_t servo_id, std::span<const std::uint8_t> data) {
+  // Only listed members' answers come here (the transactor judges the others not ours), and the
+  // list is the poll plan's: configured servos.
   core_.sync_answered_.set(servo_id);
-  if (core_.servo(servo_id) == nullptr) return;
   core_.cache_.store_block(servo_id, data, SteadyClock::now());
   core_.servo_answered(servo_id);
 }

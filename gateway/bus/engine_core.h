@@ -10,7 +10,7 @@
 // - port loss and reopen.
 // The transactor (transactor.h) does one transaction of its protocol, synchronously.
 //
-// Threading (decided on measurement, docs/DECISIONS.md "One engine core"): one thread per bus
+// Threading (decided on measurement, docs/DECISIONS.md "Threading model"): one thread per bus
 // runs a plain loop — take the next job, run its transaction to the end (blocking in ppoll or
 // libmodbus), complete it — and sleeps (wakeup.h) when there is nothing to do until a job is
 // submitted or the next poll cycle is due. The poll cycle's jobs are queued at
@@ -102,13 +102,13 @@ class EngineCore final : public BusEngine {
   bool poll_due(SteadyClock::time_point now) const;
   void start_poll_cycle_if_due();
   void enqueue_poll_read(std::uint8_t servo_id, bool probe);
-  void on_poll_read(std::uint8_t servo_id, bool probe, const BusResult& result);
+  void on_poll_read(std::uint8_t servo_id, AddressBlock block, bool probe, const BusResult& result);
   void on_sync_read_finished(const std::vector<std::uint8_t>& ids);
   void poll_job_done();
   void servo_answered(std::uint8_t servo_id);
   void servo_silent(std::uint8_t servo_id, const std::string& reason, bool log);
   void note_status(std::uint8_t servo_id, std::uint8_t status);
-  void note_timeout(std::uint8_t servo_id);
+  void note_timeout(std::uint8_t servo_id);  // a SYNC READ member that stayed silent
   void note_written(const Request& request);
   const ServoSettings* servo(std::uint8_t servo_id) const;
   unsigned attempts() const { return 1 + settings_.retries; }

@@ -33,6 +33,12 @@ Verdict judge_reply(const PacketRules& rules, ReplyKind kind, std::uint8_t servo
   const auto refusal = [&] {
     return (frame.code & rules.refusal_bits & ~rules.damaged_bits) != 0 ? Verdict::Refused : Verdict::RefusedDamaged;
   };
+  if (kind == ReplyKind::Ping && servo_id == protocol::kBroadcastId) {
+    // A broadcast PING (the tools' rate scan) is answered by whoever is there; no servo has the
+    // broadcast ID, so a frame from it is our own echo.
+    const bool answer = frame.id != protocol::kBroadcastId && frame.params.size() <= rules.max_ping_params;
+    return answer ? Verdict::Answer : Verdict::NotOurs;
+  }
   if (kind == ReplyKind::None || (kind != ReplyKind::SyncRead && frame.id != servo_id)) return Verdict::NotOurs;
   switch (kind) {
     case ReplyKind::None:

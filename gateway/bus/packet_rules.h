@@ -45,6 +45,7 @@ enum class Verdict : std::uint8_t {
 
 // What `frame` is to a transaction waiting for a `kind` answer from `servo_id` (Data: with
 // `count` parameters). For SyncRead this judges one member's answer: the caller checks the ID.
+// A PING to the broadcast ID is answered by any servo (the first valid answer is the answer).
 Verdict judge_reply(const PacketRules& rules, ReplyKind kind, std::uint8_t servo_id, std::size_t count,
                     const protocol::Packet& frame);
 

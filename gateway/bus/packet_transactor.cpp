@@ -33,8 +33,8 @@ double to_ms(std::chrono::nanoseconds duration) { return static_cast<double>(dur
 
 }  // namespace
 
-// What one attempt learnt, for the verdict after the last one.
-struct PacketTransactor::Attempt {
+// What the attempts of one transaction learnt, for the verdict after the last one.
+struct PacketTransactor::AttemptFindings {
   bool damaged_any = false;      // a damaged frame came back on some attempt
   bool refused_damaged = false;  // d55d checksum bit seen: our frame arrived damaged
   std::uint8_t last_error = 0;
@@ -101,13 +101,6 @@ PacketTransactor::Request PacketTransactor::read_request(std::uint8_t servo_id, 
   request.count = static_cast<std::uint8_t>(block.count);
   request.attempts = attempts;
   return finish_request(std::move(request));
-}
-
-PacketTransactor::Request PacketTransactor::write_request(std::uint8_t servo_id, AddressBlock at,
-                                                          std::span<const std::uint8_t> data,
-                                                          unsigned attempts) const {
-  WriteOp write{servo_id, at.address, protocol::Bytes(data.begin(), data.end())};
-  return prepare(std::move(write), attempts);
 }
 
 PacketTransactor::Request PacketTransactor::ping_request(std::uint8_t servo_id, unsigned attempts) const {
@@ -201,19 +194,6 @@ std::string PacketTransactor::describe(const Request& request) const {
   return fmt::format("{} to servo {} (not answered)", name, request.servo_id);
 }
 
-void PacketTransactor::for_each_write(
-    const Request& request,
-    const std::function<void(std::uint8_t, std::uint16_t, std::span<const std::uint8_t>)>& fn) const {
-  const Packet& packet = request.packet;
-  if (packet.code == protocol::common::kWrite && packet.params.size() >= 2) {
-    fn(packet.id, packet.params[0], std::span<const std::uint8_t>(packet.params).subspan(1));
-  } else if (packet.code == protocol::common::kSyncWrite) {
-    if (const auto sync = protocol::parse_sync_write(packet.params)) {
-      for (const auto& entry : sync->entries) fn(entry.id, sync->address, entry.data);
-    }
-  }
-}
-
 // ==== one transaction ==========================================================================
 
 void PacketTransactor::count_discarded() {
@@ -229,7 +209,7 @@ BusResult PacketTransactor::port_lost(const std::string& reason) {
 BusResult PacketTransactor::execute(const Request& request, TransactionEvents& events) {
   if (!port_.is_open()) return port_lost(port_.settings().device + " is not open");
   const SerialSettings& serial = port_.settings();
-  const bool any_answer = request.reply == ReplyKind::Ping && broadcast(request);
+  const bool anyone = request.reply == ReplyKind::Ping && broadcast(request);  // a rate scan's PING
   std::bitset<256> sync_expected;
   std::bitset<256> sync_answered;
   for (const auto id : request.sync_ids) sync_expected.set(id);
@@ -241,7 +221,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
   const auto write_timeout =
       std::chrono::ceil<std::chrono::milliseconds>(request_time + timing_.reply_allowance) + 50ms;
 
-  Attempt summary;
+  AttemptFindings summary;
   summary.timeout = request_time + reply_time;
   unsigned made = 0;
   while (made < request.attempts) {
@@ -290,15 +270,10 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
       deadline = SteadyClock::now() + reply_time;
     };
     const auto handle_frame = [&](Packet frame) {
-      Verdict verdict = Verdict::NotOurs;
-      if (request.reply == ReplyKind::SyncRead) {
-        const bool owed = sync_expected.test(frame.id) && !sync_answered.test(frame.id);
-        verdict = owed ? judge_reply(rules_, request.reply, request.servo_id, request.count, frame) : Verdict::NotOurs;
-      } else if (any_answer) {
-        verdict = frame == request.packet ? Verdict::NotOurs : Verdict::Answer;
-      } else {
-        verdict = judge_reply(rules_, request.reply, request.servo_id, request.count, frame);
-      }
+      const bool owed = request.reply != ReplyKind::SyncRead ||
+                        (sync_expected.test(frame.id) && !sync_answered.test(frame.id));
+      const Verdict verdict =
+          owed ? judge_reply(rules_, request.reply, request.servo_id, request.count, frame) : Verdict::NotOurs;
       const bool echo = frame == request.packet;
       if (!echo) heard = true;
       const bool first = frames++ == 0;
@@ -396,12 +371,12 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
     if (request.reply == ReplyKind::SyncRead) return BusResult{};  // the silent are the engine's to follow up
     counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
     events.unanswered(request.servo_id);
-    if (any_answer && heard) break;  // colliding answers: someone is there
+    if (anyone && heard) break;  // colliding answers: someone is there
   }
   return fail(request, summary, made);
 }
 
-BusResult PacketTransactor::fail(const Request& request, const Attempt& last, unsigned attempts_made) const {
+BusResult PacketTransactor::fail(const Request& request, const AttemptFindings& last, unsigned attempts_made) const {
   const auto attempts = fmt::format("{} attempt{}", attempts_made, attempts_made == 1 ? "" : "s");
   if (last.refused_damaged) {
     return BusResult{BusStatus::ServoRefused, last.last_error, {},

@@ -37,7 +37,6 @@
 // valid frame is the answer, and colliding answers end the attempts (something is there).
 #include <array>
 #include <cstdint>
-#include <functional>
 #include <optional>
 #include <span>
 #include <string>
@@ -51,6 +50,7 @@
 #include "gateway/bus/serial_port.h"
 #include "gateway/bus/transactor.h"
 #include "protocol/expected.h"
+#include "protocol/instructions.h"
 #include "protocol/packet.h"
 #include "protocol/stream_decoder.h"
 
@@ -88,13 +88,10 @@ class PacketTransactor {
   // Changes the line rate on the open descriptor (a reopen could meet EBUSY while someone else
   // holds the tty); on a closed port, the rate of the next open().
   Expected<Ok> set_baud(std::uint32_t baud);
-  const SerialSettings& serial() const { return port_.settings(); }
   void set_reply_allowance(std::chrono::nanoseconds allowance) { timing_.reply_allowance = allowance; }
 
   Request prepare(BusOp&& op, unsigned attempts) const;
   Request read_request(std::uint8_t servo_id, AddressBlock block, unsigned attempts) const;
-  Request write_request(std::uint8_t servo_id, AddressBlock at, std::span<const std::uint8_t> data,
-                        unsigned attempts) const;
   Request ping_request(std::uint8_t servo_id, unsigned attempts) const;
   Request sync_read_request(AddressBlock block, std::vector<std::uint8_t> ids) const;
   static std::uint8_t target(const Request& request) { return request.servo_id; }
@@ -109,19 +106,27 @@ class PacketTransactor {
   std::optional<std::uint8_t> status_in_block(const AddressBlock&, std::span<const std::uint8_t>) const {
     return std::nullopt;
   }
-  // What a finished `request` wrote: (servo or the broadcast ID, address, data) per target.
-  void for_each_write(const Request& request,
-                      const std::function<void(std::uint8_t, std::uint16_t, std::span<const std::uint8_t>)>& fn) const;
+  // What a finished `request` wrote: fn(servo or the broadcast ID, address, data) per target.
+  // Nothing for requests that write nothing (reads, PING, ACTION).
+  template <typename Fn>
+  void for_each_write(const Request& request, Fn&& fn) const {
+    const protocol::Packet& packet = request.packet;
+    if (packet.code == protocol::common::kWrite && packet.params.size() >= 2) {
+      fn(packet.id, packet.params[0], std::span<const std::uint8_t>(packet.params).subspan(1));
+    } else if (packet.code == protocol::common::kSyncWrite) {
+      if (const auto sync = protocol::parse_sync_write(packet.params)) {
+        for (const auto& entry : sync->entries) fn(entry.id, sync->address, entry.data);
+      }
+    }
+  }
+
+ private:
+  struct AttemptFindings;
 
   // "READ 56+15 of servo 1", for messages.
   std::string describe(const Request& request) const;
-
- private:
-  struct Attempt;
-  enum class AttemptEnd : std::uint8_t { Answered, Refused, SendAgain, Silence };
-
   Request finish_request(Request request) const;
-  BusResult fail(const Request& request, const Attempt& last, unsigned attempts_made) const;
+  BusResult fail(const Request& request, const AttemptFindings& found, unsigned attempts_made) const;
   BusResult port_lost(const std::string& reason);
   void count_discarded();
 

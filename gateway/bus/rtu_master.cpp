@@ -123,13 +123,13 @@ int poll_ms(std::chrono::nanoseconds timeout) {
   return static_cast<int>(std::min<std::int64_t>(std::chrono::ceil<std::chrono::milliseconds>(timeout).count(), 60'000));
 }
 
-std::string hex(std::span<const std::uint8_t> bytes) {
+}  // namespace
+
+std::string hex_bytes(std::span<const std::uint8_t> bytes) {
   std::string text;
   for (const auto byte : bytes) text += fmt::format("{}{:02X}", text.empty() ? "" : " ", byte);
   return text;
 }
-
-}  // namespace
 
 struct RtuMaster::Line {
   modbus_t* context = nullptr;
@@ -225,7 +225,7 @@ void RtuMaster::wait_for_frame_gap() {
 RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t> pdu,
                                 std::chrono::nanoseconds reply_timeout) {
   if (!is_open()) return {RtuOutcome::PortError, {}, settings_.serial.device + " is not open"};
-  if (pdu.empty() || pdu.size() > protocol::rtu::kMaxAduSize - 3) {
+  if (pdu.empty() || pdu.size() > protocol::rtu::kMaxPduSize) {
     throw std::invalid_argument("RtuMaster::transact: a PDU is 1 to 253 bytes, not " + std::to_string(pdu.size()));
   }
   modbus_t* context = line_->context;
@@ -311,7 +311,7 @@ RtuExchange RtuMaster::receive_until_silence(std::uint8_t slave, std::chrono::na
   if (frame.size() < protocol::rtu::kMinAduSize ||
       protocol::rtu::crc16(std::span(frame).first(frame.size() - 2)) !=
           static_cast<std::uint16_t>(frame[frame.size() - 2] | frame[frame.size() - 1] << 8)) {
-    return {RtuOutcome::Corrupt, {}, fmt::format("answer from slave {} with a wrong CRC: {}", slave, hex(frame))};
+    return {RtuOutcome::Corrupt, {}, fmt::format("answer from slave {} with a wrong CRC: {}", slave, hex_bytes(frame))};
   }
   if (frame[0] != slave) {
     return {RtuOutcome::WrongSlave, {}, fmt::format("asked slave {}, slave {} answered", slave, frame[0]), frame[0]};
@@ -322,7 +322,7 @@ RtuExchange RtuMaster::receive_until_silence(std::uint8_t slave, std::chrono::na
 RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_t> pdu,
                                  std::chrono::nanoseconds turnaround) {
   if (!is_open()) return {RtuOutcome::PortError, {}, settings_.serial.device + " is not open"};
-  if (pdu.empty() || pdu.size() > protocol::rtu::kMaxAduSize - 3) {
+  if (pdu.empty() || pdu.size() > protocol::rtu::kMaxPduSize) {
     throw std::invalid_argument("RtuMaster::send_only: a PDU is 1 to 253 bytes, not " + std::to_string(pdu.size()));
   }
   modbus_t* context = line_->context;

@@ -34,6 +34,9 @@ struct RtuLineSettings {
   config::ModbusRtuOptions options;  // RS-485 mode, RTS direction control and delay, byte timeout
 };
 
+// "01 03 00 0A" for messages about frames.
+std::string hex_bytes(std::span<const std::uint8_t> bytes);
+
 // True when libmodbus 3.1.6 would set `baud` itself (a Bxxx constant exists for it).
 bool libmodbus_sets_rate(std::uint32_t baud);
 

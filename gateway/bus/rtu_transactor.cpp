@@ -19,7 +19,6 @@ namespace {
 
 constexpr std::uint16_t kMaxReadRegisters = protocol::modbus_limits::kReadRegisters;
 constexpr std::uint16_t kMaxWriteRegisters = protocol::modbus_limits::kWriteRegisters;
-constexpr std::size_t kMaxPdu = protocol::rtu::kMaxAduSize - 3;
 constexpr std::uint16_t kSmsmbStatusRegister = 0x100;
 
 // SMSMB identity (SPEC §2.4, discovery.h): its first register answers PINGs.
@@ -42,12 +41,6 @@ std::size_t expected_reply_bytes(std::span<const std::uint8_t> pdu) {
     case fc::kWriteMultipleRegisters: return 8;
     default: return protocol::rtu::kMaxAduSize;
   }
-}
-
-std::string hex(std::span<const std::uint8_t> bytes) {
-  std::string text;
-  for (const auto byte : bytes) text += fmt::format("{}{:02X}", text.empty() ? "" : " ", byte);
-  return text;
 }
 
 }  // namespace
@@ -83,11 +76,6 @@ RtuTransactor::Request RtuTransactor::read_request(std::uint8_t slave, AddressBl
   request.no_reply = slave == kBroadcastSlave;  // nobody answers a broadcast (a tool's scan may send one)
   request.attempts = request.no_reply ? 1 : attempts;
   return request;
-}
-
-RtuTransactor::Request RtuTransactor::write_request(std::uint8_t slave, AddressBlock at,
-                                                    std::span<const std::uint8_t> data, unsigned attempts) const {
-  return prepare(WriteOp{slave, at.address, Bytes(data.begin(), data.end())}, attempts);
 }
 
 RtuTransactor::Request RtuTransactor::ping_request(std::uint8_t slave, unsigned attempts) const {
@@ -134,7 +122,7 @@ RtuTransactor::Request RtuTransactor::prepare(BusOp&& op, unsigned attempts) con
     }
     return ping_request(ping->servo_id, attempts);
   } else if (auto* raw = std::get_if<RawPduOp>(&op)) {
-    if (raw->pdu.empty() || raw->pdu.size() > kMaxPdu) {
+    if (raw->pdu.empty() || raw->pdu.size() > protocol::rtu::kMaxPduSize) {
       throw std::invalid_argument(label + "a PDU is 1-253 bytes, not " + std::to_string(raw->pdu.size()));
     }
     if (raw->slave > kMaxSlave) {
@@ -233,7 +221,7 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
 BusResult RtuTransactor::check_reply(const Request& request, Bytes reply) const {
   const std::uint8_t requested = request.pdu[0];
   const auto corrupt = [&](std::string_view what) {
-    return BusResult{BusStatus::Corrupt, 0, {}, fmt::format("{}: {}: {}", where(request), what, hex(reply))};
+    return BusResult{BusStatus::Corrupt, 0, {}, fmt::format("{}: {}: {}", where(request), what, hex_bytes(reply))};
   };
   if (reply.empty()) return corrupt("empty answer");
   if (reply[0] == (requested | fc::kExceptionBit)) {

@@ -14,7 +14,6 @@
 // slave counts as corrupt and is retried. An exception answer is a refusal (ServoRefused with
 // the code as servo_error), except for PING and passthrough, where it is the answer.
 #include <cstdint>
-#include <functional>
 #include <optional>
 #include <span>
 #include <string>
@@ -65,15 +64,12 @@ class RtuTransactor {
   bool is_open() const { return master_.is_open(); }
   std::string line_description() const;
   std::string_view protocol_name() const { return "modbus-rtu"; }
-  const SerialSettings& serial() const { return master_.settings().serial; }
   // Changes the line rate (reopening the line when it is open).
   Expected<Ok> set_baud(std::uint32_t baud);
   void set_reply_allowance(std::chrono::nanoseconds allowance) { timing_.reply_allowance = allowance; }
 
   Request prepare(BusOp&& op, unsigned attempts) const;
   Request read_request(std::uint8_t slave, AddressBlock block, unsigned attempts) const;
-  Request write_request(std::uint8_t slave, AddressBlock at, std::span<const std::uint8_t> data,
-                        unsigned attempts) const;
   Request ping_request(std::uint8_t slave, unsigned attempts) const;
   Request sync_read_request(AddressBlock, std::vector<std::uint8_t>) const;  // throws: Modbus has none
   static std::uint8_t target(const Request& request) { return request.slave; }
@@ -88,8 +84,8 @@ class RtuTransactor {
   // SMSMB status register 0x100: its low byte is what input register 1000 shows as "last status".
   std::optional<std::uint8_t> status_in_block(const AddressBlock& block, std::span<const std::uint8_t> data) const;
   // SMSMB servos have no response-level field: what a write wrote changes nothing the engine keeps.
-  void for_each_write(const Request&,
-                      const std::function<void(std::uint8_t, std::uint16_t, std::span<const std::uint8_t>)>&) const {}
+  template <typename Fn>
+  void for_each_write(const Request&, Fn&&) const {}
 
  private:
   BusResult check_reply(const Request& request, protocol::Bytes reply) const;

@@ -166,19 +166,23 @@ Expected<std::size_t> SerialPort::read_available(std::span<std::uint8_t> buffer)
 
 Expected<bool> SerialPort::wait_readable(std::chrono::nanoseconds timeout) {
   if (fd_ < 0) return unexpected(settings_.device + " is not open");
-  pollfd entry{fd_, POLLIN, 0};
   const auto deadline = std::chrono::steady_clock::now() + timeout;
   for (;;) {
-    // ppoll: a reply deadline is often a millisecond or two away; poll() would round it up.
-    const auto left = std::max<std::chrono::nanoseconds>(deadline - std::chrono::steady_clock::now(), {});
-    const timespec wait{static_cast<time_t>(left.count() / 1'000'000'000),
-                        static_cast<long>(left.count() % 1'000'000'000)};
-    const int ready = ::ppoll(&entry, 1, &wait, nullptr);
+    const int ready = detail::poll_input_until(fd_, deadline);
     if (ready < 0 && errno == EINTR) continue;
     if (ready < 0) return unexpected(describe_errno("cannot wait for", errno));
     // POLLHUP/POLLERR count as readable: the read then reports what went wrong.
     return ready > 0;
   }
+}
+
+int detail::poll_input_until(int fd, std::optional<std::chrono::steady_clock::time_point> deadline) {
+  pollfd entry{fd, POLLIN, 0};
+  if (!deadline) return ::ppoll(&entry, 1, nullptr, nullptr);
+  const auto left = std::max<std::chrono::nanoseconds>(*deadline - std::chrono::steady_clock::now(), {});
+  const timespec wait{static_cast<time_t>(left.count() / 1'000'000'000),
+                      static_cast<long>(left.count() % 1'000'000'000)};
+  return ::ppoll(&entry, 1, &wait, nullptr);
 }
 
 Expected<Ok> SerialPort::set_baud(std::uint32_t baud) {

@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -29,6 +30,13 @@ struct SerialSettings {
 
 // Time `characters` bytes occupy the line at the settings' rate (SPEC §5), rounded up.
 std::chrono::nanoseconds wire_time(const SerialSettings& settings, std::size_t characters);
+
+namespace detail {
+// ppoll() for input on one descriptor until `deadline` (nullopt: none), to the nanosecond (poll()
+// would round a reply deadline a millisecond or two away up to whole milliseconds). Returns
+// ppoll's result: > 0 readable (or failed: the read says why), 0 at the deadline, < 0 errno.
+int poll_input_until(int fd, std::optional<std::chrono::steady_clock::time_point> deadline);
+}  // namespace detail
 
 class SerialPort {
  public:

@@ -1,14 +1,13 @@
 #include "gateway/bus/wakeup.h"
 
-#include <poll.h>
 #include <sys/eventfd.h>
 #include <unistd.h>
 
-#include <algorithm>
 #include <cerrno>
 #include <cstdint>
-#include <ctime>
 #include <system_error>
+
+#include "gateway/bus/serial_port.h"
 
 namespace sms::gateway {
 
@@ -26,15 +25,8 @@ void Wakeup::notify() {
 }
 
 void Wakeup::wait(std::optional<std::chrono::steady_clock::time_point> deadline) {
-  pollfd entry{fd_, POLLIN, 0};
-  timespec timeout{};
-  timespec* wait_for = nullptr;
-  if (deadline) {
-    const auto left = std::max<std::chrono::nanoseconds>(*deadline - std::chrono::steady_clock::now(), {});
-    timeout = {static_cast<time_t>(left.count() / 1'000'000'000), static_cast<long>(left.count() % 1'000'000'000)};
-    wait_for = &timeout;
-  }
-  if (::ppoll(&entry, 1, wait_for, nullptr) > 0) {
+  // An EINTR simply returns: every caller waits in a loop that looks at its state again.
+  if (detail::poll_input_until(fd_, deadline) > 0) {
     std::uint64_t count = 0;
     (void)::read(fd_, &count, sizeof count);  // consumes every notify() so far
   }

@@ -73,9 +73,7 @@ class TransactorLink final : public ServoLink {
  public:
   using Factory = std::unique_ptr<Transactor> (*)(const LinkSettings&, BusCounters&);
   TransactorLink(LinkSettings settings, Factory make)
-      : settings_(std::move(settings)), transactor_(make(settings_, counters_)) {
-    set_latency(settings_.latency);
-  }
+      : settings_(std::move(settings)), transactor_(make(settings_, counters_)) {}
 
   Expected<Ok> open() override { return transactor_->open(); }
 
@@ -90,7 +88,7 @@ class TransactorLink final : public ServoLink {
   void set_attempts(unsigned attempts) override { settings_.attempts = std::max(attempts, 1U); }
   void set_latency(std::chrono::milliseconds latency) override {
     settings_.latency = latency;
-    transactor_->set_reply_allowance(tool_protocol(settings_.protocol).usual_return_delay + latency);
+    transactor_->set_reply_allowance(tool_timing(settings_).reply_allowance);
   }
 
   LinkAnswer ping(std::uint8_t id) override { return run(id, [&] { return transactor_->ping_request(id, settings_.attempts); }); }

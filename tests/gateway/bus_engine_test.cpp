@@ -368,6 +368,8 @@ TEST_F(BusEngineTest, OperationsTheBusCannotExpressAreRejectedAtSubmit) {
 TEST_F(BusEngineTest, StopCancelsWhatIsQueued) {
   start({1, 2});
   simulator_->set_reply_delay(2, 30ms);
+  std::atomic<bool> on_the_wire{false};
+  simulator_->set_frame_observer([&](const simulator::ReceivedFrame&) { on_the_wire = true; });
   std::vector<BusStatus> statuses;
   std::mutex mutex;
   for (int i = 0; i < 4; ++i) {
@@ -376,12 +378,15 @@ TEST_F(BusEngineTest, StopCancelsWhatIsQueued) {
       statuses.push_back(result.status);
     });
   }
+  ASSERT_TRUE(wait_until([&] { return on_the_wire.load(); }));  // the first READ is on the wire
   engine_->stop();
+  simulator_->set_frame_observer({});
   std::lock_guard lock(mutex);
   ASSERT_EQ(statuses.size(), 4U);  // every completion ran, none was lost
   // The transaction on the wire when stop() came ends with its own result (a write on the wire
-  // may have been carried out: it is not reported cancelled); what still waited is Cancelled.
-  EXPECT_GE(std::count(statuses.begin(), statuses.end(), BusStatus::Cancelled), 3);
+  // may have been carried out: it is not reported cancelled); the three still queued are Cancelled.
+  EXPECT_NE(statuses.front(), BusStatus::Cancelled);
+  EXPECT_EQ(std::count(statuses.begin(), statuses.end(), BusStatus::Cancelled), 3);
   bool after_stop = false;
   engine_->submit(ReadOp{1, 5, 1}, Priority::ClientRead, [&](BusResult result) {
     after_stop = result.status == BusStatus::Cancelled;

@@ -37,6 +37,16 @@ TEST(PacketRules, FeetechAngleBitRefusesAWriteButNotAReadWithItsData) {
   EXPECT_EQ(judge_reply(rules, ReplyKind::None, 3, 0, status(3, 0)), Verdict::NotOurs);
 }
 
+TEST(PacketRules, BroadcastPingIsAnsweredByAnyServoButNotByItsOwnEcho) {
+  const auto& rules = packet_rules(BusProtocol::Feetech);
+  const std::uint8_t broadcast = protocol::kBroadcastId;
+  EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(7, 0)), Verdict::Answer);
+  EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(0, 0x20)), Verdict::Answer);
+  EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(7, 0, {1})), Verdict::NotOurs);  // not a PING answer
+  // FF FF FE 02 01 FE: the request itself, handed back by an echoing adapter.
+  EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(broadcast, 0x01)), Verdict::NotOurs);
+}
+
 TEST(PacketRules, D55dChecksumBitAsksForTheFrameAgainAndInstructionBitRefuses) {
   const auto& rules = packet_rules(BusProtocol::D55d);
   const std::uint8_t checksum = protocol::d55d::error_bit::kChecksum;

@@ -1,7 +1,8 @@
-// The modbus-rtu bus engine (EngineCore<RtuTransactor>) and RtuMaster against the simulator's SMSMB servos on a pty: every rate of the
-// Modbus baud table (libmodbus alone would run 256000, 128000, 56000 and 14400 at 9600), FC03
-// reads, FC06/FC16 writes, broadcast, exceptions, retries, polling into the cache, offline and
-// back, a lost port, the frame gap against a slave that keeps its own t3.5.
+// The modbus-rtu bus engine (EngineCore<RtuTransactor>) and RtuMaster against the simulator's
+// SMSMB servos on a pty: every rate of the Modbus baud table (libmodbus alone would run 256000,
+// 128000, 56000 and 14400 at 9600), FC03 reads, FC06/FC16 writes, broadcast, exceptions,
+// retries, polling into the cache, offline and back, a lost port, the frame gap against a slave
+// that keeps its own t3.5.
 #include <gtest/gtest.h>
 
 #include <chrono>
