@@ -293,6 +293,10 @@ struct Config {
   std::vector<SyncGroupConfig> sync_groups;
   LoggingConfig logging;
   std::optional<MqttConfig> mqtt;  // empty: no MQTT
+  // Where the gateway keeps what must survive a restart (the e-stop latch, tripped watchdogs,
+  // the Sparkplug bdSeq): config/README.md "state_dir". Empty: $STATE_DIRECTORY (systemd's
+  // StateDirectory=), else nothing is kept and the start says so.
+  std::string state_dir;
 
   bool operator==(const Config&) const = default;
 };

@@ -31,7 +31,8 @@ using protocol::BusProtocol;
 
 // ---- the keys allowed at each place (config/README.md) ----
 
-constexpr std::array<std::string_view, 6> kTopKeys{"modbus_tcp", "buses", "servos", "sync_groups", "logging", "mqtt"};
+constexpr std::array<std::string_view, 7> kTopKeys{"modbus_tcp", "buses",  "servos",   "sync_groups",
+                                                  "logging",    "mqtt",   "state_dir"};
 constexpr std::array<std::string_view, 8> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth", "allow",
                                                          "plain",           "tls"};
@@ -481,6 +482,7 @@ Config Loader::load(const YAML::Node& root) {
   if (const auto value = sections.find("sync_groups")) parse_sync_groups(*value, config);
   if (const auto value = sections.find("logging")) config.logging = parse_logging(*value);
   if (const auto value = sections.find("mqtt")) config.mqtt = parse_mqtt(*value, config);
+  if (const auto value = sections.find("state_dir")) config.state_dir = string(*value);
   return config;
 }
 
