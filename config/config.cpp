@@ -1,5 +1,7 @@
 #include "config/config.h"
 
+#include <cstdlib>
+
 #include <arpa/inet.h>
 
 #include <charconv>
@@ -197,6 +199,22 @@ namespace sms::config {
 
 std::string sparkplug_device_id(const ServoConfig& servo) {
   return servo.name.empty() ? "unit-" + std::to_string(servo.unit_id) : servo.name;
+}
+
+std::chrono::milliseconds worst_transaction(const BusConfig& bus) {
+  constexpr std::uint64_t kLongestExchangeBytes = 2 * 256;
+  const std::uint64_t bits_per_byte = 1 + 8 + (bus.parity == Parity::None ? 0 : 1) + bus.stop_bits;
+  const std::uint64_t wire_us = bus.baud == 0 ? 0 : (kLongestExchangeBytes * bits_per_byte * 1000000 + bus.baud - 1) / bus.baud;
+  const auto per_attempt = bus.response_timeout + std::chrono::milliseconds{(wire_us + 999) / 1000};
+  return per_attempt * (1 + bus.retries);
+}
+
+std::string effective_state_dir(const Config& config) {
+  if (!config.state_dir.empty()) return config.state_dir;
+  const char* systemd = std::getenv("STATE_DIRECTORY");  // may list several, ':'-separated
+  if (systemd == nullptr) return {};
+  const std::string_view dirs(systemd);
+  return std::string(dirs.substr(0, dirs.find(':')));
 }
 
 }  // namespace sms::config

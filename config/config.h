@@ -164,6 +164,12 @@ struct WatchdogConfig {
   bool operator==(const WatchdogConfig&) const = default;
 };
 
+struct BusConfig;
+// The longest one client transaction can hold the bus: every attempt's reply allowance plus the
+// wire time of the longest request and answer (256 bytes each way) at the bus's rate and framing.
+// A watchdog must be longer (a trip's stop waits for the transaction on the wire).
+std::chrono::milliseconds worst_transaction(const BusConfig& bus);
+
 struct BusConfig {
   std::string name;
   std::string device;                   // /dev/ttyUSB0, /dev/serial/by-id/..., a pty path
@@ -300,6 +306,10 @@ struct Config {
 
   bool operator==(const Config&) const = default;
 };
+
+// Where the state that must survive a restart is kept: `state_dir`, else the first entry of
+// $STATE_DIRECTORY (systemd's StateDirectory=), else empty (nothing is kept).
+std::string effective_state_dir(const Config& config);
 
 // Lookups; nullptr when absent.
 const BusConfig* find_bus(const Config& config, std::string_view name);

@@ -274,6 +274,10 @@ std::string dump_config(const Config& config) {
   out << YAML::EndSeq;
   emit_logging(out, config.logging);
   if (config.mqtt) emit_mqtt(out, *config.mqtt);
+  if (!config.state_dir.empty()) {
+    key(out, "state_dir");
+    quoted(out, config.state_dir);
+  }
   out << YAML::EndMap;
   return std::string(out.c_str()) + "\n";
 }

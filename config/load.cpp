@@ -772,9 +772,27 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
                                                             kMaxWatchdogTimeoutMs);
     if (const auto feed = watchdog_keys.find("feed")) watchdog.feed = choice(*feed, detail::kWatchdogFeedNames);
     if (const auto action = watchdog_keys.find("action")) watchdog.action = choice(*action, detail::kStopActionNames);
+    // A trip's stop waits for the transaction on the wire to end: a watchdog shorter than the
+    // bus's worst transaction could not keep its promise (README "Safety", the stop's bound).
+    const auto worst = worst_transaction(bus);
+    if (watchdog.timeout <= worst) {
+      fail(watchdog_keys.require("timeout_ms").mark,
+           v->path + ".timeout_ms: " + std::to_string(watchdog.timeout.count()) +
+               " ms is not longer than this bus's worst transaction (" + std::to_string(1 + bus.retries) +
+               " attempts x (response_timeout_ms " + std::to_string(bus.response_timeout.count()) +
+               " + the longest frames' wire time) = " + std::to_string(worst.count()) +
+               " ms): a stop could wait behind one transaction longer than the watchdog itself. Give timeout_ms above " +
+               std::to_string(worst.count()) + ", or lower response_timeout_ms or retries");
+    }
     bus.watchdog = watchdog;
   }
-  if (const auto v = keys.find("on_start")) bus.on_start = choice(*v, detail::kStartActionNames);
+  if (const auto v = keys.find("on_start")) {
+    bus.on_start = choice(*v, detail::kStartActionNames);
+  } else if (bus.watchdog) {
+    // A bus with a watchdog is one where nothing may turn unattended: after a crash or a
+    // restart, a servo left turning is stopped at start (README "Safety", after a crash).
+    bus.on_start = StartAction::Hold;
+  }
   if (const auto v = keys.find("on_stop")) bus.on_stop = choice(*v, detail::kStopActionNames);
   return bus;
 }

@@ -300,17 +300,20 @@ std::optional<std::string> motion_in_plan(const MotionSpec& spec, ByteOrder orde
   return std::nullopt;
 }
 
-bool switches_torque_on_without_goal(const MotionSpec& spec, ByteOrder order, const WritePlan& plan) {
+bool switches_torque_on(const MotionSpec& spec, ByteOrder order, const WritePlan& plan) {
   if (spec.torque.empty()) return false;
   const FieldSpec& torque = field_named(spec, spec.torque);
-  const FieldSpec& goal = field_named(spec, spec.goal_position);
-  bool torque_on = false;
-  for (const BusWrite& write : plan.writes) {
-    if (overlaps(spec, write, goal)) return false;
+  return std::any_of(plan.writes.begin(), plan.writes.end(), [&](const BusWrite& write) {
     const auto raw = written_raw(spec, order, write, torque);
-    if (raw && *raw == 1) torque_on = true;
-  }
-  return torque_on;
+    return raw && *raw == 1;
+  });
+}
+
+std::optional<bool> torque_on(const MotionSpec& spec, ByteOrder order, const StopContext& context) {
+  if (spec.torque.empty()) return std::nullopt;
+  const auto raw = read_raw(spec, order, context, spec.torque);
+  if (!raw) return std::nullopt;
+  return *raw != 0;
 }
 
 }  // namespace sms::modbus_map

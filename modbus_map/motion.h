@@ -103,8 +103,12 @@ std::optional<std::string> motion_in_plan(const MotionSpec& spec, ByteOrder orde
 // Whether writing `field` is a motion write (sync groups name their field).
 bool is_motion_field(const MotionSpec& spec, std::string_view field);
 
-// Whether the plan switches the torque on (writes 1 to the torque field) without writing a goal
-// position in the same request: then the gateway sets goal := present first ("no jump").
-bool switches_torque_on_without_goal(const MotionSpec& spec, ByteOrder order, const WritePlan& plan);
+// Whether the plan switches the torque on (writes 1 to the torque field), staged or not, whatever
+// else it writes: then the gateway holds the goal block first where the torque is off ("no jump
+// on enable", README "Safety"); the request's own goal, written after the hold, still moves it.
+bool switches_torque_on(const MotionSpec& spec, ByteOrder order, const WritePlan& plan);
+// Whether the servo's torque is on in `context` (stop_context_reads); nullopt when the table has
+// no torque switch or it was not read.
+std::optional<bool> torque_on(const MotionSpec& spec, ByteOrder order, const StopContext& context);
 
 }  // namespace sms::modbus_map

@@ -2,7 +2,8 @@
 # The one command that runs every test: installs dependencies, builds with clang and
 # AddressSanitizer + UndefinedBehaviorSanitizer into build-asan/, runs ctest; then builds the
 # libFuzzer targets with clang into build-fuzz/ and runs each briefly (SMS_SKIP_FUZZ=1 skips them;
-# scripts/fuzz.sh is the longer run).
+# scripts/fuzz.sh is the longer run); then a ThreadSanitizer build of the gateway's unit tests
+# runs the threaded suites again (SMS_SKIP_TSAN=1 skips it).
 # Why clang here: it compiles this code with the sanitizers about twice as fast as GCC 12 (the
 # build was more than half of the command's time) and its -Wall finds other mistakes; GCC 12 builds
 # the benchmarks (scripts/bench.sh) and the container image with the same -Werror flags
@@ -21,6 +22,20 @@ cmake --build build-asan -j "$jobs"
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
 export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 ctest --test-dir build-asan --output-on-failure -j "$jobs" "$@"
+# ThreadSanitizer: the ASan build cannot see data races. The suites where threads meet — bus
+# engines, the safety supervisor, the TCP server, the unit router, MQTT — run again under TSan
+# (build-tsan/, the gateway's unit tests only: processes spawned by e2e tests are not traced).
+if [ "${SMS_SKIP_TSAN:-0}" != 1 ]; then
+  if [ -f build-tsan/CMakeCache.txt ] && ! grep -q '^CMAKE_CXX_COMPILER:[A-Z]*=.*clang++' build-tsan/CMakeCache.txt; then
+    rm -rf build-tsan
+  fi
+  cmake -S . -B build-tsan -G Ninja -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug -DSMS_TSAN=ON -DSMS_WERROR=ON \
+    -DSMS_BUILD_BENCH=OFF >/dev/null
+  cmake --build build-tsan -j "$jobs" --target gateway_tests
+  TSAN_OPTIONS="halt_on_error=1 second_deadlock_stack=1" \
+    ctest --test-dir build-tsan --output-on-failure -j "$jobs" \
+    -R 'SafetyState|BusEngineTest|QueueTest|LateReplyTest|Conformance|Fairness|Scheduling|MotionGateTest|TcpServerTest|Router|RtuEngine|RtuContractTest|MetricsOfARunningGateway|BusReopen|EchoTest|PollCycleTest|StatusByte' "$@"
+fi
 if [ "${SMS_SKIP_FUZZ:-0}" != 1 ]; then
   ./scripts/fuzz.sh --build
   ctest --test-dir build-fuzz --output-on-failure -j "$jobs" "$@"

@@ -59,6 +59,17 @@ struct BusSettings {
   std::shared_ptr<const MotionGate> motion_gate;
 };
 
+struct OwedStop {
+  WriteOp write;    // the servo (write.servo_id) and what stops it without knowing its state
+  std::string why;  // "e-stop", "watchdog", ... for the log
+};
+struct OwedStopState {
+  std::uint8_t servo_id = 0;
+  std::string why;
+  unsigned attempts = 0;         // sent, not yet acknowledged
+  SteadyClock::duration owed_for{};
+};
+
 class BusEngine {
  public:
   virtual ~BusEngine() = default;
@@ -73,6 +84,17 @@ class BusEngine {
   // std::invalid_argument for an operation this bus cannot express (e.g. RawPduOp on a packet
   // bus, a READ of the broadcast ID, a count beyond the packet limits): a programming error.
   virtual void submit(BusOp op, Priority priority, Completion done) = 0;
+
+  // A safe stop that could not be delivered (bus down, servo offline or silent) is owed
+  // (README "Safety"): the engine keeps `stop.write` (the servo's torque off) and sends it the
+  // moment it can reach the servo — first thing after the port (re)opens, in place of the servo's
+  // probe while it is offline, before any other work — every probe period until the servo
+  // acknowledges it, or, for a servo that does not answer writes, until a read shows the value.
+  // Until then motion writes to that servo (and broadcast motion on the bus) are refused
+  // (MotionBlocked). A later owe_stop() for the same servo replaces the earlier one.
+  virtual void owe_stop(OwedStop stop) = 0;
+  // The servos owed a stop right now, in ID order.
+  virtual std::vector<OwedStopState> owed_stops() const = 0;
 
   virtual const BusSettings& settings() const = 0;
   virtual bool bus_up() const = 0;

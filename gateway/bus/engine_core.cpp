@@ -86,6 +86,14 @@ template <class Transactor>
 void EngineCore<Transactor>::submit(BusOp op, Priority priority, Completion done) {
   Job job;
   job.motion_epoch = motion_epoch_of(op);
+  if (const auto* write = std::get_if<WriteOp>(&op)) job.staged_write = write->staged;
+  job.action = std::holds_alternative<ActionOp>(op);
+  if (priority == Priority::Safety && settings_.protocol != protocol::BusProtocol::ModbusRtu) {
+    if (const auto* write = std::get_if<WriteOp>(&op)) job.stop_writes.push_back(*write);
+    if (const auto* sync = std::get_if<SyncWriteOp>(&op)) {
+      for (const auto& entry : sync->entries) job.stop_writes.push_back(WriteOp{entry.id, sync->address, entry.data});
+    }
+  }
   job.request = transactor_->prepare(std::move(op), attempts());  // const: safe on the caller's thread
   job.done = std::move(done);
   if (queue_client_job(settings_, counters_, mutex_, queue_, std::move(job), priority, accepting_, bus_up_.load())) {
@@ -156,6 +164,8 @@ void EngineCore<Transactor>::run_loop() {
       try_open();
       continue;
     }
+    deliver_owed_stops();
+    if (!transactor_->is_open()) continue;
     start_poll_cycle_if_due();
     std::optional<Job> job = next_job();
     if (job) {
@@ -178,11 +188,18 @@ std::optional<typename EngineCore<Transactor>::Job> EngineCore<Transactor>::next
       const auto now = SteadyClock::now();
       // next_level() (bus_engine.h): safe stops first; then whatever waited past its age limit,
       // oldest first; else strict priority, FIFO within a priority.
+      // An owed safe stop falls due before anything else is taken.
+      std::optional<SteadyClock::time_point> owed_due;
+      for (const auto& [id, owed] : owed_) {
+        if (!owed_due || owed.due < *owed_due) owed_due = owed.due;
+      }
+      if (owed_due && *owed_due <= now) return std::nullopt;
       if (const auto level = queue_.next(age_limits_, now)) return queue_.pop(*level);
       if (poll_due(now)) return std::nullopt;
       // Asleep until a job is submitted or the next cycle falls due (never a time already past:
       // poll_due() would have said so).
       if (settings_.poll && discovered_.load() && !cycle_.running) wake_at = next_cycle_;
+      if (owed_due && (!wake_at || *owed_due < *wake_at)) wake_at = owed_due;
     }
     wake_.wait(wake_at);
   }
@@ -193,6 +210,12 @@ void EngineCore<Transactor>::run(Job job) {
   if (auto refusal = motion_refusal(settings_, job.motion_epoch)) {
     complete(settings_, job.done, std::move(*refusal));
     return;
+  }
+  if (job.motion_epoch != 0) {
+    if (auto refusal = owed_refusal(job.request)) {
+      complete(settings_, job.done, std::move(*refusal));
+      return;
+    }
   }
   const std::uint8_t target = Transactor::target(job.request);
   if (job.client && !Transactor::broadcast(job.request) && scheduler_.presence(target) == Presence::Offline) {
@@ -216,6 +239,9 @@ void EngineCore<Transactor>::run(Job job) {
   }
   if (result.status == BusStatus::Ok) {
     note_written(job.request);
+    if (job.staged_write) staged_.set(target);
+    if (job.action) staged_.reset();
+    if (!job.stop_writes.empty() && staged_.any()) neutralise_staged(job);
   } else {
     spdlog::debug("{}", result.detail);
   }
@@ -233,6 +259,139 @@ void EngineCore<Transactor>::shutdown() {
   }
   const std::string detail = "bus " + settings_.name + ": the gateway is stopping";
   for (auto& job : cancelled) complete(settings_, job.done, BusResult{BusStatus::Cancelled, 0, {}, detail});
+}
+
+// ==== owed safe stops =============================================================================
+
+template <class Transactor>
+void EngineCore<Transactor>::owe_stop(OwedStop stop) {
+  {
+    std::lock_guard lock(mutex_);
+    const auto now = SteadyClock::now();
+    const std::uint8_t id = stop.write.servo_id;
+    auto found = owed_.find(id);
+    if (found == owed_.end()) {
+      owed_.emplace(id, Owed{std::move(stop), now, now, 0});
+    } else {
+      found->second.stop = std::move(stop);
+      found->second.due = now;
+    }
+  }
+  wake_.notify();
+}
+
+template <class Transactor>
+std::vector<OwedStopState> EngineCore<Transactor>::owed_stops() const {
+  std::lock_guard lock(mutex_);
+  const auto now = SteadyClock::now();
+  std::vector<OwedStopState> states;
+  for (const auto& [id, owed] : owed_) states.push_back({id, owed.stop.why, owed.attempts, now - owed.since});
+  return states;
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::make_owed_due(std::optional<std::uint8_t> servo_id) {
+  std::lock_guard lock(mutex_);
+  const auto now = SteadyClock::now();
+  for (auto& [id, owed] : owed_) {
+    if (!servo_id || id == *servo_id) owed.due = now;
+  }
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::deliver_owed_stops() {
+  std::vector<std::pair<std::uint8_t, Owed>> due;
+  {
+    std::lock_guard lock(mutex_);
+    const auto now = SteadyClock::now();
+    for (const auto& [id, owed] : owed_) {
+      if (owed.due <= now) due.emplace_back(id, owed);
+    }
+  }
+  for (const auto& [id, owed] : due) {
+    if (!deliver(id, owed)) return;
+  }
+}
+
+// One attempt (with the bus's retries, or one try while the servo is offline, like its probe).
+template <class Transactor>
+bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
+  const bool offline = scheduler_.presence(servo_id) == Presence::Offline;
+  const unsigned tries = offline ? 1 : attempts();
+  const WriteOp& write = owed.stop.write;
+  BusResult result = transactor_->execute(transactor_->prepare(BusOp{write}, tries), events_);
+  counters_.transactions.fetch_add(1, std::memory_order_relaxed);
+  if (result.status == BusStatus::Ok && !write.expect_reply) {
+    // Nothing answers the write itself: a read of what it wrote is the acknowledgement.
+    const AddressBlock written{write.address,
+                               static_cast<std::uint16_t>(write.data.size() / Transactor::kBytesPerAddress)};
+    result = transactor_->execute(transactor_->read_request(servo_id, written, tries), events_);
+    counters_.transactions.fetch_add(1, std::memory_order_relaxed);
+    if (result.status == BusStatus::Ok && result.data != write.data) {
+      result = BusResult{BusStatus::ServoRefused, 0, {}, "the read-back does not show the stop"};
+    }
+  }
+  if (result.status == BusStatus::BusDown) {
+    port_lost(result.detail);
+    return false;
+  }
+  const auto now = SteadyClock::now();
+  bool delivered = false;
+  {
+    std::lock_guard lock(mutex_);
+    auto found = owed_.find(servo_id);
+    if (found == owed_.end()) return true;
+    ++found->second.attempts;
+    if (result.status == BusStatus::Ok && found->second.since == owed.since) {
+      owed_.erase(found);
+      delivered = true;
+    } else {
+      found->second.due = now + settings_.probe_period;
+    }
+  }
+  if (delivered) {
+    const auto late = std::chrono::duration_cast<std::chrono::milliseconds>(now - owed.since);
+    spdlog::warn("bus {}: servo {} took its owed safe stop ({}: torque off) {} ms after the stop, at attempt {}",
+                 settings_.name, servo_id, owed.stop.why, late.count(), owed.attempts + 1);
+    if (write.expect_reply || offline) servo_answered(servo_id);
+  } else {
+    spdlog::debug("bus {}: servo {}: owed safe stop not taken yet ({}); next try in {} ms", settings_.name,
+                  servo_id, result.detail, settings_.probe_period.count());
+  }
+  return true;
+}
+
+template <class Transactor>
+std::optional<BusResult> EngineCore<Transactor>::owed_refusal(const Request& request) const {
+  const std::uint8_t target = Transactor::target(request);
+  std::lock_guard lock(mutex_);
+  if (owed_.empty()) return std::nullopt;
+  const bool broadcast = Transactor::broadcast(request);
+  if (!broadcast && owed_.count(target) == 0) return std::nullopt;
+  const std::uint8_t owing = broadcast ? owed_.begin()->first : target;
+  return BusResult{BusStatus::ServoRefused, 0, {},
+                   fmt::format("bus {}: servo {} has not taken its owed safe stop yet ({}); motion writes to it "
+                               "are refused until it has",
+                               settings_.name, owing, owed_.at(owing).stop.why)};
+}
+
+template <class Transactor>
+void EngineCore<Transactor>::neutralise_staged(const Job& job) {
+  for (const WriteOp& write : job.stop_writes) {
+    if (!staged_.test(write.servo_id)) continue;
+    WriteOp staged = write;
+    staged.staged = true;
+    const BusResult result = transactor_->execute(transactor_->prepare(BusOp{staged}, attempts()), events_);
+    counters_.transactions.fetch_add(1, std::memory_order_relaxed);
+    if (result.status == BusStatus::Ok) {
+      spdlog::info("bus {}: servo {} held a staged write: the stop is staged over it (a later ACTION cannot run "
+                   "the old move)",
+                   settings_.name, write.servo_id);
+    } else {
+      spdlog::warn("bus {}: servo {} holds a staged write that the stop could not replace: {}", settings_.name,
+                   write.servo_id, result.detail);
+    }
+  }
 }
 
 // ==== port ======================================================================================
@@ -255,6 +414,7 @@ bool EngineCore<Transactor>::try_open() {
     std::lock_guard lock(mutex_);
     bus_up_.store(true);
   }
+  make_owed_due(std::nullopt);  // before discovery: run_loop delivers them first
   begin_discovery();
   return true;
 }
@@ -474,6 +634,7 @@ void EngineCore<Transactor>::servo_answered(std::uint8_t servo_id) {
   const PresenceChange change = scheduler_.answered(servo_id);
   if (change == PresenceChange::CameOnline) {
     spdlog::info("bus {}: servo {} answers again: online", settings_.name, servo_id);
+    make_owed_due(servo_id);
   }
   cache_.set_online(servo_id, true);
   if (change == PresenceChange::CameOnline && !identity_known_.test(servo_id)) {

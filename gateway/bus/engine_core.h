@@ -23,6 +23,7 @@
 #include <chrono>
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -54,6 +55,8 @@ class EngineCore final : public BusEngine {
   void start() override;
   void stop() override;
   void submit(BusOp op, Priority priority, Completion done) override;
+  void owe_stop(OwedStop stop) override;
+  std::vector<OwedStopState> owed_stops() const override;
 
   const BusSettings& settings() const override { return settings_; }
   bool bus_up() const override { return bus_up_.load(); }
@@ -69,6 +72,17 @@ class EngineCore final : public BusEngine {
     MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
     SteadyClock::time_point queued_at{};  // the age rule (next_level, bus_engine.h)
     Completion done;
+    // A safe stop's writes (Priority::Safety on packet buses): a servo holding a staged write
+    // gets the same write staged too, so a later ACTION cannot run a move staged before the stop.
+    std::vector<WriteOp> stop_writes;
+    bool staged_write = false;  // REG WRITE: the servo holds it until ACTION
+    bool action = false;        // ACTION: runs (and so clears) every staged write
+  };
+  struct Owed {
+    OwedStop stop;
+    SteadyClock::time_point since{};
+    SteadyClock::time_point due{};  // next attempt
+    unsigned attempts = 0;
   };
   // What a transaction tells the core about single servos.
   class Events final : public TransactionEvents {
@@ -89,6 +103,12 @@ class EngineCore final : public BusEngine {
   void enqueue_internal(Job job);
   void run(Job job);
   void shutdown();
+  // --- owed safe stops (owe_stop) ----------------------------------------------------------------
+  void deliver_owed_stops();
+  bool deliver(std::uint8_t servo_id, const Owed& owed);  // false: the port was lost
+  std::optional<BusResult> owed_refusal(const Request& request) const;  // a motion write to an owed servo
+  void make_owed_due(std::optional<std::uint8_t> servo_id);  // nullopt: all of them
+  void neutralise_staged(const Job& job);
 
   // --- port -------------------------------------------------------------------------------------
   bool try_open();
@@ -125,11 +145,12 @@ class EngineCore final : public BusEngine {
   Events events_{*this};
 
   // Shared with submitting threads.
-  std::mutex mutex_;
+  mutable std::mutex mutex_;
   Wakeup wake_;
   JobQueue<Job> queue_;
   bool accepting_ = false;
   bool stopping_ = false;
+  std::map<std::uint8_t, Owed> owed_;  // guarded by mutex_
   std::atomic<bool> bus_up_{false};
   std::atomic<bool> discovered_{false};
   std::thread thread_;
@@ -149,6 +170,7 @@ class EngineCore final : public BusEngine {
   std::bitset<256> poll_refusal_logged_;  // servos whose refused poll was logged, until a poll succeeds
   std::bitset<256> identity_refusal_logged_;
   std::bitset<256> sync_answered_;  // members that answered the SYNC READ under way
+  std::bitset<256> staged_;         // servos holding a staged write (REG WRITE since the last ACTION)
   bool open_failure_logged_ = false;
 };
 

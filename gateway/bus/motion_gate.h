@@ -21,11 +21,17 @@ class MotionGate {
   // Whether a motion write admitted in `admitted` may go on the wire now.
   bool admits(MotionEpoch admitted) const { return !blocked() && admitted == epoch(); }
 
-  void block() {
-    blocked_.store(true, std::memory_order_release);
-    epoch_.fetch_add(1, std::memory_order_acq_rel);
+  // The safety supervisor computes `blocked` from its whole state after every transition, under
+  // its lock (gateway/units/safety.cpp), so what a client reads never disagrees with the gate.
+  // Blocking starts a new epoch (a motion write admitted before it is refused at the wire).
+  void set_blocked(bool blocked) {
+    if (blocked) {
+      blocked_.store(true, std::memory_order_release);
+      epoch_.fetch_add(1, std::memory_order_acq_rel);
+    } else {
+      blocked_.store(false, std::memory_order_release);
+    }
   }
-  void unblock() { blocked_.store(false, std::memory_order_release); }
 
  private:
   std::atomic<MotionEpoch> epoch_{1};

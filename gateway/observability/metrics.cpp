@@ -149,6 +149,19 @@ constexpr Family<BusMetrics> kBusFamilies[] = {
        if (!b.safety) return std::nullopt;
        return b.safety->stops;
      }},
+    {"sms_gateway_safe_stops_failed_total", MetricType::Counter,
+     "Safe stops that could not be delivered to every servo when performed (bus down, servo offline or "
+     "silent); each such servo is owed its stop until it takes it",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       if (!b.safety) return std::nullopt;
+       return b.safety->failed_stops;
+     }},
+    {"sms_gateway_safe_stops_owed", MetricType::Gauge,
+     "Servos owed a safe stop right now (sent as soon as the bus and the servo are back)",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       if (!b.safety) return std::nullopt;
+       return std::uint64_t{b.safety->owed_stops};
+     }},
     {"sms_gateway_safe_stop_latency_seconds", MetricType::Gauge,
      "Last safe stop: from the last feed (watchdog) or the request to its frames on the wire",
      [](const BusMetrics& b) -> std::optional<Value> {

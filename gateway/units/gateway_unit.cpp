@@ -8,6 +8,8 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/units/bus_faults.h"
+#include "gateway/units/no_jump.h"
+#include "gateway/units/unit_router.h"
 #include "gateway/modbus_tcp/faults.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
@@ -57,6 +59,14 @@ void put_words(std::vector<std::uint16_t>& image, std::size_t at, std::uint8_t w
 
 }  // namespace
 
+bool GatewayUnit::expects_reply(const SyncMember& member, const BusEngine& engine) {
+  const auto table = member.map.servo_table().id;
+  if (member.response_level) return writes_answered(table, *member.response_level);
+  const auto state = engine.cache().state(member.servo_id);
+  if (state && state->response_level) return writes_answered(table, *state->response_level);
+  return true;  // not read yet: every table's factory level answers writes
+}
+
 BusFacts bus_facts(const BusEngine& engine) {
   const BusCountersSnapshot counters = engine.counters();
   BusFacts facts;
@@ -99,7 +109,8 @@ GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> e
       auto map = modbus_map::RegisterMap::create(*servo->table, modbus_map::Profile::Native,
                                                  config::effective_byte_order(*servo));
       if (!map) throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) + ": " + map.error());
-      group.members.push_back(SyncMember{unit, servo->bus_index, servo->servo_id, field, std::move(*map), servo->read_only});
+      group.members.push_back(
+          SyncMember{unit, servo->bus_index, servo->servo_id, field, std::move(*map), servo->read_only, servo->response_level});
     }
     groups_.push_back(std::move(group));
   }
@@ -122,6 +133,13 @@ std::optional<std::vector<std::uint16_t>> GatewayUnit::input_registers(std::uint
   const SafetyFacts safety = safety_.facts();
   image[layout::kEStopLatched] = safety.estop_latched ? 1 : 0;
   put_words(image, layout::kEStopCount, 2, safety.estops);
+  std::uint64_t owed = 0, failed = 0;
+  for (const auto& bus : safety.buses) {
+    owed += bus.owed_stops;
+    failed += bus.failed_stops;
+  }
+  image[layout::kOwedStops] = saturate16(owed);
+  put_words(image, layout::kFailedStops, 2, failed);
   for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
     const std::size_t block = layout::kFirstBusBlock + layout::kBusBlockSize * bus;
     // Only the blocks the request touches are worth the counters' atomics.
@@ -141,6 +159,7 @@ std::optional<std::vector<std::uint16_t>> GatewayUnit::input_registers(std::uint
       put_words(image, at + 6, 2,
                 watchdog.last_stop_latency ? static_cast<std::uint64_t>(watchdog.last_stop_latency->count()) : 0);
       image[at + 8] = watchdog.motion_blocked ? 1 : 0;
+      image[at + 9] = saturate16(watchdog.owed_stops);
     }
   }
   return std::vector<std::uint16_t>(image.begin() + address, image.begin() + address + count);
@@ -171,9 +190,14 @@ void GatewayUnit::handle(const Request& request, const Reply& reply) {
                      bits = coils();
                    } else {
                      const SafetyFacts facts = safety_.facts();
-                     const bool blocked = std::any_of(facts.buses.begin(), facts.buses.end(),
-                                                      [](const BusSafetyFacts& b) { return b.motion_blocked; });
-                     bits = {facts.estop_latched, safety_.any_tripped(), blocked};
+                     // All from one snapshot: the bits never disagree with each other.
+                     const auto any = [&](auto predicate) {
+                       return std::any_of(facts.buses.begin(), facts.buses.end(), predicate);
+                     };
+                     bits = {facts.estop_latched,
+                             any([](const BusSafetyFacts& b) { return b.state == WatchdogState::Tripped; }),
+                             any([](const BusSafetyFacts& b) { return b.motion_blocked; }),
+                             any([](const BusSafetyFacts& b) { return b.owed_stops > 0; })};
                    }
                    reply.send(bits_response(read.function, std::vector<bool>(bits.begin() + read.address,
                                                                              bits.begin() + end)));
@@ -275,13 +299,12 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     BusOp op;
   };
   std::vector<Frame> frames;
-  // Like every write, it feeds the watchdogs of the buses it is for, whether it is taken or not.
-  std::vector<bool> fed(engines_.size(), false);
+  // Like every write, it feeds the watchdogs of the buses it is for once it is carried out.
+  std::vector<std::size_t> buses;
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
-    if (member != nullptr && !fed[member->bus]) {
-      safety_.feed_write(member->bus);
-      fed[member->bus] = true;
+    if (member != nullptr && std::find(buses.begin(), buses.end(), member->bus) == buses.end()) {
+      buses.push_back(member->bus);
     }
   }
   for (std::size_t i = 0; i < request.values.size(); ++i) {
@@ -340,18 +363,42 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
         },
         frame.op);
   }
-  auto join = BusJoin::create(frames.size(), post_,
-                              [function = request.function, reply, after = std::move(after)](std::vector<BusResult> results) {
-                                if (const BusResult* failure = BusJoin::first_failure(results)) {
-                                  spdlog::warn("gateway unit: sync group write failed: {}", failure->detail);
-                                  reply.send(exception_response(function, fault_from(failure->status)));
-                                  return;
-                                }
-                                after(reply);
-                              });
-  for (std::size_t i = 0; i < frames.size(); ++i) {
-    engines_[frames[i].bus]->submit(std::move(frames[i].op), Priority::ClientWrite, join->completion(i));
+  // A member switched on by the write gets the hold of its goal block first ("no jump on enable").
+  std::vector<HoldTarget> switched_on;
+  for (std::size_t i = 0; i < request.values.size(); ++i) {
+    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+    const auto& spec = modbus_map::motion_spec(member->map.servo_table().id);
+    if (spec.torque.empty() || member->field->name != spec.torque || request.values[i] != 1) continue;
+    switched_on.push_back(HoldTarget{engines_[member->bus], member->servo_id, &spec, member->map.byte_order(),
+                                     expects_reply(*member, *engines_[member->bus]), epochs[member->bus],
+                                     "unit " + std::to_string(member->unit_id)});
   }
+  auto send_frames = [this, frames = std::move(frames), buses, function = request.function, reply,
+                      after = std::move(after)](std::optional<BusResult> hold_failure) mutable {
+    if (hold_failure) {
+      spdlog::warn("gateway unit: sync group torque on not done: {}", hold_failure->detail);
+      reply.send(exception_response(function, fault_from(hold_failure->status)));
+      return;
+    }
+    auto join = BusJoin::create(frames.size(), post_,
+                                [this, buses, function, reply, after = std::move(after)](std::vector<BusResult> results) {
+                                  if (const BusResult* failure = BusJoin::first_failure(results)) {
+                                    spdlog::warn("gateway unit: sync group write failed: {}", failure->detail);
+                                    reply.send(exception_response(function, fault_from(failure->status)));
+                                    return;
+                                  }
+                                  for (const std::size_t bus : buses) safety_.feed_write(bus);
+                                  after(reply);
+                                });
+    for (std::size_t i = 0; i < frames.size(); ++i) {
+      engines_[frames[i].bus]->submit(std::move(frames[i].op), Priority::ClientWrite, join->completion(i));
+    }
+  };
+  if (switched_on.empty()) {
+    send_frames(std::nullopt);
+    return;
+  }
+  hold_before_torque_on(std::move(switched_on), post_, std::move(send_frames));
 }
 
 std::vector<bool> GatewayUnit::coils() const {
@@ -435,7 +482,6 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
   std::vector<MotionEpoch> epochs;
   for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
     if (engines_[bus]->settings().protocol == protocol::BusProtocol::ModbusRtu) continue;
-    safety_.feed_write(bus);
     auto admitted = safety_.admit_motion(bus);
     if (!admitted) {
       refusal_log_.refused("gateway unit ACTION (coil 0)", request.function, admitted.error());
@@ -444,11 +490,14 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
     }
     epochs.push_back(*admitted);
   }
-  auto join = BusJoin::create(packet_buses.size(), post_, [request, reply](std::vector<BusResult> results) {
+  auto join = BusJoin::create(packet_buses.size(), post_, [this, request, reply](std::vector<BusResult> results) {
     if (const BusResult* failure = BusJoin::first_failure(results)) {
       spdlog::warn("gateway unit: ACTION failed on a bus: {}", failure->detail);
       reply.send(exception_response(request.function, fault_from(failure->status)));
       return;
+    }
+    for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+      if (engines_[bus]->settings().protocol != protocol::BusProtocol::ModbusRtu) safety_.feed_write(bus);
     }
     reply.send(write_response(request));
   });

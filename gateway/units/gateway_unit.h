@@ -2,7 +2,7 @@
 // The gateway's own Modbus unit (255 by default; MODBUS_MAP.md "The gateway unit"):
 // - input registers 0-2 version, 3-4 uptime s, 5/6 buses/servos, 100 + 20·n the facts of bus n;
 // - coil 0: writing 1 sends ACTION on every bus (runs every staged REG WRITE at once);
-// - coils 1-2, discrete inputs 0-2, input registers 10-12 and 100 + 20·n + 10..18, holding
+// - coils 1-2, discrete inputs 0-3, input registers 10-15 and 100 + 20·n + 10..19, holding
 //   registers 1000 + n: the safety rules (README "Safety");
 // - holding registers of the configured sync groups: one register per member; a write of a
 //   group's registers becomes one SYNC WRITE frame per bus, read gives the members' live values.
@@ -38,15 +38,20 @@ inline constexpr std::uint16_t kActionCoil = 0;
 // 1 any watchdog tripped, 2 motion blocked on any bus.
 inline constexpr std::uint16_t kEStopCoil = 1;
 inline constexpr std::uint16_t kWatchdogCoil = 2;
+// 3 a safe stop is owed to some servo (it could not be delivered yet).
 inline constexpr std::uint16_t kCoilCount = 3;
-inline constexpr std::uint16_t kDiscreteInputCount = 3;
-// Input registers 10 e-stop latched, 11-12 e-stops (32-bit).
+inline constexpr std::uint16_t kDiscreteInputCount = 4;
+// Input registers 10 e-stop latched, 11-12 e-stops (32-bit), 13 servos owed a safe stop (every
+// bus), 14-15 safe stops that failed (32-bit, every bus).
 inline constexpr std::uint16_t kEStopLatched = 10;
 inline constexpr std::uint16_t kEStopCount = 11;
+inline constexpr std::uint16_t kOwedStops = 13;
+inline constexpr std::uint16_t kFailedStops = 14;
 // Inside bus n's block (100 + 20·n): 10 watchdog state (0 off, 1 armed, 2 running, 3 tripped),
 // 11 ms since the last feed (65535: never or longer), 12-13 trips, 14 timeout ms, 15 cause of
 // the last safe stop (0 none, 1 watchdog, 2 e-stop, 3 on_start, 4 on_stop), 16-17 its latency µs
-// (last feed or request -> frames on the wire), 18 motion blocked.
+// (last feed or request -> frames on the wire; 0 after a stop that failed), 18 motion blocked,
+// 19 servos of the bus owed a safe stop.
 inline constexpr std::uint16_t kWatchdogState = 10;
 }  // namespace gateway_unit_layout
 
@@ -82,6 +87,7 @@ class GatewayUnit {
     const modbus_map::FieldSpec* field = nullptr;
     modbus_map::RegisterMap map;  // native map of the member's table and byte order: value rules
     bool read_only = false;
+    std::optional<std::uint8_t> response_level;  // as configured; empty: as read from the servo
   };
   struct SyncGroup {
     std::string name;
@@ -89,6 +95,7 @@ class GatewayUnit {
     std::vector<SyncMember> members;
   };
 
+  static bool expects_reply(const SyncMember& member, const BusEngine& engine);
   const SyncMember* sync_member_at(std::uint16_t address) const;
   void read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count, const Reply& reply);
   void write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <condition_variable>
+#include <filesystem>
 #include <future>
 #include <map>
 #include <mutex>
@@ -13,7 +14,11 @@
 #include <boost/asio/steady_timer.hpp>
 #include <spdlog/spdlog.h>
 
+#include <yaml-cpp/yaml.h>
+
 #include "gateway/bus/bus_join.h"
+#include "gateway/units/state_file.h"
+#include "gateway/units/unit_router.h"
 #include "modbus_map/motion.h"
 
 namespace sms::gateway {
@@ -39,6 +44,7 @@ struct StopTarget {
   modbus_map::ByteOrder order = modbus_map::ByteOrder::LowFirst;
   StopAction action = StopAction::Hold;
   std::vector<modbus_map::BusRange> context;  // what to read before a hold
+  std::optional<std::uint8_t> response_level;  // as configured; empty: as read from the servo
 };
 
 struct BusSafety {
@@ -57,6 +63,7 @@ struct BusSafety {
   std::atomic<std::uint32_t> heartbeat{kNoHeartbeat};
   std::atomic<std::uint64_t> trips{0};
   std::atomic<std::uint64_t> stops{0};
+  std::atomic<std::uint64_t> failed_stops{0};
   std::atomic<StopCause> last_cause{StopCause::None};
   std::atomic<std::int64_t> last_latency_us{-1};
 };
@@ -133,9 +140,16 @@ class SafetySupervisor::Impl {
       for (const config::ServoConfig* servo : servos) {
         const auto& spec = modbus_map::motion_spec(*servo->table);
         bus->targets.push_back(StopTarget{servo->unit_id, servo->servo_id, &spec, config::effective_byte_order(*servo),
-                                          config::effective_safe_stop(*servo), modbus_map::stop_context_reads(spec)});
+                                          config::effective_safe_stop(*servo), modbus_map::stop_context_reads(spec),
+                                          servo->response_level});
       }
       buses_.push_back(std::move(bus));
+    }
+    const std::string dir = config::effective_state_dir(config);
+    if (!dir.empty()) {
+      if (const std::string problem = check_state_dir(dir); !problem.empty()) throw std::runtime_error(problem);
+      state_path_ = (std::filesystem::path(dir) / "safety.state").string();
+      restore();
     }
   }
 
@@ -143,12 +157,27 @@ class SafetySupervisor::Impl {
 
   void start() {
     thread_ = std::thread([this] { io_.run(); });
+    if (state_path_.empty()) {
+      spdlog::warn("safety: no state_dir: a restart forgets a latched e-stop and tripped watchdogs (set state_dir, "
+                   "config/README.md)");
+    }
     for (const auto& bus : buses_) {
       if (bus->watchdog) {
         spdlog::info("safety: bus {}: watchdog armed: {} ms, fed by {}, then {}", bus->name,
                      bus->watchdog->timeout.count(), config::to_string(bus->watchdog->feed),
                      bus->watchdog->action ? std::string(modbus_map::to_string(*bus->watchdog->action))
                                            : std::string("each servo's safe_stop"));
+      }
+      // A latch or a trip restored from before the restart: whatever the servos did meanwhile,
+      // they are stopped again (the stop the gateway owed them may never have reached them).
+      const bool tripped = bus->state.load() == WatchdogState::Tripped;
+      if (estop_latched_.load() || tripped) {
+        const StopCause cause = tripped ? StopCause::Watchdog : StopCause::EStop;
+        const auto action = tripped && bus->watchdog ? bus->watchdog->action : std::nullopt;
+        asio::post(io_, [this, index = bus->index, cause, action] {
+          run_stop(index, cause, action, Clock::now(), "restored at start", nullptr);
+        });
+        continue;
       }
       if (bus->on_start == config::StartAction::Keep) continue;
       const StopAction action =
@@ -161,7 +190,11 @@ class SafetySupervisor::Impl {
 
   void stop_for_shutdown(std::chrono::milliseconds bound) {
     if (shutdown_done_.exchange(true) || !thread_.joinable()) return;
-    for (const auto& bus : buses_) bus->gate->block();
+    {
+      std::lock_guard lock(state_mutex_);
+      shutting_down_ = true;
+      apply_gates_locked();
+    }
     auto remaining = std::make_shared<std::atomic<std::size_t>>(buses_.size());
     auto finished = std::make_shared<std::promise<void>>();
     auto all_done = finished->get_future();
@@ -225,8 +258,12 @@ class SafetySupervisor::Impl {
   }
 
   void estop(PostFn post, std::function<void(bool)> done) {
-    const bool already = estop_latched_.exchange(true);
-    for (const auto& bus : buses_) bus->gate->block();
+    bool already = false;
+    {
+      std::lock_guard lock(state_mutex_);
+      already = estop_latched_.exchange(true);
+      apply_gates_locked();
+    }
     if (!already) {
       estops_.fetch_add(1);
       spdlog::warn("safety: E-STOP latched by a Modbus client (gateway unit coil 1): every bus stops; motion writes "
@@ -235,7 +272,12 @@ class SafetySupervisor::Impl {
     const auto requested = Clock::now();
     auto remaining = std::make_shared<std::atomic<std::size_t>>(buses_.size());
     auto all_ok = std::make_shared<std::atomic<bool>>(true);
-    auto finish = [post, done = std::move(done), all_ok]() { post([done, ok = all_ok->load()] { done(ok); }); };
+    // The latch is on disk before the answer: the answer waits for the stop frames, and the file
+    // is written while they go out.
+    auto finish = [this, post, done = std::move(done), all_ok]() {
+      persist();
+      post([done, ok = all_ok->load()] { done(ok); });
+    };
     if (buses_.empty()) {
       finish();
       return;
@@ -252,27 +294,43 @@ class SafetySupervisor::Impl {
   }
 
   void reset_estop() {
-    if (!estop_latched_.exchange(false)) return;
-    spdlog::warn("safety: e-stop reset by a Modbus client; nothing moved, motion writes are accepted again");
-    for (const auto& bus : buses_) {
-      if (bus->state.load() != WatchdogState::Tripped) bus->gate->unblock();
+    {
+      std::lock_guard lock(state_mutex_);
+      if (!estop_latched_.exchange(false)) return;
+      apply_gates_locked();
     }
+    persist();
+    spdlog::warn("safety: e-stop reset by a Modbus client; nothing moved, motion writes are accepted again{}",
+                 owed_text());
   }
 
   void rearm_watchdogs() {
-    for (const auto& bus : buses_) {
-      WatchdogState tripped = WatchdogState::Tripped;
-      if (!bus->state.compare_exchange_strong(tripped, WatchdogState::Armed)) continue;
-      spdlog::info("safety: bus {}: watchdog re-armed by a Modbus client; nothing moved", bus->name);
-      if (!estop_latched_.load()) bus->gate->unblock();
+    std::vector<std::string> rearmed;
+    {
+      std::lock_guard lock(state_mutex_);
+      for (const auto& bus : buses_) {
+        WatchdogState tripped = WatchdogState::Tripped;
+        if (bus->state.compare_exchange_strong(tripped, WatchdogState::Armed)) rearmed.push_back(bus->name);
+      }
+      apply_gates_locked();
+    }
+    if (rearmed.empty()) return;
+    persist();
+    for (const auto& name : rearmed) {
+      spdlog::info("safety: bus {}: watchdog re-armed by a Modbus client; nothing moved{}", name, owed_text());
     }
   }
 
   SafetyFacts facts() const {
     SafetyFacts facts;
-    facts.estop_latched = estop_latched_.load();
     facts.estops = estops_.load();
+    facts.state_file = state_path_;
     const auto now = Clock::now();
+    std::vector<std::size_t> owed;
+    for (const auto& bus : buses_) owed.push_back(bus->engine->owed_stops().size());
+    // One snapshot of the latch, the states and the gates (they change together, under this lock).
+    std::lock_guard lock(state_mutex_);
+    facts.estop_latched = estop_latched_.load();
     for (const auto& bus : buses_) {
       BusSafetyFacts f;
       f.state = bus->state.load();
@@ -282,6 +340,8 @@ class SafetySupervisor::Impl {
       f.timeout = bus->watchdog ? bus->watchdog->timeout : std::chrono::milliseconds{0};
       f.trips = bus->trips.load();
       f.stops = bus->stops.load();
+      f.failed_stops = bus->failed_stops.load();
+      f.owed_stops = owed[bus->index];
       f.last_cause = bus->last_cause.load();
       if (const auto us = bus->last_latency_us.load(); us >= 0) f.last_stop_latency = std::chrono::microseconds{us};
       f.motion_blocked = bus->gate->blocked();
@@ -303,6 +363,96 @@ class SafetySupervisor::Impl {
   }
 
  private:
+  // The one rule for every gate, from the whole state; call with state_mutex_ held.
+  void apply_gates_locked() {
+    for (const auto& bus : buses_) {
+      const bool blocked = shutting_down_ || estop_latched_.load() || bus->state.load() == WatchdogState::Tripped;
+      if (blocked != bus->gate->blocked()) bus->gate->set_blocked(blocked);
+    }
+  }
+
+  std::string owed_text() const {
+    std::size_t owed = 0;
+    for (const auto& bus : buses_) owed += bus->engine->owed_stops().size();
+    if (owed == 0) return {};
+    return "; " + std::to_string(owed) +
+           " servo(s) still owe their safe stop and refuse motion until they have taken it";
+  }
+
+  // --- the state file --------------------------------------------------------------------------
+  void restore() {
+    const auto text = read_state_file(state_path_);
+    std::string problem;
+    if (!text) {
+      problem = text.error();
+    } else if (!text->has_value()) {
+      return;  // first start
+    } else {
+      try {
+        const YAML::Node root = YAML::Load(**text);
+        const bool latched = root["estop_latched"].as<bool>(false);
+        std::vector<std::string> unknown;
+        for (const auto& name : root["tripped_watchdogs"]) {
+          const std::string bus_name = name.as<std::string>();
+          auto found = std::find_if(buses_.begin(), buses_.end(), [&](const auto& b) { return b->name == bus_name; });
+          if (found == buses_.end() || !(*found)->watchdog) {
+            unknown.push_back(bus_name);
+            continue;
+          }
+          (*found)->state = WatchdogState::Tripped;
+          spdlog::warn("safety: bus {}: its watchdog was tripped before the restart ({}): it stays tripped until a "
+                       "client re-arms it (gateway unit coil 2 := 0)",
+                       bus_name, state_path_);
+        }
+        for (const auto& name : unknown) {
+          spdlog::warn("safety: {} names a tripped watchdog on bus `{}`, which has none now: ignored", state_path_,
+                       name);
+        }
+        if (latched) {
+          estop_latched_ = true;
+          spdlog::warn("safety: the E-STOP was latched before the restart ({}): it stays latched until a client "
+                       "resets it (gateway unit coil 1 := 0)",
+                       state_path_);
+        }
+      } catch (const YAML::Exception& error) {
+        problem = state_path_ + " is damaged: " + error.what();
+      }
+    }
+    if (!problem.empty()) {
+      estop_latched_ = true;
+      spdlog::error("safety: {}; the e-stop is latched as a precaution: check the cell, then reset it (gateway unit "
+                    "coil 1 := 0)",
+                    problem);
+    }
+    std::lock_guard lock(state_mutex_);
+    apply_gates_locked();
+  }
+
+  // Writes the latch and the tripped watchdogs (any thread; serialised).
+  void persist() {
+    if (state_path_.empty()) return;
+    std::lock_guard file_lock(persist_mutex_);
+    YAML::Emitter out;
+    out << YAML::Comment("sms-gateway safety state: written by the gateway. A latched e-stop or a tripped watchdog "
+                         "survives a restart; reset it over Modbus (gateway unit coils 1 and 2), not here.");
+    out << YAML::BeginMap;
+    {
+      std::lock_guard lock(state_mutex_);
+      out << YAML::Key << "estop_latched" << YAML::Value << estop_latched_.load();
+      out << YAML::Key << "tripped_watchdogs" << YAML::Value << YAML::Flow << YAML::BeginSeq;
+      for (const auto& bus : buses_) {
+        if (bus->state.load() == WatchdogState::Tripped) out << bus->name;
+      }
+      out << YAML::EndSeq;
+    }
+    out << YAML::EndMap;
+    const std::string text = std::string(out.c_str()) + "\n";
+    if (const auto written = write_file_atomically(state_path_, text); !written) {
+      spdlog::error("safety: cannot keep the safety state: {}; a restart now would forget it", written.error());
+    }
+  }
+
+  // --- watchdogs -------------------------------------------------------------------------------
   void feed(BusSafety& bus) {
     bus.last_feed.store(ticks(Clock::now()));
     WatchdogState armed = WatchdogState::Armed;
@@ -326,9 +476,12 @@ class SafetySupervisor::Impl {
         if (!next || deadline < *next) next = deadline;
         continue;
       }
-      WatchdogState running = WatchdogState::Running;
-      if (!bus->state.compare_exchange_strong(running, WatchdogState::Tripped)) continue;
-      bus->gate->block();
+      {
+        std::lock_guard lock(state_mutex_);
+        WatchdogState running = WatchdogState::Running;
+        if (!bus->state.compare_exchange_strong(running, WatchdogState::Tripped)) continue;
+        apply_gates_locked();
+      }
       bus->trips.fetch_add(1);
       const auto silent = std::chrono::duration_cast<std::chrono::milliseconds>(now - last);
       spdlog::warn("safety: bus {}: WATCHDOG TRIPPED: no {} for {} ms (timeout {} ms); stopping its servos; motion "
@@ -339,7 +492,9 @@ class SafetySupervisor::Impl {
                        : "change of heartbeat register " +
                              std::to_string(config::kHeartbeatRegisterBase + bus->index),
                    silent.count(), bus->watchdog->timeout.count());
+      // The stop first, then the file: a trip has no answer to wait for, and the stop must not.
       run_stop(bus->index, StopCause::Watchdog, bus->watchdog->action, last, "watchdog", nullptr);
+      persist();
     }
     if (next) {
       timer_.expires_at(*next);
@@ -356,8 +511,9 @@ class SafetySupervisor::Impl {
     return [](std::function<void()> work) { work(); };
   }
 
+  // --- safe stops ------------------------------------------------------------------------------
   // Safety thread. Reads what the holds need, then sends the stop frames; `done(ok)` after the
-  // last frame (ok: every frame went out).
+  // last frame (ok: every servo was reached).
   void run_stop(std::size_t index, StopCause cause, std::optional<StopAction> override, Clock::time_point since,
                 std::string reason, std::function<void(bool)> done) {
     BusSafety& bus = *buses_[index];
@@ -389,15 +545,31 @@ class SafetySupervisor::Impl {
     }
   }
 
+  // The torque off a servo is owed when its stop did not reach it (BusEngine::owe_stop).
+  OwedStop owed_stop_for(const BusSafety& bus, const StopTarget& target, std::string_view reason) const {
+    const auto write = modbus_map::torque_off_write(*target.spec, target.order);
+    bool answers = true;
+    if (target.response_level) {
+      answers = writes_answered(target.spec->table, *target.response_level);
+    } else if (const auto state = bus.engine->cache().state(target.servo_id); state && state->response_level) {
+      answers = writes_answered(target.spec->table, *state->response_level);
+    }
+    return OwedStop{WriteOp{target.servo_id, write.address, write.data, false, answers, 0}, std::string(reason)};
+  }
+
   void send_stop_frames(std::size_t index, StopCause cause, std::optional<StopAction> override,
                         Clock::time_point since, const std::string& reason, const std::function<void(bool)>& done,
                         const std::map<std::size_t, std::vector<const BusResult*>>& context) {
     BusSafety& bus = *buses_[index];
     std::vector<std::string> report;
     std::vector<BusOp> frames;
-    const auto add_write = [&](const StopTarget& target, modbus_map::BusWrite write) {
+    std::vector<std::vector<std::size_t>> frame_targets;  // the targets each frame reaches
+    std::vector<std::size_t> unconfirmed;  // torque off broadcast blind: owed until acknowledged
+    const auto add_write = [&](std::size_t t, modbus_map::BusWrite write) {
+      const StopTarget& target = bus.targets[t];
       if (!bus.packet) {
         frames.push_back(WriteOp{target.servo_id, write.address, std::move(write.data)});
+        frame_targets.push_back({t});
         return;
       }
       // One SYNC WRITE per write shape: every servo stopping the same way is in one frame, as
@@ -410,8 +582,10 @@ class SafetySupervisor::Impl {
       });
       if (frame == frames.end()) {
         frames.push_back(SyncWriteOp{write.address, size, {}});
+        frame_targets.emplace_back();
         frame = std::prev(frames.end());
       }
+      frame_targets[static_cast<std::size_t>(frame - frames.begin())].push_back(t);
       std::get<SyncWriteOp>(*frame).entries.push_back(protocol::SyncWriteEntry{target.servo_id, std::move(write.data)});
     };
     for (std::size_t t = 0; t < bus.targets.size(); ++t) {
@@ -423,7 +597,7 @@ class SafetySupervisor::Impl {
         continue;
       }
       if (action == StopAction::TorqueOff) {
-        add_write(target, modbus_map::torque_off_write(*target.spec, target.order));
+        add_write(t, modbus_map::torque_off_write(*target.spec, target.order));
         report.push_back(who + " torque off");
         continue;
       }
@@ -448,38 +622,61 @@ class SafetySupervisor::Impl {
         // Without its state no hold can be computed; an unknown motion must still end.
         spdlog::error("safety: bus {}: {}: cannot hold it ({}); switching its torque off instead", bus.name, who,
                       plan.error());
-        add_write(target, modbus_map::torque_off_write(*target.spec, target.order));
+        add_write(t, modbus_map::torque_off_write(*target.spec, target.order));
+        if (bus.packet) unconfirmed.push_back(t);
         report.push_back(who + " torque off (state unreadable)");
         continue;
       }
-      for (auto& write : plan->writes) add_write(target, std::move(write));
+      for (auto& write : plan->writes) add_write(t, std::move(write));
       report.push_back(who + " " + plan->what);
     }
 
-    const auto finish = [this, index, cause, since, reason, done, report](bool ok, const std::string& failure) {
+    const auto finish = [this, index, cause, since, reason, done, report, frame_targets,
+                         unconfirmed](const std::vector<BusResult>& results) {
       BusSafety& b = *buses_[index];
-      const auto latency = std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - since);
-      b.stops.fetch_add(1);
-      b.last_cause.store(cause);
-      b.last_latency_us.store(latency.count());
-      if (ok) {
-        spdlog::warn("safety: bus {}: safe stop ({}) sent {:.1f} ms after {}: {}", b.name, reason,
-                     static_cast<double>(latency.count()) / 1000.0,
-                     cause == StopCause::Watchdog ? "the last feed" : "the request", targets_text(report));
-      } else {
-        spdlog::error("safety: bus {}: safe stop ({}) FAILED: {}; planned: {}", b.name, reason, failure,
-                      targets_text(report));
+      // Who the stop did not reach: every servo of a frame that failed, and on packet buses those
+      // whose torque off went out blind (a broadcast is never acknowledged).
+      std::vector<std::size_t> unreached = unconfirmed;
+      std::string failure;
+      for (std::size_t i = 0; i < results.size(); ++i) {
+        if (results[i].status == BusStatus::Ok) continue;
+        if (failure.empty()) failure = results[i].detail.empty() ? std::string(to_string(results[i].status)) : results[i].detail;
+        unreached.insert(unreached.end(), frame_targets[i].begin(), frame_targets[i].end());
       }
-      if (done) done(ok);
+      std::sort(unreached.begin(), unreached.end());
+      unreached.erase(std::unique(unreached.begin(), unreached.end()), unreached.end());
+      const bool frames_ok = failure.empty();
+      std::string owed;
+      for (const std::size_t t : unreached) {
+        b.engine->owe_stop(owed_stop_for(b, b.targets[t], reason));
+        owed += (owed.empty() ? "" : ", ") + std::to_string(b.targets[t].servo_id);
+      }
+      const auto latency = std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - since);
+      b.last_cause.store(cause);
+      if (frames_ok) {
+        b.stops.fetch_add(1);
+        b.last_latency_us.store(latency.count());
+        spdlog::warn("safety: bus {}: safe stop ({}) sent {:.1f} ms after {}: {}{}", b.name, reason,
+                     static_cast<double>(latency.count()) / 1000.0,
+                     cause == StopCause::Watchdog ? "the last feed" : "the request", targets_text(report),
+                     owed.empty() ? std::string()
+                                  : "; not confirmed for servo(s) " + owed +
+                                        " (state unreadable): their torque off is owed until they acknowledge it");
+      } else {
+        b.failed_stops.fetch_add(1);
+        b.last_latency_us.store(-1);
+        spdlog::error("safety: bus {}: safe stop ({}) FAILED: {}; planned: {}; servo(s) {} are owed their stop (torque "
+                      "off): it is sent the moment they can be reached, before anything else, and motion writes to "
+                      "them are refused until they have taken it",
+                      b.name, reason, failure, targets_text(report), owed);
+      }
+      if (done) done(frames_ok);
     };
     if (frames.empty()) {
-      finish(true, "");
+      finish({});
       return;
     }
-    auto join = BusJoin::create(frames.size(), safety_post(), [finish](std::vector<BusResult> results) {
-      const BusResult* failure = BusJoin::first_failure(results);
-      finish(failure == nullptr, failure ? failure->detail : std::string());
-    });
+    auto join = BusJoin::create(frames.size(), safety_post(), finish);
     for (std::size_t i = 0; i < frames.size(); ++i) submit_safely(bus, std::move(frames[i]), join->completion(i));
   }
 
@@ -506,9 +703,15 @@ class SafetySupervisor::Impl {
   asio::steady_timer timer_;
   std::thread thread_;
   std::vector<std::unique_ptr<BusSafety>> buses_;
+  // Every change of the latch, a watchdog's tripped state or shutting_down_, and the gates
+  // computed from them, happen under this lock (apply_gates_locked).
+  mutable std::mutex state_mutex_;
   std::atomic<bool> estop_latched_{false};
+  bool shutting_down_ = false;
   std::atomic<std::uint64_t> estops_{0};
   std::atomic<bool> shutdown_done_{false};
+  std::string state_path_;  // empty: not kept
+  std::mutex persist_mutex_;
 };
 
 SafetySupervisor::SafetySupervisor(const config::Config& config, std::vector<BusEngine*> engines,

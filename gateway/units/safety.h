@@ -1,25 +1,36 @@
 #pragma once
-// Motion safety (issue 10, README "Safety"): per-bus watchdogs, the e-stop latch, safe stops,
-// and the start and stop actions. The supervisor runs its own thread, so a watchdog trips on
-// time even while the Modbus io thread is busy; every safe stop goes to the bus engines at
-// Priority::Safety (before any client work, never refused for a full queue).
+// Motion safety (README "Safety"): per-bus watchdogs, the e-stop latch, safe stops, and the start
+// and stop actions. The supervisor runs its own thread, so a watchdog trips on time even while
+// the Modbus io thread is busy; every safe stop goes to the bus engines at Priority::Safety
+// (before any client work, never refused for a full queue).
 //
 // Rules, in one place:
 // - A bus's watchdog is armed at start and after a re-arm, and starts counting at the first
 //   feed or the first motion write on the bus. `timeout` after the last feed it trips: the bus's
 //   MotionGate blocks (new motion writes: 0x04; queued ones are dropped by the engine), every
 //   servo of the bus gets its safe stop once, and the state stays `tripped` until a re-arm.
+//   Only a write the gateway carried out feeds it (the unit router and the gateway unit call
+//   feed_write() on success).
 // - The e-stop latch blocks every bus and stops every servo; only a reset clears it, and a reset
 //   (like a re-arm) moves nothing.
+// - Whether a bus's motion is blocked is computed from the whole state (shutdown, latch, its
+//   watchdog) after every transition, under one lock, so what a client reads never disagrees
+//   with what the gate enforces.
+// - The latch and the tripped watchdogs are kept in `<state_dir>/safety.state`, written before
+//   the request that changed them is answered, and restored at start: a restart or a crash does
+//   not release them, and a restored latch or trip stops its servos again at start.
 // - A safe stop reads each servo's mode, torque, goal block and present position (one READ on
-//   packet tables), then writes: on packet buses one SYNC WRITE frame per distinct write shape
-//   (one frame when all servos stop the same way), on modbus-rtu buses one write per servo in
-//   unit order. A servo that cannot be read gets its torque switched off.
+//   packet tables), then writes: on packet buses one SYNC WRITE frame per distinct write shape,
+//   on modbus-rtu buses one write per servo in unit order. A servo that cannot be read gets its
+//   torque switched off. A servo the stop could not reach (bus down, offline, no answer; on packet
+//   buses also one whose state could not be read, since a broadcast is never acknowledged) is
+//   owed its torque off: its engine sends it when the servo is back, before anything else, until
+//   it is acknowledged (BusEngine::owe_stop). Failed stops are counted, not counted as stops.
 //
 //   SafetySupervisor safety(config, engines, gates);
-//   safety.start();                               // on_start actions, watchdog thread
-//   auto epoch = safety.admit_motion(bus, what);  // io thread, before a motion write
-//   safety.feed_write(bus);                       // io thread, on every write request
+//   safety.start();                               // restored latch/trips, on_start, watchdog thread
+//   auto epoch = safety.admit_motion(bus);        // io thread, before a motion write
+//   safety.feed_write(bus);                       // io thread, once a write was carried out
 //   safety.stop_for_shutdown(2s);                 // on_stop actions, then no more motion
 #include <atomic>
 #include <chrono>
@@ -57,14 +68,17 @@ struct BusSafetyFacts {
   std::uint64_t trips = 0;
   std::uint64_t stops = 0;                 // safe stops performed on this bus, every cause
   StopCause last_cause = StopCause::None;
-  std::optional<std::chrono::microseconds> last_stop_latency;  // last feed (or request) -> frames on the wire
+  std::optional<std::chrono::microseconds> last_stop_latency;  // of the last stop that succeeded
   bool motion_blocked = false;
+  std::uint64_t failed_stops = 0;  // stops that could not reach every servo when performed
+  std::size_t owed_stops = 0;      // servos owed their stop right now
 };
 
 struct SafetyFacts {
   bool estop_latched = false;
   std::uint64_t estops = 0;
   std::vector<BusSafetyFacts> buses;
+  std::string state_file;  // where the latch and trips are kept; empty: not kept
 };
 
 // Refused motion writes, logged as a warning at most once a second (a PLC writing cyclically
@@ -82,7 +96,9 @@ class MotionRefusalLog {
 class SafetySupervisor {
  public:
   // `engines[i]` runs config.buses[i]; `gates[i]` is the gate its engine checks
-  // (BusSettings::motion_gate).
+  // (BusSettings::motion_gate). Reads the state file (config::effective_state_dir) and throws
+  // std::runtime_error when its directory is unusable; an unreadable or damaged state file
+  // latches the e-stop (said in the log) rather than start unprotected.
   SafetySupervisor(const config::Config& config, std::vector<BusEngine*> engines,
                    std::vector<std::shared_ptr<MotionGate>> gates);
   ~SafetySupervisor();  // stops the thread; no stop is performed
@@ -97,7 +113,7 @@ class SafetySupervisor {
   void stop_for_shutdown(std::chrono::milliseconds bound);
 
   // --- the Modbus side (io thread) ---------------------------------------------------------------
-  // A write request for a unit on `bus` arrived (feeds a watchdog whose feed is any_write).
+  // A write for a unit on `bus` was carried out (feeds a watchdog whose feed is any_write).
   void feed_write(std::size_t bus);
   // Holding register 1000 + bus written: feeds when `value` differs from the last one.
   void feed_heartbeat(std::size_t bus, std::uint16_t value);

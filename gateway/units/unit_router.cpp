@@ -8,6 +8,7 @@
 #include "gateway/units/bus_faults.h"
 #include "gateway/modbus_tcp/access_policy.h"
 #include "gateway/modbus_tcp/faults.h"
+#include "gateway/units/no_jump.h"
 #include "gateway/units/passthrough.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
@@ -47,6 +48,30 @@ modbus_map::Profile map_profile(config::Profile profile) {
 std::uint16_t saturate16(std::uint64_t value) {
   return static_cast<std::uint16_t>(std::min<std::uint64_t>(value, 0xFFFF));
 }
+
+// The answer of a write request, passed on; a write the gateway carried out (answered without
+// an exception, or a broadcast finished) feeds the watchdog of its bus first. A refused write
+// (read-only, a missing register, a bad value, motion blocked, the bus down) proves nothing of the
+// client that sent it, so it must not keep a dead PLC's servo turning.
+class FeedOnSuccess final : public Reply::Target {
+ public:
+  FeedOnSuccess(Reply reply, std::function<void()> feed) : reply_(std::move(reply)), feed_(std::move(feed)) {}
+  void deliver(std::uint64_t, Bytes response_pdu) override {
+    if (response_pdu.empty()) {
+      feed_();
+      reply_.finish_without_answer();
+      return;
+    }
+    if ((response_pdu[0] & 0x80) == 0) feed_();
+    reply_.send(std::move(response_pdu));
+  }
+
+ private:
+  Reply reply_;
+  std::function<void()> feed_;
+};
+
+bool writes(std::uint8_t function) { return function_effect(function) != FunctionEffect::Reads; }
 
 }  // namespace
 
@@ -124,8 +149,11 @@ void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu,
 
 void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, const Reply& reply) {
   const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
+  const auto fed_on_success = [&](std::size_t bus_index) {
+    return Reply(std::make_shared<FeedOnSuccess>(reply, [this, bus_index] { safety_.feed_write(bus_index); }), 0);
+  };
   if (const PassthroughUnit* forwarded = passthrough_[unit_id].get()) {
-    forward(*forwarded, pdu, reply);
+    forward(*forwarded, pdu, writes(function) ? fed_on_success(forwarded->bus_index) : reply);
     return;
   }
   const ServoUnit* unit = units_[unit_id].get();
@@ -143,21 +171,18 @@ void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pd
     gateway_unit_->handle(*request, reply);
     return;
   }
-  handle_servo(*unit, *request, reply);
+  handle_servo(*unit, *request, writes(function) ? fed_on_success(unit->bus_index) : reply);
 }
 
 void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8_t> pdu, const Reply& reply) {
   const std::uint8_t function = pdu[0];
-  const bool writes = function_effect(function) != FunctionEffect::Reads;
-  // Like a servo unit's: a write feeds the watchdog on arrival, whether it is then taken or not.
-  if (writes) safety_.feed_write(unit.bus_index);
   if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
   if (!unit.engine->bus_up()) {
     reply.send(exception_response(function, Fault::BusDown));
     return;
   }
   MotionEpoch epoch = 0;
-  if (writes) {
+  if (writes(function)) {
     // The gateway cannot tell what a passthrough slave's registers do: every write may move
     // something, so every write is under the safety rules (README "Safety").
     const auto admitted = admit_motion(unit.bus_index, unit.label, function, reply);
@@ -192,10 +217,6 @@ void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, con
     reply.send(exception_response(function, Fault::BusDown));
     return;
   }
-  const bool writes = std::holds_alternative<WriteBitsRequest>(request) ||
-                      std::holds_alternative<WriteRegistersRequest>(request) ||
-                      std::holds_alternative<ReadWriteRegistersRequest>(request);
-  if (writes) safety_.feed_write(unit.bus_index);
   if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
   std::visit(Overloaded{
                  [&](const ReadRegistersRequest& read) {
@@ -423,7 +444,7 @@ void UnitRouter::run_writes(const ServoUnit& unit, std::uint8_t function, modbus
     if (!admitted) return;
     epoch = *admitted;
   }
-  if (!plan.staged && modbus_map::switches_torque_on_without_goal(spec, order, plan)) {
+  if (modbus_map::switches_torque_on(spec, order, plan)) {
     hold_then_switch_torque_on(unit, function, std::move(plan), epoch, reply, std::move(after));
     return;
   }
@@ -439,39 +460,19 @@ void UnitRouter::run_admitted_writes(const ServoUnit& unit, std::uint8_t functio
 void UnitRouter::hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
                                             MotionEpoch epoch, const Reply& reply,
                                             std::function<void(const Reply&)> after) {
-  // "No jump on enable": a stale goal (or speed) in the servo would run the moment the torque
-  // comes on. Read the servo's state, write the hold of its goal block, then the request.
-  const modbus_map::MotionSpec& spec = modbus_map::motion_spec(unit.map.servo_table().id);
-  auto ranges = std::make_shared<std::vector<modbus_map::BusRange>>(modbus_map::stop_context_reads(spec));
-  auto join = BusJoin::create(
-      ranges->size(), post_,
-      [this, &unit, &spec, function, ranges, plan = std::move(plan), epoch, reply,
-       after = std::move(after)](std::vector<BusResult> results) mutable {
-        if (const BusResult* failure = BusJoin::first_failure(results)) {
-          spdlog::debug("modbus: {} FC{:02X}: reading the servo before switching its torque on: {}", unit.label,
-                        function, failure->detail);
-          reply.send(exception_response(function, fault_from(failure->status)));
-          return;
-        }
-        std::vector<protocol::Bytes> data;
-        for (auto& result : results) data.push_back(std::move(result.data));
-        const auto hold = modbus_map::plan_safe_stop(spec, modbus_map::StopAction::Hold, unit.map.byte_order(),
-                                                     modbus_map::StopContext{*ranges, data}, true);
-        if (!hold) {
-          spdlog::warn("modbus: {} FC{:02X}: torque on refused: {}", unit.label, function, hold.error());
-          reply.send(exception_response(function, Fault::ServoRefused));
-          return;
-        }
-        if (hold->drive != modbus_map::Drive::Step) {  // step mode: no goal is stale, none to hold
-          spdlog::debug("modbus: {}: torque on: {} first", unit.label, hold->what);
-          plan.writes.insert(plan.writes.begin(), hold->writes.begin(), hold->writes.end());
-        }
-        run_admitted_writes(unit, function, std::move(plan), epoch, reply, std::move(after));
-      });
-  for (std::size_t i = 0; i < ranges->size(); ++i) {
-    unit.engine->submit(ReadOp{unit.servo_id, (*ranges)[i].address, (*ranges)[i].count}, Priority::ClientWrite,
-                        join->completion(i));
-  }
+  HoldTarget target{unit.engine, unit.servo_id, &modbus_map::motion_spec(unit.map.servo_table().id),
+                    unit.map.byte_order(), expects_write_reply(unit), epoch, unit.label};
+  hold_before_torque_on({std::move(target)}, post_,
+                        [this, &unit, function, plan = std::move(plan), epoch, reply,
+                         after = std::move(after)](std::optional<BusResult> failure) mutable {
+                          if (failure) {
+                            spdlog::warn("modbus: {} FC{:02X}: torque on not done: {}", unit.label, function,
+                                         failure->detail);
+                            reply.send(exception_response(function, fault_from(failure->status)));
+                            return;
+                          }
+                          run_admitted_writes(unit, function, std::move(plan), epoch, reply, std::move(after));
+                        });
 }
 
 bool expects_write_reply(const ServoUnit& unit) {

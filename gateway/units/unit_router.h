@@ -87,8 +87,9 @@ class UnitRouter : public RequestHandler {
  public:
   // `engines[i]` runs config.buses[i] (the engine's settings give each servo's poll block).
   // Throws std::invalid_argument for a servo whose table/profile has no register map.
-  // Every write passes `safety` (README "Safety"): it feeds the bus's watchdog, and a motion
-  // write is refused (0x04) while the e-stop is latched or the watchdog tripped.
+  // Every write passes `safety` (README "Safety"): a motion write is refused (0x04) while the
+  // e-stop is latched or the watchdog tripped, and a write the gateway carried out (answered
+  // without an exception) feeds the bus's watchdog — one rule for servo and passthrough units.
   UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post, SafetySupervisor& safety);
 
   void handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) override;
@@ -113,13 +114,13 @@ class UnitRouter : public RequestHandler {
   void read_coils(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply);
   void read_discrete(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply);
   // The safety rules, then the plan's frames one after another (a refusal stops the rest), then
-  // `after`: a motion write is refused while motion is blocked; torque switched on without a
-  // goal gets goal := present position first ("no jump on enable").
+  // `after`: a motion write is refused while motion is blocked; a write switching the torque on
+  // gets the hold of the goal block first ("no jump on enable", gateway/units/no_jump.h).
   void run_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan, const Reply& reply,
                   std::function<void(const Reply&)> after);
   void run_admitted_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
                            MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after);
-  // Reads the servo's state and prepends the hold of its goal to `plan`, then runs it.
+  // Holds the servo's goal block where its torque is off (gateway/units/no_jump.h), then runs `plan`.
   void hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
                                   MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after);
   // Live reads of plan.reads, in order; `then` gets the replies' bytes.

@@ -156,7 +156,10 @@ TEST(Operations, SimulateArmsAWatchdogThatTripsAndShowsInMetrics) {
   const std::string bus = R"({bus="sim",protocol="feetech"})";
   EXPECT_EQ(metrics.value("sms_gateway_watchdog_state" + bus), "3");
   EXPECT_EQ(metrics.value("sms_gateway_watchdog_trips_total" + bus), "1");
-  EXPECT_EQ(metrics.value("sms_gateway_safe_stops_total" + bus), "1");
+  // The on_start hold (the default on a bus with a watchdog), then the trip's.
+  EXPECT_EQ(metrics.value("sms_gateway_safe_stops_total" + bus), "2");
+  EXPECT_EQ(metrics.value("sms_gateway_safe_stops_failed_total" + bus), "0");
+  EXPECT_EQ(metrics.value("sms_gateway_safe_stops_owed" + bus), "0");
   EXPECT_EQ(metrics.value("sms_gateway_motion_blocked" + bus), "1");
   EXPECT_GT(std::stod(metrics.value("sms_gateway_safe_stop_latency_seconds" + bus)), 1.0);
   EXPECT_EQ(metrics.value("sms_gateway_estop_latched"), "0");

@@ -13,55 +13,10 @@
 #include <cstdlib>
 #include <thread>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/e2e/safety_support.h"
 
 namespace sms::e2e {
 namespace {
-
-constexpr int kUnit = 1;
-constexpr int kGateway = 255;
-constexpr int kWatchdogTimeoutMs = 300;
-// Gateway unit registers (README "Safety"): bus 0's block starts at 100.
-constexpr int kBus0WatchdogState = 110;
-constexpr int kBus0Trips = 112;
-constexpr int kBus0LastCause = 115;
-constexpr int kEStopCoil = 1;
-constexpr int kWatchdogCoil = 2;
-constexpr int kHeartbeatRegister = 1000;
-constexpr std::uint16_t kTripped = 3;
-constexpr std::uint16_t kRunning = 2;
-
-struct Write {
-  int address;
-  std::uint16_t value;
-};
-
-struct Protocol {
-  std::string name;           // test name suffix
-  std::string sim_servo;      // sms-sim --servo
-  std::string bus_protocol;   // config
-  int baud;
-  std::string table;
-  std::vector<Write> spin;    // puts servo 1 into speed mode and turns it
-  Write goal;                 // a goal position write (a motion write)
-  Write harmless;             // a write that cannot move anything (allowed while latched)
-  std::optional<Write> torque_off;  // allowed while latched
-  std::string torque_field;   // sim field name, empty when the table has none
-  int goal_address;
-  int present_address;
-};
-
-void PrintTo(const Protocol& protocol, std::ostream* out) { *out << protocol.name; }
-
-std::string config_for(const Protocol& p, const std::string& pty, const std::string& bus_extra) {
-  return "buses:\n  - {name: line, device: \"" + pty + "\", protocol: " + p.bus_protocol +
-         ", baud: " + std::to_string(p.baud) + bus_extra + "}\nservos:\n  - {bus: line, id: 1, table: " + p.table +
-         "}\n";
-}
-
-std::string watchdog(const std::string& feed) {
-  return ", watchdog: {timeout_ms: " + std::to_string(kWatchdogTimeoutMs) + ", feed: " + feed + "}";
-}
 
 class Safety : public testing::TestWithParam<Protocol> {
  protected:
@@ -226,19 +181,7 @@ TEST_P(Safety, SigtermPerformsOnStopBeforeTheGatewayExits) {
       << gateway_->process().output();
 }
 
-INSTANTIATE_TEST_SUITE_P(
-    EveryProtocol, Safety,
-    testing::Values(
-        Protocol{"feetech_sts", "1:sts", "feetech", 1000000, "sts",
-                 {{33, 1}, {46, 1500}}, {42, 3000}, {41, 20}, Write{40, 0}, "torque_enable", 42, 56},
-        Protocol{"feetech_sms1", "1:sms1", "feetech", 1000000, "sms1",
-                 {{35, 1}, {40, 1}, {46, 1500}}, {42, 3000}, {48, 1}, Write{40, 0}, "torque_switch", 42, 56},
-        Protocol{"d55d", "1:d55d:d55d:115200", "d55d", 115200, "d55d",
-                 {{6, 0}, {8, 0}, {32, 300}}, {30, 90}, {34, 20}, std::nullopt, "", 30, 36},
-        Protocol{"modbus_rtu_smsmb", "1:smsmb:modbus-rtu:115200", "modbus-rtu", 115200, "smsmb",
-                 {{0x10, 1}, {0x81, 1}, {0x83, 500}}, {0x80, 3000}, {0x82, 20}, Write{0x81, 0}, "torque_switch",
-                 0x80, 0x101}),
-    [](const testing::TestParamInfo<Protocol>& info) { return info.param.name; });
+INSTANTIATE_TEST_SUITE_P(EveryProtocol, Safety, testing::ValuesIn(kSafetyProtocols), protocol_name);
 
 // "No jump on enable": a servo whose torque is off and whose goal is far from where it stands
 // holds where it is when a client switches its torque on.

@@ -106,7 +106,7 @@ TEST_P(MotionGateTest, MotionWritesQueuedBeforeAStopAreDroppedNotRunAfterIt) {
       ++done;
     });
   }
-  gate_->block();  // a trip or the e-stop, while the five wait behind the slow read
+  gate_->set_blocked(true);  // a trip or the e-stop, while the five wait behind the slow read
   engine_->submit(WriteOp{1, GetParam().field, GetParam().value(42)}, Priority::Safety, [&](BusResult result) {
     EXPECT_EQ(result.status, BusStatus::Ok) << result.detail;
     ++done;
@@ -116,7 +116,7 @@ TEST_P(MotionGateTest, MotionWritesQueuedBeforeAStopAreDroppedNotRunAfterIt) {
   EXPECT_EQ(field_of_servo_1(), GetParam().value(42));  // the stop's value, nothing after it
 
   // Unblocked (reset): a write admitted now runs; one from before the stop still does not.
-  gate_->unblock();
+  gate_->set_blocked(false);
   WriteOp fresh{1, GetParam().field, GetParam().value(11)};
   fresh.motion_epoch = gate_->epoch();
   EXPECT_EQ(transact(*engine_, std::move(fresh)).status, BusStatus::Ok);
@@ -125,7 +125,7 @@ TEST_P(MotionGateTest, MotionWritesQueuedBeforeAStopAreDroppedNotRunAfterIt) {
   EXPECT_EQ(transact(*engine_, std::move(stale)).status, BusStatus::ServoRefused);
   EXPECT_EQ(field_of_servo_1(), GetParam().value(11));
   // Writes that are not motion writes (epoch 0) never wait for the gate.
-  gate_->block();
+  gate_->set_blocked(true);
   EXPECT_EQ(transact(*engine_, WriteOp{1, GetParam().field, GetParam().value(13)}).status, BusStatus::Ok);
 }
 

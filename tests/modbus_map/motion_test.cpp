@@ -182,12 +182,28 @@ TEST(Motion, MotionWritesAreGoalsModeTorqueOnBrakeReleaseAndHoming) {
   EXPECT_TRUE(motion_in_plan(smsmb, ByteOrder::HighFirst, plan_of(0x81, {0, 1})));
 }
 
-TEST(Motion, TorqueOnWithoutAGoalInTheSameRequestIsTheNoJumpCase) {
+TEST(Motion, EveryTorqueOnIsTheNoJumpCaseWhateverElseTheRequestWrites) {
   const MotionSpec& sts = motion_spec(TableId::Sts);
-  EXPECT_TRUE(switches_torque_on_without_goal(sts, ByteOrder::LowFirst, plan_of(40, {1})));
-  EXPECT_FALSE(switches_torque_on_without_goal(sts, ByteOrder::LowFirst, plan_of(40, {1, 0, 0x10, 0x00})));
-  EXPECT_FALSE(switches_torque_on_without_goal(sts, ByteOrder::LowFirst, plan_of(40, {0})));
-  EXPECT_FALSE(switches_torque_on_without_goal(motion_spec(TableId::D55d), ByteOrder::LowFirst, plan_of(43, {0})));
+  EXPECT_TRUE(switches_torque_on(sts, ByteOrder::LowFirst, plan_of(40, {1})));
+  // torque 1 with a goal position in the same request: a servo in speed mode would run its stale
+  // goal speed, so this is a torque-on too.
+  EXPECT_TRUE(switches_torque_on(sts, ByteOrder::LowFirst, plan_of(40, {1, 0, 0x10, 0x00})));
+  EXPECT_FALSE(switches_torque_on(sts, ByteOrder::LowFirst, plan_of(40, {0})));
+  EXPECT_FALSE(switches_torque_on(sts, ByteOrder::LowFirst, plan_of(42, {0x10, 0x00})));
+  EXPECT_FALSE(switches_torque_on(motion_spec(TableId::D55d), ByteOrder::LowFirst, plan_of(43, {0})));
+}
+
+TEST(Motion, TorqueOnReadsTheSwitchFromTheStopContext) {
+  const MotionSpec& sts = motion_spec(TableId::Sts);
+  const auto ranges = stop_context_reads(sts);
+  ASSERT_EQ(ranges.size(), 1u);
+  protocol::Bytes data(ranges[0].count, 0);
+  const std::vector<protocol::Bytes> context{data};
+  EXPECT_EQ(torque_on(sts, ByteOrder::LowFirst, StopContext{ranges, context}), false);
+  data[40 - ranges[0].address] = 1;
+  const std::vector<protocol::Bytes> on{data};
+  EXPECT_EQ(torque_on(sts, ByteOrder::LowFirst, StopContext{ranges, on}), true);
+  EXPECT_EQ(torque_on(motion_spec(TableId::D55d), ByteOrder::LowFirst, StopContext{ranges, on}), std::nullopt);
 }
 
 }  // namespace
