@@ -783,21 +783,21 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     const std::string what = metric.name + " := " + std::to_string(*value);
     const std::size_t slot_index = static_cast<std::size_t>(slot - device.metrics.begin());
     ask(device.unit_id, WriteRegistersRequest{fc::kWriteSingleRegister, entry.address, {reg}},
-        [this, index, slot_index, what](const Answer& answer) {
+        [this, index, slot_index, what, written = *value](const Answer& answer) {
           auto& slot = devices_[index].metrics[slot_index];
           if (!answer.ok()) return finish_command(index, slot.name, what + ": " + answer.error_text());
           if (!slot.entry->readable) return finish_command(index, slot.name, "", what);
-          read_back(index, slot_index, what);
+          read_back(index, slot_index, written, what);
         });
   }
 
   // After a write, the field as the servo now holds it (FC03, live): a servo may clamp or refuse
   // a value silently (a goal below its angle limit holds the limit), and the host must see that,
   // not the value it sent.
-  void read_back(std::size_t index, std::size_t slot_index, const std::string& what) {
+  void read_back(std::size_t index, std::size_t slot_index, std::int64_t written, const std::string& what) {
     const RegisterEntry& entry = *devices_[index].metrics[slot_index].entry;
     ask(devices_[index].unit_id, ReadRegistersRequest{fc::kReadHoldingRegisters, entry.address, 1},
-        [this, index, slot_index, what](const Answer& answer) {
+        [this, index, slot_index, written, what](const Answer& answer) {
           Device& device = devices_[index];
           auto& slot = device.metrics[slot_index];
           const auto registers = answer.registers();
@@ -805,9 +805,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
             return finish_command(index, slot.name, "", what + " (read-back failed: " + answer.error_text() + ")");
           }
           const std::int64_t held = field_value(*slot.entry, registers[0]);
-          const bool differs = what.substr(what.rfind(' ') + 1) != std::to_string(held);
           slot.value = held;
-          finish_command(index, slot.name, "", differs ? what + ", reads back " + std::to_string(held) : what,
+          finish_command(index, slot.name, "", held != written ? what + ", reads back " + std::to_string(held) : what,
                          device.born);
         });
   }

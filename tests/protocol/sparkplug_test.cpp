@@ -128,6 +128,14 @@ TEST(SparkplugPayload, CommandMetricsWithoutADatatypeAreReadAsTheirBirthSays) {
   ASSERT_TRUE(raw) << raw.error();
   EXPECT_EQ(raw->metrics[0].type, DataType::Unknown);
   EXPECT_EQ(raw->metrics[0].value, MetricValue{std::uint64_t{0xFFFFFF9C}});
+  // The 16-bit spelling of a negative Int16 (0xFF9C) is accepted only from a sender that declared
+  // Int16; from the birth's type nothing says the sender meant -100 and not 65436: refused.
+  bytes = {0x12, 0x13, 0x0A, 0x0D};
+  for (const char c : std::string("goal_position")) bytes.push_back(static_cast<std::uint8_t>(c));
+  for (const std::uint8_t b : {0x50, 0x9C, 0xFF, 0x03}) bytes.push_back(b);
+  const auto low_bits = decode(bytes, [](std::string_view) { return DataType::Int16; });
+  ASSERT_FALSE(low_bits);
+  EXPECT_EQ(low_bits.error(), "metric 'goal_position': 65436 does not fit Int16");
   // A declared datatype wins over the birth's.
   Payload declared;
   declared.metrics.push_back(Metric::uint16("goal_position", 40000));
