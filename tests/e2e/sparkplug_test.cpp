@@ -526,6 +526,32 @@ TEST(Sparkplug, BdSeqCountsConnectsSentAndSurvivesARestart) {
   EXPECT_EQ(int_of(again->metric("bdSeq")), 2);
 }
 
+// A state file that does not hold a bdSeq, or a state_dir that cannot be written: logged, the
+// node starts and counts in memory (a bdSeq is not worth a refused start).
+TEST(Sparkplug, ABrokenBdSeqFileOrStateDirIsLoggedAndTheNodeGoesOn) {
+  Plant plant;
+  const std::string state = plant.dir.file("state");
+  std::filesystem::create_directories(state);
+  std::ofstream(state + "/sparkplug-bdseq") << "garbage\n";
+  {
+    auto gateway = GatewayProcess::with_config(
+        plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()) + "state_dir: \"" + state + "\"\n", 1);
+    const auto birth = plant.host.wait(is(MessageType::NBirth));
+    ASSERT_TRUE(birth) << plant.host.summary() << gateway.process().output();
+    EXPECT_EQ(int_of(birth->metric("bdSeq")), 0);
+    EXPECT_TRUE(gateway.process().wait_for_line("sparkplug-bdseq does not hold a bdSeq (0..255); starting at 0", 5s))
+        << gateway.process().output();
+  }
+  const std::string not_a_dir = plant.dir.file("plain-file");
+  std::ofstream(not_a_dir) << "x";
+  const std::size_t from = plant.host.count();
+  auto gateway = GatewayProcess::with_config(
+      plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()) + "state_dir: \"" + not_a_dir + "/state\"\n", 1);
+  ASSERT_TRUE(plant.host.wait(is(MessageType::NBirth), 10s, from)) << plant.host.summary() << gateway.process().output();
+  EXPECT_TRUE(gateway.process().wait_for_line("mqtt: the bdSeq is not kept across restarts: cannot create", 5s))
+      << gateway.process().output();
+}
+
 // Primary host (Ignition's setup): no NBIRTH until the host's STATE says online; offline ends
 // the session with NDEATH; a stale STATE (older timestamp) is ignored; online again: new births
 // with the next bdSeq.
