@@ -446,7 +446,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     session_ = false;
     for (auto& device : devices_) device.born = false;
     if (settings_.primary_host_id.empty()) return node_birth();
-    // The host's retained STATE arrives right after the subscription (README "primary_host_id").
+    // The host's retained STATE arrives right after the subscription (config/README.md
+    // "primary_host_id").
     spdlog::info("mqtt: connected; waiting for primary host {} to be online ({}) before NBIRTH",
                  settings_.primary_host_id, sp::state_topic(settings_.primary_host_id));
   }
