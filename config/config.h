@@ -285,6 +285,9 @@ struct MqttConfig {
   std::vector<MqttDeadband> deadbands;         // in file order, fields unique
   std::chrono::milliseconds reconnect_min{500};
   std::chrono::milliseconds reconnect_max{30000};
+  // The Sparkplug host application whose STATE gates the births (config/README.md
+  // "primary_host_id"); empty: none, births follow the connection.
+  std::string primary_host_id;
 
   bool operator==(const MqttConfig&) const = default;
 };

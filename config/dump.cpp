@@ -113,6 +113,10 @@ void emit_mqtt(YAML::Emitter& out, const MqttConfig& mqtt) {
   out << mqtt.reconnect_min.count();
   key(out, "reconnect_max_ms");
   out << mqtt.reconnect_max.count();
+  if (!mqtt.primary_host_id.empty()) {
+    key(out, "primary_host_id");
+    quoted(out, mqtt.primary_host_id);
+  }
   out << YAML::EndMap;
 }
 

@@ -53,10 +53,11 @@ constexpr std::array<std::string_view, 10> kServoKeys{"unit",       "bus",      
                                                       "safe_stop"};
 constexpr std::array<std::string_view, 4> kSyncGroupKeys{"name", "field", "members", "holding_register_start"};
 constexpr std::array<std::string_view, 3> kLoggingKeys{"level", "format", "metrics_listen"};
-constexpr std::array<std::string_view, 15> kMqttKeys{
+constexpr std::array<std::string_view, 16> kMqttKeys{
     "broker",      "group_id",       "edge_node_id",  "client_id",     "username",
     "password_file", "tls",          "keepalive_s",   "role",          "data_period_ms",
-    "report_period_s", "deadband",   "reconnect_min_ms", "reconnect_max_ms", "enabled"};
+    "report_period_s", "deadband",   "reconnect_min_ms", "reconnect_max_ms", "enabled",
+    "primary_host_id"};
 constexpr std::array<std::string_view, 3> kMqttTlsKeys{"ca", "certificate", "private_key"};
 
 constexpr std::string_view kPassthroughTable = "passthrough";
@@ -571,6 +572,7 @@ std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& c
   };
   mqtt.group_id = id("group_id");
   mqtt.edge_node_id = id("edge_node_id");
+  if (keys.find("primary_host_id")) mqtt.primary_host_id = id("primary_host_id");
   mqtt.client_id = "sms-gateway-" + mqtt.edge_node_id;
   if (const auto v = keys.find("client_id")) mqtt.client_id = string(*v);
   if (const auto v = keys.find("username")) mqtt.username = string(*v);

@@ -21,6 +21,7 @@
 #include "config/env.h"
 #include "config/load.h"
 #include "gateway/gateway.h"
+#include "gateway/units/state_file.h"
 #include "gateway/observability/logging.h"
 #include "gateway/mqtt/sparkplug_node.h"
 #include "gateway/modbus_tcp/tls.h"
@@ -114,6 +115,12 @@ int check_config(const std::string& path) {
       return kExitConfigError;
     }
   }
+  if (const std::string dir = sms::config::effective_state_dir(*config); !dir.empty()) {
+    if (const std::string problem = sms::gateway::check_state_dir(dir); !problem.empty()) {
+      std::cerr << path << ": " << problem << "\n";
+      return kExitConfigError;
+    }
+  }
   std::cout << path << ": OK: " << summary(*config);
   if (!applied.empty()) std::cout << " (with " << joined(applied) << " from the environment)";
   std::cout << "\n";
@@ -198,6 +205,13 @@ int run_gateway(const Options& options) {
     spdlog::info("configuration {}: {}", options.config_file, summary(config));
   }
 
+  // The e-stop latch is kept there: a gateway that could not keep it does not start.
+  if (const std::string dir = sms::config::effective_state_dir(config); !dir.empty()) {
+    if (const std::string problem = sms::gateway::check_state_dir(dir); !problem.empty()) {
+      spdlog::critical("{}", problem);
+      return kExitConfigError;
+    }
+  }
   try {
     sms::gateway::Gateway gateway(std::move(config));
     gateway.start();

@@ -1,6 +1,8 @@
 #include "gateway/mqtt/mqtt_link.h"
 
 #include <mosquitto.h>
+#include <openssl/ssl.h>
+#include <sys/socket.h>
 
 #include <algorithm>
 #include <cerrno>
@@ -65,11 +67,16 @@ void MqttLink::run() {
     mosquitto_will_set(client_, will.topic.c_str(), static_cast<int>(will.payload.size()), will.payload.data(),
                        will.qos, will.retain);
     session_lost_ = false;
+    connect_sent_ = false;
     // Non-blocking connect: stop() never waits for a TCP timeout to an unreachable broker.
     int rc = mosquitto_connect_async(client_, broker.host.c_str(), broker.port,
                                      static_cast<int>(options_.keepalive.count()));
-    // CONNACK, then traffic, until the session ends (on_disconnect), fails, or stop().
-    while (rc == MOSQ_ERR_SUCCESS && !stopping_ && !session_lost_) rc = mosquitto_loop(client_, 100, 1);
+    // CONNACK, then traffic, until the session ends (on_disconnect), fails, or stop(). The CONNECT
+    // is queued at once and written as soon as the transport is up, within the same loop call.
+    while (rc == MOSQ_ERR_SUCCESS && !stopping_ && !session_lost_) {
+      rc = mosquitto_loop(client_, 100, 1);
+      if (!connect_sent_ && transport_up()) note_connect_sent();
+    }
     if (rc != MOSQ_ERR_SUCCESS && !connected_) {
       const std::string reason = error_text(rc);
       if (first_time_failure(reason)) {
@@ -78,6 +85,13 @@ void MqttLink::run() {
       }
     }
     const bool was_connected = connected_.exchange(false);
+    if (was_connected && restarting_.exchange(false) && !stopping_ && !closing_) {
+      spdlog::info("mqtt: disconnected from broker {} on purpose; connecting again", broker.to_string());
+      events_.disconnected("disconnected on purpose");
+      backoff = options_.reconnect_min;
+      wait_backoff(backoff);
+      continue;
+    }
     if (was_connected) {
       if (stopping_ || closing_) break;
       ++disconnects_;
@@ -104,6 +118,24 @@ bool MqttLink::first_time_failure(const std::string& reason) {
   return true;
 }
 
+// Whether the connection to the broker is established (TCP connected and, with TLS, the
+// handshake done): from then on the queued CONNECT has left or leaves on the next write.
+bool MqttLink::transport_up() const {
+  const int fd = mosquitto_socket(client_);
+  if (fd < 0) return false;
+  sockaddr_storage peer{};
+  socklen_t length = sizeof peer;
+  if (::getpeername(fd, reinterpret_cast<sockaddr*>(&peer), &length) != 0) return false;
+  if (!options_.tls) return true;
+  const auto* ssl = static_cast<SSL*>(mosquitto_ssl_get(client_));
+  return ssl != nullptr && SSL_is_init_finished(ssl) == 1;
+}
+
+void MqttLink::note_connect_sent() {
+  connect_sent_ = true;
+  if (events_.connect_sent) events_.connect_sent();
+}
+
 void MqttLink::wait_backoff(std::chrono::milliseconds delay) {
   std::unique_lock lock(mutex_);
   wake_.wait_for(lock, delay, [this] { return stopping_.load(); });
@@ -111,6 +143,7 @@ void MqttLink::wait_backoff(std::chrono::milliseconds delay) {
 
 void MqttLink::on_connect(mosquitto* client, void* self, int rc) {
   auto& link = *static_cast<MqttLink*>(self);
+  if (!link.connect_sent_) link.note_connect_sent();  // a CONNACK answers a CONNECT
   if (rc != 0) {
     const std::string reason = std::string("the broker refused the connection: ") + mosquitto_connack_string(rc);
     if (link.first_time_failure(reason)) {
@@ -157,6 +190,13 @@ bool MqttLink::publish(const std::string& topic, std::span<const std::uint8_t> p
   }
   ++published_;
   return true;
+}
+
+void MqttLink::reconnect(std::optional<MqttWill> last) {
+  if (client_ == nullptr || !connected_ || stopping_ || closing_) return;
+  if (last) publish(last->topic, last->payload, last->qos, last->retain);
+  restarting_ = true;
+  mosquitto_disconnect(client_);
 }
 
 void MqttLink::stop(std::optional<MqttWill> last, std::chrono::milliseconds grace) {

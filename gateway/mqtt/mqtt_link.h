@@ -3,7 +3,8 @@
 // own: connects, keeps the session alive, reconnects with exponential backoff (reconnect_min ..
 // reconnect_max) when the broker goes away, and hands what happens to its owner. It knows
 // nothing of Sparkplug: the owner (SparkplugNode) gives the will before each connection attempt
-// (its NDEATH with the next bdSeq), the topics to subscribe and what to publish.
+// (its NDEATH with the next bdSeq), the topics to subscribe and what to publish, and learns when
+// an attempt's CONNECT went out (the bdSeq is then used up; a refused TCP connection uses none).
 //
 //   MqttLink link(options, events);    // events run on the link's thread
 //   link.start();
@@ -54,6 +55,10 @@ class MqttLink {
  public:
   struct Events {
     std::function<MqttWill()> will;                             // before each connection attempt
+    // The attempt's CONNECT went out (the transport came up): at most once per attempt, before
+    // `connected`. An attempt that never reached the broker (refused, unreachable, failed TLS
+    // handshake) does not call it.
+    std::function<void()> connect_sent;
     std::function<void()> connected;                            // session up, subscriptions sent
     std::function<void(const std::string& reason)> disconnected;  // session lost
     std::function<void(std::string topic, protocol::Bytes payload)> message;
@@ -70,6 +75,10 @@ class MqttLink {
   // to leave. Then ends the thread. Idempotent.
   void stop(std::optional<MqttWill> last = std::nullopt, std::chrono::milliseconds grace = std::chrono::seconds{1});
 
+  // Any thread, when connected: publishes `last`, sends DISCONNECT, and connects again after
+  // reconnect_min (with a new will). Not counted as a lost session.
+  void reconnect(std::optional<MqttWill> last);
+
   bool publish(const std::string& topic, std::span<const std::uint8_t> payload, int qos, bool retain = false);
   bool connected() const { return connected_.load(); }
   MqttLinkStats stats() const;
@@ -77,6 +86,8 @@ class MqttLink {
  private:
   void run();
   void wait_backoff(std::chrono::milliseconds delay);
+  bool transport_up() const;
+  void note_connect_sent();
   static void on_connect(mosquitto* client, void* self, int rc);
   static void on_disconnect(mosquitto* client, void* self, int rc);
   static void on_message(mosquitto* client, void* self, const mosquitto_message* message);
@@ -87,6 +98,8 @@ class MqttLink {
   std::thread thread_;
   std::atomic<bool> stopping_{false};
   std::atomic<bool> closing_{false};  // stop() sent DISCONNECT: the session's end is not a loss
+  std::atomic<bool> restarting_{false};  // reconnect() sent DISCONNECT: connect again
+  bool connect_sent_ = false;            // this attempt's CONNECT went out (link thread)
   std::atomic<bool> connected_{false};
   std::atomic<bool> session_lost_{false};
   std::mutex mutex_;  // backoff wait and stop

@@ -2,7 +2,9 @@
 
 #include <algorithm>
 #include <atomic>
+#include <charconv>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <mutex>
 #include <stdexcept>
@@ -13,6 +15,7 @@
 #include <boost/asio/steady_timer.hpp>
 #include <spdlog/spdlog.h>
 
+#include "gateway/units/state_file.h"
 #include "gateway/units/gateway_unit.h"
 #include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/units/unit_router.h"
@@ -29,6 +32,8 @@ namespace {
 
 // Commands waiting behind the one being carried out; past it a command is refused.
 constexpr std::size_t kMaxQueuedCommands = 1024;
+// Where the bdSeq of the latest CONNECT that may have reached the broker is kept, in state_dir.
+constexpr std::string_view kBdSeqFile = "sparkplug-bdseq";
 
 std::uint64_t epoch_ms() {
   return static_cast<std::uint64_t>(
@@ -73,16 +78,69 @@ std::int64_t field_value(const RegisterEntry& entry, std::uint16_t reg) {
   return entry.min < 0 ? std::int64_t{static_cast<std::int16_t>(reg)} : std::int64_t{reg};
 }
 
+// The datatype a table field is born with: the register as a PLC reads it.
+sp::DataType field_type(const RegisterEntry& entry) { return entry.min < 0 ? sp::DataType::Int16 : sp::DataType::UInt16; }
+
 sp::Metric field_metric(const std::string& name, const RegisterEntry& entry, std::optional<std::int64_t> value) {
-  sp::Metric metric = entry.min < 0 ? sp::Metric::int16(name, 0) : sp::Metric::uint16(name, 0);
+  sp::Metric metric = sp::Metric::of(name, field_type(entry), std::monostate{});
   if (!value) {
     metric.value = std::monostate{};
-  } else if (entry.min < 0) {
+  } else if (field_type(entry) == sp::DataType::Int16) {
     metric.value = *value;
   } else {
     metric.value = static_cast<std::uint64_t>(*value);
   }
   return metric;
+}
+
+// A command's value checked before anything is written (README "MQTT Sparkplug B", commands):
+// of the kind the metric was born with (an integer type for an integer metric: a Boolean,
+// Float or String is no position), within that datatype's range (UInt16 40000 does not fit an
+// Int16 metric; it is not taken as -25536), and within [min, max] (the register map's range).
+// The error says what was sent and what the metric takes.
+// What a command metric carried, for refusals: `Boolean true`, `Float 2.5`, `String "fast"`.
+std::string sent(const sp::Metric& metric) {
+  const std::string type(sp::to_string(metric.type));
+  return std::visit(
+      [&](const auto& value) -> std::string {
+        using T = std::decay_t<decltype(value)>;
+        if constexpr (std::is_same_v<T, std::monostate>) {
+          return type + " null";
+        } else if constexpr (std::is_same_v<T, bool>) {
+          return type + (value ? " true" : " false");
+        } else if constexpr (std::is_same_v<T, std::string>) {
+          return type + " \"" + value.substr(0, 40) + "\"";
+        } else {
+          return type + " " + fmt::format("{}", value);
+        }
+      },
+      metric.value);
+}
+
+Expected<std::int64_t> command_value(const sp::Metric& metric, sp::DataType born_as, std::int64_t min, std::int64_t max) {
+  const std::string born = std::string(sp::to_string(born_as));
+  if (born_as == sp::DataType::Boolean) {
+    if (const auto* flag = std::get_if<bool>(&metric.value); flag && metric.type == sp::DataType::Boolean) {
+      return std::int64_t{*flag ? 1 : 0};
+    }
+    return unexpected("got " + sent(metric) + ", the metric is Boolean (send true or false)");
+  }
+  const auto range = sp::integer_range(born_as);
+  const auto value = sp::integer_value(metric.value);
+  const bool integer = std::holds_alternative<std::int64_t>(metric.value) || std::holds_alternative<std::uint64_t>(metric.value);
+  if (!range || !sp::integer_range(metric.type) || !integer || !value) {
+    return unexpected("got " + sent(metric) + ", the metric is " + born + " (send a whole number, datatype " + born +
+                      " as in the birth)");
+  }
+  if (*value < range->min || *value > range->max) {
+    return unexpected(std::to_string(*value) + " does not fit " + born + " (" + std::to_string(range->min) + ".." +
+                      std::to_string(range->max) + "), the metric's datatype in its birth");
+  }
+  if (*value < min || *value > max) {
+    return unexpected(std::to_string(*value) + " is outside " + std::to_string(min) + ".." + std::to_string(max) +
+                      ", the range the register map allows");
+  }
+  return *value;
 }
 
 }  // namespace
@@ -119,6 +177,9 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     for (std::size_t i = 0; i < config.buses.size(); ++i) {
       heartbeats_.push_back(std::string(metric_name::kHeartbeatPrefix) + config.buses[i].name);
     }
+    if (const std::string dir = config::effective_state_dir(config); !dir.empty()) {
+      bd_seq_path_ = (std::filesystem::path(dir) / kBdSeqFile).string();
+    }
   }
 
   void start() {
@@ -132,10 +193,13 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     options.reconnect_min = settings_.reconnect_min;
     options.reconnect_max = settings_.reconnect_max;
     options.subscriptions = {topic(sp::MessageType::NCmd), topic(sp::MessageType::DCmd, "+")};
+    if (!settings_.primary_host_id.empty()) options.subscriptions.push_back(sp::state_topic(settings_.primary_host_id));
+    load_bd_seq();
     std::weak_ptr<Impl> weak = shared_from_this();
     replies_ = std::make_shared<Replies>(weak);
     MqttLink::Events events;
-    events.will = [this] { return death_will(); };
+    events.will = [this] { return next_will(); };
+    events.connect_sent = [this] { bd_seq_ = candidate_bd_seq_; candidate_used_ = true; };
     events.connected = [this, weak] {
       asio::post(io_, [weak] { if (auto self = weak.lock()) self->on_connected(); });
     };
@@ -149,15 +213,17 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     };
     link_ = std::make_unique<MqttLink>(std::move(options), std::move(events));
     link_->start();
-    spdlog::info("mqtt: Sparkplug B edge node {}/{} with {} device(s), broker {}", settings_.group_id,
-                 settings_.edge_node_id, devices_.size(), settings_.broker.to_string());
+    spdlog::info("mqtt: Sparkplug B edge node {}/{} with {} device(s), broker {}{}", settings_.group_id,
+                 settings_.edge_node_id, devices_.size(), settings_.broker.to_string(),
+                 settings_.primary_host_id.empty() ? std::string()
+                                                   : ", primary host " + settings_.primary_host_id);
     asio::post(io_, [weak] { if (auto self = weak.lock()) self->schedule(); });
   }
 
   void stop() {
     if (!link_ || stopping_.exchange(true)) return;
     // The node's own NDEATH (a clean DISCONNECT makes the broker drop the will).
-    link_->stop(death_will());
+    link_->stop(death(bd_seq_.load()));
   }
 
   SparkplugStats stats() const {
@@ -268,18 +334,76 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     return sp::topic_text(sp::Topic{settings_.group_id, type, settings_.edge_node_id, device});
   }
 
-  // Called on the link thread before every connection attempt: the NDEATH the broker sends for
-  // us if the connection dies, with the bdSeq the coming NBIRTH will carry (spec §7.1).
-  MqttWill death_will() {
-    if (!stopping_) bd_seq_ = next_bd_seq_.fetch_add(1) % 256;
+  // ---- bdSeq (spec: +1 per CONNECT, 0..255, the NDEATH in the will names its NBIRTH) ----
+  //
+  // The candidate is the bdSeq of the next CONNECT; it is used up once a CONNECT went out
+  // (MqttLink's connect_sent), so attempts that never reached the broker cost none. With a
+  // state_dir it is written to the file *before* the attempt: a crash can then skip a value but
+  // never send one twice, which a host would take for the old session.
+
+  void load_bd_seq() {
+    if (bd_seq_path_.empty()) {
+      spdlog::info("mqtt: no state_dir: the Sparkplug bdSeq starts at 0 at every start (config/README.md "
+                   "\"state_dir\")");
+      return;
+    }
+    {
+      const auto read = read_state_file(bd_seq_path_);
+      if (!read) {
+        spdlog::warn("mqtt: {}; the bdSeq starts at 0", read.error());
+        return;
+      }
+      const auto& text = *read;
+      if (!text) return;  // first start
+      std::uint64_t last = 0;
+      const char* end = text->data() + text->size();
+      const auto [rest, error] = std::from_chars(text->data(), end, last);
+      if (error != std::errc() || last > 255 || (rest != end && *rest != '\n')) {
+        spdlog::warn("mqtt: {} does not hold a bdSeq (0..255); starting at 0", bd_seq_path_);
+        return;
+      }
+      candidate_bd_seq_ = last;
+      stored_bd_seq_ = last;
+      candidate_used_ = true;
+    }
+  }
+
+  // On the link thread before every connection attempt: the NDEATH the broker sends for us if the
+  // connection dies, with the bdSeq the coming NBIRTH will carry.
+  MqttWill next_will() {
+    if (candidate_used_) {
+      candidate_bd_seq_ = (candidate_bd_seq_ + 1) % 256;
+      candidate_used_ = false;
+    }
+    if (!bd_seq_path_.empty() && stored_bd_seq_ != candidate_bd_seq_) {
+      if (const auto written = write_file_atomically(bd_seq_path_, std::to_string(candidate_bd_seq_) + "\n")) {
+        stored_bd_seq_ = candidate_bd_seq_;
+        bd_seq_store_failing_ = false;
+      } else if (!bd_seq_store_failing_) {
+        bd_seq_store_failing_ = true;
+        spdlog::warn("mqtt: the bdSeq is not kept across restarts: {} (check state_dir)", written.error());
+      }
+    }
+    return death(candidate_bd_seq_);
+  }
+
+  MqttWill death(std::uint64_t bd_seq) const {
     sp::Payload payload;
     payload.timestamp = epoch_ms();
-    payload.metrics.push_back(sp::Metric::uint64(std::string(sp::kBdSeqMetric), bd_seq_.load()));
+    payload.metrics.push_back(sp::Metric::int64(std::string(sp::kBdSeqMetric), static_cast<std::int64_t>(bd_seq)));
     return MqttWill{topic(sp::MessageType::NDeath), sp::encode(payload), 1, false};
   }
 
+  // Stamps the payload (and, on births and data, every metric without its own time: Sparkplug
+  // 3.0 wants one on each) and the next seq.
   void publish(sp::MessageType type, sp::Payload payload, const std::string& device = "") {
-    payload.timestamp = epoch_ms();
+    const std::uint64_t now = epoch_ms();
+    payload.timestamp = now;
+    if (type != sp::MessageType::NDeath && type != sp::MessageType::DDeath) {
+      for (auto& metric : payload.metrics) {
+        if (!metric.timestamp) metric.timestamp = now;
+      }
+    }
     payload.seq = seq_;
     seq_ = (seq_ + 1) % 256;
     if (link_->publish(topic(type, device), sp::encode(payload), 0)) {
@@ -321,25 +445,68 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
 
   void on_connected() {
     if (stopping_) return;
-    session_ = true;
-    seq_ = 0;
+    connected_ = true;
+    session_ = false;
     for (auto& device : devices_) device.born = false;
-    publish_node_birth();
+    if (settings_.primary_host_id.empty()) return node_birth();
+    // The host's retained STATE arrives right after the subscription (config/README.md
+    // "primary_host_id").
+    spdlog::info("mqtt: connected; waiting for primary host {} to be online ({}) before NBIRTH",
+                 settings_.primary_host_id, sp::state_topic(settings_.primary_host_id));
   }
 
   void on_disconnected() {
+    connected_ = false;
     session_ = false;
     for (auto& device : devices_) device.born = false;
     set_online_count();
   }
 
+  // NBIRTH (seq 0), then every device's DBIRTH from the next ticks.
+  void node_birth() {
+    session_ = true;
+    seq_ = 0;
+    for (auto& device : devices_) device.born = false;
+    set_online_count();
+    publish_node_birth();
+  }
+
+  // The primary host's STATE (Sparkplug 3.0): births wait for online; offline ends a born
+  // session (NDEATH, DISCONNECT, connect again, wait). Older timestamps are stale: ignored.
+  void on_host_state(const Bytes& bytes) {
+    const std::string& host = settings_.primary_host_id;
+    const auto state = sp::parse_host_state(std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+    if (!state) return bad_message("mqtt: ignored the STATE of primary host " + host + ": " + state.error());
+    if (host_timestamp_ && state->timestamp < *host_timestamp_) {
+      spdlog::info("mqtt: ignored a stale STATE of primary host {} (timestamp {} is before {})", host,
+                   state->timestamp, *host_timestamp_);
+      return;
+    }
+    host_timestamp_ = state->timestamp;
+    if (state->online) {
+      if (connected_ && !session_ && !stopping_) {
+        spdlog::info("mqtt: primary host {} is online: NBIRTH", host);
+        node_birth();
+      }
+      return;
+    }
+    if (!session_) {
+      if (connected_) spdlog::info("mqtt: primary host {} is offline; waiting for it before NBIRTH", host);
+      return;
+    }
+    spdlog::warn("mqtt: primary host {} went offline: NDEATH, reconnecting, and no births until it is back", host);
+    on_disconnected();
+    link_->reconnect(death(bd_seq_.load()));
+  }
+
   void publish_node_birth() {
     sp::Payload payload;
-    payload.metrics.push_back(sp::Metric::uint64(std::string(sp::kBdSeqMetric), bd_seq_.load()));
+    payload.metrics.push_back(sp::Metric::int64(std::string(sp::kBdSeqMetric), static_cast<std::int64_t>(bd_seq_.load())));
     payload.metrics.push_back(sp::Metric::boolean(std::string(sp::kRebirthMetric), false));
     payload.metrics.push_back(sp::Metric::string(std::string(metric_name::kVersion), SMS_GATEWAY_VERSION));
     payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kEStop), estop_));
     payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kWatchdogTripped), tripped_));
+    payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStopsOwed), stops_owed_));
     for (const auto& name : heartbeats_) {
       auto metric = sp::Metric::uint16(name, 0);
       metric.value = std::monostate{};  // write-only: the value is whatever the host sends next
@@ -379,6 +546,17 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
           }
           estop_ = estop;
           tripped_ = tripped;
+          publish(sp::MessageType::NData, std::move(payload));
+        });
+    // A stop that could not be delivered yet (docs/SAFETY.md): a host must see it, not only a PLC.
+    ask(config_.modbus_tcp.gateway_unit_id,
+        ReadRegistersRequest{fc::kReadInputRegisters, gateway_unit_layout::kOwedStops, 1}, [this](const Answer& answer) {
+          if (!answer.ok() || !session_) return;
+          const auto registers = answer.registers();
+          if (registers.empty() || registers[0] == stops_owed_) return;
+          stops_owed_ = registers[0];
+          sp::Payload payload;
+          payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStopsOwed), stops_owed_));
           publish(sp::MessageType::NData, std::move(payload));
         });
   }
@@ -491,10 +669,12 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
       device.status = facts[0];
     }
     if (everything) {
-      payload.metrics.push_back(
-          sp::Metric::uint32(std::string(metric_name::kRepliesOk), static_cast<std::uint32_t>(facts[4] << 16 | facts[5])));
-      payload.metrics.push_back(
-          sp::Metric::uint32(std::string(metric_name::kTimeouts), static_cast<std::uint32_t>(facts[6] << 16 | facts[7])));
+      // UInt64 (long_value) rather than UInt32: the spec puts UInt32 in int_value, Tahu's Java and
+      // JS decoders read it from long_value; for UInt64 both agree (docs/DECISIONS.md).
+      payload.metrics.push_back(sp::Metric::uint64(std::string(metric_name::kRepliesOk),
+                                                   std::uint64_t{facts[4]} << 16 | facts[5]));
+      payload.metrics.push_back(sp::Metric::uint64(std::string(metric_name::kTimeouts),
+                                                   std::uint64_t{facts[6]} << 16 | facts[7]));
       payload.metrics.push_back(sp::Metric::string(std::string(metric_name::kLastCommand), device.last_command));
     }
   }
@@ -530,13 +710,14 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   // ---- commands ----
 
   void on_message(const std::string& topic_text, const Bytes& bytes) {
+    if (!settings_.primary_host_id.empty() && topic_text == sp::state_topic(settings_.primary_host_id)) {
+      return on_host_state(bytes);
+    }
     const auto topic = sp::parse_topic(topic_text);
     if (!topic || topic->group != settings_.group_id || topic->edge_node != settings_.edge_node_id ||
         (topic->type != sp::MessageType::NCmd && topic->type != sp::MessageType::DCmd)) {
       return bad_message("mqtt: ignored a message on " + topic_text + " (not this node's NCMD/DCMD)");
     }
-    const auto payload = sp::decode(bytes);
-    if (!payload) return bad_message("mqtt: refused the command on " + topic_text + ": " + payload.error());
     std::optional<std::size_t> device;
     if (topic->type == sp::MessageType::DCmd) {
       for (std::size_t i = 0; i < devices_.size(); ++i) {
@@ -547,6 +728,13 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
                            "` on this node (devices are the servo names, else unit-<N>)");
       }
     }
+    // Metrics without a datatype (as commands should be sent) are read as their birth said.
+    const auto payload = sp::decode(bytes, [&](std::string_view name) { return birth_type(device, name); });
+    if (!payload) return bad_message("mqtt: refused the command on " + topic_text + ": " + payload.error());
+    if (payload->metrics.empty()) {
+      return bad_message("mqtt: ignored the " + std::string(sp::to_string(topic->type)) + " on " + topic_text +
+                         ": it carries no metric (" + std::to_string(bytes.size()) + " bytes)");
+    }
     for (const auto& metric : payload->metrics) {
       if (commands_.size() >= kMaxQueuedCommands) {
         refuse_command(device, metric.name, "the command queue is full (" + std::to_string(kMaxQueuedCommands) +
@@ -556,6 +744,28 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
       commands_.push_back(Command{device, metric});
     }
     if (!command_running_) run_next_command();
+  }
+
+  // The datatype `name` has in this node's NBIRTH (no device) or the device's DBIRTH.
+  sp::DataType birth_type(std::optional<std::size_t> device, std::string_view name) const {
+    if (device) {
+      for (const auto& slot : devices_[*device].metrics) {
+        if (slot.name == name) return field_type(*slot.entry);
+      }
+      if (name == metric_name::kStatus) return sp::DataType::UInt16;
+      if (name == metric_name::kRepliesOk || name == metric_name::kTimeouts) return sp::DataType::UInt64;
+      if (name == metric_name::kLastCommand) return sp::DataType::String;
+      return sp::DataType::Unknown;
+    }
+    if (name == sp::kBdSeqMetric) return sp::DataType::Int64;
+    if (name == sp::kRebirthMetric || name == metric_name::kEStop || name == metric_name::kWatchdogTripped) {
+      return sp::DataType::Boolean;
+    }
+    if (name == metric_name::kVersion) return sp::DataType::String;
+    for (const auto& heartbeat : heartbeats_) {
+      if (heartbeat == name) return sp::DataType::UInt16;
+    }
+    return sp::DataType::Unknown;
   }
 
   void bad_message(const std::string& text) {
@@ -582,27 +792,43 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
                                    [&](const MetricSlot& s) { return s.name == metric.name; });
     if (slot == device.metrics.end()) return finish_command(index, metric.name, "no such metric on this device");
     if (!slot->entry->writable) return finish_command(index, metric.name, "read-only");
-    const auto value = sp::integer_value(metric.value);
-    if (!value) return finish_command(index, metric.name, "needs a whole number");
-    if (*value < -32768 || *value > 65535) {
-      return finish_command(index, metric.name, std::to_string(*value) + " does not fit a register");
-    }
+    const RegisterEntry& entry = *slot->entry;
+    const auto value = command_value(metric, field_type(entry), entry.min, entry.max);
+    if (!value) return finish_command(index, metric.name, value.error() + "; nothing written");
     const auto reg = static_cast<std::uint16_t>(*value);
     const std::string what = metric.name + " := " + std::to_string(*value);
     const std::size_t slot_index = static_cast<std::size_t>(slot - device.metrics.begin());
-    ask(device.unit_id, WriteRegistersRequest{fc::kWriteSingleRegister, slot->entry->address, {reg}},
-        [this, index, slot_index, what, reg](const Answer& answer) {
+    ask(device.unit_id, WriteRegistersRequest{fc::kWriteSingleRegister, entry.address, {reg}},
+        [this, index, slot_index, what, written = *value](const Answer& answer) {
+          auto& slot = devices_[index].metrics[slot_index];
+          if (!answer.ok()) return finish_command(index, slot.name, what + ": " + answer.error_text());
+          if (!slot.entry->readable) return finish_command(index, slot.name, "", what);
+          read_back(index, slot_index, written, what);
+        });
+  }
+
+  // After a write, the field as the servo now holds it (FC03, live): a servo may clamp or refuse
+  // a value silently (a goal below its angle limit holds the limit), and the host must see that,
+  // not the value it sent.
+  void read_back(std::size_t index, std::size_t slot_index, std::int64_t written, const std::string& what) {
+    const RegisterEntry& entry = *devices_[index].metrics[slot_index].entry;
+    ask(devices_[index].unit_id, ReadRegistersRequest{fc::kReadHoldingRegisters, entry.address, 1},
+        [this, index, slot_index, written, what](const Answer& answer) {
           Device& device = devices_[index];
           auto& slot = device.metrics[slot_index];
-          if (!answer.ok()) return finish_command(index, slot.name, what + ": " + answer.error_text());
-          const bool report = device.born && !slot.from_cache && slot.entry->readable;
-          if (slot.entry->readable) slot.value = field_value(*slot.entry, reg);
-          finish_command(index, slot.name, "", what, report);
+          const auto registers = answer.registers();
+          if (!answer.ok() || registers.empty()) {
+            return finish_command(index, slot.name, "", what + " (read-back failed: " + answer.error_text() + ")");
+          }
+          const std::int64_t held = field_value(*slot.entry, registers[0]);
+          slot.value = held;
+          finish_command(index, slot.name, "", held != written ? what + ", reads back " + std::to_string(held) : what,
+                         device.born);
         });
   }
 
   // Ends a device command: logs a refusal, records "ok: ..." or "refused: ..." as the device's
-  // Gateway/Last Command and publishes it (with the written value for a live field).
+  // Gateway/Last Command and publishes it (with the value read back after a write).
   void finish_command(std::size_t index, const std::string& name, const std::string& refusal,
                       const std::string& done = "", bool report_value = false) {
     Device& device = devices_[index];
@@ -630,16 +856,22 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   }
 
   void run_node_command(const sp::Metric& metric) {
-    const auto value = sp::integer_value(metric.value);
     const auto done = [this, name = metric.name](const Answer& answer) {
       finish_node_command(name, answer.ok() ? "" : answer.error_text());
     };
     const std::uint8_t gateway = config_.modbus_tcp.gateway_unit_id;
+    const sp::DataType born_as = birth_type(std::nullopt, metric.name);
+    // The Boolean controls and the UInt16 heartbeats; bdSeq and the version are the node's own.
+    const bool writable = born_as == sp::DataType::Boolean || born_as == sp::DataType::UInt16;
+    if (born_as == sp::DataType::Unknown || !writable) {
+      return finish_node_command(metric.name, born_as == sp::DataType::Unknown ? "no such node metric" : "read-only");
+    }
+    const auto value = command_value(metric, born_as, 0, born_as == sp::DataType::Boolean ? 1 : 65535);
+    if (!value) return finish_node_command(metric.name, value.error() + "; nothing written");
     if (metric.name == sp::kRebirthMetric) {
-      if (value.value_or(0) != 0 && session_) on_connected();  // NBIRTH again, then every DBIRTH
+      if (*value != 0 && session_) node_birth();  // NBIRTH again, then every DBIRTH
       return finish_node_command(metric.name, "");
     }
-    if (!value) return finish_node_command(metric.name, "needs a value (true/false or a number)");
     if (metric.name == metric_name::kEStop) {
       return ask(gateway, WriteBitsRequest{fc::kWriteSingleCoil, gateway_unit_layout::kEStopCoil, {*value != 0}}, done);
     }
@@ -649,7 +881,6 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     }
     for (std::size_t bus = 0; bus < heartbeats_.size(); ++bus) {
       if (metric.name != heartbeats_[bus]) continue;
-      if (*value < 0 || *value > 65535) return finish_node_command(metric.name, "does not fit a register");
       return ask(gateway,
                  WriteRegistersRequest{fc::kWriteSingleRegister, static_cast<std::uint16_t>(1000 + bus),
                                        {static_cast<std::uint16_t>(*value)}},
@@ -687,12 +918,20 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   std::uint64_t next_serial_ = 1;
   std::deque<Command> commands_;
   bool command_running_ = false;
-  bool session_ = false;  // connected and NBIRTH sent
+  bool connected_ = false;  // an MQTT session is up
+  bool session_ = false;    // connected and NBIRTH sent
+  std::optional<std::uint64_t> host_timestamp_;  // of the primary host's latest STATE
   bool estop_ = false;
   bool tripped_ = false;
+  std::uint16_t stops_owed_ = 0;
   std::uint64_t seq_ = 0;
-  std::atomic<std::uint64_t> next_bd_seq_{0};
-  std::atomic<std::uint64_t> bd_seq_{0};
+  std::atomic<std::uint64_t> bd_seq_{0};  // of this session's CONNECT (its NBIRTH's)
+  // Link thread only: the bdSeq of the next CONNECT, whether a CONNECT used it, the file.
+  std::uint64_t candidate_bd_seq_ = 0;
+  bool candidate_used_ = false;
+  std::string bd_seq_path_;  // empty: kept in memory only
+  std::optional<std::uint64_t> stored_bd_seq_;
+  bool bd_seq_store_failing_ = false;
   std::atomic<bool> stopping_{false};
   mutable std::mutex stats_mutex_;
   SparkplugStats stats_;

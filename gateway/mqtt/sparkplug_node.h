@@ -44,6 +44,7 @@ inline constexpr std::string_view kLastCommand = "Gateway/Last Command";  // "ok
 // Node metrics (gateway unit coils and heartbeat registers).
 inline constexpr std::string_view kEStop = "Gateway/E-Stop";                      // coil 1
 inline constexpr std::string_view kWatchdogTripped = "Gateway/Watchdog Tripped";  // coil 2; write false re-arms
+inline constexpr std::string_view kStopsOwed = "Gateway/Safe Stops Owed";  // input register 13 (docs/SAFETY.md)
 inline constexpr std::string_view kHeartbeatPrefix = "Gateway/Heartbeat/";        // + bus name: holding 1000 + n
 inline constexpr std::string_view kVersion = "Gateway/Version";
 }  // namespace sparkplug_metric

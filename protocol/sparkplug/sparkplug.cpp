@@ -1,6 +1,8 @@
 #include "protocol/sparkplug/sparkplug.h"
 
 #include <array>
+#include <cctype>
+#include <charconv>
 #include <cmath>
 #include <limits>
 
@@ -67,8 +69,11 @@ void set_value(wire::Payload::Metric& out, const Metric& metric) {
 }
 
 // An int_value or long_value read back as the declared type: sign-extended for signed types,
-// range-checked for narrow ones.
-Expected<MetricValue> integer_from_wire(DataType type, std::uint64_t raw, bool narrow, const std::string& name) {
+// range-checked for narrow ones. `low_bits_too`: an Int8/Int16 may also come as its 8/16 low bits
+// only (hosts differ); not for a type taken from the birth, where nothing says how the sender
+// meant it.
+Expected<MetricValue> integer_from_wire(DataType type, std::uint64_t raw, bool narrow, bool low_bits_too,
+                                        const std::string& name) {
   if (is_signed(type)) {
     std::int64_t value = narrow ? std::int64_t{static_cast<std::int32_t>(static_cast<std::uint32_t>(raw))}
                                 : static_cast<std::int64_t>(raw);
@@ -77,7 +82,7 @@ Expected<MetricValue> integer_from_wire(DataType type, std::uint64_t raw, bool n
       const std::int64_t low = -(std::int64_t{1} << (bits - 1));
       const std::int64_t high = (std::int64_t{1} << (bits - 1)) - 1;
       // Hosts differ in sign-extending 8/16-bit values to 32 bits; accept both spellings.
-      if (value > high && value <= high * 2 + 1) value -= (high + 1) * 2;
+      if (low_bits_too && value > high && value <= high * 2 + 1) value -= (high + 1) * 2;
       if (value < low || value > high) {
         return unexpected("metric '" + name + "': " + std::to_string(value) + " does not fit " +
                           std::string(to_string(type)));
@@ -94,13 +99,15 @@ Expected<MetricValue> integer_from_wire(DataType type, std::uint64_t raw, bool n
 }
 
 Expected<MetricValue> value_from_wire(const wire::Payload::Metric& in, DataType type, const std::string& name) {
+  const bool declared = in.has_datatype() && in.datatype() != 0;
   if (in.has_is_null() && in.is_null()) return MetricValue{};
   using Case = wire::Payload::Metric::ValueCase;
   switch (in.value_case()) {
     case Case::kIntValue:
-      return integer_from_wire(type == DataType::Unknown ? DataType::UInt32 : type, in.int_value(), true, name);
+      return integer_from_wire(type == DataType::Unknown ? DataType::UInt32 : type, in.int_value(), true, declared, name);
     case Case::kLongValue:
-      return integer_from_wire(type == DataType::Unknown ? DataType::UInt64 : type, in.long_value(), false, name);
+      return integer_from_wire(type == DataType::Unknown ? DataType::UInt64 : type, in.long_value(), false, declared,
+                               name);
     case Case::kFloatValue:
       return MetricValue{in.float_value()};
     case Case::kDoubleValue:
@@ -183,7 +190,7 @@ Bytes encode(const Payload& payload) {
   return bytes;
 }
 
-Expected<Payload> decode(std::span<const std::uint8_t> bytes) {
+Expected<Payload> decode(std::span<const std::uint8_t> bytes, const BirthTypes& birth_types) {
   if (bytes.size() > static_cast<std::size_t>(std::numeric_limits<int>::max())) {
     return unexpected(std::string("payload too large"));
   }
@@ -203,6 +210,7 @@ Expected<Payload> decode(std::span<const std::uint8_t> bytes) {
     Metric metric;
     metric.name = m.name();
     metric.type = m.has_datatype() ? static_cast<DataType>(m.datatype()) : DataType::Unknown;
+    if (metric.type == DataType::Unknown && birth_types) metric.type = birth_types(metric.name);
     if (m.has_timestamp()) metric.timestamp = m.timestamp();
     auto value = value_from_wire(m, metric.type, metric.name);
     if (!value) return unexpected(value.error());
@@ -219,6 +227,21 @@ Expected<Payload> decode(std::span<const std::uint8_t> bytes) {
   return payload;
 }
 
+std::optional<IntegerRange> integer_range(DataType type) {
+  constexpr auto kMax64 = std::numeric_limits<std::int64_t>::max();
+  switch (type) {
+    case DataType::Int8: return IntegerRange{-128, 127};
+    case DataType::Int16: return IntegerRange{-32768, 32767};
+    case DataType::Int32: return IntegerRange{std::numeric_limits<std::int32_t>::min(), std::numeric_limits<std::int32_t>::max()};
+    case DataType::Int64: return IntegerRange{std::numeric_limits<std::int64_t>::min(), kMax64};
+    case DataType::UInt8: return IntegerRange{0, 255};
+    case DataType::UInt16: return IntegerRange{0, 65535};
+    case DataType::UInt32: return IntegerRange{0, std::numeric_limits<std::uint32_t>::max()};
+    case DataType::UInt64: return IntegerRange{0, kMax64};
+    default: return std::nullopt;
+  }
+}
+
 std::optional<std::int64_t> integer_value(const MetricValue& value) {
   if (const auto* v = std::get_if<std::int64_t>(&value)) return *v;
   if (const auto* v = std::get_if<std::uint64_t>(&value)) {
@@ -233,6 +256,151 @@ std::optional<std::int64_t> integer_value(const MetricValue& value) {
   if (const auto* v = std::get_if<float>(&value)) return whole(*v);
   if (const auto* v = std::get_if<double>(&value)) return whole(*v);
   return std::nullopt;
+}
+
+std::string state_topic(std::string_view host_id) { return std::string(kNamespace) + "/STATE/" + std::string(host_id); }
+
+namespace {
+
+// Just enough JSON for a STATE payload: one object whose values are read (booleans, numbers) or
+// skipped (strings, nested objects and arrays, null).
+class JsonReader {
+ public:
+  explicit JsonReader(std::string_view text) : text_(text) {}
+
+  bool eat(char c) {
+    skip_space();
+    if (at_ < text_.size() && text_[at_] == c) {
+      ++at_;
+      return true;
+    }
+    return false;
+  }
+  bool done() {
+    skip_space();
+    return at_ == text_.size();
+  }
+  std::optional<std::string> string() {
+    if (!eat('"')) return std::nullopt;
+    std::string out;
+    while (at_ < text_.size() && text_[at_] != '"') {
+      if (text_[at_] == '\\') {
+        if (++at_ >= text_.size()) return std::nullopt;
+        if (text_[at_] == 'u') {  // a key with \u escapes matches none of ours: keep it unequal
+          if (at_ + 4 >= text_.size()) return std::nullopt;
+          out += '?';
+          at_ += 4;
+        } else {
+          out += text_[at_];
+        }
+      } else {
+        out += text_[at_];
+      }
+      ++at_;
+    }
+    if (at_ >= text_.size()) return std::nullopt;
+    ++at_;
+    return out;
+  }
+  std::optional<bool> boolean() {
+    skip_space();
+    for (const bool value : {true, false}) {
+      const std::string_view word = value ? "true" : "false";
+      if (text_.substr(at_, word.size()) == word) {
+        at_ += word.size();
+        return value;
+      }
+    }
+    return std::nullopt;
+  }
+  // A JSON number; `whole` is set when it is a whole number that fits 64 bits unsigned.
+  bool number(std::optional<std::uint64_t>& whole) {
+    skip_space();
+    const std::size_t start = at_;
+    while (at_ < text_.size() && (std::isdigit(static_cast<unsigned char>(text_[at_])) || text_[at_] == '-' ||
+                                  text_[at_] == '+' || text_[at_] == '.' || text_[at_] == 'e' || text_[at_] == 'E')) {
+      ++at_;
+    }
+    if (at_ == start) return false;
+    std::uint64_t value = 0;
+    const auto* first = text_.data() + start;
+    const auto* last = text_.data() + at_;
+    const auto [end, error] = std::from_chars(first, last, value);
+    if (error == std::errc() && end == last) whole = value;
+    return true;
+  }
+  bool skip_value(int depth = 0) {
+    if (depth > 16) return false;
+    skip_space();
+    if (at_ >= text_.size()) return false;
+    const char c = text_[at_];
+    if (c == '"') return string().has_value();
+    if (c == '{' || c == '[') {
+      const char close = c == '{' ? '}' : ']';
+      ++at_;
+      if (eat(close)) return true;
+      do {
+        if (c == '{' && (!string() || !eat(':'))) return false;
+        if (!skip_value(depth + 1)) return false;
+      } while (eat(','));
+      return eat(close);
+    }
+    if (boolean()) return true;
+    if (text_.substr(at_, 4) == "null") {
+      at_ += 4;
+      return true;
+    }
+    std::optional<std::uint64_t> ignored;
+    return number(ignored);
+  }
+
+ private:
+  void skip_space() {
+    while (at_ < text_.size() && std::isspace(static_cast<unsigned char>(text_[at_]))) ++at_;
+  }
+  std::string_view text_;
+  std::size_t at_ = 0;
+};
+
+}  // namespace
+
+Expected<HostState> parse_host_state(std::string_view json) {
+  JsonReader reader(json);
+  const auto not_json = [] {
+    return unexpected(std::string(R"(not a Sparkplug 3.0 STATE payload (expected JSON {"online": true|false, "timestamp": <ms>}))"));
+  };
+  if (!reader.eat('{')) return not_json();
+  std::optional<bool> online;
+  std::optional<std::uint64_t> timestamp;
+  bool timestamp_seen = false;
+  if (!reader.eat('}')) {
+    do {
+      const auto key = reader.string();
+      if (!key || !reader.eat(':')) return not_json();
+      if (*key == "online") {
+        online = reader.boolean();
+        if (!online) return unexpected(std::string("STATE: `online` is not true or false"));
+      } else if (*key == "timestamp") {
+        timestamp_seen = true;
+        if (!reader.number(timestamp)) return not_json();
+      } else if (!reader.skip_value()) {
+        return not_json();
+      }
+    } while (reader.eat(','));
+    if (!reader.eat('}')) return not_json();
+  }
+  if (!reader.done()) return not_json();
+  if (!online) return unexpected(std::string("STATE: no `online` key"));
+  if (!timestamp) {
+    return unexpected(std::string(timestamp_seen ? "STATE: `timestamp` is not a whole number of ms since the epoch"
+                                                 : "STATE: no `timestamp` key"));
+  }
+  return HostState{*online, *timestamp};
+}
+
+std::string host_state_json(const HostState& state) {
+  return std::string(R"({"online":)") + (state.online ? "true" : "false") + R"(,"timestamp":)" +
+         std::to_string(state.timestamp) + "}";
 }
 
 }  // namespace sms::sparkplug

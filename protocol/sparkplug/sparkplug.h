@@ -9,6 +9,7 @@
 //   ...
 //   const auto command = decode(received_bytes);   // Expected<Payload>: error says why
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <span>
 #include <string>
@@ -86,6 +87,7 @@ struct Metric {
   static Metric int16(std::string name, std::int16_t value) { return of(std::move(name), DataType::Int16, std::int64_t{value}); }
   static Metric uint16(std::string name, std::uint16_t value) { return of(std::move(name), DataType::UInt16, std::uint64_t{value}); }
   static Metric uint32(std::string name, std::uint32_t value) { return of(std::move(name), DataType::UInt32, std::uint64_t{value}); }
+  static Metric int64(std::string name, std::int64_t value) { return of(std::move(name), DataType::Int64, value); }
   static Metric uint64(std::string name, std::uint64_t value) { return of(std::move(name), DataType::UInt64, value); }
   static Metric boolean(std::string name, bool value) { return of(std::move(name), DataType::Boolean, value); }
   static Metric string(std::string name, std::string value) { return of(std::move(name), DataType::String, std::move(value)); }
@@ -101,17 +103,45 @@ struct Payload {
 };
 
 Bytes encode(const Payload& payload);
+// The datatype a metric was born with (NBIRTH/DBIRTH), by name; Unknown for a name not born.
+using BirthTypes = std::function<DataType(std::string_view name)>;
 // Errors: not a protobuf Payload, a metric without a name, a value that does not fit its
 // declared type. Metrics with a value of a kind we do not read (bytes, dataset, template) come
 // back null with their declared type, so the caller can name them in its refusal.
-Expected<Payload> decode(std::span<const std::uint8_t> bytes);
+// Commands SHOULD NOT carry a datatype (spec, "datatype" of a metric): a metric without one is
+// read as the type `birth_types` gives its name, so an Int16 -100 in 32-bit two's complement
+// is -100 and not 4294967196. Without `birth_types` (or for a name it does not know) such a
+// metric keeps type Unknown and its int_value/long_value reads as UInt32/UInt64.
+Expected<Payload> decode(std::span<const std::uint8_t> bytes, const BirthTypes& birth_types = {});
+
+// Integer types: the range of values the type holds; nullopt for the others (Boolean, Float,
+// String, ...). UInt64's upper end is capped at INT64_MAX (no register is that wide).
+struct IntegerRange {
+  std::int64_t min = 0;
+  std::int64_t max = 0;
+};
+std::optional<IntegerRange> integer_range(DataType type);
 
 // A metric value as an integer for a register write: integers as they are, booleans 0/1, floats
 // and doubles only when they are whole numbers. nullopt for null, strings and fractions.
 std::optional<std::int64_t> integer_value(const MetricValue& value);
 
-// The bdSeq metric (spec §7.1.1), "Node Control/Rebirth" (§6.4.x): names the spec fixes.
+// The bdSeq metric (spec §7.1.1; an Int64, 0..255), "Node Control/Rebirth" (§6.4.x): names
+// the spec fixes.
 inline constexpr std::string_view kBdSeqMetric = "bdSeq";
 inline constexpr std::string_view kRebirthMetric = "Node Control/Rebirth";
+
+// A host application's STATE (Sparkplug 3.0, "STATE"): topic spBv1.0/STATE/<host_id>, retained,
+// payload the JSON object {"online": true|false, "timestamp": <ms since the epoch>}.
+std::string state_topic(std::string_view host_id);
+struct HostState {
+  bool online = false;
+  std::uint64_t timestamp = 0;
+  friend bool operator==(const HostState&, const HostState&) = default;
+};
+// Errors say what is wrong: not a JSON object, `online` missing or not a boolean, `timestamp`
+// missing or not a whole number >= 0. Other keys are allowed and skipped.
+Expected<HostState> parse_host_state(std::string_view json);
+std::string host_state_json(const HostState& state);  // for tests and tools
 
 }  // namespace sms::sparkplug

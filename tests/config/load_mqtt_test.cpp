@@ -33,6 +33,7 @@ TEST(LoadMqtt, MinimalSectionGetsTheDefaults) {
   EXPECT_EQ(mqtt.report_period, std::chrono::seconds{0});
   EXPECT_EQ(mqtt.keepalive, std::chrono::seconds{30});
   EXPECT_FALSE(mqtt.tls);
+  EXPECT_EQ(mqtt.primary_host_id, "");  // births follow the connection
   EXPECT_EQ(sparkplug_device_id(config->servos[0]), "shoulder");
   EXPECT_EQ(sparkplug_device_id(config->servos[1]), "unit-2");
 
@@ -60,6 +61,7 @@ TEST(LoadMqtt, ReadsEveryKeyAndDumpsBackTheSame) {
   deadband: {present_position: 2, present_load: 10}
   reconnect_min_ms: 200
   reconnect_max_ms: 10000
+  primary_host_id: scada-1
 )",
                                          "plant.yaml");
   ASSERT_TRUE(config) << config.error().to_string();
@@ -83,6 +85,7 @@ TEST(LoadMqtt, ReadsEveryKeyAndDumpsBackTheSame) {
   EXPECT_EQ(mqtt.deadbands[1], (MqttDeadband{"present_load", 10}));
   EXPECT_EQ(mqtt.reconnect_min, std::chrono::milliseconds{200});
   EXPECT_EQ(mqtt.reconnect_max, std::chrono::milliseconds{10000});
+  EXPECT_EQ(mqtt.primary_host_id, "scada-1");
 
   const auto again = load_config_string(dump_config(*config), "dump.yaml");
   ASSERT_TRUE(again) << again.error().to_string() << "\n" << dump_config(*config);
@@ -110,7 +113,10 @@ TEST(LoadMqtt, RefusesWithPlaces) {
   EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  last_will: x\n"),
             "plant.yaml:10:3: unknown key `last_will` in mqtt; allowed keys here: broker, group_id, edge_node_id, "
             "client_id, username, password_file, tls, keepalive_s, role, data_period_ms, report_period_s, "
-            "deadband, reconnect_min_ms, reconnect_max_ms, enabled");
+            "deadband, reconnect_min_ms, reconnect_max_ms, enabled, primary_host_id");
+  EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  primary_host_id: \"scada/1\"\n"),
+            "plant.yaml:10:20: mqtt.primary_host_id: `scada/1` cannot be a Sparkplug ID: it is an MQTT topic level, "
+            "so no '/', '+' or '#'");
 }
 
 TEST(LoadMqtt, ServoNamesMustBeUniqueDeviceIds) {

@@ -1,17 +1,22 @@
 #pragma once
 // MQTT test parts: a real Mosquitto broker (Debian's /usr/sbin/mosquitto) on an ephemeral
-// loopback port, and a Sparkplug host stand-in that records every message under spBv1.0/#
-// (decoded with protocol/sparkplug, itself checked against protoc) and publishes commands.
+// loopback port, a Sparkplug host stand-in that records every message under spBv1.0/#
+// (decoded with protocol/sparkplug, and kept as bytes for protoc) and publishes commands and
+// its STATE, and protoc's reading of a payload's metrics.
 #include <mosquitto.h>
 #include <netinet/in.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <array>
 #include <chrono>
 #include <condition_variable>
+#include <cstdio>
 #include <fstream>
 #include <functional>
+#include <map>
 #include <mutex>
+#include <sstream>
 #include <optional>
 #include <string>
 #include <vector>
@@ -64,6 +69,7 @@ struct SparkplugMessage {
   sparkplug::Topic topic;
   sparkplug::Payload payload;
   std::chrono::steady_clock::time_point arrived;
+  std::vector<std::uint8_t> bytes;  // as published
 
   const sparkplug::Metric* metric(const std::string& name) const {
     for (const auto& m : payload.metrics) {
@@ -132,8 +138,13 @@ class SparkplugHost {
     payload.metrics = std::move(metrics);
     raw(sparkplug::topic_text({group, type, node, device}), sparkplug::encode(payload));
   }
-  void raw(const std::string& topic, const std::vector<std::uint8_t>& bytes) {
-    mosquitto_publish(client_, nullptr, topic.c_str(), static_cast<int>(bytes.size()), bytes.data(), 1, false);
+  void raw(const std::string& topic, const std::vector<std::uint8_t>& bytes, bool retain = false) {
+    mosquitto_publish(client_, nullptr, topic.c_str(), static_cast<int>(bytes.size()), bytes.data(), 1, retain);
+  }
+  // The host's STATE as a Sparkplug 3.0 host application publishes it: retained, QoS 1.
+  void state(const std::string& host_id, bool online, std::uint64_t timestamp) {
+    const std::string json = sparkplug::host_state_json({online, timestamp});
+    raw(sparkplug::state_topic(host_id), std::vector<std::uint8_t>(json.begin(), json.end()), true);
   }
 
  private:
@@ -144,7 +155,8 @@ class SparkplugHost {
     const auto payload = sparkplug::decode(std::span<const std::uint8_t>(bytes, static_cast<std::size_t>(message->payloadlen)));
     if (!payload) return;
     std::lock_guard lock(mutex_);
-    messages_.push_back(SparkplugMessage{*topic, *payload, std::chrono::steady_clock::now()});
+    messages_.push_back(SparkplugMessage{*topic, *payload, std::chrono::steady_clock::now(),
+                                         std::vector<std::uint8_t>(bytes, bytes + message->payloadlen)});
     changed_.notify_all();
   }
 
@@ -154,6 +166,48 @@ class SparkplugHost {
   std::condition_variable changed_;
   std::vector<SparkplugMessage> messages_;
 };
+
+// A payload's metrics as `protoc --decode` reads them with the Sparkplug B .proto: for each
+// metric its fields by name ("name", "timestamp", "datatype", "int_value", "long_value", ...),
+// values as protoc prints them (strings keep their quotes). Properties are left out. Throws when
+// protoc refuses the bytes.
+using ProtocMetric = std::map<std::string, std::string>;
+inline std::vector<ProtocMetric> protoc_metrics(const std::vector<std::uint8_t>& bytes, const TempDir& dir) {
+  static int count = 0;
+  const std::string in = dir.file("payload-" + std::to_string(++count) + ".bin");
+  std::ofstream(in, std::ios::binary).write(reinterpret_cast<const char*>(bytes.data()),
+                                            static_cast<std::streamsize>(bytes.size()));
+  const std::string command = std::string(SMS_PROTOC) + " --proto_path=" + SMS_SOURCE_DIR +
+                              "/protocol/sparkplug --decode=sms.sparkplug.wire.Payload sparkplug_b.proto < " + in;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (pipe == nullptr) throw std::runtime_error("cannot run " + command);
+  std::string text;
+  std::array<char, 512> buffer{};
+  while (fgets(buffer.data(), buffer.size(), pipe)) text += buffer.data();
+  if (pclose(pipe) != 0) throw std::runtime_error(command + " failed:\n" + text);
+  std::vector<ProtocMetric> metrics;
+  std::istringstream lines(text);
+  int depth = 0;
+  for (std::string line; std::getline(lines, line);) {
+    const auto first = line.find_first_not_of(' ');
+    if (first == std::string::npos) continue;
+    const std::string content = line.substr(first);
+    if (content == "}") {
+      --depth;
+      continue;
+    }
+    if (content.back() == '{') {
+      if (depth == 0 && content == "metrics {") metrics.emplace_back();
+      ++depth;
+      continue;
+    }
+    const auto colon = content.find(": ");
+    if (depth == 1 && colon != std::string::npos && !metrics.empty()) {
+      metrics.back()[content.substr(0, colon)] = content.substr(colon + 2);
+    }
+  }
+  return metrics;
+}
 
 inline std::function<bool(const SparkplugMessage&)> is(sparkplug::MessageType type, const std::string& device = "") {
   return [type, device](const SparkplugMessage& m) { return m.topic.type == type && m.topic.device == device; };

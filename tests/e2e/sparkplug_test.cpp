@@ -1,7 +1,9 @@
-// MQTT Sparkplug B end to end (issue 14, README "MQTT Sparkplug B"): a real Mosquitto broker on
-// loopback, the real sms-gateway and sms-sim, and a Sparkplug host stand-in (libmosquitto).
-// Births and deaths follow the servos, data follows the poll cache, commands move the simulated
-// servo through the same rules as Modbus writes, and the broker going away loses nothing.
+// MQTT Sparkplug B end to end (README "MQTT Sparkplug B"): a real Mosquitto broker on loopback,
+// the real sms-gateway and sms-sim, and a Sparkplug host stand-in (libmosquitto). Births and
+// deaths follow the servos, data follows the poll cache, commands move the simulated servo through
+// the same rules as Modbus writes after a check of their type and range, the broker going away
+// loses nothing, the bdSeq survives a restart, a primary host's STATE gates the births, and protoc
+// reads what a host gets.
 #include <gtest/gtest.h>
 
 #include <signal.h>
@@ -152,7 +154,7 @@ TEST(Sparkplug, DcmdMovesTheServoAndDdataFollows) {
   refused(sp::Metric::int16("present_position", 5), "refused: present_position: read-only");
   refused(sp::Metric::uint16("max_temperature", 60), "exception 0x02");
   refused(sp::Metric::uint16("torque_enable", 5), "exception 0x03");  // 0, 1 or 128
-  refused(sp::Metric::string("goal_position", "fast"), "needs a whole number");
+  refused(sp::Metric::string("goal_position", "fast"), "got String \"fast\", the metric is Int16");
   EXPECT_EQ(plant.sim.field(1, "goal_position"), 3000);
   EXPECT_EQ(plant.sim.field(1, "max_temperature"), max_temperature);
   EXPECT_EQ(plant.sim.field(1, "torque_enable"), 1);
@@ -382,6 +384,217 @@ TEST(Sparkplug, TlsToAPlainBrokerIsLoggedAndModbusGoesOn) {
   EXPECT_GE(reasons.size(), 1u) << output;
   EXPECT_LE(reasons.size(), 2u) << output;
   for (std::size_t i = 1; i < reasons.size(); ++i) EXPECT_NE(reasons[i], reasons[0]) << output;
+}
+
+// What a host decodes, read by protoc rather than our decoder: every metric of NBIRTH, DBIRTH,
+// NDATA and DDATA carries a timestamp (Sparkplug 3.0), bdSeq is an Int64 in long_value, the
+// 32-bit counters UInt64 in long_value (read alike by the spec and Tahu), a signed field Int16 in
+// int_value. The DDATA after a command reports the value read back: the servo clamps a goal of
+// -100 to its angle limit 0, and that is what the host sees.
+TEST(Sparkplug, ProtocReadsTimestampsAndTypesOnEveryBirthAndDataMetric) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+  const auto nbirth = plant.host.wait(is(MessageType::NBirth));
+  const auto dbirth = plant.host.wait(is(MessageType::DBirth, "shoulder"));
+  ASSERT_TRUE(nbirth && dbirth) << plant.host.summary() << gateway.process().output();
+
+  std::size_t from = plant.host.count();
+  plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {sp::Metric::int16("goal_position", -100)});
+  const auto ack = plant.host.wait([](const SparkplugMessage& m) {
+    return m.topic.type == MessageType::DData && m.metric("goal_position") != nullptr;
+  }, 10s, from);
+  ASSERT_TRUE(ack) << plant.host.summary() << gateway.process().output();
+  EXPECT_EQ(plant.sim.field(1, "goal_position"), 0);
+  EXPECT_EQ(int_of(ack->metric("goal_position")), 0);  // what the servo holds, not the -100 sent
+  EXPECT_EQ(text_of(ack->metric("Gateway/Last Command")), "ok: goal_position := -100, reads back 0");
+
+  from = plant.host.count();
+  plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::boolean("Gateway/E-Stop", true)});
+  const auto ndata = plant.host.wait(is(MessageType::NData), 10s, from);
+  ASSERT_TRUE(ndata) << plant.host.summary();
+
+  const std::vector<std::pair<std::string, const SparkplugMessage*>> messages{
+      {"NBIRTH", &*nbirth}, {"DBIRTH", &*dbirth}, {"DDATA", &*ack}, {"NDATA", &*ndata}};
+  for (const auto& [what, message] : messages) {
+    const auto metrics = protoc_metrics(message->bytes, plant.dir);
+    ASSERT_EQ(metrics.size(), message->payload.metrics.size()) << what;
+    for (const auto& metric : metrics) {
+      const std::string name = metric.count("name") ? metric.at("name") : "<no name>";
+      EXPECT_TRUE(metric.count("timestamp")) << what << " " << name << " has no timestamp";
+      EXPECT_TRUE(metric.count("datatype")) << what << " " << name << " has no datatype";
+    }
+  }
+  const auto find = [&](const SparkplugMessage& message, const std::string& name) {
+    for (const auto& metric : protoc_metrics(message.bytes, plant.dir)) {
+      if (metric.count("name") && metric.at("name") == "\"" + name + "\"") return metric;
+    }
+    return ProtocMetric{};
+  };
+  const auto bd_seq = find(*nbirth, "bdSeq");
+  EXPECT_EQ(bd_seq.count("datatype") ? bd_seq.at("datatype") : "", "4");  // Int64
+  EXPECT_TRUE(bd_seq.count("long_value"));
+  for (const std::string counter : {"Gateway/Replies OK", "Gateway/Timeouts"}) {
+    const auto metric = find(*dbirth, counter);
+    EXPECT_EQ(metric.count("datatype") ? metric.at("datatype") : "", "8") << counter;  // UInt64
+    EXPECT_TRUE(metric.count("long_value")) << counter;
+  }
+  EXPECT_NE(std::get<std::uint64_t>(dbirth->metric("Gateway/Replies OK")->value), 0u);
+  const auto goal = find(*ack, "goal_position");
+  EXPECT_EQ(goal.count("datatype") ? goal.at("datatype") : "", "2");  // Int16
+  EXPECT_EQ(goal.count("int_value") ? goal.at("int_value") : "", "0");
+  const auto estop = find(*ndata, "Gateway/E-Stop");
+  EXPECT_EQ(estop.count("boolean_value") ? estop.at("boolean_value") : "", "true");
+}
+
+// Safety: a DCMD value that does not fit the metric's birth datatype or the register map's range,
+// or is of another kind (Boolean, Float, String for a position), is refused with a log line and
+// nothing is written; the simulator's goal is the witness. An empty DCMD is logged too.
+TEST(Sparkplug, DcmdValuesAreCheckedAgainstTheBirthTypeAndTheMapRangeBeforeAnyWrite) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary();
+  ModbusClient modbus(gateway.port(), 1);
+  ASSERT_TRUE(modbus.write_register(42, 2000).ok());
+  ASSERT_EQ(plant.sim.field(1, "goal_position"), 2000);
+
+  const auto refused = [&](sp::Metric metric, const std::string& expected) {
+    const std::string result = command_result(plant.host, metric);
+    EXPECT_NE(result.find(expected), std::string::npos) << metric.name << ": " << result;
+    EXPECT_NE(result.find("nothing written"), std::string::npos) << result;
+    EXPECT_TRUE(gateway.process().wait_for_line(expected, 5s)) << gateway.process().output();
+    EXPECT_EQ(plant.sim.field(1, "goal_position"), 2000) << metric.name << " moved the servo";
+  };
+  // UInt16 40000 is no Int16: not taken as -25536 (a full-travel move to the limit).
+  refused(sp::Metric::uint16("goal_position", 40000), "40000 does not fit Int16 (-32768..32767)");
+  refused(sp::Metric::int16("goal_position", 31000), "31000 is outside -30719..30719");
+  refused(sp::Metric::boolean("goal_position", true), "got Boolean true, the metric is Int16");
+  refused(sp::Metric::of("goal_position", sp::DataType::Double, 1500.0), "got Double 1500, the metric is Int16");
+  refused(sp::Metric::uint16("torque_enable", 300), "300 is outside 0..128");
+
+  // A command as the spec says to send it, without a datatype: read as the DBIRTH's Int16.
+  auto untyped = sp::Metric::int16("goal_position", -7);
+  untyped.type = sp::DataType::Unknown;
+  plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {untyped});
+  EXPECT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 0; }, 10s))  // clamped at 0
+      << plant.sim.field(1, "goal_position") << "\n" << gateway.process().output();
+
+  // A node command of the wrong kind: the e-stop takes a Boolean only.
+  plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::uint16("Gateway/E-Stop", 1)});
+  EXPECT_TRUE(gateway.process().wait_for_line("NCMD refused: Gateway/E-Stop: got UInt16 1, the metric is Boolean", 5s))
+      << gateway.process().output();
+  EXPECT_TRUE(modbus.write_register(42, 1000).ok());  // not latched
+
+  // Nothing in it: logged, not silently dropped.
+  plant.host.raw("spBv1.0/plant/DCMD/gw1/shoulder", {});
+  EXPECT_TRUE(gateway.process().wait_for_line("carries no metric", 5s)) << gateway.process().output();
+}
+
+// bdSeq: +1 per CONNECT that went out (an outage with many refused TCP attempts costs one), kept
+// in state_dir across a restart.
+TEST(Sparkplug, BdSeqCountsConnectsSentAndSurvivesARestart) {
+  Plant plant;
+  const std::string state = plant.dir.file("state");
+  const std::string yaml = gateway_yaml(plant.sim.pty(), plant.broker.port()) + "state_dir: \"" + state + "\"\n";
+  std::optional<std::int64_t> first;
+  {
+    auto gateway = GatewayProcess::with_config(plant.dir, yaml, 1);
+    const auto birth = plant.host.wait(is(MessageType::NBirth));
+    ASSERT_TRUE(birth) << plant.host.summary() << gateway.process().output();
+    first = int_of(birth->metric("bdSeq"));
+    EXPECT_EQ(first, 0);  // a fresh state_dir
+    gateway.process().signal(SIGTERM);
+    ASSERT_EQ(gateway.process().wait_exit(10s), std::optional<int>{0}) << gateway.process().output();
+  }
+  std::size_t from = plant.host.count();
+  auto gateway = GatewayProcess::with_config(plant.dir, yaml, 1);
+  const auto restarted = plant.host.wait(is(MessageType::NBirth), 10s, from);
+  ASSERT_TRUE(restarted) << plant.host.summary() << gateway.process().output();
+  EXPECT_EQ(int_of(restarted->metric("bdSeq")), 1);
+  std::ifstream file(state + "/sparkplug-bdseq");
+  std::string stored;
+  std::getline(file, stored);
+  EXPECT_EQ(stored, "1");
+
+  // The broker away for 1.5 s: at 100..400 ms backoff, several refused attempts; one CONNECT.
+  plant.broker.kill();
+  ASSERT_TRUE(gateway.process().wait_for_line("mqtt: lost the broker", 10s)) << gateway.process().output();
+  std::this_thread::sleep_for(1500ms);
+  plant.broker.start();
+  SparkplugHost host(plant.broker.port());
+  const auto again = host.wait(is(MessageType::NBirth), 15s);
+  ASSERT_TRUE(again) << host.summary() << gateway.process().output();
+  EXPECT_EQ(int_of(again->metric("bdSeq")), 2);
+}
+
+// A state file that does not hold a bdSeq, or a state_dir that cannot be written: logged, the
+// node starts and counts in memory (a bdSeq is not worth a refused start).
+TEST(Sparkplug, ABrokenBdSeqFileOrStateDirIsLoggedAndTheNodeGoesOn) {
+  Plant plant;
+  const std::string state = plant.dir.file("state");
+  std::filesystem::create_directories(state);
+  std::ofstream(state + "/sparkplug-bdseq") << "garbage\n";
+  {
+    auto gateway = GatewayProcess::with_config(
+        plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()) + "state_dir: \"" + state + "\"\n", 1);
+    const auto birth = plant.host.wait(is(MessageType::NBirth));
+    ASSERT_TRUE(birth) << plant.host.summary() << gateway.process().output();
+    EXPECT_EQ(int_of(birth->metric("bdSeq")), 0);
+    EXPECT_TRUE(gateway.process().wait_for_line("sparkplug-bdseq does not hold a bdSeq (0..255); starting at 0", 5s))
+        << gateway.process().output();
+  }
+  // A state_dir that cannot be written is a configuration error: the gateway keeps its e-stop
+  // latch there (docs/SAFETY.md), so it does not start without it.
+  const std::string not_a_dir = plant.dir.file("plain-file");
+  std::ofstream(not_a_dir) << "x";
+  const std::string path = plant.dir.file("unwritable.yaml");
+  std::ofstream(path) << gateway_yaml(plant.sim.pty(), plant.broker.port()) + "state_dir: \"" + not_a_dir + "/state\"\n";
+  ChildProcess refused({bin("sms-gateway"), "--config", path, "--listen", "127.0.0.1:0"});
+  const auto status = refused.wait_exit(10s);
+  ASSERT_TRUE(status.has_value()) << refused.output();
+  EXPECT_EQ(*status, 2) << refused.output();
+  EXPECT_NE(refused.output().find("state_dir " + not_a_dir + "/state: Not a directory"), std::string::npos)
+      << refused.output();
+}
+
+// Primary host (Ignition's setup): no NBIRTH until the host's STATE says online; offline ends
+// the session with NDEATH; a stale STATE (older timestamp) is ignored; online again: new births
+// with the next bdSeq.
+TEST(Sparkplug, PrimaryHostStateGatesTheBirths) {
+  Plant plant;
+  auto gateway = GatewayProcess::with_config(
+      plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port(), "  primary_host_id: scada\n"), 1);
+  ASSERT_TRUE(gateway.process().wait_for_line("waiting for primary host scada", 10s)) << gateway.process().output();
+  EXPECT_FALSE(plant.host.wait(is(MessageType::NBirth), 1s)) << "born without the primary host";
+
+  const std::uint64_t t0 = 1'700'000'000'000;
+  plant.host.state("scada", true, t0);
+  const auto birth = plant.host.wait(is(MessageType::NBirth));
+  ASSERT_TRUE(birth) << plant.host.summary() << gateway.process().output();
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary();
+
+  std::size_t from = plant.host.count();
+  plant.host.state("scada", false, t0 + 1);
+  const auto death = plant.host.wait(is(MessageType::NDeath), 10s, from);
+  ASSERT_TRUE(death) << plant.host.summary() << gateway.process().output();
+  EXPECT_EQ(int_of(death->metric("bdSeq")), int_of(birth->metric("bdSeq")));
+  ASSERT_TRUE(gateway.process().wait_for_line("primary host scada went offline", 5s)) << gateway.process().output();
+  // Reconnected (the retained offline STATE says wait): no births.
+  EXPECT_FALSE(plant.host.wait(is(MessageType::NBirth), 1s, from)) << plant.host.summary();
+  plant.host.state("scada", true, t0);  // older than the offline one: stale
+  EXPECT_TRUE(gateway.process().wait_for_line("ignored a stale STATE of primary host scada", 5s))
+      << gateway.process().output();
+  EXPECT_FALSE(plant.host.wait(is(MessageType::NBirth), 500ms, from)) << plant.host.summary();
+
+  plant.host.state("scada", true, t0 + 2);
+  const auto reborn = plant.host.wait(is(MessageType::NBirth), 10s, from);
+  ASSERT_TRUE(reborn) << plant.host.summary() << gateway.process().output();
+  EXPECT_EQ(int_of(reborn->metric("bdSeq")), *int_of(birth->metric("bdSeq")) + 1);
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"), 10s, from)) << plant.host.summary();
+  // A STATE that is not the 3.0 JSON: logged, ignored.
+  const std::string legacy = "OFFLINE";
+  plant.host.raw(sp::state_topic("scada"), std::vector<std::uint8_t>(legacy.begin(), legacy.end()));
+  EXPECT_TRUE(gateway.process().wait_for_line("ignored the STATE of primary host scada: not a Sparkplug 3.0 STATE", 5s))
+      << gateway.process().output();
 }
 
 }  // namespace
