@@ -72,6 +72,16 @@ struct TlsConfig {
   std::string ca;           // CA certificates client certificates must chain to, PEM
   std::vector<TlsRoleMapping> roles;  // in file order; names unique
   Role default_role = Role::None;     // for a certificate with no extension and no mapping
+  // Role extension texts of other schemes ("Operator") and the role each gives; an extension
+  // naming neither a role nor an entry here falls back to `roles` and `default_role`.
+  std::vector<TlsRoleMapping> role_names;
+  // Connections still in the TLS handshake (unauthenticated) have their own budget, apart from
+  // max_connections (which counts authenticated ones): at most `max_handshakes` on the listener
+  // and `max_handshakes_per_address` from one client address; past either, the oldest such
+  // connection is closed for the new one. A handshake not done in `handshake_timeout` is closed.
+  std::chrono::milliseconds handshake_timeout{3000};
+  std::size_t max_handshakes = 16;
+  std::size_t max_handshakes_per_address = 4;
 
   bool operator==(const TlsConfig&) const = default;
 };

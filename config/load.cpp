@@ -36,8 +36,10 @@ constexpr std::array<std::string_view, 7> kTopKeys{"modbus_tcp", "buses",  "serv
 constexpr std::array<std::string_view, 8> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth", "allow",
                                                          "plain",           "tls"};
-constexpr std::array<std::string_view, 6> kTlsKeys{"listen", "certificate", "private_key",
-                                                   "ca",     "roles",       "default_role"};
+constexpr std::array<std::string_view, 10> kTlsKeys{"listen",         "certificate",          "private_key",
+                                                    "ca",             "roles",                "default_role",
+                                                    "role_names",     "handshake_timeout_ms", "max_handshakes",
+                                                    "max_handshakes_per_address"};
 constexpr std::array<std::string_view, 21> kBusKeys{
     "name",        "device",         "protocol",   "baud",  "parity", "stop_bits",    "response_timeout_ms",
     "retries",     "poll_period_ms", "offline_probe_period_ms",      "reopen_period_ms",
@@ -548,6 +550,34 @@ TlsConfig Loader::parse_tls(const Value& value) {
               });
   }
   if (const auto v = keys.find("default_role")) tls.default_role = choice(*v, detail::kRoleNames);
+  if (const auto v = keys.find("role_names")) {
+    named_map(*v, "a map of role extension texts of other schemes to roles (read, operate, engineer, none), e.g. "
+                  "{Operator: operate}",
+              [&](const std::string& name, const YAML::Mark& mark, const Value& role) {
+                if (role_from_name(name)) {
+                  fail(mark, v->path + ": `" + name + "` already is a role; list only other names here");
+                }
+                tls.role_names.push_back(TlsRoleMapping{name, choice(role, detail::kRoleNames)});
+              });
+  }
+  if (const auto v = keys.find("handshake_timeout_ms")) {
+    tls.handshake_timeout = duration<std::chrono::milliseconds>(*v, 100, 60000);
+  }
+  if (const auto v = keys.find("max_handshakes")) {
+    tls.max_handshakes = static_cast<std::size_t>(integer(*v, 1, static_cast<std::int64_t>(kMaxConnectionsLimit)));
+  }
+  if (const auto v = keys.find("max_handshakes_per_address")) {
+    tls.max_handshakes_per_address =
+        static_cast<std::size_t>(integer(*v, 1, static_cast<std::int64_t>(kMaxConnectionsLimit)));
+  }
+  if (!keys.find("max_handshakes_per_address")) {
+    tls.max_handshakes_per_address = std::min(tls.max_handshakes_per_address, tls.max_handshakes);
+  }
+  if (tls.max_handshakes_per_address > tls.max_handshakes) {
+    fail(keys.key_mark("max_handshakes_per_address"),
+         value.path + ".max_handshakes_per_address: " + std::to_string(tls.max_handshakes_per_address) +
+             " is more than max_handshakes (" + std::to_string(tls.max_handshakes) + "); lower it or raise max_handshakes");
+  }
   return tls;
 }
 
