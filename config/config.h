@@ -221,6 +221,11 @@ struct ServoConfig {
   // What a watchdog trip or the e-stop does to this servo; empty: the table's default
   // (modbus_map::motion_spec(table).default_stop). Passthrough units are never stopped.
   std::optional<modbus_map::StopAction> safe_stop;
+  // Set when an earlier unit already shows the same servo (bus, id): the unit id of that first
+  // one. Such a second view (an HMI's read-only unit) is served like any unit, but the servo is
+  // polled, counted and stopped once, as the first unit. At most one unit of a servo is
+  // writable; the units of one servo agree on table, byte_order, response_level and safe_stop.
+  std::optional<std::uint8_t> view_of;
 
   bool passthrough() const { return !table.has_value(); }
   bool operator==(const ServoConfig&) const = default;

@@ -256,7 +256,7 @@ BusMetrics read_bus_metrics(const config::Config& config, std::size_t bus_index,
   metrics.counters = counters;
   metrics.servos_online = cache.online_count();
   for (const auto& servo : config.servos) {
-    if (servo.bus_index != bus_index || servo.passthrough()) continue;
+    if (servo.bus_index != bus_index || servo.passthrough() || servo.view_of) continue;  // one sample per servo
     const auto state = cache.state(servo.servo_id);
     if (!state) continue;
     ServoMetrics entry;
