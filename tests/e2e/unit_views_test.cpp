@@ -2,8 +2,8 @@
 // unit and the HMI's read-only unit of the same servo, on plain Modbus TCP where there are no
 // roles. The real sms-gateway on a configuration file, the real sms-sim on a pty, libmodbus
 // clients: both units read the servo the PLC moves, the HMI's unit refuses writes with 0x02 and
-// nothing moves, the servo is polled and counted once, and --check-config refuses a second
-// writable unit of a servo.
+// nothing moves, the servo is polled, counted and stopped by the watchdog once, and
+// --check-config refuses a second writable unit of a servo.
 #include <gtest/gtest.h>
 
 #include <cstdlib>
@@ -81,6 +81,26 @@ TEST_F(UnitViews, PlcUnitWritesHmiUnitOfTheSameServoReadsAndIsRefusedWrites) {
   EXPECT_EQ(refused.exception, 0x02);
   std::this_thread::sleep_for(100ms);
   EXPECT_EQ(sim_->field(1, "goal_position"), 2600);
+}
+
+TEST_F(UnitViews, WatchdogStopsTheServoOnceNotOncePerUnit) {
+  const std::string yaml = substitute(config_yaml(sim_->pty(), ", read_only: true"), "baud: 1000000}",
+                                      "baud: 1000000, watchdog: {timeout_ms: 300, feed: any_write}}");
+  GatewayProcess gateway = GatewayProcess::with_config(dir_, yaml, 1);
+  wait_until_polled(gateway.port(), kPlcUnit);
+  {
+    ModbusClient plc(gateway.port(), kPlcUnit);
+    ASSERT_TRUE(plc.write_register(kGoalPosition, 3000).ok()) << gateway.process().output();
+  }  // the PLC goes away; the HMI's reads do not feed the watchdog
+  ModbusClient hmi(gateway.port(), kHmiUnit);
+  const auto stop = gateway.process().wait_for_line("safe stop (", 5s);
+  ASSERT_TRUE(stop) << gateway.process().output();
+  std::size_t mentions = 0;
+  for (std::size_t at = stop->find("servo 1 "); at != std::string::npos; at = stop->find("servo 1 ", at + 1)) {
+    ++mentions;
+  }
+  EXPECT_EQ(mentions, 1u) << *stop;
+  EXPECT_TRUE(hmi.read_holding(kGoalPosition, 1).ok());
 }
 
 }  // namespace
