@@ -105,14 +105,14 @@ TEST(LoadTls, RefusesWithPlaces) {
             "plant.yaml:2:85: modbus_tcp.tls.default_role: expected one of none, read, operate, engineer, got `admin`");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
                        "role_names: {read: operate}}\n" + kBusAndServo),
-            "plant.yaml:2:91: modbus_tcp.tls.role_names: `read` already is a role; list only other names here");
+            "plant.yaml:2:84: modbus_tcp.tls.role_names: `read` already is a role; list only other names here");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
                        "role_names: {Operator: admin}}\n" + kBusAndServo),
-            "plant.yaml:2:101: modbus_tcp.tls.role_names.Operator: expected one of none, read, operate, engineer, got "
+            "plant.yaml:2:94: modbus_tcp.tls.role_names.Operator: expected one of none, read, operate, engineer, got "
             "`admin`");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
                        "max_handshakes: 4, max_handshakes_per_address: 5}\n" + kBusAndServo),
-            "plant.yaml:2:98: modbus_tcp.tls.max_handshakes_per_address: 5 is more than max_handshakes (4); lower it "
+            "plant.yaml:2:90: modbus_tcp.tls.max_handshakes_per_address: 5 is more than max_handshakes (4); lower it "
             "or raise max_handshakes");
   EXPECT_NE(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
                        "handshake_timeout_ms: 50}\n" + kBusAndServo)
