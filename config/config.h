@@ -72,6 +72,16 @@ struct TlsConfig {
   std::string ca;           // CA certificates client certificates must chain to, PEM
   std::vector<TlsRoleMapping> roles;  // in file order; names unique
   Role default_role = Role::None;     // for a certificate with no extension and no mapping
+  // Role extension texts of other schemes ("Operator") and the role each gives; an extension
+  // naming neither a role nor an entry here falls back to `roles` and `default_role`.
+  std::vector<TlsRoleMapping> role_names;
+  // Connections still in the TLS handshake (unauthenticated) have their own budget, apart from
+  // max_connections (which counts authenticated ones): at most `max_handshakes` on the listener
+  // and `max_handshakes_per_address` from one client address; past either, the oldest such
+  // connection is closed for the new one. A handshake not done in `handshake_timeout` is closed.
+  std::chrono::milliseconds handshake_timeout{3000};
+  std::size_t max_handshakes = 16;
+  std::size_t max_handshakes_per_address = 4;
 
   bool operator==(const TlsConfig&) const = default;
 };
@@ -217,6 +227,11 @@ struct ServoConfig {
   // What a watchdog trip or the e-stop does to this servo; empty: the table's default
   // (modbus_map::motion_spec(table).default_stop). Passthrough units are never stopped.
   std::optional<modbus_map::StopAction> safe_stop;
+  // Set when an earlier unit already shows the same servo (bus, id): the unit id of that first
+  // one. Such a second view (an HMI's read-only unit) is served like any unit, but the servo is
+  // polled, counted and stopped once, as the first unit. At most one unit of a servo is
+  // writable; the units of one servo agree on table, byte_order, response_level and safe_stop.
+  std::optional<std::uint8_t> view_of;
 
   bool passthrough() const { return !table.has_value(); }
   bool operator==(const ServoConfig&) const = default;

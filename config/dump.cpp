@@ -59,6 +59,19 @@ void emit_modbus_tcp(YAML::Emitter& out, const ModbusTcpConfig& tcp) {
     out << YAML::EndMap;
     key(out, "default_role");
     out << std::string(to_string(tcp.tls->default_role));
+    key(out, "role_names");
+    if (tcp.tls->role_names.empty()) out << YAML::Flow;
+    out << YAML::BeginMap;
+    for (const auto& mapping : tcp.tls->role_names) {
+      out << YAML::Key << YAML::DoubleQuoted << mapping.name << YAML::Value << std::string(to_string(mapping.role));
+    }
+    out << YAML::EndMap;
+    key(out, "handshake_timeout_ms");
+    out << tcp.tls->handshake_timeout.count();
+    key(out, "max_handshakes");
+    out << tcp.tls->max_handshakes;
+    key(out, "max_handshakes_per_address");
+    out << tcp.tls->max_handshakes_per_address;
     out << YAML::EndMap;
   }
   out << YAML::EndMap;

@@ -36,8 +36,10 @@ constexpr std::array<std::string_view, 7> kTopKeys{"modbus_tcp", "buses",  "serv
 constexpr std::array<std::string_view, 8> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth", "allow",
                                                          "plain",           "tls"};
-constexpr std::array<std::string_view, 6> kTlsKeys{"listen", "certificate", "private_key",
-                                                   "ca",     "roles",       "default_role"};
+constexpr std::array<std::string_view, 10> kTlsKeys{"listen",         "certificate",          "private_key",
+                                                    "ca",             "roles",                "default_role",
+                                                    "role_names",     "handshake_timeout_ms", "max_handshakes",
+                                                    "max_handshakes_per_address"};
 constexpr std::array<std::string_view, 21> kBusKeys{
     "name",        "device",         "protocol",   "baud",  "parity", "stop_bits",    "response_timeout_ms",
     "retries",     "poll_period_ms", "offline_probe_period_ms",      "reopen_period_ms",
@@ -393,6 +395,8 @@ class Loader {
   BusConfig parse_bus(const Value& value, BusPlaces& places);
   void parse_servos(const Value& value, Config& config);
   ServoConfig parse_servo(const Value& value, const Config& config, ServoPlaces& places);
+  void check_second_view(const ServoConfig& servo, const ServoPlaces& places, const ServoConfig& other,
+                         const ServoPlaces& other_places) const;
   void check_poll_selections(const Config& config);
   void parse_sync_groups(const Value& value, Config& config);
   SyncGroupConfig parse_sync_group(const MapReader& keys, const Config& config);
@@ -549,6 +553,34 @@ TlsConfig Loader::parse_tls(const Value& value) {
               });
   }
   if (const auto v = keys.find("default_role")) tls.default_role = choice(*v, detail::kRoleNames);
+  if (const auto v = keys.find("role_names")) {
+    named_map(*v, "a map of role extension texts of other schemes to roles (read, operate, engineer, none), e.g. "
+                  "{Operator: operate}",
+              [&](const std::string& name, const YAML::Mark& mark, const Value& role) {
+                if (role_from_name(name)) {
+                  fail(mark, v->path + ": `" + name + "` already is a role; list only other names here");
+                }
+                tls.role_names.push_back(TlsRoleMapping{name, choice(role, detail::kRoleNames)});
+              });
+  }
+  if (const auto v = keys.find("handshake_timeout_ms")) {
+    tls.handshake_timeout = duration<std::chrono::milliseconds>(*v, 100, 60000);
+  }
+  if (const auto v = keys.find("max_handshakes")) {
+    tls.max_handshakes = static_cast<std::size_t>(integer(*v, 1, static_cast<std::int64_t>(kMaxConnectionsLimit)));
+  }
+  if (const auto v = keys.find("max_handshakes_per_address")) {
+    tls.max_handshakes_per_address =
+        static_cast<std::size_t>(integer(*v, 1, static_cast<std::int64_t>(kMaxConnectionsLimit)));
+  }
+  if (!keys.find("max_handshakes_per_address")) {
+    tls.max_handshakes_per_address = std::min(tls.max_handshakes_per_address, tls.max_handshakes);
+  }
+  if (tls.max_handshakes_per_address > tls.max_handshakes) {
+    fail(keys.key_mark("max_handshakes_per_address"),
+         value.path + ".max_handshakes_per_address: " + std::to_string(tls.max_handshakes_per_address) +
+             " is more than max_handshakes (" + std::to_string(tls.max_handshakes) + "); lower it or raise max_handshakes");
+  }
   return tls;
 }
 
@@ -812,9 +844,8 @@ void Loader::parse_servos(const Value& value, Config& config) {
                               (places.unit_given ? "" : "; the unit defaults to the servo id, give `unit`"));
       }
       if (other.bus_index == servo.bus_index && other.servo_id == servo.servo_id) {
-        fail(places.id, item.path + ": servo id " + std::to_string(servo.servo_id) + " is already on bus `" +
-                            servo.bus + "` as " + other_places.path + " (" + place(other_places.id) +
-                            "); IDs on one bus must differ");
+        check_second_view(servo, places, other, other_places);
+        if (!servo.view_of) servo.view_of = other.unit_id;  // the first unit of the servo
       }
       if (!servo.name.empty() && other.name == servo.name) {
         fail(places.item, item.path + ": name `" + servo.name + "` is already used by " + other_places.path + " (" +
@@ -823,6 +854,36 @@ void Loader::parse_servos(const Value& value, Config& config) {
     }
     config.servos.push_back(std::move(servo));
     servo_places_.push_back(std::move(places));
+  }
+}
+
+// `servo` is a further unit of the servo `other` shows (same bus and id). Allowed as a second
+// view of it (docs/OPERATIONS.md: an HMI's read-only units): what describes the servo itself
+// must agree, and only one of the units may write, so two clients cannot fight over one servo.
+void Loader::check_second_view(const ServoConfig& servo, const ServoPlaces& places, const ServoConfig& other,
+                               const ServoPlaces& other_places) const {
+  const std::string already = places.path + ": servo id " + std::to_string(servo.servo_id) + " is already on bus `" +
+                              servo.bus + "` as " + other_places.path + " (unit " + std::to_string(other.unit_id) +
+                              ", " + place(other_places.id) + ")";
+  const auto table_text = [](const ServoConfig& s) {
+    return s.table ? "table " + std::string(modbus_map::table(*s.table).name) : std::string("passthrough");
+  };
+  if (servo.table != other.table) {
+    fail(places.id, already + " with " + table_text(other) + ", this one is " + table_text(servo) +
+                        "; IDs on one bus must differ, or a second unit of the same servo must have its table");
+  }
+  std::string differs;
+  if (servo.byte_order != other.byte_order) differs = "byte_order";
+  if (servo.response_level != other.response_level) differs = "response_level";
+  if (servo.safe_stop != other.safe_stop) differs = "safe_stop";
+  if (!differs.empty()) {
+    fail(places.item, already + " with another " + differs + "; units of one servo must agree on byte_order, "
+                                "response_level and safe_stop (they describe the servo): give both the same");
+  }
+  if (!servo.read_only && !other.read_only) {
+    fail(places.id, already + "; IDs on one bus must differ, or a second unit of the same servo must be "
+                              "`read_only: true` (two writable units would let two clients command one servo "
+                              "against each other)");
   }
 }
 

@@ -51,7 +51,7 @@ BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index
   settings.reopen_period = bus.reopen_period;
   settings.queue_depth = config.modbus_tcp.request_queue_depth;
   for (const auto& servo : config.servos) {
-    if (servo.bus_index != bus_index || servo.passthrough()) continue;
+    if (servo.bus_index != bus_index || servo.passthrough() || servo.view_of) continue;  // polled once
     settings.servos.push_back(ServoSettings{servo.servo_id, *servo.table, config::effective_byte_order(servo),
                                             poll_block_of(bus, servo)});
   }

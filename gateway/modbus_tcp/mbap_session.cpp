@@ -34,14 +34,28 @@ void MbapSession<Stream>::start() {
   socket().set_option(boost::asio::ip::tcp::no_delay(true), ignored);
   if constexpr (kTls) {
     handshaking_ = true;
-    arm_idle_timer(std::chrono::steady_clock::now() + kHandshakeTimeout);
+    arm_idle_timer(std::chrono::steady_clock::now() + host_->tls()->settings().handshake_timeout);
+    // The handshake starts once the client's first bytes are there: until then the connection
+    // is silent() without doubt (no bytes sitting unseen in a read buffer of the TLS stream).
+    socket().async_wait(boost::asio::socket_base::wait_read,
+                        [self = this->shared_from_this()](const boost::system::error_code&) {
+                          self->start_handshake();
+                        });
+  } else {
+    handler_ = &host_->handler();
+    begin_serving();
+  }
+}
+
+template <typename Stream>
+void MbapSession<Stream>::start_handshake() {
+  if constexpr (kTls) {
+    if (closed_) return;
+    client_spoke_ = true;  // or its connection failed: the handshake says which
     stream_.async_handshake(boost::asio::ssl::stream_base::server,
                             [self = this->shared_from_this()](const boost::system::error_code& error) {
                               self->on_handshake(error);
                             });
-  } else {
-    handler_ = &host_->handler();
-    begin_serving();
   }
 }
 
@@ -55,6 +69,10 @@ void MbapSession<Stream>::on_handshake(const boost::system::error_code& error) {
       close();
       return;
     }
+    if (!host_->handshake_done(this->shared_from_this())) {
+      close();
+      return;
+    }
     own_handler_ = host_->tls()->admit(stream_.native_handle(), peer_);
     if (!own_handler_) {
       close();
@@ -65,6 +83,16 @@ void MbapSession<Stream>::on_handshake(const boost::system::error_code& error) {
     last_activity_ = std::chrono::steady_clock::now();
     begin_serving();
   }
+}
+
+template <typename Stream>
+bool MbapSession<Stream>::silent() const {
+  if (!handshaking_ || closed_ || client_spoke_) return false;
+  boost::system::error_code error;
+  // Bytes the kernel holds that the gateway has not read yet: the client did speak. A socket
+  // in error is as good as silent.
+  const std::size_t unread = const_cast<MbapSession*>(this)->socket().available(error);
+  return error || unread == 0;
 }
 
 template <typename Stream>

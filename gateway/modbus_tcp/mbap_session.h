@@ -1,8 +1,8 @@
 #pragma once
 // One Modbus TCP connection (internal to the TCP server; tests drive it through TcpServer).
 // Plain connections are MbapSession<tcp::socket>; Modbus/TCP Security connections are
-// MbapSession<ssl::stream<tcp::socket>>, which first completes the TLS handshake (10 s at
-// most) and asks the server's TlsService for the connection's handler (a RoleGate in front of
+// MbapSession<ssl::stream<tcp::socket>>, which first completes the TLS handshake (within
+// modbus_tcp.tls.handshake_timeout_ms) and asks the server's TlsService for the connection's handler (a RoleGate in front of
 // the router), then runs exactly as a plain one. The session owns its socket, read buffer and MBAP decoder and keeps itself alive with
 // shared_from_this() in every pending handler, as the classic Asio server examples do.
 //
@@ -42,6 +42,9 @@ class Session {
   // Close now; an answer still to come is dropped.
   virtual void close() = 0;
   virtual const std::string& peer() const = 0;
+  // TLS: still waiting for the client's first handshake message (a connection that was opened
+  // and left silent); such connections are the first to make room for new handshakes.
+  virtual bool silent() const { return false; }
 };
 
 // What a session needs from its server.
@@ -51,6 +54,9 @@ class SessionHost {
   virtual const TcpServerOptions& options() const = 0;
   virtual TlsService* tls() = 0;  // nullptr on a plain listener
   virtual void on_session_closed(const std::shared_ptr<Session>& session) = 0;
+  // TLS: the handshake succeeded; false when the connection may not be served (the limit of
+  // served connections is reached; the host has counted and logged it).
+  virtual bool handshake_done(const std::shared_ptr<Session>& session) = 0;
   virtual void count_request(std::span<const std::uint8_t> pdu) = 0;
   virtual void count_response(std::span<const std::uint8_t> pdu) = 0;
   virtual void count_bad_header() = 0;
@@ -72,14 +78,15 @@ class MbapSession final : public Session,
   void drain() override;
   void close() override;
   const std::string& peer() const override { return peer_; }
+  bool silent() const override;
 
   void deliver(std::uint64_t request_serial, Bytes response_pdu) override;
 
  private:
   static constexpr bool kTls = !std::is_same_v<Stream, boost::asio::ip::tcp::socket>;
-  static constexpr std::chrono::seconds kHandshakeTimeout{10};
 
   typename Stream::lowest_layer_type& socket() { return stream_.lowest_layer(); }
+  void start_handshake();
   void on_handshake(const boost::system::error_code& error);
   void begin_serving();
   struct InFlight {
@@ -107,6 +114,7 @@ class MbapSession final : public Session,
   RequestHandler* handler_ = nullptr;                 // the host's, or own_handler_ (TLS)
   std::unique_ptr<RequestHandler> own_handler_;
   bool handshaking_ = false;
+  bool client_spoke_ = false;  // TLS: the client's first bytes came (or its connection failed)
   bool admitted_ = false;  // TLS: counted open by the TlsService
 
   std::array<std::uint8_t, 4096> read_buffer_{};

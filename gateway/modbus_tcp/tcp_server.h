@@ -3,16 +3,20 @@
 // accepted and closed at once), and runs one MbapSession per connection. Each session decodes
 // MBAP frames, hands their PDUs to a RequestHandler one at a time and writes the answers back
 // in request order with the transaction ids echoed, so pipelined requests are answered in
-// order and a connection's writes reach the buses in the order they arrived.
+// order and a connection's writes reach the buses in the order they arrived. On a TLS listener
+// the limit counts connections served; those still in the handshake have their own budget
+// (TlsConfig::max_handshakes, per address too), and the oldest of them makes room for a new one.
 //
 // Threading: everything here runs on the io_context passed in, which must be run by a single
 // thread (the sessions rely on it instead of strands). Asio stays out of this header.
+#include <array>
 #include <chrono>
 #include <cstdint>
 #include <functional>
 #include <memory>
 #include <span>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "config/config.h"
@@ -65,6 +69,8 @@ class RequestHandler {
 struct TcpServerOptions {
   std::string host = "127.0.0.1";
   std::uint16_t port = 502;  // 0: any free port (tests); port() says which
+  // Plain: connections open at once. TLS: connections served (handshake done); connections
+  // still in the handshake have the budget of TlsConfig (max_handshakes, ...) apart.
   std::size_t max_connections = 32;
   std::chrono::milliseconds idle_timeout{std::chrono::seconds{60}};  // 0: never close idle clients
   // Decoded requests a connection may have waiting behind the one being answered; past it the
@@ -87,14 +93,25 @@ struct TcpServerOptions {
   TlsService* tls = nullptr;
 };
 
+// The two listeners, as the `listener` label of /metrics names them (modbus_tcp.plain, .tls).
+inline constexpr std::array<std::string_view, 2> kListenerNames{"plain", "tls"};
+
+// Connections of one listener closed at once, by reason.
+struct ConnectionRefusals {
+  std::uint64_t max_connections = 0;
+  std::uint64_t allow = 0;
+};
+
 struct TcpServerStats {
-  std::size_t open_connections = 0;
+  std::size_t open_connections = 0;  // TLS: handshakes in progress included
   std::uint64_t accepted = 0;
   std::uint64_t refused = 0;     // over the connection limit
   std::uint64_t denied = 0;      // not in the allow-list
   std::uint64_t requests = 0;
   std::uint64_t bad_headers = 0;  // connections closed for an MBAP header that is not Modbus
   std::uint64_t idle_closed = 0;
+  // `refused` and `denied` by listener (kListenerNames index).
+  std::array<ConnectionRefusals, kListenerNames.size()> refusals{};
 };
 
 // "60 s", "150 ms": for log lines.

@@ -73,6 +73,10 @@ class TcpServing::Impl {
       total.requests += one.requests;
       total.bad_headers += one.bad_headers;
       total.idle_closed += one.idle_closed;
+      for (std::size_t i = 0; i < total.refusals.size(); ++i) {
+        total.refusals[i].max_connections += one.refusals[i].max_connections;
+        total.refusals[i].allow += one.refusals[i].allow;
+      }
     }
     return total;
   }

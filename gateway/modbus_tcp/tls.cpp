@@ -4,6 +4,7 @@
 #include <openssl/asn1.h>
 #include <openssl/bio.h>
 #include <openssl/err.h>
+#include <openssl/pem.h>
 #include <openssl/ssl.h>
 #include <openssl/x509.h>
 #include <openssl/x509v3.h>
@@ -125,6 +126,15 @@ std::string_view result_of_ssl_reason(int reason) {
   }
 }
 
+// The private key in a PEM file (no passphrase: the callback refuses to ask), or nullptr.
+EVP_PKEY* read_private_key(const std::string& path) {
+  BIO* file = BIO_new_file(path.c_str(), "r");
+  if (file == nullptr) return nullptr;
+  EVP_PKEY* key = PEM_read_bio_PrivateKey(file, nullptr, [](char*, int, int, void*) { return 0; }, nullptr);
+  BIO_free(file);
+  return key;
+}
+
 // The certificate verification refused first, described for the log line of the refusal: the
 // peer's certificate is not kept by OpenSSL when its verification fails.
 void free_refused_text(void*, void* text, CRYPTO_EX_DATA*, int, long, void*) {
@@ -136,7 +146,32 @@ int refused_text_index() {
   return index;
 }
 
+// Whether every critical extension of `certificate` that OpenSSL does not handle itself is the
+// role extension, which the gateway reads (read_certificate). Then "unhandled critical
+// extension" is no reason to refuse it.
+bool only_role_extension_unhandled(X509* certificate) {
+  ASN1_OBJECT* role = OBJ_txt2obj(std::string(kRoleExtensionOid).c_str(), 1);
+  if (role == nullptr) return false;
+  bool handled = true;
+  for (int i = 0; i < X509_get_ext_count(certificate) && handled; ++i) {
+    X509_EXTENSION* extension = X509_get_ext(certificate, i);
+    if (X509_EXTENSION_get_critical(extension) == 0 || X509_supported_extension(extension) != 0) continue;
+    handled = OBJ_cmp(X509_EXTENSION_get_object(extension), role) == 0;
+  }
+  ASN1_OBJECT_free(role);
+  return handled;
+}
+
+// The verify callback: accepts a critical role extension, and keeps the description of the
+// first certificate refused.
 int remember_refused_certificate(int ok, X509_STORE_CTX* store) {
+  if (ok == 0 && X509_STORE_CTX_get_error(store) == X509_V_ERR_UNHANDLED_CRITICAL_EXTENSION) {
+    X509* current = X509_STORE_CTX_get_current_cert(store);
+    if (current != nullptr && only_role_extension_unhandled(current)) {
+      X509_STORE_CTX_set_error(store, X509_V_OK);
+      return 1;
+    }
+  }
   if (ok != 0) return ok;
   auto* ssl = static_cast<SSL*>(X509_STORE_CTX_get_ex_data(store, SSL_get_ex_data_X509_STORE_CTX_idx()));
   X509* certificate = X509_STORE_CTX_get_current_cert(store);
@@ -243,24 +278,38 @@ PeerCertificate read_certificate(X509* certificate) {
 }
 
 RoleDecision role_for(const config::TlsConfig& settings, const PeerCertificate& certificate) {
+  // An extension text that is no role here (another scheme's "Operator") is not guessed at: it
+  // is looked up in role_names, else the certificate is mapped as if it had no extension.
+  std::string unmapped_extension;
   if (certificate.role_extension) {
-    const auto role = config::role_from_name(*certificate.role_extension);
-    if (!role || *role == Role::None) {
-      return {Role::None, "the role extension says `" + *certificate.role_extension +
-                              "`, not read, operate or engineer"};
+    const std::string& text = *certificate.role_extension;
+    if (const auto role = config::role_from_name(text)) {
+      if (*role == Role::None) return {Role::None, "the role extension says `none`"};
+      return {*role, "role extension"};
     }
-    return {*role, "role extension"};
+    const auto named = std::find_if(settings.role_names.begin(), settings.role_names.end(),
+                                    [&](const config::TlsRoleMapping& mapping) { return mapping.name == text; });
+    if (named != settings.role_names.end()) {
+      if (named->role == Role::None) return {Role::None, "role_names[" + text + "] is none"};
+      return {named->role, "role extension `" + text + "` (role_names)"};
+    }
+    unmapped_extension = "role extension `" + text + "` not in role_names, so ";
   }
   for (const auto& mapping : settings.roles) {
     if (!certificate.common_name.empty() && mapping.name == certificate.common_name) {
-      return {mapping.role, "roles[" + mapping.name + "] (CN)"};
+      return {mapping.role, unmapped_extension + "roles[" + mapping.name + "] (CN)"};
     }
     if (std::find(certificate.alt_names.begin(), certificate.alt_names.end(), mapping.name) !=
         certificate.alt_names.end()) {
-      return {mapping.role, "roles[" + mapping.name + "] (subjectAltName)"};
+      return {mapping.role, unmapped_extension + "roles[" + mapping.name + "] (subjectAltName)"};
     }
   }
-  if (settings.default_role != Role::None) return {settings.default_role, "default_role"};
+  if (settings.default_role != Role::None) return {settings.default_role, unmapped_extension + "default_role"};
+  if (certificate.role_extension) {
+    return {Role::None, "the role extension says `" + *certificate.role_extension +
+                            "`, which is not read, operate, engineer nor in modbus_tcp.tls.role_names; no "
+                            "modbus_tcp.tls.roles entry for its CN or subjectAltName, and no default_role"};
+  }
   return {Role::None, "no role extension, no modbus_tcp.tls.roles entry for its CN or subjectAltName, and no "
                       "default_role"};
 }
@@ -281,13 +330,26 @@ std::shared_ptr<ssl::context> make_tls_context(const config::TlsConfig& settings
     throw std::runtime_error("modbus_tcp.tls.certificate " + settings.certificate +
                              ": not a PEM certificate (chain): " + openssl_error_text());
   }
-  if (SSL_CTX_use_PrivateKey_file(native, settings.private_key.c_str(), SSL_FILETYPE_PEM) != 1) {
+  // Read first and matched apart: SSL_CTX_use_PrivateKey_file also refuses a key of another
+  // certificate, and its error would read as if the file were no key at all.
+  EVP_PKEY* key = read_private_key(settings.private_key);
+  if (key == nullptr) {
     throw std::runtime_error("modbus_tcp.tls.private_key " + settings.private_key +
                              ": not an unencrypted PEM private key: " + openssl_error_text());
   }
-  if (SSL_CTX_check_private_key(native) != 1) {
+  const bool matches = X509_check_private_key(SSL_CTX_get0_certificate(native), key) == 1;
+  ERR_clear_error();
+  if (!matches) {
+    EVP_PKEY_free(key);
     throw std::runtime_error("modbus_tcp.tls.private_key " + settings.private_key + " does not belong to " +
-                             settings.certificate + ": " + openssl_error_text());
+                             settings.certificate + " (the key of another certificate?): give the key made with " +
+                             "that certificate's request, or the certificate issued for this key");
+  }
+  const bool used = SSL_CTX_use_PrivateKey(native, key) == 1;
+  EVP_PKEY_free(key);
+  if (!used) {
+    throw std::runtime_error("modbus_tcp.tls.private_key " + settings.private_key + ": cannot be used: " +
+                             openssl_error_text());
   }
   if (SSL_CTX_load_verify_locations(native, settings.ca.c_str(), nullptr) != 1) {
     throw std::runtime_error("modbus_tcp.tls.ca " + settings.ca + ": no PEM CA certificate in it: " +
@@ -385,9 +447,12 @@ void TlsService::handshake_failed(const boost::system::error_code& error, SSL* s
 
 void TlsService::handshake_timed_out(const std::string& peer) {
   count("timeout");
-  spdlog::warn("modbus tcp security: refused handshake from {}: no complete TLS handshake within 10 s [timeout]",
-               peer);
+  spdlog::warn("modbus tcp security: refused handshake from {}: no complete TLS handshake within {} "
+               "(modbus_tcp.tls.handshake_timeout_ms) [timeout]",
+               peer, duration_text(settings_.handshake_timeout));
 }
+
+void TlsService::handshake_evicted() { count("evicted"); }
 
 void TlsService::connection_closed() {
   std::lock_guard lock(mutex_);

@@ -45,9 +45,9 @@ struct RoleDecision {
   config::Role role = config::Role::None;
   std::string source;  // "role extension", "roles[plc-1] (CN)", "default_role", or why none
 };
-// The role extension when present (its text must be read, operate or engineer; anything else
-// gives no role), else the first `roles` entry naming the CN or a subjectAltName, else
-// default_role.
+// The role extension when its text is read, operate or engineer (`none` refuses), or a
+// role_names entry; otherwise (no extension, or a text of another scheme not in role_names) the
+// first `roles` entry naming the CN or a subjectAltName, else default_role.
 RoleDecision role_for(const config::TlsConfig& settings, const PeerCertificate& certificate);
 
 // A server context: TLS 1.2 minimum, the certificate chain and key, client certificates
@@ -74,6 +74,8 @@ class TlsService {
   // A handshake that failed: one log line with the reason and the peer, counted.
   void handshake_failed(const boost::system::error_code& error, SSL* ssl, const std::string& peer);
   void handshake_timed_out(const std::string& peer);
+  // Closed in the handshake to make room for a newer connection (the server logs it).
+  void handshake_evicted();
   void connection_closed();
 
   void count_refusal(config::Role role);

@@ -8,7 +8,7 @@
 namespace sms::gateway {
 
 // Outcomes of a TLS handshake on the secure listener, as sms_gateway_tls_handshakes_total{result}.
-inline constexpr std::array<std::string_view, 11> kHandshakeResults{
+inline constexpr std::array<std::string_view, 12> kHandshakeResults{
     "ok",              // verified, with a role: the connection is served
     "expired",         // the client certificate (or one above it) has expired
     "not_yet_valid",   // ... is not valid yet
@@ -18,7 +18,8 @@ inline constexpr std::array<std::string_view, 11> kHandshakeResults{
     "no_role",         // verified, but neither the role extension, roles nor default_role give a role
     "not_tls",         // the bytes were not TLS (plain Modbus on the TLS port, a scanner)
     "protocol",        // TLS, but nothing in common: a version below 1.2, no shared cipher
-    "timeout",         // no complete handshake within 10 s
+    "timeout",         // no complete handshake within modbus_tcp.tls.handshake_timeout_ms
+    "evicted",         // closed in the handshake to make room for a newer one (max_handshakes...)
     "failed",          // anything else (connection closed or reset during the handshake)
 };
 

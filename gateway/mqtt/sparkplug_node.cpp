@@ -169,7 +169,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   Impl(const config::Config& config, asio::io_context& io, UnitRouter& router)
       : config_(config), settings_(*config.mqtt), io_(io), router_(router), policy_(config), timer_(io) {
     for (const auto& servo : config.servos) {
-      if (servo.passthrough()) continue;
+      if (servo.passthrough() || servo.view_of) continue;  // a servo is one device, however many units show it
       const ServoUnit* unit = router.servo_unit(servo.unit_id);
       if (unit == nullptr) continue;
       devices_.push_back(make_device(servo, *unit));

@@ -269,7 +269,7 @@ BusMetrics read_bus_metrics(const config::Config& config, std::size_t bus_index,
   metrics.counters = counters;
   metrics.servos_online = cache.online_count();
   for (const auto& servo : config.servos) {
-    if (servo.bus_index != bus_index || servo.passthrough()) continue;
+    if (servo.bus_index != bus_index || servo.passthrough() || servo.view_of) continue;  // one sample per servo
     const auto state = cache.state(servo.servo_id);
     if (!state) continue;
     ServoMetrics entry;
@@ -337,9 +337,15 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
   }
   constexpr std::string_view kRefused = "sms_gateway_tcp_connections_refused_total";
   out.family(kRefused, MetricType::Counter,
-             "Connections closed at once: over modbus_tcp.max_connections, or not in modbus_tcp.allow");
-  out.sample(kRefused, {{"reason", "max_connections"}}, snapshot.tcp.refused);
-  out.sample(kRefused, {{"reason", "allow"}}, snapshot.tcp.denied);
+             "Connections closed at once, by listener (plain, tls): over modbus_tcp.max_connections, or not in "
+             "modbus_tcp.allow");
+  for (std::size_t i = 0; i < kListenerNames.size(); ++i) {
+    if (kListenerNames[i] == "tls" && !snapshot.tls) continue;
+    const std::string listener(kListenerNames[i]);
+    out.sample(kRefused, {{"listener", listener}, {"reason", "max_connections"}},
+               snapshot.tcp.refusals[i].max_connections);
+    out.sample(kRefused, {{"listener", listener}, {"reason", "allow"}}, snapshot.tcp.refusals[i].allow);
+  }
 
   if (snapshot.tls) {
     const TlsStats& tls = *snapshot.tls;

@@ -133,7 +133,7 @@ class SafetySupervisor::Impl {
       bus->state = bus_config.watchdog ? WatchdogState::Armed : WatchdogState::Off;
       std::vector<const config::ServoConfig*> servos;
       for (const auto& servo : config.servos) {
-        if (servo.bus_index == i && !servo.passthrough()) servos.push_back(&servo);
+        if (servo.bus_index == i && !servo.passthrough() && !servo.view_of) servos.push_back(&servo);
       }
       std::sort(servos.begin(), servos.end(),
                 [](const auto* a, const auto* b) { return a->unit_id < b->unit_id; });

@@ -506,8 +506,40 @@ servos:
   - {unit: 1, bus: arm, id: 5, table: sts}
   - {unit: 2, bus: arm, id: 5, table: sts}
 )"),
-            "plant.yaml:5:29: servos[1]: servo id 5 is already on bus `arm` as servos[0] (line 4, column 29); IDs "
-            "on one bus must differ");
+            "plant.yaml:5:29: servos[1]: servo id 5 is already on bus `arm` as servos[0] (unit 1, line 4, column 29); "
+            "IDs on one bus must differ, or a second unit of the same servo must be `read_only: true` (two writable "
+            "units would let two clients command one servo against each other)");
+}
+
+TEST(ConfigErrors, SecondUnitOfAServoMustBeReadOnlyAndDescribeTheSameServo) {
+  const std::string head = R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {unit: 1, bus: arm, id: 5, table: sts}
+  - {unit: 2, bus: arm, id: 5, table: sts, read_only: true}
+)";
+  // A third unit that writes: the servo already has its writable unit 1.
+  EXPECT_EQ(error_text(head + "  - {unit: 3, bus: arm, id: 5, table: sts}\n"),
+            "plant.yaml:6:29: servos[2]: servo id 5 is already on bus `arm` as servos[0] (unit 1, line 4, column 29); "
+            "IDs on one bus must differ, or a second unit of the same servo must be `read_only: true` (two writable "
+            "units would let two clients command one servo against each other)");
+  EXPECT_EQ(error_text(head + "  - {unit: 3, bus: arm, id: 5, table: sms1, read_only: true}\n"),
+            "plant.yaml:6:29: servos[2]: servo id 5 is already on bus `arm` as servos[0] (unit 1, line 4, column 29) "
+            "with table sts, this one is table sms1; IDs on one bus must differ, or a second unit of the same servo "
+            "must have its table");
+  EXPECT_EQ(error_text(head + "  - {unit: 3, bus: arm, id: 5, table: sts, read_only: true, safe_stop: torque_off}\n"),
+            "plant.yaml:6:5: servos[2]: servo id 5 is already on bus `arm` as servos[0] (unit 1, line 4, column 29) "
+            "with another safe_stop; units of one servo must agree on byte_order, response_level and safe_stop (they "
+            "describe the servo): give both the same");
+  EXPECT_EQ(error_text(head + "  - {unit: 3, bus: arm, id: 5, table: sts, read_only: true, byte_order: high-first}\n"),
+            "plant.yaml:6:5: servos[2]: servo id 5 is already on bus `arm` as servos[0] (unit 1, line 4, column 29) "
+            "with another byte_order; units of one servo must agree on byte_order, response_level and safe_stop (they "
+            "describe the servo): give both the same");
+  // A read-only view cannot be a sync group member (a group writes).
+  EXPECT_NE(error_text(head + "sync_groups:\n  - {name: g, field: goal_position, members: [1, 2], "
+                              "holding_register_start: 0}\n")
+                .find("unit 2 is read_only"),
+            std::string::npos);
 }
 
 TEST(ConfigErrors, TwoServosWithOneName) {

@@ -307,6 +307,42 @@ servos:
   EXPECT_EQ(find_bus(config, "c"), nullptr);
 }
 
+// docs/OPERATIONS.md: an HMI on plain Modbus gets its own read-only units of the servos a PLC
+// drives; each servo is still polled and stopped once, as its first unit.
+TEST(ConfigLoad, AServoShownAsAWritableAndAReadOnlyUnit) {
+  const Config config = load_or_fail(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {unit: 1, bus: arm, id: 1, table: sts, safe_stop: torque_off}
+  - {unit: 2, bus: arm, id: 2, table: sts}
+  - {unit: 101, bus: arm, id: 1, table: sts, profile: smsmb, read_only: true, safe_stop: torque_off, name: hmi-1}
+  - {unit: 102, bus: arm, id: 2, table: sts, read_only: true}
+  - {unit: 202, bus: arm, id: 2, table: sts, read_only: true}
+)");
+  ASSERT_EQ(config.servos.size(), 5u);
+  EXPECT_FALSE(config.servos[0].view_of);
+  EXPECT_FALSE(config.servos[1].view_of);
+  EXPECT_EQ(config.servos[2].view_of, 1);
+  EXPECT_EQ(config.servos[2].profile, Profile::Smsmb);
+  EXPECT_EQ(config.servos[3].view_of, 2);
+  EXPECT_EQ(config.servos[4].view_of, 2);
+  const auto again = load_config_string(dump_config(config), "dump.yaml");
+  ASSERT_TRUE(again) << again.error().to_string() << "\n" << dump_config(config);
+  EXPECT_EQ(*again, config);
+}
+
+TEST(ConfigLoad, TheWritableUnitOfAServoMayComeAfterItsReadOnlyOne) {
+  const Config config = load_or_fail(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {unit: 101, bus: arm, id: 1, table: sts, read_only: true}
+  - {unit: 1, bus: arm, id: 1, table: sts}
+)");
+  EXPECT_FALSE(config.servos[0].view_of);
+  EXPECT_EQ(config.servos[1].view_of, 101);
+  EXPECT_FALSE(config.servos[1].read_only);
+}
+
 TEST(ConfigLoad, AdjacentSyncGroupsAndGroupsAcrossBuses) {
   const Config config = load_or_fail(R"(buses:
   - {name: left, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}

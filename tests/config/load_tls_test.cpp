@@ -2,6 +2,7 @@
 // and place, and the dump that loads back to the same configuration.
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <string>
 #include <string_view>
 
@@ -24,6 +25,10 @@ const std::string kTls = R"(modbus_tcp:
     ca: /etc/sms-gateway/tls/plant-ca.crt
     roles: {plc-1: operate, hmi-1.plant: read, laptop-eng: engineer}
     default_role: none
+    role_names: {Operator: operate, Engineer: engineer, Guest: none}
+    handshake_timeout_ms: 1500
+    max_handshakes: 8
+    max_handshakes_per_address: 2
 )";
 
 TEST(LoadTls, DefaultsArePlainOnlyAndNoTls) {
@@ -48,10 +53,35 @@ TEST(LoadTls, ReadsEveryKeyAndDumpsBackTheSame) {
   EXPECT_EQ(tls.roles[1], (TlsRoleMapping{"hmi-1.plant", Role::Read}));
   EXPECT_EQ(tls.roles[2], (TlsRoleMapping{"laptop-eng", Role::Engineer}));
   EXPECT_EQ(tls.default_role, Role::None);
+  ASSERT_EQ(tls.role_names.size(), 3u);
+  EXPECT_EQ(tls.role_names[0], (TlsRoleMapping{"Operator", Role::Operate}));
+  EXPECT_EQ(tls.role_names[1], (TlsRoleMapping{"Engineer", Role::Engineer}));
+  EXPECT_EQ(tls.role_names[2], (TlsRoleMapping{"Guest", Role::None}));
+  EXPECT_EQ(tls.handshake_timeout, std::chrono::milliseconds{1500});
+  EXPECT_EQ(tls.max_handshakes, 8u);
+  EXPECT_EQ(tls.max_handshakes_per_address, 2u);
 
   const auto again = load_config_string(dump_config(*config), "dump.yaml");
   ASSERT_TRUE(again) << again.error().to_string() << "\n" << dump_config(*config);
   EXPECT_EQ(*again, *config);
+}
+
+TEST(LoadTls, HandshakeBudgetDefaults) {
+  const std::string minimal = "modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c}\n";
+  const auto config = load_config_string(minimal + kBusAndServo, "plant.yaml");
+  ASSERT_TRUE(config) << config.error().to_string();
+  const TlsConfig& tls = *config->modbus_tcp.tls;
+  EXPECT_EQ(tls.handshake_timeout, std::chrono::milliseconds{3000});
+  EXPECT_EQ(tls.max_handshakes, 16u);
+  EXPECT_EQ(tls.max_handshakes_per_address, 4u);
+  EXPECT_TRUE(tls.role_names.empty());
+  // A listener budget below the per-address default lowers the per-address one with it.
+  const auto small = load_config_string(
+      "modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, max_handshakes: 2}\n" +
+          kBusAndServo,
+      "plant.yaml");
+  ASSERT_TRUE(small) << small.error().to_string();
+  EXPECT_EQ(small->modbus_tcp.tls->max_handshakes_per_address, 2u);
 }
 
 TEST(LoadTls, RefusesWithPlaces) {
@@ -73,6 +103,21 @@ TEST(LoadTls, RefusesWithPlaces) {
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
                        "default_role: admin}\n" + kBusAndServo),
             "plant.yaml:2:85: modbus_tcp.tls.default_role: expected one of none, read, operate, engineer, got `admin`");
+  EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
+                       "role_names: {read: operate}}\n" + kBusAndServo),
+            "plant.yaml:2:84: modbus_tcp.tls.role_names: `read` already is a role; list only other names here");
+  EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
+                       "role_names: {Operator: admin}}\n" + kBusAndServo),
+            "plant.yaml:2:94: modbus_tcp.tls.role_names.Operator: expected one of none, read, operate, engineer, got "
+            "`admin`");
+  EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
+                       "max_handshakes: 4, max_handshakes_per_address: 5}\n" + kBusAndServo),
+            "plant.yaml:2:90: modbus_tcp.tls.max_handshakes_per_address: 5 is more than max_handshakes (4); lower it "
+            "or raise max_handshakes");
+  EXPECT_NE(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
+                       "handshake_timeout_ms: 50}\n" + kBusAndServo)
+                .find("modbus_tcp.tls.handshake_timeout_ms"),
+            std::string::npos);
   EXPECT_NE(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificat: a}\n" + kBusAndServo)
                 .find("unknown key `certificat` in modbus_tcp.tls (did you mean `certificate`?)"),
             std::string::npos);

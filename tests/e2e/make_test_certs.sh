@@ -11,6 +11,10 @@
 #   foreign.crt/key     CN=plc-9, role "operate", from another CA (other-ca.crt)
 #   expired.crt/key     CN=plc-old, role "operate", valid only in January 2020
 #   ca2.crt, server2.*  a second CA and server certificate (reload tests)
+#   other-scheme.crt/key CN=plc-3, role extension "Operator" (another scheme's name; mapped by CN)
+#   named-role.crt/key  CN=laptop-2, role extension "Engineer" (mapped by modbus_tcp.tls.role_names)
+#   critical.crt/key    CN=plc-4, role extension "operate" marked critical
+#   critical-other.crt/key CN=plc-5, role "operate" and another critical extension nobody handles
 set -euo pipefail
 dir=${1:?usage: make_test_certs.sh DIR}
 mkdir -p "$dir"
@@ -51,6 +55,11 @@ leaf mapped hmi-2 ca "extendedKeyUsage=clientAuth" "subjectAltName=DNS:hmi-2.pla
 leaf norole stranger ca "extendedKeyUsage=clientAuth"
 leaf foreign plc-9 other-ca "extendedKeyUsage=clientAuth" "$role_oid=ASN1:UTF8String:operate"
 leaf ca2-operate plc-2 ca2 "extendedKeyUsage=clientAuth" "$role_oid=ASN1:UTF8String:operate"
+leaf other-scheme plc-3 ca "extendedKeyUsage=clientAuth" "$role_oid=ASN1:UTF8String:Operator"
+leaf named-role laptop-2 ca "extendedKeyUsage=clientAuth" "$role_oid=ASN1:UTF8String:Engineer"
+leaf critical plc-4 ca "extendedKeyUsage=clientAuth" "$role_oid=critical,ASN1:UTF8String:operate"
+leaf critical-other plc-5 ca "extendedKeyUsage=clientAuth" "$role_oid=ASN1:UTF8String:operate" \
+  "1.3.6.1.4.1.99999.1=critical,ASN1:UTF8String:unknown"
 
 # Expired: `openssl x509` cannot back-date, `openssl ca` can (-startdate/-enddate).
 key expired

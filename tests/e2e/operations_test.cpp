@@ -124,7 +124,7 @@ TEST(Operations, ClientOutsideTheAllowListIsClosedWithoutAnAnswer) {
       << gateway.output();
   int status = 0;
   const auto metrics = parse_exposition(http_get(metrics_port, "/metrics", &status));
-  EXPECT_EQ(metrics.value(R"(sms_gateway_tcp_connections_refused_total{reason="allow"})"), "1");
+  EXPECT_EQ(metrics.value(R"(sms_gateway_tcp_connections_refused_total{listener="plain",reason="allow"})"), "1");
   EXPECT_EQ(metrics.value(R"(sms_gateway_modbus_requests_total{function="4",name="read_input_registers"})"), "0");
 }
 

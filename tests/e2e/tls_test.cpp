@@ -7,10 +7,16 @@
 #include <gtest/gtest.h>
 
 #include <signal.h>
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <poll.h>
 #include <sys/socket.h>
 #include <sys/time.h>
 
 #include <array>
+#include <atomic>
+#include <iostream>
+#include <thread>
 #include <cstdlib>
 #include <filesystem>
 #include <optional>
@@ -118,9 +124,88 @@ bool plain_connect_succeeds(std::uint16_t port) {
   return !error;
 }
 
+// Holds `count` TCP connections to the port open without sending a byte (a client that never
+// starts its TLS handshake), from the given source addresses in turn (all of 127/8 is this
+// machine), and opens a new one each time the gateway closes one; until destroyed.
+class SilentFlood {
+ public:
+  SilentFlood(std::uint16_t port, std::vector<std::string> sources, std::size_t count)
+      : port_(port), sources_(std::move(sources)), fds_(count, -1) {
+    for (std::size_t i = 0; i < fds_.size(); ++i) fds_[i] = open(i);
+    thread_ = std::thread([this] { run(); });
+  }
+  ~SilentFlood() {
+    stop_ = true;
+    thread_.join();
+    for (const int fd : fds_) {
+      if (fd >= 0) ::close(fd);
+    }
+  }
+  std::uint64_t reopened() const { return reopened_; }
+
+ private:
+  int open(std::size_t index) const {
+    const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+    if (fd < 0) return -1;
+    const int one = 1;
+    ::setsockopt(fd, IPPROTO_IP, IP_BIND_ADDRESS_NO_PORT, &one, sizeof one);
+    sockaddr_in source{};
+    source.sin_family = AF_INET;
+    ::inet_pton(AF_INET, sources_[index % sources_.size()].c_str(), &source.sin_addr);
+    sockaddr_in target{};
+    target.sin_family = AF_INET;
+    target.sin_port = htons(port_);
+    ::inet_pton(AF_INET, "127.0.0.1", &target.sin_addr);
+    if (::bind(fd, reinterpret_cast<sockaddr*>(&source), sizeof source) != 0 ||
+        ::connect(fd, reinterpret_cast<sockaddr*>(&target), sizeof target) != 0) {
+      ::close(fd);
+      return -1;
+    }
+    return fd;
+  }
+
+  void run() {
+    std::vector<pollfd> polled(fds_.size());
+    while (!stop_) {
+      for (std::size_t i = 0; i < fds_.size(); ++i) {
+        if (fds_[i] < 0) fds_[i] = open(i);  // refused or failed: try again next round
+        polled[i] = pollfd{fds_[i], POLLIN | POLLRDHUP, 0};
+      }
+      if (::poll(polled.data(), polled.size(), 10) <= 0) continue;
+      for (std::size_t i = 0; i < fds_.size(); ++i) {
+        if (polled[i].revents == 0) continue;
+        ::close(fds_[i]);  // the gateway sends nothing before the client's hello: this is its close
+        fds_[i] = open(i);
+        ++reopened_;
+      }
+      std::this_thread::sleep_for(1ms);
+    }
+  }
+
+  const std::uint16_t port_;
+  const std::vector<std::string> sources_;
+  std::vector<int> fds_;
+  std::atomic<bool> stop_{false};
+  std::atomic<std::uint64_t> reopened_{0};
+  std::thread thread_;
+};
+
+// "Served within 1 s" is the functional bound; sanitizer builds run several times slower.
+#if defined(__has_feature)
+#if __has_feature(address_sanitizer) || __has_feature(undefined_behavior_sanitizer)
+constexpr auto kServedWithin = 5s;
+#else
+constexpr auto kServedWithin = 1s;
+#endif
+#else
+constexpr auto kServedWithin = 1s;
+#endif
+
 // One gateway on a configuration file with plain Modbus TCP off and TLS on an ephemeral port.
+// `extra_tls`: more lines of modbus_tcp.tls, indented by 4.
 struct SecureGateway {
-  SecureGateway(const TempDir& dir, const std::string& certs, const std::string& pty, std::uint16_t plain_port) {
+  SecureGateway(const TempDir& dir, const std::string& certs, const std::string& pty, std::uint16_t plain_port,
+                const std::string& extra_tls = "") {
     const std::string yaml = "modbus_tcp:\n"
                              "  listen: \"127.0.0.1:" + std::to_string(plain_port) + "\"\n"
                              "  plain: false\n"
@@ -129,7 +214,8 @@ struct SecureGateway {
                              "    certificate: \"" + certs + "/server.crt\"\n"
                              "    private_key: \"" + certs + "/server.key\"\n"
                              "    ca: \"" + certs + "/ca.crt\"\n"
-                             "    roles: {hmi-2.plant: read}\n"
+                             "    roles: {hmi-2.plant: read, plc-3: operate}\n"
+                             "    role_names: {Engineer: engineer}\n" + extra_tls +
                              "buses:\n"
                              "  - {name: line, device: \"" + pty + "\", protocol: feetech, baud: 1000000}\n"
                              "servos:\n"
@@ -219,7 +305,76 @@ TEST_F(Tls, CheckConfigLoadsTheTlsFiles) {
   }(), "/server.key", "/read.key");
   ChildProcess refused({bin("sms-gateway"), "--check-config", broken});
   EXPECT_EQ(refused.wait_exit(10s), 2);
-  EXPECT_NE(refused.output().find("modbus_tcp.tls.private_key"), std::string::npos) << refused.output();
+  // The key of another certificate is said to be that, not "not a PEM private key".
+  EXPECT_NE(refused.output().find("modbus_tcp.tls.private_key " + certs_ + "/read.key does not belong to " + certs_ +
+                                  "/server.crt"),
+            std::string::npos)
+      << refused.output();
+  EXPECT_EQ(refused.output().find("not an unencrypted PEM private key"), std::string::npos) << refused.output();
+}
+
+TEST_F(Tls, RoleExtensionOfAnotherSchemeFallsBackToTheCnMapping) {
+  // The extension says `Operator`; roles: {plc-3: operate} maps the certificate by its CN.
+  TlsClient plc(certs_, "other-scheme", gateway_->port);
+  // Repeated only if the bus missed an answer (0x0B on a loaded machine); a role refusal would
+  // be 0x01 or 0x02 every time.
+  EXPECT_TRUE(eventually([&] {
+    const auto move = plc.request(write_register_pdu(kGoalPosition, 2500));
+    return move && *move == write_register_pdu(kGoalPosition, 2500);
+  })) << log();
+  EXPECT_TRUE(eventually([&] { return sim_->field(1, "goal_position") == 2500; }));
+  const auto line = gateway_->process->wait_for_line("connected as CN=plc-3", 5s);
+  ASSERT_TRUE(line) << log();
+  EXPECT_NE(line->find("role operate from role extension `Operator` not in role_names, so roles[plc-3] (CN)"),
+            std::string::npos)
+      << *line;
+}
+
+TEST_F(Tls, RoleExtensionNamedInRoleNamesGetsThatRole) {
+  // The extension says `Engineer`; role_names: {Engineer: engineer}.
+  TlsClient engineer(certs_, "named-role", gateway_->port);
+  const long temperature = sim_->field(1, "max_temperature");
+  const auto target = static_cast<std::uint16_t>(temperature - 3);
+  const auto answer = engineer.request(write_register_pdu(kMaxTemperature, target));
+  ASSERT_TRUE(answer) << log();
+  EXPECT_EQ(*answer, write_register_pdu(kMaxTemperature, target));
+  EXPECT_TRUE(eventually([&] { return sim_->field(1, "max_temperature") == target; }));
+  EXPECT_TRUE(logged("role engineer from role extension `Engineer` (role_names)")) << log();
+}
+
+TEST_F(Tls, CriticalRoleExtensionIsHandled) {
+  TlsClient plc(certs_, "critical", gateway_->port);
+  EXPECT_TRUE(eventually([&] {  // as above: only a missed bus answer is retried
+    const auto move = plc.request(write_register_pdu(kGoalPosition, 1800));
+    return move && *move == write_register_pdu(kGoalPosition, 1800);
+  })) << log();
+  EXPECT_TRUE(logged("connected as CN=plc-4,O=Test Plant")) << log();
+  EXPECT_EQ(gateway_->metric("sms_gateway_tls_handshakes_total{result=\"bad_certificate\"}"), "0");
+}
+
+TEST_F(Tls, AnotherUnhandledCriticalExtensionIsStillRefused) {
+  TlsClient plc(certs_, "critical-other", gateway_->port);
+  EXPECT_FALSE(plc.request(read_registers_pdu(kGoalPosition, 1)));
+  const auto line = gateway_->process->wait_for_line("refused handshake from 127.0.0.1:", 5s);
+  ASSERT_TRUE(line) << log();
+  EXPECT_NE(line->find("unhandled critical extension"), std::string::npos) << *line;
+  EXPECT_NE(line->find("[bad_certificate]"), std::string::npos) << *line;
+}
+
+TEST_F(Tls, OpenSslClientWithTheCriticalRoleExtensionIsServed) {
+  // An independent client: openssl s_client sends one Modbus read and prints what came back.
+  const std::string request = dir_->file("request.bin");
+  std::ofstream(request, std::ios::binary) << std::string("\x00\x07\x00\x00\x00\x06\x01\x03\x00\x2A\x00\x01", 12);
+  const std::string answer = dir_->file("answer.bin");
+  const std::string command = "(cat " + request + "; sleep 1) | timeout 10 openssl s_client -quiet -no_ign_eof -connect 127.0.0.1:" +
+                              std::to_string(gateway_->port) + " -CAfile " + certs_ + "/ca.crt -cert " + certs_ +
+                              "/critical.crt -key " + certs_ + "/critical.key > " + answer + " 2>/dev/null";
+  std::system(command.c_str());
+  std::ifstream in(answer, std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(in)), {});
+  ASSERT_EQ(bytes.size(), 11u) << log();
+  EXPECT_EQ(bytes.substr(0, 2), std::string("\x00\x07", 2));
+  EXPECT_EQ(static_cast<std::uint8_t>(bytes[7]), 0x03);
 }
 
 TEST_F(Tls, CertificateOfAnotherCaIsRefusedAndLogged) {
@@ -367,6 +522,119 @@ TEST_F(Tls, SighupReloadsTheFilesAndAFailedReloadKeepsTheOldOnes) {
     TlsClient old(live, "operate", gateway_->port, "ca2");
     EXPECT_FALSE(old.request(read_registers_pdu(kGoalPosition, 1)));
   }
+}
+
+// How long a certified client takes to be served: connect, handshake, one read answered;
+// nullopt when it was not served. The read is of the gateway unit (bus count, input register
+// 5), answered from memory: what is measured is the listener, not the bus of a loaded machine.
+std::optional<std::chrono::milliseconds> time_to_serve(const std::string& certs, std::uint16_t port) {
+  const auto start = std::chrono::steady_clock::now();
+  TlsClient client(certs, "read", port);
+  const auto answer = client.request({0x04, 0x00, 0x05, 0x00, 0x01}, 255);
+  if (answer != Pdu{0x04, 0x02, 0x00, 0x01}) return std::nullopt;
+  return std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - start);
+}
+
+// Connections that never start their handshake, 32 of them (max_connections) kept open and
+// re-opened as the gateway closes them, cannot keep a certified client out: they have a budget
+// of their own, and the oldest silent one makes room for each new connection.
+void expect_served_despite(SilentFlood& flood, SecureGateway& gateway, const std::string& certs, const char* what) {
+  std::this_thread::sleep_for(300ms);  // the flood is established
+  std::chrono::milliseconds slowest{0};
+  constexpr int kTries = 8;
+  for (int i = 0; i < kTries; ++i) {
+    const auto served = time_to_serve(certs, gateway.port);
+    ASSERT_TRUE(served) << what << ": try " << i << " not served\n" << gateway.process->output();
+    EXPECT_LT(*served, kServedWithin) << what << ": try " << i;
+    slowest = std::max(slowest, *served);
+  }
+  std::cout << what << ": " << kTries << " of " << kTries << " tries served, slowest " << slowest.count()
+            << " ms; the flood re-opened " << flood.reopened() << " connections meanwhile\n";
+  ::testing::Test::RecordProperty(std::string(what) + "_slowest_ms", static_cast<int>(slowest.count()));
+  EXPECT_GT(flood.reopened(), 0u) << "the gateway closed none of the silent connections";
+  EXPECT_NE(gateway.metric("sms_gateway_tls_handshakes_total{result=\"evicted\"}"), "0");
+}
+
+TEST_F(Tls, SilentConnectionsFromManyAddressesCannotLockOutACertifiedClient) {
+  std::vector<std::string> sources;
+  for (int i = 2; i <= 9; ++i) sources.push_back("127.0.0." + std::to_string(i));
+  SilentFlood flood(gateway_->port, sources, 32);
+  expect_served_despite(flood, *gateway_, certs_, "32 silent connections from 8 addresses");
+}
+
+TEST_F(Tls, SilentConnectionsFromTheClientsOwnAddressCannotLockItOut) {
+  SilentFlood flood(gateway_->port, {"127.0.0.1"}, 32);
+  expect_served_despite(flood, *gateway_, certs_, "32 silent connections from the client's address");
+}
+
+TEST_F(Tls, TwoHundredSilentConnectionsDoNotDelayTheFirstClient) {
+  std::vector<std::string> sources;
+  for (int i = 2; i <= 21; ++i) sources.push_back("127.0.0." + std::to_string(i));
+  SilentFlood flood(gateway_->port, sources, 200);
+  expect_served_despite(flood, *gateway_, certs_, "200 silent connections from 20 addresses");
+}
+
+TEST_F(Tls, SilentHandshakeIsClosedAfterTheHandshakeTimeout) {
+  gateway_.reset();
+  gateway_ = std::make_unique<SecureGateway>(*dir_, certs_, sim_->pty(), free_port(), "    handshake_timeout_ms: 400\n");
+  asio::io_context io;
+  tcp::socket socket(io);
+  socket.connect(tcp::endpoint(asio::ip::make_address("127.0.0.1"), gateway_->port));
+  set_receive_timeout(socket.native_handle());
+  const auto start = std::chrono::steady_clock::now();
+  std::array<std::uint8_t, 16> buffer{};
+  boost::system::error_code error;
+  socket.read_some(asio::buffer(buffer), error);
+  const auto closed_after = std::chrono::steady_clock::now() - start;
+  EXPECT_EQ(error, asio::error::eof) << error.message();
+  EXPECT_GE(closed_after, 350ms);
+  EXPECT_LT(closed_after, 4500ms);  // not the receive timeout's 5 s: the gateway closed it
+  const auto line = gateway_->process->wait_for_line("[timeout]", 5s);
+  ASSERT_TRUE(line) << log();
+  EXPECT_NE(line->find("no complete TLS handshake within 400 ms (modbus_tcp.tls.handshake_timeout_ms)"),
+            std::string::npos)
+      << *line;
+}
+
+TEST_F(Tls, ServedConnectionsOverTheLimitAreRefusedAndCountedForTheTlsListener) {
+  // The same configuration with max_connections: 1 (on the TLS listener it counts served
+  // connections, not handshakes).
+  const std::string file = dir_->file("limited.yaml");
+  {
+    std::ifstream in(dir_->file("secure.yaml"));
+    const std::string yaml((std::istreambuf_iterator<char>(in)), {});
+    std::ofstream(file) << substitute(yaml, "  plain: false\n", "  plain: false\n  max_connections: 1\n");
+  }
+  gateway_.reset();  // the simulator's line is for one gateway at a time
+  ChildProcess limited({bin("sms-gateway"), "--config", file, "--metrics", "127.0.0.1:0"});
+  const std::string metrics_marker = "/healthz on http://127.0.0.1:";
+  const auto metrics_line = limited.wait_for_line(metrics_marker, 15s);
+  ASSERT_TRUE(metrics_line) << limited.output();
+  const auto metrics_port = static_cast<std::uint16_t>(
+      std::stoi(metrics_line->substr(metrics_line->find(metrics_marker) + metrics_marker.size())));
+  const std::string marker = "modbus tcp security: listening on 127.0.0.1:";
+  const auto line = limited.wait_for_line(marker, 15s);
+  ASSERT_TRUE(line) << limited.output();
+  const auto port = static_cast<std::uint16_t>(std::stoi(line->substr(line->find(marker) + marker.size())));
+
+  TlsClient first(certs_, "read", port);
+  ASSERT_TRUE(first.request(read_registers_pdu(kGoalPosition, 1))) << limited.output();
+  {
+    TlsClient second(certs_, "operate", port);
+    EXPECT_FALSE(second.request(read_registers_pdu(kGoalPosition, 1)));
+  }
+  EXPECT_TRUE(limited.wait_for_line("modbus tcp security: refusing connection from 127.0.0.1: 1 connections served",
+                                    5s))
+      << limited.output();
+  const auto body = gateway::testing::http_request(metrics_port, "GET", "/metrics").body;
+  EXPECT_NE(body.find("sms_gateway_tcp_connections_refused_total{listener=\"tls\",reason=\"max_connections\"} 1"),
+            std::string::npos)
+      << body;
+  EXPECT_NE(body.find("sms_gateway_tcp_connections_refused_total{listener=\"plain\",reason=\"max_connections\"} 0"),
+            std::string::npos)
+      << body;
+  // The first client is still served.
+  EXPECT_TRUE(first.request(read_registers_pdu(kGoalPosition, 1)));
 }
 
 }  // namespace

@@ -87,7 +87,8 @@ class MetricsRender : public ::testing::Test {
                                   .denied = 2,
                                   .requests = 7,
                                   .bad_headers = 1,
-                                  .idle_closed = 5};
+                                  .idle_closed = 5,
+                                  .refusals = {{{.max_connections = 2, .allow = 2}, {}}}};
     snapshot.traffic = traffic_.snapshot();
     return snapshot;
   }
@@ -171,8 +172,10 @@ TEST_F(MetricsRender, TcpConnectionCounters) {
   const auto e = parse_exposition(render_prometheus(snapshot()));
   EXPECT_EQ(e.value("sms_gateway_tcp_connections"), "3");
   EXPECT_EQ(e.value("sms_gateway_tcp_connections_accepted_total"), "40");
-  EXPECT_EQ(e.value("sms_gateway_tcp_connections_refused_total{reason=\"max_connections\"}"), "2");
-  EXPECT_EQ(e.value("sms_gateway_tcp_connections_refused_total{reason=\"allow\"}"), "2");
+  EXPECT_EQ(e.value("sms_gateway_tcp_connections_refused_total{listener=\"plain\",reason=\"max_connections\"}"), "2");
+  EXPECT_EQ(e.value("sms_gateway_tcp_connections_refused_total{listener=\"plain\",reason=\"allow\"}"), "2");
+  // Without modbus_tcp.tls there is no TLS listener to count.
+  EXPECT_EQ(e.count("sms_gateway_tcp_connections_refused_total"), 2u);
   EXPECT_EQ(e.value("sms_gateway_tcp_connections_closed_idle_total"), "5");
   EXPECT_EQ(e.value("sms_gateway_tcp_bad_headers_total"), "1");
   EXPECT_EQ(e.types.at("sms_gateway_tcp_connections"), "gauge");

@@ -252,6 +252,8 @@ TEST_F(TcpServerTest, ConnectionsOverTheLimitAreAcceptedAndClosedAtOnce) {
   TestClient fourth(port());
   EXPECT_TRUE(fourth.closed_by_peer());
   EXPECT_EQ(server_->stats().refused, 2u);
+  EXPECT_EQ(server_->stats().refusals[0].max_connections, 2u);  // counted for the plain listener
+  EXPECT_EQ(server_->stats().refusals[1].max_connections, 0u);
 
   first.close();  // a slot frees up: a new client is served again
   for (int attempt = 0; attempt < 100 && server_->stats().open_connections != 1; ++attempt) std::this_thread::sleep_for(10ms);
@@ -275,6 +277,7 @@ TEST_F(TcpServerTest, ClientNotInTheAllowListIsClosedWithoutAnAnswerAndCounted) 
   EXPECT_TRUE(outsider.closed_by_peer());
   EXPECT_TRUE(handler_.started().empty());  // the request never reached the handler
   EXPECT_EQ(server_->stats().denied, 1u);
+  EXPECT_EQ(server_->stats().refusals[0].allow, 1u);
   EXPECT_EQ(server_->stats().accepted, 0u);
 }
 
