@@ -71,6 +71,9 @@ Expected<std::optional<std::string>> read_state_file(const std::string& path) {
 
 std::string check_state_dir(const std::string& dir) {
   struct stat info {};
+  if (::stat(dir.c_str(), &info) != 0 && errno == ENOENT && ::mkdir(dir.c_str(), 0750) == 0) {
+    return {};  // made here, by and for this user
+  }
   if (::stat(dir.c_str(), &info) != 0) {
     return "state_dir " + dir + ": " + std::strerror(errno) +
            "; create it, writable by the gateway's user (the package's unit has StateDirectory=sms-gateway)";

@@ -14,8 +14,8 @@ namespace sms::gateway {
 Expected<Ok> write_file_atomically(const std::string& path, std::string_view text);
 // The file's content; nullopt when it does not exist; an error when it cannot be read.
 Expected<std::optional<std::string>> read_state_file(const std::string& path);
-// Empty when `dir` is a directory this process can create files in; else what is wrong and what
-// to do.
+// Empty when `dir` is a directory this process can create files in (made here when it is missing
+// and its parent exists); else what is wrong and what to do.
 std::string check_state_dir(const std::string& dir);
 
 }  // namespace sms::gateway
