@@ -52,5 +52,26 @@ sed -e '1s/^# .*/# NAME\n\nsms-gateway.yaml - the sms-gateway configuration file
   pandoc --from=gfm --to=man --standalone \
     --metadata=title=SMS-GATEWAY.YAML --metadata=section=5 --metadata=date="$date" \
     --metadata=footer="sms-gateway $version" --metadata=header="File formats" \
-    --output="$out/sms-gateway.yaml.5"
+    --output="$work/sms-gateway.yaml.5"
+# Long unbreakable words (JSON samples, address lists, OIDs) in narrow table cells: allow a line
+# break after their , . / : ; (groff's \: is an invisible break point), so the page renders
+# without warnings at any width; and left-aligned text.
+python3 - "$work/sms-gateway.yaml.5" "$out/sms-gateway.yaml.5" <<'PY'
+import re, sys
+def breakable(word):
+    if len(word) < 16: return word
+    out, depth = [], 0
+    for i, c in enumerate(word):
+        out.append(c)
+        if c == "[" and i > 0 and word[i - 1] in "\\f(" : depth += 1
+        elif c == "]" and depth: depth -= 1
+        elif c in ",./:;" and not depth and i + 1 < len(word): out.append("\\:")
+    return "".join(out)
+lines = open(sys.argv[1], encoding="utf-8").read().split("\n")
+lines = [l if l.startswith((".", "'")) or not l else " ".join(breakable(w) for w in l.split(" ")) for l in lines]
+# Left-aligned text (no justification): narrow table cells cannot be justified without warnings.
+th = next(i for i, l in enumerate(lines) if l.startswith(".TH "))
+lines.insert(th + 1, ".ad l")
+open(sys.argv[2], "w", encoding="utf-8").write("\n".join(lines))
+PY
 echo "man.sh: $out/sms-gateway.1 $out/sms-sim.1 $out/sms-gateway.yaml.5"
