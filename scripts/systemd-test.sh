@@ -28,7 +28,7 @@ mirror=${mirror:-http://deb.debian.org/debian}
 if [ ! -d "$work/root" ]; then
   echo "systemd-test: making a Debian 12 root with systemd in $work/root (once)" >&2
   mkdir -p "$work"
-  debootstrap --variant=minbase --include=systemd,systemd-sysv,dbus,mbpoll,ca-certificates \
+  debootstrap --variant=minbase --include=systemd,systemd-sysv,dbus,mbpoll,man-db,ca-certificates \
     bookworm "$work/root.new" "$mirror" >"$work/debootstrap.log" 2>&1 ||
     { tail -20 "$work/debootstrap.log" >&2; exit 1; }
   mv "$work/root.new" "$work/root"
@@ -44,7 +44,7 @@ repack=$(mktemp -d)
 trap 'rm -rf "$repack"' EXIT
 dpkg-deb -R "$deb" "$repack/pkg"
 sed -i 's/^Version: \(.*\)$/Version: \1+systemdtest1/' "$repack/pkg/DEBIAN/control"
-dpkg-deb -b "$repack/pkg" "$run/debs/upgrade.deb" >/dev/null
+dpkg-deb -Zgzip -z1 -b "$repack/pkg" "$run/debs/upgrade.deb" >/dev/null
 
 cat >"$run/usr/local/sbin/sms-package-checks" <<'CHECKS'
 #!/bin/bash
@@ -59,7 +59,7 @@ wait_state() {  # wait_state STATE SECONDS
   for _ in $(seq 1 $(( $2 * 10 ))); do [ "$(prop ActiveState)" = "$1" ] && return 0; sleep 0.1; done; return 1
 }
 
-apt-get install -y -q /debs/current.deb >/results/apt-install.log 2>&1
+apt-get install -y -q man-db /debs/current.deb >/results/apt-install.log 2>&1
 check "the package installs (apt resolves its dependencies)" dpkg-query -W sms-gateway
 check "installing does not enable the service" test "$(systemctl is-enabled sms-gateway.service)" = disabled
 check "installing does not start the service" test "$(prop ActiveState)" = inactive
@@ -146,7 +146,8 @@ cp /etc/resolv.conf "$run/etc/resolv.conf" 2>/dev/null || true
 cp /etc/apt/sources.list.d/debian.sources "$run/etc/apt/sources.list.d/" 2>/dev/null || true
 
 echo "systemd-test: booting $run with systemd-nspawn ($(basename "$deb"))" >&2
-timeout 600 systemd-nspawn --quiet --boot --directory="$run" --machine=sms-systemd-test \
+# --register=no --keep-unit: no machined or systemd needed on the host (a build container).
+timeout 600 systemd-nspawn --quiet --boot --register=no --keep-unit --directory="$run" --machine=sms-systemd-test \
   >"$work/nspawn.log" 2>&1 || true
 if [ ! -s "$run/results/log" ]; then
   tail -30 "$work/nspawn.log" >&2
