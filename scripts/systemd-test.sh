@@ -74,9 +74,14 @@ check "no config: NRestarts=0 (got $(prop NRestarts))" test "$(prop NRestarts)" 
 check "no config: exit status 2" test "$(prop ExecMainStatus)" = 2
 check "no config: the journal says which file" bash -c 'journalctl -u sms-gateway --no-pager | grep -q "/etc/sms-gateway/config.yaml"'
 
+# README "Install and deploy": an example copied into place passes --check-config.
+check "the README's example path: examples/mixed.yaml passes --check-config" \
+  bash -c 'cp /usr/share/doc/sms-gateway/examples/mixed.yaml /etc/sms-gateway/config.yaml &&
+           sms-gateway --check-config /etc/sms-gateway/config.yaml'
 # A bad configuration: the message with file:line:column.
 systemctl reset-failed sms-gateway.service
 printf 'buses:\n  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1234}\nservos: []\n' >/etc/sms-gateway/config.yaml
+check "bad config: --check-config exits 2" bash -c 'sms-gateway --check-config /etc/sms-gateway/config.yaml; test $? = 2'
 systemctl start sms-gateway.service
 wait_state failed 10; sleep 5
 check "bad config: the unit is failed" test "$(prop ActiveState)" = failed
