@@ -262,8 +262,12 @@ int main(int argc, char** argv) {
 
   try {
     app.parse(argc, argv);
+  } catch (const CLI::RuntimeError& finished) {
+    return finished.get_exit_code();  // a tool subcommand ended with its own status
   } catch (const CLI::ParseError& error) {
-    return app.exit(error);
+    // CLI11 prints the message; its own codes (105, 109, 114, ...) become the documented
+    // command-line error status 2 (README "Command line"); --help stays 0.
+    return app.exit(error) == kExitOk ? kExitOk : kExitConfigError;
   }
 
   if (options.version) {

@@ -10,7 +10,8 @@
 #
 # Exits 0 with "skipped: podman not available" when podman is missing.
 # Environment: SMS_CONTAINER_DIR (default /tmp/ctr) holds podman's storage and configuration
-# unless CONTAINERS_CONF / CONTAINERS_STORAGE_CONF are set (see ../shared/CONTAINERS.md).
+# unless CONTAINERS_CONF / CONTAINERS_STORAGE_CONF are set: overlay storage there, runc as the
+# runtime (crun fails on hybrid cgroups), raised ulimits.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$PWD
@@ -94,7 +95,7 @@ stop_and_check() {
 # arm a timer for it (health checks then run only through `podman healthcheck run`). Harmless here.
 podman() { command podman "$@" 2> >(grep -v 'unable to get systemd connection' >&2); }
 
-# --- podman environment (the recipe of ../shared/CONTAINERS.md) ------------------------------
+# --- podman environment: its own storage and configuration under $work -------------------------
 work=${SMS_CONTAINER_DIR:-/tmp/ctr}
 if [ -z "${CONTAINERS_CONF:-}" ]; then
   mkdir -p "$work/conf"
@@ -285,7 +286,7 @@ fi
 unit=$context/deploy/sms-gateway.service
 if command -v systemd-analyze >/dev/null 2>&1 && [ -f "$unit" ]; then
   # verify insists that ExecStart exists: point it at the image's binary.
-  sed "s#/usr/local/bin/sms-gateway#$tmp/sms-gateway#g" "$unit" >"$tmp/sms-gateway.service"
+  sed "s#/usr/bin/sms-gateway#$tmp/sms-gateway#g" "$unit" >"$tmp/sms-gateway.service"
   systemd-analyze verify "$tmp/sms-gateway.service" >"$tmp/verify.log" 2>&1 \
     || { cat "$tmp/verify.log" >&2; fail "systemd-analyze verify deploy/sms-gateway.service"; }
   [ ! -s "$tmp/verify.log" ] || { cat "$tmp/verify.log" >&2; fail "systemd-analyze verify: warnings"; }

@@ -11,6 +11,7 @@ packages=(
   libmosquitto-dev mosquitto libprotobuf-dev protobuf-compiler
   clang libclang-rt-14-dev
   mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio
+  debhelper help2man pandoc man-db
 )
 
 missing=()

@@ -145,7 +145,8 @@ int main(int argc, char** argv) {
     app.parse(argc, argv);
     options.servos = build_servos(protocol_name, table_name, ids, baud, servo_specs, ids_option->count() > 0);
   } catch (const CLI::ParseError& error) {
-    return app.exit(error);
+    // CLI11's own codes (105, 109, 114, ...) become one command-line error status, 2; --help stays 0.
+    return app.exit(error) == 0 ? 0 : 2;
   }
   options.timing = !no_timing;
   options.reboot_time = std::chrono::milliseconds(reboot_ms);

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Certificates for the Modbus/TCP Security tests, made fresh in DIR with the openssl CLI (the
-# same commands README "Modbus/TCP Security" shows for a plant):
+# same commands docs/SECURITY.md shows for a plant):
 #   ca.crt/key          the plant CA
 #   server.crt/key      the gateway (CN=localhost, SAN localhost and 127.0.0.1)
 #   read.crt/key        CN=hmi-1, role extension "read"
