@@ -223,8 +223,11 @@ void RtuSlavePort::lost(const std::string& reason) {
   received_.clear();
   receiving_ = false;
   frame_broken_ = false;
-  // A request in flight or waiting still runs (a write is never dropped half-way); its answer
-  // has no line to go to and is discarded.
+  // As for a TCP client that goes away: the request on its way still completes (a write is
+  // never dropped half-way) and its answer, having no line to go to, is discarded; the requests
+  // waiting behind it are not started (a stale move must not run when the adapter comes back).
+  if (in_flight_) in_flight_->orphaned = true;
+  waiting_.clear();
 }
 
 void RtuSlavePort::read_input(SteadyClock::time_point now) {
@@ -376,17 +379,14 @@ void RtuSlavePort::collect_answers() {
     }
     if (in_flight_->waiting_for > 0) --in_flight_->waiting_for;
   }
-  if (in_flight_ && in_flight_->waiting_for == 0 && in_flight_->request.unit == 0) {
-    in_flight_.reset();  // a broadcast is never answered
+  // A broadcast is never answered; an orphaned request's answer has nowhere to go.
+  if (in_flight_ && in_flight_->waiting_for == 0 && (in_flight_->request.unit == 0 || in_flight_->orphaned)) {
+    in_flight_.reset();
   }
 }
 
 void RtuSlavePort::send_answer_if_due(SteadyClock::time_point now) {
-  if (!in_flight_ || !in_flight_->answer) return;
-  if (!line_.is_open()) {  // lost meanwhile: nowhere to send it
-    in_flight_.reset();
-    return;
-  }
+  if (!in_flight_ || !in_flight_->answer || !line_.is_open()) return;
   // Not while a frame is arriving (half duplex), and t3.5 after the last byte on the line.
   if (receiving_ || now < last_byte_ + timing_.t35 || now < line_busy_until_) return;
   const Bytes& pdu = *in_flight_->answer;

@@ -97,6 +97,7 @@ class RtuSlavePort {
     std::optional<protocol::Bytes> answer;    // a unicast's answer, once it came
     std::uint64_t first_serial = 0;           // serials first_serial .. first_serial + count - 1
     std::size_t count = 0;
+    bool orphaned = false;                    // the port was lost meanwhile: no answer will be sent
   };
 
   void run_thread();

@@ -85,6 +85,7 @@ class RtuClient {
   RtuClient& operator=(const RtuClient&) = delete;
 
   void set_unit(int unit) { modbus_set_slave(ctx_, unit); }
+  modbus_t* context() { return ctx_; }
   // The Modbus exception code of the last failure, -1 for anything else (a timeout).
   static int failure() { return errno > MODBUS_ENOBASE && errno < MODBUS_ENOBASE + 0x20 ? errno - MODBUS_ENOBASE : -1; }
 
@@ -141,7 +142,8 @@ std::string run(const std::vector<std::string>& argv, int* exit_code) {
 }
 
 // Four upstream ports on one gateway: 9600, 115200 and 1 000 000 bit/s 8E1 with every unit and
-// role operate; a read-only one for unit 2 with a long fixed t3.5 (for gaps a test can make).
+// role operate; a read-only one for unit 2 with a long fixed t3.5 (200 ms: gaps a test can make
+// on a loaded machine).
 // The gateway unit is 247 so RTU masters that stop at 247 (libmodbus, mbpoll) reach it.
 constexpr const char* kConfig = R"(
 modbus_tcp: {listen: "127.0.0.1:5020", gateway_unit_id: 247}
@@ -156,7 +158,7 @@ modbus_rtu_slave:
   - {device: "@P9600@", baud: 9600}
   - {device: "@P115200@", baud: 115200, parity: even, reopen_period_ms: 100}
   - {device: "@P1M@", baud: 1000000}
-  - {device: "@PREAD@", baud: 19200, parity: none, stop_bits: 2, frame_gap: 30000us, units: [2], role: read}
+  - {device: "@PREAD@", baud: 19200, parity: none, stop_bits: 2, frame_gap: 200000us, units: [2], role: read}
 )";
 
 class RtuSlave : public ::testing::Test {
@@ -283,36 +285,55 @@ TEST_F(RtuSlave, TcpClientAndRtuMasterOnOneBusEachKeepTheirOrder) {
 }
 
 TEST_F(RtuSlave, GarbageAndCrcErrorsAreDroppedCountedAndTheNextRequestIsAnswered) {
-  RtuClient master(p115200_.master_end(), 115200, 'E', 1);
-  const long dropped = counter(p115200_, "dropped_frames_total");
-  const long crc = counter(p115200_, "crc_errors_total");
+  // On the port with the long t3.5, so a loaded machine cannot split a frame by accident.
+  RtuClient master(pread_.master_end(), 19200, 'N', 2);
+  const long dropped = counter(pread_, "dropped_frames_total");
+  const long crc = counter(pread_, "crc_errors_total");
   master.send_raw({0x55, 0xAA, 0x01});  // noise: shorter than any frame
-  ASSERT_TRUE(eventually([&] { return counter(p115200_, "dropped_frames_total") == dropped + 1; }));
-  auto request = protocol::rtu::frame(1, std::vector<std::uint8_t>{0x03, 0x00, 0x2A, 0x00, 0x01});
+  ASSERT_TRUE(eventually([&] { return counter(pread_, "dropped_frames_total") == dropped + 1; }));
+  auto request = protocol::rtu::frame(2, std::vector<std::uint8_t>{0x03, 0x00, 0x2A, 0x00, 0x01});
   request.back() ^= 0xFF;  // a wrong CRC
   master.send_raw(request);
-  ASSERT_TRUE(eventually([&] { return counter(p115200_, "crc_errors_total") == crc + 1; }));
+  ASSERT_TRUE(eventually([&] { return counter(pread_, "crc_errors_total") == crc + 1; }));
   EXPECT_TRUE(master.read_raw(50ms).empty());  // neither was answered
   const auto answer = master.read_holding(42, 1);
   EXPECT_TRUE(answer.ok()) << answer.error;
+  EXPECT_EQ(counter(pread_, "dropped_frames_total"), dropped + 1);
+  EXPECT_EQ(counter(pread_, "crc_errors_total"), crc + 1);
 }
 
 TEST_F(RtuSlave, AFrameWithASilenceOverT15InsideIsDropped) {
-  // The read-only port's t3.5 is 30 ms, so its t1.5 is 12.9 ms: a 20 ms pause splits nothing
-  // into two frames but breaks the one.
+  // The read-only port's t3.5 is 200 ms, so its t1.5 is 86 ms: a 120 ms pause does not split
+  // the frame in two but breaks it (wide margins: a loaded machine oversleeps).
   RtuClient master(pread_.master_end(), 19200, 'N', 2);
   const long dropped = counter(pread_, "dropped_frames_total");
   const auto request = protocol::rtu::frame(2, std::vector<std::uint8_t>{0x03, 0x00, 0x2A, 0x00, 0x01});
   master.send_raw(std::vector<std::uint8_t>(request.begin(), request.begin() + 4));
-  std::this_thread::sleep_for(20ms);  // the gap under test, not a wait for state
+  std::this_thread::sleep_for(120ms);  // the gap under test, not a wait for state
   master.send_raw(std::vector<std::uint8_t>(request.begin() + 4, request.end()));
   ASSERT_TRUE(eventually([&] { return counter(pread_, "dropped_frames_total") == dropped + 1; }));
-  EXPECT_TRUE(master.read_raw(50ms).empty());
+  EXPECT_TRUE(master.read_raw(300ms).empty());
   master.send_raw(request);  // the same frame whole is answered
   const auto answer = master.read_raw(1s);
   ASSERT_EQ(answer.size(), 7u);
   EXPECT_EQ(answer[0], 2);
   EXPECT_EQ(answer[1], 0x03);
+}
+
+TEST_F(RtuSlave, TheAnswerStartsNoEarlierThanT35AfterTheRequest) {
+  // 9600 bit/s 8E1: 11 bits a character, t3.5 = 38.5 bit times = 4.01 ms. Measured from the
+  // master's write, which reaches the gateway a little later still (socat): a lower bound.
+  RtuClient master(p9600_.master_end(), 9600, 'E', 1);
+  const auto t35 = std::chrono::nanoseconds(38'500'000'000LL / 9600);
+  for (int i = 0; i < 5; ++i) {
+    const auto request = protocol::rtu::frame(1, std::vector<std::uint8_t>{0x03, 0x00, 0x2A, 0x00, 0x01});
+    const auto sent = std::chrono::steady_clock::now();
+    master.send_raw(request);
+    pollfd fd{modbus_get_socket(master.context()), POLLIN, 0};
+    ASSERT_EQ(::poll(&fd, 1, 1000), 1);
+    EXPECT_GE(std::chrono::steady_clock::now() - sent, t35);
+    EXPECT_EQ(master.read_raw(100ms).size(), 7u);  // the whole answer
+  }
 }
 
 TEST_F(RtuSlave, ABroadcastWriteIsCarriedOutAndNeverAnswered) {
@@ -326,7 +347,7 @@ TEST_F(RtuSlave, ABroadcastWriteIsCarriedOutAndNeverAnswered) {
 }
 
 TEST_F(RtuSlave, UnitsThePortDoesNotServeGetSilenceAndTheRoleRefusesWrites) {
-  RtuClient master(pread_.master_end(), 19200, 'N', 1, 0.3);
+  RtuClient master(pread_.master_end(), 19200, 'N', 1, 0.6);
   const long silent = counter(pread_, "silent_units_total");
   EXPECT_EQ(master.read_holding(42, 1).exception, -1);  // unit 1 is not this port's: a timeout
   master.set_unit(9);                                     // nor is an unconfigured unit
