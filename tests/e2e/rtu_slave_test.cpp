@@ -374,6 +374,15 @@ TEST_F(RtuSlave, TheEStopLatchedOverTcpRefusesRtuMotionWritesWith0x04) {
   EXPECT_EQ(arm_.field(1, "goal_position"), 2500);
 }
 
+TEST_F(RtuSlave, AServoThatStopsAnsweringIs0x0BNotSilence) {
+  // The unit exists and the gateway is alive: the panel learns at once that the servo is gone.
+  RtuClient master(p115200_.master_end(), 115200, 'E', 2);
+  ASSERT_EQ(arm_.control("offline 2"), "ok");
+  EXPECT_TRUE(eventually([&] { return master.read_holding(42, 1).exception == 0x0B; }, 10s));
+  ASSERT_EQ(arm_.control("online 2"), "ok");
+  EXPECT_TRUE(eventually([&] { return master.read_holding(42, 1).ok(); }, 10s));
+}
+
 TEST_F(RtuSlave, AnUnpluggedPortIsLostAndServesAgainOnceReplugged) {
   p115200_.unplug();
   ASSERT_TRUE(gateway_->process().wait_for_line("port lost", 10s)) << gateway_->process().output();
