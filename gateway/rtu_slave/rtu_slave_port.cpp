@@ -156,11 +156,14 @@ void RtuSlavePort::run_loop() {
       waiting_.clear();  // not started: no answer was promised
       if (!in_flight_ || SteadyClock::now() >= stop_deadline) return;
     }
-    if (!line_.is_open() && !try_open()) {
-      auto wake_at = SteadyClock::now() + port_.reopen_period;
-      if (stopping) wake_at = std::min(wake_at, stop_deadline);
-      mailbox_->wake.wait(wake_at);  // or earlier: an answer, stop()
-      continue;
+    if (!line_.is_open()) {
+      // Like a bus: a missing or lost device is tried again once per reopen period, so a device
+      // that fails right after each open cannot make the port spin.
+      if (SteadyClock::now() < reopen_at_ || !try_open()) {
+        if (SteadyClock::now() >= reopen_at_) reopen_at_ = SteadyClock::now() + port_.reopen_period;
+        mailbox_->wake.wait(stopping ? std::min(reopen_at_, stop_deadline) : reopen_at_);  // or an answer, stop()
+        continue;
+      }
     }
     if (!stopping) start_next();
 
@@ -220,6 +223,7 @@ void RtuSlavePort::lost(const std::string& reason) {
   counters_.port_lost.fetch_add(1, std::memory_order_relaxed);
   counters_.open.store(false);
   line_.close();
+  reopen_at_ = SteadyClock::now() + port_.reopen_period;
   received_.clear();
   receiving_ = false;
   frame_broken_ = false;

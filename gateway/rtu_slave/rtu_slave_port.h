@@ -137,6 +137,7 @@ class RtuSlavePort {
   std::deque<Request> waiting_;
   std::optional<InFlight> in_flight_;
   std::uint64_t next_serial_ = 1;
+  SteadyClock::time_point reopen_at_{};       // the next open attempt (none before it)
   bool open_failure_logged_ = false;
   bool ever_opened_ = false;
 
