@@ -1,6 +1,6 @@
 // rtu_slave_latency: what the upstream Modbus RTU port (docs/RTU_PANELS.md) adds between a
 // panel and a servo. A simulated SMSMB servo at 115 200 bit/s (wire timing on, return delay 0),
-// read with a 10-register FC03 back to back, two ways:
+// read with an 8-register FC03 (0x100..0x107) back to back, two ways:
 //   direct   a libmodbus RTU master on the servo bus's pty (no gateway); the servo's t3.5 is
 //            slept before each request, outside the timed part;
 //   gateway  this program as the RTU master on a pty whose other end is an upstream port of a
@@ -41,7 +41,7 @@ using namespace std::chrono_literals;
 constexpr std::uint32_t kBusRate = 115'200;
 constexpr int kSlave = 1;
 constexpr std::uint16_t kAddress = 0x100;
-constexpr std::uint16_t kCount = 10;
+constexpr std::uint16_t kCount = 8;  // status .. present current: the feedback block
 constexpr std::uint16_t kSmsmbReturnDelayRegister = 0x0C;
 
 std::unique_ptr<sms::simulator::SimulatedBus> start_bus() {
