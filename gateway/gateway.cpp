@@ -141,6 +141,15 @@ class Gateway::Impl {
       sparkplug_ = std::make_unique<SparkplugNode>(config_, serving_.io(), *router_);
       sparkplug_->start();  // throws for an unreadable password or TLS file; the broker may be down
     }
+    // Upstream Modbus RTU ports: the same router behind each port's role (docs/RTU_PANELS.md).
+    // Made before the metrics endpoint, whose thread reads their counters; started with the buses.
+    if (!config_.modbus_rtu_slave.empty()) {
+      rtu_policy_ = std::make_unique<RolePolicy>(config_);
+      for (const auto& port : config_.modbus_rtu_slave) {
+        rtu_slaves_.push_back(std::make_unique<RtuSlavePort>(
+            port, config_, *router_, *rtu_policy_, [this](std::function<void()> work) { serving_.post(std::move(work)); }));
+      }
+    }
     if (config_.logging.metrics_listen) {
       metrics_server_ = std::make_unique<MetricsServer>(MetricsServerOptions{.listen = *config_.logging.metrics_listen},
                                                         [this] { return metrics(); });
@@ -148,15 +157,7 @@ class Gateway::Impl {
     }
     for (const auto& engine : engines_) engine->start();
     safety_->start();
-    // Upstream Modbus RTU ports: the same router behind each port's role (docs/RTU_PANELS.md).
-    if (!config_.modbus_rtu_slave.empty()) {
-      rtu_policy_ = std::make_unique<RolePolicy>(config_);
-      for (const auto& port : config_.modbus_rtu_slave) {
-        rtu_slaves_.push_back(std::make_unique<RtuSlavePort>(
-            port, config_, *router_, *rtu_policy_, [this](std::function<void()> work) { serving_.post(std::move(work)); }));
-        rtu_slaves_.back()->start();
-      }
-    }
+    for (const auto& port : rtu_slaves_) port->start();
     serving_.run();
   }
 
