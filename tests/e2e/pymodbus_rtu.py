@@ -15,7 +15,11 @@ from pymodbus.client import ModbusSerialClient
 
 def main() -> int:
     device, baud, parity, goal = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
-    client = ModbusSerialClient(port=device, baudrate=baud, parity=parity, stopbits=1, timeout=1, retries=0)
+    # strict=False: an answer is read until it is whole or the timeout passes. pymodbus's strict
+    # mode (above 19200 bit/s an inter-byte timeout of 0) takes the first burst for the whole
+    # answer, which a pty relay on a loaded machine may deliver in two.
+    client = ModbusSerialClient(port=device, baudrate=baud, parity=parity, stopbits=1, timeout=1, retries=0,
+                                strict=False)
     if not client.connect():
         print("cannot open", device)
         return 1
