@@ -4,6 +4,7 @@
 
 #include <arpa/inet.h>
 
+#include <algorithm>
 #include <charconv>
 
 #include "config/names.h"
@@ -215,6 +216,65 @@ std::string effective_state_dir(const Config& config) {
   if (systemd == nullptr) return {};
   const std::string_view dirs(systemd);
   return std::string(dirs.substr(0, dirs.find(':')));
+}
+
+}  // namespace sms::config
+
+namespace sms::config {
+
+Expected<RtuSlaveConfig> parse_rtu_slave_option(std::string_view text) {
+  const std::string form = "expected DEVICE[:BAUD[:PARITY]], e.g. /dev/ttyUSB1:19200:even (parity none, even or odd)";
+  RtuSlaveConfig port;
+  // From the right: /dev/serial/by-path names have colons of their own.
+  std::string_view rest = text;
+  const auto last_part = [&]() -> std::string_view {
+    const auto colon = rest.rfind(':');
+    return colon == std::string_view::npos ? std::string_view{} : rest.substr(colon + 1);
+  };
+  const auto drop_last_part = [&] { rest = rest.substr(0, rest.rfind(':')); };
+  if (const auto parity = detail::value_of(detail::kParityNames, last_part())) {
+    port.parity = *parity;
+    drop_last_part();
+    const auto baud_text = last_part();
+    std::uint32_t baud = 0;
+    const auto [end, error] = std::from_chars(baud_text.data(), baud_text.data() + baud_text.size(), baud);
+    if (baud_text.empty() || error != std::errc{} || end != baud_text.data() + baud_text.size()) {
+      return unexpected("`" + std::string(text) + "`: a parity needs a rate before it; " + form);
+    }
+    port.baud = baud;
+    drop_last_part();
+  } else if (const auto baud_text = last_part(); !baud_text.empty() && std::all_of(baud_text.begin(), baud_text.end(), [](char c) {
+               return c >= '0' && c <= '9';
+             })) {
+    // Only digits: a rate (a by-path device name ends in "...:1.0-port0", which is not one).
+    std::uint32_t baud = 0;
+    const auto [end, error] = std::from_chars(baud_text.data(), baud_text.data() + baud_text.size(), baud);
+    if (error != std::errc{}) return unexpected("`" + std::string(text) + "`: `" + std::string(baud_text) + "` is not a rate; " + form);
+    port.baud = baud;
+    drop_last_part();
+  }
+  if (rest.empty()) return unexpected("`" + std::string(text) + "`: no device; " + form);
+  if (port.baud < kMinRtuSlaveBaud || port.baud > kMaxRtuSlaveBaud) {
+    return unexpected("`" + std::string(text) + "`: " + std::to_string(port.baud) + " bit/s is outside " +
+                      std::to_string(kMinRtuSlaveBaud) + ".." + std::to_string(kMaxRtuSlaveBaud));
+  }
+  port.device = std::string(rest);
+  return port;
+}
+
+std::optional<std::string> rtu_slave_conflict(const Config& config, const RtuSlaveConfig& port) {
+  for (const auto& bus : config.buses) {
+    if (bus.device == port.device) {
+      return port.device + " is the device of bus `" + bus.name +
+             "`; an upstream port needs a serial line of its own (a second adapter)";
+    }
+  }
+  for (std::size_t i = 0; i < config.modbus_rtu_slave.size(); ++i) {
+    if (config.modbus_rtu_slave[i].device == port.device) {
+      return port.device + " is already modbus_rtu_slave[" + std::to_string(i) + "]'s device";
+    }
+  }
+  return std::nullopt;
 }
 
 }  // namespace sms::config

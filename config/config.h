@@ -310,6 +310,28 @@ struct MqttConfig {
 // The Sparkplug device ID of a servo unit: its name, else "unit-<N>".
 std::string sparkplug_device_id(const ServoConfig& servo);
 
+// An upstream Modbus RTU port (docs/RTU_PANELS.md): the gateway is a Modbus RTU slave on this
+// serial line, for PLCs and HMI panels that are RTU masters, answering through the same unit
+// router as Modbus TCP.
+// The rates an upstream port may run at: whatever the panel and its adapter use (termios2 sets any rate).
+inline constexpr std::uint32_t kMinRtuSlaveBaud = 300;
+inline constexpr std::uint32_t kMaxRtuSlaveBaud = 4000000;
+
+struct RtuSlaveConfig {
+  std::string device;                 // a tty (the panel's RS-485 adapter), never a bus's device
+  std::uint32_t baud = 19200;         // the Modbus serial line spec's default rate
+  Parity parity = Parity::Even;       // the spec's default (8E1)
+  std::uint8_t stop_bits = 1;         // 1 or 2
+  // rs485, rts, rts_delay and frame_gap as on a modbus-rtu bus (byte_timeout is not used): here
+  // frame_gap is the port's t3.5, which ends a request and comes before each answer.
+  ModbusRtuOptions line;
+  std::vector<std::uint8_t> units;    // the units the port answers; empty: every configured unit and the gateway unit
+  Role role = Role::Operate;          // the rights of its requests, as Modbus/TCP Security roles
+  std::chrono::milliseconds reopen_period{1000};  // a missing or lost device is retried this often
+
+  bool operator==(const RtuSlaveConfig&) const = default;
+};
+
 struct Config {
   ModbusTcpConfig modbus_tcp;
   std::vector<BusConfig> buses;
@@ -321,6 +343,7 @@ struct Config {
   // the Sparkplug bdSeq): config/README.md "state_dir". Empty: $STATE_DIRECTORY (systemd's
   // StateDirectory=), else nothing is kept and the start says so.
   std::string state_dir;
+  std::vector<RtuSlaveConfig> modbus_rtu_slave;  // upstream Modbus RTU ports; empty: none
 
   bool operator==(const Config&) const = default;
 };
@@ -328,6 +351,11 @@ struct Config {
 // Where the state that must survive a restart is kept: `state_dir`, else the first entry of
 // $STATE_DIRECTORY (systemd's StateDirectory=), else empty (nothing is kept).
 std::string effective_state_dir(const Config& config);
+// `--rtu-slave DEVICE[:BAUD[:PARITY]]` (parity even when not given); the error says what is
+// wrong with `text` and shows the form.
+Expected<RtuSlaveConfig> parse_rtu_slave_option(std::string_view text);
+// Why `port` cannot be added to `config` (its device is a bus's or another port's), or nullopt.
+std::optional<std::string> rtu_slave_conflict(const Config& config, const RtuSlaveConfig& port);
 
 // Lookups; nullptr when absent.
 const BusConfig* find_bus(const Config& config, std::string_view name);

@@ -270,6 +270,39 @@ void emit_logging(YAML::Emitter& out, const LoggingConfig& logging) {
   out << YAML::EndMap;
 }
 
+void emit_rtu_slave(YAML::Emitter& out, const RtuSlaveConfig& port) {
+  out << YAML::BeginMap;
+  key(out, "device");
+  quoted(out, port.device);
+  key(out, "baud");
+  out << port.baud;
+  key(out, "parity");
+  out << std::string(to_string(port.parity));
+  key(out, "stop_bits");
+  out << static_cast<unsigned>(port.stop_bits);
+  key(out, "frame_gap");
+  out << port.line.frame_gap.to_string();
+  key(out, "rs485");
+  out << port.line.rs485;
+  key(out, "rts");
+  out << std::string(to_string(port.line.rts));
+  if (port.line.rts_delay) {
+    key(out, "rts_delay_us");
+    out << port.line.rts_delay->count();
+  }
+  if (!port.units.empty()) {  // absent: every unit (an empty list is refused by the loader)
+    key(out, "units");
+    out << YAML::Flow << YAML::BeginSeq;
+    for (const auto unit : port.units) out << static_cast<unsigned>(unit);
+    out << YAML::EndSeq;
+  }
+  key(out, "role");
+  out << std::string(to_string(port.role));
+  key(out, "reopen_period_ms");
+  out << port.reopen_period.count();
+  out << YAML::EndMap;
+}
+
 }  // namespace
 
 std::string dump_config(const Config& config) {
@@ -294,6 +327,12 @@ std::string dump_config(const Config& config) {
   if (!config.state_dir.empty()) {
     key(out, "state_dir");
     quoted(out, config.state_dir);
+  }
+  if (!config.modbus_rtu_slave.empty()) {
+    key(out, "modbus_rtu_slave");
+    out << YAML::BeginSeq;
+    for (const auto& port : config.modbus_rtu_slave) emit_rtu_slave(out, port);
+    out << YAML::EndSeq;
   }
   out << YAML::EndMap;
   return std::string(out.c_str()) + "\n";

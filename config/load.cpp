@@ -31,8 +31,8 @@ using protocol::BusProtocol;
 
 // ---- the keys allowed at each place (config/README.md) ----
 
-constexpr std::array<std::string_view, 7> kTopKeys{"modbus_tcp", "buses",  "servos",   "sync_groups",
-                                                  "logging",    "mqtt",   "state_dir"};
+constexpr std::array<std::string_view, 8> kTopKeys{"modbus_tcp", "buses",  "servos",   "sync_groups",
+                                                  "logging",    "mqtt",   "state_dir", "modbus_rtu_slave"};
 constexpr std::array<std::string_view, 8> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth", "allow",
                                                          "plain",           "tls"};
@@ -61,6 +61,9 @@ constexpr std::array<std::string_view, 16> kMqttKeys{
     "report_period_s", "deadband",   "reconnect_min_ms", "reconnect_max_ms", "enabled",
     "primary_host_id"};
 constexpr std::array<std::string_view, 3> kMqttTlsKeys{"ca", "certificate", "private_key"};
+constexpr std::array<std::string_view, 11> kRtuSlaveKeys{"device", "baud",  "parity", "stop_bits", "frame_gap",
+                                                          "rs485",  "rts",   "rts_delay_us", "units", "role",
+                                                          "reopen_period_ms"};
 
 constexpr std::string_view kPassthroughTable = "passthrough";
 constexpr std::uint8_t kMaxUnitId = 247;            // Modbus slave addresses
@@ -402,6 +405,10 @@ class Loader {
   SyncGroupConfig parse_sync_group(const MapReader& keys, const Config& config);
   LoggingConfig parse_logging(const Value& value);
   std::optional<MqttConfig> parse_mqtt(const Value& value, const Config& config);
+  void parse_rtu_slaves(const Value& value, Config& config);
+  RtuSlaveConfig parse_rtu_slave(const Value& value, const Config& config);
+  // rs485, rts, rts_delay_us and frame_gap: the same keys on a modbus-rtu bus and an upstream port.
+  void parse_rtu_line(const MapReader& keys, const Value& value, ModbusRtuOptions& line) const;
 
   std::string file_;
   std::optional<YAML::Mark> gateway_unit_mark_;
@@ -488,6 +495,7 @@ Config Loader::load(const YAML::Node& root) {
   if (const auto value = sections.find("logging")) config.logging = parse_logging(*value);
   if (const auto value = sections.find("mqtt")) config.mqtt = parse_mqtt(*value, config);
   if (const auto value = sections.find("state_dir")) config.state_dir = string(*value);
+  if (const auto value = sections.find("modbus_rtu_slave")) parse_rtu_slaves(*value, config);
   return config;
 }
 
@@ -780,23 +788,9 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
                                    bus.name + "` is " + protocol_name);
     }
   }
-  if (const auto v = keys.find("rs485")) bus.modbus_rtu.rs485 = boolean(*v);
-  if (const auto v = keys.find("rts")) bus.modbus_rtu.rts = choice(*v, detail::kRtsNames);
-  if (const auto v = keys.find("rts_delay_us")) {
-    if (bus.modbus_rtu.rts == RtsMode::None) {
-      fail(keys.key_mark("rts_delay_us"), value.path + ": `rts_delay_us` needs `rts: up` or `rts: down`");
-    }
-    bus.modbus_rtu.rts_delay = duration<std::chrono::microseconds>(*v, 0, 1000000);
-  }
+  parse_rtu_line(keys, value, bus.modbus_rtu);
   if (const auto v = keys.find("byte_timeout_ms")) {
     bus.modbus_rtu.byte_timeout = duration<std::chrono::milliseconds>(*v, 1, 10000);
-  }
-  if (const auto v = keys.find("frame_gap")) {
-    const auto gap = v->node.IsScalar() ? parse_frame_gap(v->node.Scalar())
-                                        : Expected<FrameGap>(unexpected("expected spec, 3.5chars or a time such as "
-                                                                        "500us, got " + describe(v->node)));
-    if (!gap) fail(v->mark, v->path + ": " + gap.error());
-    bus.modbus_rtu.frame_gap = *gap;
   }
 
   if (const auto v = keys.find("watchdog")) {
@@ -829,6 +823,88 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
   }
   if (const auto v = keys.find("on_stop")) bus.on_stop = choice(*v, detail::kStopActionNames);
   return bus;
+}
+
+void Loader::parse_rtu_line(const MapReader& keys, const Value& value, ModbusRtuOptions& line) const {
+  if (const auto v = keys.find("rs485")) line.rs485 = boolean(*v);
+  if (const auto v = keys.find("rts")) line.rts = choice(*v, detail::kRtsNames);
+  if (const auto v = keys.find("rts_delay_us")) {
+    if (line.rts == RtsMode::None) {
+      fail(keys.key_mark("rts_delay_us"), value.path + ": `rts_delay_us` needs `rts: up` or `rts: down`");
+    }
+    line.rts_delay = duration<std::chrono::microseconds>(*v, 0, 1000000);
+  }
+  if (const auto v = keys.find("frame_gap")) {
+    const auto gap = v->node.IsScalar() ? parse_frame_gap(v->node.Scalar())
+                                        : Expected<FrameGap>(unexpected("expected spec, 3.5chars or a time such as "
+                                                                        "500us, got " + describe(v->node)));
+    if (!gap) fail(v->mark, v->path + ": " + gap.error());
+    line.frame_gap = *gap;
+  }
+}
+
+void Loader::parse_rtu_slaves(const Value& value, Config& config) {
+  std::vector<YAML::Mark> device_marks;
+  for (const auto& item : list(value)) {
+    RtuSlaveConfig port = parse_rtu_slave(item, config);
+    const MapReader keys(*this, item, kRtuSlaveKeys);
+    const YAML::Mark device_mark = keys.require("device").mark;
+    for (std::size_t i = 0; i < config.buses.size(); ++i) {
+      if (config.buses[i].device == port.device) {
+        fail(device_mark, item.path + ".device: " + port.device + " is the device of bus `" + config.buses[i].name +
+                              "` (" + place(bus_places_[i].device) +
+                              "); an upstream port needs a serial line of its own (a second adapter)");
+      }
+    }
+    for (std::size_t i = 0; i < config.modbus_rtu_slave.size(); ++i) {
+      if (config.modbus_rtu_slave[i].device == port.device) {
+        fail(device_mark, item.path + ".device: " + port.device + " is already modbus_rtu_slave[" + std::to_string(i) +
+                              "]'s device (" + place(device_marks[i]) + ")");
+      }
+    }
+    config.modbus_rtu_slave.push_back(std::move(port));
+    device_marks.push_back(device_mark);
+  }
+}
+
+RtuSlaveConfig Loader::parse_rtu_slave(const Value& value, const Config& config) {
+  const MapReader keys(*this, value, kRtuSlaveKeys);
+  RtuSlaveConfig port;
+  port.device = string(keys.require("device"));
+  if (const auto v = keys.find("baud")) port.baud = static_cast<std::uint32_t>(integer(*v, kMinRtuSlaveBaud, kMaxRtuSlaveBaud));
+  if (const auto v = keys.find("parity")) port.parity = choice(*v, detail::kParityNames);
+  if (const auto v = keys.find("stop_bits")) port.stop_bits = static_cast<std::uint8_t>(integer(*v, 1, 2));
+  parse_rtu_line(keys, value, port.line);
+  if (const auto v = keys.find("units")) {
+    const auto items = list(*v);
+    if (items.empty()) fail(v->mark, v->path + ": empty; remove the key to serve every unit");
+    for (const auto& item : items) {
+      const auto unit = static_cast<std::uint8_t>(integer(item, 1, 255));
+      if (std::find(port.units.begin(), port.units.end(), unit) != port.units.end()) {
+        fail(item.mark, item.path + ": unit " + std::to_string(unit) + " is listed twice");
+      }
+      if (unit != config.modbus_tcp.gateway_unit_id && find_unit(config, unit) == nullptr) {
+        std::vector<int> units;
+        for (const auto& servo : config.servos) units.push_back(servo.unit_id);
+        std::sort(units.begin(), units.end());
+        units.push_back(config.modbus_tcp.gateway_unit_id);
+        fail(item.mark, item.path + ": unit " + std::to_string(unit) + " is not configured; configured units: " +
+                            join_numbers(units) + " (the last is the gateway unit)");
+      }
+      port.units.push_back(unit);
+    }
+  }
+  if (const auto v = keys.find("role")) {
+    port.role = choice(*v, detail::kRoleNames);
+    if (port.role == Role::None) {
+      fail(v->mark, v->path + ": a port with role none could ask nothing; give read, operate or engineer, or remove "
+                              "the port");
+    }
+  }
+  if (const auto v = keys.find("reopen_period_ms")) {
+    port.reopen_period = duration<std::chrono::milliseconds>(*v, 1, 3600000);
+  }
+  return port;
 }
 
 void Loader::parse_servos(const Value& value, Config& config) {

@@ -10,7 +10,9 @@
 #include "gateway/units/safety.h"
 #include "gateway/mqtt/sparkplug_node.h"
 #include "gateway/modbus_tcp/tcp_serving.h"
+#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tls.h"
+#include "gateway/rtu_slave/rtu_slave_port.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/register_map.h"
 
@@ -139,6 +141,15 @@ class Gateway::Impl {
       sparkplug_ = std::make_unique<SparkplugNode>(config_, serving_.io(), *router_);
       sparkplug_->start();  // throws for an unreadable password or TLS file; the broker may be down
     }
+    // Upstream Modbus RTU ports: the same router behind each port's role (docs/RTU_PANELS.md).
+    // Made before the metrics endpoint, whose thread reads their counters; started with the buses.
+    if (!config_.modbus_rtu_slave.empty()) {
+      rtu_policy_ = std::make_unique<RolePolicy>(config_);
+      for (const auto& port : config_.modbus_rtu_slave) {
+        rtu_slaves_.push_back(std::make_unique<RtuSlavePort>(
+            port, config_, *router_, *rtu_policy_, [this](std::function<void()> work) { serving_.post(std::move(work)); }));
+      }
+    }
     if (config_.logging.metrics_listen) {
       metrics_server_ = std::make_unique<MetricsServer>(MetricsServerOptions{.listen = *config_.logging.metrics_listen},
                                                         [this] { return metrics(); });
@@ -146,6 +157,7 @@ class Gateway::Impl {
     }
     for (const auto& engine : engines_) engine->start();
     safety_->start();
+    for (const auto& port : rtu_slaves_) port->start();
     serving_.run();
   }
 
@@ -161,6 +173,7 @@ class Gateway::Impl {
     }
     if (tls_) snapshot.tls = tls_->stats();
     if (sparkplug_) snapshot.mqtt = sparkplug_->stats();
+    for (const auto& port : rtu_slaves_) snapshot.rtu_slaves.push_back(port->stats());
     return snapshot;
   }
 
@@ -173,6 +186,8 @@ class Gateway::Impl {
     if (metrics_server_) metrics_server_->stop();
     // The node says goodbye (NDEATH) and takes no more commands.
     if (sparkplug_) sparkplug_->stop();
+    // The RTU ports take no new request; the one each is answering finishes first.
+    for (const auto& port : rtu_slaves_) port->stop(grace);
     serving_.drain(grace);
     // The servos get their on_stop action while the buses still run (README "Safety").
     if (safety_) safety_->stop_for_shutdown(kOnStopBound);
@@ -207,6 +222,8 @@ class Gateway::Impl {
   std::unique_ptr<UnitRouter> router_;
   std::unique_ptr<TlsService> tls_;  // after the router it holds, before the sessions that use it
   std::unique_ptr<SparkplugNode> sparkplug_;  // after the router it asks; its callbacks end with the io thread
+  std::unique_ptr<RolePolicy> rtu_policy_;             // the RTU ports' role gate
+  std::vector<std::unique_ptr<RtuSlavePort>> rtu_slaves_;  // after the router and policy they use
   std::optional<std::size_t> plain_index_;
   std::optional<std::size_t> tls_index_;
   TcpServing serving_;  // last: destroyed first, so no connection outlives the router

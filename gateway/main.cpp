@@ -45,6 +45,7 @@ struct Options {
   std::string log_level;
   std::string check_config_file;
   bool version = false;
+  std::vector<std::string> rtu_slaves;  // --rtu-slave DEVICE[:BAUD[:PARITY]], each an upstream port
 };
 
 // --log-level wins over the configuration's logging.level.
@@ -68,7 +69,27 @@ std::string summary(const Config& config) {
          std::to_string(config.modbus_tcp.gateway_unit_id) +
          (config.mqtt ? "; Sparkplug B node " + config.mqtt->group_id + "/" + config.mqtt->edge_node_id + " on broker " +
                             config.mqtt->broker.to_string()
-                      : std::string());
+                      : std::string()) +
+         (config.modbus_rtu_slave.empty()
+              ? std::string()
+              : "; " + std::to_string(config.modbus_rtu_slave.size()) + " upstream Modbus RTU port(s)");
+}
+
+// --rtu-slave options appended to config.modbus_rtu_slave; false after printing why one cannot be.
+bool add_rtu_slave_options(const std::vector<std::string>& texts, Config& config) {
+  for (const auto& text : texts) {
+    auto port = sms::config::parse_rtu_slave_option(text);
+    if (!port) {
+      std::cerr << "sms-gateway: --rtu-slave " << port.error() << "\n";
+      return false;
+    }
+    if (const auto conflict = sms::config::rtu_slave_conflict(config, *port)) {
+      std::cerr << "sms-gateway: --rtu-slave " << text << ": " << *conflict << "\n";
+      return false;
+    }
+    config.modbus_rtu_slave.push_back(std::move(*port));
+  }
+  return true;
 }
 
 // SMS_GATEWAY_* variables over the configuration (config/env.h); false after printing why not.
@@ -195,6 +216,7 @@ int run_gateway(const Options& options) {
   if (listen) config.modbus_tcp.listen = *listen;
   if (metrics) config.logging.metrics_listen = *metrics;
   if (!options.log_level.empty()) config.logging.level = *log_level_from(options.log_level);
+  if (!add_rtu_slave_options(options.rtu_slaves, config)) return kExitConfigError;
   sms::gateway::setup_logging(config.logging);
   if (!from_environment.empty()) spdlog::info("from the environment: {}", joined(from_environment));
 
@@ -250,6 +272,11 @@ int main(int argc, char** argv) {
                  "HOST:PORT to serve /metrics (Prometheus) and /healthz on (overrides logging.metrics_listen)");
   app.add_option("--log-level", options.log_level, "trace, debug, info, warn, error, critical or off")
       ->check(CLI::IsMember({"trace", "debug", "info", "warn", "error", "critical", "off"}));
+  app.add_option("--rtu-slave", options.rtu_slaves,
+                 "DEVICE[:BAUD[:PARITY]]: also serve Modbus RTU masters (PLCs, HMI panels) on this serial device as "
+                 "a slave, every unit, role operate (baud 19200 and parity even unless given; none, even or odd). "
+                 "May be given more than once; adds to modbus_rtu_slave")
+      ->type_name("DEVICE[:BAUD[:PARITY]]");
   auto* check_option = app.add_option("--check-config", options.check_config_file,
                                       "Validate a configuration file and exit (0 valid, 2 invalid)");
   check_option->excludes(simulate_option);

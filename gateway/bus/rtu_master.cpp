@@ -341,4 +341,22 @@ RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_
   return {RtuOutcome::Sent, {}, {}};
 }
 
+int RtuMaster::native_handle() const { return line_->context == nullptr ? -1 : modbus_get_socket(line_->context); }
+
+Expected<Ok> RtuMaster::send_frame(std::uint8_t slave, std::span<const std::uint8_t> pdu) {
+  if (!is_open()) return unexpected(settings_.serial.device + " is not open");
+  if (pdu.empty() || pdu.size() > protocol::rtu::kMaxPduSize) {
+    throw std::invalid_argument("RtuMaster::send_frame: a PDU is 1 to 253 bytes, not " + std::to_string(pdu.size()));
+  }
+  Bytes frame;
+  frame.reserve(pdu.size() + 1);
+  frame.push_back(slave);
+  frame.insert(frame.end(), pdu.begin(), pdu.end());
+  if (modbus_send_raw_request(line_->context, frame.data(), static_cast<int>(frame.size())) < 0) {
+    return unexpected("write to " + settings_.serial.device + ": " + modbus_strerror(errno));
+  }
+  line_->quiet_since = SteadyClock::now();
+  return Ok{};
+}
+
 }  // namespace sms::gateway

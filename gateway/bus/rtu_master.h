@@ -95,6 +95,13 @@ class RtuMaster {
   // the wire and `turnaround` has passed, so the slaves have acted before the next request.
   RtuExchange send_only(std::uint8_t slave, std::span<const std::uint8_t> pdu, std::chrono::nanoseconds turnaround);
 
+  // For the upstream RTU slave port (gateway/rtu_slave), which opens its line through open() (the
+  // same rates, RS-485 mode and RTS control) and frames requests itself: the descriptor to read
+  // (-1 when closed), and an answer sent through libmodbus (CRC appended, RTS switched around
+  // it) without flushing the input or waiting for a frame gap. An error means the device failed.
+  int native_handle() const;
+  Expected<Ok> send_frame(std::uint8_t slave, std::span<const std::uint8_t> pdu);
+
   // The time `bytes` characters take on the line.
   std::chrono::nanoseconds wire_time(std::size_t bytes) const { return gateway::wire_time(settings_.serial, bytes); }
 

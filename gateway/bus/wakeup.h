@@ -19,6 +19,9 @@ class Wakeup {
   void notify();
   // Returns after notify() (since the last wait) or at `deadline`; nullopt: no deadline.
   void wait(std::optional<std::chrono::steady_clock::time_point> deadline);
+  // The eventfd, for a thread that waits on it together with other descriptors in its own ppoll
+  // (readable after notify()); wait() with a past deadline then consumes the notifications.
+  int native_handle() const { return fd_; }
 
  private:
   int fd_ = -1;

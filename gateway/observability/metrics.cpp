@@ -397,6 +397,43 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
     out.sample("sms_gateway_mqtt_devices_online", {}, std::uint64_t{mqtt.devices_online});
   }
 
+  if (!snapshot.rtu_slaves.empty()) {
+    // Upstream Modbus RTU ports (docs/RTU_PANELS.md "Metrics"), labelled by device.
+    struct RtuSlaveFamily {
+      std::string_view name;
+      MetricType type;
+      std::string_view help;
+      std::uint64_t RtuSlaveStats::*value;
+    };
+    static constexpr std::array<RtuSlaveFamily, 8> kRtuSlaveFamilies{{
+        {"sms_gateway_rtu_slave_requests_total", MetricType::Counter,
+         "Requests received on an upstream RTU port for a unit it serves (broadcasts included)", &RtuSlaveStats::requests},
+        {"sms_gateway_rtu_slave_answers_total", MetricType::Counter, "Answer frames sent on an upstream RTU port",
+         &RtuSlaveStats::answers},
+        {"sms_gateway_rtu_slave_broadcasts_total", MetricType::Counter,
+         "Broadcast writes (unit 0) carried out, never answered", &RtuSlaveStats::broadcasts},
+        {"sms_gateway_rtu_slave_crc_errors_total", MetricType::Counter, "Frames dropped for a wrong CRC",
+         &RtuSlaveStats::crc_errors},
+        {"sms_gateway_rtu_slave_dropped_frames_total", MetricType::Counter,
+         "Frames dropped: a silence over t1.5 inside, under 4 or over 256 bytes, a broadcast read, a queue overrun",
+         &RtuSlaveStats::dropped_frames},
+        {"sms_gateway_rtu_slave_silent_units_total", MetricType::Counter,
+         "Valid frames for a unit the port does not serve, left unanswered", &RtuSlaveStats::silent_units},
+        {"sms_gateway_rtu_slave_role_refusals_total", MetricType::Counter,
+         "Requests the port's role may not make (answered 0x01 or 0x02)", &RtuSlaveStats::role_refusals},
+        {"sms_gateway_rtu_slave_port_lost_total", MetricType::Counter, "Times the port's device failed or vanished",
+         &RtuSlaveStats::port_lost},
+    }};
+    out.family("sms_gateway_rtu_slave_up", MetricType::Gauge, "1 while the upstream RTU port's device is open");
+    for (const auto& port : snapshot.rtu_slaves) {
+      out.sample("sms_gateway_rtu_slave_up", {{"device", port.device}}, std::uint64_t{port.open ? 1u : 0u});
+    }
+    for (const auto& family : kRtuSlaveFamilies) {
+      out.family(family.name, family.type, family.help);
+      for (const auto& port : snapshot.rtu_slaves) out.sample(family.name, {{"device", port.device}}, port.*family.value);
+    }
+  }
+
   out.family("sms_gateway_estop_latched", MetricType::Gauge,
              "1 while the e-stop (gateway unit coil 1) is latched: motion writes refused on every bus");
   out.sample("sms_gateway_estop_latched", {}, std::uint64_t{snapshot.estop_latched ? 1u : 0u});

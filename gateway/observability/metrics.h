@@ -26,6 +26,7 @@
 #include "gateway/modbus_tcp/tcp_server.h"
 #include "gateway/modbus_tcp/tls_stats.h"
 #include "gateway/modbus_tcp/traffic_counters.h"
+#include "gateway/rtu_slave/rtu_slave_stats.h"
 
 namespace sms::gateway {
 
@@ -60,6 +61,7 @@ struct MetricsSnapshot {
   ModbusTrafficSnapshot traffic;
   bool estop_latched = false;
   std::uint64_t estops = 0;
+  std::vector<RtuSlaveStats> rtu_slaves;  // the upstream Modbus RTU ports, in configuration order
 };
 
 // One bus of `config` as its cache and counters show it at `now`. Servos of the bus that the
