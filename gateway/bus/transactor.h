@@ -23,9 +23,9 @@
 //   std::optional<std::uint8_t> status_in_block(const AddressBlock&, span data) const;
 //   void for_each_write(const Request&, fn(servo, address, span data)) const;
 //
-// Late answers (README "Data integrity"): an answer names no request, so one that comes after
-// its request gave up is indistinguishable from the answer to the next request of the same size
-// to the same servo. Each transactor therefore (1) reads and drops what the input holds before
+// Late answers (docs/DECISIONS.md "Late answers"): an answer names no request, so one that
+// comes after its request gave up is indistinguishable from the answer to the next request of
+// the same size to the same servo. Each transactor therefore (1) reads and drops what the input holds before
 // every request (counted as stray bytes), and (2) remembers, per servo, how many of its requests
 // went unanswered (OwedAnswers below): before the next request to that servo it watches the line,
 // dropping everything, until those answers have come or the late-answer window has passed since

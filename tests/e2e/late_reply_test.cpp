@@ -1,10 +1,10 @@
-// A late servo end to end (README "Data integrity"): real sms-sim and sms-gateway processes, a
-// libmodbus TCP client alternating FC03 reads of a constant block and of another block of the
-// same size on one servo, while the simulator's `late` fault (its control socket) makes the servo
-// answer after the gateway gave up — every lateness from just past the timeout to several
-// attempts, then toggled on and off. A servo's answer names no request, so a late one looks
-// exactly like the answer to the next request of the same size: no read may ever be answered
-// Ok with the other block's values. The dropped bytes are counted (metric and log).
+// A late servo end to end (docs/DECISIONS.md "Late answers"): real sms-sim and sms-gateway
+// processes, a libmodbus TCP client alternating FC03 reads of a constant block and of another
+// block of the same size on one servo, while the simulator's `late` fault (its control socket)
+// makes the servo answer after the gateway gave up — every lateness from just past the timeout
+// to several attempts, then toggled on and off. A servo's answer names no request, so a late
+// one looks exactly like the answer to the next request of the same size: no read may ever be
+// answered Ok with the other block's values. The dropped bytes are counted (metric and log).
 #include <gtest/gtest.h>
 
 #include <fstream>
