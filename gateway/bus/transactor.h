@@ -88,6 +88,7 @@ class OwedAnswers {
   void add(std::uint8_t id, unsigned count, Clock::time_point until) {
     if (count == 0) return;
     Entry& entry = entries_[id];
+    if (entry.until <= Clock::now()) entry.count = 0;  // what was owed before has expired
     entry.count += count;
     entry.until = std::max(entry.until, until);
   }
