@@ -25,8 +25,8 @@ constexpr const char* kDescription = R"(sms-sim: simulated RS-485 servos on a ps
 
 Prints the pty path (one line, flushed) and answers on it until SIGINT/SIGTERM. A host opens
 the path like a serial port; a servo answers only when the host's line speed equals its baud,
-so several rates and protocols can share one bus. Tables: sts and sms1 (protocol feetech,
-FF FF), d55d (protocol d55d, D5 5D), smsmb (protocol modbus-rtu: FC 03/06/10/11/41, FC 04 ->
+so several rates and protocols can share one bus. Tables: sts, sms1 and scs (protocol
+feetech, FF FF), d55d (protocol d55d, D5 5D), smsmb (protocol modbus-rtu: FC 03/06/10/11/41, FC 04 ->
 exception 0x01). Every instruction of the protocol is simulated, with a motion model behind
 the present-value fields.
 
@@ -34,8 +34,8 @@ Wire timing: a reply is written no earlier than request + return delay + reply o
 10 bits a character (--no-timing answers at once).
 
 State file: per servo slot (its place on the command line), the EEPROM that survives a power
-cycle: writes made while the lock is open (sts 55 = 0, sms1 48 = 0, smsmb 0x85 = 0 or 128;
-d55d always) and the BACKUP image. A saved ID or baud wins over the command line.
+cycle: writes made while the lock is open (sts 55 = 0, sms1 48 = 0, scs 48 = 0, smsmb 0x85 = 0
+or 128; d55d always) and the BACKUP image. A saved ID or baud wins over the command line.
 
 Examples:
   sms-sim --ids 1-6                                    6 STS servos, feetech, 1 Mbaud

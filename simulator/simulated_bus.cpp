@@ -12,6 +12,7 @@
 #include <cerrno>
 #include <cstdlib>
 #include <cstring>
+#include <map>
 #include <mutex>
 #include <random>
 #include <stdexcept>
@@ -136,6 +137,13 @@ class SimulatedBus::Impl {
     Clock::time_point wire_start;
     Clock::time_point wire_end;
     Bytes bytes;
+    const VirtualServo* servo;  // who sends it (a collision's: the earlier sender)
+  };
+  // When each servo has finished sending what it already answered, and when its last reply is
+  // written: a servo answers one request after the other, in turn, never over itself.
+  struct Answering {
+    Clock::time_point wire_end{};
+    Clock::time_point due{};
   };
 
   void open_line();
@@ -175,6 +183,7 @@ class SimulatedBus::Impl {
   Clock::time_point last_received_{};
   Clock::time_point wire_free_{};  // when the (virtual) wire is next idle
   std::vector<ScheduledReply> scheduled_;
+  std::map<const VirtualServo*, Answering> answering_;
   Bytes unsent_;
 };
 
@@ -521,8 +530,11 @@ void SimulatedBus::Impl::schedule(std::vector<Reply> replies, std::uint32_t spee
       previous_end = group_end;
       group_rank = reply.rank;
     }
-    const Clock::time_point start = previous_end + reply.servo->return_delay();
+    // Two requests read at once (sent back to back): the servo answers the second after the first.
+    Answering& answering = answering_[reply.servo];
+    const Clock::time_point start = std::max(previous_end + reply.servo->return_delay(), answering.wire_end);
     const Clock::time_point end = start + character * static_cast<long>(reply.bytes.size());
+    answering.wire_end = end;
     group_end = std::max(group_end, end);
     if (drop_probability_ > 0 && chance(dice_) < drop_probability_) {
       ++stats_.dropped;
@@ -540,8 +552,10 @@ void SimulatedBus::Impl::schedule(std::vector<Reply> replies, std::uint32_t spee
       reply.bytes[position(dice_)] ^= static_cast<std::uint8_t>(mask(dice_));
       ++stats_.corrupted;
     }
-    const Clock::time_point due = (timing_ ? end : now) + reply.servo->extra_delay();
-    add_scheduled(ScheduledReply{due, start, end, std::move(reply.bytes)}, character);
+    // A late servo stays in order: a reply never overtakes the one it sent before.
+    const Clock::time_point due = std::max((timing_ ? end : now) + reply.servo->extra_delay(), answering.due);
+    answering.due = due;
+    add_scheduled(ScheduledReply{due, start, end, std::move(reply.bytes), reply.servo}, character);
   }
   wire_free_ = std::max(wire_free_, group_end);
   flush_due(now);
@@ -550,6 +564,7 @@ void SimulatedBus::Impl::schedule(std::vector<Reply> replies, std::uint32_t spee
 void SimulatedBus::Impl::add_scheduled(ScheduledReply reply, Clock::duration character) {
   for (ScheduledReply& other : scheduled_) {
     if (!(reply.wire_start < other.wire_end && other.wire_start < reply.wire_end)) continue;
+    if (other.servo == reply.servo) continue;  // only two different servos collide
     // Two transmitters at once: on the idle-high line a 0 bit wins, so overlapping
     // characters AND together; each one's own characters fill the rest.
     ScheduledReply& earlier = reply.wire_start < other.wire_start ? reply : other;
@@ -562,7 +577,7 @@ void SimulatedBus::Impl::add_scheduled(ScheduledReply reply, Clock::duration cha
       merged[offset + index] &= later.bytes[index];
     }
     other = ScheduledReply{std::max(reply.due, other.due), earlier.wire_start, std::max(reply.wire_end, other.wire_end),
-                           std::move(merged)};
+                           std::move(merged), earlier.servo};
     ++stats_.collisions;
     return;
   }

@@ -71,6 +71,7 @@ Expected<Ok> PacketTransactor::open() {
   }
   decoder_.reset();
   count_discarded();
+  owed_.clear();  // a reopened line: nothing sent before can still be answered on it
   return Ok{};
 }
 
@@ -206,6 +207,54 @@ BusResult PacketTransactor::port_lost(const std::string& reason) {
   return BusResult{BusStatus::BusDown, 0, {}, reason};
 }
 
+std::optional<SteadyClock::time_point> PacketTransactor::owed_until(const Request& request,
+                                                                    SteadyClock::time_point now) const {
+  std::optional<SteadyClock::time_point> latest;
+  const auto consider = [&](std::uint8_t id) {
+    if (owed_.owes(id, now) && (!latest || owed_.until(id) > *latest)) latest = owed_.until(id);
+  };
+  if (request.reply == ReplyKind::None) return latest;  // nothing awaited: nothing to mistake
+  if (request.reply == ReplyKind::SyncRead) {
+    for (const auto id : request.sync_ids) consider(id);
+  } else if (broadcast(request)) {
+    for (unsigned id = 0; id < protocol::kBroadcastId; ++id) consider(static_cast<std::uint8_t>(id));
+  } else {
+    consider(request.servo_id);
+  }
+  return latest;
+}
+
+Expected<Ok> PacketTransactor::settle(const Request& request) {
+  auto now = SteadyClock::now();
+  auto until = owed_until(request, now);
+  if (!until) return Ok{};
+  protocol::StreamDecoder watch(*rules_.format);
+  std::size_t dropped = 0;
+  while (until) {
+    const auto readable = port_.wait_readable(*until - now);
+    if (!readable) return unexpected(readable.error());
+    for (;;) {
+      const auto received = port_.read_available(rx_buffer_);
+      if (!received) return unexpected(received.error());
+      if (*received == 0) break;
+      const std::span<const std::uint8_t> bytes(rx_buffer_.data(), *received);
+      if (spdlog::should_log(spdlog::level::trace)) spdlog::trace("{}rx (late) {}", timing_.label, spdlog::to_hex(bytes));
+      dropped += bytes.size();
+      watch.feed(bytes);
+      while (const auto event = watch.next()) {
+        if (event->kind != protocol::DecodeEvent::Kind::Frame) continue;
+        owed_.arrived(event->packet.id);
+        counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
+      }
+      if (*received < rx_buffer_.size()) break;
+    }
+    now = SteadyClock::now();
+    until = owed_until(request, now);
+  }
+  stray_.count(dropped, timing_.label, [&] { return "while waiting for owed late answers before " + describe(request); });
+  return Ok{};
+}
+
 BusResult PacketTransactor::execute(const Request& request, TransactionEvents& events) {
   if (!port_.is_open()) return port_lost(port_.settings().device + " is not open");
   const SerialSettings& serial = port_.settings();
@@ -223,12 +272,18 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
 
   AttemptFindings summary;
   summary.timeout = request_time + reply_time;
+  if (const auto settled = settle(request); !settled) return port_lost(settled.error());
   unsigned made = 0;
+  const auto late_window = kLateAnswerWindowAttempts * summary.timeout;
+  // SYNC READ owes per silent member (below); a broadcast PING's answers are anyone's.
+  const bool unicast_answer =
+      request.reply != ReplyKind::None && request.reply != ReplyKind::SyncRead && !broadcast(request);
+  OwedAnswers::Tally tally(owed_, request.servo_id, late_window, unicast_answer);
   while (made < request.attempts) {
     if (made++ > 0) counters_.retries.fetch_add(1, std::memory_order_relaxed);
     const auto flushed = port_.discard_input();
     if (!flushed) return port_lost(flushed.error());
-    counters_.discarded_bytes.fetch_add(*flushed, std::memory_order_relaxed);
+    stray_.count(*flushed, timing_.label, [&] { return "before " + describe(request); });
     decoder_.reset();
     count_discarded();
 
@@ -236,6 +291,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
       spdlog::trace("{}tx {}", timing_.label, spdlog::to_hex(request.frame));
     }
     const auto sent_at = SteadyClock::now();
+    tally.sent(sent_at);
     if (const auto written = port_.write_all(request.frame, write_timeout); !written) return port_lost(written.error());
     if (request.reply == ReplyKind::None) {
       // Broadcast or unanswered write: complete once it is on the wire.
@@ -252,6 +308,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
     std::optional<Packet> echo_candidate;
     std::optional<BusResult> outcome;
     bool send_again = false;
+    std::optional<SteadyClock::time_point> last_rx;
 
     const auto accept = [&](Packet frame) {
       counters_.frames_ok.fetch_add(1, std::memory_order_relaxed);
@@ -276,6 +333,9 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
           owed ? judge_reply(rules_, request.reply, request.servo_id, request.count, frame) : Verdict::NotOurs;
       const bool echo = frame == request.packet;
       if (!echo) heard = true;
+      // An answer still owed for an earlier request (to this servo or another) has come.
+      if (verdict == Verdict::NotOurs && !echo) owed_.arrived(frame.id);
+      if (verdict != Verdict::NotOurs && frame.id == request.servo_id && !echo) tally.heard();
       const bool first = frames++ == 0;
       // A frame identical to our request that cannot be its answer: this adapter echoes.
       if (echo && verdict == Verdict::NotOurs) adapter_echoes_ = true;
@@ -330,6 +390,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
         if (*received == 0) break;
         const std::span<const std::uint8_t> bytes(rx_buffer_.data(), *received);
         if (spdlog::should_log(spdlog::level::trace)) spdlog::trace("{}rx {}", timing_.label, spdlog::to_hex(bytes));
+        last_rx = SteadyClock::now();
         decoder_.feed(bytes);
         // Bytes still arriving after a damaged answer: wait until the line is quiet.
         if (quiet_wait) deadline = std::min(original_deadline, SteadyClock::now() + quiet_gap_);
@@ -345,6 +406,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
           summary.damaged_any = true;
           heard = true;
           events.damaged();
+          if (request.reply != ReplyKind::SyncRead && event->packet.id == request.servo_id) tally.heard();
           if (request.reply != ReplyKind::SyncRead && event->packet.id == request.servo_id && !quiet_wait) {
             // Our servo's answer arrived damaged: no valid one follows. Retry as soon as the
             // line is quiet (transmitting into the tail of a frame would collide).
@@ -357,7 +419,17 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
         // A short read emptied the tty's buffer: skip the read() that would say EAGAIN.
         if (*received < rx_buffer_.size()) break;
       }
-      if (outcome || send_again || SteadyClock::now() >= deadline) break;
+      if (outcome || send_again) break;
+      const auto now = SteadyClock::now();
+      if (now < deadline) continue;
+      // Bytes still arriving at the deadline (an answer in flight, late or colliding): wait until
+      // the line is quiet, bounded by one more timeout, so a retry does not transmit into them.
+      const auto guard_end = original_deadline + summary.timeout;
+      if (last_rx && now < *last_rx + quiet_gap_ && now < guard_end) {
+        deadline = std::min(*last_rx + quiet_gap_, guard_end);
+        continue;
+      }
+      break;
     }
     if (outcome) return std::move(*outcome);
     if (send_again) continue;  // our frame arrived damaged: send it again now
@@ -365,10 +437,17 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
       // What looked like our own echo was the only frame, and this adapter has never echoed:
       // it was the answer after all (a PING answered with ERROR 0x01 is byte for byte the
       // request).
+      tally.heard();
       accept(std::move(*echo_candidate));
       if (outcome) return std::move(*outcome);
     }
-    if (request.reply == ReplyKind::SyncRead) return BusResult{};  // the silent are the engine's to follow up
+    if (request.reply == ReplyKind::SyncRead) {
+      // The silent are the engine's to follow up; their answers may still come.
+      for (const auto id : request.sync_ids) {
+        if (!sync_answered.test(id)) owed_.add(id, 1, tally.last_sent() + late_window);
+      }
+      return BusResult{};
+    }
     counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
     events.unanswered(request.servo_id);
     if (anyone && heard) break;  // colliding answers: someone is there

@@ -4,8 +4,12 @@
 // which ERROR bits mean "refused", whether SYNC READ exists). The face is transactor.h's.
 //
 // How a transaction runs (SPEC §1.1 "host practice"):
-// - flush the input, transmit, then wait for the answer until a deadline sized from the
-//   request's and the reply's wire time plus the reply allowance;
+// - when the addressed servo owes answers to requests that gave up, watch the line until they
+//   came or their window passed (transactor.h "Late answers"); drop and count what the input
+//   holds; transmit, then wait for the answer until a deadline sized from the request's and the
+//   reply's wire time plus the reply allowance — extended while bytes are still arriving at the
+//   deadline, until the line is quiet (bounded by one more timeout), so a retry never starts
+//   into the tail of a late answer;
 // - the decoder hunts for the header and resynchronises after garbage; only a frame from the
 //   addressed ID with the expected shape is the answer — a late reply from another servo, or a
 //   reply of another length, is counted as stray and waited past; a frame identical to the
@@ -129,6 +133,11 @@ class PacketTransactor {
   BusResult fail(const Request& request, const AttemptFindings& found, unsigned attempts_made) const;
   BusResult port_lost(const std::string& reason);
   void count_discarded();
+  // Latest end of the late-answer windows of the servos that may answer `request` and still
+  // owe answers at `now`; nullopt when none does.
+  std::optional<SteadyClock::time_point> owed_until(const Request& request, SteadyClock::time_point now) const;
+  // Watches the line until those owed answers came or their windows passed, dropping all it reads.
+  Expected<Ok> settle(const Request& request);
 
   const PacketRules& rules_;
   SerialPort port_;
@@ -137,6 +146,8 @@ class PacketTransactor {
   protocol::StreamDecoder decoder_;
   std::size_t decoder_discarded_seen_ = 0;
   bool adapter_echoes_ = false;  // learnt: this line hands our own frames back
+  OwedAnswers owed_;
+  StrayBytes stray_{counters_};
   std::chrono::nanoseconds quiet_gap_;
   std::array<std::uint8_t, 512> rx_buffer_{};
 };

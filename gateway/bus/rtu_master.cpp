@@ -230,7 +230,7 @@ RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t
   }
   modbus_t* context = line_->context;
   wait_for_frame_gap();
-  modbus_flush(context);  // late replies and noise would otherwise be read as this answer
+  const std::size_t dropped = drop_input();  // late replies and noise would otherwise be read as this answer
   modbus_set_slave(context, slave);
   Bytes request;
   request.reserve(pdu.size() + 1);
@@ -246,7 +246,15 @@ RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t
     const int error = errno;
     return {RtuOutcome::PortError, {}, "write to " + settings_.serial.device + ": " + modbus_strerror(error)};
   }
-  if (!libmodbus_sizes(pdu[0])) return receive_until_silence(slave, response_timeout);
+  RtuExchange exchange = receive_answer(slave, pdu[0], response_timeout);
+  exchange.dropped = dropped;
+  return exchange;
+}
+
+RtuExchange RtuMaster::receive_answer(std::uint8_t slave, std::uint8_t function,
+                                      std::chrono::nanoseconds response_timeout) {
+  modbus_t* context = line_->context;
+  if (!libmodbus_sizes(function)) return receive_until_silence(slave, response_timeout);
 
   std::array<std::uint8_t, MODBUS_RTU_MAX_ADU_LENGTH> answer{};
   const int received = modbus_receive_confirmation(context, answer.data());
@@ -327,7 +335,7 @@ RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_
   }
   modbus_t* context = line_->context;
   wait_for_frame_gap();
-  modbus_flush(context);
+  const std::size_t dropped = drop_input();
   modbus_set_slave(context, slave);
   Bytes request;
   request.push_back(slave);
@@ -338,7 +346,66 @@ RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_
   const auto on_wire = wire_time(request.size() + 2);
   std::this_thread::sleep_for(on_wire + turnaround);
   line_->quiet_since = SteadyClock::now();
-  return {RtuOutcome::Sent, {}, {}};
+  RtuExchange sent{RtuOutcome::Sent, {}, {}};
+  sent.dropped = dropped;
+  return sent;
+}
+
+std::size_t RtuMaster::drop_input() {
+  const int fd = modbus_get_socket(line_->context);
+  std::array<std::uint8_t, 256> buffer{};
+  std::size_t dropped = 0;
+  for (;;) {
+    pollfd descriptor{fd, POLLIN, 0};
+    if (::poll(&descriptor, 1, 0) <= 0 || (descriptor.revents & POLLIN) == 0) break;
+    const ssize_t got = ::read(fd, buffer.data(), buffer.size());
+    if (got <= 0) break;  // a lost device is reported by the exchange that follows
+    dropped += static_cast<std::size_t>(got);
+  }
+  if (dropped > 0) line_->quiet_since = SteadyClock::now();
+  return dropped;
+}
+
+Expected<RtuWatch> RtuMaster::watch_line(std::uint8_t slave, unsigned frames, SteadyClock::time_point until) {
+  if (!is_open()) return unexpected(settings_.serial.device + " is not open");
+  const int fd = modbus_get_socket(line_->context);
+  const auto gap = rtu_frame_gap(settings_.serial, settings_.options.frame_gap);
+  RtuWatch watched;
+  Bytes frame;
+  const auto end_frame = [&] {
+    if (frame.size() >= protocol::rtu::kMinAduSize && frame[0] == slave &&
+        protocol::rtu::crc16(std::span(frame).first(frame.size() - 2)) ==
+            static_cast<std::uint16_t>(frame[frame.size() - 2] | frame[frame.size() - 1] << 8)) {
+      ++watched.frames;
+    }
+    frame.clear();
+  };
+  std::array<std::uint8_t, protocol::rtu::kMaxAduSize> buffer{};
+  auto last_byte = SteadyClock::now();
+  while (watched.frames < frames) {
+    // While a frame is coming, its end is the frame gap's silence; else the window's end.
+    const auto deadline = frame.empty() ? until : last_byte + gap;
+    if (frame.empty() && SteadyClock::now() >= until) break;
+    const int ready = detail::poll_input_until(fd, deadline);
+    if (ready < 0 && errno == EINTR) continue;
+    if (ready < 0) return unexpected("poll " + settings_.serial.device + ": " + std::strerror(errno));
+    if (ready == 0) {
+      end_frame();
+      continue;
+    }
+    const ssize_t got = ::read(fd, buffer.data(), buffer.size());
+    if (got < 0 && (errno == EAGAIN || errno == EINTR)) continue;
+    if (got <= 0) {
+      return unexpected("read from " + settings_.serial.device + ": " +
+                        (got == 0 ? std::string("end of file") : std::strerror(errno)));
+    }
+    last_byte = SteadyClock::now();
+    watched.bytes += static_cast<std::size_t>(got);
+    frame.insert(frame.end(), buffer.begin(), buffer.begin() + got);
+    if (frame.size() > protocol::rtu::kMaxAduSize) frame.clear();  // noise, not a frame
+  }
+  if (watched.bytes > 0) line_->quiet_since = last_byte;
+  return watched;
 }
 
 int RtuMaster::native_handle() const { return line_->context == nullptr ? -1 : modbus_get_socket(line_->context); }

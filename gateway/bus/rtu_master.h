@@ -60,11 +60,18 @@ struct RtuExchange {
   protocol::Bytes pdu;  // Reply: function code first, no slave, no CRC
   std::string detail;   // what went wrong, for logs
   std::optional<std::uint8_t> other_slave;  // WrongSlave: who answered, when the frame says so
+  std::size_t dropped = 0;  // bytes the input held before the request, read and dropped unseen
 
   // A constructor rather than an aggregate, so `{outcome, pdu, detail}` leaves other_slave empty.
   RtuExchange(RtuOutcome result = RtuOutcome::Timeout, protocol::Bytes reply_pdu = {}, std::string what = {},
               std::optional<std::uint8_t> answering_slave = std::nullopt)
       : outcome(result), pdu(std::move(reply_pdu)), detail(std::move(what)), other_slave(answering_slave) {}
+};
+
+// What RtuMaster::watch_line saw: bytes read and dropped, and valid frames from the watched slave.
+struct RtuWatch {
+  std::size_t bytes = 0;
+  unsigned frames = 0;
 };
 
 // One RTU line: not thread-safe, used by one thread (the bus thread, or a tool's main thread).
@@ -86,7 +93,8 @@ class RtuMaster {
 
   // Sends `pdu` to `slave` (1-247) and waits for the answer: its first byte within
   // `reply_timeout` after the request has left the wire, the rest with at most the byte
-  // timeout between bytes. The input is flushed before sending (late replies, noise).
+  // timeout between bytes. The input is read and dropped before sending (late replies, noise;
+  // how many bytes in the exchange's `dropped`).
   // Function codes whose answer length libmodbus knows (01-06, 0F, 10, 11, 16, 17 and every
   // exception) go through modbus_send_raw_request/modbus_receive_confirmation; any other
   // code's answer ends when the line stays silent for the byte timeout.
@@ -101,14 +109,21 @@ class RtuMaster {
   // it) without flushing the input or waiting for a frame gap. An error means the device failed.
   int native_handle() const;
   Expected<Ok> send_frame(std::uint8_t slave, std::span<const std::uint8_t> pdu);
+  // Reads and drops what arrives until `until`, or until `frames` whole frames (each ended by the
+  // frame gap's silence) with a valid CRC have come from `slave`: the line is watched for the
+  // late answers a slave still owes before it is asked again (transactor.h "Late answers").
+  Expected<RtuWatch> watch_line(std::uint8_t slave, unsigned frames, std::chrono::steady_clock::time_point until);
 
   // The time `bytes` characters take on the line.
   std::chrono::nanoseconds wire_time(std::size_t bytes) const { return gateway::wire_time(settings_.serial, bytes); }
 
  private:
   struct Line;
+  RtuExchange receive_answer(std::uint8_t slave, std::uint8_t function, std::chrono::nanoseconds response_timeout);
   RtuExchange receive_until_silence(std::uint8_t slave, std::chrono::nanoseconds first_byte_timeout);
   void wait_for_frame_gap();
+  // Reads what the input holds (modbus_flush's tcflush would not say how much): the count.
+  std::size_t drop_input();
 
   RtuLineSettings settings_;
   std::unique_ptr<Line> line_;

@@ -153,6 +153,10 @@ std::optional<std::uint8_t> RtuTransactor::status_in_block(const AddressBlock& b
 
 // ==== one transaction ==========================================================================
 
+std::string RtuTransactor::what_for(const Request& request) {
+  return fmt::format("before FC{:02X} to slave {}", request.pdu[0], request.slave);
+}
+
 std::string RtuTransactor::where(const Request& request) const {
   return fmt::format("{}slave {} FC{:02X}", timing_.label, request.slave, request.pdu[0]);
 }
@@ -163,23 +167,43 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
   if (request.no_reply) {
     const RtuExchange sent = master_.send_only(request.slave, request.pdu, timing_.reply_allowance);
     if (sent.outcome == RtuOutcome::PortError) return BusResult{BusStatus::BusDown, 0, {}, sent.detail};
+    stray_.count(sent.dropped, timing_.label, [&] { return what_for(request); });
     return BusResult{};
   }
+  const auto late_window =
+      kLateAnswerWindowAttempts * (master_.wire_time(request.pdu.size() + 3) + reply_timeout);
+  if (const auto now = SteadyClock::now(); owed_.owes(request.slave, now)) {
+    // Late answers this slave still owes would look like this request's answer: let them come.
+    const auto watched = master_.watch_line(request.slave, owed_.count(request.slave), owed_.until(request.slave));
+    if (!watched) return BusResult{BusStatus::BusDown, 0, {}, watched.error()};
+    for (unsigned frame = 0; frame < watched->frames; ++frame) owed_.arrived(request.slave);
+    counters_.stray_frames.fetch_add(watched->frames, std::memory_order_relaxed);
+    stray_.count(watched->bytes, timing_.label, [&] {
+      return fmt::format("while waiting for late answers slave {} owed before FC{:02X}", request.slave, request.pdu[0]);
+    });
+  }
+  OwedAnswers::Tally tally(owed_, request.slave, late_window, true);
   bool corrupt = false;
   std::string last_problem;
   for (unsigned attempt = 0; attempt < request.attempts; ++attempt) {
     if (attempt > 0) counters_.retries.fetch_add(1, std::memory_order_relaxed);
+    tally.sent(SteadyClock::now());
     RtuExchange exchange = master_.transact(request.slave, request.pdu, reply_timeout);
+    stray_.count(exchange.dropped, timing_.label, [&] { return what_for(request); });
     switch (exchange.outcome) {
       case RtuOutcome::Reply: {
         BusResult result = check_reply(request, std::move(exchange.pdu));
         if (result.status == BusStatus::Corrupt) {
+          // From the addressed slave but not this request's shape: an answer it owed to an
+          // earlier request; this attempt's own may still come.
+          owed_.arrived(request.slave);
           counters_.checksum_errors.fetch_add(1, std::memory_order_relaxed);
           events.damaged();
           corrupt = true;
           last_problem = result.detail;
           continue;
         }
+        tally.heard();
         counters_.frames_ok.fetch_add(1, std::memory_order_relaxed);
         events.answered(request.slave, std::nullopt);
         return result;
@@ -190,6 +214,7 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
         last_problem = exchange.detail;
         break;
       case RtuOutcome::Corrupt:
+        tally.heard();  // a damaged answer ends the attempt
         counters_.checksum_errors.fetch_add(1, std::memory_order_relaxed);
         events.damaged();
         corrupt = true;
@@ -198,6 +223,7 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
       case RtuOutcome::WrongSlave:
         counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
         if (exchange.other_slave) {
+          owed_.arrived(*exchange.other_slave);
           events.foreign(*exchange.other_slave);
         } else {
           events.damaged();

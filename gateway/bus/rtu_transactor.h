@@ -11,7 +11,9 @@
 //
 // Answers are checked against the request: FC03 must carry the registers asked for, FC06 must
 // echo the request, FC16 must repeat address and quantity; anything else from the addressed
-// slave counts as corrupt and is retried. An exception answer is a refusal (ServoRefused with
+// slave counts as corrupt and is retried. Late answers are guarded against as transactor.h says:
+// the input is read and dropped before each request, and a slave that owes answers to requests
+// that gave up is asked again only once they came or their window passed. An exception answer is a refusal (ServoRefused with
 // the code as servo_error), except for PING and passthrough, where it is the answer.
 #include <cstdint>
 #include <optional>
@@ -59,7 +61,10 @@ class RtuTransactor {
   // `counters` outlives the transactor.
   RtuTransactor(RtuLineSettings line, TransactionTiming timing, BusCounters& counters);
 
-  Expected<Ok> open() { return master_.open(); }
+  Expected<Ok> open() {
+    owed_.clear();  // a reopened line: nothing sent before can still be answered on it
+    return master_.open();
+  }
   void close() { master_.close(); }
   bool is_open() const { return master_.is_open(); }
   std::string line_description() const;
@@ -90,10 +95,13 @@ class RtuTransactor {
  private:
   BusResult check_reply(const Request& request, protocol::Bytes reply) const;
   std::string where(const Request& request) const;
+  static std::string what_for(const Request& request);  // "before FC03 to slave 1", for the stray count
 
   RtuMaster master_;
   TransactionTiming timing_;
   BusCounters& counters_;
+  OwedAnswers owed_;
+  StrayBytes stray_{counters_};
 };
 
 }  // namespace sms::gateway

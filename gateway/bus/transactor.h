@@ -23,15 +23,30 @@
 //   std::optional<std::uint8_t> status_in_block(const AddressBlock&, span data) const;
 //   void for_each_write(const Request&, fn(servo, address, span data)) const;
 //
+// Late answers (docs/DECISIONS.md "Late answers"): an answer names no request, so one that
+// comes after its request gave up is indistinguishable from the answer to the next request of
+// the same size to the same servo. Each transactor therefore (1) reads and drops what the input holds before
+// every request (counted as stray bytes), and (2) remembers, per servo, how many of its requests
+// went unanswered (OwedAnswers below): before the next request to that servo it watches the line,
+// dropping everything, until those answers have come or the late-answer window has passed since
+// the last unanswered request. Requests to other servos are not held up: a late answer from
+// another address is never taken for theirs.
+//
 // Bus-wide counters (frames, timeouts, checksum errors, stray frames, retries, discarded bytes)
 // are counted by the transactor into the BusCounters it is given; what concerns one servo is
 // reported through TransactionEvents, so the engine keeps its per-servo counters, status byte
 // and presence, and a tool learns what it heard.
+#include <algorithm>
+#include <array>
 #include <chrono>
 #include <cstdint>
 #include <optional>
 #include <span>
 #include <string>
+
+#include <spdlog/spdlog.h>
+
+#include "gateway/bus/bus_counters.h"
 
 namespace sms::gateway {
 
@@ -57,6 +72,100 @@ class TransactionEvents {
 struct TransactionTiming {
   std::chrono::nanoseconds reply_allowance{std::chrono::milliseconds{20}};
   std::string label;
+};
+
+// How long after an unanswered request its answer may still come, in attempt timeouts (each the
+// request's and the answer's wire time plus the reply allowance): an answer later than this is
+// not guarded against (it is then a servo or adapter fault far outside its configured timing).
+inline constexpr unsigned kLateAnswerWindowAttempts = 4;
+
+// Answers still owed by servos whose requests went unanswered, and until when they may come.
+class OwedAnswers {
+ public:
+  using Clock = std::chrono::steady_clock;
+
+  // `count` more requests to `id` went unanswered; their answers may come until `until`.
+  void add(std::uint8_t id, unsigned count, Clock::time_point until) {
+    if (count == 0) return;
+    Entry& entry = entries_[id];
+    if (entry.until <= Clock::now()) entry.count = 0;  // what was owed before has expired
+    entry.count += count;
+    entry.until = std::max(entry.until, until);
+  }
+  // A frame from `id` came that was not taken as an answer: one owed answer fewer.
+  void arrived(std::uint8_t id) {
+    Entry& entry = entries_[id];
+    if (entry.count > 0) --entry.count;
+  }
+  // Whether answers of `id` may still come at `now`.
+  bool owes(std::uint8_t id, Clock::time_point now) const {
+    const Entry& entry = entries_[id];
+    return entry.count > 0 && now < entry.until;
+  }
+  unsigned count(std::uint8_t id) const { return entries_[id].count; }
+  Clock::time_point until(std::uint8_t id) const { return entries_[id].until; }
+  // Nothing can still come from anyone (a reopened line).
+  void clear() { entries_ = {}; }
+
+  // The attempts of one transaction to `id`: however it ends, the answers of those not heard are
+  // owed until `window` after the last one was sent. (A late answer to an earlier attempt of the
+  // same request is that request's answer all the same: only later requests need the wait.)
+  class Tally {
+   public:
+    Tally(OwedAnswers& owed, std::uint8_t id, std::chrono::nanoseconds window, bool awaited)
+        : owed_(owed), id_(id), window_(window), awaited_(awaited) {}
+    ~Tally() {
+      if (awaited_ && sent_ > heard_) owed_.add(id_, sent_ - heard_, last_sent_ + window_);
+    }
+    Tally(const Tally&) = delete;
+    Tally& operator=(const Tally&) = delete;
+    void sent(Clock::time_point at) {
+      ++sent_;
+      last_sent_ = at;
+    }
+    void heard() { ++heard_; }  // an answer (valid or damaged) from `id` to one of the attempts
+    Clock::time_point last_sent() const { return last_sent_; }
+
+   private:
+    OwedAnswers& owed_;
+    std::uint8_t id_;
+    std::chrono::nanoseconds window_;
+    bool awaited_;
+    unsigned sent_ = 0;
+    unsigned heard_ = 0;
+    Clock::time_point last_sent_{};
+  };
+
+ private:
+  struct Entry {
+    unsigned count = 0;
+    Clock::time_point until{};
+  };
+  std::array<Entry, 256> entries_{};
+};
+
+// Counts bytes dropped unread as stray; the first time on a line it says so at info, then at debug.
+class StrayBytes {
+ public:
+  explicit StrayBytes(BusCounters& counters) : counters_(counters) {}
+  // `label`: the transaction timing's; `when()`: "before READ 56+15 of servo 1", built only
+  // when something was dropped.
+  template <typename When>
+  void count(std::size_t bytes, const std::string& label, When&& when) {
+    if (bytes == 0) return;
+    counters_.stray_bytes.fetch_add(bytes, std::memory_order_relaxed);
+    const auto level = told_ ? spdlog::level::debug : spdlog::level::info;
+    if (!spdlog::should_log(level)) return;
+    spdlog::log(level,
+                "{}dropped {} byte{} {}: never taken for an answer (late answers to requests that gave up, noise; "
+                "counted in sms_gateway_bus_stray_bytes_total{})",
+                label, bytes, bytes == 1 ? "" : "s", when(), told_ ? "" : "; further ones logged at debug");
+    told_ = true;
+  }
+
+ private:
+  BusCounters& counters_;
+  bool told_ = false;
 };
 
 }  // namespace sms::gateway

@@ -291,6 +291,53 @@ TEST(SimulatedBusFaults, DuplicateIdRepliesCollideOnTheWire) {
   EXPECT_EQ(rig.bus->servos().size(), 2U);
 }
 
+// A servo answers one request after the other: two requests arriving in one read (sent back to
+// back) get two whole replies, in turn, and never collide with each other; only two different
+// servos can collide (above). Vendor SDKs send a PING and a READ together this way.
+TEST(SimulatedBusLine, BackToBackRequestsToOneServoAreAnsweredInTurn) {
+  for (const bool timing : {false, true}) {
+    BusOptions options = quick_options({sts(1)});
+    options.timing = timing;
+    Rig rig(options);
+    const auto expected_read = rig.bus->read_memory(1, 56, 2);
+    ASSERT_TRUE(expected_read);
+    Bytes both = protocol::encode(kFeetechFormat, protocol::ping(1));
+    const Bytes read = protocol::encode(kFeetechFormat, protocol::read(1, 56, 2));
+    both.insert(both.end(), read.begin(), read.end());
+    rig.host->send(both);
+    const Bytes replies = rig.host->receive();
+    const auto frames = decode_all(kFeetechFormat, replies);
+    ASSERT_EQ(frames.size(), 2U) << "timing " << timing << ": " << hex(replies);
+    EXPECT_EQ(frames[0], status(1, 0));
+    EXPECT_EQ(frames[1].id, 1U);
+    EXPECT_EQ(frames[1].params.size(), 2U);
+
+    const Bytes ping = protocol::encode(kFeetechFormat, protocol::ping(1));
+    Bytes pings = ping;
+    pings.insert(pings.end(), ping.begin(), ping.end());
+    rig.host->send(pings);
+    const Bytes pongs = rig.host->receive();
+    EXPECT_EQ(decode_all(kFeetechFormat, pongs), (std::vector<protocol::Packet>{status(1, 0), status(1, 0)}))
+        << "timing " << timing << ": " << hex(pongs);
+    EXPECT_EQ(rig.bus->stats().collisions, 0U);
+  }
+}
+
+// A late servo stays in order: when its lateness ends, the new answers wait behind the late ones.
+TEST(SimulatedBusFaults, LateServoAnswersInTheOrderAsked) {
+  Rig rig(quick_options({sts(1)}));
+  rig.bus->set_reply_delay(1, std::chrono::milliseconds(60));
+  rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 2)));
+  std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  rig.bus->set_reply_delay(1, std::chrono::milliseconds(0));
+  rig.host->send(protocol::encode(kFeetechFormat, protocol::ping(1)));
+  const Bytes replies = rig.host->receive(std::chrono::milliseconds(150), std::chrono::milliseconds(2000));
+  const auto frames = decode_all(kFeetechFormat, replies);
+  ASSERT_EQ(frames.size(), 2U) << hex(replies);
+  EXPECT_EQ(frames[0].params.size(), 2U) << "the READ was asked first";
+  EXPECT_EQ(frames[1], status(1, 0));
+}
+
 TEST(SimulatedBusFaults, ErrorBitsAreClearedWithZero) {
   Rig rig(quick_options({sts(1)}));
   rig.bus->set_error_bits(1, protocol::feetech::error_bit::kOverload);
@@ -427,7 +474,8 @@ TEST(SmsSimProgram, HelpDocumentsEveryOption) {
   const std::string help = run_and_capture(std::string(SMS_SIM_PATH) + " --help");
   for (const char* option : {"--protocol", "--table", "--ids", "--baud", "--servo", "--link", "--device",
                              "--no-timing", "--state-file", "--control", "--drop", "--corrupt", "--late",
-                             "--offline", "--error", "--duplicate", "modbus-rtu", "smsmb", "get ID ADDR COUNT"}) {
+                             "--offline", "--error", "--duplicate", "modbus-rtu", "smsmb", "sts, sms1 and scs", "scs 48 = 0",
+                             "get ID ADDR COUNT"}) {
     EXPECT_NE(help.find(option), std::string::npos) << option << " missing from --help";
   }
 }

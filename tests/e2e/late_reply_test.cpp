@@ -1,0 +1,154 @@
+// A late servo end to end (docs/DECISIONS.md "Late answers"): real sms-sim and sms-gateway
+// processes, a libmodbus TCP client alternating FC03 reads of a constant block and of another
+// block of the same size on one servo, while the simulator's `late` fault (its control socket)
+// makes the servo answer after the gateway gave up — every lateness from just past the timeout
+// to several attempts, then toggled on and off. A servo's answer names no request, so a late
+// one looks exactly like the answer to the next request of the same size: no read may ever be
+// answered Ok with the other block's values. The dropped bytes are counted (metric and log).
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include "tests/e2e/e2e_support.h"
+#include "tests/gateway/metrics_http_client.h"
+
+namespace sms::e2e {
+namespace {
+
+using gateway::testing::HttpConnection;
+using gateway::testing::parse_exposition;
+using Registers = std::vector<std::uint16_t>;
+
+// Per attempt 50 ms, three attempts: the late-answer window is four attempts (~200 ms).
+constexpr int kTimeoutMs = 50;
+
+constexpr const char* kFeetechConfig = R"(
+modbus_tcp: {listen: "127.0.0.1:5020"}
+buses:
+  - {name: arm, device: "@DEVICE@", protocol: feetech, baud: 1000000, poll_period_ms: 20,
+     offline_probe_period_ms: 100, response_timeout_ms: @TIMEOUT@, retries: 2}
+servos:
+  - {unit: 1, bus: arm, id: 1, table: sts}
+)";
+
+constexpr const char* kRtuConfig = R"(
+modbus_tcp: {listen: "127.0.0.1:5020"}
+buses:
+  - {name: lift, device: "@DEVICE@", protocol: modbus-rtu, baud: 115200, poll_period_ms: 20,
+     offline_probe_period_ms: 100, response_timeout_ms: @TIMEOUT@, retries: 2}
+servos:
+  - {unit: 1, bus: lift, id: 1, table: smsmb}
+)";
+
+std::uint16_t port_after(ChildProcess& process, const std::string& marker) {
+  const auto line = process.wait_for_line(marker, 15s);
+  if (!line) throw std::runtime_error("no line with '" + marker + "':\n" + process.output());
+  return static_cast<std::uint16_t>(std::stoi(line->substr(line->find(marker) + marker.size())));
+}
+
+std::string metrics_text(std::uint16_t port) {
+  HttpConnection connection(port);
+  connection.send("GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n");
+  const auto response = connection.read_response();
+  if (!response) throw std::runtime_error("no answer from /metrics");
+  return response->body;
+}
+
+struct Tally {
+  int ok_constant = 0;
+  int ok_other = 0;
+  int refused = 0;
+};
+
+// Reads `constant` and `other` in turn on `unit` for `duration`; every Ok answer of the constant
+// block must be `expected`, and no Ok answer of the other block may be it.
+void read_in_turn(ModbusClient& unit, int constant, int other, int count, const Registers& expected,
+                  std::chrono::milliseconds duration, const std::string& phase, Tally& tally) {
+  const auto until = std::chrono::steady_clock::now() + duration;
+  for (int i = 0; std::chrono::steady_clock::now() < until; ++i) {
+    const bool constant_turn = i % 2 == 0;
+    const auto answer = unit.read_holding(constant_turn ? constant : other, count);
+    if (!answer.ok()) {
+      ++tally.refused;
+      continue;
+    }
+    if (constant_turn) {
+      ++tally.ok_constant;
+      EXPECT_EQ(answer.values, expected) << phase << ": the constant block answered with other values";
+    } else {
+      ++tally.ok_other;
+      EXPECT_NE(answer.values, expected) << phase << ": the other block answered with the constant block's values";
+    }
+  }
+}
+
+void late_servo_never_yields_a_wrong_value(SimProcess& sim, GatewayProcess& gateway, int unit_id, int constant,
+                                           int other, int count, const std::string& metric) {
+  wait_until_polled(gateway.port(), 1);
+  ModbusClient unit(gateway.port(), unit_id, 10.0);
+  const auto reference = unit.read_holding(constant, count);
+  ASSERT_TRUE(reference.ok()) << reference.error;
+  const Registers expected = reference.values;
+  const auto first_other = unit.read_holding(other, count);
+  ASSERT_TRUE(first_other.ok()) << first_other.error;
+  ASSERT_NE(first_other.values, expected) << "the two blocks must differ for a mix-up to show";
+
+  Tally tally;
+  // Just past one attempt's timeout, to two and a half attempts.
+  for (const int lateness : {kTimeoutMs + 5, kTimeoutMs * 3 / 2, kTimeoutMs * 2, kTimeoutMs * 5 / 2}) {
+    ASSERT_EQ(sim.control("late 1 " + std::to_string(lateness)), "ok");
+    read_in_turn(unit, constant, other, count, expected, 1200ms, "late " + std::to_string(lateness), tally);
+    ASSERT_EQ(sim.control("late 1 0"), "ok");
+    read_in_turn(unit, constant, other, count, expected, 600ms, "after late " + std::to_string(lateness), tally);
+  }
+  // Toggled while the reads go on, as a flaky adapter or a busy servo would.
+  for (int round = 0; round < 8; ++round) {
+    ASSERT_EQ(sim.control(round % 2 == 0 ? "late 1 " + std::to_string(kTimeoutMs * 2) : "late 1 0"), "ok");
+    read_in_turn(unit, constant, other, count, expected, 200ms, "toggling, round " + std::to_string(round), tally);
+  }
+  ASSERT_EQ(sim.control("late 1 0"), "ok");
+  // On time again: answered again, with the right values.
+  EXPECT_TRUE(eventually([&] { return unit.read_holding(constant, count).ok(); }, 10s));
+  read_in_turn(unit, constant, other, count, expected, 500ms, "on time", tally);
+  EXPECT_GT(tally.ok_constant, 0);
+  EXPECT_GT(tally.ok_other, 0);
+  std::cout << "answered ok: constant " << tally.ok_constant << ", other " << tally.ok_other << "; refused "
+            << tally.refused << "\n";
+
+  const auto metrics = parse_exposition(metrics_text(port_after(gateway.process(), "/healthz on http://127.0.0.1:")));
+  const std::string stray = metrics.value(metric);
+  ASSERT_FALSE(stray.empty()) << metric << " missing";
+  EXPECT_GT(std::stod(stray), 0.0) << "the late answers dropped were not counted";
+  EXPECT_TRUE(gateway.process().wait_for_line("sms_gateway_bus_stray_bytes_total", 1s))
+      << "the first stray bytes were not logged:\n" << gateway.process().output();
+}
+
+TEST(LateReply, FeetechLateServoNeverAnswersOneReadWithAnotherReadsValues) {
+  TempDir dir;
+  SimProcess sim(dir, "arm", {"--servo", "1:sts"});
+  const std::string path = dir.file("gateway.yaml");
+  std::ofstream(path) << substitute(substitute(kFeetechConfig, "@DEVICE@", sim.pty()), "@TIMEOUT@",
+                                    std::to_string(kTimeoutMs));
+  GatewayProcess gateway({"--config", path, "--metrics", "127.0.0.1:0"}, 1);
+  // Holding 9-12: the angle limits (constant 0, 0, 4095, 0); 60-63: load, voltage, temperature.
+  late_servo_never_yields_a_wrong_value(sim, gateway, 1, 9, 60, 4,
+                                        R"(sms_gateway_bus_stray_bytes_total{bus="arm",protocol="feetech"})");
+}
+
+TEST(LateReply, ModbusRtuLateServoNeverAnswersOneReadWithAnotherReadsValues) {
+  TempDir dir;
+  SimProcess sim(dir, "lift", {"--servo", "1:smsmb:modbus-rtu:115200"});
+  const std::string path = dir.file("gateway.yaml");
+  std::ofstream(path) << substitute(substitute(kRtuConfig, "@DEVICE@", sim.pty()), "@TIMEOUT@",
+                                    std::to_string(kTimeoutMs));
+  GatewayProcess gateway({"--config", path, "--metrics", "127.0.0.1:0"}, 1);
+  // Holding 0x0D-0x0E: the angle limits; 0x11-0x12: the position gains (both constant, different).
+  late_servo_never_yields_a_wrong_value(sim, gateway, 1, 0x0D, 0x11, 2,
+                                        R"(sms_gateway_bus_stray_bytes_total{bus="lift",protocol="modbus-rtu"})");
+}
+
+}  // namespace
+}  // namespace sms::e2e
