@@ -46,6 +46,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "config/config.h"
 #include "gateway/bus/bus_counters.h"
 
 namespace sms::gateway {
@@ -77,7 +78,7 @@ struct TransactionTiming {
 // How long after an unanswered request its answer may still come, in attempt timeouts (each the
 // request's and the answer's wire time plus the reply allowance): an answer later than this is
 // not guarded against (it is then a servo or adapter fault far outside its configured timing).
-inline constexpr unsigned kLateAnswerWindowAttempts = 4;
+inline constexpr unsigned kLateAnswerWindowAttempts = config::kLateAnswerWindowAttempts;  // one home: config.h
 
 // Answers still owed by servos whose requests went unanswered, and until when they may come.
 class OwedAnswers {
