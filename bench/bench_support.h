@@ -47,7 +47,7 @@ void print_latency(const std::string& name, const LatencySummary& summary, Laten
                    bool with_max = true);
 std::uint32_t to_ns(Clock::duration duration);
 
-// --- the bus and its wire time (SPEC §5) -----------------------------------------------------
+// --- the bus and its wire time (docs/PROTOCOL.md §5) -----------------------------------------------------
 
 inline constexpr std::uint32_t kBaud = 1'000'000;
 inline constexpr unsigned kBitsPerCharacter = 10;  // 8N1
@@ -81,7 +81,7 @@ struct GatewaySetup {
   std::chrono::milliseconds probe_period{1000};
   std::size_t max_connections = 200;
   std::size_t request_queue_depth = 64;
-  // The bus's watchdog (README "Safety", feed any_write); empty: none.
+  // The bus's watchdog (docs/PLC_GUIDE.md "Safety", feed any_write); empty: none.
   std::optional<std::chrono::milliseconds> watchdog;
   // A modbus-rtu bus of smsmb servos at this rate instead of feetech/sts at kBaud, with this
   // frame_gap (config/README.md); 0: feetech.
@@ -150,10 +150,10 @@ class ModbusClient {
   modbus_t* context_ = nullptr;
 };
 
-// 32-bit counter from two registers, high word first (MODBUS_MAP.md).
+// 32-bit counter from two registers, high word first (docs/PLC_GUIDE.md).
 inline std::uint32_t u32(std::uint16_t high, std::uint16_t low) { return (std::uint32_t{high} << 16) | low; }
 
-// Gateway unit (255) input registers of bus 0 (MODBUS_MAP.md "The gateway unit").
+// Gateway unit (255) input registers of bus 0 (docs/PLC_GUIDE.md "The gateway unit").
 struct BusFacts {
   std::uint16_t state = 0;
   std::uint16_t last_poll_cycle_us = 0;

@@ -1,6 +1,6 @@
 // cached_reads: input-register reads served from the gateway's poll cache, next to a bare
 // libmodbus TCP server answering the same request from a static map in the same run; then
-// the bounded per-bus queue under a flood of live reads (issue 4, bench (a)).
+// the bounded per-bus queue under a flood of live reads (bench (a)).
 //
 //   cached_reads [--seconds 3] [--flood-seconds 3]
 //

@@ -1,4 +1,4 @@
-// forward_overhead: what `sms-gateway forward` adds to a Modbus-RTU transaction (issue 13): a
+// forward_overhead: what `sms-gateway forward` adds to a Modbus-RTU transaction: a
 // 10-register FC03 to one simulated SMSMB servo at 115 200 bit/s (wire timing on, return delay
 // 0), back to back, two ways on the same kind of pty, for each --frame-gap setting (spec,
 // 3.5chars, 500us):

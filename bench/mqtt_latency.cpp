@@ -1,4 +1,4 @@
-// mqtt_latency: the Sparkplug B northbound under motion (issue 14). A real Mosquitto broker
+// mqtt_latency: the Sparkplug B northbound under motion. A real Mosquitto broker
 // (/usr/sbin/mosquitto) on a free loopback port, the real sms-gateway as a child process with an
 // mqtt section, N simulated sts servos at 1 000 000 baud (wire timing on) that a Modbus client
 // keeps moving, and a Sparkplug host (libmosquitto) subscribed to spBv1.0/#.

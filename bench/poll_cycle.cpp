@@ -1,7 +1,7 @@
 // poll_cycle: the gateway's poll cycle time next to the wire-time limit of the frames it sends
-// (SPEC §5), for 6, 20 and 60 simulated sts servos at 1 000 000 baud with wire timing on; then
-// what a silent servo costs the others (issue 4, bench (b)); then a modbus-rtu bus of 6 SMSMB
-// servos at 115 200 bit/s with each frame_gap setting (issue 13, bench (f)).
+// (docs/PROTOCOL.md §5), for 6, 20 and 60 simulated sts servos at 1 000 000 baud with wire timing on; then
+// what a silent servo costs the others (bench (b)); then a modbus-rtu bus of 6 SMSMB
+// servos at 115 200 bit/s with each frame_gap setting (bench (f)).
 //
 //   poll_cycle [--seconds 2] [--silent-seconds 5] [--servos N] [--return-delay-us D] [--rtu-seconds 2]
 //
@@ -14,7 +14,7 @@
 // input register 102 "last poll cycle us", sampled every 10 ms. The limit is one SYNC READ of
 // the 15-byte feedback block from N servos: (8 + N) request bytes + N x (6 + 15) reply bytes
 // at 10 bits a character, plus N return delays (sts address 7, x 2 us). Efficiency = limit /
-// measured median cycle. Measured with return delay 0 (SPEC §5's example) and with the sts
+// measured median cycle. Measured with return delay 0 (docs/PROTOCOL.md §5's example) and with the sts
 // factory default 250 (500 us).
 // The register says how long one cycle took, from its start to its last answer. The bus's
 // real poll rate also pays for the time between cycles and for the occasional long cycle (a
@@ -128,7 +128,7 @@ void measure_cycle(unsigned servos, std::uint8_t return_delay, std::chrono::mill
   gateway.stop();
 }
 
-// modbus-rtu (issue 13): one FC03 of the 8-register feedback block per servo and cycle, each
+// modbus-rtu: one FC03 of the 8-register feedback block per servo and cycle, each
 // followed by the configured inter-frame gap. Limit = N x (8 request + 21 reply bytes on the
 // wire + the servo's return delay + the gap): what the gap setting allows, not only the wire.
 struct RtuGap {
@@ -264,7 +264,7 @@ int main(int argc, char** argv) {
   try {
     quiet_logs();
     print_note("sms-gateway polling back to back (poll_period_ms 0); cycle = gateway unit 255 input register 102, "
-               "sampled every 10 ms; limit = SYNC READ of 15 bytes, SPEC §5");
+               "sampled every 10 ms; limit = SYNC READ of 15 bytes, docs/PROTOCOL.md §5");
     for (const std::uint8_t return_delay : kReturnDelays) {
       if (seconds <= 0) break;
       if (only_return_delay_us >= 0 && only_return_delay_us != return_delay * kReturnDelayUsPerUnit) continue;

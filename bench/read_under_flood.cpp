@@ -1,4 +1,4 @@
-// read_under_flood: the worst live read under a write flood (issue 11): six clients write FC06
+// read_under_flood: the worst live read under a write flood: six clients write FC06
 // to servos 1-6 back to back (each its own connection, as in the held-out run that starved a
 // reader for 60 s), while a seventh reads FC03 of unit 1's feedback block; 6 sts servos at
 // 1 000 000 baud with wire timing on, the real sms-gateway as a child process.

@@ -1,6 +1,6 @@
 // soak: 16 clients mixing FC03/FC04/FC06/FC16 against the gateway for a minute, sampling the
 // gateway process's resident memory every second; at the end, every acknowledged write is read
-// back (issue 6: "A 60-second soak with 16 clients mixing reads and writes shows flat memory").
+// back ("A 60-second soak with 16 clients mixing reads and writes shows flat memory").
 //
 //   soak [--seconds 60]
 //

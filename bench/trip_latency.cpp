@@ -2,7 +2,7 @@
 //
 //   trip_latency [--rounds 30] [--timeout-ms 100] [--servos N] [--quick]
 //
-// Issue 10, README "Safety". The real sms-gateway runs as a child process (bench_support) on a
+// docs/PLC_GUIDE.md "Safety". The real sms-gateway runs as a child process (bench_support) on a
 // simulated bus in this process (sts servos, 1 000 000 baud, wire timing on, return delay 100 us: the sts floor), its
 // bus configured `watchdog: {timeout_ms: T, feed: any_write}`. Each round a client writes
 // operating_mode (33) := 1 and goal_speed (46) := 1000 to every servo (the servos turn), then goes

@@ -1,6 +1,6 @@
 // write_latency: live FC06 writes and FC03 reads against one servo, through the gateway, next
-// to the wire time the frames need (SPEC §5) and to the same bus transaction done directly on a
-// pty by this program — the gateway's own overhead per transaction (issue 4, bench (c)).
+// to the wire time the frames need (docs/PROTOCOL.md §5) and to the same bus transaction done directly on a
+// pty by this program — the gateway's own overhead per transaction (bench (c)).
 //
 //   write_latency [--seconds 3]
 //

@@ -47,7 +47,7 @@ Expected<IpNetwork> parse_ip_network(std::string_view text);
 inline constexpr std::size_t kMaxConnectionsLimit = 4096;
 inline constexpr std::int64_t kMaxIdleTimeoutSeconds = 86400;
 
-// Modbus/TCP Security (README "Modbus/TCP Security"): what a client certificate may do.
+// Modbus/TCP Security (docs/SECURITY.md): what a client certificate may do.
 // Read: reads only (an HMI). Operate: also writes to RAM fields (motion, torque, the gateway
 // unit's coils and sync groups). Engineer: everything, EEPROM fields, ID and baud rate,
 // calibration included. None: no rights; a connection whose certificate gets no role is closed.
@@ -94,11 +94,11 @@ struct ModbusTcpConfig {
   std::optional<TlsConfig> tls;  // the Modbus/TCP Security listener; empty: none
   std::size_t max_connections = 32;
   std::chrono::seconds idle_timeout{60};  // 0: never close an idle client
-  std::uint8_t gateway_unit_id = 255;     // the gateway's own unit (MODBUS_MAP.md)
+  std::uint8_t gateway_unit_id = 255;     // the gateway's own unit (docs/PLC_GUIDE.md)
   // Client requests one bus may have waiting; past it a request is answered 0x06 (busy).
   std::size_t request_queue_depth = 64;
   // Client addresses allowed to connect; empty: every client. Modbus has no authentication, so
-  // this and the bind address are the gateway's access control (README "Security").
+  // this and the bind address are the gateway's access control (docs/SECURITY.md).
   std::vector<IpNetwork> allow;
 
   bool operator==(const ModbusTcpConfig&) const = default;
@@ -151,7 +151,7 @@ struct ModbusRtuOptions {
   bool operator==(const ModbusRtuOptions&) const = default;
 };
 
-// Motion safety (README "Safety", docs/DECISIONS.md "Safety").
+// Motion safety (docs/PLC_GUIDE.md "Safety", docs/DECISIONS.md "Safety").
 // What feeds a bus's watchdog: any Modbus write to a unit on the bus (servo, passthrough, a
 // sync group member, its heartbeat register), or only a changed value in its heartbeat
 // register (gateway unit holding register 1000 + bus index), as drives count a PLC's toggle.
@@ -188,11 +188,11 @@ struct BusConfig {
   std::string name;
   std::string device;                   // /dev/ttyUSB0, /dev/serial/by-id/..., a pty path
   protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
-  std::uint32_t baud = 0;               // bits per second, a rate of the protocol's table (SPEC §3)
+  std::uint32_t baud = 0;               // bits per second, a rate of the protocol's table (docs/PROTOCOL.md §3)
   std::uint8_t baud_code = 0;           // that rate's code in the protocol's table
   Parity parity = Parity::None;
   std::uint8_t stop_bits = 1;           // 1 or 2
-  // Wait for a reply beyond its wire time: return delay plus adapter latency (SPEC §5).
+  // Wait for a reply beyond its wire time: return delay plus adapter latency (docs/PROTOCOL.md §5).
   std::chrono::milliseconds response_timeout{20};
   unsigned retries = 2;                 // attempts after the first one
   std::chrono::milliseconds poll_period{20};  // start of one poll cycle to the next; 0 = back to back
@@ -208,7 +208,7 @@ struct BusConfig {
   bool operator==(const BusConfig&) const = default;
 };
 
-// Which register map a servo unit shows a Modbus client (MODBUS_MAP.md "Two register profiles").
+// Which register map a servo unit shows a Modbus client (docs/PLC_GUIDE.md "Two register profiles").
 enum class Profile : std::uint8_t { Native, Smsmb };
 
 struct ServoConfig {
@@ -222,7 +222,7 @@ struct ServoConfig {
   // Smsmb only for sts/sms1; an smsmb table's native map already is the SMSMB map, so it is
   // stored as Native.
   Profile profile = Profile::Native;
-  std::optional<modbus_map::ByteOrder> byte_order;   // overrides the table's (SPEC §2.2)
+  std::optional<modbus_map::ByteOrder> byte_order;   // overrides the table's (docs/PROTOCOL.md §2.2)
   // The servo's response level as set in it, so the gateway knows whether writes are
   // answered; empty: the gateway finds out from the servo.
   std::optional<std::uint8_t> response_level;
@@ -246,7 +246,7 @@ struct ServoConfig {
 modbus_map::ByteOrder effective_byte_order(const ServoConfig& servo);
 
 // A block of holding registers on the gateway unit; one FC16 write of it becomes one SYNC WRITE
-// frame per bus (MODBUS_MAP.md "The gateway unit").
+// frame per bus (docs/PLC_GUIDE.md "The gateway unit").
 struct SyncGroupConfig {
   std::string name;
   std::string field;                    // a writable field of every member's table
@@ -269,7 +269,7 @@ struct LoggingConfig {
   bool operator==(const LoggingConfig&) const = default;
 };
 
-// MQTT Sparkplug B northbound (README "MQTT Sparkplug B"): the gateway is one Sparkplug edge
+// MQTT Sparkplug B northbound (docs/MQTT.md): the gateway is one Sparkplug edge
 // node on an existing broker; every table servo is a device.
 struct MqttTlsConfig {
   std::string ca;           // CA certificates the broker's certificate must chain to, PEM

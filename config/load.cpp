@@ -67,7 +67,7 @@ constexpr std::array<std::string_view, 11> kRtuSlaveKeys{"device", "baud",  "par
 
 constexpr std::string_view kPassthroughTable = "passthrough";
 constexpr std::uint8_t kMaxUnitId = 247;            // Modbus slave addresses
-constexpr std::uint8_t kMaxPacketServoId = 253;     // 254 is the broadcast ID (SPEC §1)
+constexpr std::uint8_t kMaxPacketServoId = 253;     // 254 is the broadcast ID (docs/PROTOCOL.md §1)
 // A sync group is one FC16 write; a modbus-rtu poll block one FC03.
 constexpr std::size_t kMaxWriteRegisters = protocol::modbus_limits::kWriteRegisters;
 constexpr std::uint16_t kMaxRtuReadRegisters = protocol::modbus_limits::kReadRegisters;
@@ -801,7 +801,7 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
     if (const auto feed = watchdog_keys.find("feed")) watchdog.feed = choice(*feed, detail::kWatchdogFeedNames);
     if (const auto action = watchdog_keys.find("action")) watchdog.action = choice(*action, detail::kStopActionNames);
     // A trip's stop waits for the transaction on the wire to end: a watchdog shorter than the
-    // bus's worst transaction could not keep its promise (README "Safety", the stop's bound).
+    // bus's worst transaction could not keep its promise (docs/PLC_GUIDE.md "Safety", the stop's bound).
     const auto worst = worst_transaction(bus);
     if (watchdog.timeout <= worst) {
       fail(watchdog_keys.require("timeout_ms").mark,
@@ -819,7 +819,7 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
     bus.on_start = choice(*v, detail::kStartActionNames);
   } else if (bus.watchdog) {
     // A bus with a watchdog is one where nothing may turn unattended: after a crash or a
-    // restart, a servo left turning is stopped at start (README "Safety", after a crash).
+    // restart, a servo left turning is stopped at start (docs/PLC_GUIDE.md "Safety", after a crash).
     bus.on_start = StartAction::Hold;
   }
   if (const auto v = keys.find("on_stop")) bus.on_stop = choice(*v, detail::kStopActionNames);
@@ -1060,7 +1060,7 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
     servo.response_level = static_cast<std::uint8_t>(integer(*v, field->min, field->max));
   }
 
-  // A rate the protocol has may still be beyond one table's servos (SPEC §3: feetech codes 8-11
+  // A rate the protocol has may still be beyond one table's servos (docs/PROTOCOL.md §3: feetech codes 8-11
   // are sts only).
   if (table) {
     if (const auto* field = modbus_map::field_by_name(*table, "baud_rate");
@@ -1146,7 +1146,7 @@ void Loader::parse_sync_groups(const Value& value, Config& config) {
                              place(group_start_marks_[i]) + ")");
       }
     }
-    // The heartbeat registers (README "Safety") are the gateway unit's too.
+    // The heartbeat registers (docs/PLC_GUIDE.md "Safety") are the gateway unit's too.
     const std::size_t heartbeat_last = kHeartbeatRegisterBase + config.buses.size() - 1;
     if (!config.buses.empty() && first <= heartbeat_last && kHeartbeatRegisterBase <= last) {
       fail(start_mark, item.path + ".holding_register_start: registers " + std::to_string(first) + ".." +

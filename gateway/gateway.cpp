@@ -69,7 +69,7 @@ config::Config simulated_config(const std::string& device, const config::HostPor
                      "    device: \"" + device + "\"\n"
                      "    protocol: feetech\n"
                      "    baud: 1000000\n"
-                     // A demonstration that moves motors: its watchdog is armed (README "Safety").
+                     // A demonstration that moves motors: its watchdog is armed (docs/PLC_GUIDE.md "Safety").
                      "    watchdog: {timeout_ms: " + std::to_string(kSimulateWatchdog.count()) + ", feed: any_write}\n"
                      "servos:\n";
   for (int id = 1; id <= 6; ++id) {
@@ -189,7 +189,7 @@ class Gateway::Impl {
     // The RTU ports take no new request; the one each is answering finishes first.
     for (const auto& port : rtu_slaves_) port->stop(grace);
     serving_.drain(grace);
-    // The servos get their on_stop action while the buses still run (README "Safety").
+    // The servos get their on_stop action while the buses still run (docs/PLC_GUIDE.md "Safety").
     if (safety_) safety_->stop_for_shutdown(kOnStopBound);
     for (const auto& engine : engines_) engine->stop();
     serving_.stop();

@@ -27,7 +27,7 @@ BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index
 // The configuration `sms-gateway --simulate` runs: one feetech bus on `device` at 1 000 000
 // baud with sts servos 1-6 as units 1-6 (profile native), listening on `listen`.
 config::Config simulated_config(const std::string& device, const config::HostPort& listen);
-// The watchdog --simulate arms on its bus (feed: any_write; README "Safety").
+// The watchdog --simulate arms on its bus (feed: any_write; docs/PLC_GUIDE.md "Safety").
 inline constexpr std::chrono::milliseconds kSimulateWatchdog{1000};
 
 class Gateway {

@@ -1,4 +1,4 @@
-// sms-gateway: Modbus TCP for serial-bus servos (MODBUS_MAP.md is the contract).
+// sms-gateway: Modbus TCP for serial-bus servos (docs/PLC_GUIDE.md is the contract).
 //
 //   sms-gateway --config /etc/sms-gateway/gateway.yaml
 //   sms-gateway --simulate                   # 6 simulated sts servos, units 1-6, 127.0.0.1:5020

@@ -7,7 +7,7 @@ namespace {
 
 using protocol::BusProtocol;
 
-// SPEC §3, `feetech` column (sms1, sts). Codes 8-11 exist on sts firmware >= 2.45 only; the
+// docs/PROTOCOL.md §3, `feetech` column (sms1, sts). Codes 8-11 exist on sts firmware >= 2.45 only; the
 // table's baud_rate field range says which codes a table accepts.
 constexpr std::array<BaudEntry, 12> kFeetechBauds{{
     {0, 1'000'000},
@@ -24,7 +24,7 @@ constexpr std::array<BaudEntry, 12> kFeetechBauds{{
     {11, 4'800},
 }};
 
-// SPEC §3, `modbus-rtu` column (SMSMB register 0x0B).
+// docs/PROTOCOL.md §3, `modbus-rtu` column (SMSMB register 0x0B).
 constexpr std::array<BaudEntry, 10> kModbusRtuBauds{{
     {0, 256'000},
     {1, 128'000},
@@ -38,7 +38,7 @@ constexpr std::array<BaudEntry, 10> kModbusRtuBauds{{
     {9, 4'800},
 }};
 
-// SPEC §3, `d55d` column without code 0, whose rate depends on the motor kind (base motors
+// docs/PROTOCOL.md §3, `d55d` column without code 0, whose rate depends on the motor kind (base motors
 // 115200, others 9600): bps -> code answers 2 or 4 for those rates, never the ambiguous 0.
 constexpr std::array<BaudEntry, 10> kD55dBauds{{
     {1, 2'400},
@@ -96,7 +96,7 @@ Expected<std::uint8_t> baud_code(BusProtocol protocol, std::uint32_t bps) {
     if (entry.bps == bps) return entry.code;
   }
   return unexpected(std::string(protocol::to_string(protocol)) + " bus: " + std::to_string(bps) +
-                    " bps is not in the baud table (SPEC §3); valid rates: " + valid_bauds_text(protocol));
+                    " bps is not in the baud table (docs/PROTOCOL.md §3); valid rates: " + valid_bauds_text(protocol));
 }
 
 std::string valid_bauds_text(BusProtocol protocol) {

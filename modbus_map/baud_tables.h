@@ -1,5 +1,5 @@
 #pragma once
-// Baud tables, one per bus protocol (SPEC §3), in both directions.
+// Baud tables, one per bus protocol (docs/PROTOCOL.md §3), in both directions.
 #include <cstdint>
 #include <optional>
 #include <span>

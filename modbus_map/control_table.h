@@ -1,5 +1,5 @@
 #pragma once
-// Control tables as data (SPEC §2): one FieldSpec per field, one TableSpec per table.
+// Control tables as data (docs/PROTOCOL.md §2): one FieldSpec per field, one TableSpec per table.
 // The same lookup, encoding and register-mapping code serves every table.
 #include <cstddef>
 #include <cstdint>
@@ -32,7 +32,7 @@ inline constexpr Encoding kUnsigned{};
 inline constexpr Encoding sign_magnitude(std::uint8_t bit) { return {EncodingKind::SignMagnitude, bit}; }
 inline constexpr Encoding kTwosComplement{EncodingKind::TwosComplement, 0};
 
-// Which Modbus bit space a boolean field is also shown in (MODBUS_MAP.md "A servo unit").
+// Which Modbus bit space a boolean field is also shown in (docs/PLC_GUIDE.md "A servo unit").
 enum class BitSpace : std::uint8_t { None, Coil, DiscreteInput };
 
 struct FieldSpec {

@@ -9,10 +9,10 @@
 namespace sms::modbus_map {
 namespace {
 
-// sts: 0 position, 1 constant speed, 2 open-loop PWM, 3 step (SPEC §2.1 address 33).
+// sts: 0 position, 1 constant speed, 2 open-loop PWM, 3 step (docs/PROTOCOL.md §2.1 address 33).
 constexpr DriveMode kStsModes[] = {
     {0, Drive::Position}, {1, Drive::Velocity}, {2, Drive::Pwm}, {3, Drive::Step}};
-// sms1: 0 servo, 1 motor speed, 2 torque (run_time is the signed torque) (SPEC §2.2 address 35).
+// sms1: 0 servo, 1 motor speed, 2 torque (run_time is the signed torque) (docs/PROTOCOL.md §2.2 address 35).
 constexpr DriveMode kSms1Modes[] = {{0, Drive::Position}, {1, Drive::Velocity}, {2, Drive::Pwm}};
 // SMSMB: 0 servo, 1 constant speed, 3 torque off on arrival (a position mode), 4 stepper (§2.4).
 constexpr DriveMode kSmsmbModes[] = {
@@ -34,7 +34,7 @@ constexpr std::string_view kSmsmbMotionFields[] = {"mode", "goal_position", "tor
 
 constexpr StoppingWrite kStsStops[] = {{"torque_enable", 0}};
 constexpr StoppingWrite kSms1Stops[] = {{"torque_switch", 0}};
-// d55d (SPEC §2.3): "a speed of 0 or a brake command stops it at once"; sleep lets go.
+// d55d (docs/PROTOCOL.md §2.3): "a speed of 0 or a brake command stops it at once"; sleep lets go.
 constexpr StoppingWrite kD55dStops[] = {{"run_speed", 0}, {"brake", 1}, {"sleep", 1}};
 constexpr StoppingWrite kSmsmbStops[] = {{"torque_switch", 0}};
 constexpr StoppingWrite kScsStops[] = {{"torque_enable", 0}};
@@ -46,7 +46,7 @@ constexpr std::array kMotionSpecs{
     MotionSpec{TableId::Sms1, "operating_mode", kSms1Modes, "min_angle_limit", "max_angle_limit", "torque_switch",
                "goal_position", "run_time", "run_speed", "present_position", {"torque_switch", 0}, kSms1MotionFields,
                kSms1Stops, StopAction::Hold},
-    // d55d has no torque switch: run speed 0 is its own "stop without torque" (SPEC §2.3).
+    // d55d has no torque switch: run speed 0 is its own "stop without torque" (docs/PROTOCOL.md §2.3).
     MotionSpec{TableId::D55d, "", {}, "cw_angle_limit", "ccw_angle_limit", "", "goal_position", "", "run_speed",
                "present_position", {"run_speed", 0}, kD55dMotionFields, kD55dStops, StopAction::Hold},
     MotionSpec{TableId::Smsmb, "mode", kSmsmbModes, "min_angle_limit", "max_angle_limit", "torque_switch",

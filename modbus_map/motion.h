@@ -1,5 +1,5 @@
 #pragma once
-// What makes a servo move and how to stop it, per table, as data (issue 10, README "Safety").
+// What makes a servo move and how to stop it, per table, as data (docs/PLC_GUIDE.md "Safety").
 // The gateway's safety rules use it three ways, sans I/O:
 // - which writes are motion writes (refused while the e-stop is latched or a watchdog tripped),
 //   and which writes only stop a motor (allowed then: torque off, brake, sleep, speed 0);
@@ -23,7 +23,7 @@
 
 namespace sms::modbus_map {
 
-// What a safe stop does to one servo (config `safe_stop`, README "Safety").
+// What a safe stop does to one servo (config `safe_stop`, docs/PLC_GUIDE.md "Safety").
 enum class StopAction : std::uint8_t {
   Hold,       // position modes: goal := present position; speed modes: speed 0; PWM: duty 0
   TorqueOff,  // the motor lets go: a load under gravity falls
@@ -105,7 +105,7 @@ bool is_motion_field(const MotionSpec& spec, std::string_view field);
 
 // Whether the plan switches the torque on (writes 1 to the torque field), staged or not, whatever
 // else it writes: then the gateway holds the goal block first where the torque is off ("no jump
-// on enable", README "Safety"); the request's own goal, written after the hold, still moves it.
+// on enable", docs/PLC_GUIDE.md "Safety"); the request's own goal, written after the hold, still moves it.
 bool switches_torque_on(const MotionSpec& spec, ByteOrder order, const WritePlan& plan);
 // Whether the servo's torque is on in `context` (stop_context_reads); nullopt when the table has
 // no torque switch or it was not read.

@@ -24,7 +24,7 @@ constexpr std::array kProfileNames{
     ProfileName{Profile::Smsmb, "smsmb"},
 };
 
-// The feedback block of each table (SPEC §5 example: sts 56-70 is one SYNC READ of 15 bytes).
+// The feedback block of each table (docs/PROTOCOL.md §5 example: sts 56-70 is one SYNC READ of 15 bytes).
 struct PollBlockDefault {
   TableId table;
   BusRange block;

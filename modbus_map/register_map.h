@@ -1,5 +1,5 @@
 #pragma once
-// What a Modbus client sees of one servo unit (MODBUS_MAP.md), as pure functions: no I/O, no
+// What a Modbus client sees of one servo unit (docs/PLC_GUIDE.md), as pure functions: no I/O, no
 // clock. The gateway asks for a plan, runs the plan's bus frames (or copies poll-cache bytes),
 // and hands the answers back to be turned into register values. Every exception the contract
 // names for addresses and values (0x02, 0x03) is decided here, with a message saying why.
@@ -46,7 +46,7 @@ struct MapError {
 template <typename T>
 using MapResult = Expected<T, MapError>;
 
-// MODBUS_MAP.md "Two register profiles".
+// docs/PLC_GUIDE.md "Two register profiles".
 enum class Profile : std::uint8_t { Native, Smsmb };
 std::string_view to_string(Profile profile);  // "native", "smsmb"
 std::optional<Profile> profile_from_name(std::string_view name);
@@ -73,7 +73,7 @@ BusRange default_poll_block(TableId table);
 // the unknown or unreadable field and the table.
 Expected<BusRange> poll_block_for_fields(TableId table, std::span<const std::string> field_names);
 
-// --- The smsmb profile's links (SPEC §2.4 right-hand column), as data ---------------------------
+// --- The smsmb profile's links (docs/PROTOCOL.md §2.4 right-hand column), as data ---------------------------
 
 enum class Conversion : std::uint8_t {
   Same,        // the value as is: two's complement on Modbus <-> the field's own encoding

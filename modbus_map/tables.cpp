@@ -35,7 +35,7 @@ constexpr TableSpec kSms1{
     .addressing = Addressing::Byte,
     .default_byte_order = ByteOrder::LowFirst,
     .fields = tables::kSms1Fields,
-    .has_sync_read = true,  // SYNC READ is STS/SMS (SPEC §1.1)
+    .has_sync_read = true,  // SYNC READ is STS/SMS (docs/PROTOCOL.md §1.1)
 };
 constexpr TableSpec kD55d{
     .id = TableId::D55d,
@@ -66,7 +66,7 @@ constexpr TableSpec kScs{
     .addressing = Addressing::Byte,
     .default_byte_order = ByteOrder::HighFirst,
     .fields = tables::kScsFields,
-    .has_sync_read = false,  // SYNC READ is STS/SMS only (SPEC §1.1)
+    .has_sync_read = false,  // SYNC READ is STS/SMS only (docs/PROTOCOL.md §1.1)
 };
 
 // In TableId order.
@@ -143,7 +143,7 @@ std::int32_t decode_value(const FieldSpec& field, std::uint32_t raw) {
     case EncodingKind::Unsigned:
       return static_cast<std::int32_t>(raw);
     case EncodingKind::SignMagnitude: {
-      // Bits above the direction bit are not part of the value (SPEC §4).
+      // Bits above the direction bit are not part of the value (docs/PROTOCOL.md §4).
       const std::uint32_t direction = std::uint32_t{1} << field.encoding.sign_bit;
       const auto magnitude = static_cast<std::int32_t>(raw & (direction - 1));
       return (raw & direction) != 0 ? -magnitude : magnitude;

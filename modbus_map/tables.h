@@ -1,5 +1,5 @@
 #pragma once
-// The four control tables (SPEC §2.1-2.4) and lookups over them.
+// The four control tables (docs/PROTOCOL.md §2.1-2.4) and lookups over them.
 #include <cstdint>
 #include <optional>
 #include <span>
@@ -22,7 +22,7 @@ const FieldSpec* field_by_name(const TableSpec& table, std::string_view name);
 std::uint16_t end_address(const TableSpec& table);
 
 // Raw bus value <-> the value a Modbus client sees (sign-magnitude and two's complement
-// become signed; SPEC §4).
+// become signed; docs/PROTOCOL.md §4).
 std::int32_t decode_value(const FieldSpec& field, std::uint32_t raw);
 // nullopt when `value` is outside [field.min, field.max] or not representable.
 std::optional<std::uint32_t> encode_value(const FieldSpec& field, std::int32_t value);

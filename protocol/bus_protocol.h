@@ -1,5 +1,5 @@
 #pragma once
-// The three kinds of bus the gateway drives (SPEC §1).
+// The three kinds of bus the gateway drives (docs/PROTOCOL.md §1).
 #include <cstdint>
 #include <optional>
 #include <string_view>

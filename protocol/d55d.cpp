@@ -11,13 +11,13 @@ static_assert(std::is_sorted(kInstructions.begin(), kInstructions.end(),
                              [](const InstructionSpec& a, const InstructionSpec& b) { return a.code < b.code; }),
               "d55d::kInstructions must stay in code order");
 
-// Parameter bytes after the sub-command byte that each CUSTOM sub-command accepts (SPEC §1.2).
+// Parameter bytes after the sub-command byte that each CUSTOM sub-command accepts (docs/PROTOCOL.md §1.2).
 struct CustomLayout {
   std::uint8_t sub = 0;
   std::array<std::size_t, 2> sizes{};  // the same size twice when there is only one form
 };
 constexpr std::array<CustomLayout, 3> kCustomLayouts{{
-    {kCustomRelativeMove, {4, 6}},  // Decision (SPEC §1.2): 6 = with accel/decel
+    {kCustomRelativeMove, {4, 6}},  // Decision (docs/PROTOCOL.md §1.2): 6 = with accel/decel
     {kCustomAbsoluteMove, {6, 6}},
     {kCustomChangeSpeed, {2, 2}},
 }};

@@ -1,5 +1,5 @@
 #pragma once
-// Vendor protocol with header `D5 5D`, SPEC §1.2: the instructions beyond the common set.
+// Vendor protocol with header `D5 5D`, docs/PROTOCOL.md §1.2: the instructions beyond the common set.
 #include <array>
 #include <cstdint>
 #include <optional>
@@ -23,7 +23,7 @@ inline constexpr std::uint8_t kCustomRelativeMove = 0x01;
 inline constexpr std::uint8_t kCustomAbsoluteMove = 0x02;
 inline constexpr std::uint8_t kCustomChangeSpeed = 0x03;
 
-// Every instruction of SPEC §1.2, in code order.
+// Every instruction of docs/PROTOCOL.md §1.2, in code order.
 inline constexpr std::array<InstructionSpec, 11> kInstructions{{
     {common::kPing, "PING"},
     {common::kRead, "READ"},
@@ -43,7 +43,7 @@ std::optional<std::string_view> instruction_name(std::uint8_t code);
 // TRAJECTORY WRITE carries count + 3 bytes a point within LEN's 253 parameter bytes.
 inline constexpr std::size_t kMaxTrajectoryPoints = (kMaxParams - 1) / 3;
 
-// Status ERROR bits (SPEC §1.2, doc 002 §2.3).
+// Status ERROR bits (docs/PROTOCOL.md §1.2, doc 002 §2.3).
 namespace error_bit {
 inline constexpr std::uint8_t kOverTemperature = 1 << 0;
 inline constexpr std::uint8_t kOverCurrent = 1 << 1;
@@ -92,8 +92,8 @@ Packet custom(std::uint8_t id, const CustomMove& move);
 
 // Malformed: count 0, or a count that disagrees with the number of 3-byte points.
 std::optional<std::vector<TrajectoryPoint>> parse_trajectory_write(std::span<const std::uint8_t> params);
-// Decision (SPEC §1.2): sub 0x01 is decoded by length, 4 bytes or 6 with accel/decel.
+// Decision (docs/PROTOCOL.md §1.2): sub 0x01 is decoded by length, 4 bytes or 6 with accel/decel.
 std::optional<CustomMove> parse_custom(std::span<const std::uint8_t> params);
-// The PING reply may carry LEN 2 or 3 (SPEC §1.2 decision); both are accepted.
+// The PING reply may carry LEN 2 or 3 (docs/PROTOCOL.md §1.2 decision); both are accepted.
 
 }  // namespace sms::protocol::d55d

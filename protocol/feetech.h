@@ -1,5 +1,5 @@
 #pragma once
-// Feetech `FF FF` protocol (SCS/STS/SMS), SPEC §1.1: the instructions beyond the common set.
+// Feetech `FF FF` protocol (SCS/STS/SMS), docs/PROTOCOL.md §1.1: the instructions beyond the common set.
 #include <array>
 #include <cstdint>
 #include <optional>
@@ -19,7 +19,7 @@ inline constexpr std::uint8_t kResetStatus = 0x0A;
 inline constexpr std::uint8_t kCalibrate = 0x0B;
 inline constexpr std::uint8_t kSyncRead = 0x82;
 
-// Every instruction of SPEC §1.1, in code order.
+// Every instruction of docs/PROTOCOL.md §1.1, in code order.
 inline constexpr std::array<InstructionSpec, 12> kInstructions{{
     {common::kPing, "PING"},
     {common::kRead, "READ"},
@@ -37,7 +37,7 @@ inline constexpr std::array<InstructionSpec, 12> kInstructions{{
 // Name of an instruction code, nullopt for a code feetech does not define.
 std::optional<std::string_view> instruction_name(std::uint8_t code);
 
-// Status ERROR bits of the sts/sms tables (SPEC §1.1).
+// Status ERROR bits of the sts/sms tables (docs/PROTOCOL.md §1.1).
 namespace error_bit {
 inline constexpr std::uint8_t kVoltage = 1 << 0;
 inline constexpr std::uint8_t kAngleSensor = 1 << 1;

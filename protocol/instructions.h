@@ -28,7 +28,7 @@ inline constexpr std::uint8_t kSyncWrite = 0x83;
 // One row of a protocol's instruction table (feetech::kInstructions, d55d::kInstructions).
 struct InstructionSpec {
   std::uint8_t code = 0;
-  std::string_view name;  // as SPEC §1.1 / §1.2 spell it, for logs
+  std::string_view name;  // as docs/PROTOCOL.md §1.1 / §1.2 spell it, for logs
 };
 
 Packet ping(std::uint8_t id);

@@ -18,7 +18,7 @@ inline constexpr std::uint8_t kWriteSingleCoil = 0x05;
 inline constexpr std::uint8_t kWriteSingleRegister = 0x06;
 inline constexpr std::uint8_t kWriteMultipleCoils = 0x0F;
 inline constexpr std::uint8_t kWriteMultipleRegisters = 0x10;
-inline constexpr std::uint8_t kReportServerId = 0x11;  // SMSMB servos answer it (SPEC §1.3)
+inline constexpr std::uint8_t kReportServerId = 0x11;  // SMSMB servos answer it (docs/PROTOCOL.md §1.3)
 inline constexpr std::uint8_t kReadWriteMultipleRegisters = 0x17;
 // An exception answer carries the request's function code with this bit set.
 inline constexpr std::uint8_t kExceptionBit = 0x80;
@@ -50,7 +50,7 @@ struct ModbusFunction {
   std::uint8_t code;
   std::string_view name;  // Modbus Application Protocol v1.1b3 name, snake_case (metrics labels)
   FunctionEffect effect;
-  bool served;            // the gateway serves it for table units (MODBUS_MAP.md "A servo unit")
+  bool served;            // the gateway serves it for table units (docs/PLC_GUIDE.md "A servo unit")
 };
 
 // The public function codes (Modbus Application Protocol v1.1b3 §5.1), ascending by code.
@@ -90,7 +90,7 @@ constexpr FunctionEffect function_effect(std::uint8_t code) {
   return function != nullptr ? function->effect : FunctionEffect::Unknown;
 }
 
-// Modbus Application Protocol v1.1b3 §7. `contract`: a code MODBUS_MAP.md says the gateway
+// Modbus Application Protocol v1.1b3 §7. `contract`: a code docs/PLC_GUIDE.md says the gateway
 // answers with.
 struct ModbusExceptionName {
   std::uint8_t code;

@@ -10,7 +10,7 @@ namespace sms::protocol::rtu {
 namespace {
 
 // How long a request is, by function code (Modbus application protocol v1.1b3 §6, and the
-// Feetech codes of SPEC §1.3). size = fixed_size + the byte-count field at byte_count_offset.
+// Feetech codes of docs/PROTOCOL.md §1.3). size = fixed_size + the byte-count field at byte_count_offset.
 constexpr std::size_t kNoByteCount = 0;  // offset 0 is the slave address, never a count
 struct RequestLayout {
   std::uint8_t function = 0;
@@ -26,9 +26,9 @@ constexpr std::array<RequestLayout, 11> kRequestLayouts{{
     {0x06, 8},     // write single register
     {0x0F, 9, 6},  // write multiple coils: addr, quantity, byte count, data
     {0x10, 9, 6},  // write multiple registers
-    {0x11, 4},     // report slave id: no fields (SPEC §1.3)
+    {0x11, 4},     // report slave id: no fields (docs/PROTOCOL.md §1.3)
     {0x17, 13, 10},  // read/write multiple: read addr, qty, write addr, qty, byte count, data
-    // Feetech restart: SPEC §1.3 says only "0x41 restart (0 = every slave)"; neither the seed
+    // Feetech restart: docs/PROTOCOL.md §1.3 says only "0x41 restart (0 = every slave)"; neither the seed
     // documents nor Feetech's wiki as searchable here give its layout. Decision: no fields,
     // like 0x11 (slave, 0x41, CRC), "0 = every slave" being the broadcast address.
     {0x41, 4},

@@ -1,5 +1,5 @@
 #pragma once
-// Modbus-RTU framing for the simulator's SMSMB servos and for tests (SPEC §1.3). The
+// Modbus-RTU framing for the simulator's SMSMB servos and for tests (docs/PROTOCOL.md §1.3). The
 // gateway's RTU master side uses libmodbus; this is the slave side, sans-IO.
 #include <cstddef>
 #include <cstdint>

@@ -20,7 +20,7 @@ inline constexpr std::size_t kMinLengthField = 2;  // unit id + function code
 inline constexpr std::size_t kMaxLengthField = 1 + kMaxPduSize;
 inline constexpr std::size_t kMaxAduSize = kMbapHeaderSize - 1 + kMaxLengthField;  // 260
 
-// Standard exception codes (Modbus application protocol §7), as MODBUS_MAP.md uses them.
+// Standard exception codes (Modbus application protocol §7), as docs/PLC_GUIDE.md uses them.
 namespace exception_code {
 inline constexpr std::uint8_t kIllegalFunction = 0x01;
 inline constexpr std::uint8_t kIllegalDataAddress = 0x02;

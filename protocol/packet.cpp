@@ -8,7 +8,7 @@ namespace sms::protocol {
 
 std::uint8_t checksum(const PacketFormat& format, std::span<const std::uint8_t> body) {
   const unsigned sum = std::accumulate(body.begin(), body.end(), 0U);
-  // SPEC §1.1: feetech inverts the sum; §1.2: d55d sends it plain.
+  // docs/PROTOCOL.md §1.1: feetech inverts the sum; §1.2: d55d sends it plain.
   return static_cast<std::uint8_t>((format.inverted_checksum ? ~sum : sum) & 0xFFU);
 }
 

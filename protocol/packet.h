@@ -1,5 +1,5 @@
 #pragma once
-// The packet shape shared by the Feetech `FF FF` and the `D5 5D` protocols (SPEC §1.1, §1.2):
+// The packet shape shared by the Feetech `FF FF` and the `D5 5D` protocols (docs/PROTOCOL.md §1.1, §1.2):
 //   HEADER(2) | ID | LEN | CODE | P1..PN | CHK      LEN = N + 2
 // CODE is the instruction in a request and the ERROR byte in a status reply. The two
 // protocols differ only in header bytes and checksum (inverted sum vs plain sum), so

@@ -31,7 +31,7 @@ Expected<std::pair<std::uint8_t, std::uint32_t>> parse_id_value(std::string_view
 // The only protocol a table is spoken over, and the table a protocol's servos default to.
 protocol::BusProtocol protocol_of(modbus_map::TableId table);
 modbus_map::TableId default_table(protocol::BusProtocol protocol);
-// Factory rates (SPEC §3): STS 1 000 000; d55d base motors and SMSMB 115 200.
+// Factory rates (docs/PROTOCOL.md §3): STS 1 000 000; d55d base motors and SMSMB 115 200.
 std::uint32_t default_baud(protocol::BusProtocol protocol);
 
 }  // namespace sms::simulator

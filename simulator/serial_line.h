@@ -1,6 +1,6 @@
 #pragma once
 // Line settings of a tty: raw 8N1 at any bit rate, and the rate currently set. Custom rates
-// (128000, 76800, 256000 ...) go through TCSETS2/BOTHER, so every rate of SPEC §3 works. On a
+// (128000, 76800, 256000 ...) go through TCSETS2/BOTHER, so every rate of docs/PROTOCOL.md §3 works. On a
 // pty master, the rate read is the one the host set on the slave (Linux shares the termios).
 #include <cstdint>
 

@@ -1,7 +1,7 @@
 #pragma once
 // One servo's control-table image, laid out as the bus sees it: byte tables one byte per
 // address, SMSMB one 16-bit register (high byte first) per address. Layout, sizes, byte
-// order, encodings and ranges all come from the modbus_map TableSpec (SPEC §2).
+// order, encodings and ranges all come from the modbus_map TableSpec (docs/PROTOCOL.md §2).
 #include <cstdint>
 #include <span>
 

@@ -36,9 +36,9 @@ using protocol::Bytes;
 
 namespace {
 
-// One character on the wire: start bit, 8 data bits, stop bit (SPEC §1).
+// One character on the wire: start bit, 8 data bits, stop bit (docs/PROTOCOL.md §1).
 constexpr double kBitsPerCharacter = 10.0;
-// Modbus RTU inter-frame silence: 3.5 characters, fixed 1.75 ms above 19200 bit/s (SPEC §1.3).
+// Modbus RTU inter-frame silence: 3.5 characters, fixed 1.75 ms above 19200 bit/s (docs/PROTOCOL.md §1.3).
 constexpr std::uint32_t kFixedSilenceAbove = 19200;
 constexpr auto kFixedSilence = std::chrono::microseconds(1750);
 // A duplicate starts this many position units away from its twin, so their replies differ.
@@ -420,7 +420,7 @@ void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::ti
     const bool silence_passed = now >= last_received_ + rtu_silence();
     last_received_ = now;
     if (rtu_merging_ && silence_passed) rtu_merging_ = false;
-    // A slave's own t3.5 (issue 13): a request that starts before the line was silent for 3.5
+    // A slave's own t3.5: a request that starts before the line was silent for 3.5
     // characters after the previous frame (a request, or a servo's reply) is heard as the tail of
     // that frame, fails its CRC and is ignored — until the line falls silent again.
     if (timing_ && !rtu_merging_ && rtu_decoder_.buffered() == 0 && now < previous_frame_end + rtu_interframe()) {

@@ -1,7 +1,7 @@
 #pragma once
 // A whole simulated servo bus in-process: a pseudo-terminal (or a real serial device), a
 // thread answering on it, and N virtual servos, each with its own ID, table, protocol and
-// baud (SPEC §1-§3). The host opens slave_path() like any serial port.
+// baud (docs/PROTOCOL.md §1-§3). The host opens slave_path() like any serial port.
 //
 //   sms::simulator::SimulatedBus bus(sms::simulator::default_bus_options());
 //   bus.start();
@@ -95,7 +95,7 @@ using FrameObserver = std::function<void(const ReceivedFrame&)>;
 class SimulatedBus {
  public:
   // Throws std::invalid_argument when a servo's table does not speak its protocol or its
-  // baud is not in the protocol's baud table (SPEC §3), with the valid choices.
+  // baud is not in the protocol's baud table (docs/PROTOCOL.md §3), with the valid choices.
   explicit SimulatedBus(BusOptions options);
   ~SimulatedBus();  // stops
   SimulatedBus(const SimulatedBus&) = delete;
@@ -119,7 +119,7 @@ class SimulatedBus {
   void set_garbled(std::uint8_t id, bool garbled);
   // Extra delay on top of the wire time: the reply arrives after the host gave up.
   void set_reply_delay(std::uint8_t id, std::chrono::milliseconds extra);
-  // The servo reports these ERROR / status bits (protocol's own bit meanings, SPEC §1) and
+  // The servo reports these ERROR / status bits (protocol's own bit meanings, docs/PROTOCOL.md §1) and
   // behaves accordingly (temperature/voltage readings, unload conditions). 0 clears.
   void set_error_bits(std::uint8_t id, std::uint8_t bits);
   // A second servo with the same ID, table, protocol and baud (its position differs a little):

@@ -23,7 +23,7 @@ constexpr double kDegreesPerSPer0732Rpm = 0.732 * 360.0 / 60.0;
 constexpr double kScsDegreesPerStep = 300.0 / 1024.0;
 constexpr double kScsTopSpeed = 1500.0 * kScsDegreesPerStep;
 
-// --- sts (SPEC §2.1) ---------------------------------------------------------------------
+// --- sts (docs/PROTOCOL.md §2.1) ---------------------------------------------------------------------
 constexpr RoleBinding kStsRoles[] = {
     {Role::FirmwareMajor, "firmware_major"},
     {Role::FirmwareMinor, "firmware_minor"},
@@ -80,7 +80,7 @@ constexpr SimulatedDefault kStsIdentity[] = {
     {Role::ModelMinor, 42},
 };
 
-// --- sms1 (SPEC §2.2) --------------------------------------------------------------------
+// --- sms1 (docs/PROTOCOL.md §2.2) --------------------------------------------------------------------
 constexpr RoleBinding kSms1Roles[] = {
     {Role::FirmwareMajor, "software_version"},
     {Role::Id, "id"},
@@ -119,7 +119,7 @@ constexpr ModeBinding kSms1Modes[] = {
     {2, ControlMode::Pwm},
 };
 // SMS 1.0 (2016) predates REBOOT, BACKUP, RECOVERY, RESET STATUS and CALIBRATE ("newer
-// firmware", SPEC §1.1); SYNC READ is STS/SMS.
+// firmware", docs/PROTOCOL.md §1.1); SYNC READ is STS/SMS.
 constexpr std::uint8_t kSms1Instructions[] = {
     common::kPing,   common::kRead,      common::kWrite,     common::kRegWrite,
     common::kAction, feetech::kSyncRead, common::kSyncWrite,
@@ -160,7 +160,7 @@ constexpr RoleBinding kScsRoles[] = {
     {Role::PresentCurrent, "present_current"},
 };
 // The SCSCL SDK uses PING, READ, WRITE, REG WRITE, ACTION and SYNC WRITE; SYNC READ is STS/SMS
-// only (SPEC §1.1) and the newer instructions (REBOOT, BACKUP, CALIBRATE, ...) are STS firmware.
+// only (docs/PROTOCOL.md §1.1) and the newer instructions (REBOOT, BACKUP, CALIBRATE, ...) are STS firmware.
 constexpr std::uint8_t kScsInstructions[] = {
     common::kPing, common::kRead, common::kWrite, common::kRegWrite, common::kAction, common::kSyncWrite,
 };
@@ -172,7 +172,7 @@ constexpr SimulatedDefault kScsIdentity[] = {
     {Role::ModelMinor, 4},
 };
 
-// --- d55d (SPEC §2.3) --------------------------------------------------------------------
+// --- d55d (docs/PROTOCOL.md §2.3) --------------------------------------------------------------------
 constexpr RoleBinding kD55dRoles[] = {
     {Role::FirmwareMajor, "software_version"},
     {Role::ModelMajor, "vendor_code"},
@@ -216,7 +216,7 @@ constexpr SimulatedDefault kD55dIdentity[] = {
     {Role::MaxLimit, 360},
 };
 
-// --- smsmb (SPEC §2.4) -------------------------------------------------------------------
+// --- smsmb (docs/PROTOCOL.md §2.4) -------------------------------------------------------------------
 constexpr RoleBinding kSmsmbRoles[] = {
     {Role::FirmwareMajor, "firmware_version"},
     {Role::ModelMajor, "servo_version"},
@@ -316,7 +316,7 @@ constexpr TableBehaviour kSms1{
     .d55d_response_levels = false,
     .speed_zero_stops = false,
     .move_time_in_position_mode = true,
-    .torque_128_calibrates = true,  // "older SMS: write 128 to torque enable" (SPEC §1.1)
+    .torque_128_calibrates = true,  // "older SMS: write 128 to torque enable" (docs/PROTOCOL.md §1.1)
     .factory_area_start = 0,
 };
 

@@ -60,7 +60,7 @@ enum class Role : std::uint8_t {
   Count,
 };
 
-// How the servo drives its motor (SPEC §2: operating modes).
+// How the servo drives its motor (docs/PROTOCOL.md §2: operating modes).
 enum class ControlMode : std::uint8_t {
   Position,         // goal position within the angle limits; multi-turn when both are 0
   Velocity,         // constant speed, the goal speed's sign is the direction
@@ -106,7 +106,7 @@ struct TableBehaviour {
   std::int32_t centre_position;          // mid-point calibration target (2048)
   std::int32_t power_on_position;
 
-  // ERROR / status bits (SPEC §1.1, §1.2, §2.4)
+  // ERROR / status bits (docs/PROTOCOL.md §1.1, §1.2, §2.4)
   std::uint8_t refused_bit;      // WRITE to a read-only field, bad range, unknown instruction
   std::uint8_t checksum_bit;     // 0: the protocol has none
   std::uint8_t temperature_bit;

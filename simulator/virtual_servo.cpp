@@ -35,14 +35,14 @@ constexpr auto kHeartbeatTimeout = std::chrono::milliseconds(500);
 constexpr double kCwSwitchDegrees = -30.0;
 constexpr double kSwitchTravelDegrees = 400.0;
 constexpr double kSwitchWidthDegrees = 2.0;
-// Plausible feedback for an SM40BL-class servo at 12 V: 12.1 V idle (SPEC §1.1 sample),
+// Plausible feedback for an SM40BL-class servo at 12 V: 12.1 V idle (docs/PROTOCOL.md §1.1 sample),
 // 2.6 A at full load, 55 °C steady at full load from 25 °C ambient, thermal time constant 30 s.
 constexpr double kIdleVoltageDeciVolt = 121.0;
 constexpr double kCurrentUnitsPerLoadPermille = 0.4;  // 6.5 mA units
 constexpr double kAmbientCelsius = 25.0;
 constexpr double kCelsiusPerLoadPermille = 0.03;
 constexpr double kThermalTimeConstant = 30.0;
-// SMSMB fault reset (register 0x86) bit -> status bit it clears (SPEC §2.4).
+// SMSMB fault reset (register 0x86) bit -> status bit it clears (docs/PROTOCOL.md §2.4).
 struct FaultResetBit {
   std::uint16_t reset_bit;
   std::uint8_t status_bit;
@@ -79,7 +79,7 @@ std::uint16_t be16(std::span<const std::uint8_t> bytes, std::size_t offset) {
 
 }  // namespace
 
-// Instruction tables per protocol (SPEC §1.1, §1.2); a table's firmware may know fewer
+// Instruction tables per protocol (docs/PROTOCOL.md §1.1, §1.2); a table's firmware may know fewer
 // (TableBehaviour::instructions).
 const std::array<VirtualServo::PacketInstruction, 12> VirtualServo::kFeetechInstructions{{
     {common::kPing, ReplyClass::Ping, &VirtualServo::on_ping},
@@ -294,7 +294,7 @@ double VirtualServo::speed_units(std::int32_t speed_field_value) const {
 MotionLimits VirtualServo::motion_limits(std::int32_t speed_field_value) const {
   MotionLimits limits;
   const double top = units(behaviour_->top_speed_degrees_per_s);
-  // Goal speed 0 asks for the maximum (SPEC §2.1, doc 000 §0x2A).
+  // Goal speed 0 asks for the maximum (docs/PROTOCOL.md §2.1, doc 000 §0x2A).
   limits.max_speed = speed_field_value == 0 ? top : std::abs(speed_units(speed_field_value));
   if (field(Role::Acceleration) != nullptr) {
     limits.acceleration = units(get(Role::Acceleration) * behaviour_->degrees_per_s2_per_accel_unit);
@@ -346,7 +346,7 @@ void VirtualServo::power_on() {
   for (const FieldSpec& spec : table_->fields) {
     if (spec.area == Area::Eeprom) memory_.set_raw(spec, eeprom_.raw(spec));
   }
-  // sts: max torque is copied to the torque limit at power-on (SPEC §2.1, address 16).
+  // sts: max torque is copied to the torque limit at power-on (docs/PROTOCOL.md §2.1, address 16).
   if (field(Role::MaxTorque) != nullptr) put(Role::TorqueLimit, get(Role::MaxTorque));
   reg_write_.reset();
   trajectory_next_.reset();
@@ -653,7 +653,7 @@ void VirtualServo::advance_motion(double seconds) {
 double VirtualServo::load_permille() const {
   if (motion_.drive() == MotionModel::Drive::Free) return 0;
   // Holding costs a little, speed costs friction, acceleration costs inertia; the torque
-  // limit caps it (SPEC §2.1 address 48).
+  // limit caps it (docs/PROTOCOL.md §2.1 address 48).
   const double top = units(behaviour_->top_speed_degrees_per_s);
   const double speed = std::abs(motion_.velocity());
   const double friction = speed > 0 ? 40.0 + 160.0 * speed / top : 0.0;
@@ -818,7 +818,7 @@ VirtualServo::Outcome VirtualServo::on_read(const Packet& request) {
 VirtualServo::Outcome VirtualServo::on_write(const Packet& request) {
   const auto write = protocol::parse_write(request.params);
   if (!write || write_checked(write->address, write->data, WriteCheck::Bus) != WriteResult::Ok) {
-    return {true, behaviour_->refused_bit, {}};  // nothing written (SPEC §1)
+    return {true, behaviour_->refused_bit, {}};  // nothing written (docs/PROTOCOL.md §1)
   }
   return {};
 }
@@ -866,7 +866,7 @@ VirtualServo::Outcome VirtualServo::on_sync_read(const Packet& request) {
 
 VirtualServo::Outcome VirtualServo::on_recovery(const Packet&) {
   // Every EEPROM parameter but the ID back from the backup; kept over a power cycle only when
-  // the EEPROM is unlocked (SPEC §1.1).
+  // the EEPROM is unlocked (docs/PROTOCOL.md §1.1).
   const ServoMemory before = memory_;
   std::vector<const FieldSpec*> restored;
   for (const FieldSpec& spec : table_->fields) {
@@ -881,7 +881,7 @@ VirtualServo::Outcome VirtualServo::on_recovery(const Packet&) {
 
 VirtualServo::Outcome VirtualServo::on_reboot(const Packet&) {
   reboot();
-  return {false, 0, {}};  // no answer (SPEC §1.1)
+  return {false, 0, {}};  // no answer (docs/PROTOCOL.md §1.1)
 }
 
 VirtualServo::Outcome VirtualServo::on_backup(const Packet&) {
@@ -1023,7 +1023,7 @@ std::optional<Bytes> VirtualServo::handle_modbus(const protocol::rtu::Adu& reque
                                       [code](const ModbusFunction& entry) { return entry.code == code; });
   ModbusOutcome outcome;
   if (function == std::end(kFunctions)) {
-    outcome.exception = kIllegalFunction;  // FC 04 too: the real servo refuses it (SPEC §1.3)
+    outcome.exception = kIllegalFunction;  // FC 04 too: the real servo refuses it (docs/PROTOCOL.md §1.3)
   } else if (broadcast && function->reads) {
     return std::nullopt;
   } else {
@@ -1076,7 +1076,7 @@ VirtualServo::ModbusOutcome VirtualServo::on_write_multiple(std::span<const std:
 }
 
 VirtualServo::ModbusOutcome VirtualServo::on_report_slave_id(std::span<const std::uint8_t>) {
-  // addr, 0x11, 3, addr, status H, status L (SPEC §1.3)
+  // addr, 0x11, 3, addr, status H, status L (docs/PROTOCOL.md §1.3)
   const std::uint32_t status = field(Role::Status) ? memory_.raw(*field(Role::Status)) : 0;
   return {Bytes{0x11, 3, id(), static_cast<std::uint8_t>(status >> 8), static_cast<std::uint8_t>(status & 0xFF)}, 0};
 }

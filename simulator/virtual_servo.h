@@ -1,7 +1,7 @@
 #pragma once
 // One simulated servo: its control table (ServoMemory), its motor (MotionModel) and its
-// firmware's answers to the packet instructions of SPEC §1.1/§1.2 or the Modbus functions of
-// SPEC §1.3. Not thread-safe: SimulatedBus serialises every call. Time is passed in, the
+// firmware's answers to the packet instructions of docs/PROTOCOL.md §1.1/§1.2 or the Modbus functions of
+// docs/PROTOCOL.md §1.3. Not thread-safe: SimulatedBus serialises every call. Time is passed in, the
 // model advances to it on each access (no thread of its own).
 #include <array>
 #include <chrono>
@@ -39,7 +39,7 @@ class VirtualServo {
   std::uint32_t baud() const;
   protocol::BusProtocol protocol() const { return table_->protocol; }
   const modbus_map::TableSpec& table() const { return *table_; }
-  // The return delay field converted to time (SPEC §5), plus any injected lateness.
+  // The return delay field converted to time (docs/PROTOCOL.md §5), plus any injected lateness.
   Clock::duration return_delay() const;
   Clock::duration extra_delay() const { return extra_delay_; }
   // Not offline and not rebooting.

@@ -1,7 +1,7 @@
 #pragma once
 // Counters of one bus and of each servo on it. The bus thread increments them; any thread
 // reads them (TCP threads serve them on the gateway unit and the servo units' 1004-1007,
-// MODBUS_MAP.md). Relaxed atomics: each counter is exact, a set read together is not a
+// docs/PLC_GUIDE.md). Relaxed atomics: each counter is exact, a set read together is not a
 // snapshot of one instant, which is all a monitoring register needs.
 #include <atomic>
 #include <cstdint>

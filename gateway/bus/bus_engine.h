@@ -55,7 +55,7 @@ struct BusSettings {
   bool discover = true;                          // PING and identity READs before polling starts
   bool poll = true;                              // cyclic polling into the cache (off: live operations only)
   std::vector<ServoSettings> servos;
-  // The safety rules' gate for this bus's motion writes (README "Safety"); empty: none.
+  // The safety rules' gate for this bus's motion writes (docs/PLC_GUIDE.md "Safety"); empty: none.
   std::shared_ptr<const MotionGate> motion_gate;
 };
 
@@ -86,7 +86,7 @@ class BusEngine {
   virtual void submit(BusOp op, Priority priority, Completion done) = 0;
 
   // A safe stop that could not be delivered (bus down, servo offline or silent) is owed
-  // (README "Safety"): the engine keeps `stop.write` (the servo's torque off) and sends it the
+  // (docs/PLC_GUIDE.md "Safety"): the engine keeps `stop.write` (the servo's torque off) and sends it the
   // moment it can reach the servo — first thing after the port (re)opens, in place of the servo's
   // probe while it is offline, before any other work — every probe period until the servo
   // acknowledges it, or, for a servo that does not answer writes, until a read shows the value.

@@ -20,8 +20,8 @@ namespace sms::gateway {
 
 using protocol::Bytes;
 
-// Lower value runs first (MODBUS_MAP.md: client writes, then client live reads, then polling).
-// Safety (the gateway's own safe stops, README "Safety") goes before everything and is not
+// Lower value runs first (docs/PLC_GUIDE.md: client writes, then client live reads, then polling).
+// Safety (the gateway's own safe stops, docs/PLC_GUIDE.md "Safety") goes before everything and is not
 // bounded by the queue depth: a full queue must not keep a motor from stopping.
 enum class Priority : std::uint8_t { Safety = 0, ClientWrite = 1, ClientRead = 2, Poll = 3 };
 inline constexpr std::size_t kPriorityCount = 4;

@@ -1,5 +1,5 @@
 #pragma once
-// Discovery at bus start (issue 4): PING every configured servo, read its identity where the
+// Discovery at bus start: PING every configured servo, read its identity where the
 // table has one, and log a one-screen summary. This header holds the data and the text; the
 // bus engine runs the transactions.
 #include <array>
@@ -41,7 +41,7 @@ struct IdentityLayout {
   }
 };
 
-// sts and scs: firmware 0-1, byte-order flag 2, model number 3-4, response level 8 (SPEC §2.1,
+// sts and scs: firmware 0-1, byte-order flag 2, model number 3-4, response level 8 (docs/PROTOCOL.md §2.1,
 // modbus_map/tables/scs.h); sms1: software version 3-4, response level 8 (§2.2); d55d: vendor
 // code 0, software version 2, response level 16 (§2.3); smsmb: registers 0x00 firmware version
 // and 0x01 servo (model) version, two bytes each, high byte first (§2.4).

@@ -1,5 +1,5 @@
 #pragma once
-// The safety rules' hold on one bus's motion writes (README "Safety"), shared by the safety
+// The safety rules' hold on one bus's motion writes (docs/PLC_GUIDE.md "Safety"), shared by the safety
 // supervisor (io thread), which blocks and unblocks it, and the bus engine (bus thread), which
 // checks every motion write just before it goes on the wire.
 //

@@ -1,5 +1,5 @@
 #pragma once
-// What distinguishes the two packet protocols beyond framing (SPEC §1.1, §1.2), and the one rule
+// What distinguishes the two packet protocols beyond framing (docs/PROTOCOL.md §1.1, §1.2), and the one rule
 // for what a received frame is to the transaction waiting for it. The bus engine and the
 // integrator tools both judge frames here, so they agree on refusals, on d55d's "your frame
 // arrived damaged" (sent again) and on PING answers. Pure: no I/O. packet_transactor.h has the
@@ -20,7 +20,7 @@ struct PacketRules {
   std::uint8_t refusal_bits;  // in an answer to WRITE / REG WRITE, or to a READ without its data
   std::uint8_t damaged_bits;  // the refusal bits that say "your frame arrived damaged": sent again
   bool has_sync_read;
-  std::size_t max_ping_params;  // d55d's PING answer may carry one byte (SPEC §1.2 decision)
+  std::size_t max_ping_params;  // d55d's PING answer may carry one byte (docs/PROTOCOL.md §1.2 decision)
   std::optional<std::string_view> (*instruction_name)(std::uint8_t code);
 };
 

@@ -147,7 +147,7 @@ PacketTransactor::Request PacketTransactor::prepare(BusOp&& op, unsigned attempt
     request.packet = write->staged ? protocol::reg_write(write->servo_id, address, write->data)
                                    : protocol::write(write->servo_id, address, write->data);
     request.servo_id = write->servo_id;
-    // Broadcast writes are never answered (SPEC §1).
+    // Broadcast writes are never answered (docs/PROTOCOL.md §1).
     request.reply =
         (write->expect_reply && write->servo_id != protocol::kBroadcastId) ? ReplyKind::Ack : ReplyKind::None;
   } else if (std::holds_alternative<ActionOp>(op)) {
@@ -323,7 +323,7 @@ BusResult PacketTransactor::execute(const Request& request, TransactionEvents& e
         outcome = BusResult{};
         return;
       }
-      // The next servo in the list answers after this one (SPEC §1.1): restart the wait.
+      // The next servo in the list answers after this one (docs/PROTOCOL.md §1.1): restart the wait.
       deadline = SteadyClock::now() + reply_time;
     };
     const auto handle_frame = [&](Packet frame) {

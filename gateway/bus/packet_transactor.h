@@ -1,9 +1,9 @@
 #pragma once
-// One transaction on a packet bus, feetech `FF FF` or d55d `D5 5D` (SPEC §1.1, §1.2): one code
+// One transaction on a packet bus, feetech `FF FF` or d55d `D5 5D` (docs/PROTOCOL.md §1.1, §1.2): one code
 // path, parameterised by protocol::PacketFormat and a row of protocol rules (packet_rules.h:
 // which ERROR bits mean "refused", whether SYNC READ exists). The face is transactor.h's.
 //
-// How a transaction runs (SPEC §1.1 "host practice"):
+// How a transaction runs (docs/PROTOCOL.md §1.1 "host practice"):
 // - when the addressed servo owes answers to requests that gave up, watch the line until they
 //   came or their window passed (transactor.h "Late answers"); drop and count what the input
 //   holds; transmit, then wait for the answer until a deadline sized from the request's and the
@@ -28,7 +28,7 @@
 // - no valid answer: retry up to the request's attempts; then Timeout, or Corrupt when damaged
 //   frames were all that came back.
 //
-// Decision (refusals, MODBUS_MAP.md 0x04): the refusal bits are d55d's instruction (bit 5) and
+// Decision (refusals, docs/PLC_GUIDE.md 0x04): the refusal bits are d55d's instruction (bit 5) and
 // checksum (bit 4) error bits; checksum alone means our frame arrived damaged, so the frame
 // is sent again first. Feetech `sts`/`sms1` have no instruction-error bit; their firmware sets
 // bit 4 ("angle", also "instruction out of range") in the answer to a write it does not take,

@@ -2,7 +2,7 @@
 // What the gateway knows about each servo of one bus without asking it: the feedback block
 // as last polled (raw bus bytes from its base address), when it was polled, whether the servo
 // answers, its last status byte, its identity from discovery and its counters. The bus thread
-// writes; Modbus TCP threads read (input registers 04 and 1000-1008, MODBUS_MAP.md) — so a
+// writes; Modbus TCP threads read (input registers 04 and 1000-1008, docs/PLC_GUIDE.md) — so a
 // read of the input registers never touches the bus.
 //
 // The servo set is fixed at construction; reads take one mutex per bus for the few

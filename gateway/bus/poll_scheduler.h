@@ -1,5 +1,5 @@
 #pragma once
-// The cyclic-polling plan of one bus (issue 4, MODBUS_MAP.md "A silent servo must not stall
+// The cyclic-polling plan of one bus (docs/PLC_GUIDE.md "A silent servo must not stall
 // the bus"): which frames a poll cycle sends, and when a silent servo is probed. Pure logic,
 // no I/O and no clock of its own; the bus engine runs it on the bus thread and feeds back
 // what happened.

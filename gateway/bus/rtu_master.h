@@ -1,5 +1,5 @@
 #pragma once
-// The `modbus-rtu` line (SPEC §1.3): libmodbus as the RTU master, one request/reply exchange at
+// The `modbus-rtu` line (docs/PROTOCOL.md §1.3): libmodbus as the RTU master, one request/reply exchange at
 // a time, blocking, on the caller's thread (a bus thread, or a tool's). RtuTransactor
 // (rtu_transactor.h) turns bus operations into these exchanges.
 //

@@ -21,7 +21,7 @@ constexpr std::uint16_t kMaxReadRegisters = protocol::modbus_limits::kReadRegist
 constexpr std::uint16_t kMaxWriteRegisters = protocol::modbus_limits::kWriteRegisters;
 constexpr std::uint16_t kSmsmbStatusRegister = 0x100;
 
-// SMSMB identity (SPEC §2.4, discovery.h): its first register answers PINGs.
+// SMSMB identity (docs/PROTOCOL.md §2.4, discovery.h): its first register answers PINGs.
 const IdentityLayout& smsmb_identity() { return *identity_layout(modbus_map::TableId::Smsmb); }
 
 // A reply's size for the reply timeout: exact where the function says it, else the largest.

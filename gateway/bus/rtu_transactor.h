@@ -1,7 +1,7 @@
 #pragma once
-// One transaction on a `modbus-rtu` bus (SPEC §1.3) through RtuMaster (libmodbus), with the
+// One transaction on a `modbus-rtu` bus (docs/PROTOCOL.md §1.3) through RtuMaster (libmodbus), with the
 // face of transactor.h. Bus operations in Modbus terms:
-//   ReadOp   -> FC03 (read holding registers; SMSMB servos have no FC04, SPEC §1.3)
+//   ReadOp   -> FC03 (read holding registers; SMSMB servos have no FC04, docs/PROTOCOL.md §1.3)
 //   WriteOp  -> FC06 for one register, FC16 for more; servo 0 is a broadcast (no reply)
 //   PingOp   -> FC03 of register 0 (any answer, an exception too, means "present")
 //   RawPduOp -> the PDU as it is (passthrough); the reply PDU comes back as it is, exception

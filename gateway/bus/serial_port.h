@@ -1,6 +1,6 @@
 #pragma once
 // A serial line to a servo bus: a tty (USB/RS-485 adapter, or a pty slave such as the
-// simulator's) in raw mode at any bit rate of the protocols' baud tables (SPEC §3) —
+// simulator's) in raw mode at any bit rate of the protocols' baud tables (docs/PROTOCOL.md §3) —
 // 76 800, 128 000, 256 000 … are set with termios2/BOTHER. The descriptor is non-blocking;
 // the bus transactor waits for readiness with poll and reads what is there.
 #include <chrono>
@@ -21,14 +21,14 @@ using config::Parity;
 struct SerialSettings {
   std::string device;              // /dev/ttyUSB0, /dev/serial/by-id/..., a pty slave path
   std::uint32_t baud = 1'000'000;
-  Parity parity = Parity::None;    // the servos use 8N1 (SPEC §1); adapters in between may not
+  Parity parity = Parity::None;    // the servos use 8N1 (docs/PROTOCOL.md §1); adapters in between may not
   std::uint8_t stop_bits = 1;      // 1 or 2
 
   // Start bit, 8 data bits, parity bit if any, stop bits.
   unsigned bits_per_character() const;
 };
 
-// Time `characters` bytes occupy the line at the settings' rate (SPEC §5), rounded up.
+// Time `characters` bytes occupy the line at the settings' rate (docs/PROTOCOL.md §5), rounded up.
 std::chrono::nanoseconds wire_time(const SerialSettings& settings, std::size_t characters);
 
 namespace detail {
@@ -56,7 +56,7 @@ class SerialPort {
   std::uint32_t actual_baud() const { return actual_baud_; }
 
   // Throws away whatever arrived and was not read: late replies, echoes, noise. The host does
-  // this before each transmit (SPEC §1.1, host practice). Returns how many bytes it dropped.
+  // this before each transmit (docs/PROTOCOL.md §1.1, host practice). Returns how many bytes it dropped.
   Expected<std::size_t> discard_input();
   // Writes every byte; waits for room in the output queue up to `timeout`.
   Expected<Ok> write_all(std::span<const std::uint8_t> bytes, std::chrono::milliseconds timeout);

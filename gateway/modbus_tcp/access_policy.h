@@ -62,7 +62,7 @@ using protocol::FunctionEffect;
 using protocol::ModbusFunction;
 
 // Whether a read-only unit answers `function` itself: nullopt when it may be served (reads),
-// BadAddress (0x02) for writes, as a write to a read-only field is answered (MODBUS_MAP.md),
+// BadAddress (0x02) for writes, as a write to a read-only field is answered (docs/PLC_GUIDE.md),
 // UnsupportedFunction (0x01) for functions whose effect the gateway cannot know (passthrough
 // units forward any code; a read-only one forwards reads only). docs/DECISIONS.md "Operations
 // and security".

@@ -1,5 +1,5 @@
 #pragma once
-// The one place that picks Modbus exception codes (MODBUS_MAP.md "Exceptions"). Everything
+// The one place that picks Modbus exception codes (docs/PLC_GUIDE.md "Exceptions"). Everything
 // else in the gateway names what went wrong as a Fault; exception_code() turns it into the
 // code a client sees. The mapping is a table, so the contract can be read off it.
 #include <cstdint>

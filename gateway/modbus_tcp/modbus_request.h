@@ -1,7 +1,7 @@
 #pragma once
 // Modbus request PDUs as the TCP side receives them, parsed into plain structs with every
 // length checked before anything is touched (as libmodbus does), and the response PDUs
-// built from plain values. Function codes of MODBUS_MAP.md: 01 02 03 04 05 06 15 16 23.
+// built from plain values. Function codes of docs/PLC_GUIDE.md: 01 02 03 04 05 06 15 16 23.
 #include <cstdint>
 #include <span>
 #include <variant>

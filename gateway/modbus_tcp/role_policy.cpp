@@ -16,7 +16,7 @@ modbus_map::Profile map_profile(config::Profile profile) {
   return profile == config::Profile::Smsmb ? modbus_map::Profile::Smsmb : modbus_map::Profile::Native;
 }
 
-// The torque switch of each table; 128 written to it is the mid-point calibration (SPEC §1.1).
+// The torque switch of each table; 128 written to it is the mid-point calibration (docs/PROTOCOL.md §1.1).
 bool is_torque_switch(const modbus_map::FieldSpec& field) {
   return field.name == "torque_enable" || field.name == "torque_switch";
 }

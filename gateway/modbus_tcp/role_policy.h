@@ -1,5 +1,5 @@
 #pragma once
-// What a Modbus/TCP Security role may ask (README "Modbus/TCP Security", docs/DECISIONS.md
+// What a Modbus/TCP Security role may ask (docs/SECURITY.md, docs/DECISIONS.md
 // "Operations and security"). Pure: no sockets, no Asio. The TLS listener puts a RoleGate in
 // front of the same UnitRouter the plain listener uses, so every request that passes still goes
 // through the safety rules; a refused request never reaches the router.

@@ -1,5 +1,5 @@
 #pragma once
-// Modbus/TCP Security (README "Modbus/TCP Security"): the TLS context of the secure listener
+// Modbus/TCP Security (docs/SECURITY.md): the TLS context of the secure listener
 // (TLS 1.2/1.3, client certificate required and verified against the configured CA), the role
 // a client certificate gets, and the RoleGate put in front of the unit router for each secure
 // connection. Internal to gateway/ (Asio and OpenSSL in the header are fine here).

@@ -93,7 +93,7 @@ sp::Metric field_metric(const std::string& name, const RegisterEntry& entry, std
   return metric;
 }
 
-// A command's value checked before anything is written (README "MQTT Sparkplug B", commands):
+// A command's value checked before anything is written (docs/MQTT.md, commands):
 // of the kind the metric was born with (an integer type for an integer metric: a Boolean,
 // Float or String is no position), within that datatype's range (UInt16 40000 does not fit an
 // Int16 metric; it is not taken as -25536), and within [min, max] (the register map's range).

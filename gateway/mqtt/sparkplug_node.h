@@ -1,5 +1,5 @@
 #pragma once
-// The gateway as a Sparkplug B edge node (README "MQTT Sparkplug B"): NBIRTH/NDEATH for the
+// The gateway as a Sparkplug B edge node (docs/MQTT.md): NBIRTH/NDEATH for the
 // gateway, one device per table servo with DBIRTH/DDEATH following its online state, DDATA from
 // the poll cache on change (per-field deadband) and every report_period, and NCMD/DCMD writes.
 //

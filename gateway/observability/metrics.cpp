@@ -134,7 +134,7 @@ constexpr Family<BusMetrics> kBusFamilies[] = {
      [](const BusMetrics& b) -> std::optional<Value> { return b.counters.retries; }},
     {"sms_gateway_bus_transactions_total", MetricType::Counter, "Bus operations finished, whatever their outcome",
      [](const BusMetrics& b) -> std::optional<Value> { return b.counters.transactions; }},
-    // README "Safety".
+    // docs/PLC_GUIDE.md "Safety".
     {"sms_gateway_watchdog_state", MetricType::Gauge,
      "The bus's watchdog: 1 armed, 2 running, 3 tripped (buses with a watchdog only)",
      [](const BusMetrics& b) -> std::optional<Value> {
@@ -248,7 +248,7 @@ void render_exceptions(Exposition& out, const ModbusTrafficSnapshot& traffic) {
   for (unsigned code = 0; code < traffic.exceptions_by_code.size(); ++code) {
     const auto* exception = protocol::find_modbus_exception(static_cast<std::uint8_t>(code));
     const std::uint64_t count = traffic.exceptions_by_code[code];
-    // The codes MODBUS_MAP.md says the gateway answers with are always shown (at 0), so that
+    // The codes docs/PLC_GUIDE.md says the gateway answers with are always shown (at 0), so that
     // rate() works from the start.
     if (count == 0 && !(exception && exception->contract)) continue;
     out.sample(kName,

@@ -48,7 +48,7 @@ struct BusMetrics {
   BusCountersSnapshot counters;
   std::size_t servos_online = 0;
   std::vector<ServoMetrics> servos;  // the polled servos, in configuration order
-  std::optional<BusSafetyFacts> safety;  // README "Safety"; empty where no supervisor runs
+  std::optional<BusSafetyFacts> safety;  // docs/PLC_GUIDE.md "Safety"; empty where no supervisor runs
 };
 
 struct MetricsSnapshot {

@@ -8,7 +8,7 @@
 // Addresses and counts are bus addresses: bytes on packet buses, registers on modbus-rtu
 // (data then holds registers high byte first).
 //
-// Timeouts are sized from the baud (SPEC §5): the request's and the reply's wire time, plus
+// Timeouts are sized from the baud (docs/PROTOCOL.md §5): the request's and the reply's wire time, plus
 // the servo's usual return delay, plus the adapter latency (`LinkSettings::latency`).
 #include <chrono>
 #include <cstdint>

@@ -20,7 +20,7 @@ using modbus_map::TableSpec;
 
 namespace {
 
-// The EEPROM lock of each table that has one (SPEC §2.1 address 55, §2.2 address 48, §2.4
+// The EEPROM lock of each table that has one (docs/PROTOCOL.md §2.1 address 55, §2.2 address 48, §2.4
 // 0x85): 0 lets EEPROM writes persist.
 struct EepromLock {
   TableId table;
@@ -33,7 +33,7 @@ constexpr std::array<EepromLock, 3> kEepromLocks{{
     {TableId::Smsmb, "lock", 0},
 }};
 
-// How each table calibrates its mid-point (SPEC §2.1 address 40, §2.4 fault reset bit 2).
+// How each table calibrates its mid-point (docs/PROTOCOL.md §2.1 address 40, §2.4 fault reset bit 2).
 struct MidpointCalibration {
   TableId table;
   std::string_view field;
@@ -250,7 +250,7 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
   const FieldSpec& baud_field = require_field(table, "baud_rate");
   if (*code < baud_field.min || *code > baud_field.max) {
     return unexpected(fmt::format("{} bit/s is code {} of the {} baud table, but table {} takes codes {}-{} only "
-                                  "(SPEC §3: codes 8-11 need sts firmware 2.45 or later)",
+                                  "(docs/PROTOCOL.md §3: codes 8-11 need sts firmware 2.45 or later)",
                                   new_baud, *code, protocol::to_string(rules.protocol), table.name, baud_field.min,
                                   baud_field.max));
   }

@@ -6,7 +6,7 @@
 // what to do instead: a target ID already answering, a baud outside the protocol's table (or
 // outside what the table's baud field accepts), the broadcast ID without `force`.
 //
-// EEPROM (SPEC §4): on tables with a lock field (sts 55, sms1 48, smsmb 0x85) an EEPROM write
+// EEPROM (docs/PROTOCOL.md §4): on tables with a lock field (sts 55, sms1 48, smsmb 0x85) an EEPROM write
 // is lost at power-off unless the lock is 0 while it is written. set-id and set-baud read the
 // lock, write 0, make the change, then write the lock's previous value back — so the change
 // persists and the servo is left as protected as it was. d55d has no lock: its EEPROM writes

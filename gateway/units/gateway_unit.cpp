@@ -37,7 +37,7 @@ struct BusFactRegister {
   std::uint8_t words;
   std::uint64_t (*value)(const BusFacts&);
 };
-// MODBUS_MAP.md "The gateway unit", input registers 100 + 20·n ...; 32-bit counters wrap.
+// docs/PLC_GUIDE.md "The gateway unit", input registers 100 + 20·n ...; 32-bit counters wrap.
 constexpr std::array kBusFactRegisters{
     BusFactRegister{0, 1, [](const BusFacts& f) -> std::uint64_t { return f.up ? 1 : 0; }},
     BusFactRegister{1, 1, [](const BusFacts& f) -> std::uint64_t { return saturate16(f.baud / 100); }},

@@ -1,9 +1,9 @@
 #pragma once
-// The gateway's own Modbus unit (255 by default; MODBUS_MAP.md "The gateway unit"):
+// The gateway's own Modbus unit (255 by default; docs/PLC_GUIDE.md "The gateway unit"):
 // - input registers 0-2 version, 3-4 uptime s, 5/6 buses/servos, 100 + 20·n the facts of bus n;
 // - coil 0: writing 1 sends ACTION on every bus (runs every staged REG WRITE at once);
 // - coils 1-2, discrete inputs 0-3, input registers 10-15 and 100 + 20·n + 10..19, holding
-//   registers 1000 + n: the safety rules (README "Safety");
+//   registers 1000 + n: the safety rules (docs/PLC_GUIDE.md "Safety");
 // - holding registers of the configured sync groups: one register per member; a write of a
 //   group's registers becomes one SYNC WRITE frame per bus, read gives the members' live values.
 // Runs on the io thread like the rest of the TCP side; bus completions come back through PostFn.
@@ -33,7 +33,7 @@ inline constexpr std::uint16_t kServoCount = 6;
 inline constexpr std::uint16_t kFirstBusBlock = 100;
 inline constexpr std::uint16_t kBusBlockSize = 20;
 inline constexpr std::uint16_t kActionCoil = 0;
-// Safety (README "Safety"): coil 1 e-stop latch (1 latches and stops every bus, 0 resets), coil 2
+// Safety (docs/PLC_GUIDE.md "Safety"): coil 1 e-stop latch (1 latches and stops every bus, 0 resets), coil 2
 // watchdogs (reads 1 while any is tripped; 0 re-arms them); discrete inputs 0 e-stop latched,
 // 1 any watchdog tripped, 2 motion blocked on any bus.
 inline constexpr std::uint16_t kEStopCoil = 1;

@@ -1,5 +1,5 @@
 #pragma once
-// "No jump on enable" (README "Safety"): before a write switches a servo's torque from off to on,
+// "No jump on enable" (docs/PLC_GUIDE.md "Safety"): before a write switches a servo's torque from off to on,
 // the gateway writes the hold of its goal block (position mode: goal := present position; speed
 // mode: speed := 0; PWM mode: duty := 0), so a stale goal or speed left in the servo cannot make
 // it move the moment the torque comes on. A servo whose torque is already on is left alone: a

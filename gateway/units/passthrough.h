@@ -1,5 +1,5 @@
 #pragma once
-// Transparent forwarding (issue 5): Modbus TCP requests for a passthrough unit (`table:
+// Transparent forwarding: Modbus TCP requests for a passthrough unit (`table:
 // passthrough` on a modbus-rtu bus) — or, in `sms-gateway forward`, for any unit — go to a
 // Modbus-RTU slave as they are, and its answer comes back as it is, exception PDUs included.
 // So sms-gateway can replace a plain Modbus TCP -> RTU gateway.

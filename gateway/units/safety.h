@@ -1,5 +1,5 @@
 #pragma once
-// Motion safety (README "Safety"): per-bus watchdogs, the e-stop latch, safe stops, and the start
+// Motion safety (docs/PLC_GUIDE.md "Safety"): per-bus watchdogs, the e-stop latch, safe stops, and the start
 // and stop actions. The supervisor runs its own thread, so a watchdog trips on time even while
 // the Modbus io thread is busy; every safe stop goes to the bus engines at Priority::Safety
 // (before any client work, never refused for a full queue).

@@ -27,7 +27,7 @@ struct Overloaded : Ts... {
 template <typename... Ts>
 Overloaded(Ts...) -> Overloaded<Ts...>;
 
-// The lowest response level at which a servo answers unicast writes (SPEC §2.1 address 8,
+// The lowest response level at which a servo answers unicast writes (docs/PROTOCOL.md §2.1 address 8,
 // §2.2 address 8, §2.3 address 16). SMSMB servos always answer (Modbus).
 struct WriteReplyLevel {
   TableId table;
@@ -184,7 +184,7 @@ void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8
   MotionEpoch epoch = 0;
   if (writes(function)) {
     // The gateway cannot tell what a passthrough slave's registers do: every write may move
-    // something, so every write is under the safety rules (README "Safety").
+    // something, so every write is under the safety rules (docs/PLC_GUIDE.md "Safety").
     const auto admitted = admit_motion(unit.bus_index, unit.label, function, reply);
     if (!admitted) return;
     epoch = *admitted;

@@ -1,5 +1,5 @@
 #pragma once
-// Modbus unit id -> what answers it (MODBUS_MAP.md "Units", "A servo unit"):
+// Modbus unit id -> what answers it (docs/PLC_GUIDE.md "Units", "A servo unit"):
 // - a servo unit: (bus engine, servo id, register map of its table/profile/byte order,
 //   whether it answers writes). FC03/FC23-read/FC01 read live through register plans
 //   (Priority::ClientRead); FC04/FC02 are served from the poll cache and the gateway's own
@@ -37,7 +37,7 @@ inline constexpr std::uint16_t kFirstBit = 1000;     // 1000 + b: bit b of regis
 inline constexpr std::uint16_t kOnlineBit = 1008;
 }  // namespace servo_facts_layout
 
-// Whether a servo of `table` at `response_level` answers unicast WRITE / REG WRITE (SPEC §2.1
+// Whether a servo of `table` at `response_level` answers unicast WRITE / REG WRITE (docs/PROTOCOL.md §2.1
 // and §2.2 address 8: 0 = only READ and PING; §2.3 address 16: 2 = all but broadcast).
 bool writes_answered(modbus_map::TableId table, std::uint8_t response_level);
 
@@ -87,7 +87,7 @@ class UnitRouter : public RequestHandler {
  public:
   // `engines[i]` runs config.buses[i] (the engine's settings give each servo's poll block).
   // Throws std::invalid_argument for a servo whose table/profile has no register map.
-  // Every write passes `safety` (README "Safety"): a motion write is refused (0x04) while the
+  // Every write passes `safety` (docs/PLC_GUIDE.md "Safety"): a motion write is refused (0x04) while the
   // e-stop is latched or the watchdog tripped, and a write the gateway carried out (answered
   // without an exception) feeds the bus's watchdog — one rule for servo and passthrough units.
   UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post, SafetySupervisor& safety);

@@ -1,5 +1,5 @@
 #pragma once
-// Table `d55d`: the D5 5D vendor protocol's table, doc 002 ch. 3, SPEC §2.3. Byte addresses,
+// Table `d55d`: the D5 5D vendor protocol's table, doc 002 ch. 3, docs/PROTOCOL.md §2.3. Byte addresses,
 // low byte first. Positions count degrees × angle_resolution (13, unit 0.1°).
 #include <array>
 
@@ -16,7 +16,7 @@ inline constexpr std::array kD55dFields{
     FieldSpec{.addr = 3, .name = "id", .size = 1, .access = RW, .area = Eeprom, .default_value = 1, .max = 253,
               .notes = "254 is the broadcast ID"},
     FieldSpec{.addr = 4, .name = "baud_rate", .size = 1, .access = RW, .area = Eeprom, .default_value = 0, .max = 10,
-              .notes = "code of the d55d baud table (SPEC §3); 0: 115200 base motors, 9600 others"},
+              .notes = "code of the d55d baud table (docs/PROTOCOL.md §3); 0: 115200 base motors, 9600 others"},
     FieldSpec{.addr = 5, .name = "return_delay", .size = 1, .access = RW, .area = Eeprom, .default_value = 16,
               .max = kByteMax, .unit = "500 µs", .notes = "default 8 on base motors"},
     FieldSpec{.addr = 6, .name = "cw_angle_limit", .size = 2, .access = RW, .area = Eeprom, .default_value = 0,

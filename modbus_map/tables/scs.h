@@ -27,7 +27,7 @@ inline constexpr std::array kScsFields{
     FieldSpec{.addr = 5, .name = "id", .size = 1, .access = RW, .area = Eeprom, .default_value = 1, .max = 253,
               .notes = "254 is the broadcast ID"},
     FieldSpec{.addr = 6, .name = "baud_rate", .size = 1, .access = RW, .area = Eeprom, .default_value = 0, .max = 7,
-              .notes = "code of the feetech baud table (SPEC §3), 0-7 only"},
+              .notes = "code of the feetech baud table (docs/PROTOCOL.md §3), 0-7 only"},
     FieldSpec{.addr = 7, .name = "return_delay", .size = 1, .access = RW, .area = Eeprom, .default_value = 0,
               .max = kByteMax, .unit = "2 µs"},
     FieldSpec{.addr = 8, .name = "response_level", .size = 1, .access = RW, .area = Eeprom, .default_value = 1,

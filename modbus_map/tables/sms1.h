@@ -1,6 +1,6 @@
 #pragma once
-// Table `sms1`: SMS 1.0, doc 000, SPEC §2.2. Byte addresses, low byte first by default (the
-// printed defaults read high byte first; SPEC §2.2 decision).
+// Table `sms1`: SMS 1.0, doc 000, docs/PROTOCOL.md §2.2. Byte addresses, low byte first by default (the
+// printed defaults read high byte first; docs/PROTOCOL.md §2.2 decision).
 #include <array>
 
 #include "modbus_map/tables/common.h"
@@ -15,7 +15,7 @@ inline constexpr std::array kSms1Fields{
     FieldSpec{.addr = 5, .name = "id", .size = 1, .access = RW, .area = Eeprom, .default_value = 0, .max = 253,
               .notes = "254 is the broadcast ID"},
     FieldSpec{.addr = 6, .name = "baud_rate", .size = 1, .access = RW, .area = Eeprom, .default_value = 0, .max = 7,
-              .notes = "code of the feetech baud table (SPEC §3); out-of-table codes fall back to 1 M"},
+              .notes = "code of the feetech baud table (docs/PROTOCOL.md §3); out-of-table codes fall back to 1 M"},
     FieldSpec{.addr = 7, .name = "return_delay", .size = 1, .access = RW, .area = Eeprom, .default_value = 0,
               .max = kByteMax, .unit = "2 µs"},
     FieldSpec{.addr = 8, .name = "response_level", .size = 1, .access = RW, .area = Eeprom, .default_value = 1,
@@ -66,9 +66,9 @@ inline constexpr std::array kSms1Fields{
     // prints one byte with default 7. Two bytes, so a write of 36-37 lands whole.
     FieldSpec{.addr = 36, .name = "protection_current", .size = 2, .access = RW, .area = Eeprom, .default_value = 7,
               .max = kWordMax, .notes = "two bytes, as Feetech's SMSCL SDK (MAX_CURRENT 36-37)"},
-    // 128 = mid-point calibration on older SMS firmware (SPEC §1.1, CALIBRATE).
+    // 128 = mid-point calibration on older SMS firmware (docs/PROTOCOL.md §1.1, CALIBRATE).
     FieldSpec{.addr = 40, .name = "torque_switch", .size = 1, .access = RW, .area = Ram, .default_value = 0,
-              .max = 128, .bit_space = BitSpace::Coil, .notes = "0 off, 1 on, 128 = calibrate to 2048 (SPEC §1.1)",
+              .max = 128, .bit_space = BitSpace::Coil, .notes = "0 off, 1 on, 128 = calibrate to 2048 (docs/PROTOCOL.md §1.1)",
               .allowed_values = kTorqueEnableValues},
     // Not in doc 000; Feetech's SMSCL SDK writes 7 bytes from 41 (ACC, position, time, speed).
     FieldSpec{.addr = 41, .name = "acceleration", .size = 1, .access = RW, .area = Ram, .default_value = 0,

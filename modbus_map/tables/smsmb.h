@@ -1,7 +1,7 @@
 #pragma once
-// Table `smsmb`: Feetech's Modbus-RTU servo firmware (SMSMB), SPEC §2.4, with the factory area
+// Table `smsmb`: Feetech's Modbus-RTU servo firmware (SMSMB), docs/PROTOCOL.md §2.4, with the factory area
 // 0x180-0x196 named after Feetech's wiki page `memory-smsmb` (section "出厂参数"). One 16-bit
-// register per field, high byte first; signed values are two's complement (SPEC §1.3 decision).
+// register per field, high byte first; signed values are two's complement (docs/PROTOCOL.md §1.3 decision).
 #include <array>
 
 #include "modbus_map/tables/common.h"
@@ -24,7 +24,7 @@ inline constexpr std::array kSmsmbFields{
     FieldSpec{.addr = 0x0A, .name = "id", .size = 2, .access = RW, .area = Eeprom, .default_value = 1, .min = 1,
               .max = 247, .notes = "Modbus slave address; 0 is broadcast"},
     FieldSpec{.addr = 0x0B, .name = "baud_rate", .size = 2, .access = RW, .area = Eeprom, .default_value = 2,
-              .max = 9, .notes = "code of the modbus-rtu baud table (SPEC §3)"},
+              .max = 9, .notes = "code of the modbus-rtu baud table (docs/PROTOCOL.md §3)"},
     FieldSpec{.addr = 0x0C, .name = "return_delay", .size = 2, .access = RW, .area = Eeprom, .default_value = 500,
               .max = 500, .unit = "µs"},
     FieldSpec{.addr = 0x0D, .name = "min_angle_limit", .size = 2, .access = RW, .area = Eeprom, .default_value = 0,
@@ -51,7 +51,7 @@ inline constexpr std::array kSmsmbFields{
               .max = 1, .bit_space = BitSpace::Coil},
     FieldSpec{.addr = 0x82, .name = "acceleration", .size = 2, .access = RW, .area = Ram, .max = kWordMax,
               .unit = "8.79 °/s²", .notes = "0 = maximum; power-on value from 0x195"},
-    // Signed like every SMSMB value with a direction (SPEC §1.3); the wiki prints 0-65535.
+    // Signed like every SMSMB value with a direction (docs/PROTOCOL.md §1.3); the wiki prints 0-65535.
     FieldSpec{.addr = 0x83, .name = "running_speed", .size = 2, .access = RW, .area = Ram,
               .encoding = kTwosComplement, .min = kInt16Min, .max = kInt16Max, .unit = "0.732 rpm",
               .notes = "power-on value from 0x196"},

@@ -1,5 +1,5 @@
 #pragma once
-// The smsmb profile (MODBUS_MAP.md): each SMSMB register (SPEC §2.4) linked to its counterpart
+// The smsmb profile (docs/PLC_GUIDE.md): each SMSMB register (docs/PROTOCOL.md §2.4) linked to its counterpart
 // in the `sts` or `sms1` table, as data. A register not listed has no counterpart (0x02).
 // Internal to modbus_map; the public view is smsmb_links() in register_map.h.
 #include <array>
@@ -116,7 +116,7 @@ inline constexpr std::array kSms1SmsmbLinks{
                     .notes = "0.732 rpm ≈ 50 × 0.087 °/s"},
     CounterpartLink{.reg = 0x85, .field_addr = 48, .conversion = Conversion::ValueMap, .values = kLockMapping},
     CounterpartLink{.reg = 0x86, .field_addr = 40, .conversion = Conversion::FaultReset,
-                    .notes = "bit 2 writes 128 (calibrate to 2048, SPEC §1.1)"},
+                    .notes = "bit 2 writes 128 (calibrate to 2048, docs/PROTOCOL.md §1.1)"},
     CounterpartLink{.reg = 0x100, .field_addr = 65, .conversion = Conversion::StatusBits,
                     .status_mask = kStatusMask},
     CounterpartLink{.reg = 0x101, .field_addr = 56},

@@ -1,5 +1,5 @@
 #pragma once
-// Table `sts`: STS/SMS servos, doc 001 (FD tool table), SPEC §2.1, checked against Feetech's
+// Table `sts`: STS/SMS servos, doc 001 (FD tool table), docs/PROTOCOL.md §2.1, checked against Feetech's
 // SDKs and wiki memory table (docs/DECISIONS.md "Vendor fidelity"). Byte addresses, low byte
 // first. Defaults are the SM40BL values doc 001 §15 shows unless the vendor sources differ.
 #include <array>
@@ -22,7 +22,7 @@ inline constexpr std::array kStsFields{
     FieldSpec{.addr = 5, .name = "id", .size = 1, .access = RW, .area = Eeprom, .default_value = 1, .max = 253,
               .notes = "254 is the broadcast ID"},
     FieldSpec{.addr = 6, .name = "baud_rate", .size = 1, .access = RW, .area = Eeprom, .default_value = 4, .max = 11,
-              .notes = "code of the feetech baud table (SPEC §3); 8-11 need firmware >= 2.45; STS ship with 0"},
+              .notes = "code of the feetech baud table (docs/PROTOCOL.md §3); 8-11 need firmware >= 2.45; STS ship with 0"},
     FieldSpec{.addr = 7, .name = "return_delay", .size = 1, .access = RW, .area = Eeprom, .default_value = 0,
               .max = kByteMax, .unit = "2 µs", .notes = "values below 50 act as 50 (100 µs)"},
     FieldSpec{.addr = 8, .name = "response_level", .size = 1, .access = RW, .area = Eeprom, .default_value = 1,
@@ -75,13 +75,13 @@ inline constexpr std::array kStsFields{
               .max = kByteMax, .unit = "10 ms"},
     FieldSpec{.addr = 36, .name = "overload_torque", .size = 1, .access = RW, .area = Eeprom, .default_value = 80,
               .max = kByteMax, .unit = "%"},
-    // 37 and 39 are not in the FD table of doc 001; SMSMB's speed P / I (SPEC §2.4) name them.
+    // 37 and 39 are not in the FD table of doc 001; SMSMB's speed P / I (docs/PROTOCOL.md §2.4) name them.
     FieldSpec{.addr = 37, .name = "speed_p_gain", .size = 1, .access = RW, .area = Eeprom, .max = kByteMax,
-              .notes = "constant-speed mode; from SMSMB 0x14 (SPEC §2.4)"},
+              .notes = "constant-speed mode; from SMSMB 0x14 (docs/PROTOCOL.md §2.4)"},
     FieldSpec{.addr = 38, .name = "overcurrent_protection_time", .size = 1, .access = RW, .area = Eeprom,
               .default_value = 200, .max = kByteMax, .unit = "10 ms"},
     FieldSpec{.addr = 39, .name = "speed_i_gain", .size = 1, .access = RW, .area = Eeprom, .max = kByteMax,
-              .notes = "constant-speed mode; from SMSMB 0x15 (SPEC §2.4)"},
+              .notes = "constant-speed mode; from SMSMB 0x15 (docs/PROTOCOL.md §2.4)"},
     FieldSpec{.addr = 40, .name = "torque_enable", .size = 1, .access = RW, .area = Ram, .default_value = 0,
               .max = 128, .bit_space = BitSpace::Coil,
               .notes = "0 off, 1 on, 2 damping (free but braked), 128 = present position becomes 2048",

@@ -894,7 +894,7 @@ TEST(ConfigErrors, NameWithControlCharacterOrBrokenUtf8IsRefused) {
 }  // namespace
 }  // namespace sms::config
 
-// ---- safety (README "Safety") ----
+// ---- safety (docs/PLC_GUIDE.md "Safety") ----
 
 namespace sms::config {
 namespace {

@@ -1,4 +1,4 @@
-// Faults end to end (issue 6, hardening): MBAP length fields that lie, zero-length and oversized
+// Faults end to end (hardening): MBAP length fields that lie, zero-length and oversized
 // PDUs, partial frames and slow clients, a client vanishing mid-request, 200 concurrent clients,
 // the serial device disappearing and coming back, a servo answering garbage. Real processes only:
 // sms-sim on pseudo-terminals, sms-gateway on a configuration file, Modbus TCP on 127.0.0.1.
@@ -53,11 +53,11 @@ servos:
   - {unit: 102, bus: base, id: 2, table: d55d}
 )";
 
-constexpr int kStsGoalPosition = 42;   // sts holding register (SPEC §2.1)
+constexpr int kStsGoalPosition = 42;   // sts holding register (docs/PROTOCOL.md §2.1)
 // A client's own timeout (s): longer than the gateway's worst case (three attempts of two
 // seconds each, behind a queue), so a late answer is never taken for the next one's.
 constexpr double kPatient = 60.0;
-constexpr int kD55dGoalPosition = 30;  // d55d holding register (SPEC §2.3)
+constexpr int kD55dGoalPosition = 30;  // d55d holding register (docs/PROTOCOL.md §2.3)
 
 struct CellOptions {
   int arm_servos = 3;
@@ -648,7 +648,7 @@ TEST(Faults, ClientThatNeverReadsItsAnswersCannotMakeTheGatewayBufferWithoutBoun
 TEST(Faults, TwoHundredConcurrentClientsAreAllAnsweredAndOneOverTheLimitIsRefused) {
   constexpr int kClients = 200;
   constexpr int kServos = 25;
-  // Eight harmless one-byte fields per sts servo (SPEC §2.1): 25 servos x 8 = one (unit, field)
+  // Eight harmless one-byte fields per sts servo (docs/PROTOCOL.md §2.1): 25 servos x 8 = one (unit, field)
   // of its own per client, so every client's write can be checked on the servo afterwards.
   struct Field {
     int address;
@@ -796,7 +796,7 @@ TEST(Faults, ServoAnsweringGarbageIsAnExceptionWhileItsNeighboursOnTheBusAreServ
 
   ASSERT_EQ(cell.arm().control("garble 3 on"), "ok");
   // Damaged answers through every retry are 0x04; once they cost timeouts too, the servo may be
-  // marked offline and answered 0x0B (MODBUS_MAP.md "Exceptions"). Never a value.
+  // marked offline and answered 0x0B (docs/PLC_GUIDE.md "Exceptions"). Never a value.
   const auto clean_exception = [](int code) { return code == 0x04 || code == 0x0B; };
   for (int i = 0; i < 3; ++i) {
     const auto read = garbled.read_holding(kStsGoalPosition, 1);

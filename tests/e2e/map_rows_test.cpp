@@ -1,4 +1,4 @@
-// Every row of MODBUS_MAP.md "A servo unit", on each table (sts, sms1, d55d) and both
+// Every row of docs/PLC_GUIDE.md "A servo unit", on each table (sts, sms1, d55d) and both
 // profiles (native, smsmb), through real processes: libmodbus -> sms-gateway -> pty -> sms-sim.
 // What a write did is checked in the simulator's own memory (its control socket).
 #include <gtest/gtest.h>
@@ -8,7 +8,7 @@
 namespace sms::e2e {
 namespace {
 
-// Addresses and values of one unit, read off SPEC §2 and MODBUS_MAP.md by hand.
+// Addresses and values of one unit, read off docs/PROTOCOL.md §2 and docs/PLC_GUIDE.md by hand.
 struct UnitRow {
   const char* label;
   int unit;

@@ -41,7 +41,7 @@ TEST(ForwardProcess, ForwardsToSmsmbServosAtARateLibmodbusCannotSetAndStopsOnSig
   ASSERT_TRUE(client.write_register(0x84, 600).ok());
   EXPECT_EQ(sim.field(2, "torque_limit"), 600);
 
-  // The servo's own exception: SMSMB has no FC04 (SPEC §1.3).
+  // The servo's own exception: SMSMB has no FC04 (docs/PROTOCOL.md §1.3).
   EXPECT_EQ(client.read_input(0x100, 1).exception, 0x01);
 
   // A slave nobody answers for: 0x0B after the retry.

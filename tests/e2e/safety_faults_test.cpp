@@ -1,4 +1,4 @@
-// A fail-safe judged in faults (README "Safety"): every test here combines a stop with a fault —
+// A fail-safe judged in faults (docs/PLC_GUIDE.md "Safety"): every test here combines a stop with a fault —
 // a servo gone silent, the line unplugged, the gateway killed and started again, a client
 // writing what the gateway refuses — and takes the simulator's own state as the witness, never
 // the gateway's word. Real sms-gateway and sms-sim processes; the line is unplugged by killing

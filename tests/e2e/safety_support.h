@@ -1,5 +1,5 @@
 #pragma once
-// What the safety end-to-end tests share (README "Safety"): one servo of each protocol and a
+// What the safety end-to-end tests share (docs/PLC_GUIDE.md "Safety"): one servo of each protocol and a
 // table of each (feetech sts and sms1, d55d, modbus-rtu smsmb), the writes that set it turning,
 // a motion write, a harmless write, and the gateway unit's safety registers.
 #include <gtest/gtest.h>
@@ -17,7 +17,7 @@ inline constexpr int kUnit = 1;
 inline constexpr int kGateway = 255;
 // Longer than the worst transaction of a 115 200 bit/s bus (--check-config refuses shorter).
 inline constexpr int kWatchdogTimeoutMs = 500;
-// Gateway unit registers (README "Safety"): bus 0's block starts at 100.
+// Gateway unit registers (docs/PLC_GUIDE.md "Safety"): bus 0's block starts at 100.
 inline constexpr int kEStopLatchedRegister = 10;
 inline constexpr int kOwedStops = 13;     // servos owed a safe stop, every bus
 inline constexpr int kFailedStops = 14;   // 14-15: safe stops that failed (32-bit)

@@ -1,4 +1,4 @@
-// Motion safety end to end (issue 10, README "Safety"): the real sms-gateway on a configuration
+// Motion safety end to end (docs/PLC_GUIDE.md "Safety"): the real sms-gateway on a configuration
 // file, the real sms-sim on a pty, libmodbus clients. For every protocol and a table of each
 // (feetech sts and sms1, d55d, modbus-rtu smsmb): a servo set turning at constant speed by a
 // client is stopped by the watchdog when the client vanishes or stops counting its heartbeat,

@@ -1,4 +1,4 @@
-// MQTT Sparkplug B end to end (README "MQTT Sparkplug B"): a real Mosquitto broker on loopback,
+// MQTT Sparkplug B end to end (docs/MQTT.md): a real Mosquitto broker on loopback,
 // the real sms-gateway and sms-sim, and a Sparkplug host stand-in (libmosquitto). Births and
 // deaths follow the servos, data follows the poll cache, commands move the simulated servo through
 // the same rules as Modbus writes after a check of their type and range, the broker going away

@@ -1,4 +1,4 @@
-// Modbus/TCP Security end to end (issue 14, README "Modbus/TCP Security"): certificates made by
+// Modbus/TCP Security end to end (docs/SECURITY.md): certificates made by
 // the openssl CLI at test time (tests/e2e/make_test_certs.sh), the real sms-gateway with plain
 // Modbus TCP off and a TLS listener, the real sms-sim on a pty, and a Boost.Asio SSL client
 // with hand-written MBAP framing. Refused handshakes (another CA, expired, not TLS) are logged

@@ -95,7 +95,7 @@ void check_d55d(Params params) {
     check_rebuilds("TRAJECTORY WRITE", params, [&] { return protocol::d55d::trajectory_write(kId, *trajectory); });
   }
 
-  // SPEC §1.2: sub 0x01 takes 4 or 6 bytes, 0x02 takes 6, 0x03 takes 2.
+  // docs/PROTOCOL.md §1.2: sub 0x01 takes 4 or 6 bytes, 0x02 takes 6, 0x03 takes 2.
   bool custom_ok = false;
   if (!params.empty()) {
     const std::size_t body = params.size() - 1;

@@ -1,4 +1,4 @@
-// libFuzzer target: modbus_map::RegisterMap planning (MODBUS_MAP.md), which every Modbus request
+// libFuzzer target: modbus_map::RegisterMap planning (docs/PLC_GUIDE.md), which every Modbus request
 // to a servo unit goes through before any bus traffic. The input is read front to back (zeros
 // once it runs out), so a seed reads in a hex dump: TABLE PROFILE BYTE_ORDER (taken modulo 4,
 // 2, 3), then requests until the input ends, OP taken modulo 7, numbers big-endian:

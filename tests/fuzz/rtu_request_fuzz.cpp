@@ -1,4 +1,4 @@
-// libFuzzer target: protocol::rtu::RequestDecoder (the slave side of Modbus RTU, SPEC §1.3).
+// libFuzzer target: protocol::rtu::RequestDecoder (the slave side of Modbus RTU, docs/PROTOCOL.md §1.3).
 // Input: fuzz_support.h's chunked layout; the boundary op is the 3.5-character silence
 // (end_of_frame()), and the line goes silent once more after the last byte.
 //
@@ -8,7 +8,7 @@
 //     a CrcError names the bytes it rejected, and their CRC is indeed wrong;
 //   - next() only completes frames of the function codes whose length it knows;
 //   - once drained, at most one ADU (256 bytes) stays buffered; silence empties the buffer;
-//   - crc_errors() equals the CrcError events; afterwards the SPEC's worked frame decodes.
+//   - crc_errors() equals the CrcError events; afterwards the docs/PROTOCOL.md's worked frame decodes.
 #include <algorithm>
 #include <array>
 #include <cstddef>
@@ -53,13 +53,13 @@ class Checker {
 
   void check_worked_frame_decodes() {
     SMS_FUZZ_CHECK(decoder_.crc_errors() == crc_events_, "crc_errors() differs from the CrcError events");
-    // SPEC §1.3: read the 8 feedback registers of slave 1.
+    // docs/PROTOCOL.md §1.3: read the 8 feedback registers of slave 1.
     constexpr std::array<std::uint8_t, 8> kReadFeedback{0x01, 0x03, 0x01, 0x00, 0x00, 0x08, 0x45, 0xF0};
     decoder_.feed(kReadFeedback);
     const auto event = decoder_.next();
     SMS_FUZZ_CHECK(event && event->kind == rtu::RequestDecoder::Event::Kind::Frame && event->adu.slave == 1 &&
                        event->adu.pdu == sms::protocol::Bytes({0x03, 0x01, 0x00, 0x00, 0x08}),
-                   "the SPEC §1.3 worked frame did not decode after silence");
+                   "the docs/PROTOCOL.md §1.3 worked frame did not decode after silence");
     SMS_FUZZ_CHECK(decoder_.buffered() == 0 && !decoder_.next(), "worked frame left bytes or events behind");
   }
 

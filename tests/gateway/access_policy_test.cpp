@@ -177,7 +177,7 @@ TEST(ModbusFunctions, ServedSetIsTheContractsFunctionCodes) {
   for (const auto& function : protocol::kModbusFunctions) {
     if (function.served) served.push_back(function.code);
   }
-  // MODBUS_MAP.md "A servo unit": 01 02 03 04 05 06 15 16 23.
+  // docs/PLC_GUIDE.md "A servo unit": 01 02 03 04 05 06 15 16 23.
   EXPECT_EQ(served, (std::vector<int>{1, 2, 3, 4, 5, 6, 15, 16, 23}));
 }
 

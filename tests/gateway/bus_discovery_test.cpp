@@ -102,7 +102,7 @@ TEST(Discovery, ResponseLevelOffsetsPointAtTheTablesResponseLevelField) {
   }
 }
 
-// SMSMB (SPEC §2.4): register 0x00 firmware version, 0x01 servo (model) version, high byte first;
+// SMSMB (docs/PROTOCOL.md §2.4): register 0x00 firmware version, 0x01 servo (model) version, high byte first;
 // the engine core and the scan read them through this row.
 TEST(Discovery, SmsmbIdentityIsRegistersZeroAndOne) {
   const IdentityLayout* layout = identity_layout(TableId::Smsmb);

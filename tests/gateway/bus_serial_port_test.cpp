@@ -166,7 +166,7 @@ TEST(SerialPort, StopBitsOtherThanOneOrTwoAreRefused) {
 TEST(SerialPort, WireTimeCountsStartParityAndStopBits) {
   SerialSettings settings = settings_for("x", 1'000'000);
   EXPECT_EQ(settings.bits_per_character(), 10U);
-  EXPECT_EQ(wire_time(settings, 8), 80us);  // SPEC §5: 10 bits a character at 1 Mbaud
+  EXPECT_EQ(wire_time(settings, 8), 80us);  // docs/PROTOCOL.md §5: 10 bits a character at 1 Mbaud
   settings.parity = Parity::Even;
   settings.stop_bits = 2;
   EXPECT_EQ(settings.bits_per_character(), 12U);

@@ -21,7 +21,7 @@ namespace sms::gateway::testing {
 
 using namespace std::chrono_literals;
 
-// The protocol a table is spoken in (SPEC §1).
+// The protocol a table is spoken in (docs/PROTOCOL.md §1).
 inline protocol::BusProtocol protocol_of(modbus_map::TableId table) {
   switch (table) {
     case modbus_map::TableId::D55d: return protocol::BusProtocol::D55d;

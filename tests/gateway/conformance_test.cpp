@@ -1,4 +1,4 @@
-// One conformance suite for every bus engine (issue 11): the same cases run on a feetech bus of
+// One conformance suite for every bus engine: the same cases run on a feetech bus of
 // sts servos, a d55d bus and a modbus-rtu bus of SMSMB servos, each against the simulator on a
 // pty (tests/support/engine_conformance.h has the per-protocol parameters). What every bus
 // promises the Modbus side (docs/DECISIONS.md "Gateway", bus_engine.h):

@@ -1,4 +1,4 @@
-// Fair scheduling on every bus protocol against the simulator on a pty (issue 11): a live read is
+// Fair scheduling on every bus protocol against the simulator on a pty: a live read is
 // answered while writes flood the bus, the poll cache keeps being refreshed under a client
 // flood on a modbus-rtu bus too, and a servo that sets a refusal bit in every answer shows one
 // status byte, not a different one after each write. Bounded in count and time; no timed

@@ -1,4 +1,4 @@
-// The bus engines' part of the safety rules (README "Safety"), on every bus protocol against the
+// The bus engines' part of the safety rules (docs/PLC_GUIDE.md "Safety"), on every bus protocol against the
 // simulator on a pty: safe stops go before everything and are never refused for a full queue,
 // and motion writes that a stop overtook while they were queued never reach the wire.
 #include <gtest/gtest.h>

@@ -1,4 +1,4 @@
-// Input registers 1000-1007 of a servo unit from the gateway's facts (MODBUS_MAP.md "A servo
+// Input registers 1000-1007 of a servo unit from the gateway's facts (docs/PLC_GUIDE.md "A servo
 // unit"): values written out by hand.
 #include <gtest/gtest.h>
 

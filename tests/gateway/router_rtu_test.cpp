@@ -48,7 +48,7 @@ TEST_F(RouterRtu, PassthroughUnitForwardsPdusAndExceptionsUnchanged) {
   ASSERT_TRUE(client.write_register(0x80, 2000).ok());  // slave 2's goal position
   EXPECT_EQ(*sim().read_field(2, "goal_position"), 2000);
   EXPECT_EQ(client.read_holding(0x80, 1).values, std::vector<std::uint16_t>{2000});
-  // The servo itself answers FC04 with exception 0x01 (SPEC §1.3); the gateway passes it on.
+  // The servo itself answers FC04 with exception 0x01 (docs/PROTOCOL.md §1.3); the gateway passes it on.
   EXPECT_EQ(client.read_input(0x101, 1).exception, 0x01);
   // Feetech's "query slave ID" (0x11) is no function of the gateway's, but the slave has it.
   const auto identity = client.raw({0x11}, 30);

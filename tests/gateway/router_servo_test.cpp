@@ -1,6 +1,6 @@
 // Servo units and the gateway unit through the whole gateway, in-process: libmodbus client ->
 // TCP -> router -> bus engine -> pty -> simulated servos. Each test states what the contract
-// (MODBUS_MAP.md) promises and checks it on the servo's own memory where a write is involved.
+// (docs/PLC_GUIDE.md) promises and checks it on the servo's own memory where a write is involved.
 #include <gtest/gtest.h>
 
 #include <algorithm>

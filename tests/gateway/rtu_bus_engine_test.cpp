@@ -74,7 +74,7 @@ TEST(RtuRates, FrameGapIsThreeAndAHalfCharactersUpTo19200ThenFixed) {
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 115'200}), 1750us);
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 19'200}), 1'822'917ns);  // 35 bits / 19200 /s, rounded up
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 9'600}), 3'645'833ns);  // 7'291'667 ns halved
-  // The configurable gaps (issue 13): 3.5 characters at every rate, or a fixed time.
+  // The configurable gaps: 3.5 characters at every rate, or a fixed time.
   const config::FrameGap characters{config::FrameGap::Kind::Characters, {}};
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 115'200}, characters), 303'819ns);  // 35 bits / 115200 /s
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 19'200}, characters), 1'822'917ns);
@@ -85,7 +85,7 @@ TEST(RtuRates, FrameGapIsThreeAndAHalfCharactersUpTo19200ThenFixed) {
   EXPECT_FALSE(config::parse_frame_gap("2000000us"));
 }
 
-// Each rate of the SMSMB baud table (SPEC §3 modbus-rtu column): the simulated servo answers
+// Each rate of the SMSMB baud table (docs/PROTOCOL.md §3 modbus-rtu column): the simulated servo answers
 // only when the host's line runs at its rate, so an answer proves the rate was set.
 TEST(RtuMaster, ReachesAServoAtEveryRateOfTheModbusTable) {
   for (const std::uint32_t baud : {256'000U, 128'000U, 115'200U, 57'600U, 56'000U, 38'400U, 19'200U, 14'400U,
@@ -110,7 +110,7 @@ TEST(RtuMaster, FramesAnAnswerLibmodbusCannotSizeBySilence) {
   bus.start();
   RtuMaster master(RtuLineSettings{SerialSettings{bus.slave_path(), 115'200}, line_options()});
   ASSERT_TRUE(master.open());
-  // The request is slave, 0x41, CRC (protocol/modbus_rtu.cpp's reading of SPEC §1.3).
+  // The request is slave, 0x41, CRC (protocol/modbus_rtu.cpp's reading of docs/PROTOCOL.md §1.3).
   const std::vector<std::uint8_t> restart{0x41};
   const RtuExchange exchange = master.transact(1, restart, 100ms);
   ASSERT_EQ(exchange.outcome, RtuOutcome::Reply) << exchange.detail;
@@ -126,7 +126,7 @@ TEST(RtuMaster, SilentSlaveTimesOut) {
   EXPECT_EQ(master.transact(9, read_id, 20ms).outcome, RtuOutcome::Timeout);
 }
 
-// The frame gap is counted from the last byte on the wire (issue 13). The simulated SMSMB servo
+// The frame gap is counted from the last byte on the wire. The simulated SMSMB servo
 // keeps its own t3.5 (wire timing on) and ignores a request that follows its answer closer than
 // that. At 4800 bit/s 3.5 characters are 7.3 ms, far above what a pty adds, and a transaction's
 // frames take 31 ms, so a gap counted from the send instead would be over before the answer.
@@ -250,7 +250,7 @@ TEST_F(RtuEngineTest, RawPduComesBackAsItIsExceptionsIncluded) {
   BusResult result = transact(*engine_, RawPduOp{1, Bytes{0x03, 0x00, 0x0A, 0x00, 0x01}}, Priority::ClientRead);
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
   EXPECT_EQ(result.data, (Bytes{0x03, 0x02, 0x00, 0x01}));
-  // FC04 is not supported by SMSMB servos (SPEC §1.3): the exception PDU is the answer.
+  // FC04 is not supported by SMSMB servos (docs/PROTOCOL.md §1.3): the exception PDU is the answer.
   result = transact(*engine_, RawPduOp{1, Bytes{0x04, 0x01, 0x00, 0x00, 0x01}}, Priority::ClientRead);
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
   EXPECT_EQ(result.data, (Bytes{0x84, 0x01}));

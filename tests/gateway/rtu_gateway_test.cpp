@@ -1,7 +1,7 @@
-// A modbus-rtu bus of SMSMB servos through the MODBUS_MAP.md contract: a configuration ->
+// A modbus-rtu bus of SMSMB servos through the docs/PLC_GUIDE.md contract: a configuration ->
 // Gateway (RtuBusEngine -> UnitRouter -> Modbus TCP server),
 // with libmodbus TCP clients, against the simulator's SMSMB servos on a pty. The native
-// profile of an smsmb unit is the SMSMB register map itself (SPEC §2.4).
+// profile of an smsmb unit is the SMSMB register map itself (docs/PROTOCOL.md §2.4).
 #include <gtest/gtest.h>
 #include <modbus/modbus.h>
 
@@ -156,7 +156,7 @@ TEST_F(RtuContractTest, InputRegistersComeFromThePollCache) {
   EXPECT_EQ(static_cast<std::int16_t>(values[1]), *position);
   ASSERT_EQ(modbus_read_input_registers(*client, 0x101, 1, values), 1) << modbus_strerror(errno);
   EXPECT_EQ(static_cast<std::int16_t>(values[0]), *position);
-  // The servo has no FC04 (SPEC §1.3): had the request reached the bus, it would be 0x01.
+  // The servo has no FC04 (docs/PROTOCOL.md §1.3): had the request reached the bus, it would be 0x01.
 }
 
 TEST_F(RtuContractTest, FactsRegistersShowTheServoOnline) {

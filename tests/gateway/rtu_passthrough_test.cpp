@@ -310,7 +310,7 @@ TEST(Broadcast, WritesAreAnsweredAsTheSlaveWouldReadsAreNot) {
 }
 
 // The forwarder in front of simulated SMSMB servos: the servos' own answers, FC04 refused by
-// the servo itself (SPEC §1.3), not by the gateway.
+// the servo itself (docs/PROTOCOL.md §1.3), not by the gateway.
 TEST(ForwardToServos, SmsmbServoAnswersComeBackAsTheyAre) {
   simulator::BusOptions bus_options;
   bus_options.servos = {{1, modbus_map::TableId::Smsmb, protocol::BusProtocol::ModbusRtu, 56'000}};

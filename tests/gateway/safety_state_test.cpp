@@ -1,4 +1,4 @@
-// The safety supervisor's state (README "Safety"): what a client reads never disagrees with what
+// The safety supervisor's state (docs/PLC_GUIDE.md "Safety"): what a client reads never disagrees with what
 // the motion gates enforce, under e-stops, resets, trips and re-arms on three threads; the latch
 // and tripped watchdogs are restored from the state file, and a damaged file latches.
 #include <gtest/gtest.h>

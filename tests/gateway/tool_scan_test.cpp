@@ -74,7 +74,7 @@ TEST(Scan, FindsFeetechServosAtNonDefaultRatesAndSkipsSilentRates) {
   ASSERT_NE(slow, nullptr);
   EXPECT_FALSE(slow->conflict);
   // Identity as the servo holds it: the model word at addresses 3-4, low byte first as the SDKs
-  // read it; firmware major.minor at 0-1 (SPEC §2.1).
+  // read it; firmware major.minor at 0-1 (docs/PROTOCOL.md §2.1).
   const auto memory = bus.read_memory(7, 0, 5);
   ASSERT_TRUE(memory);
   EXPECT_EQ(slow->identity.model, static_cast<std::uint16_t>((*memory)[4] << 8 | (*memory)[3]));

@@ -1,6 +1,6 @@
 // set-id, set-baud, calibrate-middle and dump as library code against the simulator. The
 // simulator's state file plays the power cycle: only EEPROM written while unlocked survives a
-// restart (SPEC §4), so a restart shows whether the lock was handled.
+// restart (docs/PROTOCOL.md §4), so a restart shows whether the lock was handled.
 #include <gtest/gtest.h>
 
 #include <chrono>

@@ -75,7 +75,7 @@ TEST(NativeMapEveryField, Sts) {
       {42, {0xE8, 0x83}, 0xFC18},  // -1000, sign bit 15
       {44, {0xF4, 0x05}, 0xFE0C},  // -500, sign bit 10
       {46, {0xC4, 0x09}, 2500},    {48, {0xE8, 0x03}, 1000}, {55, {0x00}, 0},
-      {56, {0x18, 0x05}, 1304},    // SPEC §1.1 worked READ
+      {56, {0x18, 0x05}, 1304},    // docs/PROTOCOL.md §1.1 worked READ
       {58, {0xC8, 0x80}, 0xFF38},  // -200
       {60, {0x2C, 0x05}, 0xFED4},  // -300, sign bit 10
       {62, {0x79}, 121},        {63, {0x1E}, 30},         {64, {0x01}, 1},          {65, {0x24}, 0x24},

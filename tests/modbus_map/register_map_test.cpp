@@ -1,4 +1,4 @@
-// The rules of MODBUS_MAP.md on the native profile: read plans, assembly, write frames, coils,
+// The rules of docs/PLC_GUIDE.md on the native profile: read plans, assembly, write frames, coils,
 // discrete inputs, staged writes and every exception rule.
 #include "modbus_map/register_map.h"
 
@@ -215,7 +215,7 @@ TEST(RegisterWrite, SignMagnitudeGoesOnTheBusWithItsDirectionBit) {
 TEST(RegisterWrite, ContiguousFieldsShareOneFrame) {
   const RegisterMap sts = make(TableId::Sts);
   // 40 torque 1, 41 accel 10, 42 goal -1000, 43 (second byte: ignored), 44 time 0, 45 ignored,
-  // 46 speed 2500 -> one WRITE 40..47 (SPEC §1.1 writes 42..47 the same way).
+  // 46 speed 2500 -> one WRITE 40..47 (docs/PROTOCOL.md §1.1 writes 42..47 the same way).
   const auto plan = write(sts, 40, {1, 10, 0xFC18, 0xBEEF, 0, 0xBEEF, 2500});
   ASSERT_TRUE(plan) << plan.error().message;
   EXPECT_EQ(plan->writes,
@@ -234,7 +234,7 @@ TEST(RegisterWrite, ModbusRtuServoGetsRegistersHighByteFirst) {
   const RegisterMap smsmb = make(TableId::Smsmb);
   const auto plan = write(smsmb, 0x80, {0x0800, 1, 20});
   ASSERT_TRUE(plan);
-  // SPEC §1.3 worked frame: 01 06 00 80 08 00 sets goal position 2048.
+  // docs/PROTOCOL.md §1.3 worked frame: 01 06 00 80 08 00 sets goal position 2048.
   EXPECT_EQ(plan->writes, (std::vector<BusWrite>{{0x80, {0x08, 0x00, 0x00, 0x01, 0x00, 0x14}}}));
 }
 
@@ -269,7 +269,7 @@ TEST(StagedWrite, ExistsOnPacketBusesOnly) {
   EXPECT_TRUE(make(TableId::D55d).supports_staged_writes());
 }
 
-// --- exception rules of MODBUS_MAP.md ------------------------------------------------------------
+// --- exception rules of docs/PLC_GUIDE.md ------------------------------------------------------------
 
 TEST(Exceptions, AddressBeyondTheTableIs02) {
   const RegisterMap sts = make(TableId::Sts);

@@ -1,4 +1,4 @@
-// The smsmb profile (MODBUS_MAP.md): SMSMB registers shown for sts / sms1 servos on feetech
+// The smsmb profile (docs/PLC_GUIDE.md): SMSMB registers shown for sts / sms1 servos on feetech
 // buses, each linked to its counterpart field with a conversion.
 #include <gtest/gtest.h>
 

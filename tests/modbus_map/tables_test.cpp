@@ -164,7 +164,7 @@ TEST(Tables, FieldByNameUsesTheSnakeCaseNames) {
   EXPECT_EQ(field_by_name(table(TableId::Sts), "no_such_field"), nullptr);
 }
 
-// --- encodings (SPEC §4) ---------------------------------------------------------------------------
+// --- encodings (docs/PROTOCOL.md §4) ---------------------------------------------------------------------------
 
 const FieldSpec& sts_field(std::uint16_t addr) { return *field_at(table(TableId::Sts), addr); }
 

@@ -1,5 +1,5 @@
 // Builders against hand-computed frames, and encode -> decode -> parse round trips for every
-// instruction of both packet protocols (SPEC §1.1, §1.2).
+// instruction of both packet protocols (docs/PROTOCOL.md §1.1, §1.2).
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -148,7 +148,7 @@ TEST(D55dInstructions, EveryInstructionRoundTrips) {
          EXPECT_EQ(request->address, 36);
          EXPECT_EQ(request->count, 2);
        }},
-      {"WRITE (SPEC example: every ID to 1)", write(kBroadcastId, 3, Bytes{0x01}),
+      {"WRITE (docs/PROTOCOL.md example: every ID to 1)", write(kBroadcastId, 3, Bytes{0x01}),
        {0xD5, 0x5D, 0xFE, 0x04, 0x03, 0x03, 0x01, 0x09},
        [](const Packet& p) {
          auto request = parse_write(p.params);

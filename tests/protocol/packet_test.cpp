@@ -8,14 +8,14 @@ namespace sms::protocol {
 namespace {
 
 TEST(PacketChecksum, FeetechInvertsTheSum) {
-  // PING id 1: ~(01 + 02 + 01) = ~04 = FB (SPEC §1.1).
+  // PING id 1: ~(01 + 02 + 01) = ~04 = FB (docs/PROTOCOL.md §1.1).
   EXPECT_EQ(checksum(kFeetechFormat, Bytes{0x01, 0x02, 0x01}), 0xFB);
   // The sum wraps before inverting: FE + 02 + 05 = 0x105 -> ~05 = FA.
   EXPECT_EQ(checksum(kFeetechFormat, Bytes{0xFE, 0x02, 0x05}), 0xFA);
 }
 
 TEST(PacketChecksum, D55dKeepsThePlainSum) {
-  // SPEC §1.2: FE + 04 + 03 + 03 + 01 = 0x109 -> 09.
+  // docs/PROTOCOL.md §1.2: FE + 04 + 03 + 03 + 01 = 0x109 -> 09.
   EXPECT_EQ(checksum(kD55dFormat, Bytes{0xFE, 0x04, 0x03, 0x03, 0x01}), 0x09);
   EXPECT_EQ(checksum(kD55dFormat, Bytes{}), 0x00);
 }

@@ -57,7 +57,7 @@ void expect_same_events(const std::vector<DecodeEvent>& actual, const std::vecto
   }
 }
 
-// SPEC §1.1 worked frames.
+// docs/PROTOCOL.md §1.1 worked frames.
 const Bytes kPingRequest{0xFF, 0xFF, 0x01, 0x02, 0x01, 0xFB};
 const Bytes kPingReply{0xFF, 0xFF, 0x01, 0x02, 0x00, 0xFC};
 const Bytes kReadReply{0xFF, 0xFF, 0x01, 0x04, 0x00, 0x18, 0x05, 0xDD};
@@ -123,7 +123,7 @@ TEST(D55dDecoder, RejectsTheFeetechInvertedChecksum) {
 }
 
 TEST(D55dDecoder, AcceptsPingRepliesWithLen2And3) {
-  // SPEC §1.2 decision: ERROR at byte 5, LEN 3 carries one parameter.
+  // docs/PROTOCOL.md §1.2 decision: ERROR at byte 5, LEN 3 carries one parameter.
   auto events = decode_all(kD55dFormat, Bytes{0xD5, 0x5D, 0x01, 0x03, 0x01, 0x00, 0x05,   //
                                               0xD5, 0x5D, 0x01, 0x02, 0x00, 0x03});
   ASSERT_EQ(events.size(), 2U);

@@ -80,7 +80,7 @@ TEST(SimulatedBusTiming, SyncReadRepliesFollowEachOtherWithTheirReturnDelays) {
   const Bytes replies = rig.host->receive_exactly(3 * 21);
   const double took = elapsed_ms(sent);
   ASSERT_EQ(replies.size(), 63U);
-  // SPEC §5: (8 + N) request bytes + N × (6 + L) reply bytes + N return delays (100 µs each:
+  // docs/PROTOCOL.md §5: (8 + N) request bytes + N × (6 + L) reply bytes + N return delays (100 µs each:
   // the factory 0 acts as 50 × 2 µs).
   EXPECT_GE(took, (11 + 63) * 10.0 / 115'200 * 1000 + 3 * 0.1);
   const auto packets = decode_all(kFeetechFormat, replies);

@@ -1,4 +1,4 @@
-// `D5 5D` servos through a real pty: every instruction of SPEC §1.2 and the motor rules of
+// `D5 5D` servos through a real pty: every instruction of docs/PROTOCOL.md §1.2 and the motor rules of
 // doc 002 (speed 0 stops, heartbeat, photo-switch homing, custom moves, trajectories).
 #include <gtest/gtest.h>
 

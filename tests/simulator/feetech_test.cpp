@@ -1,4 +1,4 @@
-// Feetech `FF FF` servos (sts, sms1) through a real pty: every instruction of SPEC §1.1.
+// Feetech `FF FF` servos (sts, sms1) through a real pty: every instruction of docs/PROTOCOL.md §1.1.
 #include <gtest/gtest.h>
 
 #include "protocol/feetech.h"
@@ -47,7 +47,7 @@ TEST_F(FeetechSim, ReadsTheConfiguredIdentityFields) {
   start({sts(7, 115'200)});
   rig->host->set_baud(115'200);
   // ID 7, baud code 4 (115200), return delay 0 (Feetech's factory value; acts as 50), response
-  // level 1 (SPEC §2.1, §3, docs/DECISIONS.md "Vendor fidelity").
+  // level 1 (docs/PROTOCOL.md §2.1, §3, docs/DECISIONS.md "Vendor fidelity").
   EXPECT_EQ(read(7, 5, 4), (Bytes{7, 4, 0, 1}));
 }
 
@@ -66,7 +66,7 @@ TEST_F(FeetechSim, WorkedWriteFrameMovesTheServoToItsGoal) {
   ASSERT_TRUE(reaches(1, 56, {0xC4, 0x09}));
   EXPECT_EQ(read(1, 66, 1), Bytes{0});
   EXPECT_EQ(read(1, 58, 2), (Bytes{0x00, 0x00}));
-  // The worked frame of SPEC §1.1: goal 2048 at speed 1000, answered FF FF 01 02 00 FC.
+  // The worked frame of docs/PROTOCOL.md §1.1: goal 2048 at speed 1000, answered FF FF 01 02 00 FC.
   host().send({0xFF, 0xFF, 0x01, 0x09, 0x03, 0x2A, 0x00, 0x08, 0x00, 0x00, 0xE8, 0x03, 0xD5});
   EXPECT_EQ(host().receive_exactly(6), (Bytes{0xFF, 0xFF, 0x01, 0x02, 0x00, 0xFC}));
   EXPECT_TRUE(reaches(1, 56, {0x00, 0x08}));

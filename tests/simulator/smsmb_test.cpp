@@ -1,4 +1,4 @@
-// SMS servos with Modbus-RTU firmware (SMSMB, SPEC §1.3 and §2.4) through a real pty: the
+// SMS servos with Modbus-RTU firmware (SMSMB, docs/PROTOCOL.md §1.3 and §2.4) through a real pty: the
 // frames by hand, then a stock libmodbus RTU master as proof the slave side is standard.
 #include <gtest/gtest.h>
 #include <modbus.h>
@@ -236,7 +236,7 @@ TEST_F(SmsmbSim, StockLibmodbusRtuMasterTalksToIt) {
   EXPECT_EQ(errno, EMBXILADD);
 }
 
-// A slave's own t3.5 (issue 13), with wire timing on: a request that starts less than 3.5
+// A slave's own t3.5, with wire timing on: a request that starts less than 3.5
 // characters after the previous frame is heard as its tail and ignored; after a silence the
 // slave listens again.
 TEST_F(SmsmbSim, RequestCloserThanThreePointFiveCharactersToThePreviousFrameIsIgnored) {

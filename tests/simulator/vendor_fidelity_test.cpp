@@ -25,7 +25,7 @@ constexpr std::uint8_t kRegWrite = 0x04;
 constexpr std::uint8_t kAction = 0x05;
 constexpr std::uint8_t kBroadcast = 0xFE;
 
-// FF FF ID LEN INSTR P... CHK, CHK = ~(ID + LEN + INSTR + P...) (SPEC §1.1), spelled out here.
+// FF FF ID LEN INSTR P... CHK, CHK = ~(ID + LEN + INSTR + P...) (docs/PROTOCOL.md §1.1), spelled out here.
 Bytes frame(std::uint8_t id, std::uint8_t instruction, const Bytes& params = {}) {
   // Built by push_back into reserved room: GCC 12 at -O3 takes an insert after a 5-byte
   // initializer list for a write out of bounds (-Warray-bounds), a false positive.
