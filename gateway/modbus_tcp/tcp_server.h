@@ -45,8 +45,13 @@ class Reply {
     ~Target() = default;
   };
 
-  Reply(std::shared_ptr<Target> target, std::uint64_t request_serial)
-      : target_(std::move(target)), request_serial_(request_serial) {}
+  // `origin`: who sent the request, for the log lines of what it changes ("an RTU panel on
+  // /dev/ttyUSB1", "the Sparkplug host"); empty: a Modbus TCP client.
+  Reply(std::shared_ptr<Target> target, std::uint64_t request_serial,
+        std::shared_ptr<const std::string> origin = nullptr)
+      : target_(std::move(target)), request_serial_(request_serial), origin_(std::move(origin)) {}
+  std::string_view origin() const { return origin_ ? std::string_view(*origin_) : std::string_view("a Modbus TCP client"); }
+  const std::shared_ptr<const std::string>& origin_text() const { return origin_; }
   void send(Bytes response_pdu) const { target_->deliver(request_serial_, std::move(response_pdu)); }
   // The request is done and gets no answer (a broadcast, as Modbus TCP gateways answer them by
   // default): the connection goes on with its next request.
@@ -55,6 +60,7 @@ class Reply {
  private:
   std::shared_ptr<Target> target_;
   std::uint64_t request_serial_;
+  std::shared_ptr<const std::string> origin_;
 };
 
 // Answers requests. Called on the io_context thread, one request at a time per connection

@@ -426,7 +426,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     }
     const std::uint64_t serial = next_serial_++;
     pending_.emplace(serial, std::move(done));
-    router_.handle(unit_id, pdu, Reply(replies_, serial));
+    static const auto origin = std::make_shared<const std::string>("the Sparkplug host (NCMD/DCMD)");
+    router_.handle(unit_id, pdu, Reply(replies_, serial, origin));
   }
 
   // Runs `reads` one after the other; `done` gets their answers (stops at the first failure).

@@ -340,7 +340,7 @@ void RtuSlavePort::start_next() {
   // order) and the port waits for all of them before the next request.
   auto pdu = std::make_shared<const Bytes>(in_flight_->request.pdu);
   for (std::size_t i = 0; i < units.size(); ++i) {
-    Reply reply(mailbox_, in_flight_->first_serial + i);
+    Reply reply(mailbox_, in_flight_->first_serial + i, origin_);
     post_([this, unit = units[i], pdu, reply] { handle_on_io_thread(unit, *pdu, reply); });
   }
 }

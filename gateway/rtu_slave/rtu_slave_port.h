@@ -115,6 +115,9 @@ class RtuSlavePort {
   std::string what() const;  // "rtu slave /dev/ttyUSB1" for logs
 
   const config::RtuSlaveConfig port_;
+  // Who the port's requests come from, in the log lines of what they change.
+  const std::shared_ptr<const std::string> origin_ =
+      std::make_shared<const std::string>("an RTU master on " + port_.device);
   const RtuSlaveTiming timing_;
   RequestHandler& router_;
   const RolePolicy& policy_;

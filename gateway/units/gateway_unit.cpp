@@ -443,7 +443,7 @@ void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply
         reply.send(exception_response(request.function, Fault::BadValue));
         return;
       }
-      safety_.rearm_watchdogs();
+      safety_.rearm_watchdogs(reply.origin());
       reply.send(write_response(request));
       return;
     default:
@@ -453,7 +453,7 @@ void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply
 
 void GatewayUnit::write_estop_coil(const WriteBitsRequest& request, const Reply& reply) {
   if (!request.values[0]) {
-    safety_.reset_estop();
+    safety_.reset_estop(reply.origin());
     reply.send(write_response(request));
     return;
   }
@@ -465,7 +465,7 @@ void GatewayUnit::write_estop_coil(const WriteBitsRequest& request, const Reply&
       return;
     }
     reply.send(write_response(request));
-  });
+  }, reply.origin());
 }
 
 void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply& reply) {

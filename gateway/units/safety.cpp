@@ -257,7 +257,7 @@ class SafetySupervisor::Impl {
     return bus.gate->epoch();
   }
 
-  void estop(PostFn post, std::function<void(bool)> done) {
+  void estop(PostFn post, std::function<void(bool)> done, std::string_view who) {
     bool already = false;
     {
       std::lock_guard lock(state_mutex_);
@@ -266,8 +266,9 @@ class SafetySupervisor::Impl {
     }
     if (!already) {
       estops_.fetch_add(1);
-      spdlog::warn("safety: E-STOP latched by a Modbus client (gateway unit coil 1): every bus stops; motion writes "
-                   "are refused until coil 1 is written 0");
+      spdlog::warn("safety: E-STOP latched by {} (gateway unit coil 1): every bus stops; motion writes are refused "
+                   "until coil 1 is written 0",
+                   who);
     }
     const auto requested = Clock::now();
     auto remaining = std::make_shared<std::atomic<std::size_t>>(buses_.size());
@@ -293,18 +294,17 @@ class SafetySupervisor::Impl {
     }
   }
 
-  void reset_estop() {
+  void reset_estop(std::string_view who) {
     {
       std::lock_guard lock(state_mutex_);
       if (!estop_latched_.exchange(false)) return;
       apply_gates_locked();
     }
     persist();
-    spdlog::warn("safety: e-stop reset by a Modbus client; nothing moved, motion writes are accepted again{}",
-                 owed_text());
+    spdlog::warn("safety: e-stop reset by {}; nothing moved, motion writes are accepted again{}", who, owed_text());
   }
 
-  void rearm_watchdogs() {
+  void rearm_watchdogs(std::string_view who) {
     std::vector<std::string> rearmed;
     {
       std::lock_guard lock(state_mutex_);
@@ -317,7 +317,7 @@ class SafetySupervisor::Impl {
     if (rearmed.empty()) return;
     persist();
     for (const auto& name : rearmed) {
-      spdlog::info("safety: bus {}: watchdog re-armed by a Modbus client; nothing moved{}", name, owed_text());
+      spdlog::info("safety: bus {}: watchdog re-armed by {}; nothing moved{}", name, who, owed_text());
     }
   }
 
@@ -727,9 +727,11 @@ std::optional<std::uint16_t> SafetySupervisor::heartbeat_value(std::size_t bus) 
   return impl_->heartbeat_value(bus);
 }
 Expected<MotionEpoch> SafetySupervisor::admit_motion(std::size_t bus) { return impl_->admit_motion(bus); }
-void SafetySupervisor::estop(PostFn post, std::function<void(bool)> done) { impl_->estop(std::move(post), std::move(done)); }
-void SafetySupervisor::reset_estop() { impl_->reset_estop(); }
-void SafetySupervisor::rearm_watchdogs() { impl_->rearm_watchdogs(); }
+void SafetySupervisor::estop(PostFn post, std::function<void(bool)> done, std::string_view who) {
+  impl_->estop(std::move(post), std::move(done), who);
+}
+void SafetySupervisor::reset_estop(std::string_view who) { impl_->reset_estop(who); }
+void SafetySupervisor::rearm_watchdogs(std::string_view who) { impl_->rearm_watchdogs(who); }
 SafetyFacts SafetySupervisor::facts() const { return impl_->facts(); }
 bool SafetySupervisor::estop_latched() const { return impl_->estop_latched(); }
 bool SafetySupervisor::any_tripped() const { return impl_->any_tripped(); }

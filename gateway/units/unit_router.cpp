@@ -150,7 +150,8 @@ void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu,
 void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, const Reply& reply) {
   const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
   const auto fed_on_success = [&](std::size_t bus_index) {
-    return Reply(std::make_shared<FeedOnSuccess>(reply, [this, bus_index] { safety_.feed_write(bus_index); }), 0);
+    return Reply(std::make_shared<FeedOnSuccess>(reply, [this, bus_index] { safety_.feed_write(bus_index); }), 0,
+                 reply.origin_text());
   };
   if (const PassthroughUnit* forwarded = passthrough_[unit_id].get()) {
     forward(*forwarded, pdu, writes(function) ? fed_on_success(forwarded->bus_index) : reply);

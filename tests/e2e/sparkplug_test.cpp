@@ -173,6 +173,8 @@ TEST(Sparkplug, EstopOverNcmdBlocksMotionCommands) {
   }, 10s, from);
   ASSERT_TRUE(latched) << plant.host.summary();
   EXPECT_EQ(int_of(latched->metric("Gateway/E-Stop")), 1);
+  EXPECT_TRUE(gateway.process().wait_for_line("E-STOP latched by the Sparkplug host (NCMD/DCMD)", 2s))
+      << gateway.process().output();
 
   const std::string result = command_result(plant.host, sp::Metric::int16("goal_position", 1000));
   EXPECT_NE(result.find("exception 0x04"), std::string::npos) << result;
