@@ -59,12 +59,20 @@ struct SyncWriteOp {          // one broadcast SYNC WRITE frame, no reply
 struct PingOp {
   std::uint8_t servo_id = 0;
 };
+// One SYNC READ frame (feetech tables that have it): each listed servo answers in turn. Its
+// BusResult's data holds, for each of `ids` in order, 1 byte (1: answered, 0: silent) and then
+// `count` bytes (zeros for a silent servo): sync_read_answers() takes it apart.
+struct SyncReadOp {
+  std::uint16_t address = 0;
+  std::uint16_t count = 0;    // bytes per servo
+  std::vector<std::uint8_t> ids;
+};
 struct RawPduOp {             // modbus-rtu passthrough: forward a PDU as it is
   std::uint8_t slave = 0;     // 0 = broadcast, no reply awaited
   Bytes pdu;
   MotionEpoch motion_epoch = 0;
 };
-using BusOp = std::variant<ReadOp, WriteOp, ActionOp, SyncWriteOp, PingOp, RawPduOp>;
+using BusOp = std::variant<ReadOp, WriteOp, ActionOp, SyncWriteOp, PingOp, RawPduOp, SyncReadOp>;
 
 // The op's motion epoch; 0 for reads and pings.
 MotionEpoch motion_epoch_of(const BusOp& op);
@@ -88,5 +96,17 @@ struct BusResult {
 };
 
 using Completion = std::function<void(BusResult)>;
+
+// A SyncReadOp's answers by servo, in the order of its ids; nullopt where a servo was silent.
+inline std::vector<std::optional<Bytes>> sync_read_answers(const SyncReadOp& op, const BusResult& result) {
+  std::vector<std::optional<Bytes>> answers(op.ids.size());
+  if (result.status != BusStatus::Ok) return answers;
+  const std::size_t stride = 1u + op.count;
+  for (std::size_t i = 0; i < op.ids.size() && (i + 1) * stride <= result.data.size(); ++i) {
+    const auto at = result.data.begin() + static_cast<std::ptrdiff_t>(i * stride);
+    if (*at == 1) answers[i] = Bytes(at + 1, at + static_cast<std::ptrdiff_t>(stride));
+  }
+  return answers;
+}
 
 }  // namespace sms::gateway

@@ -88,6 +88,10 @@ void EngineCore<Transactor>::submit(BusOp op, Priority priority, Completion done
   job.motion_epoch = motion_epoch_of(op);
   if (const auto* write = std::get_if<WriteOp>(&op)) job.staged_write = write->staged;
   job.action = std::holds_alternative<ActionOp>(op);
+  if (const auto* sync_read = std::get_if<SyncReadOp>(&op)) {
+    job.sync_read_ids = sync_read->ids;
+    job.sync_read_count = sync_read->count;
+  }
   if (priority == Priority::Safety && settings_.protocol != protocol::BusProtocol::ModbusRtu) {
     if (const auto* write = std::get_if<WriteOp>(&op)) job.stop_writes.push_back(*write);
     if (const auto* sync = std::get_if<SyncWriteOp>(&op)) {
@@ -229,8 +233,23 @@ void EngineCore<Transactor>::run(Job job) {
     return;
   }
   sync_answered_.reset();
+  std::map<std::uint8_t, protocol::Bytes> collected;
+  if (!job.sync_read_ids.empty()) sync_collect_ = &collected;
   BusResult result = transactor_->execute(job.request, events_);
+  sync_collect_ = nullptr;
   counters_.transactions.fetch_add(1, std::memory_order_relaxed);
+  if (!job.sync_read_ids.empty() && result.status == BusStatus::Ok) {
+    // sync_read_answers() (bus_operations.h) reads it back: per id, answered or not, its bytes.
+    for (const auto id : job.sync_read_ids) {
+      const auto found = collected.find(id);
+      result.data.push_back(found == collected.end() ? 0 : 1);
+      if (found == collected.end()) {
+        result.data.insert(result.data.end(), job.sync_read_count, 0);
+      } else {
+        result.data.insert(result.data.end(), found->second.begin(), found->second.end());
+      }
+    }
+  }
   if (result.status == BusStatus::BusDown) {
     const std::string reason = std::move(result.detail);
     port_lost(reason);  // drops the engine's own work: it is rebuilt when the bus is back
@@ -714,7 +733,11 @@ void EngineCore<Transactor>::Events::sync_answer(std::uint8_t servo_id, std::spa
   // Only listed members' answers come here (the transactor judges the others not ours), and the
   // list is the poll plan's: configured servos.
   core_.sync_answered_.set(servo_id);
-  core_.cache_.store_block(servo_id, data, SteadyClock::now());
+  if (core_.sync_collect_ != nullptr) {
+    (*core_.sync_collect_)[servo_id] = protocol::Bytes(data.begin(), data.end());
+  } else {
+    core_.cache_.store_block(servo_id, data, SteadyClock::now());
+  }
   core_.servo_answered(servo_id);
 }
 

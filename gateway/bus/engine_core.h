@@ -77,6 +77,8 @@ class EngineCore final : public BusEngine {
     std::vector<WriteOp> stop_writes;
     bool staged_write = false;  // REG WRITE: the servo holds it until ACTION
     bool action = false;        // ACTION: runs (and so clears) every staged write
+    std::vector<std::uint8_t> sync_read_ids;  // a client's SYNC READ: whose answers it collects
+    std::uint16_t sync_read_count = 0;        // and how many bytes each
   };
   struct Owed {
     OwedStop stop;
@@ -170,6 +172,8 @@ class EngineCore final : public BusEngine {
   std::bitset<256> poll_refusal_logged_;  // servos whose refused poll was logged, until a poll succeeds
   std::bitset<256> identity_refusal_logged_;
   std::bitset<256> sync_answered_;  // members that answered the SYNC READ under way
+  // A client's SYNC READ under way collects its answers here instead of the poll cache.
+  std::map<std::uint8_t, protocol::Bytes>* sync_collect_ = nullptr;
   std::bitset<256> staged_;         // servos holding a staged write (REG WRITE since the last ACTION)
   bool open_failure_logged_ = false;
 };

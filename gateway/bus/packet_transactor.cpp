@@ -162,6 +162,15 @@ PacketTransactor::Request PacketTransactor::prepare(BusOp&& op, unsigned attempt
     } catch (const std::exception& error) {
       throw refuse(std::string("SYNC WRITE: ") + error.what());
     }
+  } else if (auto* sync_read = std::get_if<SyncReadOp>(&op)) {
+    if (!rules_.has_sync_read) {
+      throw refuse("SYNC READ does not exist on a " + std::string(protocol::to_string(rules_.protocol)) + " bus");
+    }
+    if (sync_read->ids.empty() || sync_read->address > 0xFF || sync_read->count < 1 ||
+        sync_read->count > protocol::kMaxParams) {
+      throw refuse("SYNC READ needs servos, a byte address and 1-253 bytes");
+    }
+    return sync_read_request({sync_read->address, sync_read->count}, std::move(sync_read->ids));
   } else if (auto* ping = std::get_if<PingOp>(&op)) {
     if (ping->servo_id >= protocol::kBroadcastId) {
       throw refuse("PING needs one servo ID (0-253): answers to a broadcast collide");

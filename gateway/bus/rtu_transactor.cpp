@@ -136,6 +136,8 @@ RtuTransactor::Request RtuTransactor::prepare(BusOp&& op, unsigned attempts) con
     request.no_reply = raw->slave == kBroadcastSlave;
   } else if (std::holds_alternative<ActionOp>(op)) {
     throw std::invalid_argument(label + "Modbus has no ACTION: staged writes exist on packet buses only");
+  } else if (std::holds_alternative<SyncReadOp>(op)) {
+    throw std::invalid_argument(label + "Modbus has no SYNC READ");
   } else {
     throw std::invalid_argument(label + "Modbus has no SYNC WRITE: sync groups need packet buses");
   }

@@ -20,6 +20,7 @@
 #include "gateway/units/state_file.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/motion.h"
+#include "modbus_map/tables.h"
 
 namespace sms::gateway {
 namespace {
@@ -53,6 +54,7 @@ struct BusSafety {
   BusEngine* engine = nullptr;
   std::shared_ptr<MotionGate> gate;
   bool packet = true;  // SYNC WRITE exists
+  bool sync_read = false;  // SYNC READ exists (feetech)
   std::optional<config::WatchdogConfig> watchdog;
   config::StartAction on_start = config::StartAction::Keep;
   StopAction on_stop = StopAction::Hold;
@@ -127,6 +129,7 @@ class SafetySupervisor::Impl {
       bus->engine = engines[i];
       bus->gate = gates[i];
       bus->packet = bus_config.protocol != protocol::BusProtocol::ModbusRtu;
+      bus->sync_read = bus_config.protocol == protocol::BusProtocol::Feetech;
       bus->watchdog = bus_config.watchdog;
       bus->on_start = bus_config.on_start;
       bus->on_stop = bus_config.on_stop;
@@ -512,36 +515,94 @@ class SafetySupervisor::Impl {
   }
 
   // --- safe stops ------------------------------------------------------------------------------
+  // What was read of each target's state, by target index (its context ranges in order).
+  using Contexts = std::map<std::size_t, std::vector<BusResult>>;
+
   // Safety thread. Reads what the holds need, then sends the stop frames; `done(ok)` after the
   // last frame (ok: every servo was reached).
   void run_stop(std::size_t index, StopCause cause, std::optional<StopAction> override, Clock::time_point since,
                 std::string reason, std::function<void(bool)> done) {
     BusSafety& bus = *buses_[index];
-    struct PendingRead {
-      std::size_t target;
-      modbus_map::BusRange range;
+    auto contexts = std::make_shared<Contexts>();
+    auto write_phase = [this, index, cause, override, since, reason, done, contexts] {
+      std::map<std::size_t, std::vector<const BusResult*>> by_target;
+      for (const auto& [target, results] : *contexts) {
+        for (const auto& result : results) by_target[target].push_back(&result);
+      }
+      send_stop_frames(index, cause, override, since, reason, done, by_target);
     };
-    std::vector<PendingRead> reads;
+    // Targets whose whole state is one range of a table with SYNC READ are read in one frame per
+    // range (a 60-servo arm: one frame instead of 60 READs); the rest, one READ per range.
+    std::map<std::pair<std::uint16_t, std::uint16_t>, std::vector<std::size_t>> by_range;
+    std::vector<std::size_t> singly;
     for (std::size_t t = 0; t < bus.targets.size(); ++t) {
       const StopTarget& target = bus.targets[t];
       if (override.value_or(target.action) != StopAction::Hold) continue;
-      for (const auto& range : target.context) reads.push_back(PendingRead{t, range});
+      if (bus.sync_read && target.context.size() == 1 && modbus_map::table(target.spec->table).has_sync_read) {
+        by_range[{target.context[0].address, target.context[0].count}].push_back(t);
+      } else {
+        singly.push_back(t);
+      }
     }
-    auto write_phase = [this, index, cause, override, since, reason, done, reads](std::vector<BusResult> results) {
-      std::map<std::size_t, std::vector<const BusResult*>> by_target;
-      for (std::size_t i = 0; i < reads.size(); ++i) by_target[reads[i].target].push_back(&results[i]);
-      send_stop_frames(index, cause, override, since, reason, done, by_target);
-    };
-    if (reads.empty()) {
-      write_phase({});
+    std::vector<std::pair<modbus_map::BusRange, std::vector<std::size_t>>> groups;
+    for (auto& [range, members] : by_range) {
+      if (members.size() == 1) {
+        singly.push_back(members[0]);
+      } else {
+        groups.push_back({modbus_map::BusRange{range.first, range.second}, std::move(members)});
+      }
+    }
+    if (groups.empty()) {
+      read_contexts(bus, singly, contexts, write_phase);
       return;
     }
-    // The write phase runs where the last read completes (the bus thread), so the stop frames are
-    // queued before the engine picks its next job: a poll due meanwhile cannot slip in between.
-    auto join = BusJoin::create(reads.size(), run_here(), std::move(write_phase));
+    // Whoever stayed silent in a SYNC READ is read on its own, with the bus's retries, before the
+    // frames go out: one missed answer must not turn a hold into a torque off.
+    std::vector<SyncReadOp> frames;
+    for (const auto& [range, members] : groups) {
+      SyncReadOp frame{range.address, range.count, {}};
+      for (const std::size_t t : members) frame.ids.push_back(bus.targets[t].servo_id);
+      frames.push_back(std::move(frame));
+    }
+    auto join = BusJoin::create(
+        groups.size(), run_here(), [this, index, groups, frames, singly, contexts, write_phase](std::vector<BusResult> results) {
+          std::vector<std::size_t> again = singly;
+          for (std::size_t g = 0; g < groups.size(); ++g) {
+            const auto answers = sync_read_answers(frames[g], results[g]);
+            const auto& members = groups[g].second;
+            for (std::size_t m = 0; m < members.size(); ++m) {
+              if (answers[m]) {
+                (*contexts)[members[m]].push_back(BusResult{BusStatus::Ok, 0, *answers[m], {}});
+              } else {
+                again.push_back(members[m]);
+              }
+            }
+          }
+          read_contexts(*buses_[index], again, contexts, write_phase);
+        });
+    for (std::size_t g = 0; g < frames.size(); ++g) submit_safely(bus, frames[g], join->completion(g));
+  }
+
+  // Reads every context range of `targets` into `contexts`, then `then()`. The completions run
+  // where the last read completes (the bus thread), so the next phase is queued before the engine
+  // picks its next job: a poll due meanwhile cannot slip in between.
+  void read_contexts(BusSafety& bus, const std::vector<std::size_t>& targets, std::shared_ptr<Contexts> contexts,
+                     std::function<void()> then) {
+    std::vector<std::pair<std::size_t, modbus_map::BusRange>> reads;
+    for (const std::size_t t : targets) {
+      for (const auto& range : bus.targets[t].context) reads.emplace_back(t, range);
+    }
+    if (reads.empty()) {
+      then();
+      return;
+    }
+    auto join = BusJoin::create(reads.size(), run_here(), [reads, contexts, then](std::vector<BusResult> results) {
+      for (std::size_t i = 0; i < reads.size(); ++i) (*contexts)[reads[i].first].push_back(std::move(results[i]));
+      then();
+    });
     for (std::size_t i = 0; i < reads.size(); ++i) {
-      const StopTarget& target = bus.targets[reads[i].target];
-      submit_safely(bus, ReadOp{target.servo_id, reads[i].range.address, reads[i].range.count}, join->completion(i));
+      const StopTarget& target = bus.targets[reads[i].first];
+      submit_safely(bus, ReadOp{target.servo_id, reads[i].second.address, reads[i].second.count}, join->completion(i));
     }
   }
 

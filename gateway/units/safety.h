@@ -19,8 +19,9 @@
 // - The latch and the tripped watchdogs are kept in `<state_dir>/safety.state`, written before
 //   the request that changed them is answered, and restored at start: a restart or a crash does
 //   not release them, and a restored latch or trip stops its servos again at start.
-// - A safe stop reads each servo's mode, torque, goal block and present position (one READ on
-//   packet tables), then writes: on packet buses one SYNC WRITE frame per distinct write shape,
+// - A safe stop reads each servo's mode, torque, goal block and present position (one SYNC READ
+//   frame for a feetech bus's servos, a servo silent in it read on its own; else one READ per
+//   servo), then writes: on packet buses one SYNC WRITE frame per distinct write shape,
 //   on modbus-rtu buses one write per servo in unit order. A servo that cannot be read gets its
 //   torque switched off. A servo the stop could not reach (bus down, offline, no answer; on packet
 //   buses also one whose state could not be read, since a broadcast is never acknowledged) is

@@ -253,13 +253,16 @@ TEST(SafetyEStop, CoversSyncGroupsStagedWritesActionAndPassthroughUnits) {
   EXPECT_TRUE(eventually([&] { return arm.field(2, "goal_position") == 2100; }, 2s));
 }
 
-// 40 servos stopping the same way need two SYNC WRITE frames of the 6-byte goal block (LEN
-// carries 35): every one of them stops, and the gateway lives on.
+// 40 servos stopping the same way: their state is read in one SYNC READ frame, and they need
+// two SYNC WRITE frames of the 6-byte goal block (LEN carries 35): every one of them stops, in a
+// handful of frames instead of 40 READs, and the gateway lives on.
 TEST(SafetyEStop, StopsMoreServosThanOneSyncWriteFrameCarries) {
   constexpr int kServos = 40;
   TempDir dir;
   SimProcess sim(dir, "sim", {"--ids", "1-40"});
-  std::string yaml = "buses:\n  - {name: arm, device: \"" + sim.pty() + "\", protocol: feetech, baud: 1000000}\nservos:\n";
+  // One poll cycle at start, then none for a minute: the frames counted are the stop's.
+  std::string yaml = "buses:\n  - {name: arm, device: \"" + sim.pty() +
+                     "\", protocol: feetech, baud: 1000000, poll_period_ms: 60000}\nservos:\n";
   for (int id = 1; id <= kServos; ++id) yaml += "  - {bus: arm, id: " + std::to_string(id) + ", table: sts}\n";
   auto gateway = GatewayProcess::with_config(dir, yaml, 1);
   wait_until_polled(gateway.port(), kServos);
@@ -271,10 +274,17 @@ TEST(SafetyEStop, StopsMoreServosThanOneSyncWriteFrameCarries) {
   }
   ASSERT_TRUE(eventually([&] { return sim.field(kServos, "present_speed") != 0; }, 3s));
   ModbusClient gateway_unit(gateway.port(), kGateway);
+  const auto requests = [&] {
+    const std::string stats = sim.control("stats");
+    return std::stol(stats.substr(stats.find("requests=") + 9));
+  };
+  const long before = requests();
   ASSERT_TRUE(gateway_unit.write_coils(kEStopCoil, {1}).ok()) << gateway.process().output();
   for (int id = 1; id <= kServos; ++id) {
     EXPECT_TRUE(eventually([&] { return sim.field(id, "present_speed") == 0; }, 3s)) << "servo " << id;
   }
+  // One SYNC READ of the 40 states, two SYNC WRITE frames.
+  EXPECT_EQ(requests() - before, 3) << gateway.process().output();
   EXPECT_TRUE(gateway_unit.read_input(0, 1).ok());
 }
 
