@@ -174,7 +174,9 @@ if [ "$platform" = arm64 ]; then
   fi
   image=localhost/sms-gateway:container-test-arm64
   t0=$(now)
-  podman build "${build_options[@]}" --platform linux/arm64 --build-arg RUNTIME_BASE="$arm_base" --format docker \
+  # BUILDPLATFORM and TARGETPLATFORM spelt out: podman 4.3 leaves the first empty (docker/Dockerfile.cross).
+  podman build "${build_options[@]}" --pull=never --platform linux/arm64 --build-arg BUILDPLATFORM="linux/$(dpkg --print-architecture)" \
+    --build-arg TARGETPLATFORM=linux/arm64 --build-arg RUNTIME_BASE="$arm_base" --format docker \
     -f "$context/docker/Dockerfile.cross" -t "$image" "$context" >"$tmp/build.log" 2>&1 \
     || { tail -40 "$tmp/build.log" >&2; fail "podman build --platform linux/arm64 -f docker/Dockerfile.cross"; }
   check "arm64 image built from the $context_mode in $(elapsed "$t0") s (build stage amd64, cross compiled; $(podman image inspect --format '{{.Size}}' "$image" | awk '{ printf "%.0f MB", $1 / 1e6 }'))"
