@@ -5,7 +5,7 @@
 #
 #   scripts/cross.sh ARCH                 # ARCH = arm64 | armhf: cross-configure and build into build-ARCH/
 #   scripts/cross.sh ARCH --test          # ... and run the unit tests under qemu (all folders)
-#   scripts/cross.sh ARCH --test-light    # ... only protocol, modbus_map and config (what scripts/test.sh runs)
+#   scripts/cross.sh ARCH --test-light    # ... only the protocol, modbus_map and config suites (the light form)
 #   scripts/cross.sh ARCH --simulate      # ... and check sms-gateway under qemu answers Modbus reads from the host
 #   scripts/cross.sh ARCH --deb OUTDIR    # ... and build the Debian package sms-gateway_VERSION_ARCH.deb into OUTDIR
 #   scripts/cross.sh ARCH --deps-only     # only install what the cross build needs (idempotent)
@@ -22,7 +22,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$PWD
 
-usage() { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; }
 arch=${1:-}
 case "$arch" in
   arm64) triplet=aarch64-linux-gnu; qemu=qemu-aarch64-static; binfmt=qemu-aarch64; default_mode=multiarch ;;
