@@ -4,6 +4,8 @@
 #include <asm/termbits.h>
 #include <sys/ioctl.h>
 
+#include "gateway/bus/termios2_io.h"  // header-only: termios2 with the fallback qemu-user needs
+
 #include <cerrno>
 #include <string>
 #include <system_error>
@@ -13,8 +15,8 @@ namespace {
 
 termios2 get_termios(int fd) {
   termios2 settings{};
-  if (ioctl(fd, TCGETS2, &settings) != 0) {
-    throw std::system_error(errno, std::generic_category(),
+  if (const int error = tty::get(fd, settings); error != 0) {
+    throw std::system_error(error, std::generic_category(),
                             "cannot read the line settings of fd " + std::to_string(fd) + " (is it a tty?)");
   }
   return settings;
@@ -34,8 +36,8 @@ void configure_raw_serial(int fd, std::uint32_t baud) {
   settings.c_ospeed = baud;
   settings.c_cc[VMIN] = 1;
   settings.c_cc[VTIME] = 0;
-  if (ioctl(fd, TCSETS2, &settings) != 0) {
-    throw std::system_error(errno, std::generic_category(),
+  if (const int error = tty::set(fd, settings); error != 0) {
+    throw std::system_error(error, std::generic_category(),
                             "cannot set fd " + std::to_string(fd) + " to raw 8N1 at " + std::to_string(baud) + " bit/s");
   }
 }

@@ -37,8 +37,9 @@ PersistedState load_state_file(const std::string& path) {
       if (equals == std::string::npos || equals == 0) fail("'" + pair + "' is not name=value");
       try {
         std::size_t used = 0;
-        const unsigned long value = std::stoul(pair.substr(equals + 1), &used, 0);
-        if (used != pair.size() - equals - 1 || value > 0xFFFFFFFFUL) throw std::out_of_range(pair);
+        // stoull: with stoul, "-1" wrapped to 0xFFFFFFFF passed the range check where long has 32 bits.
+        const unsigned long long value = std::stoull(pair.substr(equals + 1), &used, 0);
+        if (used != pair.size() - equals - 1 || value > 0xFFFFFFFFULL) throw std::out_of_range(pair);
         values[pair.substr(0, equals)] = static_cast<std::uint32_t>(value);
       } catch (const std::logic_error&) {
         fail("'" + pair + "' has no valid number");

@@ -1,18 +1,16 @@
 // Only <asm/termbits.h> here, never <termios.h> (see the header).
 #include "gateway/bus/serial_port_termios2.h"
 
-#include <asm/termbits.h>
-#include <sys/ioctl.h>
-
 #include <cerrno>
 
 #include "config/config.h"
+#include "gateway/bus/termios2_io.h"
 
 namespace sms::gateway::detail {
 
 int configure_raw_line(int fd, std::uint32_t baud, config::Parity parity, std::uint8_t stop_bits) {
   termios2 settings{};
-  if (ioctl(fd, TCGETS2, &settings) != 0) return errno;
+  if (const int error = tty::get(fd, settings); error != 0) return error;
   settings.c_iflag &= ~static_cast<tcflag_t>(IGNBRK | BRKINT | PARMRK | ISTRIP | INLCR | IGNCR | ICRNL | IXON |
                                              IXOFF | IXANY | INPCK | IGNPAR);
   settings.c_oflag &= ~static_cast<tcflag_t>(OPOST);
@@ -31,13 +29,12 @@ int configure_raw_line(int fd, std::uint32_t baud, config::Parity parity, std::u
   settings.c_ospeed = baud;
   settings.c_cc[VMIN] = 1;
   settings.c_cc[VTIME] = 0;
-  if (ioctl(fd, TCSETS2, &settings) != 0) return errno;
-  return 0;
+  return tty::set(fd, settings);
 }
 
 int read_line_speed(int fd, std::uint32_t& baud) {
   termios2 settings{};
-  if (ioctl(fd, TCGETS2, &settings) != 0) return errno;
+  if (const int error = tty::get(fd, settings); error != 0) return error;
   baud = settings.c_ospeed;
   return 0;
 }

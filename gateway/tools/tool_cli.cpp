@@ -2,6 +2,7 @@
 
 #include <signal.h>
 
+#include <algorithm>
 #include <cstring>
 #include <fstream>
 #include <iostream>
@@ -81,11 +82,16 @@ Expected<std::vector<std::uint8_t>> parse_ids(const std::string& text) {
     unsigned last = 0;
     try {
       std::size_t used = 0;
-      first = static_cast<unsigned>(std::stoul(item.substr(0, dash), &used));
+      // 64 bits on every architecture, capped before the cast: a huge number is refused as out of
+      // range, never truncated to a small ID (stoul: 32 bits on armhf, 64 on amd64 and arm64).
+      const auto id_of = [&](const std::string& digits) {
+        return static_cast<unsigned>(std::min<unsigned long long>(std::stoull(digits, &used), 254));
+      };
+      first = id_of(item.substr(0, dash));
       if (used != item.substr(0, dash).size()) throw std::invalid_argument(item);
       last = first;
       if (dash != std::string::npos) {
-        last = static_cast<unsigned>(std::stoul(item.substr(dash + 1), &used));
+        last = id_of(item.substr(dash + 1));
         if (used != item.size() - dash - 1) throw std::invalid_argument(item);
       }
     } catch (const std::exception&) {

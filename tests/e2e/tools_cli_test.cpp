@@ -113,6 +113,10 @@ TEST(ToolsCli, RefusesDangerousMistakesWithAReason) {
   const Finished bad_ids = run_gateway({"scan", "--device", sim.pty(), "--protocol", "feetech", "--ids", "9-3"});
   EXPECT_EQ(bad_ids.status, 2);
   EXPECT_TRUE(contains(bad_ids.output, "--ids")) << bad_ids.output;
+  // 2^32 + 1 is not ID 1 (it was, truncated, where unsigned long has 64 bits).
+  const Finished huge_id = run_gateway({"scan", "--device", sim.pty(), "--protocol", "feetech", "--ids", "4294967297"});
+  EXPECT_EQ(huge_id.status, 2);
+  EXPECT_TRUE(contains(huge_id.output, "IDs are 0-253")) << huge_id.output;
 }
 
 TEST(ToolsCli, CalibrateMiddleMakesThePresentPositionTheCentre) {

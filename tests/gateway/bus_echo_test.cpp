@@ -81,7 +81,7 @@ class EchoTest : public ::testing::Test {
     engine_->start();
   }
   void TearDown() override {
-    engine_->stop();
+    if (engine_) engine_->stop();  // SetUp may have thrown before making it
     adapter_.reset();
     simulator_.stop();
   }

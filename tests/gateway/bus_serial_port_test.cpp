@@ -79,7 +79,8 @@ TEST(SerialPort, OpensAPtyAtRatesOutsideTheBxxxConstants) {
 TEST(SerialPort, WritesAndReadsRawBytesWithoutLineProcessing) {
   PtyPair pty;
   SerialPort port(settings_for(pty.slave_path(), 1'000'000));
-  ASSERT_TRUE(port.open());
+  const auto opened = port.open();
+  ASSERT_TRUE(opened) << opened.error();
   // CR, LF, XON/XOFF and 0xFF must pass untouched: raw mode.
   const std::vector<std::uint8_t> frame{0xFF, 0xFF, 0x01, 0x0D, 0x0A, 0x11, 0x13, 0x00};
   ASSERT_TRUE(port.write_all(frame, 100ms));
@@ -97,7 +98,8 @@ TEST(SerialPort, WritesAndReadsRawBytesWithoutLineProcessing) {
 TEST(SerialPort, ReadWithNothingWaitingReturnsZeroAtOnce) {
   PtyPair pty;
   SerialPort port(settings_for(pty.slave_path(), 115'200));
-  ASSERT_TRUE(port.open());
+  const auto opened = port.open();
+  ASSERT_TRUE(opened) << opened.error();
   std::array<std::uint8_t, 8> buffer{};
   const auto got = port.read_available(buffer);
   ASSERT_TRUE(got) << got.error();
@@ -108,7 +110,8 @@ TEST(SerialPort, ReadWithNothingWaitingReturnsZeroAtOnce) {
 TEST(SerialPort, DiscardInputDropsWhatWasNotReadAndSaysHowMuch) {
   PtyPair pty;
   SerialPort port(settings_for(pty.slave_path(), 1'000'000));
-  ASSERT_TRUE(port.open());
+  const auto opened = port.open();
+  ASSERT_TRUE(opened) << opened.error();
   pty.send({0xAA, 0xBB, 0xCC});
   ASSERT_TRUE(*port.wait_readable(1s));
   const auto dropped = port.discard_input();
@@ -121,7 +124,8 @@ TEST(SerialPort, DiscardInputDropsWhatWasNotReadAndSaysHowMuch) {
 TEST(SerialPort, ReadReportsTheDeviceGoneWhenThePtyMasterCloses) {
   PtyPair pty;
   SerialPort port(settings_for(pty.slave_path(), 1'000'000));
-  ASSERT_TRUE(port.open());
+  const auto opened = port.open();
+  ASSERT_TRUE(opened) << opened.error();
   pty.close_master();
   ASSERT_TRUE(*port.wait_readable(1s));  // a hang-up is readable
   std::array<std::uint8_t, 8> buffer{};
