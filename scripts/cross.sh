@@ -320,6 +320,11 @@ build_deb() {
     # dependency from there for a library that no installed package owns.
     shlib_dirs=$(find "$root/packages" -type d -path "*/lib/$triplet" -printf '%p;' | sed 's/;$//')
   fi
+  if [ ! -f "$build/CPackConfig.cmake" ]; then
+    echo "cross.sh: --deb: the package is made from debian/ by dpkg-buildpackage now (scripts/package.sh); its" \
+         "cross form (dpkg-buildpackage -a $arch) is not wired here yet — see docs/ARM.md" >&2
+    exit 2
+  fi
   (cd "$build" && dpkg-architecture -a "$arch" -c cpack -G DEB -D CPACK_DEBIAN_PACKAGE_ARCHITECTURE="$arch" \
      -D CPACK_DEBIAN_PACKAGE_SHLIBDEPS_PRIVATE_DIRS="$shlib_dirs" >/dev/null)
 }
