@@ -27,7 +27,7 @@ std::uint32_t saturate_us(SteadyClock::duration duration) {
 }
 
 // What every bus checks of its settings; the transactor's own limits come from Transactor::check_servo.
-template <class Transactor>
+template <BusTransactor Transactor>
 BusSettings validated(BusSettings settings) {
   const std::string where = "bus " + settings.name + ": ";
   if (settings.serial.baud == 0) throw std::invalid_argument(where + "baud must not be 0");
@@ -66,7 +66,7 @@ std::vector<PollTarget> poll_targets(const BusSettings& settings, bool protocol_
 
 }  // namespace
 
-template <class Transactor>
+template <BusTransactor Transactor>
 EngineCore<Transactor>::EngineCore(BusSettings settings, const TransactorFactory& make_transactor)
     : settings_(validated<Transactor>(std::move(settings))),
       transactor_(make_transactor(settings_, counters_)),
@@ -75,14 +75,14 @@ EngineCore<Transactor>::EngineCore(BusSettings settings, const TransactorFactory
       age_limits_{std::chrono::nanoseconds{0}, kClientAgeLimit, kClientAgeLimit,
                   std::max<std::chrono::nanoseconds>(settings_.poll_period, 10ms)} {}
 
-template <class Transactor>
+template <BusTransactor Transactor>
 EngineCore<Transactor>::~EngineCore() {
   stop();
 }
 
 // ==== queue and thread ========================================================================
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::submit(BusOp op, Priority priority, Completion done) {
   Job job;
   job.motion_epoch = motion_epoch_of(op);
@@ -105,13 +105,13 @@ void EngineCore<Transactor>::submit(BusOp op, Priority priority, Completion done
   }
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::enqueue_internal(Job job) {
   std::lock_guard lock(mutex_);
   queue_.push_internal(std::move(job), Priority::Poll);
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::start() {
   {
     std::lock_guard lock(mutex_);
@@ -123,7 +123,7 @@ void EngineCore<Transactor>::start() {
   thread_ = std::thread([this] { run_thread(); });
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::stop() {
   {
     std::lock_guard lock(mutex_);
@@ -138,7 +138,7 @@ void EngineCore<Transactor>::stop() {
   thread_.join();
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::run_thread() {
   // "bus <name>" in top -H / gdb; Linux limits thread names to 15 characters.
   ::pthread_setname_np(::pthread_self(), ("bus " + settings_.name).substr(0, 15).c_str());
@@ -156,7 +156,7 @@ void EngineCore<Transactor>::run_thread() {
   shutdown();
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::run_loop() {
   for (;;) {
     if (!transactor_->is_open()) {
@@ -182,7 +182,7 @@ void EngineCore<Transactor>::run_loop() {
 }
 
 // Waits for the next job; nullopt when stopping or when the next poll cycle is due.
-template <class Transactor>
+template <BusTransactor Transactor>
 std::optional<typename EngineCore<Transactor>::Job> EngineCore<Transactor>::next_job() {
   for (;;) {
     std::optional<SteadyClock::time_point> wake_at;
@@ -209,7 +209,7 @@ std::optional<typename EngineCore<Transactor>::Job> EngineCore<Transactor>::next
   }
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::run(Job job) {
   if (auto refusal = motion_refusal(settings_, job.motion_epoch)) {
     complete(settings_, job.done, std::move(*refusal));
@@ -267,7 +267,7 @@ void EngineCore<Transactor>::run(Job job) {
   complete(settings_, job.done, std::move(result));
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::shutdown() {
   transactor_->close();
   std::vector<Job> cancelled;
@@ -282,7 +282,7 @@ void EngineCore<Transactor>::shutdown() {
 
 // ==== owed safe stops =============================================================================
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::owe_stop(OwedStop stop) {
   {
     std::lock_guard lock(mutex_);
@@ -299,7 +299,7 @@ void EngineCore<Transactor>::owe_stop(OwedStop stop) {
   wake_.notify();
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 std::vector<OwedStopState> EngineCore<Transactor>::owed_stops() const {
   std::lock_guard lock(mutex_);
   const auto now = SteadyClock::now();
@@ -308,7 +308,7 @@ std::vector<OwedStopState> EngineCore<Transactor>::owed_stops() const {
   return states;
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::make_owed_due(std::optional<std::uint8_t> servo_id) {
   std::lock_guard lock(mutex_);
   const auto now = SteadyClock::now();
@@ -317,7 +317,7 @@ void EngineCore<Transactor>::make_owed_due(std::optional<std::uint8_t> servo_id)
   }
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::deliver_owed_stops() {
   std::vector<std::pair<std::uint8_t, Owed>> due;
   {
@@ -333,7 +333,7 @@ void EngineCore<Transactor>::deliver_owed_stops() {
 }
 
 // One attempt (with the bus's retries, or one try while the servo is offline, like its probe).
-template <class Transactor>
+template <BusTransactor Transactor>
 bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
   const bool offline = scheduler_.presence(servo_id) == Presence::Offline;
   const unsigned tries = offline ? 1 : attempts();
@@ -380,7 +380,7 @@ bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
   return true;
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 std::optional<BusResult> EngineCore<Transactor>::owed_refusal(const Request& request) const {
   const std::uint8_t target = Transactor::target(request);
   std::lock_guard lock(mutex_);
@@ -394,7 +394,7 @@ std::optional<BusResult> EngineCore<Transactor>::owed_refusal(const Request& req
                                settings_.name, owing, owed_.at(owing).stop.why)};
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::neutralise_staged(const Job& job) {
   for (const WriteOp& write : job.stop_writes) {
     if (!staged_.test(write.servo_id)) continue;
@@ -415,7 +415,7 @@ void EngineCore<Transactor>::neutralise_staged(const Job& job) {
 
 // ==== port ======================================================================================
 
-template <class Transactor>
+template <BusTransactor Transactor>
 bool EngineCore<Transactor>::try_open() {
   const auto opened = transactor_->open();
   if (!opened) {
@@ -438,7 +438,7 @@ bool EngineCore<Transactor>::try_open() {
   return true;
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::port_lost(const std::string& reason) {
   spdlog::error("bus {}: {} — bus down; reopening every {} ms", settings_.name, reason, settings_.reopen_period.count());
   transactor_->close();
@@ -463,7 +463,7 @@ void EngineCore<Transactor>::port_lost(const std::string& reason) {
 
 // ==== discovery ===================================================================================
 
-template <class Transactor>
+template <BusTransactor Transactor>
 const ServoSettings* EngineCore<Transactor>::servo(std::uint8_t servo_id) const {
   for (const auto& each : settings_.servos) {
     if (each.servo_id == servo_id) return &each;
@@ -471,7 +471,7 @@ const ServoSettings* EngineCore<Transactor>::servo(std::uint8_t servo_id) const 
   return nullptr;
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::begin_discovery() {
   discovered_.store(false);
   discovery_ = Discovery{};
@@ -495,7 +495,7 @@ void EngineCore<Transactor>::begin_discovery() {
   }
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::on_discovery_ping(std::size_t index, const BusResult& result) {
   DiscoveredServo& found = discovery_.servos.at(index);
   if (result.status == BusStatus::Ok) {
@@ -512,7 +512,7 @@ void EngineCore<Transactor>::on_discovery_ping(std::size_t index, const BusResul
   discovery_step_done();
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::read_identity(std::uint8_t servo_id, std::optional<std::size_t> discovery_index) {
   const ServoSettings* settings = servo(servo_id);
   const IdentityLayout* layout = settings == nullptr ? nullptr : identity_layout(settings->table);
@@ -538,7 +538,7 @@ void EngineCore<Transactor>::read_identity(std::uint8_t servo_id, std::optional<
   enqueue_internal(std::move(job));
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::discovery_step_done() {
   if (discovery_.pending == 0 || --discovery_.pending > 0) return;
   spdlog::info("{}", format_discovery_summary({settings_.name, settings_.serial.device, transactor_->protocol_name(),
@@ -549,12 +549,12 @@ void EngineCore<Transactor>::discovery_step_done() {
 
 // ==== polling and presence ==========================================================================
 
-template <class Transactor>
+template <BusTransactor Transactor>
 bool EngineCore<Transactor>::poll_due(SteadyClock::time_point now) const {
   return settings_.poll && discovered_.load() && !cycle_.running && next_cycle_ && now >= *next_cycle_;
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::start_poll_cycle_if_due() {
   const auto now = SteadyClock::now();
   if (!poll_due(now)) return;
@@ -578,7 +578,7 @@ void EngineCore<Transactor>::start_poll_cycle_if_due() {
   for (const auto id : plan.probes) enqueue_poll_read(id, true);
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::enqueue_poll_read(std::uint8_t servo_id, bool probe) {
   const PollTarget* target = scheduler_.target(servo_id);
   if (target == nullptr) return;
@@ -592,7 +592,7 @@ void EngineCore<Transactor>::enqueue_poll_read(std::uint8_t servo_id, bool probe
   enqueue_internal(std::move(job));
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::on_poll_read(std::uint8_t servo_id, AddressBlock block, bool probe,
                                           const BusResult& result) {
   switch (result.status) {
@@ -622,7 +622,7 @@ void EngineCore<Transactor>::on_poll_read(std::uint8_t servo_id, AddressBlock bl
   poll_job_done();
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::on_sync_read_finished(const std::vector<std::uint8_t>& ids) {
   // Whoever stayed silent in the SYNC READ is read on its own, with retries, in this cycle:
   // only a failed READ takes a servo offline.
@@ -634,7 +634,7 @@ void EngineCore<Transactor>::on_sync_read_finished(const std::vector<std::uint8_
   poll_job_done();
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::poll_job_done() {
   if (!cycle_.running || --cycle_.outstanding > 0) return;
   const auto now = SteadyClock::now();
@@ -647,7 +647,7 @@ void EngineCore<Transactor>::poll_job_done() {
   next_cycle_ = anyone_online ? std::optional(cycle_.started + settings_.poll_period) : scheduler_.next_probe_due();
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::servo_answered(std::uint8_t servo_id) {
   // Logged before the cache shows it: whoever sees the servo online finds the line in the log.
   const PresenceChange change = scheduler_.answered(servo_id);
@@ -661,7 +661,7 @@ void EngineCore<Transactor>::servo_answered(std::uint8_t servo_id) {
   }
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::servo_silent(std::uint8_t servo_id, const std::string& reason, bool log) {
   const PresenceChange change = scheduler_.silent(servo_id, SteadyClock::now());
   if (log && change == PresenceChange::WentOffline) {
@@ -671,7 +671,7 @@ void EngineCore<Transactor>::servo_silent(std::uint8_t servo_id, const std::stri
   cache_.set_online(servo_id, false);
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::note_status(std::uint8_t servo_id, std::uint8_t status) {
   ServoCounters* counters = cache_.counters(servo_id);
   if (counters == nullptr) return;
@@ -687,13 +687,13 @@ void EngineCore<Transactor>::note_status(std::uint8_t servo_id, std::uint8_t sta
   counters->last_status.store(condition, std::memory_order_relaxed);
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::note_timeout(std::uint8_t servo_id) {
   counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
   events_.unanswered(servo_id);
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::note_written(const Request& request) {
   // Keeps the cached response levels true when a client changes one (REG WRITE takes effect
   // only at ACTION and is not followed).
@@ -713,7 +713,7 @@ void EngineCore<Transactor>::note_written(const Request& request) {
 
 // ==== what transactions report ====================================================================
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::Events::answered(std::uint8_t servo_id, std::optional<std::uint8_t> status) {
   ServoCounters* counters = core_.cache_.counters(servo_id);
   if (counters == nullptr) return;
@@ -721,14 +721,14 @@ void EngineCore<Transactor>::Events::answered(std::uint8_t servo_id, std::option
   if (status) core_.note_status(servo_id, *status);
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::Events::unanswered(std::uint8_t servo_id) {
   if (ServoCounters* counters = core_.cache_.counters(servo_id)) {
     counters->timeouts.fetch_add(1, std::memory_order_relaxed);
   }
 }
 
-template <class Transactor>
+template <BusTransactor Transactor>
 void EngineCore<Transactor>::Events::sync_answer(std::uint8_t servo_id, std::span<const std::uint8_t> data) {
   // Only listed members' answers come here (the transactor judges the others not ours), and the
   // list is the poll plan's: configured servos.

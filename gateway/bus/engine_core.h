@@ -41,7 +41,7 @@
 
 namespace sms::gateway {
 
-template <class Transactor>
+template <BusTransactor Transactor>
 class EngineCore final : public BusEngine {
  public:
   using TransactorFactory = std::function<std::unique_ptr<Transactor>(const BusSettings&, BusCounters&)>;

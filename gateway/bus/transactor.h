@@ -6,7 +6,8 @@
 //                     SerialPort and the stream decoder;
 //   RtuTransactor    (rtu_transactor.h):    Modbus RTU through libmodbus (RtuMaster).
 // Each has the same face, which the engine core is written against (a template parameter, so
-// each protocol keeps its own request type):
+// each protocol keeps its own request type); the BusTransactor concept at the end of this file
+// is that face as the compiler checks it:
 //
 //   using Request = ...;                        // one encoded transaction with its attempts
 //   Expected<Ok> open(); void close(); bool is_open() const;
@@ -22,6 +23,10 @@
 //   std::uint8_t refusal_bits() const;           // status bits that speak of the instruction only
 //   std::optional<std::uint8_t> status_in_block(const AddressBlock&, span data) const;
 //   void for_each_write(const Request&, fn(servo, address, span data)) const;
+//   static std::string check_servo(const ServoSettings&);  // why the bus cannot poll it; empty: it can
+//   static constexpr std::size_t kBytesPerAddress;         // 1 (packet tables) or 2 (registers)
+//   static constexpr bool kAnswersCarryStatus;             // every answer has a status byte
+//   bool has_sync_read() const; static bool broadcast_id(std::uint8_t);
 //
 // Late answers (docs/DECISIONS.md "Late answers"): an answer names no request, so one that
 // comes after its request gave up is indistinguishable from the answer to the next request of
@@ -39,15 +44,19 @@
 #include <algorithm>
 #include <array>
 #include <chrono>
+#include <concepts>
 #include <cstdint>
 #include <optional>
 #include <span>
 #include <string>
+#include <string_view>
+#include <vector>
 
 #include <spdlog/spdlog.h>
 
 #include "config/config.h"
 #include "gateway/bus/bus_counters.h"
+#include "gateway/bus/bus_engine.h"
 
 namespace sms::gateway {
 
@@ -167,6 +176,40 @@ class StrayBytes {
  private:
   BusCounters& counters_;
   bool told_ = false;
+};
+
+// The transactor contract above, checked by the compiler (EngineCore and the tools take a
+// BusTransactor).
+namespace transactor_contract {
+struct WriteVisitor {
+  void operator()(std::uint8_t, std::uint16_t, std::span<const std::uint8_t>) const {}
+};
+}  // namespace transactor_contract
+
+template <class T>
+concept BusTransactor = requires(T& transactor, const T& line, BusOp op, const typename T::Request& request,
+                                 TransactionEvents& events, AddressBlock block, std::vector<std::uint8_t> ids,
+                                 const ServoSettings& servo, std::span<const std::uint8_t> data, std::uint8_t id,
+                                 unsigned attempts) {
+  { transactor.open() } -> std::same_as<Expected<Ok>>;
+  transactor.close();
+  { line.is_open() } -> std::convertible_to<bool>;
+  { line.line_description() } -> std::convertible_to<std::string>;
+  { line.protocol_name() } -> std::convertible_to<std::string_view>;
+  { line.prepare(std::move(op), attempts) } -> std::same_as<typename T::Request>;
+  { line.read_request(id, block, attempts) } -> std::same_as<typename T::Request>;
+  { line.ping_request(id, attempts) } -> std::same_as<typename T::Request>;
+  { T::target(request) } -> std::convertible_to<std::uint8_t>;
+  { T::broadcast(request) } -> std::convertible_to<bool>;
+  { T::broadcast_id(id) } -> std::convertible_to<bool>;
+  { line.has_sync_read() } -> std::convertible_to<bool>;
+  { transactor.execute(request, events) } -> std::same_as<BusResult>;
+  { line.refusal_bits() } -> std::convertible_to<std::uint8_t>;
+  { line.status_in_block(block, data) } -> std::same_as<std::optional<std::uint8_t>>;
+  line.for_each_write(request, transactor_contract::WriteVisitor{});
+  { T::check_servo(servo) } -> std::convertible_to<std::string>;
+  { T::kBytesPerAddress } -> std::convertible_to<std::size_t>;
+  { T::kAnswersCarryStatus } -> std::convertible_to<bool>;
 };
 
 }  // namespace sms::gateway
