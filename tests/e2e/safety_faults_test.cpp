@@ -8,6 +8,7 @@
 #include <signal.h>
 #include <sys/stat.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cstdio>
 #include <filesystem>
@@ -253,47 +254,54 @@ TEST(SafetyRestart, EStopLatchAndTripSurviveARestart) {
 
 // --- no jump on enable, on every path that switches torque on -------------------------------
 
-class NoJump : public testing::Test {
+// The no-jump cases of one table: its addresses, and how the simulator is given a stale speed.
+struct NoJumpCase {
+  const Protocol* protocol;
+  std::string torque_field;             // the table's field (sync group) and the simulator's
+  std::vector<std::string> stale_speed; // simulator commands: speed mode, a stale speed, torque off last
+  int torque, goal, goal_speed;         // holding registers
+  std::vector<std::uint16_t> torque_and_goal;  // FC16 at min(torque, goal): torque 1 and goal 2048
+};
+void PrintTo(const NoJumpCase& c, std::ostream* out) { *out << c.protocol->name; }
+
+const std::vector<NoJumpCase> kNoJumpCases{
+    // (A goal write switches an STS servo's torque on: the torque goes off last.)
+    {&kSafetyProtocols[0], "torque_enable", {"set 1 33 01", "set 1 46 DC 05", "set 1 40 00"}, 40, 42, 46, {1, 0, 2048}},
+    {&kSafetyProtocols[3], "torque_switch", {"set 1 16 00 01", "set 1 131 01 F4", "set 1 129 00 00"}, 0x81, 0x80, 0x83,
+     {2048, 1}},
+};
+
+class NoJump : public testing::TestWithParam<NoJumpCase> {
  protected:
   NoJump()
-      : cell_(kSafetyProtocols[0],
-              {"", "sync_groups:\n  - {name: torque, field: torque_enable, members: [1], holding_register_start: 0}\n", false, false}) {}
+      : cell_(*GetParam().protocol, {"", "sync_groups:\n  - {name: torque, field: " + GetParam().torque_field +
+                                             ", members: [1], holding_register_start: 0}\n",
+                                     false, false}) {}
 
   // Torque off, speed mode, a stale goal speed left in the servo's RAM.
-  // (A goal write switches an STS servo's torque on: the torque goes off last.)
   void stale_speed() {
-    ASSERT_EQ(cell_.sim().control("set 1 33 01"), "ok");
-    ASSERT_EQ(cell_.sim().control("set 1 46 DC 05"), "ok");  // 1500
-    ASSERT_EQ(cell_.sim().control("set 1 40 00"), "ok");
+    for (const auto& command : GetParam().stale_speed) ASSERT_EQ(cell_.sim().control(command), "ok") << command;
     std::this_thread::sleep_for(100ms);
     ASSERT_FALSE(cell_.turning());
   }
   void expect_still() {
     std::this_thread::sleep_for(300ms);
     EXPECT_FALSE(cell_.turning()) << cell_.log();
-    EXPECT_EQ(cell_.sim().field(1, "torque_enable"), 1);
+    EXPECT_EQ(cell_.sim().field(1, GetParam().torque_field), 1);
   }
 
   SafetyCell cell_;
 };
 
-TEST_F(NoJump, TorqueOnWithAGoalPositionDoesNotRunAStaleSpeed) {
+TEST_P(NoJump, TorqueOnWithAGoalPositionDoesNotRunAStaleSpeed) {
   stale_speed();
   ModbusClient plc(cell_.port(), kUnit);
-  ASSERT_TRUE(plc.write_registers(40, {1, 0, 2048}).ok()) << cell_.log();
+  const int first = std::min(GetParam().torque, GetParam().goal);
+  ASSERT_TRUE(plc.write_registers(first, GetParam().torque_and_goal).ok()) << cell_.log();
   expect_still();
 }
 
-TEST_F(NoJump, StagedTorqueOnThenActionDoesNotRunAStaleSpeed) {
-  stale_speed();
-  ModbusClient plc(cell_.port(), kUnit);
-  ASSERT_TRUE(plc.write_register(512 + 40, 1).ok()) << cell_.log();
-  ModbusClient gateway(cell_.port(), kGateway);
-  ASSERT_TRUE(gateway.write_coils(0, {1}).ok()) << cell_.log();
-  expect_still();
-}
-
-TEST_F(NoJump, SyncGroupTorqueOnDoesNotRunAStaleSpeed) {
+TEST_P(NoJump, SyncGroupTorqueOnDoesNotRunAStaleSpeed) {
   stale_speed();
   ModbusClient gateway(cell_.port(), kGateway);
   ASSERT_TRUE(gateway.write_registers(0, {1}).ok()) << cell_.log();
@@ -301,19 +309,43 @@ TEST_F(NoJump, SyncGroupTorqueOnDoesNotRunAStaleSpeed) {
 }
 
 // Torque on when it is already on switches nothing: the move under way goes on to its goal.
-TEST_F(NoJump, TorqueOnWhileOnDoesNotCancelAMove) {
+TEST_P(NoJump, TorqueOnWhileOnDoesNotCancelAMove) {
   ModbusClient plc(cell_.port(), kUnit);
+  ASSERT_TRUE(plc.write_register(GetParam().torque, 1).ok()) << cell_.log();
   const long start = cell_.sim().field(1, "present_position");
   const std::uint16_t far = start > 2048 ? 500 : 3500;
-  ASSERT_TRUE(plc.write_register(46, 300).ok());  // slow, so the move is still under way
-  ASSERT_TRUE(plc.write_register(42, far).ok());
-  ASSERT_TRUE(eventually([&] { return cell_.turning(); }, 3s));
-  for (int i = 0; i < 5; ++i) ASSERT_TRUE(plc.write_register(40, 1).ok()) << cell_.log();
+  ASSERT_TRUE(plc.write_register(GetParam().goal_speed, 300).ok());  // slow, so the move is still under way
+  ASSERT_TRUE(plc.write_register(GetParam().goal, far).ok());
+  ASSERT_TRUE(eventually([&] { return cell_.turning(); }, 3s)) << cell_.log();
+  for (int i = 0; i < 5; ++i) ASSERT_TRUE(plc.write_register(GetParam().torque, 1).ok()) << cell_.log();
   EXPECT_EQ(cell_.sim().field(1, "goal_position"), far);
 }
 
+INSTANTIATE_TEST_SUITE_P(TorqueTables, NoJump, testing::ValuesIn(kNoJumpCases),
+                         [](const testing::TestParamInfo<NoJumpCase>& info) { return info.param.protocol->name; });
+
+// Staged writes and ACTION exist on packet buses: sts.
+class NoJumpStaged : public testing::Test {
+ protected:
+  NoJumpStaged() : cell_(kSafetyProtocols[0], {"", "", false, false}) {}
+  SafetyCell cell_;
+};
+
+TEST_F(NoJumpStaged, StagedTorqueOnThenActionDoesNotRunAStaleSpeed) {
+  for (const auto& command : kNoJumpCases[0].stale_speed) ASSERT_EQ(cell_.sim().control(command), "ok");
+  std::this_thread::sleep_for(100ms);
+  ASSERT_FALSE(cell_.turning());
+  ModbusClient plc(cell_.port(), kUnit);
+  ASSERT_TRUE(plc.write_register(512 + 40, 1).ok()) << cell_.log();
+  ModbusClient gateway(cell_.port(), kGateway);
+  ASSERT_TRUE(gateway.write_coils(0, {1}).ok()) << cell_.log();
+  std::this_thread::sleep_for(300ms);
+  EXPECT_FALSE(cell_.turning()) << cell_.log();
+  EXPECT_EQ(cell_.sim().field(1, "torque_enable"), 1);
+}
+
 // A move staged before a stop does not run at the first ACTION after the reset.
-TEST_F(NoJump, MoveStagedBeforeAStopDoesNotRunAtTheNextAction) {
+TEST_F(NoJumpStaged, MoveStagedBeforeAStopDoesNotRunAtTheNextAction) {
   ModbusClient plc(cell_.port(), kUnit);
   ASSERT_TRUE(plc.write_register(40, 1).ok());
   const long start = cell_.sim().field(1, "present_position");
