@@ -4,6 +4,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "protocol/overloaded.h"
+
 namespace sms::protocol::d55d {
 namespace {
 
@@ -31,12 +33,6 @@ std::uint16_t little_endian_at(std::span<const std::uint8_t> bytes, std::size_t 
   return static_cast<std::uint16_t>(bytes[offset] | (bytes[offset + 1] << 8));
 }
 
-template <typename... Fs>
-struct Overloaded : Fs... {
-  using Fs::operator()...;
-};
-template <typename... Fs>
-Overloaded(Fs...) -> Overloaded<Fs...>;
 
 }  // namespace
 

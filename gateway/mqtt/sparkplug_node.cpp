@@ -575,7 +575,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
             device.busy = false;
             return;
           }
-          const bool online = facts[1] != 0;
+          const bool online = facts[servo_facts_layout::kOnline] != 0;
           if (!online) {
             if (device.born) publish_device_death(device);
             device.busy = false;
@@ -595,7 +595,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
       device.busy = false;
       if (answers.size() != reads.size() || !answers.back().ok() || !session_) return;  // next tick again
       for (std::size_t i = 0; i < reads.size(); ++i) store(device, reads[i], answers[i].registers());
-      const std::uint64_t acquired = acquisition_time(facts[2]);
+      const std::uint64_t acquired = acquisition_time(facts[servo_facts_layout::kCacheAge]);
       sp::Payload payload;
       for (const auto& slot : device.metrics) {
         auto metric = field_metric(slot.name, *slot.entry, slot.value);
@@ -604,7 +604,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
         if (slot.from_cache) metric.timestamp = acquired;
         payload.metrics.push_back(std::move(metric));
       }
-      device.status = facts[0];
+      device.status = facts[servo_facts_layout::kStatus];
       append_facts(payload, device, facts, true);
       device.born = true;
       device.reported = std::chrono::steady_clock::now();
@@ -618,7 +618,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     const bool report_all = settings_.report_period.count() > 0 && now - device.reported >= settings_.report_period;
     if (!device.cache_read) {
       device.busy = false;
-      if (report_all || facts[0] != device.status) publish_data(device, facts, {}, report_all);
+      if (report_all || facts[servo_facts_layout::kStatus] != device.status) publish_data(device, facts, {}, report_all);
       return;
     }
     ask(device.unit_id, *device.cache_read, [this, index, facts, report_all](const Answer& answer) {
@@ -639,14 +639,14 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
           changed.push_back(m);
         }
       }
-      if (!changed.empty() || facts[0] != device.status || report_all) publish_data(device, facts, changed, report_all);
+      if (!changed.empty() || facts[servo_facts_layout::kStatus] != device.status || report_all) publish_data(device, facts, changed, report_all);
     });
   }
 
   void publish_data(Device& device, const std::vector<std::uint16_t>& facts, const std::vector<std::size_t>& changed,
                     bool report_all) {
     sp::Payload payload;
-    const std::uint64_t acquired = acquisition_time(facts[2]);
+    const std::uint64_t acquired = acquisition_time(facts[servo_facts_layout::kCacheAge]);
     for (const auto m : changed) {
       auto metric = field_metric(device.metrics[m].name, *device.metrics[m].entry, device.metrics[m].value);
       metric.timestamp = acquired;
@@ -665,17 +665,17 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   // Status on change (and in births and full reports); the counters only in births and reports,
   // since they change on every poll.
   void append_facts(sp::Payload& payload, Device& device, const std::vector<std::uint16_t>& facts, bool everything) {
-    if (everything || facts[0] != device.status) {
-      payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStatus), facts[0]));
-      device.status = facts[0];
+    if (everything || facts[servo_facts_layout::kStatus] != device.status) {
+      payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStatus), facts[servo_facts_layout::kStatus]));
+      device.status = facts[servo_facts_layout::kStatus];
     }
     if (everything) {
       // UInt64 (long_value) rather than UInt32: the spec puts UInt32 in int_value, Tahu's Java and
       // JS decoders read it from long_value; for UInt64 both agree (docs/DECISIONS.md).
-      payload.metrics.push_back(sp::Metric::uint64(std::string(metric_name::kRepliesOk),
-                                                   std::uint64_t{facts[4]} << 16 | facts[5]));
-      payload.metrics.push_back(sp::Metric::uint64(std::string(metric_name::kTimeouts),
-                                                   std::uint64_t{facts[6]} << 16 | facts[7]));
+      namespace at = servo_facts_layout;
+      const auto counter = [&](std::size_t offset) { return std::uint64_t{facts[offset]} << 16 | facts[offset + 1]; };
+      payload.metrics.push_back(sp::Metric::uint64(std::string(metric_name::kRepliesOk), counter(at::kRepliesOk)));
+      payload.metrics.push_back(sp::Metric::uint64(std::string(metric_name::kTimeouts), counter(at::kTimeouts)));
       payload.metrics.push_back(sp::Metric::string(std::string(metric_name::kLastCommand), device.last_command));
     }
   }
@@ -883,7 +883,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     for (std::size_t bus = 0; bus < heartbeats_.size(); ++bus) {
       if (metric.name != heartbeats_[bus]) continue;
       return ask(gateway,
-                 WriteRegistersRequest{fc::kWriteSingleRegister, static_cast<std::uint16_t>(1000 + bus),
+                 WriteRegistersRequest{fc::kWriteSingleRegister, static_cast<std::uint16_t>(config::kHeartbeatRegisterBase + bus),
                                        {static_cast<std::uint16_t>(*value)}},
                  done);
     }

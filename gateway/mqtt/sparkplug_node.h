@@ -23,7 +23,7 @@
 #include "config/config.h"
 #include "gateway/mqtt/mqtt_link.h"
 #include "gateway/modbus_tcp/role_policy.h"
-#include "gateway/modbus_tcp/tcp_server.h"
+#include "gateway/modbus_tcp/request_handler.h"
 #include "modbus_map/register_map.h"
 #include "protocol/sparkplug/sparkplug.h"
 

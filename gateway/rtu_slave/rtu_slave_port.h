@@ -38,7 +38,7 @@
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/rtu_master.h"
 #include "gateway/modbus_tcp/role_policy.h"
-#include "gateway/modbus_tcp/tcp_server.h"
+#include "gateway/modbus_tcp/request_handler.h"
 #include "gateway/rtu_slave/rtu_slave_stats.h"
 #include "protocol/modbus_rtu.h"
 

@@ -13,6 +13,7 @@
 #include "gateway/modbus_tcp/faults.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
+#include "protocol/overloaded.h"
 
 namespace sms::gateway {
 namespace {
@@ -20,12 +21,6 @@ namespace {
 namespace fc = function_code;
 namespace layout = gateway_unit_layout;
 
-template <typename... Ts>
-struct Overloaded : Ts... {
-  using Ts::operator()...;
-};
-template <typename... Ts>
-Overloaded(Ts...) -> Overloaded<Ts...>;
 
 std::uint16_t saturate16(std::uint64_t value) {
   return static_cast<std::uint16_t>(std::min<std::uint64_t>(value, 0xFFFF));

@@ -18,7 +18,7 @@
 #include "gateway/bus/bus_join.h"
 #include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/units/safety.h"
-#include "gateway/modbus_tcp/tcp_server.h"
+#include "gateway/modbus_tcp/request_handler.h"
 #include "modbus_map/control_table.h"
 #include "modbus_map/register_map.h"
 

@@ -12,6 +12,7 @@
 #include "gateway/units/passthrough.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
+#include "protocol/overloaded.h"
 
 namespace sms::gateway {
 namespace {
@@ -20,12 +21,6 @@ namespace fc = function_code;
 namespace facts_layout = servo_facts_layout;
 using modbus_map::TableId;
 
-template <typename... Ts>
-struct Overloaded : Ts... {
-  using Ts::operator()...;
-};
-template <typename... Ts>
-Overloaded(Ts...) -> Overloaded<Ts...>;
 
 // The lowest response level at which a servo answers unicast writes (docs/PROTOCOL.md §2.1 address 8,
 // §2.2 address 8, §2.3 address 16). SMSMB servos always answer (Modbus).

@@ -23,7 +23,7 @@
 #include "gateway/units/gateway_unit.h"
 #include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/units/safety.h"
-#include "gateway/modbus_tcp/tcp_server.h"
+#include "gateway/modbus_tcp/request_handler.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {
@@ -35,6 +35,13 @@ inline constexpr std::uint16_t kFirstRegister = 1000;
 inline constexpr std::uint16_t kRegisterCount = 8;   // 1000 .. 1007
 inline constexpr std::uint16_t kFirstBit = 1000;     // 1000 + b: bit b of register 1000
 inline constexpr std::uint16_t kOnlineBit = 1008;
+// Offsets inside the block: 0 status byte, 1 online, 2 cache age ms, 3 identity, 4-5 replies ok
+// and 6-7 timeouts (32-bit, high word first).
+inline constexpr std::size_t kStatus = 0;
+inline constexpr std::size_t kOnline = 1;
+inline constexpr std::size_t kCacheAge = 2;
+inline constexpr std::size_t kRepliesOk = 4;
+inline constexpr std::size_t kTimeouts = 6;
 }  // namespace servo_facts_layout
 
 // Whether a servo of `table` at `response_level` answers unicast WRITE / REG WRITE (docs/PROTOCOL.md §2.1
