@@ -7,9 +7,13 @@
 #include <sys/un.h>
 #include <unistd.h>
 
+#include <array>
 #include <cerrno>
 #include <cstring>
+#include <functional>
+#include <optional>
 #include <sstream>
+#include <string>
 #include <system_error>
 #include <thread>
 #include <vector>
@@ -20,10 +24,6 @@
 namespace sms::simulator {
 namespace {
 
-constexpr std::string_view kHelp =
-    "commands: offline ID | online ID | drop P | corrupt P | corrupt-next [N] | garble ID on|off | late ID MS | "
-    "error ID BITS | duplicate ID | timing on|off | get ID ADDR COUNT | set ID ADDR HEX... | field ID NAME | "
-    "list | stats | help";
 constexpr std::size_t kMaxLine = 4096;
 
 std::vector<std::string> words_of(std::string_view line) {
@@ -82,132 +82,192 @@ bool has_servo(SimulatedBus& bus, std::uint8_t id) {
 std::string usage(std::string_view form) { return "error: usage: " + std::string(form); }
 std::string unknown_id(std::uint8_t id) { return "error: no servo has ID " + std::to_string(id); }
 
-std::string run_command(SimulatedBus& bus, const std::vector<std::string>& words) {
-  const std::string& command = words[0];
-  const std::size_t arguments = words.size() - 1;
-  std::uint8_t id = 0;
-  std::uint32_t number = 0;
+using Words = std::vector<std::string>;
 
-  if (command == "help") return std::string(kHelp);
-  if (command == "offline" || command == "online") {
-    if (arguments != 1 || !read_id(words[1], id)) return usage(command + " ID");
-    if (!has_servo(bus, id)) return unknown_id(id);
-    bus.set_offline(id, command == "offline");
-    return "ok";
+// nullopt: the words do not fit the command's form (answered with its usage).
+using Handler = std::optional<std::string> (*)(SimulatedBus&, const Words&);
+
+struct ControlCommand {
+  std::string_view name;
+  std::string_view form;  // "garble ID on|off": the help line and the usage error
+  std::string_view hint;  // more for the usage error: "   (P from 0 to 1)"
+  Handler run;
+};
+
+std::string help_text();
+
+// A command on one servo: `words[1]` is its ID; `act` runs once the ID is read and the servo exists.
+template <typename Act>
+std::optional<std::string> on_servo(SimulatedBus& bus, const Words& words, std::size_t arguments, Act act) {
+  std::uint8_t id = 0;
+  if (words.size() - 1 != arguments || !read_id(words[1], id)) return std::nullopt;
+  if (!has_servo(bus, id)) return unknown_id(id);
+  return act(id);
+}
+
+std::optional<std::string> set_probability(const Words& words, const std::function<void(double)>& set) {
+  const auto probability = words.size() == 2 ? parse_probability(words[1]) : std::optional<double>();
+  if (!probability) return std::nullopt;
+  set(*probability);
+  return "ok";
+}
+
+// The control commands, one row each (the help text is made from this table).
+const std::array<ControlCommand, 16> kCommands{{
+    {"offline", "offline ID", "",
+     [](SimulatedBus& bus, const Words& w) {
+       return on_servo(bus, w, 1, [&](std::uint8_t id) -> std::optional<std::string> {
+         bus.set_offline(id, true);
+         return "ok";
+       });
+     }},
+    {"online", "online ID", "",
+     [](SimulatedBus& bus, const Words& w) {
+       return on_servo(bus, w, 1, [&](std::uint8_t id) -> std::optional<std::string> {
+         bus.set_offline(id, false);
+         return "ok";
+       });
+     }},
+    {"drop", "drop P", "   (P from 0 to 1)",
+     [](SimulatedBus& bus, const Words& w) {
+       return set_probability(w, [&](double p) { bus.set_drop_probability(p); });
+     }},
+    {"corrupt", "corrupt P", "   (P from 0 to 1)",
+     [](SimulatedBus& bus, const Words& w) {
+       return set_probability(w, [&](double p) { bus.set_corrupt_probability(p); });
+     }},
+    {"corrupt-next", "corrupt-next [N]", "",
+     [](SimulatedBus& bus, const Words& w) -> std::optional<std::string> {
+       std::uint32_t number = 1;
+       if (w.size() > 2 || (w.size() == 2 && !read_number(w[1], number))) return std::nullopt;
+       bus.corrupt_next_replies(number);
+       return "ok";
+     }},
+    {"garble", "garble ID on|off", "",
+     [](SimulatedBus& bus, const Words& w) -> std::optional<std::string> {
+       if (w.size() != 3 || (w[2] != "on" && w[2] != "off")) return std::nullopt;
+       return on_servo(bus, w, 2, [&](std::uint8_t id) -> std::optional<std::string> {
+         bus.set_garbled(id, w[2] == "on");
+         return "ok";
+       });
+     }},
+    {"late", "late ID MS", "",
+     [](SimulatedBus& bus, const Words& w) -> std::optional<std::string> {
+       std::uint32_t ms = 0;
+       if (w.size() != 3 || !read_number(w[2], ms)) return std::nullopt;
+       return on_servo(bus, w, 2, [&](std::uint8_t id) -> std::optional<std::string> {
+         bus.set_reply_delay(id, std::chrono::milliseconds(ms));
+         return "ok";
+       });
+     }},
+    {"error", "error ID BITS", "   (BITS 0-255, e.g. 0x04)",
+     [](SimulatedBus& bus, const Words& w) -> std::optional<std::string> {
+       std::uint32_t bits = 0;
+       if (w.size() != 3 || !read_number(w[2], bits, 0xFF)) return std::nullopt;
+       return on_servo(bus, w, 2, [&](std::uint8_t id) -> std::optional<std::string> {
+         bus.set_error_bits(id, static_cast<std::uint8_t>(bits));
+         return "ok";
+       });
+     }},
+    {"duplicate", "duplicate ID", "",
+     [](SimulatedBus& bus, const Words& w) {
+       return on_servo(bus, w, 1, [&](std::uint8_t id) -> std::optional<std::string> {
+         bus.add_duplicate(id);
+         return "ok";
+       });
+     }},
+    {"timing", "timing on|off", "",
+     [](SimulatedBus& bus, const Words& w) -> std::optional<std::string> {
+       if (w.size() != 2 || (w[1] != "on" && w[1] != "off")) return std::nullopt;
+       bus.set_timing(w[1] == "on");
+       return "ok";
+     }},
+    {"get", "get ID ADDR COUNT", "",
+     [](SimulatedBus& bus, const Words& w) -> std::optional<std::string> {
+       std::uint32_t address = 0;
+       std::uint32_t count = 1;
+       if ((w.size() != 3 && w.size() != 4) || !read_number(w[2], address, 0xFFFF) ||
+           (w.size() == 4 && !read_number(w[3], count, 0xFFFF)) || count == 0) {
+         return std::nullopt;
+       }
+       return on_servo(bus, w, w.size() - 1, [&](std::uint8_t id) -> std::optional<std::string> {
+         const auto bytes = bus.read_memory(id, static_cast<std::uint16_t>(address), static_cast<std::uint16_t>(count));
+         if (!bytes) return "error: " + std::to_string(count) + " from address " + w[2] + " leave servo " + w[1] + "'s table";
+         return hex_bytes(*bytes);
+       });
+     }},
+    {"set", "set ID ADDR HEX...", "   (e.g. set 3 42 00 08)",
+     [](SimulatedBus& bus, const Words& w) -> std::optional<std::string> {
+       std::uint32_t address = 0;
+       if (w.size() < 4 || !read_number(w[2], address, 0xFFFF)) return std::nullopt;
+       protocol::Bytes bytes;
+       for (std::size_t index = 3; index < w.size(); ++index) {
+         const auto byte = parse_hex_byte(w[index]);
+         if (!byte) return "error: '" + w[index] + "' is not a hex byte";
+         bytes.push_back(*byte);
+       }
+       return on_servo(bus, w, w.size() - 1, [&](std::uint8_t id) -> std::optional<std::string> {
+         if (!bus.write_memory(id, static_cast<std::uint16_t>(address), bytes)) {
+           return "error: the write leaves servo " + w[1] + "'s table (SMSMB: whole registers, 2 bytes each)";
+         }
+         return "ok";
+       });
+     }},
+    {"field", "field ID NAME", "",
+     [](SimulatedBus& bus, const Words& w) {
+       return on_servo(bus, w, 2, [&](std::uint8_t id) -> std::optional<std::string> {
+         const auto value = bus.read_field(id, w[2]);
+         if (!value) return "error: servo " + w[1] + "'s table has no field '" + w[2] + "'";
+         return std::to_string(*value);
+       });
+     }},
+    {"list", "list", "",
+     [](SimulatedBus& bus, const Words&) -> std::optional<std::string> {
+       std::string text;
+       for (const ServoSummary& servo : bus.servos()) {
+         if (!text.empty()) text += ' ';
+         text += std::to_string(servo.config.id) + ":" + std::string(modbus_map::table(servo.config.table).name) +
+                 ":" + std::string(protocol::to_string(servo.config.protocol)) + ":" +
+                 std::to_string(servo.config.baud);
+         if (servo.offline) text += ":offline";
+         if (servo.duplicate) text += ":duplicate";
+       }
+       return text;
+     }},
+    {"stats", "stats", "",
+     [](SimulatedBus& bus, const Words&) -> std::optional<std::string> {
+       const BusStats stats = bus.stats();
+       return "requests=" + std::to_string(stats.requests) + " replies=" + std::to_string(stats.replies) +
+              " dropped=" + std::to_string(stats.dropped) + " corrupted=" + std::to_string(stats.corrupted) +
+              " collisions=" + std::to_string(stats.collisions) +
+              " checksum_errors=" + std::to_string(stats.checksum_errors) +
+              " merged_requests=" + std::to_string(stats.merged_requests);
+     }},
+    {"help", "help", "", [](SimulatedBus&, const Words&) -> std::optional<std::string> { return help_text(); }},
+}};
+
+std::string help_text() {
+  std::string text = "commands:";
+  for (const ControlCommand& command : kCommands) {
+    text += (text.size() > 9 ? " | " : " ") + std::string(command.form);
   }
-  if (command == "drop" || command == "corrupt") {
-    const auto probability = arguments == 1 ? parse_probability(words[1]) : std::optional<double>();
-    if (!probability) return usage(command + " P   (P from 0 to 1)");
-    if (command == "drop") {
-      bus.set_drop_probability(*probability);
-    } else {
-      bus.set_corrupt_probability(*probability);
-    }
-    return "ok";
+  return text;
+}
+
+std::string run_command(SimulatedBus& bus, const Words& words) {
+  for (const ControlCommand& command : kCommands) {
+    if (command.name != words[0]) continue;
+    if (auto answer = command.run(bus, words)) return *answer;
+    return usage(std::string(command.form) + std::string(command.hint));
   }
-  if (command == "corrupt-next") {
-    number = 1;
-    if (arguments > 1 || (arguments == 1 && !read_number(words[1], number))) return usage("corrupt-next [N]");
-    bus.corrupt_next_replies(number);
-    return "ok";
-  }
-  if (command == "garble") {
-    if (arguments != 2 || !read_id(words[1], id) || (words[2] != "on" && words[2] != "off")) {
-      return usage("garble ID on|off");
-    }
-    if (!has_servo(bus, id)) return unknown_id(id);
-    bus.set_garbled(id, words[2] == "on");
-    return "ok";
-  }
-  if (command == "late") {
-    if (arguments != 2 || !read_id(words[1], id) || !read_number(words[2], number)) return usage("late ID MS");
-    if (!has_servo(bus, id)) return unknown_id(id);
-    bus.set_reply_delay(id, std::chrono::milliseconds(number));
-    return "ok";
-  }
-  if (command == "error") {
-    if (arguments != 2 || !read_id(words[1], id) || !read_number(words[2], number, 0xFF)) {
-      return usage("error ID BITS   (BITS 0-255, e.g. 0x04)");
-    }
-    if (!has_servo(bus, id)) return unknown_id(id);
-    bus.set_error_bits(id, static_cast<std::uint8_t>(number));
-    return "ok";
-  }
-  if (command == "duplicate") {
-    if (arguments != 1 || !read_id(words[1], id)) return usage("duplicate ID");
-    if (!has_servo(bus, id)) return unknown_id(id);
-    bus.add_duplicate(id);
-    return "ok";
-  }
-  if (command == "timing") {
-    if (arguments != 1 || (words[1] != "on" && words[1] != "off")) return usage("timing on|off");
-    bus.set_timing(words[1] == "on");
-    return "ok";
-  }
-  if (command == "get") {
-    std::uint32_t address = 0;
-    std::uint32_t count = 1;
-    if ((arguments != 2 && arguments != 3) || !read_id(words[1], id) || !read_number(words[2], address, 0xFFFF) ||
-        (arguments == 3 && !read_number(words[3], count, 0xFFFF)) || count == 0) {
-      return usage("get ID ADDR COUNT");
-    }
-    if (!has_servo(bus, id)) return unknown_id(id);
-    const auto bytes = bus.read_memory(id, static_cast<std::uint16_t>(address), static_cast<std::uint16_t>(count));
-    if (!bytes) {
-      return "error: " + std::to_string(count) + " from address " + words[2] + " leave servo " + words[1] + "'s table";
-    }
-    return hex_bytes(*bytes);
-  }
-  if (command == "set") {
-    std::uint32_t address = 0;
-    if (arguments < 3 || !read_id(words[1], id) || !read_number(words[2], address, 0xFFFF)) {
-      return usage("set ID ADDR HEX...   (e.g. set 3 42 00 08)");
-    }
-    protocol::Bytes bytes;
-    for (std::size_t index = 3; index < words.size(); ++index) {
-      const auto byte = parse_hex_byte(words[index]);
-      if (!byte) return "error: '" + words[index] + "' is not a hex byte";
-      bytes.push_back(*byte);
-    }
-    if (!has_servo(bus, id)) return unknown_id(id);
-    if (!bus.write_memory(id, static_cast<std::uint16_t>(address), bytes)) {
-      return "error: the write leaves servo " + words[1] + "'s table (SMSMB: whole registers, 2 bytes each)";
-    }
-    return "ok";
-  }
-  if (command == "field") {
-    if (arguments != 2 || !read_id(words[1], id)) return usage("field ID NAME");
-    if (!has_servo(bus, id)) return unknown_id(id);
-    const auto value = bus.read_field(id, words[2]);
-    if (!value) return "error: servo " + words[1] + "'s table has no field '" + words[2] + "'";
-    return std::to_string(*value);
-  }
-  if (command == "list") {
-    std::string text;
-    for (const ServoSummary& servo : bus.servos()) {
-      if (!text.empty()) text += ' ';
-      text += std::to_string(servo.config.id) + ":" + std::string(modbus_map::table(servo.config.table).name) + ":" +
-              std::string(protocol::to_string(servo.config.protocol)) + ":" + std::to_string(servo.config.baud);
-      if (servo.offline) text += ":offline";
-      if (servo.duplicate) text += ":duplicate";
-    }
-    return text;
-  }
-  if (command == "stats") {
-    const BusStats stats = bus.stats();
-    return "requests=" + std::to_string(stats.requests) + " replies=" + std::to_string(stats.replies) +
-           " dropped=" + std::to_string(stats.dropped) + " corrupted=" + std::to_string(stats.corrupted) +
-           " collisions=" + std::to_string(stats.collisions) + " checksum_errors=" + std::to_string(stats.checksum_errors) +
-           " merged_requests=" + std::to_string(stats.merged_requests);
-  }
-  return "error: unknown command '" + command + "'; " + std::string(kHelp);
+  return "error: unknown command '" + words[0] + "'; " + help_text();
 }
 
 }  // namespace
 
 std::string execute_control_command(SimulatedBus& bus, std::string_view line) {
   const auto words = words_of(line);
-  if (words.empty()) return "error: empty command; " + std::string(kHelp);
+  if (words.empty()) return "error: empty command; " + help_text();
   try {
     return run_command(bus, words);
   } catch (const std::exception& error) {

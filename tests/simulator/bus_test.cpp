@@ -456,6 +456,13 @@ TEST(SimulatedBusControl, SocketCommandsInjectFaultsAndReadMemory) {
   EXPECT_EQ(control.ask("drop 2").rfind("error: usage: drop P", 0), 0U);
   EXPECT_EQ(control.ask("get 1 250 10").rfind("error: ", 0), 0U);
   EXPECT_EQ(control.ask("frobnicate").rfind("error: unknown command 'frobnicate'", 0), 0U);
+  EXPECT_EQ(control.ask("garble 1"), "error: usage: garble ID on|off");
+  EXPECT_EQ(control.ask("error 1 300"), "error: usage: error ID BITS   (BITS 0-255, e.g. 0x04)");
+  // The help is made from the command table: every command, in its form.
+  EXPECT_EQ(control.ask("help"),
+            "commands: offline ID | online ID | drop P | corrupt P | corrupt-next [N] | garble ID on|off | late ID MS | "
+            "error ID BITS | duplicate ID | timing on|off | get ID ADDR COUNT | set ID ADDR HEX... | field ID NAME | "
+            "list | stats | help");
 }
 
 // --- the sms-sim program ------------------------------------------------------------------
