@@ -24,6 +24,8 @@ constexpr std::array kFaults{
     FaultSpec{Fault::BusDown, code::kGatewayPathUnavailable, "the unit's bus is down"},
     FaultSpec{Fault::GatewayStopping, code::kGatewayPathUnavailable, "the gateway is stopping"},
     FaultSpec{Fault::ServoTimeout, code::kGatewayTargetFailedToRespond, "the servo did not answer"},
+    FaultSpec{Fault::MotionBlocked, code::kServerDeviceFailure, "motion refused by the safety rules"},
+    FaultSpec{Fault::InternalError, code::kServerDeviceFailure, "the gateway failed inside; nothing was done"},
 };
 
 constexpr bool faults_in_enum_order() {

@@ -23,6 +23,8 @@ enum class Fault : std::uint8_t {
   BusDown,              // the unit's bus port is missing or closed
   GatewayStopping,      // the gateway is shutting down; the bus no longer takes work
   ServoTimeout,         // the servo did not answer after the configured retries
+  MotionBlocked,        // the safety rules refuse a motion write (e-stop latched, watchdog tripped)
+  InternalError,        // the gateway failed inside (a defect); the request did nothing
 };
 
 struct FaultSpec {

@@ -346,7 +346,7 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     if (!admitted) {
       refusal_log_.refused("gateway unit sync group (" + std::string(motion_member[bus]->field->name) + ")",
                            request.function, admitted.error());
-      reply.send(exception_response(request.function, Fault::ServoRefused));
+      reply.send(exception_response(request.function, Fault::MotionBlocked));
       return;
     }
     epochs[bus] = *admitted;
@@ -480,7 +480,7 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
     auto admitted = safety_.admit_motion(bus);
     if (!admitted) {
       refusal_log_.refused("gateway unit ACTION (coil 0)", request.function, admitted.error());
-      reply.send(exception_response(request.function, Fault::ServoRefused));
+      reply.send(exception_response(request.function, Fault::MotionBlocked));
       return;
     }
     epochs.push_back(*admitted);

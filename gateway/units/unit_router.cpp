@@ -138,7 +138,7 @@ void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu,
     // io thread (and every other connection) down with it.
     spdlog::error("modbus: unit {}: request {:02X} failed inside the gateway: {}", unit_id, pdu.empty() ? 0 : pdu[0],
                   error.what());
-    reply.send(exception_response(pdu.empty() ? 0 : pdu[0], Fault::ServoCorrupt));
+    reply.send(exception_response(pdu.empty() ? 0 : pdu[0], Fault::InternalError));
   }
 }
 
@@ -193,7 +193,7 @@ std::optional<MotionEpoch> UnitRouter::admit_motion(std::size_t bus_index, const
   auto admitted = safety_.admit_motion(bus_index);
   if (admitted) return *admitted;
   refusal_log_.refused(what, function, admitted.error());
-  reply.send(exception_response(function, Fault::ServoRefused));
+  reply.send(exception_response(function, Fault::MotionBlocked));
   return std::nullopt;
 }
 

@@ -168,6 +168,8 @@ TEST(ModbusException, CodesFollowTheContract) {
   EXPECT_EQ(exception_code(Fault::MalformedRequest), 0x03);
   EXPECT_EQ(exception_code(Fault::ServoRefused), 0x04);
   EXPECT_EQ(exception_code(Fault::ServoCorrupt), 0x04);
+  EXPECT_EQ(exception_code(Fault::MotionBlocked), 0x04);
+  EXPECT_EQ(exception_code(Fault::InternalError), 0x04);
   EXPECT_EQ(exception_code(Fault::QueueFull), 0x06);
   EXPECT_EQ(exception_code(Fault::UnknownUnit), 0x0A);
   EXPECT_EQ(exception_code(Fault::BusDown), 0x0A);
