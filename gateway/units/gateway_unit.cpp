@@ -7,6 +7,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "gateway/bus/write_batch.h"
 #include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
 #include "gateway/units/unit_router.h"
@@ -294,6 +295,10 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     BusOp op;
   };
   std::vector<Frame> frames;
+  std::vector<WriteBatch> batches;  // per bus: one SYNC WRITE per field on packet buses
+  for (const BusEngine* engine : engines_) {
+    batches.emplace_back(engine->settings().protocol != protocol::BusProtocol::ModbusRtu);
+  }
   // Like every write, it feeds the watchdogs of the buses it is for once it is carried out.
   std::vector<std::size_t> buses;
   for (std::size_t i = 0; i < request.values.size(); ++i) {
@@ -314,22 +319,10 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
       reply.send(exception_response(request.function, fault_from(bytes.error().code)));
       return;
     }
-    if (engines_[member->bus]->settings().protocol == protocol::BusProtocol::ModbusRtu) {
-      frames.push_back(Frame{member->bus, WriteOp{member->servo_id, member->field->addr, std::move(*bytes)}});
-      continue;
-    }
-    // As many members as one frame's LEN allows (83 of a 2-byte field); the rest take another.
-    auto frame = std::find_if(frames.begin(), frames.end(), [&](const Frame& f) {
-      const auto* sync = std::get_if<SyncWriteOp>(&f.op);
-      return f.bus == member->bus && sync != nullptr && sync->address == member->field->addr &&
-             sync->length == member->field->size &&
-             sync->entries.size() < protocol::max_sync_write_servos(member->field->size);
-    });
-    if (frame == frames.end()) {
-      frames.push_back(Frame{member->bus, SyncWriteOp{member->field->addr, member->field->size, {}}});
-      frame = std::prev(frames.end());
-    }
-    std::get<SyncWriteOp>(frame->op).entries.push_back(protocol::SyncWriteEntry{member->servo_id, std::move(*bytes)});
+    batches[member->bus].add(member->servo_id, member->field->addr, std::move(*bytes));
+  }
+  for (std::size_t bus = 0; bus < batches.size(); ++bus) {
+    for (BusOp& op : batches[bus].frames()) frames.push_back(Frame{bus, std::move(op)});
   }
   // A motion field needs admission on every bus the write reaches.
   std::vector<MotionEpoch> epochs(engines_.size(), 0);
@@ -342,13 +335,10 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   }
   for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
     if (motion_member[bus] == nullptr) continue;
-    auto admitted = safety_.admit_motion(bus);
-    if (!admitted) {
-      refusal_log_.refused("gateway unit sync group (" + std::string(motion_member[bus]->field->name) + ")",
-                           request.function, admitted.error());
-      reply.send(exception_response(request.function, Fault::MotionBlocked));
-      return;
-    }
+    const auto admitted = admit_or_refuse(safety_, refusal_log_, bus,
+                                          "gateway unit sync group (" + std::string(motion_member[bus]->field->name) + ")",
+                                          request.function, reply);
+    if (!admitted) return;
     epochs[bus] = *admitted;
   }
   for (Frame& frame : frames) {
@@ -477,12 +467,9 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
   std::vector<MotionEpoch> epochs;
   for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
     if (engines_[bus]->settings().protocol == protocol::BusProtocol::ModbusRtu) continue;
-    auto admitted = safety_.admit_motion(bus);
-    if (!admitted) {
-      refusal_log_.refused("gateway unit ACTION (coil 0)", request.function, admitted.error());
-      reply.send(exception_response(request.function, Fault::MotionBlocked));
-      return;
-    }
+    const auto admitted =
+        admit_or_refuse(safety_, refusal_log_, bus, "gateway unit ACTION (coil 0)", request.function, reply);
+    if (!admitted) return;
     epochs.push_back(*admitted);
   }
   auto join = BusJoin::create(packet_buses.size(), post_, [this, request, reply](std::vector<BusResult> results) {

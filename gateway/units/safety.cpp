@@ -17,6 +17,10 @@
 #include <yaml-cpp/yaml.h>
 
 #include "gateway/bus/bus_join.h"
+#include "gateway/modbus_tcp/faults.h"
+#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/bus/write_batch.h"
 #include "gateway/units/state_file.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/motion.h"
@@ -100,6 +104,15 @@ std::string_view to_string(StopCause cause) {
     case StopCause::Shutdown: return "on_stop";
   }
   return "?";
+}
+
+std::optional<MotionEpoch> admit_or_refuse(SafetySupervisor& safety, MotionRefusalLog& log, std::size_t bus,
+                                           std::string_view what, std::uint8_t function, const Reply& reply) {
+  auto admitted = safety.admit_motion(bus);
+  if (admitted) return *admitted;
+  log.refused(what, function, admitted.error());
+  reply.send(exception_response(function, Fault::MotionBlocked));
+  return std::nullopt;
 }
 
 void MotionRefusalLog::refused(std::string_view who, std::uint8_t function, std::string_view why) {
@@ -623,31 +636,13 @@ class SafetySupervisor::Impl {
                         const std::map<std::size_t, std::vector<const BusResult*>>& context) {
     BusSafety& bus = *buses_[index];
     std::vector<std::string> report;
-    std::vector<BusOp> frames;
+    WriteBatch batch(bus.packet);  // one SYNC WRITE per write shape on packet buses
     std::vector<std::vector<std::size_t>> frame_targets;  // the targets each frame reaches
     std::vector<std::size_t> unconfirmed;  // torque off broadcast blind: owed until acknowledged
     const auto add_write = [&](std::size_t t, modbus_map::BusWrite write) {
-      const StopTarget& target = bus.targets[t];
-      if (!bus.packet) {
-        frames.push_back(WriteOp{target.servo_id, write.address, std::move(write.data)});
-        frame_targets.push_back({t});
-        return;
-      }
-      // One SYNC WRITE per write shape: every servo stopping the same way is in one frame, as
-      // many as LEN allows (35 servos of a 6-byte goal block; more take another frame).
-      const auto size = static_cast<std::uint8_t>(write.data.size());
-      auto frame = std::find_if(frames.begin(), frames.end(), [&](const BusOp& op) {
-        const auto* sync = std::get_if<SyncWriteOp>(&op);
-        return sync != nullptr && sync->address == write.address && sync->length == size &&
-               sync->entries.size() < protocol::max_sync_write_servos(size);
-      });
-      if (frame == frames.end()) {
-        frames.push_back(SyncWriteOp{write.address, size, {}});
-        frame_targets.emplace_back();
-        frame = std::prev(frames.end());
-      }
-      frame_targets[static_cast<std::size_t>(frame - frames.begin())].push_back(t);
-      std::get<SyncWriteOp>(*frame).entries.push_back(protocol::SyncWriteEntry{target.servo_id, std::move(write.data)});
+      const std::size_t frame = batch.add(bus.targets[t].servo_id, write.address, std::move(write.data));
+      if (frame_targets.size() <= frame) frame_targets.resize(frame + 1);
+      frame_targets[frame].push_back(t);
     };
     for (std::size_t t = 0; t < bus.targets.size(); ++t) {
       const StopTarget& target = bus.targets[t];
@@ -692,6 +687,7 @@ class SafetySupervisor::Impl {
       report.push_back(who + " " + plan->what);
     }
 
+    std::vector<BusOp> frames = std::move(batch.frames());
     const auto finish = [this, index, cause, since, reason, done, report, frame_targets,
                          unconfirmed](const std::vector<BusResult>& results) {
       BusSafety& b = *buses_[index];

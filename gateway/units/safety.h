@@ -94,6 +94,14 @@ class MotionRefusalLog {
   std::uint64_t suppressed_ = 0;
 };
 
+class SafetySupervisor;
+class Reply;
+// The safety rules' admission of a motion write on `bus` for every way in (servo, passthrough
+// and gateway units): its epoch, or nullopt after answering 0x04 (MotionBlocked) with the refusal
+// logged through `log` (at most once a second), naming `what`.
+std::optional<MotionEpoch> admit_or_refuse(SafetySupervisor& safety, MotionRefusalLog& log, std::size_t bus,
+                                           std::string_view what, std::uint8_t function, const Reply& reply);
+
 class SafetySupervisor {
  public:
   // `engines[i]` runs config.buses[i]; `gates[i]` is the gate its engine checks

@@ -190,11 +190,7 @@ void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8
 
 std::optional<MotionEpoch> UnitRouter::admit_motion(std::size_t bus_index, const std::string& what,
                                                     std::uint8_t function, const Reply& reply) {
-  auto admitted = safety_.admit_motion(bus_index);
-  if (admitted) return *admitted;
-  refusal_log_.refused(what, function, admitted.error());
-  reply.send(exception_response(function, Fault::MotionBlocked));
-  return std::nullopt;
+  return admit_or_refuse(safety_, refusal_log_, bus_index, what, function, reply);
 }
 
 bool UnitRouter::refused_as_read_only(bool read_only, const std::string& label, std::uint8_t function,
