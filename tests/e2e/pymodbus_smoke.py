@@ -12,6 +12,8 @@ import sys
 from pymodbus.client import ModbusTcpClient
 from pymodbus.pdu import ExceptionResponse
 
+from pymodbus_checks import feedback_and_goal
+
 
 def main() -> int:
     port, goal = int(sys.argv[1]), int(sys.argv[2])
@@ -20,21 +22,8 @@ def main() -> int:
         print("cannot connect")
         return 1
     try:
-        feedback = client.read_input_registers(56, 15, slave=1)
-        if feedback.isError() or len(feedback.registers) != 15:
-            print("FC04 56+15 failed:", feedback)
+        if not feedback_and_goal(client, goal):
             return 1
-        print("feedback", feedback.registers)
-
-        written = client.write_register(42, goal, slave=1)
-        if written.isError():
-            print("FC06 42 failed:", written)
-            return 1
-        read_back = client.read_holding_registers(42, 1, slave=1)
-        if read_back.isError() or read_back.registers != [goal]:
-            print("FC03 42 gave", read_back)
-            return 1
-        print("goal", read_back.registers[0])
 
         version = client.read_input_registers(0, 3, slave=255)
         if version.isError():
