@@ -1,5 +1,7 @@
 #include "gateway/modbus_tcp/tls.h"
 
+#include "gateway/modbus_tcp/rate_limited_log.h"
+
 #include <arpa/inet.h>
 #include <openssl/asn1.h>
 #include <openssl/bio.h>
@@ -27,7 +29,6 @@ namespace {
 namespace ssl = boost::asio::ssl;
 using config::Role;
 
-constexpr std::chrono::seconds kRefusalLogInterval{1};
 
 std::string openssl_error_text() {
   std::string text;
@@ -203,17 +204,8 @@ class RoleGate final : public RequestHandler {
     }
     const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
     service_.count_refusal(role_);
-    // A client writing cyclically what its role may not must not flood the log.
-    const auto now = std::chrono::steady_clock::now();
-    if (now - last_logged_ >= kRefusalLogInterval) {
-      spdlog::warn("modbus tcp security: {}: unit {} FC{:02X} refused (0x{:02X}): {}{}", client_, unit_id, function,
-                   exception_code(refusal->fault), refusal->reason,
-                   held_back_ > 0 ? "; " + std::to_string(held_back_) + " more refusal(s) not logged" : std::string());
-      last_logged_ = now;
-      held_back_ = 0;
-    } else {
-      ++held_back_;
-    }
+    refusal_log_.warn(fmt::format("modbus tcp security: {}: unit {} FC{:02X} refused (0x{:02X}): {}", client_, unit_id,
+                                  function, exception_code(refusal->fault), refusal->reason));
     reply.send(exception_response(function, refusal->fault));
   }
 
@@ -223,8 +215,7 @@ class RoleGate final : public RequestHandler {
   const Role role_;
   TlsService& service_;
   const std::string client_;
-  std::chrono::steady_clock::time_point last_logged_{};
-  std::uint64_t held_back_ = 0;
+  RateLimitedLog refusal_log_;  // a client writing cyclically what its role may not
 };
 
 }  // namespace

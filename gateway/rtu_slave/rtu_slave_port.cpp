@@ -23,10 +23,6 @@ namespace fc = protocol::function_code;
 
 namespace {
 
-// A refused request is logged at most this often per port (a panel writing cyclically what its
-// role may not must not flood the log).
-constexpr auto kRefusalLogInterval = std::chrono::seconds{1};
-
 // Broadcast forms (Modbus over serial line v1.02 §2.1: only writes): a read answers data, which a
 // broadcast never gets back; FC23 reads too.
 bool broadcastable(std::uint8_t function) {
@@ -353,17 +349,8 @@ void RtuSlavePort::handle_on_io_thread(std::uint8_t unit, const Bytes& pdu, cons
   }
   counters_.role_refusals.fetch_add(1, std::memory_order_relaxed);
   const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
-  const auto now = SteadyClock::now();
-  if (now - last_refusal_logged_ >= kRefusalLogInterval) {
-    spdlog::warn("{}: unit {} FC{:02X} refused (0x{:02X}) for role {}: {}{}", what(), unit, function,
-                 exception_code(refusal->fault), config::to_string(port_.role), refusal->reason,
-                 refusals_held_back_ > 0 ? "; " + std::to_string(refusals_held_back_) + " more refusal(s) not logged"
-                                         : std::string());
-    last_refusal_logged_ = now;
-    refusals_held_back_ = 0;
-  } else {
-    ++refusals_held_back_;
-  }
+  refusal_log_.warn(fmt::format("{}: unit {} FC{:02X} refused (0x{:02X}) for role {}: {}", what(), unit, function,
+                                exception_code(refusal->fault), config::to_string(port_.role), refusal->reason));
   reply.send(exception_response(function, refusal->fault));
 }
 

@@ -38,6 +38,7 @@
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/rtu_master.h"
 #include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/modbus_tcp/rate_limited_log.h"
 #include "gateway/modbus_tcp/request_handler.h"
 #include "gateway/rtu_slave/rtu_slave_stats.h"
 #include "protocol/modbus_rtu.h"
@@ -151,8 +152,7 @@ class RtuSlavePort {
   std::thread thread_;
 
   // The io thread's: refusal log limit.
-  SteadyClock::time_point last_refusal_logged_{};
-  std::uint64_t refusals_held_back_ = 0;
+  RateLimitedLog refusal_log_;  // a panel writing cyclically what its role may not
 };
 
 }  // namespace sms::gateway

@@ -116,15 +116,7 @@ std::optional<MotionEpoch> admit_or_refuse(SafetySupervisor& safety, MotionRefus
 }
 
 void MotionRefusalLog::refused(std::string_view who, std::uint8_t function, std::string_view why) {
-  const auto now = Clock::now();
-  if (last_ != Clock::time_point{} && now - last_ < std::chrono::seconds{1}) {
-    ++suppressed_;
-    return;
-  }
-  spdlog::warn("safety: {} FC{:02X}: motion write refused (0x04): {}{}", who, function, why,
-               suppressed_ == 0 ? std::string() : " (" + std::to_string(suppressed_) + " more refused since the last line)");
-  last_ = now;
-  suppressed_ = 0;
+  log_.warn(fmt::format("safety: {} FC{:02X}: motion write refused (0x04): {}", who, function, why));
 }
 
 class SafetySupervisor::Impl {

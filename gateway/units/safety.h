@@ -46,6 +46,7 @@
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/motion_gate.h"
+#include "gateway/modbus_tcp/rate_limited_log.h"
 #include "protocol/expected.h"
 
 namespace sms::gateway {
@@ -83,15 +84,13 @@ struct SafetyFacts {
 };
 
 // Refused motion writes, logged as a warning at most once a second (a PLC writing cyclically
-// into a latched gateway would otherwise fill the log); the lines in between are counted and
-// said in the next one. io thread only.
+// into a latched gateway would otherwise fill the log). io thread only.
 class MotionRefusalLog {
  public:
   void refused(std::string_view who, std::uint8_t function, std::string_view why);
 
  private:
-  std::chrono::steady_clock::time_point last_{};
-  std::uint64_t suppressed_ = 0;
+  RateLimitedLog log_;
 };
 
 class SafetySupervisor;
