@@ -20,6 +20,7 @@ std::string_view to_string(BusStatus status) {
     case BusStatus::BusDown: return "bus down";
     case BusStatus::QueueFull: return "queue full";
     case BusStatus::Cancelled: return "cancelled";
+    case BusStatus::Dropped: return "dropped";
   }
   return "?";
 }

@@ -85,6 +85,7 @@ enum class BusStatus : std::uint8_t {
   BusDown,       // port missing or closed -> 0x0A
   QueueFull,     // bounded queue full: back-pressure -> 0x06
   Cancelled,     // engine stopping
+  Dropped,       // the gateway could not express the operation (a defect): it never reached the bus -> 0x04
 };
 std::string_view to_string(BusStatus status);
 

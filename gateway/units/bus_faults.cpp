@@ -17,6 +17,7 @@ constexpr std::array kBusStatusFaults{
     BusStatusFault{BusStatus::BusDown, Fault::BusDown},
     BusStatusFault{BusStatus::QueueFull, Fault::QueueFull},
     BusStatusFault{BusStatus::Cancelled, Fault::GatewayStopping},
+    BusStatusFault{BusStatus::Dropped, Fault::InternalError},
 };
 
 }  // namespace

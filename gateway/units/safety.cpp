@@ -735,7 +735,7 @@ class SafetySupervisor::Impl {
     try {
       bus.engine->submit(std::move(op), Priority::Safety, done);
     } catch (const std::exception& error) {
-      done(BusResult{BusStatus::Corrupt, 0, {}, "bus " + bus.name + ": " + error.what()});
+      done(BusResult{BusStatus::Dropped, 0, {}, "bus " + bus.name + ": " + error.what()});
     }
   }
 

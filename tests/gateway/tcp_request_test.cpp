@@ -180,6 +180,8 @@ TEST(ModbusException, CodesFollowTheContract) {
 TEST(ModbusException, BusStatusesMapToTheirFaults) {
   EXPECT_EQ(exception_code(fault_from(BusStatus::Timeout)), 0x0B);
   EXPECT_EQ(exception_code(fault_from(BusStatus::Corrupt)), 0x04);
+  EXPECT_EQ(fault_from(BusStatus::Dropped), Fault::InternalError);
+  EXPECT_EQ(exception_code(fault_from(BusStatus::Dropped)), 0x04);
   EXPECT_EQ(exception_code(fault_from(BusStatus::ServoRefused)), 0x04);
   EXPECT_EQ(exception_code(fault_from(BusStatus::BusDown)), 0x0A);
   EXPECT_EQ(exception_code(fault_from(BusStatus::QueueFull)), 0x06);
