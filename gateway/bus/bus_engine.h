@@ -63,13 +63,6 @@ struct OwedStop {
   WriteOp write;    // the servo (write.servo_id) and what stops it without knowing its state
   std::string why;  // "e-stop", "watchdog", ... for the log
 };
-struct OwedStopState {
-  std::uint8_t servo_id = 0;
-  std::string why;
-  unsigned attempts = 0;         // sent, not yet acknowledged
-  SteadyClock::duration owed_for{};
-};
-
 class BusEngine {
  public:
   virtual ~BusEngine() = default;
@@ -93,8 +86,8 @@ class BusEngine {
   // Until then motion writes to that servo (and broadcast motion on the bus) are refused
   // (MotionBlocked). A later owe_stop() for the same servo replaces the earlier one.
   virtual void owe_stop(OwedStop stop) = 0;
-  // The servos owed a stop right now, in ID order.
-  virtual std::vector<OwedStopState> owed_stops() const = 0;
+  // How many servos are owed a stop right now (lock-free: read on every gateway-unit read).
+  virtual std::size_t owed_stop_count() const = 0;
 
   virtual const BusSettings& settings() const = 0;
   virtual bool bus_up() const = 0;

@@ -291,21 +291,13 @@ void EngineCore<Transactor>::owe_stop(OwedStop stop) {
     auto found = owed_.find(id);
     if (found == owed_.end()) {
       owed_.emplace(id, Owed{std::move(stop), now, now, 0});
+      owed_count_.store(owed_.size(), std::memory_order_release);
     } else {
       found->second.stop = std::move(stop);
       found->second.due = now;
     }
   }
   wake_.notify();
-}
-
-template <BusTransactor Transactor>
-std::vector<OwedStopState> EngineCore<Transactor>::owed_stops() const {
-  std::lock_guard lock(mutex_);
-  const auto now = SteadyClock::now();
-  std::vector<OwedStopState> states;
-  for (const auto& [id, owed] : owed_) states.push_back({id, owed.stop.why, owed.attempts, now - owed.since});
-  return states;
 }
 
 template <BusTransactor Transactor>
@@ -363,6 +355,7 @@ bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
     ++found->second.attempts;
     if (result.status == BusStatus::Ok && found->second.since == owed.since) {
       owed_.erase(found);
+      owed_count_.store(owed_.size(), std::memory_order_release);
       delivered = true;
     } else {
       found->second.due = now + settings_.probe_period;
@@ -382,6 +375,7 @@ bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
 
 template <BusTransactor Transactor>
 std::optional<BusResult> EngineCore<Transactor>::owed_refusal(const Request& request) const {
+  if (owed_stop_count() == 0) return std::nullopt;  // every motion write asks: no lock when none is owed
   const std::uint8_t target = Transactor::target(request);
   std::lock_guard lock(mutex_);
   if (owed_.empty()) return std::nullopt;

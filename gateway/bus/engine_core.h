@@ -56,7 +56,7 @@ class EngineCore final : public BusEngine {
   void stop() override;
   void submit(BusOp op, Priority priority, Completion done) override;
   void owe_stop(OwedStop stop) override;
-  std::vector<OwedStopState> owed_stops() const override;
+  std::size_t owed_stop_count() const override { return owed_count_.load(std::memory_order_acquire); }
 
   const BusSettings& settings() const override { return settings_; }
   bool bus_up() const override { return bus_up_.load(); }
@@ -153,6 +153,7 @@ class EngineCore final : public BusEngine {
   bool accepting_ = false;
   bool stopping_ = false;
   std::map<std::uint8_t, Owed> owed_;  // guarded by mutex_
+  std::atomic<std::size_t> owed_count_{0};  // owed_.size(), set under mutex_, read without it
   std::atomic<bool> bus_up_{false};
   std::atomic<bool> discovered_{false};
   std::thread thread_;

@@ -55,14 +55,6 @@ void put_words(std::vector<std::uint16_t>& image, std::size_t at, std::uint8_t w
 
 }  // namespace
 
-bool GatewayUnit::expects_reply(const SyncMember& member, const BusEngine& engine) {
-  const auto table = member.map.servo_table().id;
-  if (member.response_level) return writes_answered(table, *member.response_level);
-  const auto state = engine.cache().state(member.servo_id);
-  if (state && state->response_level) return writes_answered(table, *state->response_level);
-  return true;  // not read yet: every table's factory level answers writes
-}
-
 BusFacts bus_facts(const BusEngine& engine) {
   const BusCountersSnapshot counters = engine.counters();
   BusFacts facts;
@@ -355,7 +347,8 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     const auto& spec = modbus_map::motion_spec(member->map.servo_table().id);
     if (spec.torque.empty() || member->field->name != spec.torque || request.values[i] != 1) continue;
     switched_on.push_back(HoldTarget{engines_[member->bus], member->servo_id, &spec, member->map.byte_order(),
-                                     expects_reply(*member, *engines_[member->bus]), epochs[member->bus],
+                                     answers_writes(member->map.servo_table().id, member->response_level, *engines_[member->bus],
+                                                    member->servo_id), epochs[member->bus],
                                      "unit " + std::to_string(member->unit_id)});
   }
   auto send_frames = [this, frames = std::move(frames), buses, function = request.function, reply,

@@ -95,7 +95,6 @@ class GatewayUnit {
     std::vector<SyncMember> members;
   };
 
-  static bool expects_reply(const SyncMember& member, const BusEngine& engine);
   const SyncMember* sync_member_at(std::uint16_t address) const;
   void read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count, const Reply& reply);
   void write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,

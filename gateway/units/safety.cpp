@@ -332,10 +332,7 @@ class SafetySupervisor::Impl {
   SafetyFacts facts() const {
     SafetyFacts facts;
     facts.estops = estops_.load();
-    facts.state_file = state_path_;
     const auto now = Clock::now();
-    std::vector<std::size_t> owed;
-    for (const auto& bus : buses_) owed.push_back(bus->engine->owed_stops().size());
     // One snapshot of the latch, the states and the gates (they change together, under this lock).
     std::lock_guard lock(state_mutex_);
     facts.estop_latched = estop_latched_.load();
@@ -349,7 +346,7 @@ class SafetySupervisor::Impl {
       f.trips = bus->trips.load();
       f.stops = bus->stops.load();
       f.failed_stops = bus->failed_stops.load();
-      f.owed_stops = owed[bus->index];
+      f.owed_stops = bus->engine->owed_stop_count();
       f.last_cause = bus->last_cause.load();
       if (const auto us = bus->last_latency_us.load(); us >= 0) f.last_stop_latency = std::chrono::microseconds{us};
       f.motion_blocked = bus->gate->blocked();
@@ -359,6 +356,7 @@ class SafetySupervisor::Impl {
   }
 
   bool estop_latched() const { return estop_latched_.load(); }
+  const std::string& state_file() const { return state_path_; }
   bool any_tripped() const {
     return std::any_of(buses_.begin(), buses_.end(),
                        [](const auto& bus) { return bus->state.load() == WatchdogState::Tripped; });
@@ -381,7 +379,7 @@ class SafetySupervisor::Impl {
 
   std::string owed_text() const {
     std::size_t owed = 0;
-    for (const auto& bus : buses_) owed += bus->engine->owed_stops().size();
+    for (const auto& bus : buses_) owed += bus->engine->owed_stop_count();
     if (owed == 0) return {};
     return "; " + std::to_string(owed) +
            " servo(s) still owe their safe stop and refuse motion until they have taken it";
@@ -614,12 +612,7 @@ class SafetySupervisor::Impl {
   // The torque off a servo is owed when its stop did not reach it (BusEngine::owe_stop).
   OwedStop owed_stop_for(const BusSafety& bus, const StopTarget& target, std::string_view reason) const {
     const auto write = modbus_map::torque_off_write(*target.spec, target.order);
-    bool answers = true;
-    if (target.response_level) {
-      answers = writes_answered(target.spec->table, *target.response_level);
-    } else if (const auto state = bus.engine->cache().state(target.servo_id); state && state->response_level) {
-      answers = writes_answered(target.spec->table, *state->response_level);
-    }
+    const bool answers = answers_writes(target.spec->table, target.response_level, *bus.engine, target.servo_id);
     return OwedStop{WriteOp{target.servo_id, write.address, write.data, false, answers, 0}, std::string(reason)};
   }
 
@@ -783,6 +776,7 @@ void SafetySupervisor::reset_estop(std::string_view who) { impl_->reset_estop(wh
 void SafetySupervisor::rearm_watchdogs(std::string_view who) { impl_->rearm_watchdogs(who); }
 SafetyFacts SafetySupervisor::facts() const { return impl_->facts(); }
 bool SafetySupervisor::estop_latched() const { return impl_->estop_latched(); }
+const std::string& SafetySupervisor::state_file() const { return impl_->state_file(); }
 bool SafetySupervisor::any_tripped() const { return impl_->any_tripped(); }
 std::size_t SafetySupervisor::bus_count() const { return impl_->bus_count(); }
 std::optional<std::chrono::milliseconds> SafetySupervisor::watchdog_timeout(std::size_t bus) const {

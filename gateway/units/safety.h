@@ -80,7 +80,6 @@ struct SafetyFacts {
   bool estop_latched = false;
   std::uint64_t estops = 0;
   std::vector<BusSafetyFacts> buses;
-  std::string state_file;  // where the latch and trips are kept; empty: not kept
 };
 
 // Refused motion writes, logged as a warning at most once a second (a PLC writing cyclically
@@ -141,6 +140,8 @@ class SafetySupervisor {
 
   SafetyFacts facts() const;
   bool estop_latched() const;
+  // Where the latch and the tripped watchdogs are kept; empty: not kept.
+  const std::string& state_file() const;
   bool any_tripped() const;
   std::size_t bus_count() const;
   std::optional<std::chrono::milliseconds> watchdog_timeout(std::size_t bus) const;

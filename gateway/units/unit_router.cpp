@@ -50,20 +50,22 @@ std::uint16_t saturate16(std::uint64_t value) {
 // client that sent it, so it must not keep a dead PLC's servo turning.
 class FeedOnSuccess final : public Reply::Target {
  public:
-  FeedOnSuccess(Reply reply, std::function<void()> feed) : reply_(std::move(reply)), feed_(std::move(feed)) {}
+  FeedOnSuccess(Reply reply, SafetySupervisor& safety, std::size_t bus)
+      : reply_(std::move(reply)), safety_(safety), bus_(bus) {}
   void deliver(std::uint64_t, Bytes response_pdu) override {
     if (response_pdu.empty()) {
-      feed_();
+      safety_.feed_write(bus_);
       reply_.finish_without_answer();
       return;
     }
-    if ((response_pdu[0] & 0x80) == 0) feed_();
+    if ((response_pdu[0] & 0x80) == 0) safety_.feed_write(bus_);
     reply_.send(std::move(response_pdu));
   }
 
  private:
   Reply reply_;
-  std::function<void()> feed_;
+  SafetySupervisor& safety_;
+  std::size_t bus_;
 };
 
 bool writes(std::uint8_t function) { return function_effect(function) != FunctionEffect::Reads; }
@@ -145,8 +147,7 @@ void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu,
 void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, const Reply& reply) {
   const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
   const auto fed_on_success = [&](std::size_t bus_index) {
-    return Reply(std::make_shared<FeedOnSuccess>(reply, [this, bus_index] { safety_.feed_write(bus_index); }), 0,
-                 reply.origin_text());
+    return Reply(std::make_shared<FeedOnSuccess>(reply, safety_, bus_index), 0, reply.origin_text());
   };
   if (const PassthroughUnit* forwarded = passthrough_[unit_id].get()) {
     forward(*forwarded, pdu, writes(function) ? fed_on_success(forwarded->bus_index) : reply);
@@ -467,12 +468,16 @@ void UnitRouter::hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t 
                         });
 }
 
-bool expects_write_reply(const ServoUnit& unit) {
-  const TableId table = unit.map.servo_table().id;
-  if (unit.configured_response_level) return writes_answered(table, *unit.configured_response_level);
-  const auto state = unit.engine->cache().state(unit.servo_id);
+bool answers_writes(TableId table, std::optional<std::uint8_t> configured_level, const BusEngine& engine,
+                    std::uint8_t servo_id) {
+  if (configured_level) return writes_answered(table, *configured_level);
+  const auto state = engine.cache().state(servo_id);
   if (state && state->response_level) return writes_answered(table, *state->response_level);
   return true;  // not read yet: every table's factory level answers writes
+}
+
+bool expects_write_reply(const ServoUnit& unit) {
+  return answers_writes(unit.map.servo_table().id, unit.configured_response_level, *unit.engine, unit.servo_id);
 }
 
 ServoFacts UnitRouter::facts_of(const ServoUnit& unit) const {

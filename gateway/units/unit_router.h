@@ -78,6 +78,11 @@ struct ServoUnit {
 // Whether a WRITE to this unit's servo waits for its answer: the configured response level,
 // else the level discovery read from the servo, else yes (every table's factory level).
 bool expects_write_reply(const ServoUnit& unit);
+// Whether servo `servo_id` on `engine` answers unicast writes: its configured response level, else
+// the one read from it (the poll cache), else yes (every table's factory level answers writes).
+// The one rule for servo units, sync groups and owed safe stops.
+bool answers_writes(modbus_map::TableId table, std::optional<std::uint8_t> configured_level, const BusEngine& engine,
+                    std::uint8_t servo_id);
 
 // A unit on a modbus-rtu bus without a table: its PDUs are forwarded to the slave unchanged
 // and its answers (exceptions included) come back unchanged.

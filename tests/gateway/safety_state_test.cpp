@@ -140,7 +140,7 @@ TEST_F(SafetyState, LatchAndTripsAreRestoredFromTheStateFile) {
   EXPECT_EQ(facts.buses[1].state, WatchdogState::Tripped);
   EXPECT_TRUE(gates_[0]->blocked());
   EXPECT_TRUE(gates_[1]->blocked());
-  EXPECT_EQ(facts.state_file, state.file());
+  EXPECT_EQ(safety_->state_file(), state.file());
   EXPECT_FALSE(safety_->admit_motion(0));
 
   safety_->reset_estop();
