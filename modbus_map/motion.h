@@ -68,7 +68,7 @@ struct MotionSpec {
   StopAction default_stop;            // a servo's `safe_stop` when the configuration names none
 };
 
-const MotionSpec& motion_spec(TableId table);
+const MotionSpec& motion_spec(TableId id);
 
 // The bus ranges to read before a safe stop: mode (or angle limits), torque, the goal block and
 // the present position, merged where they lie close together (one READ on packet tables).

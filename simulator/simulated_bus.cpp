@@ -44,7 +44,7 @@ constexpr auto kFixedSilence = std::chrono::microseconds(1750);
 // A duplicate starts this many position units away from its twin, so their replies differ.
 constexpr double kDuplicateSkew = 37.0;
 // A host that stops reading: keep at most this much unsent, like a UART's buffer overflowing.
-constexpr std::size_t kMaxUnsent = 64 * 1024;
+constexpr std::size_t kMaxUnsent = std::size_t{64} * 1024;
 
 Clock::duration character_time(std::uint32_t baud) {
   return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(kBitsPerCharacter / baud));
@@ -430,10 +430,9 @@ void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::ti
                     "merged with it and ignored",
                     std::chrono::duration_cast<std::chrono::microseconds>(now - previous_frame_end).count());
     }
-    if (rtu_merging_) {
-      rtu_decoder_.reset();
-    } else if (packet_frame) {
-      // Another protocol's frame on a mixed bus: to the Modbus slaves it is noise that ends
+    if (rtu_merging_ || packet_frame) {
+      // Merging: the rest of a request glued to the one before is ignored too. A packet frame:
+      // another protocol's frame on a mixed bus is noise to the Modbus slaves that ends
       // whatever they were collecting. Without wire timing the host may follow it by less than
       // the 3.5-character silence, which would otherwise glue it to the next Modbus request.
       rtu_decoder_.reset();

@@ -135,16 +135,16 @@ class VirtualServo {
   };
   WriteResult write_checked(std::uint16_t address, std::span<const std::uint8_t> bytes, WriteCheck check);
   const modbus_map::FieldSpec* field(Role role) const { return fields_[static_cast<std::size_t>(role)]; }
-  std::optional<Role> role_of(const modbus_map::FieldSpec& field) const;
+  std::optional<Role> role_of(const modbus_map::FieldSpec& spec) const;
   std::int32_t get(Role role, std::int32_t fallback = 0) const;
   void put(Role role, std::int64_t value);
   bool eeprom_unlocked() const;
-  void persist(const modbus_map::FieldSpec& field);
+  void persist(const modbus_map::FieldSpec& spec);
 
   // --- behaviour -----------------------------------------------------------------------------
   void power_on();
   void reboot();
-  void apply_written(const ServoMemory& before, std::span<const modbus_map::FieldSpec* const> fields);
+  void apply_written(const ServoMemory& before, std::span<const modbus_map::FieldSpec* const> written);
   void advance_motion(double seconds);
   void next_trajectory_point();
   void normalise_single_turn();

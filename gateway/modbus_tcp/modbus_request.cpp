@@ -26,7 +26,7 @@ bool quantity_ok(std::uint16_t address, std::uint16_t count, std::uint16_t limit
 
 std::vector<std::uint16_t> registers_from(std::span<const std::uint8_t> bytes, std::uint16_t count) {
   std::vector<std::uint16_t> values(count);
-  for (std::uint16_t i = 0; i < count; ++i) values[i] = u16_at(bytes, 2u * i);
+  for (std::uint16_t i = 0; i < count; ++i) values[i] = u16_at(bytes, std::size_t{2} * i);
   return values;
 }
 
@@ -76,7 +76,7 @@ Expected<Request, Fault> parse_write_multiple_registers(std::uint8_t /*function*
   const std::uint16_t count = u16_at(body, 2);
   if (!quantity_ok(address, count, limits::kWriteRegisters)) return unexpected(Fault::QuantityOverLimit);
   const std::size_t byte_count = body[4];
-  if (byte_count != 2u * count || body.size() != 5 + byte_count) return unexpected(Fault::MalformedRequest);
+  if (byte_count != std::size_t{2} * count || body.size() != 5 + byte_count) return unexpected(Fault::MalformedRequest);
   return Request{WriteRegistersRequest{fc::kWriteMultipleRegisters, address, registers_from(body.subspan(5), count)}};
 }
 
@@ -90,7 +90,7 @@ Expected<Request, Fault> parse_read_write_registers(std::uint8_t /*function*/, s
     return unexpected(Fault::QuantityOverLimit);
   }
   const std::size_t byte_count = body[8];
-  if (byte_count != 2u * write_count || body.size() != 9 + byte_count) return unexpected(Fault::MalformedRequest);
+  if (byte_count != std::size_t{2} * write_count || body.size() != 9 + byte_count) return unexpected(Fault::MalformedRequest);
   WriteRegistersRequest write{fc::kReadWriteMultipleRegisters, write_address,
                               registers_from(body.subspan(9), write_count)};
   return Request{ReadWriteRegistersRequest{read, std::move(write)}};

@@ -332,7 +332,14 @@ std::string duration_text(std::chrono::milliseconds duration) {
 TcpServer::TcpServer(asio::io_context& io, TcpServerOptions options, RequestHandler& handler)
     : impl_(std::make_shared<Impl>(io, std::move(options), handler)) {}
 
-TcpServer::~TcpServer() { impl_->close_all(); }
+TcpServer::~TcpServer() {
+  // A destructor must not throw: a failure to close is logged (the sockets close with the process).
+  try {
+    impl_->close_all();
+  } catch (const std::exception& error) {
+    spdlog::error("modbus: closing the connections failed: {}", error.what());
+  }
+}
 
 void TcpServer::start() { impl_->start(); }
 std::uint16_t TcpServer::port() const { return impl_->port(); }

@@ -47,7 +47,7 @@ struct TcpServerOptions {
   // new request until the client reads (so a client that never reads its answers cannot make
   // the gateway buffer without bound). A client that takes none of its answers for the idle
   // timeout is closed.
-  std::size_t max_unsent_bytes = 64 * 1024;
+  std::size_t max_unsent_bytes = std::size_t{64} * 1024;
   // Client addresses allowed to connect (modbus_tcp.allow); empty: every client. Others are
   // closed on accept without a Modbus answer.
   std::vector<config::IpNetwork> allow;

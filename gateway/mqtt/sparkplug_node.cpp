@@ -586,7 +586,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
         });
   }
 
-  void birth(std::size_t index, std::vector<std::uint16_t> facts) {
+  void birth(std::size_t index, const std::vector<std::uint16_t>& facts) {
     Device& device = devices_[index];
     std::vector<ReadRegistersRequest> reads = device.live_reads;
     if (device.cache_read) reads.insert(reads.begin(), *device.cache_read);

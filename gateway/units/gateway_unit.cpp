@@ -359,7 +359,7 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
       return;
     }
     auto join = BusJoin::create(frames.size(), post_,
-                                [this, buses, function, reply, after = std::move(after)](std::vector<BusResult> results) {
+                                [this, buses, function, reply, after = std::move(after)](const std::vector<BusResult>& results) {
                                   if (const BusResult* failure = BusJoin::first_failure(results)) {
                                     spdlog::warn("gateway unit: sync group write failed: {}", failure->detail);
                                     reply.send(exception_response(function, fault_from(failure->status)));
@@ -465,7 +465,7 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
     if (!admitted) return;
     epochs.push_back(*admitted);
   }
-  auto join = BusJoin::create(packet_buses.size(), post_, [this, request, reply](std::vector<BusResult> results) {
+  auto join = BusJoin::create(packet_buses.size(), post_, [this, request, reply](const std::vector<BusResult>& results) {
     if (const BusResult* failure = BusJoin::first_failure(results)) {
       spdlog::warn("gateway unit: ACTION failed on a bus: {}", failure->detail);
       reply.send(exception_response(request.function, fault_from(failure->status)));

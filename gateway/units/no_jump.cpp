@@ -7,7 +7,7 @@
 namespace sms::gateway {
 
 void hold_before_torque_on(std::vector<HoldTarget> targets, const PostFn& post,
-                           std::function<void(std::optional<BusResult>)> done) {
+                           const std::function<void(std::optional<BusResult>)>& done) {
   struct Read {
     std::size_t target;
     modbus_map::BusRange range;
@@ -57,7 +57,7 @@ void hold_before_torque_on(std::vector<HoldTarget> targets, const PostFn& post,
       done(std::nullopt);
       return;
     }
-    auto join = BusJoin::create(holds.size(), post, [done](std::vector<BusResult> written) {
+    auto join = BusJoin::create(holds.size(), post, [done](const std::vector<BusResult>& written) {
       const BusResult* failure = BusJoin::first_failure(written);
       done(failure ? std::optional<BusResult>(*failure) : std::nullopt);
     });

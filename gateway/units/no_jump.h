@@ -32,6 +32,6 @@ struct HoldTarget {
 // io thread (through `post`) with nullopt, or with the first failure (nothing after it written;
 // the caller answers it and does not switch the torque on).
 void hold_before_torque_on(std::vector<HoldTarget> targets, const PostFn& post,
-                           std::function<void(std::optional<BusResult>)> done);
+                           const std::function<void(std::optional<BusResult>)>& done);
 
 }  // namespace sms::gateway

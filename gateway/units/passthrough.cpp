@@ -81,7 +81,11 @@ void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uin
       return;
     }
     if (silent) return reply.finish_without_answer();
-    reply.send(broadcast ? *broadcast : std::move(result.data));
+    if (broadcast) {
+      reply.send(*broadcast);
+    } else {
+      reply.send(std::move(result.data));
+    }
   });
   try {
     engine.submit(RawPduOp{slave, Bytes(pdu.begin(), pdu.end()), motion_epoch}, priority_of(function), std::move(done));

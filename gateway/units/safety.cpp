@@ -265,7 +265,7 @@ class SafetySupervisor::Impl {
     return bus.gate->epoch();
   }
 
-  void estop(PostFn post, std::function<void(bool)> done, std::string_view who) {
+  void estop(const PostFn& post, std::function<void(bool)> done, std::string_view who) {
     bool already = false;
     {
       std::lock_guard lock(state_mutex_);
@@ -514,7 +514,7 @@ class SafetySupervisor::Impl {
     return [this](std::function<void()> work) { asio::post(io_, std::move(work)); };
   }
   static PostFn run_here() {
-    return [](std::function<void()> work) { work(); };
+    return [](const std::function<void()>& work) { work(); };
   }
 
   // --- safe stops ------------------------------------------------------------------------------
@@ -524,7 +524,7 @@ class SafetySupervisor::Impl {
   // Safety thread. Reads what the holds need, then sends the stop frames; `done(ok)` after the
   // last frame (ok: every servo was reached).
   void run_stop(std::size_t index, StopCause cause, std::optional<StopAction> override, Clock::time_point since,
-                std::string reason, std::function<void(bool)> done) {
+                const std::string& reason, const std::function<void(bool)>& done) {
     BusSafety& bus = *buses_[index];
     auto contexts = std::make_shared<Contexts>();
     auto write_phase = [this, index, cause, override, since, reason, done, contexts] {
@@ -589,8 +589,8 @@ class SafetySupervisor::Impl {
   // Reads every context range of `targets` into `contexts`, then `then()`. The completions run
   // where the last read completes (the bus thread), so the next phase is queued before the engine
   // picks its next job: a poll due meanwhile cannot slip in between.
-  void read_contexts(BusSafety& bus, const std::vector<std::size_t>& targets, std::shared_ptr<Contexts> contexts,
-                     std::function<void()> then) {
+  void read_contexts(BusSafety& bus, const std::vector<std::size_t>& targets, const std::shared_ptr<Contexts>& contexts,
+                     const std::function<void()>& then) {
     std::vector<std::pair<std::size_t, modbus_map::BusRange>> reads;
     for (const std::size_t t : targets) {
       for (const auto& range : bus.targets[t].context) reads.emplace_back(t, range);
@@ -724,7 +724,7 @@ class SafetySupervisor::Impl {
 
   // A stop must not die on an operation the bus refuses to express (a programming error):
   // it becomes that operation's failure, said in the stop's log line.
-  void submit_safely(BusSafety& bus, BusOp op, Completion done) {
+  void submit_safely(BusSafety& bus, BusOp op, const Completion& done) {
     try {
       bus.engine->submit(std::move(op), Priority::Safety, done);
     } catch (const std::exception& error) {
@@ -769,8 +769,8 @@ std::optional<std::uint16_t> SafetySupervisor::heartbeat_value(std::size_t bus) 
   return impl_->heartbeat_value(bus);
 }
 Expected<MotionEpoch> SafetySupervisor::admit_motion(std::size_t bus) { return impl_->admit_motion(bus); }
-void SafetySupervisor::estop(PostFn post, std::function<void(bool)> done, std::string_view who) {
-  impl_->estop(std::move(post), std::move(done), who);
+void SafetySupervisor::estop(const PostFn& post, std::function<void(bool)> done, std::string_view who) {
+  impl_->estop(post, std::move(done), who);
 }
 void SafetySupervisor::reset_estop(std::string_view who) { impl_->reset_estop(who); }
 void SafetySupervisor::rearm_watchdogs(std::string_view who) { impl_->rearm_watchdogs(who); }

@@ -133,7 +133,7 @@ class SafetySupervisor {
   // stop frame has been sent (ok false when a bus could not take its frames).
   using PostFn = std::function<void(std::function<void()>)>;
   // `who` names the client in the log ("a Modbus TCP client", "the Sparkplug host (NCMD/DCMD)").
-  void estop(PostFn post, std::function<void(bool ok)> done, std::string_view who = "a Modbus TCP client");
+  void estop(const PostFn& post, std::function<void(bool ok)> done, std::string_view who = "a Modbus TCP client");
   void reset_estop(std::string_view who = "a Modbus TCP client");
   // Gateway unit coil 2 := 0: every tripped watchdog back to armed. Moves nothing.
   void rearm_watchdogs(std::string_view who = "a Modbus TCP client");

@@ -374,6 +374,7 @@ void UnitRouter::run_reads(const ServoUnit& unit, std::uint8_t function, const m
                                   return;
                                 }
                                 std::vector<protocol::Bytes> replies;
+                                replies.reserve(results.size());
                                 for (auto& result : results) replies.push_back(std::move(result.data));
                                 then(std::move(replies));
                               });

@@ -1,0 +1,102 @@
+#!/usr/bin/env python3
+"""clang-tidy over the given files with a result cache, as ccache does for compiles.
+
+A file that passed before is not checked again while its preprocessed source (with every
+header it includes), its compile flags, .clang-tidy and the clang-tidy version are unchanged:
+the key is a SHA-256 of those. Only passing runs are remembered, so a finding shows every time.
+The cache lives in $SMS_TIDY_CACHE (default ~/.cache/sms-gateway/clang-tidy); deleting it only
+costs time.
+
+usage: tidy.py BUILD_DIR FILE...   exit 0: no findings; 1: findings (printed); 2: usage
+"""
+import concurrent.futures
+import hashlib
+import json
+import os
+import pathlib
+import shlex
+import subprocess
+import sys
+
+
+def compile_args(entry):
+    args = entry["arguments"] if "arguments" in entry else shlex.split(entry["command"])
+    # Preprocess instead of compiling: drop the output and -c, keep every flag that shapes the source.
+    out, skip = [], False
+    for arg in args:
+        if skip:
+            skip = False
+            continue
+        if arg == "-o":
+            skip = True
+            continue
+        if arg == "-c":
+            continue
+        out.append(arg)
+    # ccache as a launcher is not part of the compile.
+    if out and os.path.basename(out[0]) == "ccache":
+        out = out[1:]
+    return out
+
+
+def key_of(entry, config, version):
+    args = compile_args(entry)
+    preprocessed = subprocess.run(args + ["-E", "-P", "-o", "-"], cwd=entry["directory"], capture_output=True,
+                                  check=True).stdout
+    digest = hashlib.sha256()
+    for part in (version, config, "\0".join(args).encode(), preprocessed):
+        digest.update(part)
+        digest.update(b"\0")
+    return digest.hexdigest()
+
+
+def main():
+    if len(sys.argv) < 3:
+        print(__doc__, file=sys.stderr)
+        return 2
+    build, files = pathlib.Path(sys.argv[1]), [os.path.abspath(f) for f in sys.argv[2:]]
+    root = pathlib.Path(__file__).resolve().parent.parent
+    entries = {os.path.abspath(os.path.join(e["directory"], e["file"])): e
+               for e in json.loads((build / "compile_commands.json").read_text())}
+    missing = [f for f in files if f not in entries]
+    if missing:
+        print("tidy: not in %s/compile_commands.json: %s" % (build, " ".join(missing)), file=sys.stderr)
+        return 2
+    config = (root / ".clang-tidy").read_bytes()
+    version = subprocess.run(["clang-tidy", "--version"], capture_output=True, check=True).stdout
+    cache = pathlib.Path(os.environ.get("SMS_TIDY_CACHE", pathlib.Path.home() / ".cache/sms-gateway/clang-tidy"))
+    cache.mkdir(parents=True, exist_ok=True)
+
+    def check(path):
+        try:
+            key = key_of(entries[path], config, version)
+        except subprocess.CalledProcessError as error:
+            return path, False, "preprocessing failed: " + error.stderr.decode(errors="replace")
+        stamp = cache / key
+        if stamp.exists():
+            return path, True, None
+        run = subprocess.run(["clang-tidy", "-p", str(build), "--quiet", path], capture_output=True, text=True)
+        if run.returncode == 0:
+            stamp.touch()
+            return path, False, None
+        return path, False, run.stdout + run.stderr
+
+    failed, cached = 0, 0
+    with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        for path, hit, findings in pool.map(check, files):
+            cached += hit
+            if findings is not None:
+                failed += 1
+                lines = [l for l in findings.splitlines() if "warnings generated" not in l and "Suppressed" not in l
+                         and "Use -header-filter" not in l]
+                print("\n".join(lines), file=sys.stderr)
+    if failed:
+        print("tidy: findings in %d of %d files (above); fix them, or say why not with NOLINT(check) and a reason"
+              % (failed, len(files)), file=sys.stderr)
+        return 1
+    print("tidy: %d files, no findings (%d unchanged since a passing run)" % (len(files), cached))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
