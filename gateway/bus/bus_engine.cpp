@@ -23,6 +23,7 @@ std::string_view to_string(BusStatus status) {
     case BusStatus::QueueFull: return "queue full";
     case BusStatus::Cancelled: return "cancelled";
     case BusStatus::Dropped: return "dropped";
+    case BusStatus::MotionBlocked: return "motion blocked";
   }
   return "?";
 }

@@ -252,7 +252,7 @@ void EngineCore<Transactor>::run(Job job) {
 template <BusTransactor Transactor>
 std::optional<BusResult> EngineCore<Transactor>::motion_refusal(MotionEpoch admitted) const {
   if (admitted == 0 || !settings_.motion_gate || settings_.motion_gate->admits(admitted)) return std::nullopt;
-  return BusResult{BusStatus::ServoRefused, 0, {},
+  return BusResult{BusStatus::MotionBlocked, 0, {},
                    "bus " + settings_.name + ": motion write dropped: a watchdog trip or the e-stop stopped the bus "
                    "after it was accepted (README \"Safety\")"};
 }
@@ -367,7 +367,7 @@ std::optional<BusResult> EngineCore<Transactor>::owed_refusal(const Request& req
   const bool broadcast = Transactor::broadcast(request);
   if (!broadcast && owed_.count(target) == 0) return std::nullopt;
   const std::uint8_t owing = broadcast ? owed_.begin()->first : target;
-  return BusResult{BusStatus::ServoRefused, 0, {},
+  return BusResult{BusStatus::MotionBlocked, 0, {},
                    fmt::format("bus {}: servo {} has not taken its owed safe stop yet ({}); motion writes to it "
                                "are refused until it has",
                                settings_.name, owing, owed_.at(owing).stop.why)};

@@ -106,7 +106,7 @@ class EngineCore final : public BusEngine {
   void run(Job job);
   void shutdown();
   // The refusal of a motion write that a trip or the e-stop overtook while it was queued
-  // (ServoRefused -> 0x04, with the reason); nullopt: it may go on the wire.
+  // (MotionBlocked -> 0x04, with the reason); nullopt: it may go on the wire.
   std::optional<BusResult> motion_refusal(MotionEpoch admitted) const;
   // --- owed safe stops (owe_stop) ----------------------------------------------------------------
   void deliver_owed_stops();
