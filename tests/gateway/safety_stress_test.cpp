@@ -174,6 +174,9 @@ TEST_F(SafetyStateUnderLoad, AClientsReadsNeverDisagreeWhileTheEStopAndTheWatchd
   running = false;
   operator_thread.join();
   plc_thread.join();
+  RecordProperty("reads", reads);
+  RecordProperty("estops", estops.load());
+  RecordProperty("trip_rounds", trip_rounds.load());
 
   EXPECT_EQ(disagreements, 0) << "of " << reads << " reads; the first: " << first_disagreement;
   EXPECT_FALSE(stop_unanswered) << "an e-stop was not answered within 2 s";
