@@ -26,6 +26,7 @@
 #include "gateway/mqtt/sparkplug_node.h"
 #include "gateway/modbus_tcp/tls.h"
 #include "gateway/tools/tool_cli.h"
+#include "process/stop_signals.h"
 #include "simulator/simulated_bus.h"
 
 namespace {
@@ -148,18 +149,6 @@ int check_config(const std::string& path) {
   return kExitOk;
 }
 
-// Blocks SIGINT/SIGTERM (stop) and SIGHUP (reload the TLS files) in every thread (call before
-// any thread starts) and returns the set so main can sigwait() for them.
-sigset_t block_stop_signals() {
-  sigset_t signals;
-  sigemptyset(&signals);
-  sigaddset(&signals, SIGINT);
-  sigaddset(&signals, SIGTERM);
-  sigaddset(&signals, SIGHUP);
-  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
-  return signals;
-}
-
 std::string environment_help() {
   std::string text;
   for (const auto& variable : sms::config::environment_variables()) {
@@ -183,7 +172,8 @@ bool address_option(std::string_view option, const std::string& text, std::optio
 }
 
 int run_gateway(const Options& options) {
-  const sigset_t stop_signals = block_stop_signals();
+  // SIGINT/SIGTERM stop, SIGHUP reloads the TLS files; blocked before any thread starts.
+  const sms::process::StopSignals stop_signals({SIGHUP});
 
   std::optional<sms::config::HostPort> listen;
   std::optional<sms::config::HostPort> metrics;
@@ -238,13 +228,12 @@ int run_gateway(const Options& options) {
     sms::gateway::Gateway gateway(std::move(config));
     gateway.start();
     int signal_number = 0;
-    for (;;) {
-      sigwait(&stop_signals, &signal_number);
-      if (signal_number != SIGHUP) break;
+    while ((signal_number = stop_signals.wait()) == SIGHUP) {
       spdlog::info("SIGHUP received: reloading the Modbus/TCP Security certificate, key and CA");
       gateway.reload_tls();
     }
-    spdlog::info("{} received: finishing the requests in flight, then stopping", strsignal(signal_number));
+    spdlog::info("{} received: finishing the requests in flight, then stopping",
+                 sms::process::StopSignals::name(signal_number));
     gateway.stop();
   } catch (const std::exception& error) {
     spdlog::critical("{}", error.what());

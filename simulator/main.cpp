@@ -1,6 +1,5 @@
 // sms-sim: a whole simulated servo bus on a pseudo-terminal (or a serial device), for
 // developing and testing against servos that are not on the desk. See `sms-sim --help`.
-#include <signal.h>
 
 #include <cstdio>
 #include <iostream>
@@ -12,6 +11,7 @@
 #include <spdlog/spdlog.h>
 
 #include "modbus_map/tables.h"
+#include "process/stop_signals.h"
 #include "simulator/bus_spec.h"
 #include "simulator/control_server.h"
 #include "simulator/simulated_bus.h"
@@ -152,12 +152,8 @@ int main(int argc, char** argv) {
   options.reboot_time = std::chrono::milliseconds(reboot_ms);
   spdlog::set_level(verbose ? spdlog::level::debug : spdlog::level::warn);
 
-  // Block the stop signals before any thread starts, then wait for them here.
-  sigset_t stop_signals;
-  sigemptyset(&stop_signals);
-  sigaddset(&stop_signals, SIGINT);
-  sigaddset(&stop_signals, SIGTERM);
-  pthread_sigmask(SIG_BLOCK, &stop_signals, nullptr);
+  // Blocked before any thread starts, then waited for here.
+  const sms::process::StopSignals stop_signals;
 
   try {
     SimulatedBus bus(options);
@@ -188,8 +184,7 @@ int main(int argc, char** argv) {
     if (!control_path.empty()) control.emplace(bus, control_path);
     std::cout << bus.slave_path() << std::endl;  // flushed: scripts read this line
 
-    int signal_number = 0;
-    sigwait(&stop_signals, &signal_number);
+    stop_signals.wait();
     control.reset();
     bus.stop();
   } catch (const std::exception& error) {

@@ -3,13 +3,15 @@
 #include <stdexcept>
 #include <string>
 
-#include <spdlog/spdlog.h>
-
 #include "gateway/bus/engine_core.h"
 #include "gateway/bus/packet_transactor.h"
 #include "gateway/bus/rtu_transactor.h"
 
 namespace sms::gateway {
+
+// Both transactors have the whole face the engine core is written against (transactor.h).
+static_assert(BusTransactor<PacketTransactor>, "PacketTransactor must satisfy BusTransactor (transactor.h)");
+static_assert(BusTransactor<RtuTransactor>, "RtuTransactor must satisfy BusTransactor (transactor.h)");
 
 std::string_view to_string(BusStatus status) {
   switch (status) {
@@ -21,15 +23,9 @@ std::string_view to_string(BusStatus status) {
     case BusStatus::QueueFull: return "queue full";
     case BusStatus::Cancelled: return "cancelled";
     case BusStatus::Dropped: return "dropped";
+    case BusStatus::MotionBlocked: return "motion blocked";
   }
   return "?";
-}
-
-BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth, Priority priority) {
-  if (!accepting) return BusStatus::Cancelled;
-  if (!bus_up) return BusStatus::BusDown;
-  if (queued >= queue_depth && priority != Priority::Safety) return BusStatus::QueueFull;
-  return BusStatus::Ok;
 }
 
 MotionEpoch motion_epoch_of(const BusOp& op) {
@@ -42,33 +38,6 @@ MotionEpoch motion_epoch_of(const BusOp& op) {
         }
       },
       op);
-}
-
-std::optional<BusResult> motion_refusal(const BusSettings& settings, MotionEpoch admitted) {
-  if (admitted == 0 || !settings.motion_gate || settings.motion_gate->admits(admitted)) return std::nullopt;
-  return BusResult{BusStatus::ServoRefused, 0, {},
-                   "bus " + settings.name + ": motion write dropped: a watchdog trip or the e-stop stopped the bus "
-                   "after it was accepted (README \"Safety\")"};
-}
-
-std::string refusal_detail(BusStatus refusal, const BusSettings& settings) {
-  switch (refusal) {
-    case BusStatus::Cancelled: return "bus " + settings.name + ": the bus engine is not running";
-    case BusStatus::BusDown:
-      return "bus " + settings.name + ": serial port " + settings.serial.device + " is not open (bus down)";
-    case BusStatus::QueueFull:
-      return "bus " + settings.name + ": " + std::to_string(settings.queue_depth) + " operations already queued";
-    default: return "bus " + settings.name + ": " + std::string(to_string(refusal));
-  }
-}
-
-void complete(const BusSettings& settings, Completion& done, BusResult result) {
-  if (!done) return;
-  try {
-    done(std::move(result));
-  } catch (const std::exception& error) {
-    spdlog::error("bus {}: a completion handler threw: {}", settings.name, error.what());
-  }
 }
 
 std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::ModbusRtuOptions& modbus_rtu) {

@@ -12,12 +12,9 @@
 // Completions run on the bus thread, except QueueFull, BusDown while the port is down, and
 // Cancelled after stop(): those run synchronously inside submit(), on the caller's thread,
 // before submit() returns. Never call submit() while holding a lock the completion takes.
-#include <array>
 #include <chrono>
 #include <cstdint>
-#include <deque>
 #include <memory>
-#include <optional>
 #include <string>
 #include <vector>
 
@@ -96,50 +93,6 @@ class BusEngine {
   // True once discovery has finished for the current bus-up period (tests, readiness).
   virtual bool discovered() const = 0;
 };
-
-// What every bus does around its queue (the engine core and the tests use these).
-// Whether a bus takes a client operation now: Ok, or Cancelled (the engine is not running),
-// BusDown (the port is not open) or QueueFull (`queued` of `queue_depth` slots taken).
-// Safety work is never QueueFull: a full queue must not keep a motor from stopping.
-BusStatus admission(bool accepting, bool bus_up, std::size_t queued, std::size_t queue_depth,
-                    Priority priority = Priority::ClientWrite);
-// Whether a job may go on the wire now: nullopt, or the refusal of a motion write that a trip or
-// the e-stop overtook while it was queued (ServoRefused -> 0x04, with the reason).
-std::optional<BusResult> motion_refusal(const BusSettings& settings, MotionEpoch admitted);
-// A refusal's text for logs and answers: "bus arm: 64 operations already queued".
-std::string refusal_detail(BusStatus refusal, const BusSettings& settings);
-// Runs `done` (if set) with `result`; a handler that throws is logged, never let loose on the
-// bus thread.
-void complete(const BusSettings& settings, Completion& done, BusResult result);
-
-// The order in which a bus takes its queued work (docs/DECISIONS.md "Gateway", Priorities), over
-// one FIFO queue per Priority whose jobs carry `queued_at`:
-// 1. safe stops (Priority::Safety), always first;
-// 2. else the job that has waited longest among those past their level's age limit
-//    (`age_limits[priority]`): no kind of work waits without bound behind another — a live read
-//    behind a flood of writes, a poll behind a flood of live reads;
-// 3. else strict priority, FIFO within a priority (a connection's writes keep their order).
-// Returns the priority level to take the front of, or nullopt when every queue is empty.
-template <typename Job>
-std::optional<std::size_t> next_level(const std::array<std::deque<Job>, kPriorityCount>& queues,
-                                      const std::array<std::chrono::nanoseconds, kPriorityCount>& age_limits,
-                                      SteadyClock::time_point now) {
-  constexpr auto kSafety = static_cast<std::size_t>(Priority::Safety);
-  if (!queues[kSafety].empty()) return kSafety;
-  std::optional<std::size_t> overdue;
-  for (std::size_t level = kSafety + 1; level < kPriorityCount; ++level) {
-    if (queues[level].empty() || now - queues[level].front().queued_at < age_limits[level]) continue;
-    if (!overdue || queues[level].front().queued_at < queues[*overdue].front().queued_at) overdue = level;
-  }
-  if (overdue) return overdue;
-  for (std::size_t level = 0; level < kPriorityCount; ++level) {
-    if (!queues[level].empty()) return level;
-  }
-  return std::nullopt;
-}
-// How long a client operation may wait behind higher-priority client work before it goes next
-// (rule 2 above): a few transactions at 1 Mbit/s, one at slow rates.
-inline constexpr std::chrono::milliseconds kClientAgeLimit{2};
 
 // The engine for the bus's protocol: EngineCore (engine_core.h) with PacketTransactor for feetech
 // and d55d, with RtuTransactor (and the bus's RS-485/RTS/byte-timeout options) for modbus-rtu.

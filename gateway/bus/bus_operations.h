@@ -86,6 +86,9 @@ enum class BusStatus : std::uint8_t {
   QueueFull,     // bounded queue full: back-pressure -> 0x06
   Cancelled,     // engine stopping
   Dropped,       // the gateway could not express the operation (a defect): it never reached the bus -> 0x04
+  // The safety rules' gate at the wire: a trip or the e-stop overtook a queued motion write, or
+  // its servo still owes a safe stop; it never reached the bus -> 0x04 (as on the io thread).
+  MotionBlocked,
 };
 std::string_view to_string(BusStatus status);
 

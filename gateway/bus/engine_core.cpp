@@ -71,9 +71,7 @@ EngineCore<Transactor>::EngineCore(BusSettings settings, const TransactorFactory
     : settings_(validated<Transactor>(std::move(settings))),
       transactor_(make_transactor(settings_, counters_)),
       cache_(cache_entries(settings_), Transactor::kBytesPerAddress),
-      scheduler_(poll_targets(settings_, transactor_->has_sync_read()), settings_.probe_period),
-      age_limits_{std::chrono::nanoseconds{0}, kClientAgeLimit, kClientAgeLimit,
-                  std::max<std::chrono::nanoseconds>(settings_.poll_period, 10ms)} {}
+      scheduler_(poll_targets(settings_, transactor_->has_sync_read()), settings_.probe_period) {}
 
 template <BusTransactor Transactor>
 EngineCore<Transactor>::~EngineCore() {
@@ -100,24 +98,17 @@ void EngineCore<Transactor>::submit(BusOp op, Priority priority, Completion done
   }
   job.request = transactor_->prepare(std::move(op), attempts());  // const: safe on the caller's thread
   job.done = std::move(done);
-  if (queue_client_job(settings_, counters_, mutex_, queue_, std::move(job), priority, accepting_, bus_up_.load())) {
-    wake_.notify();
-  }
+  if (queue_.submit(std::move(job), priority)) wake_.notify();
 }
 
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::enqueue_internal(Job job) {
-  std::lock_guard lock(mutex_);
-  queue_.push_internal(std::move(job), Priority::Poll);
+  queue_.push_internal(std::move(job));
 }
 
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::start() {
-  {
-    std::lock_guard lock(mutex_);
-    if (accepting_ || thread_.joinable()) throw std::logic_error("bus " + settings_.name + ": started twice");
-    accepting_ = true;
-  }
+  if (thread_.joinable() || !queue_.open()) throw std::logic_error("bus " + settings_.name + ": started twice");
   // Opened here, before the thread runs, so bus_up() is true on return when the port exists.
   try_open();
   thread_ = std::thread([this] { run_thread(); });
@@ -125,11 +116,7 @@ void EngineCore<Transactor>::start() {
 
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::stop() {
-  {
-    std::lock_guard lock(mutex_);
-    accepting_ = false;
-    stopping_ = true;
-  }
+  queue_.close();
   wake_.notify();
   if (!thread_.joinable()) return;
   if (std::this_thread::get_id() == thread_.get_id()) {
@@ -161,10 +148,7 @@ void EngineCore<Transactor>::run_loop() {
   for (;;) {
     if (!transactor_->is_open()) {
       wake_.wait(SteadyClock::now() + settings_.reopen_period);  // or earlier, for stop()
-      {
-        std::lock_guard lock(mutex_);
-        if (stopping_) return;
-      }
+      if (queue_.closing()) return;
       try_open();
       continue;
     }
@@ -176,8 +160,7 @@ void EngineCore<Transactor>::run_loop() {
       run(std::move(*job));
       continue;
     }
-    std::lock_guard lock(mutex_);
-    if (stopping_) return;
+    if (queue_.closing()) return;
   }
 }
 
@@ -185,39 +168,38 @@ void EngineCore<Transactor>::run_loop() {
 template <BusTransactor Transactor>
 std::optional<typename EngineCore<Transactor>::Job> EngineCore<Transactor>::next_job() {
   for (;;) {
-    std::optional<SteadyClock::time_point> wake_at;
+    if (queue_.closing()) return std::nullopt;
+    const auto now = SteadyClock::now();
+    // An owed safe stop falls due before anything else is taken. (One that owe_stop() adds after
+    // this look wakes the wait below: a notify() before the wait is not lost.)
+    std::optional<SteadyClock::time_point> owed_due;
     {
-      std::lock_guard lock(mutex_);
-      if (stopping_) return std::nullopt;
-      const auto now = SteadyClock::now();
-      // next_level() (bus_engine.h): safe stops first; then whatever waited past its age limit,
-      // oldest first; else strict priority, FIFO within a priority.
-      // An owed safe stop falls due before anything else is taken.
-      std::optional<SteadyClock::time_point> owed_due;
+      std::lock_guard lock(owed_mutex_);
       for (const auto& [id, owed] : owed_) {
         if (!owed_due || owed.due < *owed_due) owed_due = owed.due;
       }
-      if (owed_due && *owed_due <= now) return std::nullopt;
-      if (const auto level = queue_.next(age_limits_, now)) return queue_.pop(*level);
-      if (poll_due(now)) return std::nullopt;
-      // Asleep until a job is submitted or the next cycle falls due (never a time already past:
-      // poll_due() would have said so).
-      if (settings_.poll && discovered_.load() && !cycle_.running) wake_at = next_cycle_;
-      if (owed_due && (!wake_at || *owed_due < *wake_at)) wake_at = owed_due;
     }
+    if (owed_due && *owed_due <= now) return std::nullopt;
+    if (auto job = queue_.take(now)) return job;
+    if (poll_due(now)) return std::nullopt;
+    // Asleep until a job is submitted or the next cycle falls due (never a time already past:
+    // poll_due() would have said so).
+    std::optional<SteadyClock::time_point> wake_at;
+    if (settings_.poll && discovered_.load() && !cycle_.running) wake_at = next_cycle_;
+    if (owed_due && (!wake_at || *owed_due < *wake_at)) wake_at = owed_due;
     wake_.wait(wake_at);
   }
 }
 
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::run(Job job) {
-  if (auto refusal = motion_refusal(settings_, job.motion_epoch)) {
-    complete(settings_, job.done, std::move(*refusal));
+  if (auto refusal = motion_refusal(job.motion_epoch)) {
+    queue_.complete(job, std::move(*refusal));
     return;
   }
   if (job.motion_epoch != 0) {
     if (auto refusal = owed_refusal(job.request)) {
-      complete(settings_, job.done, std::move(*refusal));
+      queue_.complete(job, std::move(*refusal));
       return;
     }
   }
@@ -226,8 +208,8 @@ void EngineCore<Transactor>::run(Job job) {
     // A client polling a dead servo must not make the bus pay timeouts; the servo's probe
     // brings it back within one probe period.
     counters_.transactions.fetch_add(1, std::memory_order_relaxed);
-    complete(settings_, job.done,
-             BusResult{BusStatus::Timeout, 0, {},
+    queue_.complete(job,
+                    BusResult{BusStatus::Timeout, 0, {},
                        fmt::format("bus {}: servo {} is offline (it stopped answering; probed every {} ms)",
                                    settings_.name, target, settings_.probe_period.count())});
     return;
@@ -253,7 +235,7 @@ void EngineCore<Transactor>::run(Job job) {
   if (result.status == BusStatus::BusDown) {
     const std::string reason = std::move(result.detail);
     port_lost(reason);  // drops the engine's own work: it is rebuilt when the bus is back
-    if (job.client) complete(settings_, job.done, BusResult{BusStatus::BusDown, 0, {}, "bus " + settings_.name + ": " + reason});
+    if (job.client) queue_.complete(job, BusResult{BusStatus::BusDown, 0, {}, "bus " + settings_.name + ": " + reason});
     return;
   }
   if (result.status == BusStatus::Ok) {
@@ -264,20 +246,23 @@ void EngineCore<Transactor>::run(Job job) {
   } else {
     spdlog::debug("{}", result.detail);
   }
-  complete(settings_, job.done, std::move(result));
+  queue_.complete(job, std::move(result));
+}
+
+template <BusTransactor Transactor>
+std::optional<BusResult> EngineCore<Transactor>::motion_refusal(MotionEpoch admitted) const {
+  if (admitted == 0 || !settings_.motion_gate || settings_.motion_gate->admits(admitted)) return std::nullopt;
+  return BusResult{BusStatus::MotionBlocked, 0, {},
+                   "bus " + settings_.name + ": motion write dropped: a watchdog trip or the e-stop stopped the bus "
+                   "after it was accepted (README \"Safety\")"};
 }
 
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::shutdown() {
   transactor_->close();
-  std::vector<Job> cancelled;
-  {
-    std::lock_guard lock(mutex_);
-    bus_up_.store(false);
-    cancelled = queue_.take_clients();
-  }
+  std::vector<Job> cancelled = queue_.line_down();
   const std::string detail = "bus " + settings_.name + ": the gateway is stopping";
-  for (auto& job : cancelled) complete(settings_, job.done, BusResult{BusStatus::Cancelled, 0, {}, detail});
+  for (auto& job : cancelled) queue_.complete(job, BusResult{BusStatus::Cancelled, 0, {}, detail});
 }
 
 // ==== owed safe stops =============================================================================
@@ -285,7 +270,7 @@ void EngineCore<Transactor>::shutdown() {
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::owe_stop(OwedStop stop) {
   {
-    std::lock_guard lock(mutex_);
+    std::lock_guard lock(owed_mutex_);
     const auto now = SteadyClock::now();
     const std::uint8_t id = stop.write.servo_id;
     auto found = owed_.find(id);
@@ -302,7 +287,7 @@ void EngineCore<Transactor>::owe_stop(OwedStop stop) {
 
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::make_owed_due(std::optional<std::uint8_t> servo_id) {
-  std::lock_guard lock(mutex_);
+  std::lock_guard lock(owed_mutex_);
   const auto now = SteadyClock::now();
   for (auto& [id, owed] : owed_) {
     if (!servo_id || id == *servo_id) owed.due = now;
@@ -313,7 +298,7 @@ template <BusTransactor Transactor>
 void EngineCore<Transactor>::deliver_owed_stops() {
   std::vector<std::pair<std::uint8_t, Owed>> due;
   {
-    std::lock_guard lock(mutex_);
+    std::lock_guard lock(owed_mutex_);
     const auto now = SteadyClock::now();
     for (const auto& [id, owed] : owed_) {
       if (owed.due <= now) due.emplace_back(id, owed);
@@ -349,7 +334,7 @@ bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
   const auto now = SteadyClock::now();
   bool delivered = false;
   {
-    std::lock_guard lock(mutex_);
+    std::lock_guard lock(owed_mutex_);
     auto found = owed_.find(servo_id);
     if (found == owed_.end()) return true;
     ++found->second.attempts;
@@ -377,12 +362,12 @@ template <BusTransactor Transactor>
 std::optional<BusResult> EngineCore<Transactor>::owed_refusal(const Request& request) const {
   if (owed_stop_count() == 0) return std::nullopt;  // every motion write asks: no lock when none is owed
   const std::uint8_t target = Transactor::target(request);
-  std::lock_guard lock(mutex_);
+  std::lock_guard lock(owed_mutex_);
   if (owed_.empty()) return std::nullopt;
   const bool broadcast = Transactor::broadcast(request);
   if (!broadcast && owed_.count(target) == 0) return std::nullopt;
   const std::uint8_t owing = broadcast ? owed_.begin()->first : target;
-  return BusResult{BusStatus::ServoRefused, 0, {},
+  return BusResult{BusStatus::MotionBlocked, 0, {},
                    fmt::format("bus {}: servo {} has not taken its owed safe stop yet ({}); motion writes to it "
                                "are refused until it has",
                                settings_.name, owing, owed_.at(owing).stop.why)};
@@ -423,10 +408,7 @@ bool EngineCore<Transactor>::try_open() {
   }
   open_failure_logged_ = false;
   spdlog::info("bus {}: {} open, {}", settings_.name, settings_.serial.device, transactor_->line_description());
-  {
-    std::lock_guard lock(mutex_);
-    bus_up_.store(true);
-  }
+  queue_.line_up();
   make_owed_due(std::nullopt);  // before discovery: run_loop delivers them first
   begin_discovery();
   return true;
@@ -441,18 +423,13 @@ void EngineCore<Transactor>::port_lost(const std::string& reason) {
   // every servo offline too.
   cache_.set_all_offline();
   discovered_.store(false);
-  std::vector<Job> failed;
-  {
-    std::lock_guard lock(mutex_);
-    bus_up_.store(false);
-    failed = queue_.take_clients();
-  }
+  std::vector<Job> failed = queue_.line_down();
   scheduler_.forget_all();
   cycle_ = Cycle{};
   next_cycle_.reset();
   discovery_ = Discovery{};
   const std::string detail = "bus " + settings_.name + ": " + reason;
-  for (auto& job : failed) complete(settings_, job.done, BusResult{BusStatus::BusDown, 0, {}, detail});
+  for (auto& job : failed) queue_.complete(job, BusResult{BusStatus::BusDown, 0, {}, detail});
 }
 
 // ==== discovery ===================================================================================

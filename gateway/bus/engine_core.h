@@ -2,8 +2,8 @@
 // The one bus engine, for every protocol: EngineCore<PacketTransactor> runs feetech and d55d
 // buses, EngineCore<RtuTransactor> modbus-rtu buses (make_bus_engine, bus_engine.h, picks).
 // The core owns everything that is the same on every bus:
-// - the job queue (job_queue.h) with its priorities, age rule and per-connection order, bounded
-//   admission (QueueFull -> 0x06) and the safety rules' motion gate;
+// - the job queue (job_queue.h: admission, priorities, the age rule, its lock) and, just before
+//   the wire, the safety rules' motion gate (motion_refusal) and the owed safe stops;
 // - presence: online / offline / probe (poll_scheduler.h), the offline short-cut for clients;
 // - poll cycles and their accounting, discovery (PING, then the identity READ) and its summary;
 // - the status byte rule (one rule for every answer kind, logged once per change);
@@ -59,7 +59,7 @@ class EngineCore final : public BusEngine {
   std::size_t owed_stop_count() const override { return owed_count_.load(std::memory_order_acquire); }
 
   const BusSettings& settings() const override { return settings_; }
-  bool bus_up() const override { return bus_up_.load(); }
+  bool bus_up() const override { return queue_.line_is_up(); }
   BusCountersSnapshot counters() const override { return counters_.snapshot(); }
   const PollCache& cache() const override { return cache_; }
   bool discovered() const override { return discovered_.load(); }
@@ -70,7 +70,7 @@ class EngineCore final : public BusEngine {
     Request request;
     bool client = false;  // from submit(): holds a slot of the bounded queue, completes on every outcome
     MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
-    SteadyClock::time_point queued_at{};  // the age rule (next_level, bus_engine.h)
+    SteadyClock::time_point queued_at{};  // the age rule (job_queue.h)
     Completion done;
     // A safe stop's writes (Priority::Safety on packet buses): a servo holding a staged write
     // gets the same write staged too, so a later ACTION cannot run a move staged before the stop.
@@ -105,6 +105,9 @@ class EngineCore final : public BusEngine {
   void enqueue_internal(Job job);
   void run(Job job);
   void shutdown();
+  // The refusal of a motion write that a trip or the e-stop overtook while it was queued
+  // (MotionBlocked -> 0x04, with the reason); nullopt: it may go on the wire.
+  std::optional<BusResult> motion_refusal(MotionEpoch admitted) const;
   // --- owed safe stops (owe_stop) ----------------------------------------------------------------
   void deliver_owed_stops();
   bool deliver(std::uint8_t servo_id, const Owed& owed);  // false: the port was lost
@@ -140,21 +143,14 @@ class EngineCore final : public BusEngine {
   std::unique_ptr<Transactor> transactor_;
   PollCache cache_;
   PollScheduler scheduler_;  // bus thread only
-  // Per Priority: how long a job may wait before it goes ahead of higher priorities (next_level):
-  // client work after kClientAgeLimit, the engine's own poll, probe or discovery work after one
-  // poll period (at least 10 ms).
-  std::array<std::chrono::nanoseconds, kPriorityCount> age_limits_;
   Events events_{*this};
 
   // Shared with submitting threads.
-  mutable std::mutex mutex_;
+  JobQueue<Job> queue_{settings_, counters_};  // its own lock
   Wakeup wake_;
-  JobQueue<Job> queue_;
-  bool accepting_ = false;
-  bool stopping_ = false;
-  std::map<std::uint8_t, Owed> owed_;  // guarded by mutex_
-  std::atomic<std::size_t> owed_count_{0};  // owed_.size(), set under mutex_, read without it
-  std::atomic<bool> bus_up_{false};
+  mutable std::mutex owed_mutex_;
+  std::map<std::uint8_t, Owed> owed_;  // guarded by owed_mutex_
+  std::atomic<std::size_t> owed_count_{0};  // owed_.size(), set under owed_mutex_, read without it
   std::atomic<bool> discovered_{false};
   std::thread thread_;
 

@@ -7,6 +7,7 @@
 #include <bitset>
 #include <stdexcept>
 #include <thread>
+#include <utility>
 #include <variant>
 
 #include "protocol/d55d.h"
@@ -264,204 +265,315 @@ Expected<Ok> PacketTransactor::settle(const Request& request) {
   return Ok{};
 }
 
-BusResult PacketTransactor::execute(const Request& request, TransactionEvents& events) {
-  if (!port_.is_open()) return port_lost(port_.settings().device + " is not open");
-  const SerialSettings& serial = port_.settings();
-  const bool anyone = request.reply == ReplyKind::Ping && broadcast(request);  // a rate scan's PING
-  std::bitset<256> sync_expected;
-  std::bitset<256> sync_answered;
-  for (const auto id : request.sync_ids) sync_expected.set(id);
-  std::size_t reply_bytes = protocol::kMinFrameSize;
-  if (request.reply == ReplyKind::Data || request.reply == ReplyKind::SyncRead) reply_bytes += request.count;
-  if (request.reply == ReplyKind::Ping) reply_bytes += rules_.max_ping_params;
-  const auto request_time = wire_time(serial, request.frame.size());
-  const auto reply_time = wire_time(serial, reply_bytes) + timing_.reply_allowance;
-  const auto write_timeout =
-      std::chrono::ceil<std::chrono::milliseconds>(request_time + timing_.reply_allowance) + 50ms;
+// An adapter's echo of our own frame, in one place (the header's rule): a frame byte for byte the
+// request may be the answer after all (a PING answered with ERROR 0x01 is), so the first one of
+// an attempt is held back and taken at the deadline only if nothing else came and the line has
+// never been seen to echo — to hand back a request it cannot answer, or our frame and then the
+// answer.
+class PacketTransactor::EchoRule {
+ public:
+  explicit EchoRule(bool& line_echoes) : line_echoes_(line_echoes) {}
+  void next_attempt() { held_.reset(); }
+  // A frame identical to the request, as judged: true when it is held back (nothing more to do
+  // with it now).
+  bool held_back(Packet& frame, Verdict verdict, bool first) {
+    if (verdict == Verdict::NotOurs) line_echoes_ = true;  // it cannot be the answer: an echo
+    if (verdict != Verdict::Answer || !first) return false;
+    held_ = std::move(frame);
+    return true;
+  }
+  // The answer came: true when a frame held back was only our echo (dropped).
+  bool answer_came() {
+    if (!held_) return false;
+    held_.reset();
+    line_echoes_ = true;  // our frame came back, then the answer
+    return true;
+  }
+  // The attempt's wait is over without an answer: the frame held back, when it is the answer.
+  std::optional<Packet> answer_at_deadline() {
+    if (!held_ || line_echoes_) return std::nullopt;
+    return std::exchange(held_, std::nullopt);
+  }
 
-  AttemptFindings summary;
-  summary.timeout = request_time + reply_time;
-  if (const auto settled = settle(request); !settled) return port_lost(settled.error());
-  unsigned made = 0;
-  const auto late_window = kLateAnswerWindowAttempts * summary.timeout;
-  // SYNC READ owes per silent member (below); a broadcast PING's answers are anyone's.
-  const bool unicast_answer =
-      request.reply != ReplyKind::None && request.reply != ReplyKind::SyncRead && !broadcast(request);
-  OwedAnswers::Tally tally(owed_, request.servo_id, late_window, unicast_answer);
-  while (made < request.attempts) {
-    if (made++ > 0) counters_.retries.fetch_add(1, std::memory_order_relaxed);
-    const auto flushed = port_.discard_input();
-    if (!flushed) return port_lost(flushed.error());
-    stray_.count(*flushed, timing_.label, [&] { return "before " + describe(request); });
-    decoder_.reset();
-    count_discarded();
+ private:
+  bool& line_echoes_;
+  std::optional<Packet> held_;
+};
 
-    if (spdlog::should_log(spdlog::level::trace)) {
-      spdlog::trace("{}tx {}", timing_.label, spdlog::to_hex(request.frame));
-    }
-    const auto sent_at = SteadyClock::now();
-    tally.sent(sent_at);
-    if (const auto written = port_.write_all(request.frame, write_timeout); !written) return port_lost(written.error());
-    if (request.reply == ReplyKind::None) {
-      // Broadcast or unanswered write: complete once it is on the wire.
-      if (const auto drained = port_.drain(); !drained) return port_lost(drained.error());
-      std::this_thread::sleep_until(sent_at + request_time);
-      return BusResult{};
-    }
+// One execute(): the request's timing, its attempts as named steps (send, await the answer:
+// read the line, judge each frame, wait out bytes in flight), and what the attempts learnt.
+class PacketTransactor::Transaction {
+ public:
+  Transaction(PacketTransactor& line, const Request& request, TransactionEvents& events);
+  BusResult run();
 
-    const auto original_deadline = sent_at + summary.timeout;
-    auto deadline = original_deadline;
+ private:
+  // What one attempt has come to so far.
+  struct Attempt {
+    SteadyClock::time_point sent_at{};
+    SteadyClock::time_point original_deadline{};
+    SteadyClock::time_point deadline{};
     std::size_t frames = 0;
     bool quiet_wait = false;  // after a damaged answer: waiting for the line to go quiet
-    bool heard = false;  // a frame other than our own echo, or a damaged one, came back
-    std::optional<Packet> echo_candidate;
+    bool heard = false;       // a frame other than our own echo, or a damaged one, came back
+    bool send_again = false;  // our frame arrived damaged (d55d's checksum bit)
     std::optional<BusResult> outcome;
-    bool send_again = false;
     std::optional<SteadyClock::time_point> last_rx;
+    bool decided() const { return outcome || send_again; }
+  };
 
-    const auto accept = [&](Packet frame) {
-      counters_.frames_ok.fetch_add(1, std::memory_order_relaxed);
-      events.answered(frame.id, frame.code);
-      if (request.reply != ReplyKind::SyncRead) {
-        outcome = BusResult{BusStatus::Ok, frame.code, std::move(frame.params), {}};
-        return;
-      }
-      sync_answered.set(frame.id);
-      events.sync_answer(frame.id, frame.params);
-      if (sync_answered == sync_expected) {
-        outcome = BusResult{};
-        return;
-      }
-      // The next servo in the list answers after this one (docs/PROTOCOL.md §1.1): restart the wait.
-      deadline = SteadyClock::now() + reply_time;
-    };
-    const auto handle_frame = [&](Packet frame) {
-      const bool owed = request.reply != ReplyKind::SyncRead ||
-                        (sync_expected.test(frame.id) && !sync_answered.test(frame.id));
-      const Verdict verdict =
-          owed ? judge_reply(rules_, request.reply, request.servo_id, request.count, frame) : Verdict::NotOurs;
-      const bool echo = frame == request.packet;
-      if (!echo) heard = true;
-      // An answer still owed for an earlier request (to this servo or another) has come.
-      if (verdict == Verdict::NotOurs && !echo) owed_.arrived(frame.id);
-      if (verdict != Verdict::NotOurs && frame.id == request.servo_id && !echo) tally.heard();
-      const bool first = frames++ == 0;
-      // A frame identical to our request that cannot be its answer: this adapter echoes.
-      if (echo && verdict == Verdict::NotOurs) adapter_echoes_ = true;
-      if (verdict == Verdict::Answer && first && echo) {
-        // Byte for byte our request: an adapter echoing what we sent. Hold it; it is the answer
-        // only if nothing else comes before the deadline.
-        echo_candidate = std::move(frame);
-        return;
-      }
-      switch (verdict) {
-        case Verdict::NotOurs:
-          counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
-          if (!echo) events.foreign(frame.id);  // an adapter's echo of our request is nobody's answer
-          if (spdlog::should_log(spdlog::level::debug)) {
-            spdlog::debug("{}ignored a frame from ID {} (ERROR 0x{:02X}, {} bytes) while waiting for {}", timing_.label,
-                          frame.id, frame.code, frame.params.size(), describe(request));
-          }
-          return;
-        case Verdict::Answer:
-          if (echo_candidate) {
-            counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
-            echo_candidate.reset();
-            adapter_echoes_ = true;  // our frame came back, then the answer
-          }
-          return accept(std::move(frame));
-        case Verdict::Refused:
-          events.answered(frame.id, frame.code);
-          outcome = BusResult{BusStatus::ServoRefused, frame.code, {},
-                              fmt::format("{}servo {} refused {} (ERROR 0x{:02X})", timing_.label, frame.id,
-                                          describe(request), frame.code)};
-          return;
-        case Verdict::RefusedDamaged:
-          events.answered(frame.id, frame.code);
-          summary.refused_damaged = true;
-          summary.last_error = frame.code;
-          send_again = true;
-          return;
-      }
-    };
+  Expected<Ok> send();
+  Expected<Ok> await_answer();
+  Expected<Ok> read_line();
+  void on_frame(Packet frame);
+  void on_damaged(std::uint8_t id);
+  void accept(Packet frame);
+  bool wait_out_bytes_in_flight(SteadyClock::time_point now);
 
-    for (;;) {
-      const auto left = deadline - SteadyClock::now();
-      if (left > 0ns) {
-        const auto readable = port_.wait_readable(left);
-        if (!readable) return port_lost(readable.error());
-      }
-      // Read what the port holds even after the deadline: when this thread ran late (a busy
-      // machine), the answer may be waiting.
-      for (;;) {
-        const auto received = port_.read_available(rx_buffer_);
-        if (!received) return port_lost(received.error());
-        if (*received == 0) break;
-        const std::span<const std::uint8_t> bytes(rx_buffer_.data(), *received);
-        if (spdlog::should_log(spdlog::level::trace)) spdlog::trace("{}rx {}", timing_.label, spdlog::to_hex(bytes));
-        last_rx = SteadyClock::now();
-        decoder_.feed(bytes);
-        // Bytes still arriving after a damaged answer: wait until the line is quiet.
-        if (quiet_wait) deadline = std::min(original_deadline, SteadyClock::now() + quiet_gap_);
-        while (!outcome && !send_again) {
-          auto event = decoder_.next();
-          if (!event) break;
-          if (event->kind == protocol::DecodeEvent::Kind::Frame) {
-            handle_frame(std::move(event->packet));
-            continue;
-          }
-          // A damaged frame (checksum, or a LEN no frame can have).
-          counters_.checksum_errors.fetch_add(1, std::memory_order_relaxed);
-          summary.damaged_any = true;
-          heard = true;
-          events.damaged();
-          if (request.reply != ReplyKind::SyncRead && event->packet.id == request.servo_id) tally.heard();
-          if (request.reply != ReplyKind::SyncRead && event->packet.id == request.servo_id && !quiet_wait) {
-            // Our servo's answer arrived damaged: no valid one follows. Retry as soon as the
-            // line is quiet (transmitting into the tail of a frame would collide).
-            quiet_wait = true;
-            deadline = std::min(original_deadline, SteadyClock::now() + quiet_gap_);
-          }
-        }
-        count_discarded();
-        if (outcome || send_again) break;
-        // A short read emptied the tty's buffer: skip the read() that would say EAGAIN.
-        if (*received < rx_buffer_.size()) break;
-      }
-      if (outcome || send_again) break;
-      const auto now = SteadyClock::now();
-      if (now < deadline) continue;
-      // Bytes still arriving at the deadline (an answer in flight, late or colliding): wait until
-      // the line is quiet, bounded by one more timeout, so a retry does not transmit into them.
-      const auto guard_end = original_deadline + summary.timeout;
-      if (last_rx && now < *last_rx + quiet_gap_ && now < guard_end) {
-        deadline = std::min(*last_rx + quiet_gap_, guard_end);
-        continue;
-      }
-      break;
+  PacketTransactor& line_;
+  const Request& request_;
+  TransactionEvents& events_;
+  const std::chrono::nanoseconds request_time_;  // the request's wire time
+  const std::chrono::nanoseconds reply_time_;    // the answer's wire time plus the reply allowance
+  const std::chrono::nanoseconds timeout_;       // one attempt's wait
+  const std::chrono::milliseconds write_timeout_;
+  const std::chrono::nanoseconds late_window_;   // how long an unanswered attempt's answer may still come
+  const bool anyone_;                            // a rate scan's PING to the broadcast ID
+  std::bitset<256> sync_expected_;
+  std::bitset<256> sync_answered_;
+  AttemptFindings found_;
+  unsigned made_ = 0;
+  OwedAnswers::Tally tally_;
+  EchoRule echo_;
+  Attempt attempt_;
+};
+
+namespace {
+
+std::size_t reply_bytes(const PacketRules& rules, ReplyKind reply, std::size_t count) {
+  std::size_t bytes = protocol::kMinFrameSize;
+  if (reply == ReplyKind::Data || reply == ReplyKind::SyncRead) bytes += count;
+  if (reply == ReplyKind::Ping) bytes += rules.max_ping_params;
+  return bytes;
+}
+
+}  // namespace
+
+PacketTransactor::Transaction::Transaction(PacketTransactor& line, const Request& request, TransactionEvents& events)
+    : line_(line),
+      request_(request),
+      events_(events),
+      request_time_(wire_time(line.port_.settings(), request.frame.size())),
+      reply_time_(wire_time(line.port_.settings(), reply_bytes(line.rules_, request.reply, request.count)) +
+                  line.timing_.reply_allowance),
+      timeout_(request_time_ + reply_time_),
+      write_timeout_(std::chrono::ceil<std::chrono::milliseconds>(request_time_ + line.timing_.reply_allowance) + 50ms),
+      late_window_(kLateAnswerWindowAttempts * timeout_),
+      anyone_(request.reply == ReplyKind::Ping && broadcast(request)),
+      // SYNC READ owes per silent member (run()); a broadcast PING's answers are anyone's.
+      tally_(line.owed_, request.servo_id, late_window_,
+             request.reply != ReplyKind::None && request.reply != ReplyKind::SyncRead && !broadcast(request)),
+      echo_(line.adapter_echoes_) {
+  for (const auto id : request.sync_ids) sync_expected_.set(id);
+  found_.timeout = timeout_;
+}
+
+BusResult PacketTransactor::execute(const Request& request, TransactionEvents& events) {
+  if (!port_.is_open()) return port_lost(port_.settings().device + " is not open");
+  if (const auto settled = settle(request); !settled) return port_lost(settled.error());
+  return Transaction(*this, request, events).run();
+}
+
+BusResult PacketTransactor::Transaction::run() {
+  while (made_ < request_.attempts) {
+    if (made_++ > 0) line_.counters_.retries.fetch_add(1, std::memory_order_relaxed);
+    if (const auto sent = send(); !sent) return line_.port_lost(sent.error());
+    if (request_.reply == ReplyKind::None) {
+      // Broadcast or unanswered write: complete once it is on the wire.
+      if (const auto drained = line_.port_.drain(); !drained) return line_.port_lost(drained.error());
+      std::this_thread::sleep_until(attempt_.sent_at + request_time_);
+      return BusResult{};
     }
-    if (outcome) return std::move(*outcome);
-    if (send_again) continue;  // our frame arrived damaged: send it again now
-    if (echo_candidate && !adapter_echoes_) {
-      // What looked like our own echo was the only frame, and this adapter has never echoed:
-      // it was the answer after all (a PING answered with ERROR 0x01 is byte for byte the
-      // request).
-      tally.heard();
-      accept(std::move(*echo_candidate));
-      if (outcome) return std::move(*outcome);
+    if (const auto waited = await_answer(); !waited) return line_.port_lost(waited.error());
+    if (attempt_.outcome) return std::move(*attempt_.outcome);
+    if (attempt_.send_again) continue;  // our frame arrived damaged: send it again now
+    if (auto echo = echo_.answer_at_deadline()) {
+      tally_.heard();
+      accept(std::move(*echo));
+      if (attempt_.outcome) return std::move(*attempt_.outcome);
     }
-    if (request.reply == ReplyKind::SyncRead) {
+    if (request_.reply == ReplyKind::SyncRead) {
       // The silent are the engine's to follow up; their answers may still come.
-      for (const auto id : request.sync_ids) {
-        if (!sync_answered.test(id)) owed_.add(id, 1, tally.last_sent() + late_window);
+      for (const auto id : request_.sync_ids) {
+        if (!sync_answered_.test(id)) line_.owed_.add(id, 1, tally_.last_sent() + late_window_);
       }
       return BusResult{};
     }
-    counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
-    events.unanswered(request.servo_id);
-    if (anyone && heard) break;  // colliding answers: someone is there
+    line_.counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
+    events_.unanswered(request_.servo_id);
+    if (anyone_ && attempt_.heard) break;  // colliding answers: someone is there
   }
-  return fail(request, summary, made);
+  return line_.fail(request_, found_, made_);
+}
+
+// Drops what the input holds (stray), then transmits: an attempt begins.
+Expected<Ok> PacketTransactor::Transaction::send() {
+  const auto flushed = line_.port_.discard_input();
+  if (!flushed) return unexpected(flushed.error());
+  line_.stray_.count(*flushed, line_.timing_.label, [&] { return "before " + line_.describe(request_); });
+  line_.decoder_.reset();
+  line_.count_discarded();
+
+  if (spdlog::should_log(spdlog::level::trace)) {
+    spdlog::trace("{}tx {}", line_.timing_.label, spdlog::to_hex(request_.frame));
+  }
+  const auto sent_at = SteadyClock::now();
+  tally_.sent(sent_at);
+  attempt_ = Attempt{};
+  attempt_.sent_at = sent_at;
+  attempt_.original_deadline = attempt_.deadline = sent_at + timeout_;
+  echo_.next_attempt();
+  if (const auto written = line_.port_.write_all(request_.frame, write_timeout_); !written) {
+    return unexpected(written.error());
+  }
+  return Ok{};
+}
+
+// Reads and judges until the attempt is decided (an outcome, or send again) or its wait is over.
+Expected<Ok> PacketTransactor::Transaction::await_answer() {
+  for (;;) {
+    const auto left = attempt_.deadline - SteadyClock::now();
+    if (left > 0ns) {
+      const auto readable = line_.port_.wait_readable(left);
+      if (!readable) return unexpected(readable.error());
+    }
+    // Read what the port holds even after the deadline: when this thread ran late (a busy
+    // machine), the answer may be waiting.
+    if (const auto read = read_line(); !read) return read;
+    if (attempt_.decided()) return Ok{};
+    const auto now = SteadyClock::now();
+    if (now < attempt_.deadline) continue;
+    if (!wait_out_bytes_in_flight(now)) return Ok{};
+  }
+}
+
+// Everything the port holds, through the decoder, each event judged, until the attempt is decided.
+Expected<Ok> PacketTransactor::Transaction::read_line() {
+  for (;;) {
+    const auto received = line_.port_.read_available(line_.rx_buffer_);
+    if (!received) return unexpected(received.error());
+    if (*received == 0) return Ok{};
+    const std::span<const std::uint8_t> bytes(line_.rx_buffer_.data(), *received);
+    if (spdlog::should_log(spdlog::level::trace)) spdlog::trace("{}rx {}", line_.timing_.label, spdlog::to_hex(bytes));
+    attempt_.last_rx = SteadyClock::now();
+    line_.decoder_.feed(bytes);
+    // Bytes still arriving after a damaged answer: wait until the line is quiet.
+    if (attempt_.quiet_wait) {
+      attempt_.deadline = std::min(attempt_.original_deadline, SteadyClock::now() + line_.quiet_gap_);
+    }
+    while (!attempt_.decided()) {
+      auto event = line_.decoder_.next();
+      if (!event) break;
+      if (event->kind == protocol::DecodeEvent::Kind::Frame) {
+        on_frame(std::move(event->packet));
+      } else {
+        on_damaged(event->packet.id);
+      }
+    }
+    line_.count_discarded();
+    if (attempt_.decided()) return Ok{};
+    // A short read emptied the tty's buffer: skip the read() that would say EAGAIN.
+    if (*received < line_.rx_buffer_.size()) return Ok{};
+  }
+}
+
+// Bytes still arriving at the deadline (an answer in flight, late or colliding): wait until the
+// line is quiet, bounded by one more timeout, so a retry does not transmit into them. False: the
+// attempt's wait is over.
+bool PacketTransactor::Transaction::wait_out_bytes_in_flight(SteadyClock::time_point now) {
+  const auto guard_end = attempt_.original_deadline + timeout_;
+  if (!attempt_.last_rx || now >= *attempt_.last_rx + line_.quiet_gap_ || now >= guard_end) return false;
+  attempt_.deadline = std::min(*attempt_.last_rx + line_.quiet_gap_, guard_end);
+  return true;
+}
+
+// A valid frame: the answer, a refusal, our frame sent back, or somebody else's (not ours).
+void PacketTransactor::Transaction::on_frame(Packet frame) {
+  const bool owed = request_.reply != ReplyKind::SyncRead ||
+                    (sync_expected_.test(frame.id) && !sync_answered_.test(frame.id));
+  const Verdict verdict =
+      owed ? judge_reply(line_.rules_, request_.reply, request_.servo_id, request_.count, frame) : Verdict::NotOurs;
+  const bool first = attempt_.frames++ == 0;
+  const bool echo = frame == request_.packet;
+  if (echo) {
+    if (echo_.held_back(frame, verdict, first)) return;
+  } else {
+    attempt_.heard = true;
+    // An answer still owed for an earlier request (to this servo or another) has come.
+    if (verdict == Verdict::NotOurs) {
+      line_.owed_.arrived(frame.id);
+    } else if (frame.id == request_.servo_id) {
+      tally_.heard();
+    }
+  }
+  switch (verdict) {
+    case Verdict::NotOurs:
+      line_.counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
+      if (!echo) events_.foreign(frame.id);  // an adapter's echo of our request is nobody's answer
+      if (spdlog::should_log(spdlog::level::debug)) {
+        spdlog::debug("{}ignored a frame from ID {} (ERROR 0x{:02X}, {} bytes) while waiting for {}",
+                      line_.timing_.label, frame.id, frame.code, frame.params.size(), line_.describe(request_));
+      }
+      return;
+    case Verdict::Answer:
+      if (echo_.answer_came()) line_.counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
+      return accept(std::move(frame));
+    case Verdict::Refused:
+      events_.answered(frame.id, frame.code);
+      attempt_.outcome = BusResult{BusStatus::ServoRefused, frame.code, {},
+                                   fmt::format("{}servo {} refused {} (ERROR 0x{:02X})", line_.timing_.label, frame.id,
+                                               line_.describe(request_), frame.code)};
+      return;
+    case Verdict::RefusedDamaged:
+      events_.answered(frame.id, frame.code);
+      found_.refused_damaged = true;
+      found_.last_error = frame.code;
+      attempt_.send_again = true;
+      return;
+  }
+}
+
+// A damaged frame (checksum, or a LEN no frame can have).
+void PacketTransactor::Transaction::on_damaged(std::uint8_t id) {
+  line_.counters_.checksum_errors.fetch_add(1, std::memory_order_relaxed);
+  found_.damaged_any = true;
+  attempt_.heard = true;
+  events_.damaged();
+  if (request_.reply == ReplyKind::SyncRead || id != request_.servo_id) return;
+  tally_.heard();
+  if (!attempt_.quiet_wait) {
+    // Our servo's answer arrived damaged: no valid one follows. Retry as soon as the line is
+    // quiet (transmitting into the tail of a frame would collide).
+    attempt_.quiet_wait = true;
+    attempt_.deadline = std::min(attempt_.original_deadline, SteadyClock::now() + line_.quiet_gap_);
+  }
+}
+
+void PacketTransactor::Transaction::accept(Packet frame) {
+  line_.counters_.frames_ok.fetch_add(1, std::memory_order_relaxed);
+  events_.answered(frame.id, frame.code);
+  if (request_.reply != ReplyKind::SyncRead) {
+    attempt_.outcome = BusResult{BusStatus::Ok, frame.code, std::move(frame.params), {}};
+    return;
+  }
+  sync_answered_.set(frame.id);
+  events_.sync_answer(frame.id, frame.params);
+  if (sync_answered_ == sync_expected_) {
+    attempt_.outcome = BusResult{};
+    return;
+  }
+  // The next servo in the list answers after this one (docs/PROTOCOL.md §1.1): restart the wait.
+  attempt_.deadline = SteadyClock::now() + reply_time_;
 }
 
 BusResult PacketTransactor::fail(const Request& request, const AttemptFindings& last, unsigned attempts_made) const {

@@ -126,6 +126,8 @@ class PacketTransactor {
 
  private:
   struct AttemptFindings;
+  class EchoRule;     // an adapter's echo of our frame: when it is the answer
+  class Transaction;  // one execute(): its attempts as named steps
 
   // "READ 56+15 of servo 1", for messages.
   std::string describe(const Request& request) const;

@@ -50,6 +50,7 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <type_traits>
 #include <vector>
 
 #include <spdlog/spdlog.h>
@@ -178,8 +179,9 @@ class StrayBytes {
   bool told_ = false;
 };
 
-// The transactor contract above, checked by the compiler (EngineCore and the tools take a
-// BusTransactor).
+// The transactor contract above, checked by the compiler: EngineCore and the tools' link take a
+// BusTransactor, and bus_engine.cpp asserts that both transactors are one. Everything EngineCore
+// asks of its transactor is listed here (a member it uses that is missing here is a bug here).
 namespace transactor_contract {
 struct WriteVisitor {
   void operator()(std::uint8_t, std::uint16_t, std::span<const std::uint8_t>) const {}
@@ -199,6 +201,7 @@ concept BusTransactor = requires(T& transactor, const T& line, BusOp op, const t
   { line.prepare(std::move(op), attempts) } -> std::same_as<typename T::Request>;
   { line.read_request(id, block, attempts) } -> std::same_as<typename T::Request>;
   { line.ping_request(id, attempts) } -> std::same_as<typename T::Request>;
+  { line.sync_read_request(block, ids) } -> std::same_as<typename T::Request>;
   { T::target(request) } -> std::convertible_to<std::uint8_t>;
   { T::broadcast(request) } -> std::convertible_to<bool>;
   { T::broadcast_id(id) } -> std::convertible_to<bool>;
@@ -208,8 +211,9 @@ concept BusTransactor = requires(T& transactor, const T& line, BusOp op, const t
   { line.status_in_block(block, data) } -> std::same_as<std::optional<std::uint8_t>>;
   line.for_each_write(request, transactor_contract::WriteVisitor{});
   { T::check_servo(servo) } -> std::convertible_to<std::string>;
-  { T::kBytesPerAddress } -> std::convertible_to<std::size_t>;
-  { T::kAnswersCarryStatus } -> std::convertible_to<bool>;
+  // Compile-time constants, not just members of the right type.
+  typename std::integral_constant<std::size_t, T::kBytesPerAddress>;
+  typename std::bool_constant<T::kAnswersCarryStatus>;
 };
 
 }  // namespace sms::gateway

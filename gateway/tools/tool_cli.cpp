@@ -1,7 +1,5 @@
 #include "gateway/tools/tool_cli.h"
 
-#include <signal.h>
-
 #include <algorithm>
 #include <cstring>
 #include <fstream>
@@ -19,6 +17,7 @@
 #include "gateway/tools/tool_servo.h"
 #include "modbus_map/baud_tables.h"
 #include "modbus_map/tables.h"
+#include "process/stop_signals.h"
 
 namespace sms::gateway {
 namespace {
@@ -378,12 +377,7 @@ void add_forward(CLI::App& app) {
     options.idle_timeout = std::chrono::seconds{args->idle_timeout_s};
     options.broadcast_reply = args->reply_on_broadcast ? BroadcastReply::Answer : BroadcastReply::None;
 
-    // SIGINT/SIGTERM blocked in every thread, then waited for here.
-    sigset_t stop_signals;
-    sigemptyset(&stop_signals);
-    sigaddset(&stop_signals, SIGINT);
-    sigaddset(&stop_signals, SIGTERM);
-    pthread_sigmask(SIG_BLOCK, &stop_signals, nullptr);
+    const process::StopSignals stop_signals;  // blocked before the gateway's threads start
     try {
       ForwardGateway gateway(options);
       gateway.start();
@@ -392,9 +386,8 @@ void add_forward(CLI::App& app) {
                    "({})",
                    listen->host, gateway.port(), args->device, args->baud, 8, parity_letter(options.serial.parity),
                    args->stop_bits, args->reply_on_broadcast ? "answered once sent" : "not answered");
-      int signal_number = 0;
-      sigwait(&stop_signals, &signal_number);
-      spdlog::info("{} received: answering the requests in flight, then stopping", strsignal(signal_number));
+      spdlog::info("{} received: answering the requests in flight, then stopping",
+                   process::StopSignals::name(stop_signals.wait()));
       gateway.stop();
     } catch (const std::exception& error) {
       fail("forward", error.what());

@@ -68,7 +68,7 @@ class Heard final : public TransactionEvents {
 // had to retry, the next one first waits out one more reply timeout; what arrived meanwhile is
 // flushed before its request is written. Single-attempt exchanges (a scan) do not wait: a scan
 // finds late answers by their ID instead (tool_scan.cpp).
-template <class Transactor>
+template <BusTransactor Transactor>
 class TransactorLink final : public ServoLink {
  public:
   using Factory = std::unique_ptr<Transactor> (*)(const LinkSettings&, BusCounters&);

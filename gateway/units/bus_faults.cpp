@@ -18,6 +18,7 @@ constexpr std::array kBusStatusFaults{
     BusStatusFault{BusStatus::QueueFull, Fault::QueueFull},
     BusStatusFault{BusStatus::Cancelled, Fault::GatewayStopping},
     BusStatusFault{BusStatus::Dropped, Fault::InternalError},
+    BusStatusFault{BusStatus::MotionBlocked, Fault::MotionBlocked},
 };
 
 }  // namespace

@@ -286,7 +286,7 @@ class QueueTest : public BusEngineTest {
 };
 
 // Everything queued behind a 50 ms operation has waited past its age limit when the bus is free
-// again (next_level(), bus_engine.h): the oldest goes first, so nothing starves; each
+// again (the picking rule, job_queue.h): the oldest goes first, so nothing starves; each
 // priority's own order (a connection's writes) is kept. The strict-priority part of the rule is
 // covered by the scheduling tests.
 TEST_F(QueueTest, WorkThatWaitedPastItsAgeLimitRunsOldestFirstAndEachPriorityInOrder) {

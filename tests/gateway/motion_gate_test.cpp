@@ -101,7 +101,7 @@ TEST_P(MotionGateTest, MotionWritesQueuedBeforeAStopAreDroppedNotRunAfterIt) {
     WriteOp write{1, GetParam().field, GetParam().value(v)};
     write.motion_epoch = admitted;
     engine_->submit(std::move(write), Priority::ClientWrite, [&](BusResult result) {
-      EXPECT_EQ(result.status, BusStatus::ServoRefused) << result.detail;
+      EXPECT_EQ(result.status, BusStatus::MotionBlocked) << result.detail;
       if (result.detail.find("motion write dropped") != std::string::npos) ++dropped;
       ++done;
     });
@@ -122,7 +122,7 @@ TEST_P(MotionGateTest, MotionWritesQueuedBeforeAStopAreDroppedNotRunAfterIt) {
   EXPECT_EQ(transact(*engine_, std::move(fresh)).status, BusStatus::Ok);
   WriteOp stale{1, GetParam().field, GetParam().value(12)};
   stale.motion_epoch = admitted;
-  EXPECT_EQ(transact(*engine_, std::move(stale)).status, BusStatus::ServoRefused);
+  EXPECT_EQ(transact(*engine_, std::move(stale)).status, BusStatus::MotionBlocked);
   EXPECT_EQ(field_of_servo_1(), GetParam().value(11));
   // Writes that are not motion writes (epoch 0) never wait for the gate.
   gate_->set_blocked(true);

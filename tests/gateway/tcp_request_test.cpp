@@ -182,6 +182,8 @@ TEST(ModbusException, BusStatusesMapToTheirFaults) {
   EXPECT_EQ(exception_code(fault_from(BusStatus::Corrupt)), 0x04);
   EXPECT_EQ(fault_from(BusStatus::Dropped), Fault::InternalError);
   EXPECT_EQ(exception_code(fault_from(BusStatus::Dropped)), 0x04);
+  EXPECT_EQ(fault_from(BusStatus::MotionBlocked), Fault::MotionBlocked);
+  EXPECT_EQ(exception_code(fault_from(BusStatus::MotionBlocked)), 0x04);
   EXPECT_EQ(exception_code(fault_from(BusStatus::ServoRefused)), 0x04);
   EXPECT_EQ(exception_code(fault_from(BusStatus::BusDown)), 0x0A);
   EXPECT_EQ(exception_code(fault_from(BusStatus::QueueFull)), 0x06);
