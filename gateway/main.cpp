@@ -9,6 +9,7 @@
 #include <signal.h>
 
 #include <chrono>
+#include <cstdio>
 #include <iostream>
 #include <optional>
 #include <string>
@@ -246,7 +247,7 @@ int run_gateway(const Options& options) {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+static int run_command_line(int argc, char** argv) {
   CLI::App app{"sms-gateway: Modbus TCP gateway for Feetech (FF FF), D5 5D and SMSMB serial-bus servos.\n"
                "Runs the gateway from a configuration file, or on a built-in simulated bus (--simulate)."};
   Options options;
@@ -297,4 +298,18 @@ int main(int argc, char** argv) {
     return kExitConfigError;
   }
   return run_gateway(options);
+}
+
+int main(int argc, char** argv) {
+  // Whatever escapes is a bug: say so and exit with the runtime-error status, not an abort
+  // (stdio here: it cannot throw).
+  try {
+    return run_command_line(argc, argv);
+  } catch (const std::exception& error) {
+    std::fprintf(stderr, "sms-gateway: internal error: %s\n", error.what());
+    return kExitRuntimeError;
+  } catch (...) {
+    std::fputs("sms-gateway: internal error: an exception of unknown type\n", stderr);
+    return kExitRuntimeError;
+  }
 }

@@ -92,7 +92,7 @@ std::vector<ServoConfig> build_servos(const std::optional<std::string>& protocol
 
 }  // namespace
 
-int main(int argc, char** argv) {
+static int run_command_line(int argc, char** argv) {
   CLI::App app{kDescription, "sms-sim"};
   app.get_formatter()->column_width(34);
 
@@ -192,4 +192,18 @@ int main(int argc, char** argv) {
     return 1;
   }
   return 0;
+}
+
+int main(int argc, char** argv) {
+  // Whatever escapes is a bug: say so and exit with the runtime-error status, not an abort
+  // (stdio here: it cannot throw).
+  try {
+    return run_command_line(argc, argv);
+  } catch (const std::exception& error) {
+    std::fprintf(stderr, "sms-sim: internal error: %s\n", error.what());
+    return 1;
+  } catch (...) {
+    std::fputs("sms-sim: internal error: an exception of unknown type\n", stderr);
+    return 1;
+  }
 }

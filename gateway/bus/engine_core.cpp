@@ -75,7 +75,12 @@ EngineCore<Transactor>::EngineCore(BusSettings settings, const TransactorFactory
 
 template <BusTransactor Transactor>
 EngineCore<Transactor>::~EngineCore() {
-  stop();
+  // A destructor must not throw: a bus that cannot be stopped cleanly is said, not aborted on.
+  try {
+    stop();
+  } catch (const std::exception& error) {
+    spdlog::error("bus {}: stopping the engine failed: {}", settings_.name, error.what());
+  }
 }
 
 // ==== queue and thread ========================================================================

@@ -449,7 +449,7 @@ Expected<Ok> PacketTransactor::Transaction::await_answer() {
     }
     // Read what the port holds even after the deadline: when this thread ran late (a busy
     // machine), the answer may be waiting.
-    if (const auto read = read_line(); !read) return read;
+    if (auto read = read_line(); !read) return read;
     if (attempt_.decided()) return Ok{};
     const auto now = SteadyClock::now();
     if (now < attempt_.deadline) continue;

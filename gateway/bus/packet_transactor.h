@@ -132,7 +132,7 @@ class PacketTransactor {
   // "READ 56+15 of servo 1", for messages.
   std::string describe(const Request& request) const;
   Request finish_request(Request request) const;
-  BusResult fail(const Request& request, const AttemptFindings& found, unsigned attempts_made) const;
+  BusResult fail(const Request& request, const AttemptFindings& last, unsigned attempts_made) const;
   BusResult port_lost(const std::string& reason);
   void count_discarded();
   // Latest end of the late-answer windows of the servos that may answer `request` and still

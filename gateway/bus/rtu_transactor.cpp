@@ -84,7 +84,7 @@ RtuTransactor::Request RtuTransactor::ping_request(std::uint8_t slave, unsigned 
   return request;
 }
 
-RtuTransactor::Request RtuTransactor::sync_read_request(AddressBlock, std::vector<std::uint8_t>) const {
+RtuTransactor::Request RtuTransactor::sync_read_request(AddressBlock, const std::vector<std::uint8_t>&) const {
   throw std::logic_error("Modbus RTU has no SYNC READ");
 }
 

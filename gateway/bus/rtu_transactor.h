@@ -76,7 +76,7 @@ class RtuTransactor {
   Request prepare(BusOp&& op, unsigned attempts) const;
   Request read_request(std::uint8_t slave, AddressBlock block, unsigned attempts) const;
   Request ping_request(std::uint8_t slave, unsigned attempts) const;
-  Request sync_read_request(AddressBlock, std::vector<std::uint8_t>) const;  // throws: Modbus has none
+  Request sync_read_request(AddressBlock, const std::vector<std::uint8_t>&) const;  // throws: Modbus has none
   static std::uint8_t target(const Request& request) { return request.slave; }
   static bool broadcast(const Request& request) { return broadcast_id(request.slave); }
   static bool broadcast_id(std::uint8_t slave) { return slave == kBroadcastSlave; }
