@@ -25,8 +25,8 @@ class Writer {
   // Starts the section: the Section Header Block, naming the writing program in shb_userappl.
   explicit Writer(std::string_view application);
 
-  // An Interface Description Block (if_name, if_description, if_tsresol = microseconds); returns
-  // the interface's number for add_packet. `snap_length` 0: no limit.
+  // An Interface Description Block (if_name, if_description, if_tsresol = microseconds; no snap
+  // length); returns the interface's number for add_packet.
   std::uint32_t add_interface(std::uint16_t link_type, std::string_view name, std::string_view description);
 
   // An Enhanced Packet Block: `time_us` microseconds since 1970-01-01 UTC; epb_flags carries

@@ -184,6 +184,9 @@ MonitorReader::MonitorReader(std::shared_ptr<const WireMonitor> monitor, Start s
       describer_(monitor_->protocol(), monitor_->tables()),
       next_(start == Start::Oldest ? monitor_->oldest_sequence() : monitor_->next_sequence()) {}
 
+MonitorReader::MonitorReader(std::shared_ptr<const WireMonitor> monitor, std::uint64_t sequence)
+    : monitor_(std::move(monitor)), describer_(monitor_->protocol(), monitor_->tables()), next_(sequence) {}
+
 MonitorBatch MonitorReader::poll(std::size_t max_records, const MonitorFilter& filter) {
   MonitorBatch batch;
   WireChunks recorded = monitor_->chunks_since(next_, max_records);

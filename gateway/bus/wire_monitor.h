@@ -124,6 +124,9 @@ class MonitorReader {
  public:
   enum class Start : std::uint8_t { Oldest, Now };
   explicit MonitorReader(std::shared_ptr<const WireMonitor> monitor, Start start = Start::Now);
+  // From `sequence` on (a batch's `next`, e.g. a console page that reconnects): what was
+  // overwritten since is reported as dropped by the first poll().
+  MonitorReader(std::shared_ptr<const WireMonitor> monitor, std::uint64_t sequence);
 
   // The frames completed by up to `max_records` more records, those `filter` accepts.
   MonitorBatch poll(std::size_t max_records = 1024, const MonitorFilter& filter = {});

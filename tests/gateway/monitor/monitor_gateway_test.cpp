@@ -85,6 +85,47 @@ TEST(MonitorGateway, AWriteOfGoalPositionShowsAsWriteAndTheServosAnswer) {
   EXPECT_EQ(gateway.gateway().metrics().buses.at(0).monitor_dropped, 0u);
 }
 
+TEST(MonitorGateway, ADamagedAnswerAndTheRetryShowAsSuch) {
+  SimulatedGateway gateway(sts_bus(2), kTwoSts);
+  gateway.wait_until_polled(1);
+  MonitorReader reader(gateway.gateway().wire_monitor("arm"));
+  gateway.bus().corrupt_next_replies(1);  // the next answer on the bus has one byte flipped
+  ModbusClient client(gateway.port(), 2);
+  ASSERT_TRUE(client.write_register(42, 2500).ok());  // taken on the retry
+
+  // Everything from the write on, until the retried write has been answered.
+  std::vector<MonitoredFrame> frames;
+  const auto deadline = std::chrono::steady_clock::now() + 5s;
+  bool retried_and_answered = false;
+  while (!retried_and_answered && std::chrono::steady_clock::now() < deadline) {
+    for (auto& frame : reader.poll(4096).frames) {
+      if (frames.empty() && !writes(frame, "WRITE", "goal_position", 2500)) continue;
+      frames.push_back(std::move(frame));
+      const auto& last = frames.back().frame;
+      if (last.kind == FrameKind::Answer && last.instruction == "WRITE" && last.servo == 2 && frames.size() > 2) {
+        retried_and_answered = true;
+      }
+    }
+    std::this_thread::sleep_for(5ms);
+  }
+  ASSERT_TRUE(retried_and_answered) << frames.size() << " frames from the write on";
+  // The write, what came back damaged (a frame with a wrong checksum or LEN, or bytes that made
+  // none), the same write again marked as a retry, and its answer.
+  EXPECT_FALSE(frames.front().frame.retry);
+  bool damaged = false;
+  bool retry = false;
+  for (std::size_t i = 1; i + 1 < frames.size(); ++i) {
+    const auto& frame = frames[i].frame;
+    if (frame.kind == FrameKind::Damaged || frame.kind == FrameKind::Noise) damaged = true;
+    if (writes(frames[i], "WRITE", "goal_position", 2500)) {
+      EXPECT_TRUE(frame.retry);
+      retry = true;
+    }
+  }
+  EXPECT_TRUE(damaged);
+  EXPECT_TRUE(retry);
+}
+
 TEST(MonitorGateway, AModbusRtuBusShowsTheFunctionAndTheRegistersName) {
   simulator::BusOptions options;
   options.servos = {{1, modbus_map::TableId::Smsmb, protocol::BusProtocol::ModbusRtu, 115'200}};

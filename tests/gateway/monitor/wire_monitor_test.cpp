@@ -107,6 +107,20 @@ TEST(WireMonitor, AReaderStartingNowSeesOnlyWhatComesAfter) {
   EXPECT_EQ(batch.frames[0].frame.kind, FrameKind::Answer);
 }
 
+TEST(WireMonitor, AReaderResumesAtASequence) {
+  auto wire = monitor(16);
+  for (int i = 0; i < 4; ++i) wire->record(WireDirection::ToServos, kPing);
+  MonitorReader resumed(wire, std::uint64_t{2});
+  const auto batch = resumed.poll();
+  EXPECT_EQ(batch.dropped, 0u);
+  ASSERT_EQ(batch.frames.size(), 2u);
+  EXPECT_EQ(batch.frames[0].sequence, 2u);
+  // From a sequence the ring has overwritten since: the first poll says how many records it lost.
+  for (int i = 0; i < 20; ++i) wire->record(WireDirection::ToServos, kPing);
+  MonitorReader late(wire, std::uint64_t{2});
+  EXPECT_EQ(late.poll().dropped, 24u - 16u - 2u);
+}
+
 TEST(WireMonitor, FiltersByServoAndKind) {
   auto wire = monitor();
   const Bytes ping2{0xFF, 0xFF, 0x02, 0x02, 0x01, 0xFA};
