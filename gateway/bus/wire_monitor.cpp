@@ -1,6 +1,7 @@
 #include "gateway/bus/wire_monitor.h"
 
 #include <algorithm>
+#include <bit>
 #include <chrono>
 #include <cstdio>
 #include <cstring>
@@ -62,7 +63,11 @@ std::string packet_comment(const modbus_map::FrameDescription& frame) {
 
 WireMonitor::WireMonitor(std::string bus_name, protocol::BusProtocol protocol, const modbus_map::ServoTables& tables,
                          std::size_t records)
-    : bus_name_(std::move(bus_name)), protocol_(protocol), tables_(tables), ring_(std::max<std::size_t>(records, 16)) {}
+    : bus_name_(std::move(bus_name)),
+      protocol_(protocol),
+      tables_(tables),
+      ring_(std::bit_ceil(std::max<std::size_t>(records, 16))),
+      mask_(ring_.size() - 1) {}
 
 std::shared_ptr<WireMonitor> WireMonitor::for_bus(const BusSettings& settings, std::size_t records) {
   modbus_map::ServoTables tables;
@@ -78,21 +83,23 @@ void WireMonitor::record(WireDirection direction, std::span<const std::uint8_t> 
 
 void WireMonitor::record_at(WireDirection direction, std::span<const std::uint8_t> bytes, std::int64_t time_ns) noexcept {
   if (bytes.empty()) return;
-  // A chunk longer than the whole ring keeps its tail.
+  // A piece longer than the whole ring keeps its tail.
   const std::size_t limit = ring_.size() * kRecordBytes;
   if (bytes.size() > limit) bytes = bytes.last(limit);
   const std::lock_guard lock(mutex_);
-  bool continues = false;
+  std::size_t in_chunk = 0;
   while (!bytes.empty()) {
-    Record& slot = ring_[next_ % ring_.size()];
+    Record& slot = ring_[next_ & mask_];
     const std::size_t length = std::min(bytes.size(), kRecordBytes);
     slot.time_ns = time_ns;
     slot.direction = static_cast<std::uint8_t>(direction);
-    slot.continues = continues;
+    // A long piece becomes chunks of at most kMaxChunkRecords (the decoders take a stream, so
+    // where one chunk ends and the next begins changes no frame).
+    slot.continues = in_chunk != 0;
+    in_chunk = (in_chunk + 1) % kMaxChunkRecords;
     slot.length = static_cast<std::uint8_t>(length);
     std::memcpy(slot.data.data(), bytes.data(), length);
     bytes = bytes.subspan(length);
-    continues = true;
     ++next_;
   }
 }
@@ -109,35 +116,41 @@ std::uint64_t WireMonitor::next_sequence() const {
 
 WireChunks WireMonitor::chunks_since(std::uint64_t sequence, std::size_t max_records) const {
   WireChunks result;
-  const std::lock_guard lock(mutex_);
-  const std::uint64_t oldest = next_ > ring_.size() ? next_ - ring_.size() : 0;
-  if (sequence < oldest) {
-    result.missed = oldest - sequence;
-    sequence = oldest;
-  }
-  sequence = std::min(sequence, next_);
-  // The rest of a chunk whose beginning was overwritten (or asked for in the middle) is no use.
-  while (sequence < next_ && ring_[sequence % ring_.size()].continues) {
-    ++sequence;
-    ++result.missed;
-  }
-  std::size_t taken = 0;
-  while (sequence < next_) {
-    std::uint64_t end = sequence + 1;
-    while (end < next_ && ring_[end % ring_.size()].continues) ++end;
-    if (taken > 0 && taken + (end - sequence) > max_records) break;
-    const Record& first = ring_[sequence % ring_.size()];
-    WireChunk chunk{sequence, first.time_ns, static_cast<WireDirection>(first.direction), {}};
-    chunk.bytes.reserve((end - sequence) * kRecordBytes);
-    for (std::uint64_t at = sequence; at < end; ++at) {
-      const Record& part = ring_[at % ring_.size()];
-      chunk.bytes.insert(chunk.bytes.end(), part.data.begin(), part.data.begin() + part.length);
+  // The records are copied out under the lock (no allocation there: the room is made first) and
+  // joined into chunks after it, so a reader holds the bus thread up for a copy at most.
+  max_records = std::clamp<std::size_t>(max_records, 1, ring_.size());
+  std::vector<Record> copied;
+  copied.reserve(max_records + kMaxChunkRecords);
+  std::uint64_t first_copied = 0;
+  {
+    const std::lock_guard lock(mutex_);
+    const std::uint64_t oldest = next_ > ring_.size() ? next_ - ring_.size() : 0;
+    if (sequence < oldest) {
+      result.missed = oldest - sequence;
+      sequence = oldest;
     }
-    result.chunks.push_back(std::move(chunk));
-    taken += end - sequence;
-    sequence = end;
+    sequence = std::min(sequence, next_);
+    // The rest of a chunk whose beginning was overwritten (or asked for in the middle) is no use.
+    while (sequence < next_ && ring_[sequence & mask_].continues) {
+      ++sequence;
+      ++result.missed;
+    }
+    first_copied = sequence;
+    // Whole chunks only: past max_records, stop at the next chunk's start.
+    while (sequence < next_ && (copied.size() < max_records || ring_[sequence & mask_].continues)) {
+      copied.push_back(ring_[sequence & mask_]);
+      ++sequence;
+    }
   }
   result.next = sequence;
+  for (std::size_t i = 0; i < copied.size(); ++i) {
+    const Record& record = copied[i];
+    if (!record.continues || result.chunks.empty()) {
+      result.chunks.push_back({first_copied + i, record.time_ns, static_cast<WireDirection>(record.direction), {}});
+    }
+    auto& bytes = result.chunks.back().bytes;
+    bytes.insert(bytes.end(), record.data.begin(), record.data.begin() + record.length);
+  }
   return result;
 }
 

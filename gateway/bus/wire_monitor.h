@@ -46,10 +46,13 @@ struct WireChunks {
 class WireMonitor {
  public:
   static constexpr std::size_t kRecordBytes = 48;
+  // Records one chunk takes at most (3 KiB; a longer piece is recorded as several chunks).
+  static constexpr std::size_t kMaxChunkRecords = 64;
   // 8192 records: about 600 KiB per bus; at a 100 Hz poll cycle of six servos (about 7 records a
   // cycle) some ten seconds of history.
   static constexpr std::size_t kDefaultRecords = 8192;
 
+  // `records` is rounded up to a power of two (at least 16).
   WireMonitor(std::string bus_name, protocol::BusProtocol protocol, const modbus_map::ServoTables& tables,
               std::size_t records = kDefaultRecords);
   // A monitor for the bus `settings` describe: its name, protocol, and each servo's table.
@@ -61,8 +64,9 @@ class WireMonitor {
   void record_at(WireDirection direction, std::span<const std::uint8_t> bytes, std::int64_t time_ns) noexcept;
 
   // --- any thread ---
-  // The whole chunks recorded from `sequence` on, at most `max_records` records (at least one
-  // chunk when there is one). A sequence older than the oldest record held starts at the oldest.
+  // The whole chunks recorded from `sequence` on: `max_records` records (at most the ring's
+  // size), plus the rest of the chunk the last of them belongs to. A sequence older than the
+  // oldest record held starts at the oldest.
   WireChunks chunks_since(std::uint64_t sequence, std::size_t max_records) const;
   std::uint64_t oldest_sequence() const;
   std::uint64_t next_sequence() const;
@@ -92,7 +96,8 @@ class WireMonitor {
   const protocol::BusProtocol protocol_;
   const modbus_map::ServoTables tables_;
   mutable std::mutex mutex_;
-  std::vector<Record> ring_;  // record `s` is ring_[s % size]
+  std::vector<Record> ring_;  // a power of two long: record `s` is ring_[s & mask_]
+  const std::uint64_t mask_;
   std::uint64_t next_ = 0;    // sequence of the next record
   mutable std::atomic<std::uint64_t> dropped_{0};  // counted by readers
 };

@@ -85,6 +85,22 @@ TEST(WireMonitor, AWriteLongerThanARecordTakesSeveralAndComesBackWhole) {
   EXPECT_EQ(middle.next, 3u);
 }
 
+TEST(WireMonitor, AVeryLongReadIsRecordedAsSeveralChunksOfTheSameBytes) {
+  auto wire = monitor(256);
+  Bytes long_read(WireMonitor::kRecordBytes * (WireMonitor::kMaxChunkRecords + 6));
+  for (std::size_t i = 0; i < long_read.size(); ++i) long_read[i] = static_cast<std::uint8_t>(i * 7);
+  wire->record(WireDirection::FromServos, long_read);
+  const auto got = wire->chunks_since(0, 1);  // one record asked for: the whole first chunk comes
+  ASSERT_EQ(got.chunks.size(), 1u);
+  EXPECT_EQ(got.chunks[0].bytes.size(), WireMonitor::kRecordBytes * WireMonitor::kMaxChunkRecords);
+  EXPECT_EQ(got.next, WireMonitor::kMaxChunkRecords);
+  const auto rest = wire->chunks_since(got.next, 100);
+  ASSERT_EQ(rest.chunks.size(), 1u);
+  Bytes joined = got.chunks[0].bytes;
+  joined.insert(joined.end(), rest.chunks[0].bytes.begin(), rest.chunks[0].bytes.end());
+  EXPECT_EQ(joined, long_read);
+}
+
 TEST(WireMonitor, BatchesStopAtWholeChunks) {
   auto wire = monitor();
   for (int i = 0; i < 10; ++i) wire->record(WireDirection::ToServos, kPing);
