@@ -1,12 +1,18 @@
 // monitor_overhead: what the bus monitor (gateway/bus/wire_monitor.h, docs/MONITOR.md) costs the
 // bus thread.
-//   (a) WireMonitor::record() of one 21-byte answer frame, in ns per call: alone, and while a
-//       reader (the console's live view) drains and describes the ring every 10 ms;
+//   (a) WireMonitor::record() of one 21-byte answer frame, in CPU ns per call (the recording
+//       thread's CPU time, so a loaded machine does not inflate it): alone, and while a reader
+//       (the console's live view) drains and describes the ring every 10 ms; and the wall-clock
+//       read each record makes, alone;
 //   (b) the poll cycle of 6 simulated sts servos at 1 000 000 baud (wire timing on, polling back
-//       to back) run in-process by the bus engine with and without the tap: cycles per second
-//       and the median cycle the engine reports, in alternating windows.
+//       to back) run in-process by the bus engine with and without the tap, in alternating
+//       windows: cycles per second and the median cycle the engine reports (wall time), and the
+//       process's CPU time per cycle (bus thread and simulated servos: the tap's cost is the
+//       difference).
 //
 //   monitor_overhead [--records N] [--seconds S] [--rounds R]   (defaults 2 000 000, 2 s, 3 rounds)
+#include <time.h>
+
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -43,14 +49,22 @@ modbus_map::ServoTables sts_tables() {
 const protocol::Bytes kAnswer{0xFF, 0xFF, 0x01, 0x11, 0x00, 0x00, 0x08, 0x00, 0x00, 0x00,
                               0x00, 0x79, 0x1E, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x4C};
 
+// CPU time of the calling thread, or of the whole process: what the work costs, whatever else
+// runs on the machine (wall time on a loaded machine counts the waits for a CPU too).
+double cpu_ns(clockid_t clock) {
+  timespec now{};
+  ::clock_gettime(clock, &now);
+  return static_cast<double>(now.tv_sec) * 1e9 + static_cast<double>(now.tv_nsec);
+}
+
 // The wall clock each record reads, alone: part of record()'s cost.
 double clock_ns(std::size_t reads) {
   std::int64_t sink = 0;
-  const auto start = Clock::now();
+  const double start = cpu_ns(CLOCK_THREAD_CPUTIME_ID);
   for (std::size_t i = 0; i < reads; ++i) sink += std::chrono::system_clock::now().time_since_epoch().count();
-  const auto elapsed = Clock::now() - start;
+  const double elapsed = cpu_ns(CLOCK_THREAD_CPUTIME_ID) - start;
   if (sink == 42) std::cerr << "";  // keeps the loop
-  return std::chrono::duration<double, std::nano>(elapsed).count() / static_cast<double>(reads);
+  return elapsed / static_cast<double>(reads);
 }
 
 double record_ns(std::size_t records, bool with_reader) {
@@ -66,12 +80,12 @@ double record_ns(std::size_t records, bool with_reader) {
       }
     });
   }
-  const auto start = Clock::now();
+  const double start = cpu_ns(CLOCK_THREAD_CPUTIME_ID);
   for (std::size_t i = 0; i < records; ++i) monitor->record(gateway::WireDirection::FromServos, kAnswer);
-  const auto elapsed = Clock::now() - start;
+  const double elapsed = cpu_ns(CLOCK_THREAD_CPUTIME_ID) - start;
   stop = true;
   if (reader.joinable()) reader.join();
-  return std::chrono::duration<double, std::nano>(elapsed).count() / static_cast<double>(records);
+  return elapsed / static_cast<double>(records);
 }
 
 gateway::BusSettings engine_settings(const std::string& device) {
@@ -93,6 +107,8 @@ gateway::BusSettings engine_settings(const std::string& device) {
 struct CycleFigures {
   double cycles_per_s = 0;
   double median_cycle_us = 0;
+  double cpu_us_per_cycle = 0;  // the whole process (bus thread and simulated servos) per cycle
+  double records_per_cycle = 0;  // with the tap: records the bus thread made per cycle
 };
 
 CycleFigures measure_cycles(const std::string& device, bool tapped, std::chrono::milliseconds duration) {
@@ -109,17 +125,22 @@ CycleFigures measure_cycles(const std::string& device, bool tapped, std::chrono:
   std::this_thread::sleep_for(200ms);  // past discovery's identity reads
   std::vector<std::uint32_t> cycle_us;
   const auto first = engine->counters();
+  const double cpu_start = cpu_ns(CLOCK_PROCESS_CPUTIME_ID);
+  const std::uint64_t records_start = monitor ? monitor->next_sequence() : 0;
   const auto start = Clock::now();
   while (Clock::now() - start < duration) {
     std::this_thread::sleep_for(10ms);
     cycle_us.push_back(engine->counters().last_poll_cycle_us);
   }
   const auto last = engine->counters();
+  const double cpu = cpu_ns(CLOCK_PROCESS_CPUTIME_ID) - cpu_start;
+  const std::uint64_t records = monitor ? monitor->next_sequence() - records_start : 0;
   const double seconds = std::chrono::duration<double>(Clock::now() - start).count();
   engine->stop();
   std::sort(cycle_us.begin(), cycle_us.end());
-  return {static_cast<double>(last.poll_cycles - first.poll_cycles) / seconds,
-          cycle_us.empty() ? 0.0 : static_cast<double>(cycle_us[cycle_us.size() / 2])};
+  const auto cycles = static_cast<double>(last.poll_cycles - first.poll_cycles);
+  return {cycles / seconds, cycle_us.empty() ? 0.0 : static_cast<double>(cycle_us[cycle_us.size() / 2]),
+          cycles > 0 ? cpu / 1000.0 / cycles : 0.0, cycles > 0 ? static_cast<double>(records) / cycles : 0.0};
 }
 
 }  // namespace
@@ -157,11 +178,17 @@ int main(int argc, char** argv) {
     without.median_cycle_us += off.median_cycle_us / rounds;
     with.cycles_per_s += on.cycles_per_s / rounds;
     with.median_cycle_us += on.median_cycle_us / rounds;
+    without.cpu_us_per_cycle += off.cpu_us_per_cycle / rounds;
+    with.cpu_us_per_cycle += on.cpu_us_per_cycle / rounds;
+    with.records_per_cycle += on.records_per_cycle / rounds;
   }
   print_figure("monitor.poll_cycle.without_tap.cycles_per_s", without.cycles_per_s, "1/s");
   print_figure("monitor.poll_cycle.with_tap.cycles_per_s", with.cycles_per_s, "1/s");
   print_figure("monitor.poll_cycle.without_tap.median_cycle", without.median_cycle_us, "us");
   print_figure("monitor.poll_cycle.with_tap.median_cycle", with.median_cycle_us, "us");
+  print_figure("monitor.poll_cycle.without_tap.cpu_per_cycle", without.cpu_us_per_cycle, "us");
+  print_figure("monitor.poll_cycle.with_tap.cpu_per_cycle", with.cpu_us_per_cycle, "us");
+  print_figure("monitor.poll_cycle.with_tap.records_per_cycle", with.records_per_cycle, "records");
   bus.stop();
   return 0;
 }
