@@ -10,6 +10,7 @@
 // missed (and those are counted in dropped_total(), sms_gateway_monitor_dropped_total): the
 // bus is never slowed for a slow browser. Decoding and description (modbus_map/
 // frame_description.h) happen on the reader's thread.
+#include <array>
 #include <atomic>
 #include <cstdint>
 #include <memory>
@@ -29,7 +30,8 @@ namespace sms::gateway {
 struct BusSettings;
 using modbus_map::WireDirection;
 
-// One write or read as recorded: the bytes of one record() call.
+// One write or read as recorded: the bytes of one record() call (of a very long one, up to
+// kMaxChunkRecords records of it).
 struct WireChunk {
   std::uint64_t sequence = 0;  // of its first record
   std::int64_t time_ns = 0;    // system clock, since 1970-01-01 UTC
@@ -48,7 +50,7 @@ class WireMonitor {
   static constexpr std::size_t kRecordBytes = 48;
   // Records one chunk takes at most (3 KiB; a longer piece is recorded as several chunks).
   static constexpr std::size_t kMaxChunkRecords = 64;
-  // 8192 records: about 600 KiB per bus; at a 100 Hz poll cycle of six servos (about 7 records a
+  // 8192 records of 64 bytes: 512 KiB per bus; at a 100 Hz poll cycle of six servos (about 7 records a
   // cycle) some ten seconds of history.
   static constexpr std::size_t kDefaultRecords = 8192;
 
@@ -91,6 +93,7 @@ class WireMonitor {
     std::uint8_t length = 0;
     std::array<std::uint8_t, kRecordBytes> data{};
   };
+  static_assert(sizeof(Record) == 64, "a record is one cache line; kDefaultRecords' size counts on it");
 
   const std::string bus_name_;
   const protocol::BusProtocol protocol_;
