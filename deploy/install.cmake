@@ -34,3 +34,6 @@ install(DIRECTORY config/examples/ DESTINATION ${CMAKE_INSTALL_DOCDIR}/config/ex
 # ... and where Debian's users look for examples (the container image has them there too).
 install(CODE "file(CREATE_LINK config/examples
   \"\$ENV{DESTDIR}\${CMAKE_INSTALL_PREFIX}/${CMAKE_INSTALL_DOCDIR}/examples\" SYMBOLIC)")
+
+# The Wireshark dissector for the bus monitor's captures (docs/MONITOR.md "Opening a capture").
+install(FILES deploy/wireshark/sms_servo.lua DESTINATION ${CMAKE_INSTALL_DATADIR}/sms-gateway/wireshark)

@@ -97,6 +97,8 @@ class Gateway::Impl {
       try {
         BusSettings settings = bus_settings_for(config_, i);
         settings.motion_gate = gates_.back();
+        monitors_.push_back(WireMonitor::for_bus(settings));
+        settings.wire_monitor = monitors_.back();
         engines_.push_back(make_bus_engine(std::move(settings), config_.buses[i].modbus_rtu));
       } catch (const std::invalid_argument& error) {
         throw std::runtime_error("bus '" + config_.buses[i].name + "' (" +
@@ -174,6 +176,9 @@ class Gateway::Impl {
     if (tls_) snapshot.tls = tls_->stats();
     if (sparkplug_) snapshot.mqtt = sparkplug_->stats();
     for (const auto& port : rtu_slaves_) snapshot.rtu_slaves.push_back(port->stats());
+    for (std::size_t i = 0; i < snapshot.buses.size() && i < monitors_.size(); ++i) {
+      snapshot.buses[i].monitor_dropped = monitors_[i]->dropped_total();
+    }
     return snapshot;
   }
 
@@ -207,6 +212,9 @@ class Gateway::Impl {
     return tls_->reload();
   }
   BusEngine& engine(std::size_t index) { return *engines_.at(index); }
+  std::shared_ptr<WireMonitor> wire_monitor(std::size_t index) const {
+    return index < monitors_.size() ? monitors_[index] : nullptr;
+  }
   TcpServerStats server_stats() const { return serving_.stats(); }
 
  private:
@@ -217,6 +225,7 @@ class Gateway::Impl {
   // How long SIGTERM waits for the on_stop frames before it lets go of the buses regardless.
   static constexpr std::chrono::milliseconds kOnStopBound{2000};
   std::vector<std::shared_ptr<MotionGate>> gates_;
+  std::vector<std::shared_ptr<WireMonitor>> monitors_;  // one per bus, in configuration order
   std::vector<std::unique_ptr<BusEngine>> engines_;
   std::unique_ptr<SafetySupervisor> safety_;  // before the router, which holds a reference
   std::unique_ptr<UnitRouter> router_;
@@ -243,5 +252,14 @@ BusEngine& Gateway::engine(std::size_t index) { return impl_->engine(index); }
 TcpServerStats Gateway::server_stats() const { return impl_->server_stats(); }
 MetricsSnapshot Gateway::metrics() const { return impl_->metrics(); }
 std::uint16_t Gateway::metrics_port() const { return impl_->metrics_port(); }
+std::shared_ptr<WireMonitor> Gateway::wire_monitor(std::size_t bus_index) const {
+  return impl_->wire_monitor(bus_index);
+}
+std::shared_ptr<WireMonitor> Gateway::wire_monitor(std::string_view bus_name) const {
+  for (std::size_t i = 0; i < config_.buses.size(); ++i) {
+    if (config_.buses[i].name == bus_name) return impl_->wire_monitor(i);
+  }
+  return nullptr;
+}
 
 }  // namespace sms::gateway

@@ -10,10 +10,12 @@
 #include <chrono>
 #include <cstdint>
 #include <memory>
+#include <string_view>
 #include <vector>
 
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
+#include "gateway/bus/wire_monitor.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/modbus_tcp/tcp_server.h"
 
@@ -62,6 +64,10 @@ class Gateway {
   MetricsSnapshot metrics() const;
   // The metrics endpoint's bound port; 0 when it is off.
   std::uint16_t metrics_port() const;
+  // The bus monitor of config().buses[index] (docs/MONITOR.md), or of the bus named `name`;
+  // nullptr before start(), or for a name no bus has.
+  std::shared_ptr<WireMonitor> wire_monitor(std::size_t bus_index) const;
+  std::shared_ptr<WireMonitor> wire_monitor(std::string_view bus_name) const;
 
  private:
   class Impl;

@@ -95,6 +95,7 @@ std::optional<DecodeEvent> StreamDecoder::next() {
   // drop only the first header byte and hunt again.
   ++checksum_errors_;
   auto event = make_event(DecodeEvent::Kind::ChecksumError, std::move(packet));
+  event.received_checksum = frame.back();
   discard(1);
   return event;
 }

@@ -22,6 +22,8 @@ struct DecodeEvent {
   Packet packet;
   // Bytes discarded before this event's header while hunting (garbage, echo, noise).
   std::size_t skipped_before = 0;
+  // ChecksumError: the CHK byte as it came (the frame's bytes as received, for the bus monitor).
+  std::uint8_t received_checksum = 0;
 };
 
 class StreamDecoder {

@@ -12,6 +12,7 @@ packages=(
   clang libclang-rt-14-dev
   mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio
   debhelper help2man pandoc man-db
+  tshark  # reads the bus monitor's captures (tests/gateway/monitor); wireshark-common's debconf question takes its default
 )
 
 missing=()

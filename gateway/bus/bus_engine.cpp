@@ -49,12 +49,16 @@ std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::M
     case protocol::BusProtocol::D55d:
       return std::make_unique<EngineCore<PacketTransactor>>(
           std::move(settings), [&](const BusSettings& bus, BusCounters& counters) {
-            return std::make_unique<PacketTransactor>(bus.protocol, bus.serial, timing(bus), counters);
+            auto transactor = std::make_unique<PacketTransactor>(bus.protocol, bus.serial, timing(bus), counters);
+            transactor->set_monitor(bus.wire_monitor.get());
+            return transactor;
           });
     case protocol::BusProtocol::ModbusRtu:
       return std::make_unique<EngineCore<RtuTransactor>>(
           std::move(settings), [&](const BusSettings& bus, BusCounters& counters) {
-            return std::make_unique<RtuTransactor>(RtuLineSettings{bus.serial, modbus_rtu}, timing(bus), counters);
+            auto transactor = std::make_unique<RtuTransactor>(RtuLineSettings{bus.serial, modbus_rtu}, timing(bus), counters);
+            transactor->set_monitor(bus.wire_monitor.get());
+            return transactor;
           });
   }
   throw std::invalid_argument("bus " + settings.name + ": unknown protocol");

@@ -29,6 +29,8 @@
 
 namespace sms::gateway {
 
+class WireMonitor;  // wire_monitor.h
+
 struct ServoSettings {
   std::uint8_t servo_id = 1;
   modbus_map::TableId table = modbus_map::TableId::Sts;
@@ -54,6 +56,8 @@ struct BusSettings {
   std::vector<ServoSettings> servos;
   // The safety rules' gate for this bus's motion writes (docs/PLC_GUIDE.md "Safety"); empty: none.
   std::shared_ptr<const MotionGate> motion_gate;
+  // The bus monitor the line's traffic is recorded in (wire_monitor.h); empty: none.
+  std::shared_ptr<WireMonitor> wire_monitor;
 };
 
 struct OwedStop {

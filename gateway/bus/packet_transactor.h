@@ -93,6 +93,8 @@ class PacketTransactor {
   // holds the tty); on a closed port, the rate of the next open().
   Expected<Ok> set_baud(std::uint32_t baud);
   void set_reply_allowance(std::chrono::nanoseconds allowance) { timing_.reply_allowance = allowance; }
+  // Records the line's traffic in the bus monitor (wire_monitor.h); nullptr: none.
+  void set_monitor(WireMonitor* monitor) { port_.set_monitor(monitor); }
 
   Request prepare(BusOp&& op, unsigned attempts) const;
   Request read_request(std::uint8_t servo_id, AddressBlock block, unsigned attempts) const;

@@ -246,6 +246,7 @@ RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t
     const int error = errno;
     return {RtuOutcome::PortError, {}, "write to " + settings_.serial.device + ": " + modbus_strerror(error)};
   }
+  tap_request(request);
   RtuExchange exchange = receive_answer(slave, pdu[0], response_timeout);
   exchange.dropped = dropped;
   return exchange;
@@ -259,6 +260,7 @@ RtuExchange RtuMaster::receive_answer(std::uint8_t slave, std::uint8_t function,
   std::array<std::uint8_t, MODBUS_RTU_MAX_ADU_LENGTH> answer{};
   const int received = modbus_receive_confirmation(context, answer.data());
   const int error = errno;
+  if (received > 0) tap(WireDirection::FromServos, std::span(answer).first(static_cast<std::size_t>(received)));
   line_->quiet_since = SteadyClock::now();
   if (received < 0) {
     switch (error) {
@@ -315,6 +317,7 @@ RtuExchange RtuMaster::receive_until_silence(std::uint8_t slave, std::chrono::na
     wait = settings_.options.byte_timeout;
   }
   line_->quiet_since = SteadyClock::now();
+  tap(WireDirection::FromServos, frame);
   if (frame.empty()) return {RtuOutcome::Timeout, {}, fmt::format("no answer from slave {}", slave)};
   if (frame.size() < protocol::rtu::kMinAduSize ||
       protocol::rtu::crc16(std::span(frame).first(frame.size() - 2)) !=
@@ -343,6 +346,7 @@ RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_
   if (modbus_send_raw_request(context, request.data(), static_cast<int>(request.size())) < 0) {
     return {RtuOutcome::PortError, {}, "write to " + settings_.serial.device + ": " + modbus_strerror(errno)};
   }
+  tap_request(request);
   const auto on_wire = wire_time(request.size() + 2);
   std::this_thread::sleep_for(on_wire + turnaround);
   line_->quiet_since = SteadyClock::now();
@@ -360,6 +364,7 @@ std::size_t RtuMaster::drop_input() {
     if (::poll(&descriptor, 1, 0) <= 0 || (descriptor.revents & POLLIN) == 0) break;
     const ssize_t got = ::read(fd, buffer.data(), buffer.size());
     if (got <= 0) break;  // a lost device is reported by the exchange that follows
+    tap(WireDirection::FromServos, std::span(buffer).first(static_cast<std::size_t>(got)));
     dropped += static_cast<std::size_t>(got);
   }
   if (dropped > 0) line_->quiet_since = SteadyClock::now();
@@ -400,12 +405,28 @@ Expected<RtuWatch> RtuMaster::watch_line(std::uint8_t slave, unsigned frames, St
                         (got == 0 ? std::string("end of file") : std::strerror(errno)));
     }
     last_byte = SteadyClock::now();
+    tap(WireDirection::FromServos, std::span(buffer).first(static_cast<std::size_t>(got)));
     watched.bytes += static_cast<std::size_t>(got);
     frame.insert(frame.end(), buffer.begin(), buffer.begin() + got);
     if (frame.size() > protocol::rtu::kMaxAduSize) frame.clear();  // noise, not a frame
   }
   if (watched.bytes > 0) line_->quiet_since = last_byte;
   return watched;
+}
+
+void RtuMaster::tap(WireDirection direction, std::span<const std::uint8_t> bytes) const {
+  if (monitor_ != nullptr) monitor_->record(direction, bytes);
+}
+
+void RtuMaster::tap_request(std::span<const std::uint8_t> slave_and_pdu) const {
+  if (monitor_ == nullptr) return;
+  // The frame as libmodbus sent it: slave, PDU, CRC.
+  std::array<std::uint8_t, protocol::rtu::kMaxAduSize> frame{};
+  std::copy(slave_and_pdu.begin(), slave_and_pdu.end(), frame.begin());
+  const std::uint16_t crc = protocol::rtu::crc16(slave_and_pdu);
+  frame[slave_and_pdu.size()] = static_cast<std::uint8_t>(crc);
+  frame[slave_and_pdu.size() + 1] = static_cast<std::uint8_t>(crc >> 8);
+  monitor_->record(WireDirection::ToServos, std::span(frame).first(slave_and_pdu.size() + 2));
 }
 
 int RtuMaster::native_handle() const { return line_->context == nullptr ? -1 : modbus_get_socket(line_->context); }

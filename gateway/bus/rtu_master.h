@@ -25,6 +25,7 @@
 #include "config/config.h"
 #include "gateway/bus/poll_cache.h"
 #include "gateway/bus/serial_port.h"
+#include "gateway/bus/wire_monitor.h"
 #include "protocol/expected.h"
 
 namespace sms::gateway {
@@ -117,6 +118,12 @@ class RtuMaster {
   // The time `bytes` characters take on the line.
   std::chrono::nanoseconds wire_time(std::size_t bytes) const { return gateway::wire_time(settings_.serial, bytes); }
 
+  // The bus monitor's tap (wire_monitor.h): the frames transact() and send_only() send, the
+  // answers libmodbus hands back whole, and whatever else is read from the line are also recorded
+  // there (an answer libmodbus rejects — bad CRC — is not handed back, so not recorded). nullptr:
+  // nothing is recorded. Set before the bus thread starts.
+  void set_monitor(WireMonitor* monitor) { monitor_ = monitor; }
+
  private:
   struct Line;
   RtuExchange receive_answer(std::uint8_t slave, std::uint8_t function, std::chrono::nanoseconds response_timeout);
@@ -125,8 +132,12 @@ class RtuMaster {
   // Reads what the input holds (modbus_flush's tcflush would not say how much): the count.
   std::size_t drop_input();
 
+  void tap(WireDirection direction, std::span<const std::uint8_t> bytes) const;
+  void tap_request(std::span<const std::uint8_t> slave_and_pdu) const;
+
   RtuLineSettings settings_;
   std::unique_ptr<Line> line_;
+  WireMonitor* monitor_ = nullptr;
 };
 
 }  // namespace sms::gateway

@@ -72,6 +72,8 @@ class RtuTransactor {
   // Changes the line rate (reopening the line when it is open).
   Expected<Ok> set_baud(std::uint32_t baud);
   void set_reply_allowance(std::chrono::nanoseconds allowance) { timing_.reply_allowance = allowance; }
+  // Records the line's traffic in the bus monitor (wire_monitor.h); nullptr: none.
+  void set_monitor(WireMonitor* monitor) { master_.set_monitor(monitor); }
 
   Request prepare(BusOp&& op, unsigned attempts) const;
   Request read_request(std::uint8_t slave, AddressBlock block, unsigned attempts) const;

@@ -14,6 +14,7 @@
 #include <utility>
 
 #include "gateway/bus/serial_port_termios2.h"
+#include "gateway/bus/wire_monitor.h"
 
 namespace sms::gateway {
 namespace {
@@ -140,6 +141,7 @@ Expected<Ok> SerialPort::write_all(std::span<const std::uint8_t> bytes, std::chr
       return unexpected(describe_errno("cannot write to", EIO));
     }
   }
+  if (monitor_ != nullptr) monitor_->record(WireDirection::ToServos, bytes);
   return Ok{};
 }
 
@@ -155,7 +157,10 @@ Expected<std::size_t> SerialPort::read_available(std::span<std::uint8_t> buffer)
   if (fd_ < 0) return unexpected(settings_.device + " is not open");
   for (;;) {
     const ssize_t n = ::read(fd_, buffer.data(), buffer.size());
-    if (n > 0) return static_cast<std::size_t>(n);
+    if (n > 0) {
+      if (monitor_ != nullptr) monitor_->record(WireDirection::FromServos, buffer.first(static_cast<std::size_t>(n)));
+      return static_cast<std::size_t>(n);
+    }
     // VMIN is 1, so an empty non-blocking tty says EAGAIN; 0 is a hang-up.
     if (n == 0) return unexpected(describe_errno("lost", ENODEV));
     if (errno == EINTR) continue;

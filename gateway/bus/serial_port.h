@@ -16,6 +16,7 @@
 
 namespace sms::gateway {
 
+class WireMonitor;
 using config::Parity;
 
 struct SerialSettings {
@@ -71,6 +72,9 @@ class SerialPort {
   // Changes the rate: on the open descriptor at once (a reopen could meet EBUSY while someone
   // else holds the tty), else for the next open().
   Expected<Ok> set_baud(std::uint32_t baud);
+  // The bus monitor's tap (wire_monitor.h): what write_all() sends and read_available() reads is
+  // also recorded there. nullptr: nothing is recorded. Set before the bus thread starts.
+  void set_monitor(WireMonitor* monitor) { monitor_ = monitor; }
 
  private:
   std::string describe_errno(std::string_view action, int error) const;
@@ -78,6 +82,7 @@ class SerialPort {
   SerialSettings settings_;
   int fd_ = -1;
   std::uint32_t actual_baud_ = 0;
+  WireMonitor* monitor_ = nullptr;
 };
 
 }  // namespace sms::gateway

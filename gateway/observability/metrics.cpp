@@ -183,6 +183,13 @@ constexpr Family<BusMetrics> kBusFamilies[] = {
     {"sms_gateway_bus_down_events_total", MetricType::Counter,
      "Times the serial port was lost, or could not be reopened after a loss",
      [](const BusMetrics& b) -> std::optional<Value> { return b.counters.bus_down_events; }},
+    // docs/MONITOR.md.
+    {"sms_gateway_monitor_dropped_total", MetricType::Counter,
+     "Bus monitor records overwritten before a reader (the console's live view) got them: the reader was too slow",
+     [](const BusMetrics& b) -> std::optional<Value> {
+       if (!b.monitor_dropped) return std::nullopt;
+       return *b.monitor_dropped;
+     }},
 };
 
 constexpr Family<ServoMetrics> kServoFamilies[] = {

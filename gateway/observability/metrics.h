@@ -49,6 +49,8 @@ struct BusMetrics {
   std::size_t servos_online = 0;
   std::vector<ServoMetrics> servos;  // the polled servos, in configuration order
   std::optional<BusSafetyFacts> safety;  // docs/PLC_GUIDE.md "Safety"; empty where no supervisor runs
+  // Bus monitor records its readers missed (docs/MONITOR.md); empty where the bus has no monitor.
+  std::optional<std::uint64_t> monitor_dropped;
 };
 
 struct MetricsSnapshot {

@@ -46,7 +46,8 @@ for path in ./usr/bin/sms-gateway ./usr/bin/sms-sim ./lib/systemd/system/sms-gat
             ./usr/share/man/man1/sms-gateway.1.gz ./usr/share/man/man1/sms-sim.1.gz \
             ./usr/share/man/man5/sms-gateway.yaml.5.gz \
             $doc/README.md $doc/copyright $doc/changelog.gz $doc/docs/PLC_GUIDE.md $doc/docs/PROTOCOL.md \
-            $doc/docs/INSTALL.md $doc/config/README.md $doc/config/examples/mixed.yaml $doc/examples; do
+            $doc/docs/INSTALL.md $doc/config/README.md $doc/config/examples/mixed.yaml $doc/examples \
+            ./usr/share/sms-gateway/wireshark/sms_servo.lua; do
   grep -qx "$path" <<<"$contents" || fail "$path is not in the package"
 done
 
