@@ -26,7 +26,7 @@
 #include <optional>
 #include <sstream>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 namespace {

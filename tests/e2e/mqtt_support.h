@@ -22,7 +22,7 @@
 #include <vector>
 
 #include "protocol/sparkplug/sparkplug.h"
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 

@@ -9,7 +9,7 @@
 #include <memory>
 #include <string>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 

@@ -6,7 +6,7 @@
 
 #include <string>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 namespace {

@@ -9,9 +9,9 @@
 #include <thread>
 #include <vector>
 
-#include "tests/e2e/child_process.h"
-#include "tests/e2e/e2e_support.h"
-#include "tests/e2e/modbus_client.h"
+#include "tests/support/child_process.h"
+#include "tests/support/processes.h"
+#include "tests/support/modbus_client.h"
 
 namespace sms::e2e {
 namespace {

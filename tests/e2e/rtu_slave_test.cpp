@@ -18,8 +18,8 @@
 #include <vector>
 
 #include "protocol/modbus_rtu.h"
-#include "tests/e2e/e2e_support.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/processes.h"
+#include "tests/support/metrics_http_client.h"
 
 namespace sms::e2e {
 namespace {

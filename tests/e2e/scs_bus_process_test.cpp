@@ -10,8 +10,8 @@
 #include <string>
 #include <vector>
 
-#include "tests/e2e/child_process.h"
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/child_process.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 namespace {

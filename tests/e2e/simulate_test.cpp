@@ -5,7 +5,7 @@
 
 #include <regex>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 namespace {

@@ -28,8 +28,8 @@
 #include <boost/asio/ssl.hpp>
 #include <boost/asio/write.hpp>
 
-#include "tests/e2e/e2e_support.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/processes.h"
+#include "tests/support/metrics_http_client.h"
 
 namespace sms::e2e {
 namespace {

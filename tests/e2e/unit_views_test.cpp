@@ -10,7 +10,7 @@
 #include <fstream>
 #include <thread>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 namespace {

@@ -16,8 +16,8 @@
 #include <thread>
 #include <vector>
 
-#include "tests/e2e/child_process.h"
-#include "tests/e2e/modbus_client.h"
+#include "tests/support/child_process.h"
+#include "tests/support/modbus_client.h"
 
 namespace sms::e2e {
 

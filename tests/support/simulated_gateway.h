@@ -14,7 +14,7 @@
 #include "config/load.h"
 #include "gateway/gateway.h"
 #include "simulator/simulated_bus.h"
-#include "tests/e2e/modbus_client.h"
+#include "tests/support/modbus_client.h"
 
 namespace sms::gateway::testing {
 

@@ -10,7 +10,7 @@
 #include <string>
 #include <vector>
 
-#include "bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 #include "gateway/bus/bus_engine.h"
 
 namespace sms::gateway {

@@ -26,7 +26,7 @@
 #include <vector>
 
 #include "gateway/units/bus_faults.h"
-#include "tests/gateway/bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 #include "tests/support/engine_conformance.h"
 
 namespace sms::gateway {

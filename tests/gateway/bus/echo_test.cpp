@@ -11,7 +11,7 @@
 #include <cstdlib>
 #include <thread>
 
-#include "bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 #include "gateway/tools/tool_link.h"
 #include "simulator/serial_line.h"
 

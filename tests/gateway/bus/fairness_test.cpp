@@ -12,7 +12,7 @@
 
 #include "gateway/bus/bus_engine.h"
 #include "simulator/simulated_bus.h"
-#include "tests/gateway/bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway {
 namespace {

@@ -16,7 +16,7 @@
 #include "gateway/bus/packet_transactor.h"
 #include "gateway/bus/rtu_transactor.h"
 #include "simulator/simulated_bus.h"
-#include "tests/gateway/bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway::testing {
 namespace {

@@ -7,7 +7,7 @@
 #include <memory>
 #include <vector>
 
-#include "bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway {
 namespace {

@@ -6,7 +6,7 @@
 
 #include <string>
 
-#include "bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway {
 namespace {

@@ -15,7 +15,7 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 
-#include "tests/gateway/tcp_test_client.h"
+#include "tests/support/loopback_client.h"
 
 namespace sms::gateway {
 namespace {

@@ -8,8 +8,8 @@
 #include <thread>
 
 #include "gateway/observability/metrics_server.h"
-#include "tests/gateway/metrics_http_client.h"
-#include "tests/gateway/router_fixture.h"
+#include "tests/support/metrics_http_client.h"
+#include "tests/support/simulated_gateway.h"
 
 // Designated initializers leave the members a test does not name at their defaults, on purpose.
 #pragma GCC diagnostic ignored "-Wmissing-field-initializers"

@@ -9,7 +9,7 @@
 
 #include "config/load.h"
 #include "gateway/observability/metrics.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/metrics_http_client.h"
 
 // Designated initializers leave the members a test does not name at their defaults, on purpose.
 #pragma GCC diagnostic ignored "-Wmissing-field-initializers"

@@ -8,7 +8,7 @@
 #include "config/load.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/rtu_slave/rtu_slave_port.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/metrics_http_client.h"
 
 namespace sms::gateway {
 namespace {

@@ -21,7 +21,7 @@
 #include "gateway/units/passthrough.h"
 #include "gateway/bus/rtu_master.h"
 #include "simulator/simulated_bus.h"
-#include "tests/gateway/bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway {
 namespace {

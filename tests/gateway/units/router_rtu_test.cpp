@@ -3,7 +3,7 @@
 // slave unchanged, exceptions included.
 #include <gtest/gtest.h>
 
-#include "tests/gateway/router_fixture.h"
+#include "tests/support/simulated_gateway.h"
 
 namespace sms::gateway::testing {
 namespace {

@@ -9,8 +9,8 @@
 #include <mutex>
 #include <thread>
 
-#include "tests/gateway/router_fixture.h"
-#include "tests/gateway/tcp_test_client.h"
+#include "tests/support/simulated_gateway.h"
+#include "tests/support/loopback_client.h"
 
 namespace sms::gateway::testing {
 namespace {

@@ -16,7 +16,7 @@
 #include "config/load.h"
 #include "gateway/gateway.h"
 #include "simulator/simulated_bus.h"
-#include "tests/gateway/bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway {
 namespace {

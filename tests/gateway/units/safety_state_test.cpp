@@ -11,7 +11,7 @@
 
 #include "gateway/units/safety.h"
 #include "gateway/units/state_file.h"
-#include "tests/gateway/bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway {
 namespace {
