@@ -41,7 +41,7 @@ int main(int argc, char** argv) {
     GatewaySetup setup;
     setup.device = bus.slave_path();
     setup.servos = kServos;
-    GatewayProcess gateway(setup);
+    BenchGateway gateway(setup);
     gateway.wait_ready(kServos);
     const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
 

@@ -11,10 +11,13 @@
 #include "tests/support/metrics_http_client.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
-using gateway::testing::HttpConnection;
-using gateway::testing::parse_exposition;
+using test::HttpConnection;
+using test::parse_exposition;
 
 // The port in the first line of `process` that contains `marker` (followed by digits).
 std::uint16_t port_after(ChildProcess& process, const std::string& marker) {

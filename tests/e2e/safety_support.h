@@ -13,6 +13,8 @@
 
 namespace sms::e2e {
 
+using namespace ::sms::test;  // the toolkit: tests/support
+
 inline constexpr int kUnit = 1;
 inline constexpr int kGateway = 255;
 // Longer than the worst transaction of a 115 200 bit/s bus (--check-config refuses shorter).

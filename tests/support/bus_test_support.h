@@ -16,10 +16,12 @@
 #include "gateway/bus/bus_engine.h"
 #include "modbus_map/register_map.h"
 #include "simulator/simulated_bus.h"
+#include "tests/support/eventually.h"
 
 namespace sms::gateway::testing {
 
 using namespace std::chrono_literals;
+using ::sms::test::eventually;
 
 // The protocol a table is spoken in (docs/PROTOCOL.md §1).
 inline protocol::BusProtocol protocol_of(modbus_map::TableId table) {
@@ -82,23 +84,13 @@ struct EngineKind {
 };
 inline void PrintTo(const EngineKind& kind, std::ostream* out) { *out << kind.name; }
 
-template <typename Predicate>
-bool wait_until(Predicate predicate, std::chrono::milliseconds timeout = 3s) {
-  const auto deadline = std::chrono::steady_clock::now() + timeout;
-  while (std::chrono::steady_clock::now() < deadline) {
-    if (predicate()) return true;
-    std::this_thread::sleep_for(2ms);
-  }
-  return predicate();
-}
-
-// Submits and waits for the completion (at most 5 s, then fails the test with Cancelled).
+// Submits and waits for the completion (at most kAwaitTimeout, then fails the test with Cancelled).
 inline BusResult transact(BusEngine& engine, BusOp op, Priority priority = Priority::ClientWrite) {
   auto promise = std::make_shared<std::promise<BusResult>>();
   auto future = promise->get_future();
   engine.submit(std::move(op), priority, [promise](BusResult result) { promise->set_value(std::move(result)); });
-  if (future.wait_for(5s) != std::future_status::ready) {
-    ADD_FAILURE() << "no completion within 5 s";
+  if (future.wait_for(test::kAwaitTimeout) != std::future_status::ready) {
+    ADD_FAILURE() << "no completion within " << test::kAwaitTimeout.count() << " ms";
     return BusResult{BusStatus::Cancelled, 0, {}, "test: no completion"};
   }
   return future.get();

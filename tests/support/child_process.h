@@ -20,9 +20,11 @@
 #include <thread>
 #include <vector>
 
+#include "tests/support/await.h"
+
 extern char** environ;
 
-namespace sms::e2e {
+namespace sms::test {
 
 class ChildProcess {
  public:
@@ -77,21 +79,14 @@ class ChildProcess {
   // Exit code (or 128 + signal), or nullopt when the child still runs after `timeout`.
   std::optional<int> wait_exit(std::chrono::milliseconds timeout) {
     if (exit_status_) return exit_status_;
-    const auto deadline = std::chrono::steady_clock::now() + timeout;
-    for (;;) {
-      int status = 0;
-      const pid_t done = ::waitpid(pid_, &status, WNOHANG);
-      if (done == pid_) {
-        exit_status_ = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
-        // Everything the child wrote is in the pipe: let the reader take it all before anyone
-        // looks at output().
-        std::unique_lock lock(mutex_);
-        changed_.wait_for(lock, std::chrono::seconds{5}, [this] { return output_closed_; });
-        return exit_status_;
-      }
-      if (std::chrono::steady_clock::now() >= deadline) return std::nullopt;
-      std::this_thread::sleep_for(std::chrono::milliseconds{5});
-    }
+    int status = 0;
+    if (!poll_until([&] { return ::waitpid(pid_, &status, WNOHANG) == pid_; }, timeout)) return std::nullopt;
+    exit_status_ = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+    // Everything the child wrote is in the pipe: let the reader take it all before anyone
+    // looks at output().
+    std::unique_lock lock(mutex_);
+    changed_.wait_for(lock, kAwaitTimeout, [this] { return output_closed_; });
+    return exit_status_;
   }
 
   // The first output line containing `text` (searching everything written so far), or
@@ -150,4 +145,4 @@ class ChildProcess {
   bool output_closed_ = false;
 };
 
-}  // namespace sms::e2e
+}  // namespace sms::test

@@ -1,5 +1,5 @@
 #pragma once
-// A blocking loopback client for the TCP server tests: raw bytes in, raw bytes out, with a
+// A blocking loopback client for the TCP server and unit router tests: raw bytes in, raw bytes out, with a
 // receive timeout so a test that waits for an answer that never comes fails instead of hanging.
 #include <arpa/inet.h>
 #include <netinet/in.h>
@@ -12,35 +12,43 @@
 #include <chrono>
 #include <cstdint>
 #include <cstring>
+#include <functional>
 #include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
-namespace sms::gateway::testing {
+namespace sms::test {
 
 using ByteVector = std::vector<std::uint8_t>;
 
-class TestClient {
+// A TCP connection to 127.0.0.1:`port` (its file descriptor), or std::runtime_error naming the
+// port. `configure` runs on the socket before it connects (buffer sizes must be set then).
+inline int connect_loopback(std::uint16_t port, const std::function<void(int)>& configure = {}) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  if (fd < 0) throw std::runtime_error("socket: " + std::string(std::strerror(errno)));
+  if (configure) configure(fd);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(port);
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof address) != 0) {
+    const std::string reason = std::strerror(errno);
+    ::close(fd);
+    throw std::runtime_error("connect to 127.0.0.1:" + std::to_string(port) + ": " + reason);
+  }
+  return fd;
+}
+
+class LoopbackClient {
  public:
-  explicit TestClient(std::uint16_t port) {
-    fd_ = ::socket(AF_INET, SOCK_STREAM, 0);
-    if (fd_ < 0) throw std::runtime_error("socket: " + std::string(std::strerror(errno)));
-    sockaddr_in address{};
-    address.sin_family = AF_INET;
-    address.sin_port = htons(port);
-    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    if (::connect(fd_, reinterpret_cast<sockaddr*>(&address), sizeof address) != 0) {
-      const std::string reason = std::strerror(errno);
-      ::close(fd_);
-      throw std::runtime_error("connect to 127.0.0.1:" + std::to_string(port) + ": " + reason);
-    }
+  explicit LoopbackClient(std::uint16_t port) : fd_(connect_loopback(port)) {
     int one = 1;
     ::setsockopt(fd_, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
   }
-  ~TestClient() { close(); }
-  TestClient(const TestClient&) = delete;
-  TestClient& operator=(const TestClient&) = delete;
+  ~LoopbackClient() { close(); }
+  LoopbackClient(const LoopbackClient&) = delete;
+  LoopbackClient& operator=(const LoopbackClient&) = delete;
 
   void close() {
     if (fd_ >= 0) ::close(fd_);
@@ -85,4 +93,4 @@ class TestClient {
   int fd_ = -1;
 };
 
-}  // namespace sms::gateway::testing
+}  // namespace sms::test

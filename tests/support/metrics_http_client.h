@@ -21,7 +21,9 @@
 #include <string>
 #include <vector>
 
-namespace sms::gateway::testing {
+#include "tests/support/loopback_client.h"
+
+namespace sms::test {
 
 struct HttpResponse {
   int status = 0;
@@ -36,19 +38,7 @@ struct HttpResponse {
 
 class HttpConnection {
  public:
-  explicit HttpConnection(std::uint16_t port) {
-    fd_ = ::socket(AF_INET, SOCK_STREAM, 0);
-    if (fd_ < 0) throw std::runtime_error("socket: " + std::string(std::strerror(errno)));
-    sockaddr_in address{};
-    address.sin_family = AF_INET;
-    address.sin_port = htons(port);
-    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    if (::connect(fd_, reinterpret_cast<sockaddr*>(&address), sizeof address) != 0) {
-      const std::string reason = std::strerror(errno);
-      ::close(fd_);
-      throw std::runtime_error("connect to 127.0.0.1:" + std::to_string(port) + ": " + reason);
-    }
-  }
+  explicit HttpConnection(std::uint16_t port) : fd_(connect_loopback(port)) {}
   ~HttpConnection() {
     if (fd_ >= 0) ::close(fd_);
   }
@@ -229,4 +219,4 @@ inline Exposition parse_exposition(const std::string& text) {
   return out;
 }
 
-}  // namespace sms::gateway::testing
+}  // namespace sms::test

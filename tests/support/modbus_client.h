@@ -1,16 +1,18 @@
 #pragma once
-// A libmodbus TCP client for the end-to-end tests: the client a PLC programmer would use, so
-// nothing here shares code with the gateway. Each call returns the values, or the Modbus
+// A libmodbus TCP client for the tests and the benchmarks: the client a PLC programmer would use,
+// so nothing here shares code with the gateway. Each call returns the values, or the Modbus
 // exception code the gateway answered with (0 when the failure was not an exception).
 #include <modbus/modbus.h>
 
+#include <algorithm>
 #include <cerrno>
+#include <chrono>
 #include <cstdint>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
-namespace sms::e2e {
+namespace sms::test {
 
 template <typename T>
 struct Answer {
@@ -18,15 +20,22 @@ struct Answer {
   int exception = 0;  // Modbus exception code; -1 for a transport error (errno in `error`)
   std::string error;
   bool ok() const { return exception == 0; }
+  // The values, or std::runtime_error naming `request` and the failure (setup and check reads).
+  const std::vector<T>& or_throw(const std::string& request) const {
+    if (!ok()) {
+      throw std::runtime_error(request + ": " + (error.empty() ? "Modbus exception " + std::to_string(exception) : error));
+    }
+    return values;
+  }
 };
 
 class ModbusClient {
  public:
-  ModbusClient(std::uint16_t port, int unit, double timeout_s = 3.0) {
+  ModbusClient(std::uint16_t port, int unit, std::chrono::milliseconds response_timeout = std::chrono::seconds{3}) {
     ctx_ = modbus_new_tcp("127.0.0.1", port);
     if (ctx_ == nullptr) throw std::runtime_error("modbus_new_tcp failed");
-    const auto seconds = static_cast<std::uint32_t>(timeout_s);
-    modbus_set_response_timeout(ctx_, seconds, static_cast<std::uint32_t>((timeout_s - seconds) * 1e6));
+    const auto us = response_timeout.count() * 1000;
+    modbus_set_response_timeout(ctx_, static_cast<std::uint32_t>(us / 1'000'000), static_cast<std::uint32_t>(us % 1'000'000));
     if (modbus_connect(ctx_) != 0) {
       const std::string reason = modbus_strerror(errno);
       modbus_free(ctx_);
@@ -123,4 +132,4 @@ class ModbusClient {
   modbus_t* ctx_ = nullptr;
 };
 
-}  // namespace sms::e2e
+}  // namespace sms::test

@@ -14,12 +14,15 @@
 #include "config/load.h"
 #include "gateway/gateway.h"
 #include "simulator/simulated_bus.h"
+#include "tests/support/eventually.h"
 #include "tests/support/modbus_client.h"
+#include "tests/support/processes.h"
 
 namespace sms::gateway::testing {
 
 using namespace std::chrono_literals;
-using e2e::ModbusClient;
+using test::eventually;
+using test::ModbusClient;
 
 inline simulator::BusOptions untimed_bus(std::vector<simulator::ServoConfig> servos) {
   simulator::BusOptions options;
@@ -64,16 +67,7 @@ class SimulatedGateway {
 
   // Waits until the bus engine has discovered its servos and polled the cache once for `unit`
   // (its cache-age register stops saying "never").
-  void wait_until_polled(int unit, std::chrono::milliseconds timeout = 5s) {
-    ModbusClient client(port(), unit);
-    const auto deadline = std::chrono::steady_clock::now() + timeout;
-    while (std::chrono::steady_clock::now() < deadline) {
-      const auto age = client.read_input(1002, 1);
-      if (age.ok() && age.values[0] != 0xFFFF) return;
-      std::this_thread::sleep_for(5ms);
-    }
-    throw std::runtime_error("unit " + std::to_string(unit) + " was never polled");
-  }
+  void wait_until_polled(int unit) { test::wait_until_polled(port(), unit); }
 
  private:
   static void replace(std::string& text, const std::string& what, const std::string& with) {

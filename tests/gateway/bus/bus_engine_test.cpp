@@ -101,7 +101,7 @@ TEST_F(BusEngineTest, SyncWriteSetsEveryListedServoInOneFrame) {
   SyncWriteOp sync{42, 2, {{1, {0x00, 0x02}}, {3, {0x00, 0x06}}}};
   const BusResult result = transact(*engine_, sync);
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
-  ASSERT_TRUE(wait_until([&] { return memory(3, 42, 2) == Bytes{0x00, 0x06}; }, 1s));
+  ASSERT_TRUE(eventually([&] { return memory(3, 42, 2) == Bytes{0x00, 0x06}; }));
   EXPECT_EQ(memory(1, 42, 2), (Bytes{0x00, 0x02}));
   EXPECT_NE(memory(2, 42, 2), (Bytes{0x00, 0x02}));
   EXPECT_EQ(simulator_->stats().requests - requests_before, 1U);
@@ -206,7 +206,7 @@ TEST_F(BusEngineTest, DroppedReplyIsRetriedAndTheRetrySucceeds) {
   simulator_->set_drop_probability(1.0);
   auto future_result = std::async(std::launch::async, [&] { return transact(*engine_, ReadOp{1, 5, 1}); });
   // Let the first attempt go unanswered, then answer again.
-  ASSERT_TRUE(wait_until([&] { return engine_->counters().timeouts >= 1; }, 2s));
+  ASSERT_TRUE(eventually([&] { return engine_->counters().timeouts >= 1; }));
   simulator_->set_drop_probability(0.0);
   const BusResult result = future_result.get();
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
@@ -311,7 +311,7 @@ TEST_F(QueueTest, WorkThatWaitedPastItsAgeLimitRunsOldestFirstAndEachPriorityInO
     engine_->submit(std::move(op), priority, record(std::move(name)));
   };
   submit(ReadOp{2, 5, 1}, Priority::ClientRead, "slow");
-  ASSERT_TRUE(wait_until([&] { return simulator_->stats().requests >= 1; }, 1s));
+  ASSERT_TRUE(eventually([&] { return simulator_->stats().requests >= 1; }));
   submit(ReadOp{1, 5, 1}, Priority::Poll, "poll-1");
   submit(ReadOp{1, 5, 1}, Priority::Poll, "poll-2");
   submit(ReadOp{1, 5, 1}, Priority::ClientRead, "read-1");
@@ -319,7 +319,7 @@ TEST_F(QueueTest, WorkThatWaitedPastItsAgeLimitRunsOldestFirstAndEachPriorityInO
   submit(ReadOp{1, 5, 1}, Priority::ClientRead, "read-2");
   submit(WriteOp{1, 41, {0x01}}, Priority::ClientWrite, "write-1");
   submit(WriteOp{1, 41, {0x02}}, Priority::ClientWrite, "write-2");
-  ASSERT_TRUE(wait_until([&] { return done.load() == static_cast<int>(submitted.size()); }, 3s));
+  ASSERT_TRUE(eventually([&] { return done.load() == static_cast<int>(submitted.size()); }));
   std::lock_guard lock(mutex);
   EXPECT_EQ(order, submitted);
   EXPECT_EQ(memory(1, 41, 1), (Bytes{0x02}));  // the writes kept their order
@@ -330,7 +330,7 @@ TEST_F(QueueTest, FullQueueAnswersQueueFullAtOnce) {
   simulator_->set_reply_delay(2, 50ms);
   std::atomic<int> ok{0};
   engine_->submit(ReadOp{2, 5, 1}, Priority::ClientRead, [&](BusResult) { ++ok; });
-  ASSERT_TRUE(wait_until([&] { return simulator_->stats().requests >= 1; }, 1s));
+  ASSERT_TRUE(eventually([&] { return simulator_->stats().requests >= 1; }));
   for (int i = 0; i < 8; ++i) {
     engine_->submit(ReadOp{1, 5, 1}, Priority::ClientRead, [&](BusResult result) {
       EXPECT_EQ(result.status, BusStatus::Ok) << result.detail;
@@ -346,7 +346,7 @@ TEST_F(QueueTest, FullQueueAnswersQueueFullAtOnce) {
   EXPECT_TRUE(refused_inside_submit);
   EXPECT_EQ(refused.status, BusStatus::QueueFull);
   EXPECT_NE(refused.detail.find("8 operations already queued"), std::string::npos) << refused.detail;
-  ASSERT_TRUE(wait_until([&] { return ok.load() == 9; }, 3s));
+  ASSERT_TRUE(eventually([&] { return ok.load() == 9; }));
   EXPECT_EQ(engine_->counters().queue_full, 1U);
   // Room again once the queue drained.
   EXPECT_EQ(transact(*engine_, ReadOp{1, 5, 1}).status, BusStatus::Ok);
@@ -378,7 +378,7 @@ TEST_F(BusEngineTest, StopCancelsWhatIsQueued) {
       statuses.push_back(result.status);
     });
   }
-  ASSERT_TRUE(wait_until([&] { return on_the_wire.load(); }));  // the first READ is on the wire
+  ASSERT_TRUE(eventually([&] { return on_the_wire.load(); }));  // the first READ is on the wire
   engine_->stop();
   simulator_->set_frame_observer({});
   std::lock_guard lock(mutex);

@@ -25,7 +25,6 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/units/bus_faults.h"
 #include "tests/support/bus_test_support.h"
 #include "tests/support/engine_conformance.h"
 
@@ -38,7 +37,7 @@ using conformance::ProtocolCase;
 using conformance::WriteFlood;
 using protocol::Bytes;
 using testing::transact;
-using testing::wait_until;
+using testing::eventually;
 
 using Clock = std::chrono::steady_clock;
 
@@ -144,9 +143,9 @@ class Conformance : public ::testing::TestWithParam<ProtocolCase> {
     engine_ = make_bus_engine(settings_);
     engine_->start();
     ASSERT_TRUE(engine_->bus_up());
-    ASSERT_TRUE(wait_until([&] { return engine_->discovered(); }, 5s));
+    ASSERT_TRUE(eventually([&] { return engine_->discovered(); }));
     if (settings_.discover) {
-      ASSERT_TRUE(wait_until([&] { return engine_->cache().online_count() == 3; }, 5s));
+      ASSERT_TRUE(eventually([&] { return engine_->cache().online_count() == 3; }));
     }
   }
   void TearDown() override {
@@ -162,7 +161,7 @@ class Conformance : public ::testing::TestWithParam<ProtocolCase> {
   std::uint8_t recorded_status(std::uint8_t id) const { return engine_->cache().state(id)->counters.last_status; }
   bool poll_cycles(unsigned n) const {
     const auto cycles = engine_->counters().poll_cycles;
-    return wait_until([&] { return engine_->counters().poll_cycles >= cycles + n; }, 2s);
+    return eventually([&] { return engine_->counters().poll_cycles >= cycles + n; });
   }
 
   simulator::BusOptions options_;
@@ -185,14 +184,14 @@ TEST_P(Conformance, ALiveReadBehindAFloodOfWritesIsServedAfterTheWorkQueuedBefor
     s.queue_depth = 32;
   });
   flood_ = std::make_unique<WriteFlood>(*engine_, pc(), kFloodDepth);
-  ASSERT_TRUE(wait_until([&] { return flood_->answered() >= 20; }, 5s)) << "the flood does not run";
+  ASSERT_TRUE(eventually([&] { return flood_->answered() >= 20; })) << "the flood does not run";
 
   for (int round = 0; round < 3; ++round) {
     SCOPED_TRACE(round);
     const unsigned written_before = flood_->answered();
     auto read = submit_tracked(*engine_, pc().read_id(1), Priority::ClientRead, flood_->answered_counter());
     // Without the age rule the read waits as long as the flood runs: it never ends by itself.
-    ASSERT_TRUE(wait_until([&] { return read->done.load(); }, 3s)) << "the read waited behind the flood";
+    ASSERT_TRUE(eventually([&] { return read->done.load(); })) << "the read waited behind the flood";
     const unsigned writes_between = read->count_at_answer - written_before;
     ASSERT_EQ(read->result.status, BusStatus::Ok) << read->result.detail;
     EXPECT_EQ(read->result.data, pc().value(1));
@@ -214,9 +213,9 @@ TEST_P(Conformance, PollingIsNotStarvedByAFloodOfClientWrites) {
   constexpr unsigned kFloodDepth = 4;
   constexpr auto kWindow = 800ms;
   start([](BusSettings& s) { s.queue_depth = 32; });
-  ASSERT_TRUE(wait_until([&] { return engine_->counters().poll_cycles > 0; }, 2s));
+  ASSERT_TRUE(eventually([&] { return engine_->counters().poll_cycles > 0; }));
   flood_ = std::make_unique<WriteFlood>(*engine_, pc(), kFloodDepth);
-  ASSERT_TRUE(wait_until([&] { return flood_->answered() >= 10; }, 5s)) << "the flood does not run";
+  ASSERT_TRUE(eventually([&] { return flood_->answered() >= 10; })) << "the flood does not run";
 
   const auto before = engine_->counters();
   const unsigned written_before = flood_->answered();
@@ -264,12 +263,11 @@ TEST_P(Conformance, AFullQueueAnswersBusyAtOnceAndTheAdmittedWritesLandInOrder) 
     s.queue_depth = kDepth;
     s.response_timeout = 600ms;
   });
-  EXPECT_EQ(exception_code(fault_from(BusStatus::QueueFull)), 0x06);
 
   // Servo 2 answers 250 ms late: its read holds the bus while the queue fills.
   bus_->set_reply_delay(2, 250ms);
   auto blocker = submit_tracked(*engine_, pc().read_id(2), Priority::ClientRead);
-  ASSERT_TRUE(wait_until([&] { return !frames_->addressed_to(2).empty(); }, 2s));
+  ASSERT_TRUE(eventually([&] { return !frames_->addressed_to(2).empty(); }));
   WriteOutcomes first;
   for (std::uint8_t value = 1; value <= kDepth + 3; ++value) {
     const bool refused_at_once = first.submit(*engine_, pc(), 1, value);
@@ -281,7 +279,7 @@ TEST_P(Conformance, AFullQueueAnswersBusyAtOnceAndTheAdmittedWritesLandInOrder) 
   EXPECT_EQ(read->result.status, BusStatus::QueueFull);
   EXPECT_NE(read->result.detail.find("4 operations already queued"), std::string::npos) << read->result.detail;
 
-  ASSERT_TRUE(wait_until([&] { return blocker->done.load() && first.all_answered(); }, 3s));
+  ASSERT_TRUE(eventually([&] { return blocker->done.load() && first.all_answered(); }));
   EXPECT_EQ(blocker->result.status, BusStatus::Ok) << blocker->result.detail;
   const auto one = first.summary();
   EXPECT_TRUE(one.problems.empty()) << ::testing::PrintToString(one.problems);
@@ -299,7 +297,7 @@ TEST_P(Conformance, AFullQueueAnswersBusyAtOnceAndTheAdmittedWritesLandInOrder) 
     burst.submit(*engine_, pc(), 1, static_cast<std::uint8_t>(11 + i));
     if (i % 4 == 0) std::this_thread::sleep_for(200us);
   }
-  ASSERT_TRUE(wait_until([&] { return burst.all_answered(); }, 5s));
+  ASSERT_TRUE(eventually([&] { return burst.all_answered(); }));
   const auto two = burst.summary();
   EXPECT_TRUE(two.problems.empty()) << ::testing::PrintToString(two.problems);
   ASSERT_GE(two.admitted.size(), kDepth);
@@ -321,7 +319,7 @@ TEST_P(Conformance, StopAnswersEveryQueuedRequestAndRunsNoneOfThem) {
   // Servo 2 answers 250 ms late: its read holds the bus while the rest queues.
   bus_->set_reply_delay(2, 250ms);
   auto blocker = submit_tracked(*engine_, pc().read_id(2), Priority::ClientRead);
-  ASSERT_TRUE(wait_until([&] { return !frames_->addressed_to(2).empty(); }, 2s));
+  ASSERT_TRUE(eventually([&] { return !frames_->addressed_to(2).empty(); }));
   std::vector<std::shared_ptr<Tracked>> queued;
   for (std::uint8_t i = 1; i <= 10; ++i) {
     queued.push_back(submit_tracked(*engine_, pc().write(1, i), Priority::ClientWrite));
@@ -354,7 +352,7 @@ TEST_P(Conformance, StopAnswersEveryQueuedRequestAndRunsNoneOfThem) {
 TEST_P(Conformance, AnOfflineServoIsAnsweredAtOnceProbedAtItsPeriodAndComesBack) {
   start();
   bus_->set_offline(3, true);
-  ASSERT_TRUE(wait_until([&] { return !engine_->cache().state(3)->online; }, 3s));
+  ASSERT_TRUE(eventually([&] { return !engine_->cache().state(3)->online; }));
 
   frames_->clear();
   const auto window_start = Clock::now();
@@ -390,7 +388,7 @@ TEST_P(Conformance, AnOfflineServoIsAnsweredAtOnceProbedAtItsPeriodAndComesBack)
 
   bus_->set_offline(3, false);
   const auto back = Clock::now();
-  ASSERT_TRUE(wait_until([&] { return engine_->cache().state(3)->online; }, 2s));
+  ASSERT_TRUE(eventually([&] { return engine_->cache().state(3)->online; }));
   const auto came_back = Clock::now() - back;
   EXPECT_LT(came_back, 2 * settings_.probe_period + 300ms);
   const BusResult result = transact(*engine_, pc().read_id(3), Priority::ClientRead);
@@ -406,13 +404,12 @@ TEST_P(Conformance, AnOfflineServoIsAnsweredAtOnceProbedAtItsPeriodAndComesBack)
 TEST_P(Conformance, ALostPortTakesTheBusDownAndTheEngineReopensItByItself) {
   const std::string link = "/tmp/sms-gateway-conformance-" + pc().name + "-" + std::to_string(::getpid());
   start({}, link);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::BusDown)), 0x0A);
 
   // The adapter is unplugged: the pty master closes and the link goes.
   frames_.reset();
   const auto lost = Clock::now();
   bus_->stop();
-  ASSERT_TRUE(wait_until([&] { return !engine_->bus_up(); }, 2s)) << "the engine did not notice the lost port";
+  ASSERT_TRUE(eventually([&] { return !engine_->bus_up(); })) << "the engine did not notice the lost port";
   const auto noticed = Clock::now() - lost;
   EXPECT_EQ(engine_->counters().bus_down_events, 1U);
   EXPECT_EQ(engine_->cache().online_count(), 0U);
@@ -432,8 +429,8 @@ TEST_P(Conformance, ALostPortTakesTheBusDownAndTheEngineReopensItByItself) {
   bus_ = std::make_unique<simulator::SimulatedBus>(options_);
   bus_->start();
   const auto replugged = Clock::now();
-  ASSERT_TRUE(wait_until(
-      [&] { return engine_->bus_up() && engine_->discovered() && engine_->cache().online_count() == 3; }, 3s));
+  ASSERT_TRUE(eventually(
+      [&] { return engine_->bus_up() && engine_->discovered() && engine_->cache().online_count() == 3; }));
   const auto reopened = Clock::now() - replugged;
   const BusResult result = transact(*engine_, pc().read_id(2), Priority::ClientRead);
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;

@@ -1,73 +1,21 @@
 // An RS-485 adapter without echo suppression hands the host its own frame back before the
 // servo's answer. Here a relay between the engine's pty and the simulator's pty plays that
-// adapter: everything the engine sends goes to the (real, simulated) servos and straight back.
-#include <fcntl.h>
+// adapter (tests/support/echoing_adapter.h): everything the engine sends goes to the (real,
+// simulated) servos and straight back. The tools through the same adapter: tests/gateway/tools.
 #include <gtest/gtest.h>
-#include <poll.h>
-#include <unistd.h>
 
-#include <array>
-#include <atomic>
-#include <cstdlib>
-#include <thread>
+#include <memory>
 
 #include "tests/support/bus_test_support.h"
-#include "gateway/tools/tool_link.h"
-#include "simulator/serial_line.h"
+#include "tests/support/echoing_adapter.h"
 
 namespace sms::gateway {
 namespace {
 
 using namespace testing;
+using test::EchoingAdapter;
 using namespace std::chrono_literals;
 using protocol::Bytes;
-
-class EchoingAdapter {
- public:
-  // `line` is the simulator's slave path; the engine opens host_path().
-  EchoingAdapter(const std::string& line, std::uint32_t baud) {
-    host_ = ::posix_openpt(O_RDWR | O_NOCTTY);
-    if (host_ < 0 || ::grantpt(host_) != 0 || ::unlockpt(host_) != 0) throw std::runtime_error("no pty");
-    host_path_ = ::ptsname(host_);
-    line_ = ::open(line.c_str(), O_RDWR | O_NOCTTY);
-    if (line_ < 0) throw std::runtime_error("cannot open " + line);
-    simulator::configure_raw_serial(line_, baud);
-    relay_ = std::thread([this] { run(); });
-  }
-  ~EchoingAdapter() {
-    stop_ = true;
-    relay_.join();
-    ::close(line_);
-    ::close(host_);
-  }
-  const std::string& host_path() const { return host_path_; }
-
- private:
-  void run() {
-    std::array<std::uint8_t, 512> buffer{};
-    while (!stop_) {
-      std::array<pollfd, 2> fds{{{host_, POLLIN, 0}, {line_, POLLIN, 0}}};
-      if (::poll(fds.data(), fds.size(), 5) <= 0) continue;
-      if ((fds[0].revents & POLLIN) != 0) {
-        const ssize_t n = ::read(host_, buffer.data(), buffer.size());
-        if (n > 0) {
-          [[maybe_unused]] const auto echoed = ::write(host_, buffer.data(), static_cast<std::size_t>(n));
-          [[maybe_unused]] const auto sent = ::write(line_, buffer.data(), static_cast<std::size_t>(n));
-        }
-      }
-      if ((fds[1].revents & POLLIN) != 0) {
-        const ssize_t n = ::read(line_, buffer.data(), buffer.size());
-        if (n > 0) [[maybe_unused]] const auto passed = ::write(host_, buffer.data(), static_cast<std::size_t>(n));
-      }
-    }
-  }
-
-  int host_ = -1;
-  int line_ = -1;
-  std::string host_path_;
-  std::atomic<bool> stop_{false};
-  std::thread relay_;
-};
 
 class EchoTest : public ::testing::Test {
  protected:
@@ -116,35 +64,6 @@ TEST_F(EchoTest, WritesAreAcknowledgedThroughAnEchoingAdapter) {
   const BusResult result = transact(*engine_, WriteOp{1, 42, {0x00, 0x09}});
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
   EXPECT_EQ(simulator_.read_memory(1, 42, 2), (Bytes{0x00, 0x09}));
-}
-
-// The integrator tools run the engine's transactor, so they see through the echo the same way:
-// the echo of a PING to an absent ID is nobody's answer (not even "something was heard", which
-// would tell the scan a servo collided there).
-TEST_F(EchoTest, ToolLinkSeesThroughTheEchoLikeTheEngine) {
-  engine_->stop();  // one program on the line at a time: the port is opened exclusively
-  LinkSettings settings;
-  settings.device = adapter_->host_path();
-  settings.protocol = protocol::BusProtocol::Feetech;
-  settings.baud = 1'000'000;
-  settings.latency = 20ms;  // a pty, a relay thread and the simulator on 2 shared cores
-  const auto link = make_servo_link(settings);
-  const auto opened = link->open();
-  ASSERT_TRUE(opened) << opened.error();
-
-  const LinkAnswer present = link->ping(1);
-  EXPECT_EQ(present.status, LinkStatus::Ok) << present.detail;
-  EXPECT_EQ(present.servo_status, 0x00);  // the servo's answer, not the echo's "ERROR 0x01"
-  const LinkAnswer absent = link->ping(9);
-  EXPECT_EQ(absent.status, LinkStatus::Timeout) << absent.detail;
-  EXPECT_FALSE(absent.heard_anything);
-  EXPECT_TRUE(absent.other_ids.empty());
-  // Both servos answer a broadcast PING at once: their answers collide, but someone is there.
-  const LinkAnswer anyone = link->ping(protocol::kBroadcastId);
-  EXPECT_TRUE(anyone.heard_anything) << anyone.detail;
-  const LinkAnswer model = link->read(2, 3, 2);
-  ASSERT_EQ(model.status, LinkStatus::Ok) << model.detail;
-  EXPECT_EQ(model.data, (Bytes{0x08, 0x2A}));
 }
 
 }  // namespace

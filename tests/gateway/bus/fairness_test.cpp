@@ -21,7 +21,7 @@ using namespace std::chrono_literals;
 using modbus_map::TableId;
 using protocol::Bytes;
 using testing::transact;
-using testing::wait_until;
+using testing::eventually;
 
 using testing::EngineKind;
 
@@ -39,7 +39,7 @@ class Fairness : public ::testing::TestWithParam<EngineKind> {
     engine_->start();
     ASSERT_TRUE(engine_->bus_up());
     if (poll) {  // braces: ASSERT_TRUE expands to an if/else (GCC's -Wdangling-else)
-      ASSERT_TRUE(wait_until([&] { return engine_->discovered(); }, 5s));
+      ASSERT_TRUE(eventually([&] { return engine_->discovered(); }));
     }
   }
   void TearDown() override {
@@ -83,7 +83,7 @@ TEST_P(Fairness, LiveReadIsAnsweredWhileWritesFloodTheBus) {
   constexpr unsigned kFloodLimit = 3000;
   start(false);
   flood_writes(16, kFloodLimit);
-  ASSERT_TRUE(wait_until([&] { return written_.load() >= 20; }, 5s));  // the flood is on
+  ASSERT_TRUE(eventually([&] { return written_.load() >= 20; }));  // the flood is on
   std::atomic<bool> answered{false};
   unsigned written_when_answered = 0;
   engine_->submit(ReadOp{1, GetParam().read.address, GetParam().read.count}, Priority::ClientRead,
@@ -92,7 +92,7 @@ TEST_P(Fairness, LiveReadIsAnsweredWhileWritesFloodTheBus) {
                     written_when_answered = written_.load();
                     answered = true;
                   });
-  ASSERT_TRUE(wait_until([&] { return answered.load() || written_.load() >= kFloodLimit; }, 60s));
+  ASSERT_TRUE(eventually([&] { return answered.load() || written_.load() >= kFloodLimit; }, 60s));
   EXPECT_TRUE(answered.load()) << "the read waited behind the whole flood";
   EXPECT_LT(written_when_answered, kFloodLimit) << "the read was answered only after the flood ended";
   flooding_ = false;
@@ -102,9 +102,9 @@ TEST_P(Fairness, PollCacheIsRefreshedUnderAClientFlood) {
   constexpr unsigned kFloodLimit = 3000;
   start(true);
   flood_writes(16, kFloodLimit);
-  ASSERT_TRUE(wait_until([&] { return written_.load() >= 20; }, 5s));
+  ASSERT_TRUE(eventually([&] { return written_.load() >= 20; }));
   const auto before = engine_->counters().poll_cycles;
-  ASSERT_TRUE(wait_until([&] { return engine_->counters().poll_cycles >= before + 3 || written_.load() >= kFloodLimit; },
+  ASSERT_TRUE(eventually([&] { return engine_->counters().poll_cycles >= before + 3 || written_.load() >= kFloodLimit; },
                          60s));
   EXPECT_GE(engine_->counters().poll_cycles, before + 3);
   EXPECT_LT(written_.load(), kFloodLimit) << "polls ran only after the flood ended";
@@ -127,14 +127,14 @@ TEST(StatusByte, ARefusalBitInEveryAnswerDoesNotFlipTheRecordedStatus) {
   BusSettings settings = testing::bus_settings(bus.slave_path(), {1});
   auto engine = make_bus_engine(settings);
   engine->start();
-  ASSERT_TRUE(wait_until([&] { return engine->discovered(); }, 5s));
+  ASSERT_TRUE(eventually([&] { return engine->discovered(); }));
   bus.set_error_bits(1, 0x10);
   std::vector<std::uint8_t> seen;
   for (int round = 0; round < 10; ++round) {
     transact(*engine, WriteOp{1, 41, {static_cast<std::uint8_t>(10 + round)}});
     seen.push_back(engine->cache().state(1)->counters.last_status);
     const auto cycles = engine->counters().poll_cycles;
-    ASSERT_TRUE(wait_until([&] { return engine->counters().poll_cycles > cycles + 1; }, 2s));
+    ASSERT_TRUE(eventually([&] { return engine->counters().poll_cycles > cycles + 1; }));
     seen.push_back(engine->cache().state(1)->counters.last_status);
   }
   for (const auto status : seen) EXPECT_EQ(status, seen.front());
@@ -172,11 +172,11 @@ TEST_P(StatusByteRule, OneByteForEveryAnswerKindAndOneLogLinePerChangeOfConditio
   bus.start();
   auto engine = make_bus_engine(testing::bus_settings(bus.slave_path(), {1}, param.table, param.baud));
   engine->start();
-  ASSERT_TRUE(wait_until([&] { return engine->discovered(); }, 5s));
+  ASSERT_TRUE(eventually([&] { return engine->discovered(); }));
   const auto status = [&] { return engine->cache().state(1)->counters.last_status; };
   const auto two_poll_cycles = [&] {
     const auto cycles = engine->counters().poll_cycles;
-    return wait_until([&] { return engine->counters().poll_cycles > cycles + 1; }, 2s);
+    return eventually([&] { return engine->counters().poll_cycles > cycles + 1; });
   };
   const auto write = [&](std::uint8_t value) {
     return transact(*engine, WriteOp{1, param.field, {value}});

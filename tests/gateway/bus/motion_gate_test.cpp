@@ -20,7 +20,7 @@ using namespace std::chrono_literals;
 using modbus_map::TableId;
 using protocol::Bytes;
 using testing::transact;
-using testing::wait_until;
+using testing::eventually;
 
 using testing::EngineKind;
 
@@ -49,7 +49,7 @@ class MotionGateTest : public ::testing::TestWithParam<EngineKind> {
   void hold_the_bus(std::atomic<int>& done) {
     simulator_->set_reply_delay(2, 60ms);
     engine_->submit(ReadOp{2, GetParam().field, 1}, Priority::ClientRead, [&](BusResult) { ++done; });
-    ASSERT_TRUE(wait_until([&] { return simulator_->stats().requests >= 1; }, 1s));
+    ASSERT_TRUE(eventually([&] { return simulator_->stats().requests >= 1; }));
   }
 
   Bytes field_of_servo_1() {
@@ -85,7 +85,7 @@ TEST_P(MotionGateTest, SafeStopsGoFirstAndAreNeverRefusedForAFullQueue) {
     order.push_back("stop");
     ++done;
   });
-  ASSERT_TRUE(wait_until([&] { return done.load() == 10; }, 5s));
+  ASSERT_TRUE(eventually([&] { return done.load() == 10; }));
   std::lock_guard lock(mutex);
   ASSERT_FALSE(order.empty());
   EXPECT_EQ(order.front(), "stop");
@@ -111,7 +111,7 @@ TEST_P(MotionGateTest, MotionWritesQueuedBeforeAStopAreDroppedNotRunAfterIt) {
     EXPECT_EQ(result.status, BusStatus::Ok) << result.detail;
     ++done;
   });
-  ASSERT_TRUE(wait_until([&] { return done.load() == 7; }, 5s));
+  ASSERT_TRUE(eventually([&] { return done.load() == 7; }));
   EXPECT_EQ(dropped.load(), 5);
   EXPECT_EQ(field_of_servo_1(), GetParam().value(42));  // the stop's value, nothing after it
 

@@ -25,7 +25,7 @@ class PollCycleTest : public ::testing::Test {
     tweak(settings_);
     engine_ = make_bus_engine(settings_);
     engine_->start();
-    ASSERT_TRUE(wait_until([&] { return engine_->discovered(); }));
+    ASSERT_TRUE(eventually([&] { return engine_->discovered(); }));
   }
   virtual void tweak(BusSettings&) {}
   void TearDown() override {
@@ -44,7 +44,7 @@ class PollCycleTest : public ::testing::Test {
   double requests_per_cycle(std::chrono::milliseconds window) {
     const auto after_next_cycle = [&] {
       const auto cycles = engine_->counters().poll_cycles;
-      EXPECT_TRUE(wait_until([&] { return engine_->counters().poll_cycles > cycles; }, 1s));
+      EXPECT_TRUE(eventually([&] { return engine_->counters().poll_cycles > cycles; }));
       return std::pair{simulator_->stats().requests, engine_->counters().poll_cycles};
     };
     const auto [requests_before, cycles_before] = after_next_cycle();
@@ -62,7 +62,7 @@ class PollCycleTest : public ::testing::Test {
 
 TEST_F(PollCycleTest, SyncReadFillsTheCacheOfEveryServoInOneFramePerCycle) {
   start({1, 2, 3, 4, 5, 6});
-  ASSERT_TRUE(wait_until([&] { return all_polled(); }));
+  ASSERT_TRUE(eventually([&] { return all_polled(); }));
   for (std::uint8_t id = 1; id <= 6; ++id) {
     std::array<std::uint8_t, 2> position{};
     CachedServoState state;
@@ -82,25 +82,25 @@ TEST_F(PollCycleTest, SyncReadFillsTheCacheOfEveryServoInOneFramePerCycle) {
 
 TEST_F(PollCycleTest, CacheFollowsTheServoWhileClientWritesGoFirst) {
   start({1, 2});
-  ASSERT_TRUE(wait_until([&] { return all_polled(); }));
+  ASSERT_TRUE(eventually([&] { return all_polled(); }));
   // Goal position 2148 = 0x0864 (low byte first): the servo moves there, the polls see it.
   const BusResult write = transact(*engine_, WriteOp{2, 42, {0x64, 0x08}});
   ASSERT_EQ(write.status, BusStatus::Ok) << write.detail;
   std::array<std::uint8_t, 2> position{};
-  ASSERT_TRUE(wait_until([&] {
+  ASSERT_TRUE(eventually([&] {
     return engine_->cache().copy(2, 56, position) == CacheRead::Ok && position == std::array<std::uint8_t, 2>{0x64, 0x08};
   })) << "cached position " << int(position[0]) << "," << int(position[1]);
 }
 
 TEST_F(PollCycleTest, Sms1ServosShareOneSyncReadToo) {
   start({1, 2, 3}, TableId::Sms1);
-  ASSERT_TRUE(wait_until([&] { return all_polled(); }));
+  ASSERT_TRUE(eventually([&] { return all_polled(); }));
   EXPECT_NEAR(requests_per_cycle(300ms), 1.0, 0.1);
 }
 
 TEST_F(PollCycleTest, TablesWithoutSyncReadArePolledOneReadPerServo) {
   start({1, 2, 3}, TableId::D55d, 115'200);
-  ASSERT_TRUE(wait_until([&] { return all_polled(); }));
+  ASSERT_TRUE(eventually([&] { return all_polled(); }));
   EXPECT_EQ(engine_->cache().state(1)->block, (AddressBlock{36, 14}));
   EXPECT_NEAR(requests_per_cycle(1000ms), 3.0, 0.2);
 }
@@ -108,10 +108,10 @@ TEST_F(PollCycleTest, TablesWithoutSyncReadArePolledOneReadPerServo) {
 TEST_F(PollCycleTest, SilentServoGoesOfflineLeavesTheSyncReadAndComesBack) {
   LogCapture log;
   start({1, 2, 3});
-  ASSERT_TRUE(wait_until([&] { return all_polled(); }));
+  ASSERT_TRUE(eventually([&] { return all_polled(); }));
 
   simulator_->set_offline(3, true);
-  ASSERT_TRUE(wait_until([&] { return !engine_->cache().state(3)->online; }));
+  ASSERT_TRUE(eventually([&] { return !engine_->cache().state(3)->online; }));
   EXPECT_TRUE(log.contains("bus test: servo 3 offline")) << log.text();
   EXPECT_TRUE(log.contains("probing it every 200 ms")) << log.text();
   EXPECT_TRUE(engine_->cache().state(1)->online);
@@ -125,10 +125,10 @@ TEST_F(PollCycleTest, SilentServoGoesOfflineLeavesTheSyncReadAndComesBack) {
 
   // The others keep being polled: their data stays fresh.
   const auto updated = engine_->cache().state(1)->updated;
-  ASSERT_TRUE(wait_until([&] { return engine_->cache().state(1)->updated > updated; }, 500ms));
+  ASSERT_TRUE(eventually([&] { return engine_->cache().state(1)->updated > updated; }));
 
   simulator_->set_offline(3, false);
-  ASSERT_TRUE(wait_until([&] { return engine_->cache().state(3)->online; }, 2s));
+  ASSERT_TRUE(eventually([&] { return engine_->cache().state(3)->online; }));
   EXPECT_TRUE(log.contains("bus test: servo 3 answers again: online")) << log.text();
   const BusResult again = transact(*engine_, ReadOp{3, 5, 1}, Priority::ClientRead);
   ASSERT_EQ(again.status, BusStatus::Ok) << again.detail;
@@ -138,7 +138,7 @@ TEST_F(PollCycleTest, SilentServoGoesOfflineLeavesTheSyncReadAndComesBack) {
 TEST_F(PollCycleTest, OfflineServoCostsOneTimeoutPerProbePeriodWhileOthersKeepTheirRate) {
   start({1, 2, 3});
   simulator_->set_offline(3, true);
-  ASSERT_TRUE(wait_until([&] { return !engine_->cache().state(3)->online; }));
+  ASSERT_TRUE(eventually([&] { return !engine_->cache().state(3)->online; }));
 
   const auto timeouts_before = engine_->cache().state(3)->counters.timeouts;
   const auto cycles_before = engine_->counters().poll_cycles;
@@ -201,12 +201,12 @@ TEST_F(PollCycleTest, ServoFoundLaterGetsItsIdentityRead) {
   settings_ = bus_settings(simulator_->slave_path(), {1, 2});
   engine_ = make_bus_engine(settings_);
   engine_->start();
-  ASSERT_TRUE(wait_until([&] { return engine_->discovered(); }));
+  ASSERT_TRUE(eventually([&] { return engine_->discovered(); }));
   EXPECT_TRUE(log.contains("1 of 2 servos online")) << log.text();
   EXPECT_FALSE(engine_->cache().state(2)->identity.model);
 
   simulator_->set_offline(2, false);
-  ASSERT_TRUE(wait_until([&] { return engine_->cache().state(2)->identity.model.has_value(); }, 2s));
+  ASSERT_TRUE(eventually([&] { return engine_->cache().state(2)->identity.model.has_value(); }));
   EXPECT_EQ(engine_->cache().state(2)->identity.model, 10760);
 }
 

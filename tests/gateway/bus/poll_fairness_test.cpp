@@ -29,7 +29,7 @@ class ClientFlood {
   void stop() {
     running_->store(false);
     // In-flight READs finish within a few transactions; their completions do not resubmit.
-    wait_until([&] { return *outstanding_ == 0; }, 2s);
+    eventually([&] { return *outstanding_ == 0; });
   }
   std::uint64_t answered() const { return answered_->load(); }
 
@@ -61,8 +61,8 @@ class PollFairnessTest : public ::testing::Test {
     settings_ = bus_settings(simulator_->slave_path(), ids);
     engine_ = make_bus_engine(settings_);
     engine_->start();
-    ASSERT_TRUE(wait_until([&] { return engine_->discovered(); }));
-    ASSERT_TRUE(wait_until([&] { return engine_->counters().poll_cycles > 0; }));
+    ASSERT_TRUE(eventually([&] { return engine_->discovered(); }));
+    ASSERT_TRUE(eventually([&] { return engine_->counters().poll_cycles > 0; }));
   }
   void TearDown() override {
     flood_.reset();
@@ -79,7 +79,7 @@ class PollFairnessTest : public ::testing::Test {
 TEST_F(PollFairnessTest, PollCyclesContinueWhileClientReadsKeepTheQueueFull) {
   start({1, 2});
   flood_ = std::make_unique<ClientFlood>(*engine_, 1, 4);
-  ASSERT_TRUE(wait_until([&] { return flood_->answered() > 20; }));
+  ASSERT_TRUE(eventually([&] { return flood_->answered() > 20; }));
 
   const auto cycles_before = engine_->counters().poll_cycles;
   const auto answered_before = flood_->answered();
@@ -100,13 +100,13 @@ TEST_F(PollFairnessTest, PollCyclesContinueWhileClientReadsKeepTheQueueFull) {
 TEST_F(PollFairnessTest, OfflineServoIsProbedAndComesBackWhileClientsKeepTheQueueFull) {
   start({1, 2, 3});
   simulator_->set_offline(3, true);
-  ASSERT_TRUE(wait_until([&] { return !engine_->cache().state(3)->online; }));
+  ASSERT_TRUE(eventually([&] { return !engine_->cache().state(3)->online; }));
 
   flood_ = std::make_unique<ClientFlood>(*engine_, 1, 4);
-  ASSERT_TRUE(wait_until([&] { return flood_->answered() > 20; }));
+  ASSERT_TRUE(eventually([&] { return flood_->answered() > 20; }));
   simulator_->set_offline(3, false);
   // Probe period 200 ms: the next probe, queued behind the clients, still goes out.
-  EXPECT_TRUE(wait_until([&] { return engine_->cache().state(3)->online; }, 2s));
+  EXPECT_TRUE(eventually([&] { return engine_->cache().state(3)->online; }));
   EXPECT_GT(flood_->answered(), 20U);
 }
 

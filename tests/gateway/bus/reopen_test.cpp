@@ -31,10 +31,10 @@ TEST(BusReopen, BusGoesDownWhenThePtyDisappearsAndUpWhenItComesBack) {
   simulator->start();
   auto engine = make_bus_engine(bus_settings(link, {1, 2}));
   engine->start();
-  ASSERT_TRUE(wait_until([&] { return engine->discovered() && engine->cache().online_count() == 2; }));
+  ASSERT_TRUE(eventually([&] { return engine->discovered() && engine->cache().online_count() == 2; }));
 
   simulator->stop();  // the pty master closes: EIO on the engine's side
-  ASSERT_TRUE(wait_until([&] { return !engine->bus_up(); }));
+  ASSERT_TRUE(eventually([&] { return !engine->bus_up(); }));
   EXPECT_EQ(engine->counters().bus_down_events, 1U);
   EXPECT_EQ(engine->cache().online_count(), 0U);
   EXPECT_TRUE(log.contains("bus test: ")) << log.text();
@@ -50,11 +50,11 @@ TEST(BusReopen, BusGoesDownWhenThePtyDisappearsAndUpWhenItComesBack) {
 
   simulator = std::make_unique<simulator::SimulatedBus>(linked_servos(link));
   simulator->start();
-  ASSERT_TRUE(wait_until([&] { return engine->bus_up() && engine->discovered(); }));
+  ASSERT_TRUE(eventually([&] { return engine->bus_up() && engine->discovered(); }));
   const BusResult result = transact(*engine, ReadOp{2, 5, 1}, Priority::ClientRead);
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
   EXPECT_EQ(result.data, (Bytes{0x02}));
-  ASSERT_TRUE(wait_until([&] { return engine->cache().online_count() == 2; }));
+  ASSERT_TRUE(eventually([&] { return engine->cache().online_count() == 2; }));
   engine->stop();
   simulator->stop();
 }
@@ -68,12 +68,12 @@ TEST(BusReopen, OperationInFlightWhenThePortIsLostEndsBusDown) {
   settings.response_timeout = 1000ms;
   auto engine = make_bus_engine(settings);
   engine->start();
-  ASSERT_TRUE(wait_until([&] { return engine->discovered(); }));
+  ASSERT_TRUE(eventually([&] { return engine->discovered(); }));
   simulator->set_reply_delay(1, 500ms);
   const auto requests_before = simulator->stats().requests;
   std::promise<BusResult> promise;
   engine->submit(ReadOp{1, 5, 1}, Priority::ClientRead, [&](BusResult result) { promise.set_value(std::move(result)); });
-  ASSERT_TRUE(wait_until([&] { return simulator->stats().requests > requests_before; }));
+  ASSERT_TRUE(eventually([&] { return simulator->stats().requests > requests_before; }));
   simulator->stop();
   auto future = promise.get_future();
   ASSERT_EQ(future.wait_for(2s), std::future_status::ready);
@@ -94,7 +94,7 @@ TEST(BusReopen, DeviceMissingAtStartIsReportedAndWaitedFor) {
 
   simulator::SimulatedBus simulator(linked_servos(link));
   simulator.start();
-  ASSERT_TRUE(wait_until([&] { return engine->bus_up() && engine->cache().online_count() == 2; }));
+  ASSERT_TRUE(eventually([&] { return engine->bus_up() && engine->cache().online_count() == 2; }));
   const BusResult result = transact(*engine, ReadOp{1, 5, 1}, Priority::ClientRead);
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
   EXPECT_EQ(result.data, (Bytes{0x01}));

@@ -27,7 +27,7 @@ using protocol::Bytes;
 using protocol::BusProtocol;
 using modbus_map::TableId;
 using testing::transact;
-using testing::wait_until;
+using testing::eventually;
 
 constexpr AddressBlock kFeedback{0x100, 8};
 
@@ -182,7 +182,7 @@ class RtuEngineTest : public ::testing::Test {
     bus_->start();
     engine_ = make_bus_engine(rtu_settings(bus_->slave_path(), ids, baud), line_options());
     engine_->start();
-    ASSERT_TRUE(wait_until([&] { return engine_->discovered(); })) << "discovery did not finish";
+    ASSERT_TRUE(eventually([&] { return engine_->discovered(); })) << "discovery did not finish";
   }
   void TearDown() override {
     if (engine_) engine_->stop();
@@ -286,7 +286,7 @@ TEST_F(RtuEngineTest, PollsTheFeedbackBlockIntoTheCacheWithOneFc03PerServo) {
   // and lifts the temperature (0x105) past the 70 °C default limit.
   bus_->set_error_bits(2, 0x04);
   Bytes block(16);
-  ASSERT_TRUE(wait_until([&] {
+  ASSERT_TRUE(eventually([&] {
     return engine_->cache().copy(2, 0x100, block) == CacheRead::Ok && (block[1] & 0x04) != 0;
   }));
   Bytes temperature(2);
@@ -296,13 +296,13 @@ TEST_F(RtuEngineTest, PollsTheFeedbackBlockIntoTheCacheWithOneFc03PerServo) {
   ASSERT_EQ(engine_->cache().copy(1, 0x100, other), CacheRead::Ok);
   EXPECT_EQ(other[1] & 0x04, 0) << "the fault belongs to servo 2 only";
   // A cycle is counted once its last servo's answer is stored: shortly after the block shows.
-  EXPECT_TRUE(wait_until([&] { return engine_->counters().poll_cycles > 0; }));
+  EXPECT_TRUE(eventually([&] { return engine_->counters().poll_cycles > 0; }));
 }
 
 TEST_F(RtuEngineTest, SilentServoGoesOfflineAndComesBackByItself) {
   start({1, 2});
   bus_->set_offline(2, true);
-  ASSERT_TRUE(wait_until([&] { return !engine_->cache().state(2)->online; }));
+  ASSERT_TRUE(eventually([&] { return !engine_->cache().state(2)->online; }));
   // A client read of the offline servo fails at once: no timeouts paid on the bus.
   const auto started = std::chrono::steady_clock::now();
   const BusResult result = transact(*engine_, ReadOp{2, 0x0A, 1}, Priority::ClientRead);
@@ -311,7 +311,7 @@ TEST_F(RtuEngineTest, SilentServoGoesOfflineAndComesBackByItself) {
   // The other servo keeps answering.
   EXPECT_EQ(transact(*engine_, ReadOp{1, 0x0A, 1}, Priority::ClientRead).status, BusStatus::Ok);
   bus_->set_offline(2, false);
-  EXPECT_TRUE(wait_until([&] { return engine_->cache().state(2)->online; }, 2s));
+  EXPECT_TRUE(eventually([&] { return engine_->cache().state(2)->online; }));
   EXPECT_EQ(transact(*engine_, ReadOp{2, 0x0A, 1}, Priority::ClientRead).status, BusStatus::Ok);
 }
 
@@ -324,15 +324,15 @@ TEST(RtuEngine, LostPortGoesDownAndComesBackWhenTheDeviceReturns) {
   const auto engine_owner = make_bus_engine(rtu_settings(link, {1}), line_options());
   BusEngine& engine = *engine_owner;
   engine.start();
-  ASSERT_TRUE(wait_until([&] { return engine.discovered(); }));
+  ASSERT_TRUE(eventually([&] { return engine.discovered(); }));
   bus->stop();
   bus.reset();
-  ASSERT_TRUE(wait_until([&] { return !engine.bus_up(); })) << "the engine did not notice the lost port";
+  ASSERT_TRUE(eventually([&] { return !engine.bus_up(); })) << "the engine did not notice the lost port";
   // While down, submissions are refused at once with BusDown.
   EXPECT_EQ(transact(engine, ReadOp{1, 0x0A, 1}).status, BusStatus::BusDown);
   bus = std::make_unique<simulator::SimulatedBus>(options);
   bus->start();
-  ASSERT_TRUE(wait_until([&] { return engine.bus_up() && engine.discovered(); }, 5s));
+  ASSERT_TRUE(eventually([&] { return engine.bus_up() && engine.discovered(); }));
   EXPECT_EQ(transact(engine, ReadOp{1, 0x0A, 1}).status, BusStatus::Ok);
   EXPECT_GE(engine.counters().bus_down_events, 1U);
   engine.stop();

@@ -3,7 +3,6 @@
 #include <gtest/gtest.h>
 
 #include "gateway/modbus_tcp/faults.h"
-#include "gateway/units/bus_faults.h"
 #include "gateway/modbus_tcp/modbus_request.h"
 
 namespace sms::gateway {
@@ -175,18 +174,6 @@ TEST(ModbusException, CodesFollowTheContract) {
   EXPECT_EQ(exception_code(Fault::BusDown), 0x0A);
   EXPECT_EQ(exception_code(Fault::ServoTimeout), 0x0B);
   EXPECT_EQ(exception_response(0x10, Fault::ServoTimeout), (Bytes{0x90, 0x0B}));
-}
-
-TEST(ModbusException, BusStatusesMapToTheirFaults) {
-  EXPECT_EQ(exception_code(fault_from(BusStatus::Timeout)), 0x0B);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::Corrupt)), 0x04);
-  EXPECT_EQ(fault_from(BusStatus::Dropped), Fault::InternalError);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::Dropped)), 0x04);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::ServoRefused)), 0x04);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::BusDown)), 0x0A);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::QueueFull)), 0x06);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::Cancelled)), 0x0A);
-  EXPECT_THROW(fault_from(BusStatus::Ok), std::logic_error);
 }
 
 }  // namespace

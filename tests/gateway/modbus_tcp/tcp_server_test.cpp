@@ -15,14 +15,16 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 
+#include "tests/support/eventually.h"
 #include "tests/support/loopback_client.h"
 
 namespace sms::gateway {
 namespace {
 
 namespace asio = boost::asio;
-using testing::ByteVector;
-using testing::TestClient;
+using test::ByteVector;
+using test::eventually;
+using test::LoopbackClient;
 using namespace std::chrono_literals;
 
 // Answers FC03 with `count` registers holding address, address+1, ...; takes `delay_of(address)`
@@ -146,14 +148,14 @@ ByteVector one_register_answer(std::uint16_t tid, std::uint8_t unit, std::uint16
 
 TEST_F(TcpServerTest, AnswersWithTheTransactionIdAndUnitEchoed) {
   start();
-  TestClient client(port());
+  LoopbackClient client(port());
   client.send({0xBE, 0xEF, 0x00, 0x00, 0x00, 0x06, 0x07, 0x03, 0x00, 0x38, 0x00, 0x02});
   EXPECT_EQ(client.receive(13), (ByteVector{0xBE, 0xEF, 0x00, 0x00, 0x00, 0x07, 0x07, 0x03, 0x04, 0x00, 0x38, 0x00, 0x39}));
 }
 
 TEST_F(TcpServerTest, RequestTricklingInByteByByteIsAnsweredOnce) {
   start();
-  TestClient client(port());
+  LoopbackClient client(port());
   const ByteVector request = read_request(0x0102, 1, 0x0010, 1);
   for (const std::uint8_t byte : request) {
     client.send({byte});
@@ -166,7 +168,7 @@ TEST_F(TcpServerTest, RequestTricklingInByteByByteIsAnsweredOnce) {
 TEST_F(TcpServerTest, PipelinedRequestsAreAnsweredInOrderEvenWhenEarlierOnesTakeLonger) {
   handler_.delay_of = [](std::uint16_t address) { return std::chrono::milliseconds(40 - 10 * address); };
   start();
-  TestClient client(port());
+  LoopbackClient client(port());
   ByteVector burst;
   for (std::uint16_t i = 0; i < 4; ++i) {
     const ByteVector request = read_request(static_cast<std::uint16_t>(100 + i), 9, i, 1);
@@ -189,7 +191,7 @@ TEST_F(TcpServerTest, LongPipelinePastTheReadPauseIsAnsweredCompletelyInOrder) {
   TcpServerOptions options;
   options.max_pipelined = 4;  // the session stops reading after 4 waiting requests
   start(options);
-  TestClient client(port());
+  LoopbackClient client(port());
   ByteVector burst;
   ByteVector expected;
   for (std::uint16_t i = 0; i < 200; ++i) {
@@ -206,8 +208,8 @@ TEST_F(TcpServerTest, ConnectionsAreServedConcurrently) {
   // Connection A's request takes 300 ms; B's answer must not wait for it.
   handler_.delay_of = [](std::uint16_t address) { return address == 1 ? 300ms : 0ms; };
   start();
-  TestClient a(port());
-  TestClient b(port());
+  LoopbackClient a(port());
+  LoopbackClient b(port());
   a.send(read_request(1, 1, 1, 1));
   std::this_thread::sleep_for(20ms);
   const auto before = std::chrono::steady_clock::now();
@@ -219,7 +221,7 @@ TEST_F(TcpServerTest, ConnectionsAreServedConcurrently) {
 
 TEST_F(TcpServerTest, BadProtocolIdClosesTheConnectionAfterAnsweringWhatCameBefore) {
   start();
-  TestClient client(port());
+  LoopbackClient client(port());
   ByteVector bytes = read_request(7, 1, 5, 1);
   const ByteVector bad{0x00, 0x08, 0x00, 0x01, 0x00, 0x06, 0x01, 0x03, 0x00, 0x00, 0x00, 0x01};  // protocol id 1
   bytes.insert(bytes.end(), bad.begin(), bad.end());
@@ -231,7 +233,7 @@ TEST_F(TcpServerTest, BadProtocolIdClosesTheConnectionAfterAnsweringWhatCameBefo
 
 TEST_F(TcpServerTest, LengthFieldBeyondTheMaximumClosesTheConnection) {
   start();
-  TestClient client(port());
+  LoopbackClient client(port());
   client.send({0x00, 0x01, 0x00, 0x00, 0x01, 0x00, 0x01, 0x03});  // length 256 > 254
   EXPECT_TRUE(client.closed_by_peer());
 }
@@ -240,24 +242,24 @@ TEST_F(TcpServerTest, ConnectionsOverTheLimitAreAcceptedAndClosedAtOnce) {
   TcpServerOptions options;
   options.max_connections = 2;
   start(options);
-  TestClient first(port());
-  TestClient second(port());
+  LoopbackClient first(port());
+  LoopbackClient second(port());
   first.send(read_request(1, 1, 1, 1));  // both admitted: they answer
   second.send(read_request(2, 1, 2, 1));
   ASSERT_EQ(first.receive(11), one_register_answer(1, 1, 1));
   ASSERT_EQ(second.receive(11), one_register_answer(2, 1, 2));
 
-  TestClient third(port());
+  LoopbackClient third(port());
   EXPECT_TRUE(third.closed_by_peer());
-  TestClient fourth(port());
+  LoopbackClient fourth(port());
   EXPECT_TRUE(fourth.closed_by_peer());
   EXPECT_EQ(server_->stats().refused, 2u);
   EXPECT_EQ(server_->stats().refusals[0].max_connections, 2u);  // counted for the plain listener
   EXPECT_EQ(server_->stats().refusals[1].max_connections, 0u);
 
   first.close();  // a slot frees up: a new client is served again
-  for (int attempt = 0; attempt < 100 && server_->stats().open_connections != 1; ++attempt) std::this_thread::sleep_for(10ms);
-  TestClient fifth(port());
+  ASSERT_TRUE(eventually([&] { return server_->stats().open_connections == 1; }, "the closed connection's slot freed"));
+  LoopbackClient fifth(port());
   fifth.send(read_request(5, 1, 5, 1));
   EXPECT_EQ(fifth.receive(11), one_register_answer(5, 1, 5));
 }
@@ -272,7 +274,7 @@ TEST_F(TcpServerTest, ClientNotInTheAllowListIsClosedWithoutAnAnswerAndCounted) 
   TcpServerOptions options;
   options.allow = {network("192.168.10.0/24"), network("fd00::/8")};
   start(options);
-  TestClient outsider(port());
+  LoopbackClient outsider(port());
   outsider.send(read_request(1, 1, 1, 1));
   EXPECT_TRUE(outsider.closed_by_peer());
   EXPECT_TRUE(handler_.started().empty());  // the request never reached the handler
@@ -285,7 +287,7 @@ TEST_F(TcpServerTest, ClientInTheAllowListIsServed) {
   TcpServerOptions options;
   options.allow = {network("192.168.10.0/24"), network("127.0.0.1")};
   start(options);
-  TestClient insider(port());
+  LoopbackClient insider(port());
   insider.send(read_request(1, 1, 7, 1));
   EXPECT_EQ(insider.receive(11), one_register_answer(1, 1, 7));
   EXPECT_EQ(server_->stats().denied, 0u);
@@ -295,7 +297,7 @@ TEST_F(TcpServerTest, IdleConnectionIsClosedAfterTheTimeout) {
   TcpServerOptions options;
   options.idle_timeout = 150ms;
   start(options);
-  TestClient client(port());
+  LoopbackClient client(port());
   client.send(read_request(1, 1, 1, 1));
   ASSERT_EQ(client.receive(11), one_register_answer(1, 1, 1));
   const auto answered = std::chrono::steady_clock::now();
@@ -341,18 +343,17 @@ TEST_F(TcpServerTest, ClientThatTakesNoAnswersIsHeldBackThenClosedAfterTheIdleTi
   // Held back: far from every request was started.
   EXPECT_LT(handler_.started().size(), 40000u);
 
-  TestClient other(port());
+  LoopbackClient other(port());
   other.send(read_request(7, 1, 3, 1));
   EXPECT_EQ(other.receive(11), one_register_answer(7, 1, 3));
   other.close();
 
-  bool closed = false;
-  for (int wait = 0; wait < 1000 && !closed; ++wait) {
-    const auto stats = server_->stats();
-    closed = stats.open_connections == 0 && stats.idle_closed == 1;
-    std::this_thread::sleep_for(10ms);
-  }
-  EXPECT_TRUE(closed) << "the client taking no answers was not closed";
+  EXPECT_TRUE(eventually(
+      [&] {
+        const auto stats = server_->stats();
+        return stats.open_connections == 0 && stats.idle_closed == 1;
+      },
+      "the client taking no answers closed"));
   ::close(hoarder);
 }
 
@@ -361,7 +362,7 @@ TEST_F(TcpServerTest, RequestTakingLongerThanTheIdleTimeoutIsStillAnswered) {
   TcpServerOptions options;
   options.idle_timeout = 100ms;
   start(options);
-  TestClient client(port());
+  LoopbackClient client(port());
   client.send(read_request(3, 1, 3, 1));
   EXPECT_EQ(client.receive(11, 2s), one_register_answer(3, 1, 3));
 }
@@ -370,13 +371,13 @@ TEST_F(TcpServerTest, ClientLeavingMidRequestLetsTheWorkFinishAndTheServerCarrie
   handler_.delay_of = [](std::uint16_t address) { return address == 42 ? 150ms : 0ms; };
   start();
   {
-    TestClient leaving(port());
+    LoopbackClient leaving(port());
     leaving.send(read_request(1, 1, 42, 1));
-    for (int attempt = 0; attempt < 100 && handler_.started().empty(); ++attempt) std::this_thread::sleep_for(5ms);
+    ASSERT_TRUE(eventually([&] { return !handler_.started().empty(); }, "the request started"));
   }  // closes with the request still being answered
-  for (int attempt = 0; attempt < 100 && handler_.completed().empty(); ++attempt) std::this_thread::sleep_for(10ms);
+  ASSERT_TRUE(eventually([&] { return !handler_.completed().empty(); }, "the request completed"));
   EXPECT_EQ(handler_.completed(), (std::vector<std::uint16_t>{42}));
-  TestClient next(port());
+  LoopbackClient next(port());
   next.send(read_request(2, 1, 2, 1));
   EXPECT_EQ(next.receive(11), one_register_answer(2, 1, 2));
   EXPECT_EQ(server_->stats().open_connections, 1u);
@@ -385,12 +386,12 @@ TEST_F(TcpServerTest, ClientLeavingMidRequestLetsTheWorkFinishAndTheServerCarrie
 TEST_F(TcpServerTest, ShutdownAnswersTheRequestInFlightThenClosesAndDropsTheQueuedOnes) {
   handler_.delay_of = [](std::uint16_t address) { return address == 1 ? 200ms : 0ms; };
   start();
-  TestClient client(port());
+  LoopbackClient client(port());
   ByteVector two = read_request(1, 1, 1, 1);
   const ByteVector queued = read_request(2, 1, 2, 1);
   two.insert(two.end(), queued.begin(), queued.end());
   client.send(two);
-  for (int attempt = 0; attempt < 100 && handler_.started().empty(); ++attempt) std::this_thread::sleep_for(5ms);
+  ASSERT_TRUE(eventually([&] { return !handler_.started().empty(); }, "the first request started"));
 
   std::promise<void> all_closed;
   on_io([&] { server_->shutdown([&] { all_closed.set_value(); }); });
@@ -398,7 +399,7 @@ TEST_F(TcpServerTest, ShutdownAnswersTheRequestInFlightThenClosesAndDropsTheQueu
   EXPECT_TRUE(client.closed_by_peer());
   EXPECT_EQ(all_closed.get_future().wait_for(2s), std::future_status::ready);
   EXPECT_EQ(handler_.started().size(), 1u);  // the queued request never started
-  EXPECT_THROW(TestClient late(port()), std::runtime_error);  // not listening any more
+  EXPECT_THROW(LoopbackClient late(port()), std::runtime_error);  // not listening any more
 }
 
 TEST_F(TcpServerTest, ShutdownWithNoConnectionsCompletesAtOnce) {

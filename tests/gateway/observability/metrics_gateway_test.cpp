@@ -8,6 +8,7 @@
 #include <thread>
 
 #include "gateway/observability/metrics_server.h"
+#include "tests/support/eventually.h"
 #include "tests/support/metrics_http_client.h"
 #include "tests/support/simulated_gateway.h"
 
@@ -18,9 +19,10 @@ namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
-using testing::http_request;
-using testing::parse_exposition;
+using test::http_request;
+using test::parse_exposition;
 using testing::SimulatedGateway;
+using test::eventually;
 
 constexpr const char* kTwoServos = R"(
 modbus_tcp: {listen: "@LISTEN@"}
@@ -32,17 +34,7 @@ servos:
   - {unit: 12, bus: arm, id: 2, table: sts}
 )";
 
-template <typename Predicate>
-bool wait_until(Predicate predicate, std::chrono::milliseconds timeout = 5s) {
-  const auto deadline = std::chrono::steady_clock::now() + timeout;
-  while (std::chrono::steady_clock::now() < deadline) {
-    if (predicate()) return true;
-    std::this_thread::sleep_for(10ms);
-  }
-  return predicate();
-}
-
-double number(const testing::Exposition& e, const std::string& key) {
+double number(const test::Exposition& e, const std::string& key) {
   const std::string text = e.value(key);
   if (text == "(absent)") {
     ADD_FAILURE() << key << " is absent";
@@ -63,7 +55,7 @@ class MetricsOfARunningGateway : public ::testing::Test {
     server_->start();
   }
 
-  testing::Exposition scrape() {
+  test::Exposition scrape() {
     const auto response = http_request(server_->port(), "GET", "/metrics");
     EXPECT_EQ(response.status, 200);
     auto exposition = parse_exposition(response.body);
@@ -104,13 +96,13 @@ TEST_F(MetricsOfARunningGateway, PollingShowsInBusAndServoCounters) {
 TEST_F(MetricsOfARunningGateway, CountersGrowBetweenScrapes) {
   const std::string key = "sms_gateway_bus_frames_ok_total{bus=\"arm\",protocol=\"feetech\"}";
   const double before = number(scrape(), key);
-  EXPECT_TRUE(wait_until([&] { return number(scrape(), key) > before; }));
+  EXPECT_TRUE(eventually([&] { return number(scrape(), key) > before; }));
 }
 
 TEST_F(MetricsOfARunningGateway, SilentServoGoesOfflineAndCountsTimeouts) {
   plant_.bus().set_offline(2, true);
   const std::string twelve = "{bus=\"arm\",unit=\"12\",servo=\"2\"}";
-  EXPECT_TRUE(wait_until([&] {
+  EXPECT_TRUE(eventually([&] {
     const auto e = scrape();
     return e.value("sms_gateway_servo_online" + twelve) == "0" &&
            e.value("sms_gateway_bus_servos_online{bus=\"arm\",protocol=\"feetech\"}") == "1";
@@ -128,7 +120,7 @@ TEST_F(MetricsOfARunningGateway, HealthzFollowsTheBus) {
   EXPECT_EQ(up.body, "ok\n");
 
   plant_.bus().stop();  // the pty goes away: the bus is down
-  EXPECT_TRUE(wait_until([&] { return http_request(server_->port(), "GET", "/healthz").status == 503; }));
+  EXPECT_TRUE(eventually([&] { return http_request(server_->port(), "GET", "/healthz").status == 503; }));
   const auto down = http_request(server_->port(), "GET", "/healthz");
   EXPECT_EQ(down.body, "bus arm is down\n");
   EXPECT_EQ(scrape().value("sms_gateway_bus_up{bus=\"arm\",protocol=\"feetech\"}"), "0");

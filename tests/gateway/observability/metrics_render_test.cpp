@@ -18,7 +18,7 @@ namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
-using testing::parse_exposition;
+using test::parse_exposition;
 
 config::Config two_bus_config() {
   auto config = config::load_config_string(R"(buses:

@@ -14,6 +14,7 @@
 #include "gateway/tools/tool_servo.h"
 #include "modbus_map/tables.h"
 #include "simulator/simulated_bus.h"
+#include "tests/support/eventually.h"
 
 namespace sms::gateway {
 namespace {
@@ -227,11 +228,9 @@ void move_to(ServoLink& link, simulator::SimulatedBus& bus, std::uint8_t id, Tab
                                                              static_cast<std::uint8_t>(position >> 8)})
                     .ok());
   }
-  const auto deadline = std::chrono::steady_clock::now() + 5s;
-  while (std::chrono::steady_clock::now() < deadline && bus.read_field(id, "present_position") != position) {
-    std::this_thread::sleep_for(20ms);
-  }
-  ASSERT_EQ(bus.read_field(id, "present_position"), position);
+  ASSERT_TRUE(test::eventually([&] { return bus.read_field(id, "present_position") == position; },
+                               "servo " + std::to_string(id) + " at " + std::to_string(position)))
+      << "present position " << bus.read_field(id, "present_position").value_or(-1);
 }
 
 TEST(CalibrateMiddle, StsPresentPositionBecomesTheCentre) {

@@ -27,7 +27,7 @@ namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
-using testing::wait_until;
+using testing::eventually;
 
 // Two ptys whose masters are joined by a relay thread: what one side writes on its slave
 // arrives on the other's, like two devices on one wire. The relay can damage the next answer
@@ -168,7 +168,7 @@ class ForwardTest : public ::testing::Test {
     options.listen = {"127.0.0.1", 0};
     forwarder_ = std::make_unique<ForwardGateway>(options);
     forwarder_->start();
-    ASSERT_TRUE(wait_until([&] { return forwarder_->engine().bus_up(); }));
+    ASSERT_TRUE(eventually([&] { return forwarder_->engine().bus_up(); }));
   }
   void TearDown() override { forwarder_->stop(); }
 
@@ -227,7 +227,7 @@ TEST_F(ForwardTest, UnitZeroIsAnRtuBroadcastWithoutAnAnswer) {
   modbus_set_response_timeout(*client, 0, 300'000);
   EXPECT_EQ(modbus_write_register(*client, 7, 77), -1);
   EXPECT_EQ(errno, ETIMEDOUT);
-  EXPECT_TRUE(wait_until([&] { return slave_->holding(7) == 77; }));
+  EXPECT_TRUE(eventually([&] { return slave_->holding(7) == 77; }));
   modbus_set_slave(*client, 17);
   std::uint16_t read[2] = {};
   ASSERT_EQ(modbus_read_registers(*client, 7, 2, read), 2) << modbus_strerror(errno);
@@ -246,10 +246,10 @@ class ForwardAnsweringBroadcastsTest : public ForwardTest {
 TEST_F(ForwardAnsweringBroadcastsTest, UnitZeroIsAnRtuBroadcastAnsweredOnceSent) {
   TcpClient client(forwarder_->port(), 0);
   ASSERT_EQ(modbus_write_register(*client, 7, 77), 1) << modbus_strerror(errno);
-  EXPECT_TRUE(wait_until([&] { return slave_->holding(7) == 77; }));
+  EXPECT_TRUE(eventually([&] { return slave_->holding(7) == 77; }));
   const std::uint16_t values[2] = {1, 2};
   ASSERT_EQ(modbus_write_registers(*client, 12, 2, values), 2) << modbus_strerror(errno);
-  EXPECT_TRUE(wait_until([&] { return slave_->holding(13) == 2; }));
+  EXPECT_TRUE(eventually([&] { return slave_->holding(13) == 2; }));
   // Nobody can answer a broadcast read: 0x0A without touching the line.
   std::uint16_t read = 0;
   EXPECT_EQ(modbus_read_registers(*client, 7, 1, &read), -1);

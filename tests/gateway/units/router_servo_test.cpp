@@ -16,6 +16,8 @@ namespace sms::gateway::testing {
 namespace {
 
 using Bytes = protocol::Bytes;
+using test::ByteVector;
+using test::LoopbackClient;
 
 std::string config_with(const std::string& bus_options, const std::string& servos, const std::string& extra = "") {
   return "modbus_tcp: {listen: \"@LISTEN@\"" + extra + "}\nbuses:\n  - {name: arm, device: \"@DEVICE@\", protocol: feetech, baud: 1000000" +
@@ -25,16 +27,6 @@ std::string config_with(const std::string& bus_options, const std::string& servo
 const std::string kTwoServos = "  - {unit: 1, bus: arm, id: 1, table: sts}\n  - {unit: 2, bus: arm, id: 2, table: sts}\n";
 // One poll cycle after discovery, then none for an hour: bus traffic is the test's alone.
 const std::string kQuietBus = ", poll_period_ms: 3600000, response_timeout_ms: 100, retries: 1";
-
-template <typename F>
-bool eventually(F condition, std::chrono::milliseconds timeout = 3s) {
-  const auto deadline = std::chrono::steady_clock::now() + timeout;
-  while (std::chrono::steady_clock::now() < deadline) {
-    if (condition()) return true;
-    std::this_thread::sleep_for(5ms);
-  }
-  return condition();
-}
 
 class Router : public ::testing::Test {
  protected:
@@ -312,7 +304,7 @@ TEST_F(Router, ResponseLevelReadAtDiscoveryDecidesWhetherAWriteWaitsForAnAnswer)
 
 TEST_F(Router, PipelinedWritesOfOneConnectionApplyInOrder) {
   start(config_with(kQuietBus, kTwoServos), sts_bus(2));
-  TestClient client(port());
+  LoopbackClient client(port());
   ByteVector burst;
   for (std::uint16_t i = 0; i < 20; ++i) {
     const std::uint16_t value = static_cast<std::uint16_t>(100 + i);
@@ -344,7 +336,7 @@ TEST_F(Router, APipeliningClientCannotMakeAnotherConnectionWaitForItsBurst) {
     ids.push_back(frame.id);
   });
   sim().set_reply_delay(1, 20ms);  // each of the burst's writes holds the bus 20 ms
-  TestClient chatty(port());
+  LoopbackClient chatty(port());
   ByteVector burst;
   for (std::uint8_t i = 0; i < 20; ++i) {
     burst.insert(burst.end(), {0x00, i, 0x00, 0x00, 0x00, 0x06, 0x01, 0x06, 0x00, 0x2A, 0x00, static_cast<std::uint8_t>(100 + i)});
@@ -354,7 +346,7 @@ TEST_F(Router, APipeliningClientCannotMakeAnotherConnectionWaitForItsBurst) {
     std::lock_guard lock(mutex);
     return !ids.empty();
   }));  // the burst's first write is on the wire
-  TestClient other(port());
+  LoopbackClient other(port());
   other.send({0x00, 0x77, 0x00, 0x00, 0x00, 0x06, 0x02, 0x03, 0x00, 0x2A, 0x00, 0x01});  // unit 2: goal
   EXPECT_EQ(other.receive(11).size(), 11u);
   for (int i = 0; i < 20; ++i) EXPECT_EQ(chatty.receive(12).size(), 12u);
@@ -370,7 +362,7 @@ TEST_F(Router, WriteOfAClientThatLeftIsStillApplied) {
   gateway_->wait_until_polled(1);
   sim().set_reply_delay(1, 100ms);
   {
-    TestClient client(port());
+    LoopbackClient client(port());
     client.send({0x00, 0x01, 0x00, 0x00, 0x00, 0x06, 0x01, 0x06, 0x00, 0x2A, 0x03, 0x09});  // goal 777
   }  // gone before the servo answers
   EXPECT_TRUE(eventually([&] { return *sim().read_field(1, "goal_position") == 777; }));

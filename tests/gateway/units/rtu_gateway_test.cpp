@@ -22,7 +22,7 @@ namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
-using testing::wait_until;
+using testing::eventually;
 
 // The whole gateway (gateway.h) on a configuration with a modbus-rtu bus.
 class RtuGateway {
@@ -85,7 +85,7 @@ class RtuContractTest : public ::testing::Test {
     bus_ = std::make_unique<simulator::SimulatedBus>(options);
     bus_->start();
     gateway_ = std::make_unique<RtuGateway>(config_yaml(bus_->slave_path()));
-    ASSERT_TRUE(wait_until([&] { return gateway_->engine().discovered(); }));
+    ASSERT_TRUE(eventually([&] { return gateway_->engine().discovered(); }));
   }
 
   std::unique_ptr<simulator::SimulatedBus> bus_;
@@ -152,7 +152,7 @@ TEST_F(RtuContractTest, InputRegistersComeFromThePollCache) {
   const auto position = bus_->read_field(2, "present_position");  // at rest: the power-on position
   ASSERT_TRUE(position);
   std::uint16_t values[8] = {};
-  ASSERT_TRUE(wait_until([&] { return modbus_read_input_registers(*client, 0x100, 8, values) == 8; }));
+  ASSERT_TRUE(eventually([&] { return modbus_read_input_registers(*client, 0x100, 8, values) == 8; }));
   EXPECT_EQ(static_cast<std::int16_t>(values[1]), *position);
   ASSERT_EQ(modbus_read_input_registers(*client, 0x101, 1, values), 1) << modbus_strerror(errno);
   EXPECT_EQ(static_cast<std::int16_t>(values[0]), *position);
@@ -162,7 +162,7 @@ TEST_F(RtuContractTest, InputRegistersComeFromThePollCache) {
 TEST_F(RtuContractTest, FactsRegistersShowTheServoOnline) {
   Client client(gateway_->port(), 12);
   std::uint16_t facts[8] = {};
-  ASSERT_TRUE(wait_until([&] { return modbus_read_input_registers(*client, 1000, 8, facts) == 8 && facts[1] == 1; }));
+  ASSERT_TRUE(eventually([&] { return modbus_read_input_registers(*client, 1000, 8, facts) == 8 && facts[1] == 1; }));
   const auto memory = bus_->read_memory(2, 0x01, 1);  // servo (model) version, shown at 1003
   ASSERT_TRUE(memory);
   EXPECT_EQ(facts[3], static_cast<std::uint16_t>((*memory)[0] << 8 | (*memory)[1]));
@@ -172,11 +172,11 @@ TEST_F(RtuContractTest, SilentServoIsAnswered0x0BAndComesBack) {
   Client client(gateway_->port(), 12);
   bus_->set_offline(2, true);
   std::uint16_t value = 0;
-  ASSERT_TRUE(wait_until([&] { return modbus_read_registers(*client, 0x0A, 1, &value) == -1 && errno == EMBXGTAR; }));
+  ASSERT_TRUE(eventually([&] { return modbus_read_registers(*client, 0x0A, 1, &value) == -1 && errno == EMBXGTAR; }));
   Client other(gateway_->port(), 1);
   EXPECT_EQ(modbus_read_registers(*other, 0x0A, 1, &value), 1);
   bus_->set_offline(2, false);
-  EXPECT_TRUE(wait_until([&] { return modbus_read_registers(*client, 0x0A, 1, &value) == 1 && value == 2; }, 3s));
+  EXPECT_TRUE(eventually([&] { return modbus_read_registers(*client, 0x0A, 1, &value) == 1 && value == 2; }));
 }
 
 }  // namespace

@@ -12,28 +12,21 @@
 #include "gateway/units/safety.h"
 #include "gateway/units/state_file.h"
 #include "tests/support/bus_test_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
 
+// The safety state file in a scratch directory of its own.
 class TempState {
  public:
-  TempState() {
-    std::string pattern = (std::filesystem::temp_directory_path() / "sms-safety-XXXXXX").string();
-    if (::mkdtemp(pattern.data()) == nullptr) throw std::runtime_error("mkdtemp failed");
-    dir_ = pattern;
-  }
-  ~TempState() {
-    std::error_code ignored;
-    std::filesystem::remove_all(dir_, ignored);
-  }
-  std::string dir() const { return dir_.string(); }
-  std::string file() const { return (dir_ / "safety.state").string(); }
+  std::string dir() const { return dir_.path(); }
+  std::string file() const { return dir_.file("safety.state"); }
 
  private:
-  std::filesystem::path dir_;
+  test::TempDir dir_;
 };
 
 // Two buses whose ports do not exist (the supervisor's rules need no servo), each with a short
