@@ -15,6 +15,7 @@
 #include <thread>
 
 #include "gateway/observability/metrics_server.h"
+#include "tests/support/eventually.h"
 #include "tests/support/metrics_http_client.h"
 
 // Designated initializers leave the members a test does not name at their defaults, on purpose.
@@ -24,9 +25,9 @@ namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
-using testing::HttpConnection;
-using testing::http_request;
-using testing::parse_exposition;
+using test::HttpConnection;
+using test::http_request;
+using test::parse_exposition;
 
 // One bus "arm" whose state and frame counter the test sets.
 class MetricsServerTest : public ::testing::Test {
@@ -84,7 +85,18 @@ TEST_F(MetricsServerTest, MetricsAreServedAsPrometheusTextAndAreLive) {
 
 TEST_F(MetricsServerTest, QueryStringIsIgnored) {
   start();
-  EXPECT_EQ(http_request(port(), "GET", "/metrics?name[]=up").status, 200);
+  counters_.frames_ok = 7;
+  const auto plain = http_request(port(), "GET", "/metrics");
+  const auto queried = http_request(port(), "GET", "/metrics?name[]=up");
+  // The whole metrics text, exactly as without a query: no filter, no empty or error page.
+  EXPECT_EQ(queried.status, 200);
+  EXPECT_EQ(queried.header("content-type"), "text/plain; version=0.0.4; charset=utf-8");
+  EXPECT_EQ(queried.body, plain.body);
+  const auto exposition = parse_exposition(queried.body);
+  EXPECT_TRUE(exposition.errors.empty()) << ::testing::PrintToString(exposition.errors);
+  EXPECT_EQ(exposition.value("sms_gateway_bus_frames_ok_total{bus=\"arm\",protocol=\"feetech\"}"), "7");
+  EXPECT_EQ(exposition.value("sms_gateway_build_info{version=\"9.8.7\"}"), "1");
+  EXPECT_EQ(snapshots_.load(), 2);  // each request rendered the gateway's state
 }
 
 TEST_F(MetricsServerTest, HealthzIsOkWhileEveryBusIsUpAnd503NamingTheBusOtherwise) {
@@ -237,14 +249,15 @@ TEST_F(MetricsServerTest, ConnectionsOverTheLimitAreClosedAtOnce) {
   EXPECT_TRUE(third.closed_by_peer(2s));
 
   first.reset();  // a place frees up
-  std::optional<testing::HttpResponse> answer;
-  for (int attempt = 0; attempt < 50 && !answer; ++attempt) {
-    std::this_thread::sleep_for(20ms);  // until the server has seen the first one go
-    HttpConnection fourth(port());
-    fourth.send(kGetMetrics);
-    answer = fourth.read_response(false, 500ms);
-  }
-  ASSERT_TRUE(answer);
+  std::optional<test::HttpResponse> answer;
+  ASSERT_TRUE(test::eventually(
+      [&] {  // until the server has seen the first one go
+        HttpConnection fourth(port());
+        fourth.send(kGetMetrics);
+        answer = fourth.read_response(false, 500ms);
+        return answer.has_value();
+      },
+      "a new connection served once the first one left"));
   EXPECT_EQ(answer->status, 200);
 }
 
