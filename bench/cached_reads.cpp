@@ -103,7 +103,7 @@ class BareServerProcess {
   BareServerProcess()
       : port_(free_port()),
         process_({std::filesystem::read_symlink("/proc/self/exe").string(), "--bare-server", std::to_string(port_)}) {
-    test::await_or_throw(
+    sms::test::await_or_throw(
         [&] {
           try {
             ModbusClient probe(port_, 1, 500ms);
@@ -116,7 +116,7 @@ class BareServerProcess {
   }
   ~BareServerProcess() {
     process_.signal(SIGTERM);
-    process_.wait_exit(test::kAwaitTimeout);
+    process_.wait_exit(sms::test::kAwaitTimeout);
   }
   BareServerProcess(const BareServerProcess&) = delete;
   BareServerProcess& operator=(const BareServerProcess&) = delete;
@@ -124,7 +124,7 @@ class BareServerProcess {
 
  private:
   std::uint16_t port_;
-  test::ChildProcess process_;
+  sms::test::ChildProcess process_;
 };
 
 // --- measurements ------------------------------------------------------------------------------

@@ -65,8 +65,8 @@ int main(int argc, char** argv) {
   try {
     quiet_logs();
     const auto count = static_cast<unsigned>(std::clamp(servos, 1.0, 20.0));
-    test::TempDir broker_dir;
-    test::MosquittoBroker broker(broker_dir);
+    sms::test::TempDir broker_dir;
+    sms::test::MosquittoBroker broker(broker_dir);
     sms::simulator::SimulatedBus bus(sts_bus(count));
     start_precise(bus);
     GatewaySetup setup;
@@ -114,7 +114,7 @@ int main(int argc, char** argv) {
 
     BenchGateway gateway(setup);
     gateway.wait_ready(count);
-    test::await_or_throw(
+    sms::test::await_or_throw(
         [&] {
           std::lock_guard lock(observed.mutex);
           return observed.births >= count;
