@@ -30,7 +30,6 @@
 
 #include <spdlog/spdlog.h>
 
-extern char** environ;
 
 namespace sms::bench {
 
@@ -121,11 +120,11 @@ void set_return_delay(simulator::SimulatedBus& bus, unsigned count, std::uint8_t
 
 // --- the gateway as a child process ----------------------------------------------------------
 
-std::string gateway_yaml(const GatewaySetup& setup, std::uint16_t port) {
+std::string gateway_yaml(const GatewaySetup& setup) {
   std::ostringstream yaml;
   yaml << "# written by the sms-gateway benchmarks\n"
        << "modbus_tcp:\n"
-       << "  listen: 127.0.0.1:" << port << "\n"
+       << "  listen: 127.0.0.1:0\n"
        << "  max_connections: " << setup.max_connections << "\n"
        << "  idle_timeout_s: 0\n"
        << "  request_queue_depth: " << setup.request_queue_depth << "\n"
@@ -141,26 +140,8 @@ std::string gateway_yaml(const GatewaySetup& setup, std::uint16_t port) {
   yaml << "servos:\n";
   const char* table = setup.modbus_rtu_baud != 0 ? "smsmb" : "sts";
   for (unsigned id = 1; id <= setup.servos; ++id) yaml << "  - {bus: bench, id: " << id << ", table: " << table << "}\n";
-  yaml << "logging:\n  level: warn\n" << setup.extra_yaml;
+  yaml << setup.extra_yaml;
   return yaml.str();
-}
-
-std::uint16_t free_port() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
-  if (fd < 0) throw std::runtime_error(std::string("socket: ") + std::strerror(errno));
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  address.sin_port = 0;
-  socklen_t length = sizeof address;
-  if (::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address) != 0 ||
-      ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length) != 0) {
-    const int error = errno;
-    ::close(fd);
-    throw std::runtime_error(std::string("cannot find a free port on 127.0.0.1: ") + std::strerror(error));
-  }
-  ::close(fd);
-  return ntohs(address.sin_port);
 }
 
 std::string gateway_program() {
@@ -175,100 +156,31 @@ std::string gateway_program() {
   return beside.string();
 }
 
-GatewayProcess::GatewayProcess(const GatewaySetup& setup) {
-  const std::string program = gateway_program();
-  std::string pattern = (fs::temp_directory_path() / "sms-bench-XXXXXX").string();
-  if (::mkdtemp(pattern.data()) == nullptr) {
-    throw std::runtime_error("mkdtemp " + pattern + ": " + std::strerror(errno));
-  }
-  directory_ = pattern;
-  const std::string config_path = directory_ + "/gateway.yaml";
-  log_path_ = directory_ + "/gateway.log";
-  port_ = free_port();
-  {
-    std::ofstream config(config_path);
-    config << gateway_yaml(setup, port_);
-    if (!config) throw std::runtime_error("cannot write " + config_path);
-  }
+BenchGateway::BenchGateway(const GatewaySetup& setup)
+    : process_(GatewayProcess::with_config(directory_, gateway_yaml(setup), 1, {"--log-level", "info"},
+                                           gateway_program())) {}
 
-  posix_spawn_file_actions_t actions;
-  posix_spawn_file_actions_init(&actions);
-  posix_spawn_file_actions_addopen(&actions, STDIN_FILENO, "/dev/null", O_RDONLY, 0);
-  posix_spawn_file_actions_addopen(&actions, STDOUT_FILENO, log_path_.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  posix_spawn_file_actions_adddup2(&actions, STDOUT_FILENO, STDERR_FILENO);
-  std::vector<std::string> arguments{program, "--config", config_path, "--log-level", "warn"};
-  std::vector<char*> argv;
-  for (auto& argument : arguments) argv.push_back(argument.data());
-  argv.push_back(nullptr);
-  const int spawned = ::posix_spawn(&pid_, program.c_str(), &actions, nullptr, argv.data(), environ);
-  posix_spawn_file_actions_destroy(&actions);
-  if (spawned != 0) {
-    pid_ = -1;
-    throw std::runtime_error("cannot start " + program + ": " + std::strerror(spawned));
-  }
-}
-
-GatewayProcess::~GatewayProcess() {
-  if (pid_ > 0) stop();
-  if (std::getenv("SMS_BENCH_KEEP") == nullptr) {
-    std::error_code ignored;
-    fs::remove_all(directory_, ignored);
-  } else {
-    std::cerr << "gateway files kept in " << directory_ << "\n";
-  }
-}
-
-std::string GatewayProcess::log_tail() const {
-  std::ifstream log(log_path_);
-  std::vector<std::string> lines;
-  for (std::string line; std::getline(log, line);) lines.push_back(line);
-  std::string tail;
-  for (std::size_t i = lines.size() > 15 ? lines.size() - 15 : 0; i < lines.size(); ++i) tail += "  " + lines[i] + "\n";
-  return tail.empty() ? "  (the gateway logged nothing)\n" : tail;
-}
-
-void GatewayProcess::wait_ready(unsigned online, std::chrono::seconds limit) {
-  const auto deadline = Clock::now() + limit;
-  std::string last_state = "no connection yet";
-  while (Clock::now() < deadline) {
-    int status = 0;
-    if (::waitpid(pid_, &status, WNOHANG) == pid_) {
-      pid_ = -1;
-      throw std::runtime_error("sms-gateway exited during start-up (status " + std::to_string(status) +
-                               "); its log:\n" + log_tail());
-    }
+void BenchGateway::wait_ready(unsigned online) {
+  std::string last_state = "no answer yet";
+  const auto ready = [&] {
     try {
-      ModbusClient client(port_, kGatewayUnit, 500ms);
+      ModbusClient client(port(), kGatewayUnit, 500ms);
       const BusFacts facts = read_bus_facts(client);
-      if (facts.state == 1 && facts.servos_online == online && facts.last_poll_cycle_us > 0) return;
       last_state = "bus state " + std::to_string(facts.state) + ", " + std::to_string(facts.servos_online) +
                    " servos online, last poll cycle " + std::to_string(facts.last_poll_cycle_us) + " us";
+      return facts.state == 1 && facts.servos_online == online && facts.last_poll_cycle_us > 0;
     } catch (const std::exception& error) {
       last_state = error.what();
+      return false;
     }
-    std::this_thread::sleep_for(50ms);
+  };
+  if (!test::poll_until(ready)) {
+    throw std::runtime_error("sms-gateway on port " + std::to_string(port()) + ": " +
+                             test::await_failure("its bus up with " + std::to_string(online) +
+                                                     " servos online and a poll cycle done",
+                                                 test::kAwaitTimeout) +
+                             " (last seen: " + last_state + "); its output:\n" + process_.process().output());
   }
-  throw std::runtime_error("sms-gateway on port " + std::to_string(port_) + " not ready after " +
-                           std::to_string(limit.count()) + " s (wanted " + std::to_string(online) +
-                           " servos online; last seen: " + last_state + "); its log:\n" + log_tail());
-}
-
-int GatewayProcess::stop() {
-  if (pid_ <= 0) return -1;
-  ::kill(pid_, SIGTERM);
-  int status = 0;
-  const auto deadline = Clock::now() + 10s;
-  while (::waitpid(pid_, &status, WNOHANG) == 0) {
-    if (Clock::now() > deadline) {
-      std::cerr << "sms-gateway (pid " << pid_ << ") ignored SIGTERM for 10 s: killing it\n";
-      ::kill(pid_, SIGKILL);
-      ::waitpid(pid_, &status, 0);
-      break;
-    }
-    std::this_thread::sleep_for(10ms);
-  }
-  pid_ = -1;
-  return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
 }
 
 namespace {
@@ -305,58 +217,15 @@ std::optional<std::uint64_t> open_fds(pid_t pid) {
 
 std::string modbus_error_text() { return modbus_strerror(errno); }
 
-ModbusClient::ModbusClient(std::uint16_t port, int unit, std::chrono::milliseconds response_timeout)
-    : context_(modbus_new_tcp("127.0.0.1", port)) {
-  if (context_ == nullptr) throw std::runtime_error("modbus_new_tcp: " + modbus_error_text());
-  const auto us = response_timeout.count() * 1000;
-  modbus_set_response_timeout(context_, static_cast<std::uint32_t>(us / 1'000'000),
-                              static_cast<std::uint32_t>(us % 1'000'000));
-  set_unit(unit);
-  if (modbus_connect(context_) != 0) {
-    const std::string error = modbus_error_text();
-    modbus_free(context_);
-    throw std::runtime_error("connect to 127.0.0.1:" + std::to_string(port) + ": " + error);
-  }
-}
-
-ModbusClient::~ModbusClient() {
-  modbus_close(context_);
-  modbus_free(context_);
-}
-
-void ModbusClient::set_unit(int unit) {
-  if (modbus_set_slave(context_, unit) != 0) {
-    throw std::runtime_error("unit " + std::to_string(unit) + ": " + modbus_error_text());
-  }
-}
-
-std::vector<std::uint16_t> ModbusClient::input_registers(int address, int count) {
-  std::vector<std::uint16_t> registers(static_cast<std::size_t>(count));
-  if (modbus_read_input_registers(context_, address, count, registers.data()) != count) {
-    throw std::runtime_error("FC04 " + std::to_string(address) + "+" + std::to_string(count) + ": " +
-                             modbus_error_text());
-  }
-  return registers;
-}
-
-std::vector<std::uint16_t> ModbusClient::holding_registers(int address, int count) {
-  std::vector<std::uint16_t> registers(static_cast<std::size_t>(count));
-  if (modbus_read_registers(context_, address, count, registers.data()) != count) {
-    throw std::runtime_error("FC03 " + std::to_string(address) + "+" + std::to_string(count) + ": " +
-                             modbus_error_text());
-  }
-  return registers;
-}
-
 BusFacts read_bus_facts(ModbusClient& client) {
   client.set_unit(kGatewayUnit);
-  const auto r = client.input_registers(100, 10);  // bus 0: 100 + 20 * 0
+  const auto r = client.read_input(100, 10).or_throw("FC04 unit 255, 100+10 (bus 0's facts)");  // 100 + 20 * 0
   return BusFacts{r[0], r[2], r[3], u32(r[4], r[5]), u32(r[6], r[7]), u32(r[8], r[9])};
 }
 
 ServoFacts read_servo_facts(ModbusClient& client, int unit) {
   client.set_unit(unit);
-  const auto r = client.input_registers(1000, 8);
+  const auto r = client.read_input(1000, 8).or_throw("FC04 unit " + std::to_string(unit) + ", 1000+8 (servo facts)");
   return ServoFacts{r[1] != 0, r[2], u32(r[4], r[5]), u32(r[6], r[7])};
 }
 
@@ -395,7 +264,7 @@ ClientTotals run_clients(std::uint16_t port, int unit, unsigned clients, std::ch
         for (std::uint64_t iteration = 0;; ++iteration) {
           const auto before = Clock::now();
           if (before >= deadline) break;
-          const Outcome outcome = request(client->get(), index, iteration);
+          const Outcome outcome = request(client->context(), index, iteration);
           const auto latency = to_ns(Clock::now() - before);
           switch (outcome) {
             case Outcome::Ok:

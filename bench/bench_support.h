@@ -1,7 +1,7 @@
 #pragma once
 // What the benchmark programs share: a simulated bus in the bench process, the real
-// sms-gateway program as a child process driving it, libmodbus TCP clients on their own
-// threads, latency summaries and the `name value unit` output lines.
+// sms-gateway program as a child process driving it and libmodbus clients (both the tests'
+// own, tests/support), client threads, latency summaries and the `name value unit` output lines.
 //
 // Benchmarks print figures; they assert nothing about time. They talk to 127.0.0.1 only,
 // run for a bounded time and stop by themselves. A setup failure (gateway missing, port not
@@ -17,8 +17,8 @@
 #include <vector>
 
 #include "simulator/simulated_bus.h"
-
-typedef struct _modbus modbus_t;  // libmodbus's opaque context (modbus.h stays out of here)
+#include "tests/support/modbus_client.h"
+#include "tests/support/processes.h"
 
 namespace sms::bench {
 
@@ -72,7 +72,10 @@ simulator::BusOptions smsmb_bus(unsigned count, std::uint32_t baud);
 // Writes the return delay (sts address 7, in 2 us units) of servos 1..count.
 void set_return_delay(simulator::SimulatedBus& bus, unsigned count, std::uint8_t units);
 
-// --- the gateway as a child process ----------------------------------------------------------
+// --- the gateway as a child process (tests/support/processes.h) ------------------------------
+
+using test::GatewayProcess;
+using test::ModbusClient;
 
 struct GatewaySetup {
   std::string device;                    // the simulated bus's pty
@@ -90,39 +93,31 @@ struct GatewaySetup {
   std::string extra_yaml;  // appended to the configuration (e.g. an mqtt section)
 };
 
-// The YAML configuration for `setup` listening on 127.0.0.1:`port`.
-std::string gateway_yaml(const GatewaySetup& setup, std::uint16_t port);
+// The YAML configuration for `setup` (the listen address is the process's: 127.0.0.1:0).
+std::string gateway_yaml(const GatewaySetup& setup);
 
-// A free TCP port on 127.0.0.1 (bound and released; the child binds it right after).
-std::uint16_t free_port();
+using test::free_port;
 
 // build/bin/sms-gateway beside this program, or $SMS_GATEWAY.
 std::string gateway_program();
 
-// Runs `sms-gateway --config <file> --log-level warn` with its output in a log file, and stops
-// it with SIGTERM (then SIGKILL after 10 s) when destroyed.
-class GatewayProcess {
+// The gateway of the benchmarks: gateway_program() on `setup`'s configuration (in a directory of
+// its own, removed with it), logging at info (events only: nothing per request). Stopped with
+// SIGTERM by stop(), killed when destroyed while running.
+class BenchGateway {
  public:
-  explicit GatewayProcess(const GatewaySetup& setup);
-  ~GatewayProcess();
-  GatewayProcess(const GatewayProcess&) = delete;
-  GatewayProcess& operator=(const GatewayProcess&) = delete;
-
-  // Waits until the gateway answers on its port, its bus is up with `online` servos online and
-  // a poll cycle has finished. Throws std::runtime_error (with the log's tail) after `limit`.
-  void wait_ready(unsigned online, std::chrono::seconds limit = std::chrono::seconds{20});
-  std::uint16_t port() const { return port_; }
-  pid_t pid() const { return pid_; }
+  explicit BenchGateway(const GatewaySetup& setup);
+  // Waits until the gateway unit says the bus is up with `online` servos online and a poll cycle
+  // has finished. Throws std::runtime_error (with the gateway's output) when it does not come.
+  void wait_ready(unsigned online);
+  std::uint16_t port() const { return process_.port(); }
+  pid_t pid() const { return process_.pid(); }
   // Graceful stop; returns the exit status (0 expected).
-  int stop();
+  int stop() { return process_.stop(); }
 
  private:
-  std::string log_tail() const;
-
-  std::string directory_;
-  std::string log_path_;
-  std::uint16_t port_ = 0;
-  pid_t pid_ = -1;
+  test::TempDir directory_;
+  GatewayProcess process_;
 };
 
 // Resident set size of a process (VmRSS in /proc/PID/status), KiB; nullopt when gone.
@@ -131,24 +126,6 @@ std::optional<std::uint64_t> rss_kib(pid_t pid);
 std::optional<std::uint64_t> open_fds(pid_t pid);
 
 // --- libmodbus clients -----------------------------------------------------------------------
-
-// One libmodbus TCP connection to 127.0.0.1:port, addressing `unit`. Throws on connect failure.
-class ModbusClient {
- public:
-  ModbusClient(std::uint16_t port, int unit, std::chrono::milliseconds response_timeout = std::chrono::seconds{2});
-  ~ModbusClient();
-  ModbusClient(const ModbusClient&) = delete;
-  ModbusClient& operator=(const ModbusClient&) = delete;
-
-  modbus_t* get() const { return context_; }
-  void set_unit(int unit);
-  // Reads input registers; throws with the Modbus error on failure (setup and check reads).
-  std::vector<std::uint16_t> input_registers(int address, int count);
-  std::vector<std::uint16_t> holding_registers(int address, int count);
-
- private:
-  modbus_t* context_ = nullptr;
-};
 
 // 32-bit counter from two registers, high word first (docs/PLC_GUIDE.md).
 inline std::uint32_t u32(std::uint16_t high, std::uint16_t low) { return (std::uint32_t{high} << 16) | low; }

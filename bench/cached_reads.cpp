@@ -15,10 +15,8 @@
 #include <netinet/in.h>
 #include <netinet/tcp.h>
 #include <signal.h>
-#include <spawn.h>
 #include <sys/select.h>
 #include <sys/socket.h>
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -32,7 +30,6 @@
 
 #include "bench/bench_support.h"
 
-extern char** environ;
 
 namespace {
 
@@ -103,30 +100,23 @@ int serve_bare(std::uint16_t port) {
 // This program again, as `--bare-server PORT`, stopped with SIGTERM at the end.
 class BareServerProcess {
  public:
-  BareServerProcess() : port_(free_port()) {
-    const std::string self = std::filesystem::read_symlink("/proc/self/exe").string();
-    std::string port_text = std::to_string(port_);
-    std::string mode = "--bare-server";
-    std::string program = self;
-    char* argv[] = {program.data(), mode.data(), port_text.data(), nullptr};
-    if (const int error = ::posix_spawn(&pid_, self.c_str(), nullptr, nullptr, argv, environ); error != 0) {
-      throw std::runtime_error("cannot start the bare server: " + std::string(std::strerror(error)));
-    }
-    const auto deadline = Clock::now() + 10s;
-    for (;;) {
-      try {
-        ModbusClient probe(port_, 1, 500ms);
-        probe.input_registers(kFeedbackAddress, kFeedbackCount);
-        return;
-      } catch (const std::exception& error) {
-        if (Clock::now() > deadline) throw std::runtime_error(std::string("bare server not answering: ") + error.what());
-      }
-      std::this_thread::sleep_for(20ms);
-    }
+  BareServerProcess()
+      : port_(free_port()),
+        process_({std::filesystem::read_symlink("/proc/self/exe").string(), "--bare-server", std::to_string(port_)}) {
+    sms::test::await_or_throw(
+        [&] {
+          try {
+            ModbusClient probe(port_, 1, 500ms);
+            return probe.read_input(kFeedbackAddress, kFeedbackCount).ok();
+          } catch (const std::exception&) {
+            return false;
+          }
+        },
+        "the bare server answering FC04 on 127.0.0.1:" + std::to_string(port_));
   }
   ~BareServerProcess() {
-    ::kill(pid_, SIGTERM);
-    ::waitpid(pid_, nullptr, 0);
+    process_.signal(SIGTERM);
+    process_.wait_exit(sms::test::kAwaitTimeout);
   }
   BareServerProcess(const BareServerProcess&) = delete;
   BareServerProcess& operator=(const BareServerProcess&) = delete;
@@ -134,7 +124,7 @@ class BareServerProcess {
 
  private:
   std::uint16_t port_;
-  pid_t pid_ = -1;
+  sms::test::ChildProcess process_;
 };
 
 // --- measurements ------------------------------------------------------------------------------
@@ -246,7 +236,7 @@ int main(int argc, char** argv) {
     setup.device = bus.slave_path();
     setup.servos = kServos;
     setup.request_queue_depth = kFloodQueueDepth;
-    GatewayProcess gateway(setup);
+    BenchGateway gateway(setup);
     gateway.wait_ready(kServos);
     BareServerProcess bare;
     print_note("gateway: sms-gateway, 6 simulated sts servos at 1 Mbaud, poll period 20 ms; bare: libmodbus "

@@ -111,7 +111,7 @@ void through_forward(const std::string& gap_setting, std::chrono::milliseconds d
   while (!forward.engine().bus_up()) std::this_thread::sleep_for(5ms);
   ModbusClient client(forward.port(), kSlave);
   std::uint64_t failures = 0;
-  const auto summary = read_loop(client.get(), duration, failures);
+  const auto summary = read_loop(client.context(), duration, failures);
   const std::string name = "forward_overhead.forward.frame_gap_" + gap_setting;
   print(name, summary, failures);
   print_figure(name + ".overhead_p50", summary.p50_us - bare.p50_us, "us");

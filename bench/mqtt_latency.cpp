@@ -11,8 +11,6 @@
 // position: poll period + data period + MQTT); the broker's CPU is not separated.
 #include <mosquitto.h>
 #include <modbus/modbus.h>
-#include <spawn.h>
-#include <sys/wait.h>
 
 #include <fcntl.h>
 
@@ -42,40 +40,6 @@ std::uint64_t epoch_us() {
       std::chrono::duration_cast<std::chrono::microseconds>(std::chrono::system_clock::now().time_since_epoch()).count());
 }
 
-class Broker {
- public:
-  Broker() : port_(free_port()) {
-    directory_ = (std::filesystem::temp_directory_path() / ("sms-bench-mqtt-" + std::to_string(::getpid()))).string();
-    std::filesystem::create_directories(directory_);
-    const std::string config = directory_ + "/mosquitto.conf";
-    std::ofstream(config) << "listener " << port_ << " 127.0.0.1\nallow_anonymous true\npersistence false\n";
-    std::vector<std::string> arguments{"/usr/sbin/mosquitto", "-c", config};
-    std::vector<char*> argv;
-    for (auto& argument : arguments) argv.push_back(argument.data());
-    argv.push_back(nullptr);
-    posix_spawn_file_actions_t actions;
-    posix_spawn_file_actions_init(&actions);
-    posix_spawn_file_actions_addopen(&actions, STDOUT_FILENO, "/dev/null", O_WRONLY, 0);
-    posix_spawn_file_actions_addopen(&actions, STDERR_FILENO, "/dev/null", O_WRONLY, 0);
-    if (::posix_spawn(&pid_, argv[0], &actions, nullptr, argv.data(), environ) != 0) {
-      throw std::runtime_error("cannot start /usr/sbin/mosquitto (Debian package mosquitto)");
-    }
-    posix_spawn_file_actions_destroy(&actions);
-    std::this_thread::sleep_for(300ms);
-  }
-  ~Broker() {
-    ::kill(pid_, SIGTERM);
-    ::waitpid(pid_, nullptr, 0);
-    std::filesystem::remove_all(directory_);
-  }
-  std::uint16_t port() const { return port_; }
-
- private:
-  std::uint16_t port_;
-  std::string directory_;
-  pid_t pid_ = -1;
-};
-
 struct Observed {
   std::mutex mutex;
   std::uint64_t ddata = 0;
@@ -101,7 +65,8 @@ int main(int argc, char** argv) {
   try {
     quiet_logs();
     const auto count = static_cast<unsigned>(std::clamp(servos, 1.0, 20.0));
-    Broker broker;
+    sms::test::TempDir broker_dir;
+    sms::test::MosquittoBroker broker(broker_dir);
     sms::simulator::SimulatedBus bus(sts_bus(count));
     start_precise(bus);
     GatewaySetup setup;
@@ -147,19 +112,18 @@ int main(int argc, char** argv) {
     mosquitto_subscribe(host, nullptr, "spBv1.0/#", 0);
     mosquitto_loop_start(host);
 
-    GatewayProcess gateway(setup);
+    BenchGateway gateway(setup);
     gateway.wait_ready(count);
-    for (int i = 0; i < 500; ++i) {
-      {
-        std::lock_guard lock(observed.mutex);
-        if (observed.births >= count) break;
-      }
-      std::this_thread::sleep_for(10ms);
-    }
+    sms::test::await_or_throw(
+        [&] {
+          std::lock_guard lock(observed.mutex);
+          return observed.births >= count;
+        },
+        "a DBIRTH of every device at the bench's Sparkplug host");
     ModbusClient modbus(gateway.port(), 1);
     for (unsigned unit = 1; unit <= count; ++unit) {
       modbus.set_unit(static_cast<int>(unit));
-      modbus_write_register(modbus.get(), kTorqueEnable, 1);
+      modbus_write_register(modbus.context(), kTorqueEnable, 1);
     }
     {
       std::lock_guard lock(observed.mutex);  // measure the motion only, not the births
@@ -176,7 +140,7 @@ int main(int argc, char** argv) {
           std::lock_guard lock(observed.mutex);
           observed.commanded_us["unit-" + std::to_string(unit)] = epoch_us();
         }
-        modbus_write_register(modbus.get(), kGoalPosition, step % 2 == 0 ? 3000 : 1000);
+        modbus_write_register(modbus.context(), kGoalPosition, step % 2 == 0 ? 3000 : 1000);
       }
       std::this_thread::sleep_for(250ms);
     }

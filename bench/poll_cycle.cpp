@@ -105,7 +105,7 @@ void measure_cycle(unsigned servos, std::uint8_t return_delay, std::chrono::mill
   setup.device = bus.slave_path();
   setup.servos = servos;
   setup.poll_period = 0ms;
-  GatewayProcess gateway(setup);
+  BenchGateway gateway(setup);
   gateway.wait_ready(servos);
   ModbusClient client(gateway.port(), kGatewayUnit);
   std::this_thread::sleep_for(200ms);  // past discovery's last identity reads
@@ -153,7 +153,7 @@ void measure_rtu_cycle(const RtuGap& gap, std::uint16_t return_delay_us, std::ch
   setup.poll_period = 0ms;
   setup.modbus_rtu_baud = kRtuBaud;
   setup.frame_gap = gap.setting;
-  GatewayProcess gateway(setup);
+  BenchGateway gateway(setup);
   gateway.wait_ready(kRtuServos);
   ModbusClient client(gateway.port(), kGatewayUnit);
   std::this_thread::sleep_for(200ms);
@@ -187,7 +187,7 @@ void measure_silent_servo(std::chrono::milliseconds duration) {
   setup.servos = kSilentBusServos;
   setup.poll_period = 0ms;
   setup.probe_period = kProbePeriod;
-  GatewayProcess gateway(setup);
+  BenchGateway gateway(setup);
   gateway.wait_ready(kSilentBusServos);
   ModbusClient client(gateway.port(), kGatewayUnit);
   std::this_thread::sleep_for(200ms);

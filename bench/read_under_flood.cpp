@@ -41,7 +41,7 @@ int main(int argc, char** argv) {
     GatewaySetup setup;
     setup.device = bus.slave_path();
     setup.servos = kServos;
-    GatewayProcess gateway(setup);
+    BenchGateway gateway(setup);
     gateway.wait_ready(kServos);
     const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
 
@@ -63,7 +63,7 @@ int main(int argc, char** argv) {
       const auto end = Clock::now() + duration - 400ms;
       while (Clock::now() < end) {
         const auto before = Clock::now();
-        if (modbus_read_registers(reader.get(), kFeedbackAddress, kFeedbackCount, registers) == kFeedbackCount) {
+        if (modbus_read_registers(reader.context(), kFeedbackAddress, kFeedbackCount, registers) == kFeedbackCount) {
           reads_ns.push_back(to_ns(Clock::now() - before));
         } else {
           ++read_errors;

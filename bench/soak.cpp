@@ -164,7 +164,7 @@ int main(int argc, char** argv) {
     GatewaySetup setup;
     setup.device = bus.slave_path();
     setup.servos = kServos;
-    GatewayProcess gateway(setup);
+    BenchGateway gateway(setup);
     gateway.wait_ready(kServos);
     print_note("sms-gateway, 6 simulated sts servos at 1 Mbaud (factory return delay 0, answered after 100 us: the sts floor), poll period 20 ms; 16 "
                "libmodbus clients; RSS = VmRSS of the gateway process, sampled every second");
@@ -218,7 +218,7 @@ int main(int argc, char** argv) {
           ++unsettled;
           continue;
         }
-        const std::uint16_t through_gateway = checker.holding_registers(address, 1).at(0);
+        const std::uint16_t through_gateway = checker.read_holding(address, 1).or_throw("FC03 " + std::to_string(address)).at(0);
         const char* field_name = nullptr;
         for (const OwnedField& field : state.slot->block) {
           if (field.address == address) field_name = field.name;

@@ -163,12 +163,12 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
   setup.device = bus.slave_path();
   setup.servos = servos;
   setup.watchdog = timeout;
-  GatewayProcess gateway(setup);
+  BenchGateway gateway(setup);
   gateway.wait_ready(servos);
   ModbusClient client(gateway.port(), kGatewayUnit);
   ModbusClient facts_client(gateway.port(), kGatewayUnit);
 
-  const auto safety_registers = [&] { return facts_client.input_registers(kBusSafetyBlock, kSafetyRegisters); };
+  const auto safety_registers = [&] { return facts_client.read_input(kBusSafetyBlock, kSafetyRegisters).or_throw("FC04 unit 255, bus safety block"); };
   auto registers = safety_registers();
   std::uint32_t trips_seen = u32(registers[kTripsOffset], registers[kTripsOffset + 1]);
   std::uint32_t previous_figure = u32(registers[kLatencyOffset], registers[kLatencyOffset + 1]);
@@ -180,16 +180,16 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
   std::vector<double> difference_us;
   const auto size_deadline = Clock::now() + kSizeTimeLimit;
   for (unsigned round = 0; round < rounds && Clock::now() < size_deadline; ++round) {
-    modbus_set_slave(client.get(), kGatewayUnit);
-    if (modbus_write_bit(client.get(), kWatchdogCoil, 0) != 1) {
+    modbus_set_slave(client.context(), kGatewayUnit);
+    if (modbus_write_bit(client.context(), kWatchdogCoil, 0) != 1) {
       throw std::runtime_error("re-arm (unit 255 coil 2 := 0): " + modbus_error_text());
     }
     log.clear();
     Clock::time_point last_feed;
-    for (unsigned id = 1; id <= servos; ++id) write_or_throw(client.get(), static_cast<int>(id), kModeAddress, kSpeedMode);
+    for (unsigned id = 1; id <= servos; ++id) write_or_throw(client.context(), static_cast<int>(id), kModeAddress, kSpeedMode);
     for (unsigned id = 1; id <= servos; ++id) {
       last_feed = Clock::now();  // sent now; the gateway's count starts at its arrival
-      write_or_throw(client.get(), static_cast<int>(id), kGoalSpeedAddress, kGoalSpeed);
+      write_or_throw(client.context(), static_cast<int>(id), kGoalSpeedAddress, kGoalSpeed);
     }
     const auto frames = log.wait_stop(last_feed, servos, last_feed + timeout + 5s);
     if (!frames) {

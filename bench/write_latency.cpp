@@ -107,7 +107,7 @@ void measure_gateway(const std::string& mode, std::chrono::milliseconds poll_per
   setup.device = bus.slave_path();
   setup.servos = 1;
   setup.poll_period = poll_period;
-  GatewayProcess gateway(setup);
+  BenchGateway gateway(setup);
   gateway.wait_ready(1);
   std::this_thread::sleep_for(100ms);
 

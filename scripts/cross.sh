@@ -383,7 +383,9 @@ PY
 if [ "$run_tests" = all ]; then
   if binfmt_ready; then
     build_targets simulator_tests gateway_tests
-    run_line_suites simulator_tests gateway_tests
+    # gateway_tests builds one test program per gateway library (tests/gateway/*/).
+    run_line_suites simulator_tests gateway_bus_tests gateway_modbus_tcp_tests gateway_units_tests \
+      gateway_observability_tests gateway_tools_tests gateway_rtu_slave_tests
   else
     log "simulator_tests and gateway_tests not run: they start ARM programs, which needs binfmt_misc"
     failed=1

@@ -4,7 +4,7 @@
 #include <asm/termbits.h>
 #include <sys/ioctl.h>
 
-#include "gateway/bus/termios2_io.h"  // header-only: termios2 with the fallback qemu-user needs
+#include "tty/termios2_io.h"  // header-only: termios2 with the fallback qemu-user needs
 
 #include <cerrno>
 #include <string>

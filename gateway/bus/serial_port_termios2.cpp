@@ -4,7 +4,7 @@
 #include <cerrno>
 
 #include "config/config.h"
-#include "gateway/bus/termios2_io.h"
+#include "tty/termios2_io.h"
 
 namespace sms::gateway::detail {
 

@@ -26,9 +26,14 @@
 #include <optional>
 #include <sstream>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/eventually.h"
+#include "tests/support/loopback_client.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 using Bytes = std::vector<std::uint8_t>;
@@ -56,7 +61,7 @@ servos:
 constexpr int kStsGoalPosition = 42;   // sts holding register (docs/PROTOCOL.md §2.1)
 // A client's own timeout (s): longer than the gateway's worst case (three attempts of two
 // seconds each, behind a queue), so a late answer is never taken for the next one's.
-constexpr double kPatient = 60.0;
+constexpr std::chrono::seconds kPatient{60};
 constexpr int kD55dGoalPosition = 30;  // d55d holding register (docs/PROTOCOL.md §2.3)
 
 struct CellOptions {
@@ -234,23 +239,13 @@ class RawClient {
  public:
   // `receive_buffer`: a small kernel receive buffer (bytes) makes unread answers back up in the
   // gateway instead of in this process's kernel.
-  explicit RawClient(std::uint16_t port, int receive_buffer = 0) {
-    fd_ = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
-    if (fd_ < 0) throw std::runtime_error("socket: " + std::string(std::strerror(errno)));
-    if (receive_buffer > 0) {
-      ::setsockopt(fd_, SOL_SOCKET, SO_RCVBUF, &receive_buffer, sizeof receive_buffer);
-      const int send_buffer = 4 << 20;  // and what it sends goes out at once
-      ::setsockopt(fd_, SOL_SOCKET, SO_SNDBUF, &send_buffer, sizeof send_buffer);
-    }
-    sockaddr_in address{};
-    address.sin_family = AF_INET;
-    address.sin_port = htons(port);
-    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    if (::connect(fd_, reinterpret_cast<sockaddr*>(&address), sizeof address) != 0) {
-      const std::string reason = std::strerror(errno);
-      ::close(fd_);
-      throw std::runtime_error("connect to 127.0.0.1:" + std::to_string(port) + ": " + reason);
-    }
+  explicit RawClient(std::uint16_t port, int receive_buffer = 0)
+      : fd_(connect_loopback(port, [receive_buffer](int fd) {
+          if (receive_buffer <= 0) return;
+          ::setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &receive_buffer, sizeof receive_buffer);
+          const int send_buffer = 4 << 20;  // and what it sends goes out at once
+          ::setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &send_buffer, sizeof send_buffer);
+        })) {
     const int one = 1;
     ::setsockopt(fd_, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);  // each send() its own segment
   }
@@ -762,7 +757,7 @@ TEST(Faults, SerialDeviceVanishingIs0AAndTheBusComesBackByItselfWhenItReturns) {
   ASSERT_TRUE(arm_unit.write_register(kStsGoalPosition, 1500).ok());
 
   cell.unplug_arm();
-  EXPECT_TRUE(eventually([&] { return arm_unit.read_holding(kStsGoalPosition, 1).exception == 0x0A; }, 10s))
+  EXPECT_TRUE(eventually([&] { return arm_unit.read_holding(kStsGoalPosition, 1).exception == 0x0A; }))
       << cell.gateway().process().output();
   EXPECT_EQ(arm_unit.write_register(kStsGoalPosition, 1600).exception, 0x0A);
   EXPECT_EQ(arm_unit.read_input(56, 1).exception, 0x0A);

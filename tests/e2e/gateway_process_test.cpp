@@ -10,8 +10,12 @@
 #include <mutex>
 
 #include "tests/e2e/plant.h"
+#include "tests/support/eventually.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 using Bytes = std::vector<std::uint8_t>;

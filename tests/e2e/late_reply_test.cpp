@@ -12,14 +12,18 @@
 #include <string>
 #include <vector>
 
-#include "tests/e2e/e2e_support.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/processes.h"
+#include "tests/support/eventually.h"
+#include "tests/support/metrics_http_client.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
-using gateway::testing::HttpConnection;
-using gateway::testing::parse_exposition;
+using test::HttpConnection;
+using test::parse_exposition;
 using Registers = std::vector<std::uint16_t>;
 
 // Per attempt 50 ms, three attempts: the late-answer window is four attempts (~200 ms).
@@ -88,7 +92,7 @@ void read_in_turn(ModbusClient& unit, int constant, int other, int count, const 
 void late_servo_never_yields_a_wrong_value(SimProcess& sim, GatewayProcess& gateway, int unit_id, int constant,
                                            int other, int count, const std::string& metric) {
   wait_until_polled(gateway.port(), 1);
-  ModbusClient unit(gateway.port(), unit_id, 10.0);
+  ModbusClient unit(gateway.port(), unit_id, std::chrono::seconds{10});
   const auto reference = unit.read_holding(constant, count);
   ASSERT_TRUE(reference.ok()) << reference.error;
   const Registers expected = reference.values;
@@ -111,7 +115,7 @@ void late_servo_never_yields_a_wrong_value(SimProcess& sim, GatewayProcess& gate
   }
   ASSERT_EQ(sim.control("late 1 0"), "ok");
   // On time again: answered again, with the right values.
-  EXPECT_TRUE(eventually([&] { return unit.read_holding(constant, count).ok(); }, 10s));
+  EXPECT_TRUE(eventually([&] { return unit.read_holding(constant, count).ok(); }));
   read_in_turn(unit, constant, other, count, expected, 500ms, "on time", tally);
   EXPECT_GT(tally.ok_constant, 0);
   EXPECT_GT(tally.ok_other, 0);

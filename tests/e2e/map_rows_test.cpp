@@ -4,8 +4,12 @@
 #include <gtest/gtest.h>
 
 #include "tests/e2e/plant.h"
+#include "tests/support/eventually.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 // Addresses and values of one unit, read off docs/PROTOCOL.md §2 and docs/PLC_GUIDE.md by hand.

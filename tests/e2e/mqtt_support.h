@@ -22,48 +22,12 @@
 #include <vector>
 
 #include "protocol/sparkplug/sparkplug.h"
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/eventually.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 
-inline std::uint16_t free_port() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  ::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address);
-  socklen_t length = sizeof address;
-  ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length);
-  ::close(fd);
-  return ntohs(address.sin_port);
-}
-
-// One mosquitto process; `extra` lines go into its listener's configuration (TLS, passwords).
-class MosquittoBroker {
- public:
-  MosquittoBroker(const TempDir& dir, std::string extra = "allow_anonymous true\n")
-      : config_(dir.file("mosquitto-" + std::to_string(++count_) + ".conf")), port_(free_port()), extra_(std::move(extra)) {
-    start();
-  }
-  void start() {
-    std::ofstream(config_) << "listener " << port_ << " 127.0.0.1\n" << extra_ << "persistence false\n";
-    process_ = std::make_unique<ChildProcess>(std::vector<std::string>{"/usr/sbin/mosquitto", "-c", config_, "-v"});
-    if (!process_->wait_for_line("running", 10s)) throw std::runtime_error("mosquitto did not start:\n" + process_->output());
-  }
-  void kill() {
-    process_->signal(SIGKILL);
-    process_->wait_exit(5s);
-  }
-  std::uint16_t port() const { return port_; }
-  ChildProcess& process() { return *process_; }
-
- private:
-  static inline int count_ = 0;
-  std::string config_;
-  std::uint16_t port_;
-  std::string extra_;
-  std::unique_ptr<ChildProcess> process_;
-};
+using namespace ::sms::test;  // the toolkit: tests/support
 
 struct SparkplugMessage {
   sparkplug::Topic topic;

@@ -7,14 +7,17 @@
 #include <string>
 #include <vector>
 
-#include "tests/e2e/e2e_support.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/processes.h"
+#include "tests/support/metrics_http_client.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
-using gateway::testing::HttpConnection;
-using gateway::testing::parse_exposition;
+using test::HttpConnection;
+using test::parse_exposition;
 
 // The port in the first line of `process` that contains `marker` (followed by digits).
 std::uint16_t port_after(ChildProcess& process, const std::string& marker) {

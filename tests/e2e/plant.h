@@ -9,9 +9,11 @@
 #include <memory>
 #include <string>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
 
 inline constexpr const char* kPlantConfig = R"(
 modbus_tcp: {listen: "127.0.0.1:5020", max_connections: 64, request_queue_depth: @QUEUE@}

@@ -6,9 +6,13 @@
 
 #include <string>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/eventually.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 constexpr const char* kRtuConfig = R"(
@@ -74,10 +78,10 @@ TEST_F(RtuBusProcess, OfflineServoIs0BAndComesBackByItself) {
   wait_until_polled(gateway_.port(), 1);
   ModbusClient unit(gateway_.port(), 1);
   ASSERT_EQ(sim_.control("offline 1"), "ok");
-  EXPECT_TRUE(eventually([&] { return unit.read_holding(0x80, 1).exception == 0x0B; }, 10s));
+  EXPECT_TRUE(eventually([&] { return unit.read_holding(0x80, 1).exception == 0x0B; }));
   EXPECT_TRUE(ModbusClient(gateway_.port(), 2).read_holding(0x80, 1).ok());  // the other servo is served
   ASSERT_EQ(sim_.control("online 1"), "ok");
-  EXPECT_TRUE(eventually([&] { return unit.read_holding(0x80, 1).ok(); }, 10s));
+  EXPECT_TRUE(eventually([&] { return unit.read_holding(0x80, 1).ok(); }));
 }
 
 }  // namespace

@@ -9,11 +9,15 @@
 #include <thread>
 #include <vector>
 
-#include "tests/e2e/child_process.h"
-#include "tests/e2e/e2e_support.h"
-#include "tests/e2e/modbus_client.h"
+#include "tests/support/child_process.h"
+#include "tests/support/processes.h"
+#include "tests/support/eventually.h"
+#include "tests/support/modbus_client.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 using namespace std::chrono_literals;
@@ -51,7 +55,7 @@ TEST(ForwardProcess, ForwardsToSmsmbServosAtARateLibmodbusCannotSetAndStopsOnSig
   // Unit 0: an RTU broadcast, not answered (mbusd's default): the client times out, the servos
   // have the value.
   {
-    ModbusClient broadcaster(port, 0, 0.3);
+    ModbusClient broadcaster(port, 0, std::chrono::milliseconds{300});
     EXPECT_FALSE(broadcaster.write_register(0x84, 700).ok());
     EXPECT_TRUE(
         eventually([&] { return sim.field(1, "torque_limit") == 700 && sim.field(2, "torque_limit") == 700; }));

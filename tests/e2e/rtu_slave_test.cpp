@@ -18,14 +18,18 @@
 #include <vector>
 
 #include "protocol/modbus_rtu.h"
-#include "tests/e2e/e2e_support.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/processes.h"
+#include "tests/support/eventually.h"
+#include "tests/support/metrics_http_client.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
-using gateway::testing::http_request;
-using gateway::testing::parse_exposition;
+using test::http_request;
+using test::parse_exposition;
 
 // Two pty ends joined by socat: the gateway opens one, the master the other.
 class PtyPair {
@@ -41,7 +45,7 @@ class PtyPair {
   void plug() {
     socat_ = std::make_unique<ChildProcess>(std::vector<std::string>{
         "/usr/bin/socat", "pty,raw,echo=0,link=" + gateway_end_, "pty,raw,echo=0,link=" + master_end_});
-    if (!eventually([&] { return std::filesystem::exists(gateway_end_) && std::filesystem::exists(master_end_); }, 10s)) {
+    if (!eventually([&] { return std::filesystem::exists(gateway_end_) && std::filesystem::exists(master_end_); })) {
       throw std::runtime_error("socat made no pty pair:\n" + socat_->output());
     }
   }
@@ -390,9 +394,9 @@ TEST_F(RtuSlave, AServoThatStopsAnsweringIs0x0BNotSilence) {
   // The unit exists and the gateway is alive: the panel learns at once that the servo is gone.
   RtuClient master(p115200_.master_end(), 115200, 'E', 2);
   ASSERT_EQ(arm_.control("offline 2"), "ok");
-  EXPECT_TRUE(eventually([&] { return master.read_holding(42, 1).exception == 0x0B; }, 10s));
+  EXPECT_TRUE(eventually([&] { return master.read_holding(42, 1).exception == 0x0B; }));
   ASSERT_EQ(arm_.control("online 2"), "ok");
-  EXPECT_TRUE(eventually([&] { return master.read_holding(42, 1).ok(); }, 10s));
+  EXPECT_TRUE(eventually([&] { return master.read_holding(42, 1).ok(); }));
 }
 
 TEST_F(RtuSlave, AnUnpluggedPortIsLostAndServesAgainOnceReplugged) {

@@ -16,8 +16,12 @@
 #include <thread>
 
 #include "tests/e2e/safety_support.h"
+#include "tests/support/eventually.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 // The line between the gateway and the servos, as a relay that can be pulled out: socat between
@@ -34,7 +38,7 @@ class Relay {
     process_ = std::make_unique<ChildProcess>(std::vector<std::string>{
         "/usr/bin/socat", "PTY,link=" + link_ + ",rawer",
         sim_pty_ + ",rawer,b" + baud_});
-    if (!eventually([&] { return std::filesystem::exists(link_); }, 5s)) {
+    if (!eventually([&] { return std::filesystem::exists(link_); })) {
       throw std::runtime_error("socat made no " + link_ + ":\n" + process_->output());
     }
   }
@@ -100,7 +104,7 @@ class SafetyCell {
       const auto answer = plc.write_register(write.address, write.value);
       ASSERT_TRUE(answer.ok()) << "write " << write.address << " := " << write.value << ": " << answer.error;
     }
-    ASSERT_TRUE(eventually([&] { return turning(); }, 5s)) << "servo 1 never turned\n" << log();
+    ASSERT_TRUE(eventually([&] { return turning(); })) << "servo 1 never turned\n" << log();
   }
   bool turning() { return sim_->field(1, "present_speed") != 0; }
 
@@ -135,7 +139,7 @@ TEST_P(SafetyFaults, StopOwedToASilentServoIsDeliveredWhenItAnswersAgain) {
   SafetyCell cell(GetParam(), {watched_bus(), "", false, false});
   cell.spin();  // the PLC's last write
   ASSERT_EQ(cell.sim().control("offline 1"), "ok");
-  ASSERT_TRUE(eventually([&] { return cell.input(kOwedStops) == 1; }, 5s)) << cell.log();
+  ASSERT_TRUE(eventually([&] { return cell.input(kOwedStops) == 1; })) << cell.log();
   EXPECT_EQ(cell.input(kBus0OwedStops), 1);
   EXPECT_EQ(cell.discrete(kOwedStopInput), 1);
   EXPECT_EQ(cell.input(kBus0WatchdogState), kTripped);
@@ -150,11 +154,11 @@ TEST_P(SafetyFaults, StopOwedToASilentServoIsDeliveredWhenItAnswersAgain) {
   EXPECT_EQ(plc.write_register(GetParam().goal.address, GetParam().goal.value).exception, 0x04) << cell.log();
 
   ASSERT_EQ(cell.sim().control("online 1"), "ok");
-  EXPECT_TRUE(eventually([&] { return !cell.turning(); }, 5s)) << cell.log();
-  EXPECT_TRUE(eventually([&] { return cell.input(kOwedStops) == 0; }, 3s));
+  EXPECT_TRUE(eventually([&] { return !cell.turning(); })) << cell.log();
+  EXPECT_TRUE(eventually([&] { return cell.input(kOwedStops) == 0; }));
   EXPECT_EQ(cell.discrete(kOwedStopInput), 0);
   EXPECT_TRUE(cell.gateway().process().wait_for_line("took its owed safe stop", 2s)) << cell.log();
-  EXPECT_TRUE(eventually([&] { return plc.write_register(GetParam().goal.address, GetParam().goal.value).ok(); }, 3s));
+  EXPECT_TRUE(eventually([&] { return plc.write_register(GetParam().goal.address, GetParam().goal.value).ok(); }));
 }
 
 // The adapter is pulled while the servo turns, and the PLC goes away meanwhile: the stop fails,
@@ -172,8 +176,8 @@ TEST_P(SafetyFaults, StopOwedAcrossAnUnpluggedLineIsDeliveredWhenTheLineIsBack) 
   if (GetParam().bus_protocol != "d55d") EXPECT_TRUE(cell.turning()) << "the witness: the line was down";
 
   cell.relay().plug();
-  EXPECT_TRUE(eventually([&] { return !cell.turning(); }, 5s)) << cell.log();
-  EXPECT_TRUE(eventually([&] { return cell.input(kOwedStops) == 0; }, 3s)) << cell.log();
+  EXPECT_TRUE(eventually([&] { return !cell.turning(); })) << cell.log();
+  EXPECT_TRUE(eventually([&] { return cell.input(kOwedStops) == 0; })) << cell.log();
 }
 
 // The gateway dies (SIGKILL) while a servo turns: started again, its on_start (hold by default
@@ -185,7 +189,7 @@ TEST_P(SafetyFaults, ServoLeftTurningByAKilledGatewayIsStoppedAtStart) {
   std::this_thread::sleep_for(200ms);
   ASSERT_TRUE(cell.turning()) << "the witness: a killed gateway stops nothing";
   cell.start_gateway();
-  EXPECT_TRUE(eventually([&] { return !cell.turning(); }, 5s)) << cell.log();
+  EXPECT_TRUE(eventually([&] { return !cell.turning(); })) << cell.log();
   EXPECT_TRUE(cell.gateway().process().wait_for_line("safe stop (on_start) sent", 2s)) << cell.log();
 }
 
@@ -207,7 +211,7 @@ TEST_P(SafetyFaults, RefusedWritesDoNotFeedTheWatchdog) {
       std::this_thread::sleep_for(50ms);
     }
   });
-  const bool stopped = eventually([&] { return !cell.turning(); }, 5s);
+  const bool stopped = eventually([&] { return !cell.turning(); });
   writing = false;
   hmi.join();
   EXPECT_TRUE(stopped) << cell.log();
@@ -225,16 +229,16 @@ TEST(SafetyRestart, EStopLatchAndTripSurviveARestart) {
   cell.spin();
   ModbusClient gateway(cell.port(), kGateway);
   ASSERT_TRUE(gateway.write_coils(kEStopCoil, {1}).ok()) << cell.log();
-  ASSERT_TRUE(eventually([&] { return !cell.turning(); }, 3s));
+  ASSERT_TRUE(eventually([&] { return !cell.turning(); }));
   cell.end_gateway(SIGKILL);
 
   // Behind the dead gateway's back the servo is set turning again (someone with a laptop).
   ASSERT_EQ(cell.sim().control("set 1 46 DC 05"), "ok");
-  ASSERT_TRUE(eventually([&] { return cell.turning(); }, 3s));
+  ASSERT_TRUE(eventually([&] { return cell.turning(); }));
   cell.start_gateway();
   EXPECT_TRUE(cell.gateway().process().wait_for_line("E-STOP was latched before the restart", 2s)) << cell.log();
   EXPECT_EQ(cell.input(kEStopLatchedRegister), 1);
-  EXPECT_TRUE(eventually([&] { return !cell.turning(); }, 5s)) << "a restored latch stops again\n" << cell.log();
+  EXPECT_TRUE(eventually([&] { return !cell.turning(); })) << "a restored latch stops again\n" << cell.log();
   ModbusClient plc(cell.port(), kUnit);
   const long goal = cell.sim().field(1, "goal_position");
   EXPECT_EQ(plc.write_register(sts.goal.address, sts.goal.value).exception, 0x04);
@@ -243,7 +247,7 @@ TEST(SafetyRestart, EStopLatchAndTripSurviveARestart) {
   ModbusClient gateway_again(cell.port(), kGateway);
   ASSERT_TRUE(gateway_again.write_coils(kEStopCoil, {0}).ok());
   cell.spin();  // accepted again; the PLC is gone after it: the watchdog trips
-  ASSERT_TRUE(eventually([&] { return cell.input(kBus0WatchdogState) == kTripped; }, 5s)) << cell.log();
+  ASSERT_TRUE(eventually([&] { return cell.input(kBus0WatchdogState) == kTripped; })) << cell.log();
   cell.end_gateway(SIGTERM);
   cell.start_gateway();
   EXPECT_EQ(cell.input(kBus0WatchdogState), kTripped) << cell.log();
@@ -316,7 +320,7 @@ TEST_P(NoJump, TorqueOnWhileOnDoesNotCancelAMove) {
   const std::uint16_t far = start > 2048 ? 500 : 3500;
   ASSERT_TRUE(plc.write_register(GetParam().goal_speed, 300).ok());  // slow, so the move is still under way
   ASSERT_TRUE(plc.write_register(GetParam().goal, far).ok());
-  ASSERT_TRUE(eventually([&] { return cell_.turning(); }, 3s)) << cell_.log();
+  ASSERT_TRUE(eventually([&] { return cell_.turning(); })) << cell_.log();
   for (int i = 0; i < 5; ++i) ASSERT_TRUE(plc.write_register(GetParam().torque, 1).ok()) << cell_.log();
   EXPECT_EQ(cell_.sim().field(1, "goal_position"), far);
 }

@@ -9,9 +9,11 @@
 #include <string>
 #include <vector>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
 
 inline constexpr int kUnit = 1;
 inline constexpr int kGateway = 255;

@@ -14,8 +14,12 @@
 #include <thread>
 
 #include "tests/e2e/safety_support.h"
+#include "tests/support/eventually.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 class Safety : public testing::TestWithParam<Protocol> {
@@ -33,7 +37,7 @@ class Safety : public testing::TestWithParam<Protocol> {
       const auto answer = plc.write_register(write.address, write.value);
       ASSERT_TRUE(answer.ok()) << "write " << write.address << " := " << write.value << ": " << answer.error;
     }
-    ASSERT_TRUE(eventually([&] { return sim_->field(1, "present_speed") != 0; }, 5s))
+    ASSERT_TRUE(eventually([&] { return sim_->field(1, "present_speed") != 0; }))
         << "servo 1 never turned\n" << gateway_->process().output();
   }
 
@@ -71,7 +75,7 @@ TEST_P(Safety, WatchdogStopsTheServoWhenItsClientVanishesWhileHmiReadsGoOn) {
       std::this_thread::sleep_for(10ms);
     }
   });
-  const bool stopped_in_time = eventually([&] { return stopped(); }, 5s);
+  const bool stopped_in_time = eventually([&] { return stopped(); });
   reading = false;
   hmi.join();
   ASSERT_TRUE(stopped_in_time) << gateway_->process().output();
@@ -115,8 +119,7 @@ TEST_P(Safety, FrozenPlcThatKeepsItsConnectionTripsTheHeartbeatWatchdog) {
         heartbeat.write_register(kHeartbeatRegister, 36);
         plc.read_holding(GetParam().goal_address, 1);
         return stopped();
-      },
-      5s);
+      });
   ASSERT_TRUE(stopped_in_time) << gateway_->process().output();
   EXPECT_EQ(gateway_register(kBus0WatchdogState), kTripped);
   const auto read_back = heartbeat.read_holding(kHeartbeatRegister, 1);
@@ -130,7 +133,7 @@ TEST_P(Safety, EStopRefusesMotionUntilResetAndTheResetMovesNothing) {
   spin(plc);
   ModbusClient gateway(gateway_->port(), kGateway);
   ASSERT_TRUE(gateway.write_coils(kEStopCoil, {1}).ok()) << gateway_->process().output();
-  ASSERT_TRUE(eventually([&] { return stopped(); }, 3s));
+  ASSERT_TRUE(eventually([&] { return stopped(); }));
   EXPECT_TRUE(gateway_->process().wait_for_line("E-STOP latched", 2s));
 
   // Latched: every motion write refused, reads and harmless writes served.
@@ -176,7 +179,7 @@ TEST_P(Safety, SigtermPerformsOnStopBeforeTheGatewayExits) {
   const auto status = gateway_->process().wait_exit(10s);
   ASSERT_TRUE(status.has_value());
   EXPECT_EQ(*status, 0) << gateway_->process().output();
-  EXPECT_TRUE(eventually([&] { return stopped(); }, 3s)) << gateway_->process().output();
+  EXPECT_TRUE(eventually([&] { return stopped(); })) << gateway_->process().output();
   EXPECT_NE(gateway_->process().output().find("safe stop (the gateway is stopping)"), std::string::npos)
       << gateway_->process().output();
 }
@@ -250,7 +253,7 @@ TEST(SafetyEStop, CoversSyncGroupsStagedWritesActionAndPassthroughUnits) {
   ASSERT_TRUE(gateway_unit.write_coils(kEStopCoil, {0}).ok());
   EXPECT_TRUE(gateway_unit.write_registers(0, {2100, 2100}).ok());
   EXPECT_TRUE(passthrough.write_register(0x82, 10).ok());
-  EXPECT_TRUE(eventually([&] { return arm.field(2, "goal_position") == 2100; }, 2s));
+  EXPECT_TRUE(eventually([&] { return arm.field(2, "goal_position") == 2100; }));
 }
 
 // 40 servos stopping the same way: their state is read in one SYNC READ frame, and they need
@@ -272,7 +275,7 @@ TEST(SafetyEStop, StopsMoreServosThanOneSyncWriteFrameCarries) {
     ASSERT_TRUE(plc.write_register(33, 1).ok());
     ASSERT_TRUE(plc.write_register(46, 800).ok());
   }
-  ASSERT_TRUE(eventually([&] { return sim.field(kServos, "present_speed") != 0; }, 3s));
+  ASSERT_TRUE(eventually([&] { return sim.field(kServos, "present_speed") != 0; }));
   ModbusClient gateway_unit(gateway.port(), kGateway);
   const auto requests = [&] {
     const std::string stats = sim.control("stats");
@@ -281,7 +284,7 @@ TEST(SafetyEStop, StopsMoreServosThanOneSyncWriteFrameCarries) {
   const long before = requests();
   ASSERT_TRUE(gateway_unit.write_coils(kEStopCoil, {1}).ok()) << gateway.process().output();
   for (int id = 1; id <= kServos; ++id) {
-    EXPECT_TRUE(eventually([&] { return sim.field(id, "present_speed") == 0; }, 3s)) << "servo " << id;
+    EXPECT_TRUE(eventually([&] { return sim.field(id, "present_speed") == 0; })) << "servo " << id;
   }
   // One SYNC READ of the 40 states, two SYNC WRITE frames.
   EXPECT_EQ(requests() - before, 3) << gateway.process().output();

@@ -10,10 +10,14 @@
 #include <string>
 #include <vector>
 
-#include "tests/e2e/child_process.h"
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/child_process.h"
+#include "tests/support/eventually.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 using namespace std::chrono_literals;
@@ -90,8 +94,7 @@ TEST(ScsBusProcess, MbpollReadsAndWritesGoalAndPresentPosition) {
       [&] {
         const auto present = ModbusClient(gateway.port(), 1).read_input(56, 1);
         return present.ok() && std::abs(int{present.values[0]} - 900) <= 2;
-      },
-      10s))
+      }))
       << "the SCS servo did not reach its goal";
 
   // The lock sits at 48 on SCS (coil 48), at 55 on STS.

@@ -5,9 +5,13 @@
 
 #include <regex>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/eventually.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 class Simulate : public ::testing::Test {
@@ -45,8 +49,7 @@ TEST_F(Simulate, PresentPositionFollowsAGoalPosition) {
       [&] {
         const auto now = client.read_input(56, 1);
         return now.ok() && std::abs(int{now.values[0]} - int{goal}) <= 5;
-      },
-      10s));
+      }));
 }
 
 TEST_F(Simulate, SyncGroupOfTheSixGoalPositions) {

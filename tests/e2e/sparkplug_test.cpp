@@ -9,8 +9,12 @@
 #include <signal.h>
 
 #include "tests/e2e/mqtt_support.h"
+#include "tests/support/eventually.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 namespace sp = sparkplug;
@@ -305,10 +309,10 @@ TEST(Sparkplug, ADeliveredCommandIsCarriedOutWhenTheBrokerDiesMeanwhile) {
   for (int i = 0; i < 1000; ++i) writes.push_back(sp::Metric::int16("goal_position", static_cast<std::int16_t>(100 + i)));
   writes.push_back(sp::Metric::int16("goal_position", 2222));
   plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", writes);
-  ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") >= 100; }, 10s)) << gateway.process().output();
+  ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") >= 100; })) << gateway.process().output();
   plant.broker.kill();
   EXPECT_NE(plant.sim.field(1, "goal_position"), 2222) << "all writes were done before the broker died";
-  ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 2222; }, 10s))
+  ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 2222; }))
       << "goal " << plant.sim.field(1, "goal_position") << "\n" << gateway.process().output();
 
   plant.broker.start();
@@ -477,7 +481,7 @@ TEST(Sparkplug, DcmdValuesAreCheckedAgainstTheBirthTypeAndTheMapRangeBeforeAnyWr
   auto untyped = sp::Metric::int16("goal_position", -7);
   untyped.type = sp::DataType::Unknown;
   plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {untyped});
-  EXPECT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 0; }, 10s))  // clamped at 0
+  EXPECT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 0; }))  // clamped at 0
       << plant.sim.field(1, "goal_position") << "\n" << gateway.process().output();
 
   // A node command of the wrong kind: the e-stop takes a Boolean only.

@@ -28,10 +28,14 @@
 #include <boost/asio/ssl.hpp>
 #include <boost/asio/write.hpp>
 
-#include "tests/e2e/e2e_support.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/processes.h"
+#include "tests/support/eventually.h"
+#include "tests/support/metrics_http_client.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 namespace asio = boost::asio;
@@ -240,7 +244,7 @@ struct SecureGateway {
 
   // One sample of /metrics, e.g. `sms_gateway_tls_handshakes_total{result="expired"}`.
   std::string metric(const std::string& sample) const {
-    const auto response = gateway::testing::http_request(metrics_port, "GET", "/metrics");
+    const auto response = test::http_request(metrics_port, "GET", "/metrics");
     const auto at = response.body.find("\n" + sample + " ");
     if (at == std::string::npos) return "<absent>";
     const auto start = at + sample.size() + 2;
@@ -450,7 +454,7 @@ TEST_F(Tls, OperateRoleMovesTheServoButCannotWriteEeprom) {
   ASSERT_TRUE(move) << log();
   EXPECT_EQ(*move, write_register_pdu(kGoalPosition, 3000));
   EXPECT_TRUE(eventually([&] { return sim_->field(1, "goal_position") == 3000; }));
-  EXPECT_TRUE(eventually([&] { return std::abs(sim_->field(1, "present_position") - 3000) < 50; }, 10s));
+  EXPECT_TRUE(eventually([&] { return std::abs(sim_->field(1, "present_position") - 3000) < 50; }));
 
   const long temperature = sim_->field(1, "max_temperature");
   const auto eeprom = plc.request(write_register_pdu(kMaxTemperature, static_cast<std::uint16_t>(temperature - 5)));
@@ -626,7 +630,7 @@ TEST_F(Tls, ServedConnectionsOverTheLimitAreRefusedAndCountedForTheTlsListener) 
   EXPECT_TRUE(limited.wait_for_line("modbus tcp security: refusing connection from 127.0.0.1: 1 connections served",
                                     5s))
       << limited.output();
-  const auto body = gateway::testing::http_request(metrics_port, "GET", "/metrics").body;
+  const auto body = test::http_request(metrics_port, "GET", "/metrics").body;
   EXPECT_NE(body.find("sms_gateway_tcp_connections_refused_total{listener=\"tls\",reason=\"max_connections\"} 1"),
             std::string::npos)
       << body;

@@ -10,9 +10,13 @@
 #include <fstream>
 #include <thread>
 
-#include "tests/e2e/e2e_support.h"
+#include "tests/support/eventually.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
+
+using namespace ::sms::test;  // the toolkit: tests/support
+
 namespace {
 
 constexpr int kPlcUnit = 1;

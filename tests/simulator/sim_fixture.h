@@ -12,8 +12,11 @@
 #include "protocol/packet.h"
 #include "simulator/simulated_bus.h"
 #include "tests/simulator/host_port.h"
+#include "tests/support/eventually.h"
 
 namespace sms::simulator::testing {
+
+using ::sms::test::eventually;
 
 inline ServoConfig sts(std::uint8_t id, std::uint32_t baud = 1'000'000) {
   return {id, modbus_map::TableId::Sts, protocol::BusProtocol::Feetech, baud};
@@ -46,17 +49,6 @@ struct Rig {
   std::unique_ptr<SimulatedBus> bus;
   std::unique_ptr<HostPort> host;
 };
-
-// Polls `condition` until it holds or `limit` passes; returns whether it held.
-inline bool eventually(const std::function<bool()>& condition,
-                       std::chrono::milliseconds limit = std::chrono::milliseconds(3000)) {
-  const auto give_up = std::chrono::steady_clock::now() + limit;
-  while (std::chrono::steady_clock::now() < give_up) {
-    if (condition()) return true;
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  }
-  return condition();
-}
 
 inline protocol::Packet status(std::uint8_t id, std::uint8_t error, Bytes params = {}) {
   return protocol::Packet{id, error, std::move(params)};

@@ -131,7 +131,7 @@ TEST_F(VendorFidelity, VendorWritePosExReachesItsGoalInTheVendorsWait) {
   write(1, 41, {50, 0xFF, 0x0F, 0x00, 0x00, 60, 0x00});
   // The example then sleeps (4095-0)/(60*50) + (60*50)/(50*100) + 0.05 ≈ 2.0 s from position 0;
   // from 2048 the servo is there well within that at 60 × 0.732 rpm ≈ 3000 steps/s.
-  EXPECT_TRUE(eventually([&] { return read(1, 56, 2) == Bytes{0xFF, 0x0F}; }, 2000ms)) << hex(read(1, 56, 2));
+  EXPECT_TRUE(eventually([&] { return read(1, 56, 2) == Bytes{0xFF, 0x0F}; })) << hex(read(1, 56, 2));
 }
 
 TEST_F(VendorFidelity, PhaseBit2SwitchesTheSpeedUnitToStepsPerSecond) {

@@ -1,5 +1,5 @@
 #pragma once
-// What the engine conformance suite (tests/gateway/conformance_test.cpp) needs to run one set of
+// What the engine conformance suite (tests/gateway/bus/conformance_test.cpp) needs to run one set of
 // cases against every bus protocol: per protocol the table its servos speak, the rate, a
 // feedback block to read live, a RAM field the cases write, a field whose value is known
 // (the servo's ID) and the status bits a servo can report; plus a recorder of the frames the
@@ -21,7 +21,7 @@
 #include "gateway/bus/bus_engine.h"
 #include "protocol/instructions.h"
 #include "simulator/simulated_bus.h"
-#include "tests/gateway/bus_test_support.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway::conformance {
 
@@ -163,7 +163,7 @@ class WriteFlood {
   void stop() {
     state_->running = false;
     if (thread_.joinable()) thread_.join();
-    EXPECT_TRUE(testing::wait_until([&] { return state_->in_flight == 0; }, 5s)) << "writes of the flood unanswered";
+    EXPECT_TRUE(testing::eventually([&] { return state_->in_flight == 0; })) << "writes of the flood unanswered";
   }
   unsigned answered() const { return state_->answered.load(); }  // with Ok
   // answered(), callable from a completion even after the flood is gone.

@@ -17,7 +17,7 @@
 #include "gateway/gateway.h"
 #include "modbus_map/tables.h"
 #include "simulator/simulated_bus.h"
-#include "tests/e2e/modbus_client.h"
+#include "tests/support/modbus_client.h"
 
 namespace {
 
@@ -60,7 +60,7 @@ int run(const Kind& kind, const std::string& out_path) {
   const auto monitor = gateway.wire_monitor(0);
   gateway::MonitorReader reader(monitor);
   {
-    e2e::ModbusClient client(gateway.port(), 1);
+    sms::test::ModbusClient client(gateway.port(), 1);
     const auto written = client.write_register(kind.goal_address, kind.goal);
     if (!written.ok()) {
       std::cerr << "monitor_capture: the write of goal_position was refused (exception " << written.exception << ")\n";

@@ -8,7 +8,7 @@
 #include <thread>
 
 #include "gateway/bus/wire_monitor.h"
-#include "tests/gateway/router_fixture.h"
+#include "tests/support/simulated_gateway.h"
 
 namespace sms::gateway::testing {
 namespace {

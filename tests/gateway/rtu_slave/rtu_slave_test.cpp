@@ -8,7 +8,7 @@
 #include "config/load.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/rtu_slave/rtu_slave_port.h"
-#include "tests/gateway/metrics_http_client.h"
+#include "tests/support/metrics_http_client.h"
 
 namespace sms::gateway {
 namespace {
@@ -84,7 +84,7 @@ TEST(RtuSlaveMetrics, EachPortIsLabelledByItsDevice) {
   port.device = "/dev/ttyUSB2";
   port.open = false;
   snapshot.rtu_slaves.push_back(port);
-  const auto metrics = testing::parse_exposition(render_prometheus(snapshot));
+  const auto metrics = test::parse_exposition(render_prometheus(snapshot));
   EXPECT_TRUE(metrics.errors.empty()) << metrics.errors.front();
   EXPECT_EQ(metrics.value(R"(sms_gateway_rtu_slave_up{device="/dev/ttyUSB1"})"), "1");
   EXPECT_EQ(metrics.value(R"(sms_gateway_rtu_slave_up{device="/dev/ttyUSB2"})"), "0");
