@@ -9,6 +9,7 @@
 #   ... --suites protocol_tests,modbus_map_tests   # with --test-light: only these (the test command's form)
 #   scripts/cross.sh ARCH --simulate      # ... and check sms-gateway under qemu answers Modbus reads from the host
 #   scripts/cross.sh ARCH --deb OUTDIR    # ... and build the Debian package sms-gateway_VERSION_ARCH.deb into OUTDIR
+#                                         # from debian/ (dpkg-buildpackage -a ARCH; scripts/package.sh --arch ARCH)
 #   scripts/cross.sh ARCH --deps-only     # only install what the cross build needs (idempotent)
 #   scripts/cross.sh ARCH --ready         # exit 0 if all that is installed already, else 1 and what is missing
 #
@@ -24,7 +25,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$PWD
 
-usage() { sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'; }
 arch=${1:-}
 case "$arch" in
   arm64) triplet=aarch64-linux-gnu; qemu=qemu-aarch64-static; binfmt=qemu-aarch64; default_mode=multiarch ;;

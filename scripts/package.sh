@@ -18,7 +18,7 @@ while [ $# -gt 0 ]; do
     --install) install=1 ;;
     --arch) [ $# -ge 2 ] || { echo "package.sh: --arch needs an architecture (arm64, armhf)" >&2; exit 2; }
             arch=$2; shift ;;
-    -h|--help) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h|--help) sed -n '2,11p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     -*) echo "package.sh: unknown option '$1' (try --help)" >&2; exit 2 ;;
     *) [ -z "$out" ] || { echo "package.sh: one output directory, not '$out' and '$1'" >&2; exit 2; }
        out=$1 ;;
