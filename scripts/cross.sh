@@ -6,9 +6,12 @@
 #   scripts/cross.sh ARCH                 # ARCH = arm64 | armhf: cross-configure and build into build-ARCH/
 #   scripts/cross.sh ARCH --test          # ... and run the unit tests under qemu (all folders)
 #   scripts/cross.sh ARCH --test-light    # ... only the protocol, modbus_map and config suites (the light form)
+#   ... --suites protocol_tests,modbus_map_tests   # with --test-light: only these (the test command's form)
 #   scripts/cross.sh ARCH --simulate      # ... and check sms-gateway under qemu answers Modbus reads from the host
 #   scripts/cross.sh ARCH --deb OUTDIR    # ... and build the Debian package sms-gateway_VERSION_ARCH.deb into OUTDIR
+#                                         # from debian/ (dpkg-buildpackage -a ARCH; scripts/package.sh --arch ARCH)
 #   scripts/cross.sh ARCH --deps-only     # only install what the cross build needs (idempotent)
+#   scripts/cross.sh ARCH --ready         # exit 0 if all that is installed already, else 1 and what is missing
 #
 # Options combine (--test --simulate --deb out). Where the target's libraries come from:
 #   arm64: multiarch packages (dpkg --add-architecture arm64; /usr/lib/aarch64-linux-gnu);
@@ -22,7 +25,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$PWD
 
-usage() { sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'; }
 arch=${1:-}
 case "$arch" in
   arm64) triplet=aarch64-linux-gnu; qemu=qemu-aarch64-static; binfmt=qemu-aarch64; default_mode=multiarch ;;
@@ -31,7 +34,7 @@ case "$arch" in
   *) echo "cross.sh: first argument must be arm64 or armhf (try --help)" >&2; exit 2 ;;
 esac
 shift
-run_tests=none deb_dir= deps_only=0 simulate=0
+run_tests=none deb_dir= deps_only=0 simulate=0 ready_only=0 light_suites=(protocol_tests modbus_map_tests config_tests)
 while [ "$#" -gt 0 ]; do
   case "$1" in
     --test) run_tests=all ;;
@@ -40,6 +43,9 @@ while [ "$#" -gt 0 ]; do
     --deb) [ "$#" -ge 2 ] || { echo "cross.sh: --deb needs an output directory" >&2; exit 2; }
            mkdir -p "$2"; deb_dir=$(cd "$2" && pwd); shift ;;
     --deps-only) deps_only=1 ;;
+    --ready) ready_only=1 ;;
+    --suites) [ "$#" -ge 2 ] || { echo "cross.sh: --suites needs a list (protocol_tests,modbus_map_tests)" >&2; exit 2; }
+              IFS=, read -r -a light_suites <<<"$2"; shift ;;
     *) echo "cross.sh: unknown argument '$1' (try --help)" >&2; exit 2 ;;
   esac
   shift
@@ -63,6 +69,8 @@ target_dev_packages=(libboost-dev libmodbus-dev libspdlog-dev libfmt-dev libyaml
 # a prefix of its own instead (SMS_CROSS_PREFIXES).
 not_coinstallable=(libyaml-cpp-dev)
 
+# --ready: stop at the first thing that would have to be installed or made.
+not_ready() { ((ready_only)) || return 0; log "not ready: $*"; exit 1; }
 installed() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
 apt_install() {
   "${sudo_cmd[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq -o DPkg::Lock::Timeout=600 \
@@ -75,6 +83,7 @@ host_packages=(crossbuild-essential-"$arch" qemu-user-static cmake ninja-build p
 missing=()
 for p in "${host_packages[@]}"; do installed "$p" || missing+=("$p"); done
 if [ ${#missing[@]} -gt 0 ]; then
+  not_ready "${missing[*]} not installed"
   log "installing ${missing[*]}"
   "${sudo_cmd[@]}" apt-get update -qq -o DPkg::Lock::Timeout=600
   apt_install "${missing[@]}"
@@ -84,6 +93,7 @@ prefixes=()
 if [ "$mode" = multiarch ]; then
   # --- the target's libraries as multiarch packages ----------------------------------------------
   if ! dpkg --print-foreign-architectures | grep -qx "$arch"; then
+    not_ready "dpkg has no $arch architecture"
     log "dpkg --add-architecture $arch"
     "${sudo_cmd[@]}" dpkg --add-architecture "$arch"
     "${sudo_cmd[@]}" apt-get update -qq -o DPkg::Lock::Timeout=600 \
@@ -97,7 +107,10 @@ if [ "$mode" = multiarch ]; then
     installed "$p:$arch" || missing+=("$p:$arch")
   done
   installed "libyaml-cpp0.7:$arch" || missing+=("libyaml-cpp0.7:$arch")
+  # The target's pkg-config (/usr/bin/TRIPLET-pkg-config), which debhelper's cross build calls.
+  installed "pkgconf:$arch" || missing+=("pkgconf:$arch")
   if [ ${#missing[@]} -gt 0 ]; then
+    not_ready "${missing[*]} not installed"
     log "installing ${missing[*]}"
     apt_install "${missing[@]}"
   fi
@@ -105,6 +118,7 @@ if [ "$mode" = multiarch ]; then
     dir=$cache/$arch/prefix-$p
     version=$(apt-cache policy "$p:$arch" | awk '/Candidate:/ { print $2 }')
     if [ "$(cat "$dir/.version" 2>/dev/null)" != "$version" ]; then
+      not_ready "$p:$arch $version not unpacked into $dir"
       log "unpacking $p:$arch $version into $dir"
       rm -rf "$dir" && mkdir -p "$dir/debs"
       (cd "$dir/debs" && apt-get download -qq -o APT::Sandbox::User=root "$p:$arch=$version")
@@ -132,6 +146,7 @@ else
   sysroot_packages=("${target_dev_packages[@]}" libc6-dev libstdc++-12-dev libcli11-dev)
   want="${sysroot_packages[*]}"
   if [ "$(cat "$root/.packages" 2>/dev/null)" != "$want" ]; then
+    not_ready "no $arch sysroot in $sysroot"
     log "making the $arch sysroot in $sysroot"
     rm -rf "$root" && mkdir -p "$root/apt/lists/partial" "$root/apt/cache/archives/partial" "$sysroot" "$root/packages"
     : >"$root/apt/status"
@@ -164,6 +179,7 @@ APT
   export QEMU_LD_PREFIX=$sysroot
 fi
 export SMS_CROSS_PREFIXES="${prefixes[*]}"
+if ((ready_only)); then log "ready: the cross toolchain, qemu and the $arch libraries are installed"; exit 0; fi
 
 # --- running ARM programs: qemu directly, and through binfmt_misc for the programs the tests
 # start themselves. qemu-user-static's entries have the F flag (the interpreter is opened when
@@ -212,7 +228,6 @@ run_suites() {
   done
 }
 # The light suites first: they are what the test command runs, and they need no program.
-light_suites=(protocol_tests modbus_map_tests config_tests)
 programs=(sms-gateway sms-sim)
 if [ "$run_tests" = none ] && [ -z "$deb_dir" ] && ((simulate == 0)); then
   build_targets "${light_suites[@]}" "${programs[@]}"
@@ -221,15 +236,54 @@ if [ "$run_tests" != none ]; then
   build_targets "${light_suites[@]}"
   run_suites "${light_suites[@]}"
 fi
-if [ "$run_tests" = all ] || [ -n "$deb_dir" ] || ((simulate)); then
+# With --deb, --simulate checks the packaged sms-gateway instead of building build-ARCH's.
+if [ "$run_tests" = all ] || { ((simulate)) && [ -z "$deb_dir" ]; }; then
   build_targets "${programs[@]}"
 fi
+gateway_program=$build/bin/sms-gateway gateway_label="sms-gateway (build-$arch)"
 
-# --- the gateway under qemu answers Modbus reads from the host ----------------------------------
-# qemu-user emulates neither termios2 nor the Bxxx rates above 460800 bit/s (gateway/bus/
-# termios2_io.h): `--simulate`, whose bus runs at the sts factory rate of 1000000 bit/s, stops
-# there with that error. The same check then runs on a bus qemu can carry: the target's sms-sim on
-# a pty at 115200 bit/s, sms-gateway --config on it, both under qemu.
+# --- the Debian package: debian/ cross-built by scripts/package.sh (dpkg-buildpackage -a ARCH -B,
+# debian/rules adding the toolchain file). dpkg-buildpackage runs with -d, as dpkg-checkbuilddeps
+# cannot see what this script provides outside dpkg; checked here instead: every build dependency
+# it finds unmet must be one this script provides (the sysroot's packages, or the -dev package that
+# is not co-installable, unpacked into its prefix). dpkg-shlibdeps looks the target's libraries up
+# in the multiarch packages; in sysroot mode, in each library package unpacked with its DEBIAN/
+# (symbols, shlibs): SMS_DEB_SHLIBS_DIRS, given to dh_shlibdeps -l.
+build_deb() {
+  local unmet provided p missing=() t0
+  if [ "$mode" = multiarch ]; then provided=("${not_coinstallable[@]}"); else provided=("${sysroot_packages[@]}"); fi
+  unmet=$(dpkg-checkbuilddeps -a "$arch" 2>&1 | sed -n 's/.*Unmet build dependencies: //p' | sed 's/([^)]*)//g; s/|//g' || true)
+  for p in $unmet; do
+    [[ " ${provided[*]} " == *" ${p%%:*} "* ]] || missing+=("$p")
+  done
+  if [ ${#missing[@]} -gt 0 ]; then
+    log "--deb: build dependencies missing for $arch: ${missing[*]} (debian/control; this script provides ${provided[*]})"
+    exit 1
+  fi
+  export SMS_DEB_SHLIBS_DIRS=
+  if [ "$mode" = sysroot ]; then
+    SMS_DEB_SHLIBS_DIRS=$(find "$root/packages" -type d -path "*/lib/$triplet" -printf '%p:' | sed 's/:$//')
+  fi
+  t0=$(now)
+  SMS_CROSS_PREPARED=1 scripts/package.sh --arch "$arch" "$deb_dir" >/dev/null
+  log "dpkg-buildpackage -a $arch -B (build-deb/work-$arch) in $(elapsed "$t0") s"
+}
+if [ -n "$deb_dir" ]; then
+  rm -f "$deb_dir"/sms-gateway_*_"$arch".deb
+  build_deb
+  deb=$(ls "$deb_dir"/sms-gateway_*_"$arch".deb)
+  log "$deb: Architecture $(dpkg-deb -f "$deb" Architecture); Depends: $(dpkg-deb -f "$deb" Depends)"
+  gateway_program=$build/sms-gateway.from-deb gateway_label="sms-gateway (from $(basename "$deb"))"
+  dpkg-deb --fsys-tarfile "$deb" | tar -xOf - ./usr/bin/sms-gateway >"$gateway_program"
+  chmod +x "$gateway_program"
+  log "$deb: usr/bin/sms-gateway: $(file -b "$gateway_program" | cut -d, -f1-2)"
+fi
+
+# --- the gateway under qemu answers Modbus from the host ------------------------------------------
+# `sms-gateway --simulate` (6 sts servos at 1000000 bit/s on an in-process pty) under qemu: qemu-user
+# has no termios2, and the pty is left without a rate (gateway/bus/termios2_io.h). Mbpoll from the
+# host reads the version from unit 255, sees the servos online, writes a goal position and reads it
+# back, watches the simulated servo reach it; SIGTERM then stops the gateway with status 0.
 free_port() { /usr/bin/python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
 # read_registers PORT UNIT TYPE FIRST COUNT -> the values on one line (mbpoll -t 3 input, 4 holding)
 read_registers() {
@@ -244,97 +298,47 @@ wait_value() {  # wait_value SECONDS WANT PORT UNIT TYPE FIRST COUNT
     sleep 0.2
   done
 }
-pids=()
-stop_all() { local pid; for pid in "${pids[@]}"; do kill "$pid" 2>/dev/null || true; done; wait 2>/dev/null || true; pids=(); }
-if ((simulate)); then
-  trap stop_all EXIT
+simulate_check() {
+  local want port t0 first pid ok=1 why= unit goal status
   want=$(sed -n 's/^project(sms_gateway VERSION \([0-9.]*\).*/\1/p' CMakeLists.txt | tr . ' ')
   port=$(free_port)
   t0=$(now)
-  "${emulator[@]}" "$build/bin/sms-gateway" --simulate --listen "127.0.0.1:$port" >"$build/simulate.log" 2>&1 &
-  pids+=($!)
-  if wait_value 60 "$want" "$port" 255 3 0 3 >/dev/null && wait_value 20 1 "$port" 1 3 1001 1 >/dev/null; then
-    log "sms-gateway --simulate under $qemu: unit 255 input registers 0-2 = $want (the version) after $(elapsed "$t0") s; simulated servo unit 1 online"
-  elif grep -Eq '1000000 bit/s.*(Function not implemented|Inappropriate ioctl)' "$build/simulate.log"; then
-    log "sms-gateway --simulate under $qemu: stops at its 1000000 bit/s pty, which qemu-user cannot set:" \
-        "\"$(grep -m1 -E '1000000 bit/s' "$build/simulate.log" | cut -c1-160)\"; checking at 115200 bit/s instead"
+  "${emulator[@]}" "$gateway_program" --simulate --listen "127.0.0.1:$port" >"$build/simulate.log" 2>&1 &
+  pid=$!
+  # Stopped however this function ends (a check failing, the script interrupted).
+  trap 'kill $pid 2>/dev/null || true' EXIT
+  if ! wait_value 60 "$want" "$port" 255 3 0 3 >/dev/null; then
+    ok=0 why="no version from unit 255 within 60 s"
+  else
+    first=$(elapsed "$t0")
+    for unit in 1 2 3 4 5 6; do
+      wait_value 20 1 "$port" "$unit" 3 1001 1 >/dev/null || { ok=0 why="servo unit $unit not online"; }
+    done
+  fi
+  if ((ok)); then
+    # Re-arm the watchdog (coil 2 of unit 255 := 0; README "Try it"), then goal position
+    # (holding 42) := 3000 on unit 1; the simulated servo moves there (present position, input 56).
+    mbpoll -m tcp -p "$port" -a 255 -0 -t 0 -r 2 -1 -o 1 127.0.0.1 0 >/dev/null 2>&1 || { ok=0 why="re-arming the watchdog"; }
+    mbpoll -m tcp -p "$port" -a 1 -0 -t 4 -r 42 -1 -o 1 127.0.0.1 3000 >/dev/null 2>&1 || { ok=0 why="FC06 goal position 3000 to unit 1"; }
+    goal=$(read_registers "$port" 1 4 42 1)
+    [ "$goal" = 3000 ] || { ok=0 why="unit 1 goal position reads '$goal' after writing 3000"; }
+    wait_value 30 3000 "$port" 1 3 56 1 >/dev/null || { ok=0 why="unit 1 present position did not reach 3000 within 30 s"; }
+  fi
+  kill -TERM "$pid" 2>/dev/null || true
+  status=0
+  wait "$pid" || status=$?
+  trap - EXIT
+  if ((ok)) && [ "$status" = 0 ]; then
+    log "$gateway_label --simulate under $qemu: unit 255 input registers 0-2 = $want (the version) after $first s;" \
+        "servo units 1-6 online; FC06 goal position 3000 to unit 1 read back, present position reached it;" \
+        "SIGTERM: exit status 0"
   else
     tail -20 "$build/simulate.log" >&2
-    log "sms-gateway --simulate under $qemu: FAILED"
+    log "$gateway_label --simulate under $qemu: FAILED: ${why:-exit status $status after SIGTERM} (log: $build/simulate.log)"
     failed=1
   fi
-  stop_all
-
-  dir=$build/qemu-check
-  rm -rf "$dir" && mkdir -p "$dir"
-  "${emulator[@]}" "$build/bin/sms-sim" --protocol feetech --table sts --ids 1-3 --baud 115200 --link "$dir/ttySIM0" \
-    >"$dir/sim.log" 2>&1 &
-  pids+=($!)
-  for _ in $(seq 100); do [ -e "$dir/ttySIM0" ] && break; sleep 0.1; done
-  port=$(free_port)
-  cat >"$dir/config.yaml" <<YAML
-modbus_tcp:
-  listen: 127.0.0.1:$port
-buses:
-  - name: qemu
-    device: $dir/ttySIM0
-    protocol: feetech
-    baud: 115200
-servos:
-  - {bus: qemu, id: 1, table: sts}
-  - {bus: qemu, id: 2, table: sts}
-  - {bus: qemu, id: 3, table: sts}
-YAML
-  t0=$(now)
-  "${emulator[@]}" "$build/bin/sms-gateway" --config "$dir/config.yaml" >"$dir/gateway.log" 2>&1 &
-  pids+=($!)
-  ok=1
-  wait_value 60 "$want" "$port" 255 3 0 3 >/dev/null || ok=0
-  first=$(elapsed "$t0")
-  for unit in 1 2 3; do wait_value 20 1 "$port" "$unit" 3 1001 1 >/dev/null || ok=0; done
-  # sts address 42 = goal position: a write through the gateway to the servo, read back live.
-  mbpoll -m tcp -p "$port" -a 2 -0 -t 4 -r 42 -1 -o 1 127.0.0.1 1234 >/dev/null 2>&1 || ok=0
-  goal=$(read_registers "$port" 2 4 42 1)
-  [ "$goal" = 1234 ] || ok=0
-  stop_all
-  trap - EXIT
-  if ((ok)); then
-    log "sms-gateway --config under $qemu, sms-sim under $qemu on a pty at 115200 bit/s: unit 255 input registers 0-2 = $want" \
-        "after $first s; servo units 1-3 online; FC06 goal position 1234 to unit 2 acknowledged and read back"
-  else
-    tail -10 "$dir/gateway.log" "$dir/sim.log" >&2
-    log "sms-gateway under $qemu at 115200 bit/s: FAILED (goal position read back: '${goal:-no answer}')"
-    failed=1
-  fi
-fi
-
-# --- the Debian package ----------------------------------------------------------------------------
-# dpkg-architecture -a sets DEB_HOST_ARCH and friends, so dpkg-shlibdeps looks up the target's
-# libraries and the packages they come from. With a debian/ directory, the cpack line becomes
-#   dpkg-architecture -a "$arch" -c dpkg-buildpackage -a "$arch" -b -us -uc
-# (the .deb is then in the parent directory of the source tree).
-build_deb() {
-  local shlib_dirs=
-  if [ "$mode" = sysroot ]; then
-    # Each library package unpacked with its DEBIAN/ (symbols, shlibs): dpkg-shlibdeps takes the
-    # dependency from there for a library that no installed package owns.
-    shlib_dirs=$(find "$root/packages" -type d -path "*/lib/$triplet" -printf '%p;' | sed 's/;$//')
-  fi
-  if [ ! -f "$build/CPackConfig.cmake" ]; then
-    echo "cross.sh: --deb: the package is made from debian/ by dpkg-buildpackage now (scripts/package.sh); its" \
-         "cross form (dpkg-buildpackage -a $arch) is not wired here yet — see docs/ARM.md" >&2
-    exit 2
-  fi
-  (cd "$build" && dpkg-architecture -a "$arch" -c cpack -G DEB -D CPACK_DEBIAN_PACKAGE_ARCHITECTURE="$arch" \
-     -D CPACK_DEBIAN_PACKAGE_SHLIBDEPS_PRIVATE_DIRS="$shlib_dirs" >/dev/null)
 }
-if [ -n "$deb_dir" ]; then
-  rm -f "$build"/sms-gateway_*_"$arch".deb
-  build_deb
-  deb=$(ls "$build"/sms-gateway_*_"$arch".deb)
-  cp "$deb" "$deb_dir/"
-  log "$deb_dir/$(basename "$deb"): Architecture $(dpkg-deb -f "$deb" Architecture); Depends: $(dpkg-deb -f "$deb" Depends)"
-fi
+((simulate)) && simulate_check
 
 # --- the suites that run serial lines on ptys; their tests also start sms-sim and sms-gateway
 # (through binfmt_misc). A case whose failure carries the error of a termios2 call failed only

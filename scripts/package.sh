@@ -7,14 +7,18 @@
 #
 #   scripts/package.sh [OUTPUT_DIR]              # OUTPUT_DIR/sms-gateway_VERSION_ARCH.deb
 #   scripts/package.sh --install [OUTPUT_DIR]    # ... and `apt-get install` it here (root or sudo)
+#   scripts/package.sh --arch arm64 [OUTPUT_DIR] # the same packaging cross-built for arm64 or armhf
+#                                                # (dpkg-buildpackage -a ARCH, through scripts/cross.sh)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-install=0 out=
+install=0 out= arch=
 while [ $# -gt 0 ]; do
   case "$1" in
     --install) install=1 ;;
-    -h|--help) sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --arch) [ $# -ge 2 ] || { echo "package.sh: --arch needs an architecture (arm64, armhf)" >&2; exit 2; }
+            arch=$2; shift ;;
+    -h|--help) sed -n '2,11p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     -*) echo "package.sh: unknown option '$1' (try --help)" >&2; exit 2 ;;
     *) [ -z "$out" ] || { echo "package.sh: one output directory, not '$out' and '$1'" >&2; exit 2; }
        out=$1 ;;
@@ -22,6 +26,15 @@ while [ $# -gt 0 ]; do
   shift
 done
 out=${out:-build-deb}
+
+# A cross build: scripts/cross.sh installs the cross toolchain and the target's libraries (or makes
+# its sysroot), checks the target's build dependencies, and comes back here with SMS_CROSS_PREPARED.
+native=$(dpkg --print-architecture)
+[ "${arch:-$native}" != "$native" ] || arch=
+if [ -n "$arch" ]; then
+  ((install == 0)) || { echo "package.sh: --install installs on this $native machine: not with --arch $arch" >&2; exit 2; }
+  [ -n "${SMS_CROSS_PREPARED:-}" ] || exec ./scripts/cross.sh "$arch" --deb "$out"
+fi
 
 ./scripts/install-deps.sh
 sudo_cmd=()
@@ -35,15 +48,21 @@ done
 # dpkg-buildpackage writes its results next to the source tree: it builds a copy of the committed
 # files plus the working tree's changes in build-deb/work/src (a fixed path, so ccache can hit),
 # and neither the tree nor its parent collects build files.
-work=$PWD/build-deb/work
+work=$PWD/build-deb/work${arch:+-$arch}
 rm -rf "$work" && mkdir -p "$work/src"
 git ls-files -z --cached --others --exclude-standard | xargs -0 cp --parents -t "$work/src" 2>/dev/null ||
   tar --exclude='./build*' --exclude=./.git -cf - . | tar -xf - -C "$work/src"
-(cd "$work/src" && dpkg-buildpackage -b -us -uc -j"$(nproc)") >"$work/build.log" 2>&1 ||
+# Cross: the architecture-dependent package only (-B), no tests (nocheck: they run under qemu in
+# scripts/cross.sh --test), and -d: dpkg-checkbuilddeps cannot see what cross.sh provides outside
+# dpkg (the sysroot, the unpacked -dev package that is not co-installable); cross.sh checked it.
+build=(dpkg-buildpackage -b -us -uc -j"$(nproc)")
+[ -z "$arch" ] ||
+  build=(env DEB_BUILD_OPTIONS="nocheck ${DEB_BUILD_OPTIONS:-}" dpkg-buildpackage -a "$arch" -B -d -us -uc -j"${SMS_CROSS_JOBS:-2}")
+(cd "$work/src" && "${build[@]}") >"$work/build.log" 2>&1 ||
   { tail -50 "$work/build.log" >&2; echo "package.sh: dpkg-buildpackage failed ($work/build.log)" >&2; exit 1; }
 mkdir -p "$out"
 cp "$work"/*.deb "$work"/*.buildinfo "$work"/*.changes "$out"/
-deb=$(ls "$out"/sms-gateway_*_*.deb | grep -v dbgsym | head -1)
+deb=$(ls "$out"/sms-gateway_*_"${arch:-$native}".deb | head -1)
 echo "package.sh: $deb"
 if ((install)); then
   "${sudo_cmd[@]}" apt-get install -y "$(realpath "$deb")"

@@ -10,7 +10,8 @@ namespace sms::simulator {
 // Throws std::system_error naming the fd and the rate.
 void configure_raw_serial(int fd, std::uint32_t baud);
 
-// The output bit rate set on the tty behind `fd`. Throws std::system_error.
+// The output bit rate set on the tty behind `fd`; 0 when it holds none (a pty where termios2 is
+// missing: tty/termios2_io.h). Throws std::system_error.
 std::uint32_t line_speed(int fd);
 
 }  // namespace sms::simulator

@@ -294,7 +294,10 @@ void SimulatedBus::Impl::close_line() {
 
 std::uint32_t SimulatedBus::Impl::current_speed() const {
   try {
-    return line_speed(line_fd_);
+    // A pty left without a rate (an emulator without termios2) carries the servos' own rate: the
+    // rate a host set cannot be told there, so a wrong one goes unnoticed under emulation only.
+    const std::uint32_t speed = line_speed(line_fd_);
+    return speed != 0 ? speed : slots_.front().servo->baud();
   } catch (const std::system_error&) {
     return slots_.front().servo->baud();
   }

@@ -23,6 +23,10 @@ if(SMS_CROSS_SYSROOT)
   set(CMAKE_FIND_ROOT_PATH_MODE_LIBRARY ONLY)
   set(CMAKE_FIND_ROOT_PATH_MODE_INCLUDE ONLY)
   set(CMAKE_FIND_ROOT_PATH_MODE_PACKAGE ONLY)
+  # The build machine's pkg-config, pointed at the sysroot: the target's pkg-config wrapper comes
+  # with the target's pkgconf package, which is in the sysroot, not on the machine (debhelper's
+  # cross build names it all the same: replaced here).
+  set(PKG_CONFIG_EXECUTABLE pkg-config CACHE FILEPATH "pkg-config, with the sysroot's search path" FORCE)
   set(ENV{PKG_CONFIG_SYSROOT_DIR} ${SMS_CROSS_SYSROOT})
   set(ENV{PKG_CONFIG_LIBDIR} "${SMS_CROSS_SYSROOT}/usr/lib/${SMS_CROSS_TRIPLET}/pkgconfig:${SMS_CROSS_SYSROOT}/usr/share/pkgconfig")
   set(CMAKE_CROSSCOMPILING_EMULATOR ${SMS_CROSS_QEMU} -L ${SMS_CROSS_SYSROOT})

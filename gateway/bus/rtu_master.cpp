@@ -201,7 +201,7 @@ Expected<Ok> RtuMaster::open() {
   modbus_set_byte_timeout(context, seconds, micros);
   modbus_set_error_recovery(context, MODBUS_ERROR_RECOVERY_NONE);
   std::uint32_t actual = 0;
-  if (detail::read_line_speed(fd, actual) == 0 && actual != serial.baud) {
+  if (detail::read_line_speed(fd, actual) == 0 && actual != 0 && actual != serial.baud) {
     spdlog::warn("{}: the driver runs the line at {} bit/s instead of {}", serial.device, actual, serial.baud);
   }
   line_->context = context;

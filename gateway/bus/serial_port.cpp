@@ -13,6 +13,8 @@
 #include <string>
 #include <utility>
 
+#include <spdlog/spdlog.h>
+
 #include "gateway/bus/serial_port_termios2.h"
 #include "gateway/bus/wire_monitor.h"
 
@@ -95,6 +97,13 @@ Expected<Ok> SerialPort::open() {
   if (const int error = detail::read_line_speed(fd, actual); error != 0) {
     ::close(fd);
     return unexpected(describe_errno("cannot read back the line settings of", error));
+  }
+  if (actual == 0) {
+    // Only a pseudo-terminal is left without a rate, where termios2 is missing (tty/termios2_io.h).
+    spdlog::debug("serial device {} is a pseudo-terminal that holds no bit rate (termios2 is missing: an emulator "
+                  "such as qemu-user); no wire behind it, so timing goes by the configured {} bit/s",
+                  settings_.device, settings_.baud);
+    actual = settings_.baud;
   }
   ::tcflush(fd, TCIOFLUSH);
   fd_ = fd;

@@ -14,7 +14,8 @@ namespace sms::gateway::detail {
 // receiver on, modem lines ignored, VMIN 1 / VTIME 0. Returns 0 or the errno of the ioctl.
 int configure_raw_line(int fd, std::uint32_t baud, config::Parity parity, std::uint8_t stop_bits);
 
-// The output rate the driver holds now. Returns 0 or the errno of the ioctl.
+// The output rate the driver holds now; 0 for a pseudo-terminal left without one where termios2
+// is missing (tty/termios2_io.h). Returns 0 or the errno of the ioctl.
 int read_line_speed(int fd, std::uint32_t& baud);
 
 }  // namespace sms::gateway::detail

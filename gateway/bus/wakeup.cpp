@@ -27,8 +27,10 @@ void Wakeup::notify() {
 void Wakeup::wait(std::optional<std::chrono::steady_clock::time_point> deadline) {
   // An EINTR simply returns: every caller waits in a loop that looks at its state again.
   if (detail::poll_input_until(fd_, deadline) > 0) {
+    // Consumes every notify() so far. A failed read (EINTR, or EAGAIN when another waiter took
+    // the count) leaves nothing to do: the caller looks at its state again either way.
     std::uint64_t count = 0;
-    (void)::read(fd_, &count, sizeof count);  // consumes every notify() so far
+    if (::read(fd_, &count, sizeof count) < 0) return;
   }
 }
 
