@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# The one command that runs every test: installs dependencies, builds with clang and
-# AddressSanitizer + UndefinedBehaviorSanitizer into build-asan/, runs ctest; then builds the
+# The one command that runs every test: installs dependencies; checks the format of every C++
+# file (scripts/format.sh --check, .clang-format); builds with clang and AddressSanitizer +
+# UndefinedBehaviorSanitizer into build-asan/ and runs clang-tidy over the product's sources
+# (scripts/tidy.sh, .clang-tidy; unchanged files that passed are not checked again), runs ctest; then builds the
 # libFuzzer targets with clang into build-fuzz/ and runs each briefly (SMS_SKIP_FUZZ=1 skips them;
 # scripts/fuzz.sh is the longer run); then a ThreadSanitizer build of the gateway's unit tests
 # runs the threaded suites again (SMS_SKIP_TSAN=1 skips it).
@@ -11,6 +13,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install-deps.sh
+# First the checks that take seconds: a file off the house format fails the run before the build.
+./scripts/format.sh --check
 jobs=$(nproc)
 # A build-asan/ configured with another compiler is configured anew (CMake cannot switch in place).
 if [ -f build-asan/CMakeCache.txt ] && ! grep -q '^CMAKE_CXX_COMPILER:[A-Z]*=.*clang++' build-asan/CMakeCache.txt; then
@@ -19,6 +23,7 @@ fi
 cmake -S . -B build-asan -G Ninja -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug -DSMS_SANITIZE=ON -DSMS_WERROR=ON \
   -DSMS_BUILD_BENCH=OFF >/dev/null
 cmake --build build-asan -j "$jobs"
+./scripts/tidy.sh build-asan
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
 export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 ctest --test-dir build-asan --output-on-failure -j "$jobs" "$@"
