@@ -62,6 +62,9 @@ class Gateway {
   MetricsSnapshot metrics() const;
   // The metrics endpoint's bound port; 0 when it is off.
   std::uint16_t metrics_port() const;
+  // The browser console's bound port and address ("http://127.0.0.1:8080/"); 0 / empty when it is off.
+  std::uint16_t console_port() const;
+  std::string console_url() const;
 
  private:
   class Impl;

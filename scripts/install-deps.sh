@@ -12,6 +12,7 @@ packages=(
   clang libclang-rt-14-dev
   mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio
   debhelper help2man pandoc man-db
+  libsodium-dev nlohmann-json3-dev libjs-chart.js chromium chromium-driver python3-selenium
 )
 
 missing=()
