@@ -182,6 +182,53 @@ class ConsoleTest(ConsoleCase):
         answer = self.fetch("POST", "/api/servo/1/write", {"field": "no_such_field", "value": 1})
         self.assertEqual(answer["status"], 400, answer)
 
+    def test_i_bad_input_gets_a_clear_error_and_modbus_keeps_serving(self):
+        import socket
+        def exchange(data, read=True):
+            with socket.create_connection(("127.0.0.1", self.console_port), timeout=5) as s:
+                s.sendall(data)
+                if not read:
+                    return b""
+                reply = b""
+                try:
+                    while True:
+                        chunk = s.recv(65536)
+                        if not chunk:
+                            break
+                        reply += chunk
+                except (socket.timeout, ConnectionResetError):
+                    pass
+                return reply
+        self.assertIn(b"400", exchange(b"BREW /pot HTCPCP/1.0\r\n\r\n").split(b"\r\n")[0])
+        self.assertIn(b"431", exchange(b"GET / HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 20000 + b"\r\n\r\n").split(b"\r\n")[0])
+        big = b"POST /api/login HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
+        self.assertIn(b"413", exchange(big + b"{" * 100000).split(b"\r\n")[0])
+        self.assertIn(b"404", exchange(b"GET /nowhere HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").split(b"\r\n")[0])
+        # A WebSocket frame that says it carries 2^62 bytes: the connection is closed, nothing else happens.
+        self.login("viewer")
+        cookie = self.browser.get_cookie("sms_console")["value"]
+        csrf = self.browser.execute_script("return fetch('/api/session').then(r => r.json()).then(s => s.csrf)")
+        upgrade = (f"GET /ws/overview?csrf={csrf} HTTP/1.1\r\nHost: 127.0.0.1:{self.console_port}\r\n"
+                   f"Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                   f"Sec-WebSocket-Version: 13\r\nCookie: sms_console={cookie}\r\n\r\n").encode()
+        with socket.create_connection(("127.0.0.1", self.console_port), timeout=5) as s:
+            s.sendall(upgrade)
+            self.assertIn(b"101", s.recv(4096).split(b"\r\n")[0])
+            s.sendall(bytes([0x81, 0xFF]) + (1 << 62).to_bytes(8, "big") + b"\x00\x00\x00\x00" + b"x" * 64)
+            s.settimeout(5)
+            closed = False
+            try:
+                while s.recv(65536):
+                    pass
+                closed = True
+            except ConnectionResetError:
+                closed = True
+            self.assertTrue(closed)
+        client = self.modbus()
+        answer = client.read_input_registers(56, 2, slave=1)
+        self.assertFalse(answer.isError(), answer)
+        client.close()
+
     # --- helpers ----------------------------------------------------------------------------------
 
     def text(self, css):
