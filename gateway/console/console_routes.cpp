@@ -5,6 +5,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "gateway/console/console_commission.h"
 #include "gateway/console/console_view.h"
 #include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/modbus_tcp/role_policy.h"
@@ -448,6 +449,7 @@ const Route kRoutes[] = {
     {"GET", "/", Role::Read, RouteKind::Page, "overview.html"},
     {"GET", "/servo/{unit}", Role::Read, RouteKind::Page, "servo.html"},
     {"GET", "/login", kAnyone, RouteKind::Page, "login.html"},
+    {"GET", "/commission", Role::Read, RouteKind::Page, "commission.html"},
     {"GET", "/static/{file}", kAnyone, RouteKind::Page, ""},
     // JSON.
     {"GET", "/api/session", kAnyone, RouteKind::Api, {}, api_session},
@@ -458,6 +460,13 @@ const Route kRoutes[] = {
     {"POST", "/api/servo/{unit}/write", Role::Operate, RouteKind::Api, {}, api_servo_write},
     {"POST", "/api/estop", Role::Operate, RouteKind::Api, {}, api_estop},
     {"POST", "/api/rearm", Role::Operate, RouteKind::Api, {}, api_rearm},
+    // Commissioning (engineer): a line no bus owns, through the integrator tools' code.
+    {"GET", "/api/commission", Role::Read, RouteKind::Api, {}, api_commission_state},
+    {"GET", "/api/commission/config.yaml", Role::Read, RouteKind::Api, {}, api_commission_config},
+    {"POST", "/api/commission/scan", Role::Engineer, RouteKind::Api, {}, api_commission_scan},
+    {"POST", "/api/commission/set-id", Role::Engineer, RouteKind::Api, {}, api_commission_set_id},
+    {"POST", "/api/commission/set-baud", Role::Engineer, RouteKind::Api, {}, api_commission_set_baud},
+    {"POST", "/api/commission/calibrate", Role::Engineer, RouteKind::Api, {}, api_commission_calibrate},
     // Live data.
     {"GET", "/ws/overview", Role::Read, RouteKind::Socket, {}, nullptr, make_overview_stream},
     {"GET", "/ws/servo/{unit}", Role::Read, RouteKind::Socket, {}, nullptr, make_servo_stream},

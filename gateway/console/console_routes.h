@@ -51,6 +51,8 @@ struct ModbusAnswer {
 };
 
 // The gateway as handlers and streams see it. Console thread only.
+class Commissioning;
+
 class Services {
  public:
   virtual ~Services() = default;
@@ -60,6 +62,8 @@ class Services {
   // The overview's JSON, made at most once per push period whoever asks.
   virtual const nlohmann::json& overview() = 0;
   virtual SessionStore& sessions() = 0;
+  // The commissioning jobs (console_commission.h).
+  virtual Commissioning& commissioning() = 0;
   // Set-Cookie text for a session token (empty: clears the cookie).
   virtual std::string session_cookie(const std::string& token) const = 0;
   // A Modbus request made as `who`: first the role policy of Modbus/TCP Security (refused: an

@@ -22,6 +22,7 @@
 #include <boost/beast/websocket/ssl.hpp>
 #include <spdlog/spdlog.h>
 
+#include "gateway/console/console_commission.h"
 #include "gateway/console/console_routes.h"
 #include "gateway/console/console_view.h"
 #include "gateway/console/web_assets.h"
@@ -134,6 +135,7 @@ class ConsoleServer::Impl final : public Services {
         rules_(access_rules(settings_)),
         policy_(*backend_.config),
         sessions_(settings_.session_timeout),
+        commissioning_(*backend_.config),
         acceptor_(io_),
         timer_(io_),
         mailbox_(std::make_shared<Mailbox>()) {}
@@ -189,6 +191,7 @@ class ConsoleServer::Impl final : public Services {
   const config::ConsoleConfig& settings() const override { return settings_; }
   const UnitRouter& units() const override { return *backend_.units; }
   SessionStore& sessions() override { return sessions_; }
+  Commissioning& commissioning() override { return commissioning_; }
 
   const nlohmann::json& overview() override {
     const auto now = SteadyClock::now();
@@ -421,6 +424,7 @@ class ConsoleServer::Impl final : public Services {
   const AccessRules rules_;
   const RolePolicy policy_;
   SessionStore sessions_;
+  Commissioning commissioning_;
   std::shared_ptr<ssl::context> ssl_;
   std::string chart_js_;
   nlohmann::json overview_;

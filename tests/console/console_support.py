@@ -35,11 +35,12 @@ def wait_until(predicate, timeout=5.0, step=0.05, what="condition"):
 class Simulator:
     """sms-sim with --control: its own state is the witness of what reached the servos."""
 
-    def __init__(self, bin_dir, workdir, ids):
-        self.link = os.path.join(workdir, "ttySIM")
-        self.control = os.path.join(workdir, "sim.sock")
+    def __init__(self, bin_dir, workdir, ids, name="sim", extra=()):
+        self.link = os.path.join(workdir, "tty-" + name)
+        self.control = os.path.join(workdir, name + ".sock")
         self.process = subprocess.Popen([os.path.join(bin_dir, "sms-sim"), "--ids", ids, "--link", self.link,
-                                         "--control", self.control], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                                         "--control", self.control, *extra],
+                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         self.process.stdout.readline()  # the pty path: the bus is up
         wait_until(lambda: os.path.exists(self.control), what="the simulator's control socket")
 
@@ -81,6 +82,8 @@ class ConsoleCase(unittest.TestCase):
         cls.bin_dir = os.environ["SMS_BIN_DIR"]
         cls.workdir = tempfile.mkdtemp(prefix="sms-console-")
         cls.sim = Simulator(cls.bin_dir, cls.workdir, cls.servo_ids)
+        # A second line no bus owns, for the commissioning page: servos 4 and 9 at 115200 bit/s.
+        cls.free_line = Simulator(cls.bin_dir, cls.workdir, "4,9", "free", ("--baud", "115200"))
         cls.modbus_port = free_port()
         cls.console_port = free_port()
         hashes = {}
@@ -135,8 +138,9 @@ class ConsoleCase(unittest.TestCase):
             cls.log.close()
             if cls.gateway.returncode != 0:
                 sys.stderr.write(open(os.path.join(cls.workdir, "gateway.log")).read())
-        if hasattr(cls, "sim"):
-            cls.sim.stop()
+        for sim in ("sim", "free_line"):
+            if hasattr(cls, sim):
+                getattr(cls, sim).stop()
         shutil.rmtree(cls.workdir, ignore_errors=True)
 
     # --- browser helpers ---------------------------------------------------------------------------

@@ -229,6 +229,41 @@ class ConsoleTest(ConsoleCase):
         self.assertFalse(answer.isError(), answer)
         client.close()
 
+    def test_j_commissioning_scans_a_free_line_and_sets_an_id(self):
+        import os
+        import subprocess
+        self.login("eng")
+        self.open("/commission", "#scan:not([disabled])")
+        # A line the gateway's bus owns is refused.
+        self.browser.find_element(By.ID, "device").send_keys(self.sim.link)
+        self.browser.find_element(By.ID, "scan").click()
+        wait_until(lambda: "bus `arm`" in self.text("#message"), what="the refusal of the bus's own line")
+        device = self.browser.find_element(By.ID, "device")
+        device.clear()
+        device.send_keys(self.free_line.link)
+        self.browser.find_element(By.ID, "bauds").send_keys("1000000, 115200")
+        self.browser.find_element(By.ID, "last-id").send_keys("12")
+        self.browser.find_element(By.ID, "scan").click()
+        wait_until(lambda: self.browser.execute_script(
+            "return [...document.querySelectorAll('#found-table tr[data-id]')].map(r => r.dataset.id).join(',')") == "4,9",
+                   timeout=30, what="servos 4 and 9 in the scan's result")
+        # The downloadable configuration is one --check-config accepts.
+        yaml = self.browser.execute_async_script(
+            "fetch('/api/commission/config.yaml').then(r => r.text()).then(arguments[0])")
+        path = os.path.join(self.workdir, "scanned.yaml")
+        with open(path, "w") as f:
+            f.write(yaml)
+        check = subprocess.run([os.path.join(self.bin_dir, "sms-gateway"), "--check-config", path],
+                               capture_output=True, text=True)
+        self.assertEqual(check.returncode, 0, check.stdout + check.stderr + yaml)
+        self.assertIn("2 servo(s)", check.stdout)
+        # Set ID 9 -> 10; the simulator's own list is the witness.
+        self.browser.find_element(By.CSS_SELECTOR, "#found-table tr[data-id='9'] input.new-id").send_keys("10")
+        self.browser.find_element(By.CSS_SELECTOR, "#found-table tr[data-id='9'] button.set-id").click()
+        wait_until(lambda: self._alert(), what="the confirmation").accept()
+        wait_until(lambda: "10:sts" in self.free_line.command("list"), timeout=15, what="servo 9 to answer as 10")
+        self.assertNotIn("9:sts", self.free_line.command("list"))
+
     # --- helpers ----------------------------------------------------------------------------------
 
     def text(self, css):

@@ -80,7 +80,8 @@ export async function header(active) {
   const me = await session();
   csrf = me.csrf;
   const bar = document.querySelector('header');
-  const nav = element('nav', {}, element('a', { href: '/', class: active === 'overview' ? 'active' : '' }, 'Overview'));
+  const nav = element('nav', {}, element('a', { href: '/', class: active === 'overview' ? 'active' : '' }, 'Overview'),
+    element('a', { href: '/commission', class: active === 'commission' ? 'active' : '' }, 'Commissioning'));
   const estop = element('button', { id: 'estop', title: 'Stops every servo on every bus and refuses motion until reset' }, 'E-STOP');
   estop.disabled = !allows(me.role, 'operate');
   if (estop.disabled) estop.title = 'needs the operate role';
