@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 
+#include "gateway/bus/discovery.h"
 #include "gateway/modbus_tcp/role_policy.h"
 #include "modbus_map/tables.h"
 #include "protocol/feetech.h"
@@ -45,11 +46,6 @@ std::string_view access_text(modbus_map::Access access) {
     case modbus_map::Access::ReadWrite: return "RW";
   }
   return "?";
-}
-
-std::string identity_text(std::optional<std::uint16_t> value) {
-  if (!value) return "";
-  return std::to_string(*value >> 8) + "." + std::to_string(*value & 0xFF);
 }
 
 }  // namespace
@@ -210,8 +206,10 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
                 {"table", std::string(unit->map.servo_table().name)}};
     const auto state = unit->engine->cache().state(unit->servo_id);
     if (state) {
-      row["model"] = identity_text(state->identity.model);
-      row["firmware"] = identity_text(state->identity.firmware);
+      // As discovery's log line shows them: "10760 (SM40BL)", "3.10".
+      const IdentityLayout* layout = identity_layout(unit->map.servo_table().id);
+      row["model"] = format_identity_value(layout, true, state->identity.model);
+      row["firmware"] = format_identity_value(layout, false, state->identity.firmware);
     }
     if (const auto polled = read_polled(*unit)) {
       row["online"] = polled->online;
