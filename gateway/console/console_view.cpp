@@ -194,6 +194,8 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
                      {"poll_wire_floor_us", poll_wire_floor_us(config, b, units)},
                      {"poll_cycles", bus.counters.poll_cycles},
                      {"timeouts", bus.counters.timeouts},
+                     {"queue_depth", config.modbus_tcp.request_queue_depth},
+                     {"queue_full", bus.counters.queue_full},
                      {"safety", safety}});
   }
   for (const auto& servo : config.servos) {

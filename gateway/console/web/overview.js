@@ -43,6 +43,7 @@ function render(data) {
       element('td', { class: 'num' }, (bus.poll_cycle_us / 1000).toFixed(2) + ' ms'),
       element('td', { class: 'num' }, (bus.poll_wire_floor_us / 1000).toFixed(2) + ' ms'),
       element('td', { class: 'num' }, rate.toFixed(1)),
+      element('td', { class: 'num', title: `refused with 0x06 (queue depth ${bus.queue_depth})` }, bus.queue_full),
       element('td', { class: safety && safety.watchdog === 'tripped' ? 'bad' : '' }, watchdog),
       element('td', { class: safety && safety.motion_blocked ? 'bad' : 'ok' }, safety && safety.motion_blocked ? 'blocked' : 'allowed'));
   }));
