@@ -381,10 +381,9 @@ class ServoStream final : public Stream {
                      write_register_pdu(entry->address, static_cast<std::uint16_t>(static_cast<std::int16_t>(jog_value_))),
                      [this, alive = alive_](ModbusAnswer answer) {
                        if (!*alive || answer.ok() || !jog_) return;
-                       // Refused (e-stop, watchdog, bus): the move is over.
-                       jog_ = false;
-                       jog_reason_ = "refused: " + answer.message;
-                       state_changed_ = true;
+                       // Refused (e-stop, watchdog) or lost (a timeout): the move is over, and the
+                       // goal an earlier write set must not carry it on.
+                       stop_jog("the goal write failed: " + answer.message);
                      });
   }
 
@@ -396,19 +395,38 @@ class ServoStream final : public Stream {
     jog_reason_ = std::move(reason);
     state_changed_ = true;
     spdlog::info("console: hold-to-run on unit {} stopped ({}) for {}", unit_.unit_id, jog_reason_, who_.name);
-    if (jog_speed_) {
-      services_.modbus(who_, unit_.unit_id, write_register_pdu(goal_speed_->address, 0), [](ModbusAnswer) {});
-      return;
-    }
+    if (jog_speed_) return send_stop(services_, who_, unit_.unit_id, goal_speed_->address, 0, kStopAttempts);
     if (present_position_ == nullptr) return;
     Services& services = services_;
     const Principal who = who_;
-    const std::uint8_t unit_id = unit_.unit_id;
+    const ServoUnit* unit = &unit_;
     const std::uint16_t goal = goal_position_->address;
-    services.modbus(who, unit_id, read_registers_pdu(present_position_->address, 1),
-                    [&services, who, unit_id, goal](ModbusAnswer answer) {
-                      if (!answer.ok()) return;  // the servo is silent or the bus down: safety's watchdog/owed stop cover it
-                      services.modbus(who, unit_id, write_register_pdu(goal, registers_in(answer.pdu).at(0)), [](ModbusAnswer) {});
+    const std::string present = std::string(present_position_->shown->name);
+    services.modbus(who, unit->unit_id, read_registers_pdu(present_position_->address, 1),
+                    [&services, who, unit, goal, present](ModbusAnswer answer) {
+                      std::optional<std::uint16_t> position;
+                      if (answer.ok()) {
+                        position = registers_in(answer.pdu).at(0);
+                      } else if (const auto polled = read_polled(*unit)) {
+                        // The live read failed (a timeout): the last polled position, a poll period old.
+                        if (const auto value = polled->value_of(present)) position = static_cast<std::uint16_t>(*value);
+                      }
+                      if (position) send_stop(services, who, unit->unit_id, goal, *position, kStopAttempts);
+                    });
+  }
+
+  // A stop write, tried again after a failure other than a refusal of the safety rules (which
+  // have stopped the servo themselves).
+  static constexpr int kStopAttempts = 3;
+  static void send_stop(Services& services, const Principal& who, std::uint8_t unit_id, std::uint16_t address,
+                        std::uint16_t value, int attempts) {
+    services.modbus(who, unit_id, write_register_pdu(address, value),
+                    [&services, who, unit_id, address, value, attempts](ModbusAnswer answer) {
+                      if (answer.ok() || answer.exception == 0x04 || attempts <= 1) {
+                        if (!answer.ok()) spdlog::warn("console: the hold-to-run stop of unit {}: {}", unit_id, answer.message);
+                        return;
+                      }
+                      send_stop(services, who, unit_id, address, value, attempts - 1);
                     });
   }
 
