@@ -137,7 +137,7 @@ void api_servo(const std::shared_ptr<ApiCall>& call) {
                           if (answer.ok()) {
                             const auto registers = registers_in(answer.pdu);
                             for (const auto& entry : unit->map.entries()) {
-                              if (!entry.readable || entry.address < first || entry.address - first >= registers.size()) continue;
+                              if (!entry.readable || entry.address < first || std::size_t{entry.address} - first >= registers.size()) continue;
                               values[std::string(entry.shown->name)] = register_to_value(entry, registers[entry.address - first]);
                             }
                           } else {
