@@ -352,8 +352,10 @@ struct ConsoleConfig {
   bool tls = false;                 // HTTPS with modbus_tcp.tls's certificate, key and CA (client certificates give roles)
   std::vector<ConsoleUser> users;   // in file order; names unique
   std::chrono::seconds session_timeout{8 * 3600};  // a login lasts this long without use
-  // `--simulate` only (never from a file): the local (loopback) user has every right.
+  // `--simulate` only (never from a file): the local (loopback) user has every right, and when
+  // the default port is taken (another demo, a test running several) any free port is used.
   bool local_user_has_every_right = false;
+  bool any_port_if_taken = false;
 
   bool operator==(const ConsoleConfig&) const = default;
 };

@@ -230,6 +230,7 @@ int run_gateway(const Options& options) {
     if (!config.console) config.console.emplace();
     config.console->listen = console.value_or(kSimulateConsole);
     config.console->local_user_has_every_right = config.console->users.empty() && !config.console->tls;
+    config.console->any_port_if_taken = !console.has_value();
     if (config.console->local_user_has_every_right && !sms::config::is_loopback_host(config.console->listen.host)) {
       std::cerr << "sms-gateway: --console " << config.console->listen.to_string()
                 << ": --simulate serves the console on a loopback address only (its local user has every right)\n";

@@ -149,8 +149,17 @@ class ConsoleServer::Impl final : public Services {
       // With users a browser without a certificate may still log in with a password.
       if (rules_.users) ssl_->set_verify_mode(ssl::verify_peer);
     }
-    open_listener(acceptor_, settings_.listen.host, settings_.listen.port,
-                  {"serve the browser console", "--console HOST:PORT or console.listen", 8080});
+    try {
+      open_listener(acceptor_, settings_.listen.host, settings_.listen.port,
+                    {"serve the browser console", "--console HOST:PORT or console.listen", 8080});
+    } catch (const std::runtime_error& error) {
+      if (!settings_.any_port_if_taken) throw;
+      spdlog::warn("console: {}; serving it on a free port instead", error.what());
+      beast::error_code ignored;
+      acceptor_.close(ignored);
+      open_listener(acceptor_, settings_.listen.host, 0,
+                    {"serve the browser console", "--console HOST:PORT or console.listen", 8080});
+    }
     port_ = acceptor_.local_endpoint().port();
     if (std::ifstream chart{std::string(kChartJsPath), std::ios::binary}) {
       std::ostringstream text;
