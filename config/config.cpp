@@ -278,3 +278,11 @@ std::optional<std::string> rtu_slave_conflict(const Config& config, const RtuSla
 }
 
 }  // namespace sms::config
+
+namespace sms::config {
+
+bool is_loopback_host(std::string_view host) {
+  return host == "localhost" || host == "::1" || host == "[::1]" || host.starts_with("127.");
+}
+
+}  // namespace sms::config

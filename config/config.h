@@ -336,6 +336,33 @@ struct RtuSlaveConfig {
   bool operator==(const RtuSlaveConfig&) const = default;
 };
 
+// One user of the browser console (docs/CONSOLE.md): the rights of a Modbus/TCP Security role,
+// the password as libsodium's crypto_pwhash_str() text (`sms-gateway hash-password` makes it).
+struct ConsoleUser {
+  std::string name;
+  Role role = Role::Read;
+  std::string password_hash;  // "$argon2id$v=19$m=...": never the password itself
+
+  bool operator==(const ConsoleUser&) const = default;
+};
+
+// The browser commissioning console (docs/CONSOLE.md): HTTP/1.1 and WebSocket on `listen`.
+struct ConsoleConfig {
+  HostPort listen{"127.0.0.1", 8080};
+  bool tls = false;                 // HTTPS with modbus_tcp.tls's certificate, key and CA (client certificates give roles)
+  std::vector<ConsoleUser> users;   // in file order; names unique
+  std::chrono::seconds session_timeout{8 * 3600};  // a login lasts this long without use
+  // `--simulate` only (never from a file): the local (loopback) user has every right, and when
+  // the default port is taken (another demo, a test running several) any free port is used.
+  bool local_user_has_every_right = false;
+  bool any_port_if_taken = false;
+
+  bool operator==(const ConsoleConfig&) const = default;
+};
+
+// Whether `host` names this machine only (127.0.0.0/8, ::1, localhost).
+bool is_loopback_host(std::string_view host);
+
 struct Config {
   ModbusTcpConfig modbus_tcp;
   std::vector<BusConfig> buses;
@@ -348,6 +375,7 @@ struct Config {
   // StateDirectory=), else nothing is kept and the start says so.
   std::string state_dir;
   std::vector<RtuSlaveConfig> modbus_rtu_slave;  // upstream Modbus RTU ports; empty: none
+  std::optional<ConsoleConfig> console;          // the browser console; empty: off
 
   bool operator==(const Config&) const = default;
 };

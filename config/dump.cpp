@@ -305,6 +305,31 @@ void emit_rtu_slave(YAML::Emitter& out, const RtuSlaveConfig& port) {
 
 }  // namespace
 
+void emit_console(YAML::Emitter& out, const ConsoleConfig& console) {
+  key(out, "console");
+  out << YAML::BeginMap;
+  key(out, "listen");
+  out << console.listen.to_string();
+  key(out, "tls");
+  out << console.tls;
+  key(out, "session_timeout_s");
+  out << console.session_timeout.count();
+  key(out, "users");
+  begin_list(out, console.users.empty());
+  for (const auto& user : console.users) {
+    out << YAML::BeginMap;
+    key(out, "name");
+    quoted(out, user.name);
+    key(out, "role");
+    out << std::string(to_string(user.role));
+    key(out, "password_hash");
+    quoted(out, user.password_hash);
+    out << YAML::EndMap;
+  }
+  out << YAML::EndSeq;
+  out << YAML::EndMap;
+}
+
 std::string dump_config(const Config& config) {
   YAML::Emitter out;
   out.SetBoolFormat(YAML::TrueFalseBool);
@@ -334,6 +359,7 @@ std::string dump_config(const Config& config) {
     for (const auto& port : config.modbus_rtu_slave) emit_rtu_slave(out, port);
     out << YAML::EndSeq;
   }
+  if (config.console) emit_console(out, *config.console);
   out << YAML::EndMap;
   return std::string(out.c_str()) + "\n";
 }

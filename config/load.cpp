@@ -31,8 +31,9 @@ using protocol::BusProtocol;
 
 // ---- the keys allowed at each place (config/README.md) ----
 
-constexpr std::array<std::string_view, 8> kTopKeys{"modbus_tcp", "buses",  "servos",   "sync_groups",
-                                                  "logging",    "mqtt",   "state_dir", "modbus_rtu_slave"};
+constexpr std::array<std::string_view, 9> kTopKeys{"modbus_tcp", "buses",  "servos",   "sync_groups",
+                                                  "logging",    "mqtt",   "state_dir", "modbus_rtu_slave",
+                                                  "console"};
 constexpr std::array<std::string_view, 8> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
                                                          "gateway_unit_id", "request_queue_depth", "allow",
                                                          "plain",           "tls"};
@@ -64,6 +65,9 @@ constexpr std::array<std::string_view, 3> kMqttTlsKeys{"ca", "certificate", "pri
 constexpr std::array<std::string_view, 11> kRtuSlaveKeys{"device", "baud",  "parity", "stop_bits", "frame_gap",
                                                           "rs485",  "rts",   "rts_delay_us", "units", "role",
                                                           "reopen_period_ms"};
+
+constexpr std::array<std::string_view, 4> kConsoleKeys{"listen", "tls", "users", "session_timeout_s"};
+constexpr std::array<std::string_view, 3> kConsoleUserKeys{"name", "role", "password_hash"};
 
 constexpr std::string_view kPassthroughTable = "passthrough";
 constexpr std::uint8_t kMaxUnitId = 247;            // Modbus slave addresses
@@ -406,6 +410,7 @@ class Loader {
   LoggingConfig parse_logging(const Value& value);
   std::optional<MqttConfig> parse_mqtt(const Value& value, const Config& config);
   void parse_rtu_slaves(const Value& value, Config& config);
+  ConsoleConfig parse_console(const Value& value, const Config& config);
   RtuSlaveConfig parse_rtu_slave(const Value& value, const Config& config);
   // rs485, rts, rts_delay_us and frame_gap: the same keys on a modbus-rtu bus and an upstream port.
   void parse_rtu_line(const MapReader& keys, const Value& value, ModbusRtuOptions& line) const;
@@ -496,6 +501,7 @@ Config Loader::load(const YAML::Node& root) {
   if (const auto value = sections.find("mqtt")) config.mqtt = parse_mqtt(*value, config);
   if (const auto value = sections.find("state_dir")) config.state_dir = string(*value);
   if (const auto value = sections.find("modbus_rtu_slave")) parse_rtu_slaves(*value, config);
+  if (const auto value = sections.find("console")) config.console = parse_console(*value, config);
   return config;
 }
 
@@ -842,6 +848,65 @@ void Loader::parse_rtu_line(const MapReader& keys, const Value& value, ModbusRtu
     if (!gap) fail(v->mark, v->path + ": " + gap.error());
     line.frame_gap = *gap;
   }
+}
+
+// docs/CONSOLE.md "Configuration".
+ConsoleConfig Loader::parse_console(const Value& value, const Config& config) {
+  const MapReader keys(*this, value, kConsoleKeys);
+  ConsoleConfig console;
+  if (const auto v = keys.find("listen")) console.listen = host_port(*v);
+  if (const auto v = keys.find("tls")) {
+    console.tls = boolean(*v);
+    if (console.tls && !config.modbus_tcp.tls) {
+      fail(v->mark, v->path + ": true needs modbus_tcp.tls (the console serves HTTPS with its certificate, key and "
+                              "CA); configure Modbus/TCP Security first, or set tls: false");
+    }
+  }
+  if (const auto v = keys.find("session_timeout_s")) {
+    console.session_timeout = duration<std::chrono::seconds>(*v, 60, 7 * 24 * 3600);
+  }
+  if (const auto v = keys.find("users")) {
+    std::vector<YAML::Mark> marks;
+    for (const auto& item : list(*v)) {
+      const MapReader user_keys(*this, item, kConsoleUserKeys);
+      ConsoleUser user;
+      const Value name = user_keys.require("name");
+      user.name = string(name);
+      if (user.name.find_first_not_of("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-") !=
+              std::string::npos ||
+          user.name.size() > 64) {
+        fail(name.mark, name.path + ": `" + user.name + "`: a user name is 1-64 letters, digits, '.', '_' or '-'");
+      }
+      for (std::size_t i = 0; i < console.users.size(); ++i) {
+        if (console.users[i].name == user.name) {
+          fail(name.mark, name.path + ": user `" + user.name + "` is already " + v->path + "[" + std::to_string(i) +
+                              "] (" + place(marks[i]) + ")");
+        }
+      }
+      const Value role = user_keys.require("role");
+      user.role = choice(role, detail::kRoleNames);
+      if (user.role == Role::None) {
+        fail(role.mark, role.path + ": a user with role none could do nothing; give read, operate or engineer, or "
+                                    "remove the user");
+      }
+      const Value hash = user_keys.require("password_hash");
+      user.password_hash = string(hash);
+      if (!user.password_hash.starts_with("$argon2id$") && !user.password_hash.starts_with("$argon2i$")) {
+        fail(hash.mark, hash.path + ": not a password hash (expected the \"$argon2id$...\" text that `sms-gateway "
+                                    "hash-password` prints; never the password itself)");
+      }
+      console.users.push_back(std::move(user));
+      marks.push_back(name.mark);
+    }
+  }
+  if (!is_loopback_host(console.listen.host) && console.users.empty() && !console.tls) {
+    fail(keys.key_mark("listen"), value.path + ".listen: " + console.listen.to_string() +
+                                      " is reachable from other machines, but with neither users nor tls the "
+                                      "console has no way to know who asks; it serves read-only on a loopback "
+                                      "address only. Add users (password_hash from `sms-gateway hash-password`) "
+                                      "or tls: true, or listen on 127.0.0.1");
+  }
+  return console;
 }
 
 void Loader::parse_rtu_slaves(const Value& value, Config& config) {

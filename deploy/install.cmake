@@ -29,6 +29,8 @@ install(FILES docs/man/sms-gateway.yaml.5 DESTINATION ${CMAKE_INSTALL_MANDIR}/ma
 # The documents keep the source tree's layout, so their links to one another work installed.
 install(FILES README.md DESTINATION ${CMAKE_INSTALL_DOCDIR})
 install(DIRECTORY docs/ DESTINATION ${CMAKE_INSTALL_DOCDIR}/docs FILES_MATCHING PATTERN "*.md" PATTERN man EXCLUDE)
+# The README's screenshots of the browser console (docs/CONSOLE.md).
+install(DIRECTORY docs/screenshots/ DESTINATION ${CMAKE_INSTALL_DOCDIR}/docs/screenshots FILES_MATCHING PATTERN "*.png")
 install(FILES config/README.md DESTINATION ${CMAKE_INSTALL_DOCDIR}/config)
 install(DIRECTORY config/examples/ DESTINATION ${CMAKE_INSTALL_DOCDIR}/config/examples FILES_MATCHING PATTERN "*.yaml")
 # ... and where Debian's users look for examples (the container image has them there too).

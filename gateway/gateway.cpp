@@ -6,6 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include "config/load.h"
+#include "gateway/console/console_server.h"
 #include "gateway/observability/metrics_server.h"
 #include "gateway/units/safety.h"
 #include "gateway/mqtt/sparkplug_node.h"
@@ -152,6 +153,15 @@ class Gateway::Impl {
             port, config_, *router_, *rtu_policy_, [this](std::function<void()> work) { serving_.post(std::move(work)); }));
       }
     }
+    // The browser console (docs/CONSOLE.md): its own thread, a Modbus client of the router.
+    if (config_.console) {
+      console_ = std::make_unique<console::ConsoleServer>(
+          *config_.console,
+          console::ConsoleBackend{&config_, router_.get(), router_.get(),
+                                  [this](std::function<void()> work) { serving_.post(std::move(work)); },
+                                  [this] { return metrics(); }});
+      console_->start();
+    }
     if (config_.logging.metrics_listen) {
       metrics_server_ = std::make_unique<MetricsServer>(MetricsServerOptions{.listen = *config_.logging.metrics_listen},
                                                         [this] { return metrics(); });
@@ -183,12 +193,16 @@ class Gateway::Impl {
   }
 
   std::uint16_t metrics_port() const { return metrics_server_ ? metrics_server_->port() : 0; }
+  std::uint16_t console_port() const { return console_ ? console_->port() : 0; }
+  std::string console_url() const { return console_ ? console_->url() : std::string(); }
 
   void stop(std::chrono::milliseconds grace) {
     if (!started_ || stopped_) return;
     stopped_ = true;
     // Monitoring goes first: it reads the buses, which stop below.
     if (metrics_server_) metrics_server_->stop();
+    // The console next: a hold-to-run move still held is stopped through the router, which still serves.
+    if (console_) console_->stop();
     // The node says goodbye (NDEATH) and takes no more commands.
     if (sparkplug_) sparkplug_->stop();
     // The RTU ports take no new request; the one each is answering finishes first.
@@ -230,6 +244,7 @@ class Gateway::Impl {
   std::unique_ptr<SafetySupervisor> safety_;  // before the router, which holds a reference
   std::unique_ptr<UnitRouter> router_;
   std::unique_ptr<TlsService> tls_;  // after the router it holds, before the sessions that use it
+  std::unique_ptr<console::ConsoleServer> console_;  // after the router it asks; stopped first
   std::unique_ptr<SparkplugNode> sparkplug_;  // after the router it asks; its callbacks end with the io thread
   std::unique_ptr<RolePolicy> rtu_policy_;             // the RTU ports' role gate
   std::vector<std::unique_ptr<RtuSlavePort>> rtu_slaves_;  // after the router and policy they use
@@ -261,5 +276,7 @@ std::shared_ptr<WireMonitor> Gateway::wire_monitor(std::string_view bus_name) co
   }
   return nullptr;
 }
+std::uint16_t Gateway::console_port() const { return impl_->console_port(); }
+std::string Gateway::console_url() const { return impl_->console_url(); }
 
 }  // namespace sms::gateway

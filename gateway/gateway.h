@@ -68,6 +68,9 @@ class Gateway {
   // nullptr before start(), or for a name no bus has.
   std::shared_ptr<WireMonitor> wire_monitor(std::size_t bus_index) const;
   std::shared_ptr<WireMonitor> wire_monitor(std::string_view bus_name) const;
+  // The browser console's bound port and address ("http://127.0.0.1:8080/"); 0 / empty when it is off.
+  std::uint16_t console_port() const;
+  std::string console_url() const;
 
  private:
   class Impl;

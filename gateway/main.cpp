@@ -21,6 +21,7 @@
 
 #include "config/env.h"
 #include "config/load.h"
+#include "gateway/console/console_access.h"
 #include "gateway/gateway.h"
 #include "gateway/units/state_file.h"
 #include "gateway/observability/logging.h"
@@ -48,7 +49,11 @@ struct Options {
   std::string check_config_file;
   bool version = false;
   std::vector<std::string> rtu_slaves;  // --rtu-slave DEVICE[:BAUD[:PARITY]], each an upstream port
+  std::string console;                  // --console HOST:PORT: the browser console (docs/CONSOLE.md)
 };
+
+// --simulate serves the browser console here unless --console says otherwise.
+const sms::config::HostPort kSimulateConsole{"127.0.0.1", 8080};
 
 // --log-level wins over the configuration's logging.level.
 std::optional<LogLevel> log_level_from(const std::string& name) {
@@ -178,7 +183,9 @@ int run_gateway(const Options& options) {
 
   std::optional<sms::config::HostPort> listen;
   std::optional<sms::config::HostPort> metrics;
-  if (!address_option("--listen", options.listen, listen) || !address_option("--metrics", options.metrics, metrics)) {
+  std::optional<sms::config::HostPort> console;
+  if (!address_option("--listen", options.listen, listen) || !address_option("--metrics", options.metrics, metrics) ||
+      !address_option("--console", options.console, console)) {
     return kExitConfigError;
   }
 
@@ -208,6 +215,28 @@ int run_gateway(const Options& options) {
   if (metrics) config.logging.metrics_listen = *metrics;
   if (!options.log_level.empty()) config.logging.level = *log_level_from(options.log_level);
   if (!add_rtu_slave_options(options.rtu_slaves, config)) return kExitConfigError;
+  if (options.simulate) {
+    // The demo's console: simulated servos on this machine only, so its local user may do
+    // everything (the jog panel, commissioning); a configured console keeps its own rules.
+    if (!config.console) config.console.emplace();
+    config.console->listen = console.value_or(kSimulateConsole);
+    config.console->local_user_has_every_right = config.console->users.empty() && !config.console->tls;
+    config.console->any_port_if_taken = !console.has_value();
+    if (config.console->local_user_has_every_right && !sms::config::is_loopback_host(config.console->listen.host)) {
+      std::cerr << "sms-gateway: --console " << config.console->listen.to_string()
+                << ": --simulate serves the console on a loopback address only (its local user has every right)\n";
+      return kExitConfigError;
+    }
+  } else if (console) {
+    if (!config.console) config.console.emplace();
+    config.console->listen = *console;
+    if (!sms::config::is_loopback_host(console->host) && config.console->users.empty() && !config.console->tls) {
+      std::cerr << "sms-gateway: --console " << console->to_string()
+                << ": without console.users or console.tls the console is read-only and serves a loopback address "
+                   "only (docs/CONSOLE.md \"Access\")\n";
+      return kExitConfigError;
+    }
+  }
   sms::gateway::setup_logging(config.logging);
   if (!from_environment.empty()) spdlog::info("from the environment: {}", joined(from_environment));
 
@@ -228,6 +257,10 @@ int run_gateway(const Options& options) {
   try {
     sms::gateway::Gateway gateway(std::move(config));
     gateway.start();
+    if (!gateway.console_url().empty()) {
+      spdlog::info("browser console: {}", gateway.console_url());
+      if (options.simulate) std::cout << "Browser console: " << gateway.console_url() << std::endl;
+    }
     int signal_number = 0;
     while ((signal_number = stop_signals.wait()) == SIGHUP) {
       spdlog::info("SIGHUP received: reloading the Modbus/TCP Security certificate, key and CA");
@@ -267,6 +300,9 @@ static int run_command_line(int argc, char** argv) {
                  "a slave, every unit, role operate (baud 19200 and parity even unless given; none, even or odd). "
                  "May be given more than once; adds to modbus_rtu_slave")
       ->type_name("DEVICE[:BAUD[:PARITY]]");
+  app.add_option("--console", options.console,
+                 "HOST:PORT to serve the browser console on (overrides console.listen; --simulate: 127.0.0.1:8080)")
+      ->type_name("HOST:PORT");
   auto* check_option = app.add_option("--check-config", options.check_config_file,
                                       "Validate a configuration file and exit (0 valid, 2 invalid)");
   check_option->excludes(simulate_option);
@@ -275,6 +311,21 @@ static int run_command_line(int argc, char** argv) {
              environment_help());
   // Subcommands run inside parse() and end it with their exit status; without one, the gateway runs.
   sms::gateway::add_tool_commands(app);
+  // A password hash for console.users (docs/CONSOLE.md): the password on standard input.
+  app.add_subcommand("hash-password",
+                     "Read a password from standard input (first line) and print its hash for console.users "
+                     "password_hash (libsodium crypto_pwhash_str, Argon2id)")
+      ->callback([] {
+        std::string password;
+        std::getline(std::cin, password);
+        if (!password.empty() && password.back() == '\r') password.pop_back();
+        if (password.empty()) {
+          std::cerr << "sms-gateway hash-password: no password on standard input\n";
+          throw CLI::RuntimeError(kExitConfigError);
+        }
+        std::cout << sms::gateway::console::hash_password(password) << "\n";
+        throw CLI::RuntimeError(kExitOk);
+      });
   app.require_subcommand(0, 1);
 
   try {

@@ -14,7 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 programs=(cached_reads poll_cycle write_latency soak trip_latency forward_overhead read_under_flood mqtt_latency rtu_slave_latency
-          monitor_overhead)
+          monitor_overhead console_stream)
 quick=0
 selected=()
 for argument in "$@"; do
@@ -22,7 +22,7 @@ for argument in "$@"; do
     --quick) quick=1 ;;
     -h|--help) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     cached_reads|poll_cycle|write_latency|soak|trip_latency|forward_overhead|read_under_flood|mqtt_latency|rtu_slave_latency|\
-    monitor_overhead) selected+=("$argument") ;;
+    monitor_overhead|console_stream) selected+=("$argument") ;;
     *) echo "bench.sh: unknown argument '$argument' (try --help)" >&2; exit 2 ;;
   esac
 done
@@ -40,6 +40,7 @@ declare -A quick_options=(
   [soak]="--seconds 10"
   [trip_latency]="--quick"
   [forward_overhead]="--seconds 1"
+  [console_stream]="--seconds 2"
   [rtu_slave_latency]="--seconds 1 --hmi-seconds 5"
   [read_under_flood]="--seconds 2"
   [mqtt_latency]="--seconds 2"

@@ -13,6 +13,7 @@ packages=(
   mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio
   debhelper help2man pandoc man-db
   tshark  # reads the bus monitor's captures (tests/gateway/monitor); wireshark-common's debconf question takes its default
+  libsodium-dev nlohmann-json3-dev libjs-chart.js chromium chromium-driver python3-selenium
 )
 
 missing=()

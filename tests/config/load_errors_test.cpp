@@ -59,7 +59,7 @@ servos: []
 TEST(ConfigErrors, TopLevelMustBeAMap) {
   EXPECT_EQ(error_text("- buses\n- servos\n"),
             "plant.yaml:1:1: expected a map of sections (modbus_tcp, buses, servos, sync_groups, logging, mqtt, "
-            "state_dir, modbus_rtu_slave), got a list");
+            "state_dir, modbus_rtu_slave, console), got a list");
 }
 
 // ---- keys ----
@@ -69,7 +69,7 @@ TEST(ConfigErrors, UnknownTopLevelKeySuggestsTheClosest) {
 servos: []
 )"),
             "plant.yaml:1:1: unknown key `busses` at the top level (did you mean `buses`?); allowed keys here: "
-            "modbus_tcp, buses, servos, sync_groups, logging, mqtt, state_dir, modbus_rtu_slave");
+            "modbus_tcp, buses, servos, sync_groups, logging, mqtt, state_dir, modbus_rtu_slave, console");
 }
 
 TEST(ConfigErrors, UnknownBusKeyListsTheAllowedKeys) {

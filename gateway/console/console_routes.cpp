@@ -1,0 +1,519 @@
+#include "gateway/console/console_routes.h"
+
+#include <algorithm>
+#include <array>
+
+#include <spdlog/spdlog.h>
+
+#include "gateway/console/console_commission.h"
+#include "gateway/console/console_view.h"
+#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/modbus_tcp/role_policy.h"
+#include "modbus_map/motion.h"
+
+namespace sms::gateway::console {
+
+namespace {
+
+using config::Role;
+using nlohmann::json;
+
+// Coils of the gateway unit (docs/PLC_GUIDE.md "Safety").
+constexpr std::uint16_t kEstopCoil = 1;
+constexpr std::uint16_t kRearmCoil = 2;
+
+std::string role_text(Role role) { return std::string(config::to_string(role)); }
+
+Bytes write_register_pdu(std::uint16_t address, std::uint16_t value) {
+  return request_pdu(WriteRegistersRequest{function_code::kWriteSingleRegister, address, {value}});
+}
+Bytes write_coil_pdu(std::uint16_t address, bool on) {
+  return request_pdu(WriteBitsRequest{function_code::kWriteSingleCoil, address, {on}});
+}
+Bytes read_registers_pdu(std::uint16_t address, std::uint16_t count) {
+  return request_pdu(ReadRegistersRequest{function_code::kReadHoldingRegisters, address, count});
+}
+std::vector<std::uint16_t> registers_in(const Bytes& pdu) {
+  std::vector<std::uint16_t> values;
+  for (std::size_t i = 2; i + 1 < pdu.size(); i += 2) values.push_back(static_cast<std::uint16_t>(pdu[i] << 8 | pdu[i + 1]));
+  return values;
+}
+
+// HTTP status for a Modbus exception the router answered.
+unsigned status_for_exception(std::uint8_t exception) {
+  switch (exception) {
+    case 0x01: return 403;  // the role policy refuses the function
+    case 0x02:
+    case 0x03: return 400;
+    case 0x04: return 409;  // motion blocked, or the servo refused
+    case 0x06: return 503;
+    case 0x0A: return 502;
+    case 0x0B: return 504;
+    default: return 500;
+  }
+}
+
+std::string units_list(const Services& services) {
+  std::string text;
+  for (const auto& servo : services.config().servos) {
+    if (services.units().servo_unit(servo.unit_id) == nullptr) continue;
+    text += (text.empty() ? "" : ", ") + std::to_string(servo.unit_id);
+  }
+  return text.empty() ? "none" : text;
+}
+
+// The servo unit named by the {unit} parameter, or the answer saying why not.
+Expected<const ServoUnit*, HttpAnswer> servo_of(Services& services, const PathParams& params) {
+  const auto text = params.get("unit").value_or("");
+  const auto unit_id = parse_unit(text);
+  const ServoUnit* unit = unit_id ? services.units().servo_unit(*unit_id) : nullptr;
+  if (unit == nullptr) {
+    return unexpected(HttpAnswer::error(404, "unit " + printable(text) + " is not a servo unit of this gateway (servo units: " +
+                                                 units_list(services) + ")"));
+  }
+  return unit;
+}
+
+// --- pages' JSON ------------------------------------------------------------------------------
+
+void api_session(const std::shared_ptr<ApiCall>& call) {
+  if (!call->session || call->who.role == Role::None) {
+    json body = {{"error", "log in first"}, {"login", true}};
+    return call->answer(HttpAnswer::json(401, body));
+  }
+  call->answer(HttpAnswer::json(200, {{"user", call->who.name},
+                                      {"role", role_text(call->who.role)},
+                                      {"how", call->who.how},
+                                      {"csrf", call->session->csrf},
+                                      {"logout", call->who.how == "password"}}));
+}
+
+void api_login(const std::shared_ptr<ApiCall>& call) {
+  const auto request = parse_login(call->body);
+  if (!request) return call->answer(HttpAnswer::error(400, "login: " + request.error()));
+  if (call->services.settings().users.empty()) {
+    return call->answer(HttpAnswer::error(404, "this console has no users (console.users); nothing to log in to"));
+  }
+  const auto who = check_login(call->services.settings(), request->user, request->password);
+  if (!who) {
+    spdlog::warn("console: failed login for user `{}`", printable(request->user));
+    return call->answer(HttpAnswer::error(401, "unknown user or wrong password"));
+  }
+  if (call->session) call->services.sessions().remove(call->session->token);  // its CSRF token goes stale
+  const Session session = call->services.sessions().create(*who);
+  spdlog::info("console: user `{}` logged in ({})", who->name, role_text(who->role));
+  HttpAnswer answer = HttpAnswer::json(200, {{"user", who->name}, {"role", role_text(who->role)}, {"csrf", session.csrf}});
+  answer.headers.emplace_back("Set-Cookie", call->services.session_cookie(session.token));
+  call->answer(std::move(answer));
+}
+
+void api_logout(const std::shared_ptr<ApiCall>& call) {
+  if (call->session) call->services.sessions().remove(call->session->token);
+  HttpAnswer answer = HttpAnswer::json(200, {{"ok", true}});
+  answer.headers.emplace_back("Set-Cookie", call->services.session_cookie(""));
+  call->answer(std::move(answer));
+}
+
+void api_overview(const std::shared_ptr<ApiCall>& call) { call->answer(HttpAnswer::json(200, call->services.overview())); }
+
+// The table with the value of every readable field, read live through the router (FC03).
+void api_servo(const std::shared_ptr<ApiCall>& call) {
+  const auto unit = servo_of(call->services, call->params);
+  if (!unit) return call->answer(unit.error());
+  json body = servo_description_json(call->services.config(), **unit);
+  std::uint16_t first = 0xFFFF;
+  std::uint16_t last = 0;
+  for (const auto& entry : (*unit)->map.entries()) {
+    if (!entry.readable || entry.address >= modbus_map::kStagedWriteBase) continue;
+    first = std::min(first, entry.address);
+    last = std::max(last, entry.address);
+  }
+  if (first > last) return call->answer(HttpAnswer::json(200, body));
+  const auto count = static_cast<std::uint16_t>(std::min<int>(last - first + 1, limits::kReadRegisters));
+  const std::uint8_t unit_id = (*unit)->unit_id;
+  call->services.modbus(call->who, unit_id, read_registers_pdu(first, count),
+                        [call, body = std::move(body), first, unit = *unit](ModbusAnswer answer) mutable {
+                          json values = json::object();
+                          if (answer.ok()) {
+                            const auto registers = registers_in(answer.pdu);
+                            for (const auto& entry : unit->map.entries()) {
+                              if (!entry.readable || entry.address < first || std::size_t{entry.address} - first >= registers.size()) continue;
+                              values[std::string(entry.shown->name)] = register_to_value(entry, registers[entry.address - first]);
+                            }
+                          } else {
+                            body["values_error"] = answer.message;
+                          }
+                          body["values"] = std::move(values);
+                          call->answer(HttpAnswer::json(200, body));
+                        });
+}
+
+// The EEPROM lock of a table (docs/PROTOCOL.md): unlocked to write EEPROM, locked again after,
+// as `sms-gateway set-id` and the other tools do.
+const modbus_map::RegisterEntry* eeprom_lock(const ServoUnit& unit) { return entry_named(unit.map, "lock"); }
+
+// Writes `steps` one after another; stops at the first exception.
+struct WriteStep {
+  std::uint16_t address;
+  std::uint16_t value;
+  std::string what;
+};
+void run_steps(Services& services, const Principal& who, std::uint8_t unit, std::vector<WriteStep> steps, std::size_t index,
+               std::function<void(std::optional<ModbusAnswer> failed, std::string failed_step)> done) {
+  if (index == steps.size()) return done(std::nullopt, "");
+  const Bytes pdu = write_register_pdu(steps[index].address, steps[index].value);
+  services.modbus(who, unit, pdu, [&services, who, unit, steps = std::move(steps), index, done = std::move(done)](ModbusAnswer answer) mutable {
+    if (!answer.ok()) return done(std::move(answer), steps[index].what);
+    run_steps(services, who, unit, std::move(steps), index + 1, std::move(done));
+  });
+}
+
+void api_servo_write(const std::shared_ptr<ApiCall>& call) {
+  const auto unit = servo_of(call->services, call->params);
+  if (!unit) return call->answer(unit.error());
+  const auto request = parse_field_write(call->body);
+  if (!request) return call->answer(HttpAnswer::error(400, request.error() + "; nothing written"));
+  const ServoUnit& servo = **unit;
+  const auto* entry = entry_named(servo.map, request->field);
+  if (entry == nullptr) {
+    return call->answer(HttpAnswer::error(400, "no field `" + printable(request->field) + "` in " + servo.map.description() +
+                                                   "; nothing written"));
+  }
+  const std::string name(entry->shown->name);
+  if (!entry->writable || servo.read_only) {
+    return call->answer(HttpAnswer::error(400, name + " cannot be written" +
+                                                   (servo.read_only ? " (the unit is read_only)" : " (read-only field)") +
+                                                   "; nothing written"));
+  }
+  if (commissioning_only(name)) {
+    return call->answer(HttpAnswer::error(400, name + " takes the servo off this bus: change it with `sms-gateway " +
+                                                   (name == "id" ? "set-id" : "set-baud") +
+                                                   "` on a line no bus owns (docs/HARDWARE.md); nothing written"));
+  }
+  const std::int64_t value = request->value;
+  if (value < entry->min || value > entry->max) {
+    return call->answer(HttpAnswer::error(400, name + ": " + std::to_string(value) + " is outside " +
+                                                   std::to_string(entry->min) + ".." + std::to_string(entry->max) +
+                                                   "; nothing written"));
+  }
+  const auto allowed = entry->shown->allowed_values;
+  if (!allowed.empty() && std::find(allowed.begin(), allowed.end(), value) == allowed.end()) {
+    std::string list;
+    for (const auto v : allowed) list += (list.empty() ? "" : ", ") + std::to_string(v);
+    return call->answer(HttpAnswer::error(400, name + ": " + std::to_string(value) + " is not one of " + list +
+                                                   "; nothing written"));
+  }
+  const bool engineer = entry->counterpart != nullptr && engineer_only_field(*entry->counterpart);
+  if (engineer && !role_allows(call->who.role, Role::Engineer)) {
+    return call->answer(HttpAnswer::error(403, "writing " + name + " (EEPROM) needs the engineer role; " + call->who.name +
+                                                   " has " + role_text(call->who.role) + "; nothing written"));
+  }
+  const auto reg = static_cast<std::uint16_t>(static_cast<std::int16_t>(value));
+  std::vector<WriteStep> steps{{entry->address, reg, name + " := " + std::to_string(value)}};
+  const auto* lock = eeprom_lock(servo);
+  const bool eeprom = entry->counterpart != nullptr && entry->counterpart->area == modbus_map::Area::Eeprom;
+  auto finish = [call, name, value](std::optional<ModbusAnswer> failed, const std::string& step) {
+    if (failed) {
+      return call->answer(HttpAnswer::error(status_for_exception(failed->exception), step + ": " + failed->message));
+    }
+    call->answer(HttpAnswer::json(200, {{"ok", true}, {"field", name}, {"value", value}}));
+  };
+  if (!eeprom || lock == nullptr || entry == lock) {
+    return run_steps(call->services, call->who, servo.unit_id, std::move(steps), 0, std::move(finish));
+  }
+  // EEPROM with a lock: read it; when locked, unlock, write, lock again (the write persists).
+  call->services.modbus(call->who, servo.unit_id, read_registers_pdu(lock->address, 1),
+                        [call, steps = std::move(steps), lock, unit_id = servo.unit_id, finish](ModbusAnswer answer) mutable {
+                          if (!answer.ok()) return finish(std::move(answer), "reading the EEPROM lock");
+                          const std::uint16_t previous = registers_in(answer.pdu).at(0);
+                          if (previous != 0) {
+                            steps.insert(steps.begin(), WriteStep{lock->address, 0, "unlocking the EEPROM (lock := 0)"});
+                            steps.push_back(WriteStep{lock->address, previous, "locking the EEPROM again"});
+                          }
+                          run_steps(call->services, call->who, unit_id, std::move(steps), 0, finish);
+                        });
+}
+
+void gateway_coil(const std::shared_ptr<ApiCall>& call, std::uint16_t coil, bool on, std::string what) {
+  call->services.modbus(call->who, call->services.config().modbus_tcp.gateway_unit_id, write_coil_pdu(coil, on),
+                        [call, what = std::move(what)](ModbusAnswer answer) {
+                          if (!answer.ok()) {
+                            return call->answer(HttpAnswer::error(status_for_exception(answer.exception), what + ": " + answer.message));
+                          }
+                          call->answer(HttpAnswer::json(200, {{"ok", true}, {"done", what}}));
+                        });
+}
+
+void api_estop(const std::shared_ptr<ApiCall>& call) {
+  const auto request = parse_estop(call->body);
+  if (!request) return call->answer(HttpAnswer::error(400, "e-stop: " + request.error()));
+  gateway_coil(call, kEstopCoil, request->latch, request->latch ? "e-stop latched" : "e-stop reset");
+}
+
+void api_rearm(const std::shared_ptr<ApiCall>& call) { gateway_coil(call, kRearmCoil, false, "watchdogs re-armed"); }
+
+// --- streams ------------------------------------------------------------------------------------
+
+class OverviewStream final : public Stream {
+ public:
+  explicit OverviewStream(Services& services) : services_(services) {}
+  std::optional<std::string> flush(SteadyClock::time_point) override {
+    std::string text = services_.overview().dump();
+    if (text == last_) return std::nullopt;
+    last_ = text;
+    return text;
+  }
+
+ private:
+  Services& services_;
+  std::string last_;
+};
+
+Expected<std::unique_ptr<Stream>> make_overview_stream(Services& services, const PathParams&, const Principal&) {
+  return std::unique_ptr<Stream>(std::make_unique<OverviewStream>(services));
+}
+
+// A servo page: every new poll of the servo (its whole poll block, at the poll rate) batched
+// per push period, and the jog panel's hold-to-run moves.
+class ServoStream final : public Stream {
+ public:
+  ServoStream(Services& services, const ServoUnit& unit, Principal who)
+      : services_(services), unit_(unit), who_(std::move(who)),
+        spec_(modbus_map::motion_spec(unit.map.servo_table().id)),
+        goal_position_(entry_for_servo_field(unit.map, spec_.goal_position)),
+        goal_speed_(entry_for_servo_field(unit.map, spec_.goal_speed)),
+        torque_(entry_for_servo_field(unit.map, spec_.torque)),
+        present_position_(entry_named(unit.map, spec_.present_position)),
+        alive_(std::make_shared<bool>(true)) {}
+  ~ServoStream() override { *alive_ = false; }
+
+  void sample(SteadyClock::time_point now) override {
+    if (jog_ && now - last_heartbeat_ > kJogHeartbeatTimeout) stop_jog("no heartbeat from the page for " + std::to_string(kJogHeartbeatTimeout.count()) + " ms");
+    if (jog_ && now - last_refresh_ >= kJogRefreshPeriod) {
+      last_refresh_ = now;
+      write_jog_goal();
+    }
+    const auto polled = read_polled(unit_);
+    if (!polled || !polled->has_data || polled->updated == last_sample_) return;
+    last_sample_ = polled->updated;
+    if (names_.empty()) {
+      for (const auto& [entry, value] : polled->values) names_.emplace_back(entry->shown->name);
+    }
+    json row = json::array();
+    row.push_back(steady_us(polled->updated));
+    for (const auto& [entry, value] : polled->values) row.push_back(value);
+    samples_.push_back(std::move(row));
+    online_ = polled->online;
+    status_ = polled->status;
+  }
+
+  std::optional<std::string> flush(SteadyClock::time_point now) override {
+    if (samples_.empty() && !state_changed_) return std::nullopt;
+    json message = {{"type", "samples"},
+                    {"unit", unit_.unit_id},
+                    {"fields", names_},
+                    {"samples", std::move(samples_)},
+                    {"online", online_},
+                    {"status", status_},
+                    {"faults", status_faults(unit_.map.servo_table().id, status_)},
+                    {"jog", jog_ ? (jog_speed_ ? "speed" : "position") : "stopped"},
+                    {"jog_reason", jog_reason_},
+                    {"sent_us", steady_us(now)}};
+    samples_ = json::array();
+    state_changed_ = false;
+    return message.dump();
+  }
+
+  void on_message(std::string_view text, const Send& send) override {
+    const auto message = parse_jog_message(text);
+    if (!message) return send(json{{"type", "error"}, {"message", message.error()}}.dump());
+    const auto now = SteadyClock::now();
+    using Kind = JogMessage::Kind;
+    if (message->kind == Kind::Heartbeat) {
+      last_heartbeat_ = now;
+      return;
+    }
+    if (message->kind == Kind::Release) return stop_jog("released");
+    if (!role_allows(who_.role, Role::Operate)) {
+      return send(json{{"type", "error"}, {"message", "the jog panel needs the operate role; " + who_.name + " has " +
+                                                          role_text(who_.role)}}.dump());
+    }
+    if (message->kind == Kind::Torque) {
+      if (torque_ == nullptr) return send(error_json("this table has no torque switch"));
+      return write(torque_->address, message->on ? 1 : 0, message->on ? "torque on" : "torque off", send);
+    }
+    const bool speed = message->kind == Kind::JogSpeed;
+    const auto* entry = speed ? goal_speed_ : goal_position_;
+    if (entry == nullptr) return send(error_json(std::string("this table has no ") + (speed ? "goal speed" : "goal position")));
+    if (message->value < entry->min || message->value > entry->max) {
+      return send(error_json(std::string(entry->shown->name) + ": " + std::to_string(message->value) + " is outside " +
+                             std::to_string(entry->min) + ".." + std::to_string(entry->max) + "; not moved"));
+    }
+    jog_ = true;
+    jog_speed_ = speed;
+    jog_value_ = message->value;
+    jog_reason_ = "held";
+    state_changed_ = true;
+    last_heartbeat_ = now;
+    last_refresh_ = now;
+    send_ = send;
+    write_jog_goal();
+  }
+
+  void on_close() override { stop_jog("the page went away"); }
+
+ private:
+  static std::string error_json(std::string message) { return json{{"type", "error"}, {"message", std::move(message)}}.dump(); }
+
+  void write(std::uint16_t address, std::int64_t value, std::string what, const Send& send) {
+    const auto reg = static_cast<std::uint16_t>(static_cast<std::int16_t>(value));
+    services_.modbus(who_, unit_.unit_id, write_register_pdu(address, reg),
+                     [send, what = std::move(what), alive = alive_](ModbusAnswer answer) {
+                       if (!*alive || !send) return;
+                       if (answer.ok()) return send(json{{"type", "done"}, {"message", what}}.dump());
+                       send(json{{"type", "error"}, {"message", what + ": " + answer.message}}.dump());
+                     });
+  }
+
+  void write_jog_goal() {
+    const auto* entry = jog_speed_ ? goal_speed_ : goal_position_;
+    services_.modbus(who_, unit_.unit_id,
+                     write_register_pdu(entry->address, static_cast<std::uint16_t>(static_cast<std::int16_t>(jog_value_))),
+                     [this, alive = alive_](ModbusAnswer answer) {
+                       if (!*alive || answer.ok() || !jog_) return;
+                       // Refused (e-stop, watchdog) or lost (a timeout): the move is over, and the
+                       // goal an earlier write set must not carry it on.
+                       stop_jog("the goal write failed: " + answer.message);
+                     });
+  }
+
+  // The servo's safe stop `hold` (units/safety, modbus_map/motion.h): speed moves get speed 0,
+  // position moves goal := present position, read live.
+  void stop_jog(std::string reason) {
+    if (!jog_) return;
+    jog_ = false;
+    jog_reason_ = std::move(reason);
+    state_changed_ = true;
+    spdlog::info("console: hold-to-run on unit {} stopped ({}) for {}", unit_.unit_id, jog_reason_, who_.name);
+    if (jog_speed_) return send_stop(services_, who_, unit_.unit_id, goal_speed_->address, 0, kStopAttempts);
+    if (present_position_ == nullptr) return;
+    Services& services = services_;
+    const Principal who = who_;
+    const ServoUnit* unit = &unit_;
+    const std::uint16_t goal = goal_position_->address;
+    const std::string present = std::string(present_position_->shown->name);
+    services.modbus(who, unit->unit_id, read_registers_pdu(present_position_->address, 1),
+                    [&services, who, unit, goal, present](ModbusAnswer answer) {
+                      std::optional<std::uint16_t> position;
+                      if (answer.ok()) {
+                        position = registers_in(answer.pdu).at(0);
+                      } else if (const auto polled = read_polled(*unit)) {
+                        // The live read failed (a timeout): the last polled position, a poll period old.
+                        if (const auto value = polled->value_of(present)) position = static_cast<std::uint16_t>(*value);
+                      }
+                      if (position) send_stop(services, who, unit->unit_id, goal, *position, kStopAttempts);
+                    });
+  }
+
+  // A stop write, tried again after a failure other than a refusal of the safety rules (which
+  // have stopped the servo themselves).
+  static constexpr int kStopAttempts = 3;
+  static void send_stop(Services& services, const Principal& who, std::uint8_t unit_id, std::uint16_t address,
+                        std::uint16_t value, int attempts) {
+    services.modbus(who, unit_id, write_register_pdu(address, value),
+                    [&services, who, unit_id, address, value, attempts](ModbusAnswer answer) {
+                      if (answer.ok() || answer.exception == 0x04 || attempts <= 1) {
+                        if (!answer.ok()) spdlog::warn("console: the hold-to-run stop of unit {}: {}", unit_id, answer.message);
+                        return;
+                      }
+                      send_stop(services, who, unit_id, address, value, attempts - 1);
+                    });
+  }
+
+  Services& services_;
+  const ServoUnit& unit_;
+  const Principal who_;
+  const modbus_map::MotionSpec& spec_;
+  const modbus_map::RegisterEntry* goal_position_;
+  const modbus_map::RegisterEntry* goal_speed_;
+  const modbus_map::RegisterEntry* torque_;
+  const modbus_map::RegisterEntry* present_position_;
+  std::shared_ptr<bool> alive_;
+  std::vector<std::string> names_;
+  json samples_ = json::array();
+  SteadyClock::time_point last_sample_{};
+  bool online_ = false;
+  std::uint8_t status_ = 0;
+  bool jog_ = false;
+  bool jog_speed_ = false;
+  std::int64_t jog_value_ = 0;
+  std::string jog_reason_;
+  bool state_changed_ = true;
+  SteadyClock::time_point last_heartbeat_{};
+  SteadyClock::time_point last_refresh_{};
+  Send send_;
+};
+
+Expected<std::unique_ptr<Stream>> make_servo_stream(Services& services, const PathParams& params, const Principal& who) {
+  const auto unit = servo_of(services, params);
+  if (!unit) return unexpected(unit.error().body);
+  return std::unique_ptr<Stream>(std::make_unique<ServoStream>(services, **unit, who));
+}
+
+constexpr Role kAnyone = Role::None;
+
+const Route kRoutes[] = {
+    // Pages (stable URLs: README "Commission a cell in the browser").
+    {"GET", "/", Role::Read, RouteKind::Page, "overview.html"},
+    {"GET", "/servo/{unit}", Role::Read, RouteKind::Page, "servo.html"},
+    {"GET", "/login", kAnyone, RouteKind::Page, "login.html"},
+    {"GET", "/commission", Role::Read, RouteKind::Page, "commission.html"},
+    {"GET", "/static/{file}", kAnyone, RouteKind::Page, ""},
+    // JSON.
+    {"GET", "/api/session", kAnyone, RouteKind::Api, {}, api_session},
+    {"POST", "/api/login", kAnyone, RouteKind::Api, {}, api_login, nullptr, false},
+    {"POST", "/api/logout", Role::Read, RouteKind::Api, {}, api_logout},
+    {"GET", "/api/overview", Role::Read, RouteKind::Api, {}, api_overview},
+    {"GET", "/api/servo/{unit}", Role::Read, RouteKind::Api, {}, api_servo},
+    {"POST", "/api/servo/{unit}/write", Role::Operate, RouteKind::Api, {}, api_servo_write},
+    {"POST", "/api/estop", Role::Operate, RouteKind::Api, {}, api_estop},
+    {"POST", "/api/rearm", Role::Operate, RouteKind::Api, {}, api_rearm},
+    // Commissioning (engineer): a line no bus owns, through the integrator tools' code.
+    {"GET", "/api/commission", Role::Read, RouteKind::Api, {}, api_commission_state},
+    {"GET", "/api/commission/config.yaml", Role::Read, RouteKind::Api, {}, api_commission_config},
+    {"POST", "/api/commission/scan", Role::Engineer, RouteKind::Api, {}, api_commission_scan},
+    {"POST", "/api/commission/set-id", Role::Engineer, RouteKind::Api, {}, api_commission_set_id},
+    {"POST", "/api/commission/set-baud", Role::Engineer, RouteKind::Api, {}, api_commission_set_baud},
+    {"POST", "/api/commission/calibrate", Role::Engineer, RouteKind::Api, {}, api_commission_calibrate},
+    // Live data.
+    {"GET", "/ws/overview", Role::Read, RouteKind::Socket, {}, nullptr, make_overview_stream},
+    {"GET", "/ws/servo/{unit}", Role::Read, RouteKind::Socket, {}, nullptr, make_servo_stream},
+};
+
+}  // namespace
+
+HttpAnswer HttpAnswer::json(unsigned status, const nlohmann::json& body) {
+  return HttpAnswer{status, "application/json", body.dump(), {}};
+}
+
+HttpAnswer HttpAnswer::error(unsigned status, std::string message) {
+  return json(status, nlohmann::json{{"error", std::move(message)}});
+}
+
+std::span<const Route> console_routes() { return kRoutes; }
+
+std::string exception_text(std::uint8_t exception) {
+  switch (exception) {
+    case 0: return "";
+    case 0x01: return "exception 0x01 (illegal function): the role may not make this request";
+    case 0x02: return "exception 0x02 (illegal data address): not writable here, or not with this role";
+    case 0x03: return "exception 0x03 (illegal data value): the value is out of range";
+    case 0x04: return "exception 0x04 (server device failure): motion is blocked (e-stop latched or watchdog tripped), or the servo refused";
+    case 0x06: return "exception 0x06 (busy): the bus queue is full, try again";
+    case 0x0A: return "exception 0x0A (gateway path unavailable): the bus is down";
+    case 0x0B: return "exception 0x0B (target failed to respond): the servo did not answer";
+    default: return "exception 0x" + std::to_string(exception);
+  }
+}
+
+}  // namespace sms::gateway::console

@@ -1,0 +1,138 @@
+#pragma once
+// Every URL the console answers, as one table (console_routes.cpp `kRoutes`): method, path
+// pattern, the role it needs, and what answers it — an embedded page, a JSON handler, or a
+// WebSocket stream. The server (console_server.cpp) does the HTTP, the access rules and the
+// CSRF check before a handler runs; handlers see only the gateway through `Services`.
+//
+// Adding a page with its live data is one entry per URL and one function each, e.g. a bus page:
+//   {"GET", "/bus/{name}/thing", Role::Read, RouteKind::Page, "thing.html"},
+//   {"GET", "/ws/bus/{name}/thing", Role::Read, RouteKind::Socket, {}, nullptr, make_thing_stream},
+// with web/thing.html (+ .js) listed in gateway/console/CMakeLists.txt (embedded) — docs/CONSOLE.md
+// "Adding a page".
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "config/config.h"
+#include "gateway/console/console_access.h"
+#include "gateway/console/console_request.h"
+#include "gateway/observability/metrics.h"
+#include "gateway/units/unit_router.h"
+#include "protocol/expected.h"
+#include "protocol/packet.h"
+
+namespace sms::gateway::console {
+
+struct HttpAnswer {
+  unsigned status = 200;
+  std::string content_type = "application/json";
+  std::string body;
+  std::vector<std::pair<std::string, std::string>> headers;  // Set-Cookie, Location ...
+
+  static HttpAnswer json(unsigned status, const nlohmann::json& body);
+  // {"error": message}: every refusal says what is wrong and what to do.
+  static HttpAnswer error(unsigned status, std::string message);
+};
+
+// The answer to a Modbus request the console made.
+struct ModbusAnswer {
+  protocol::Bytes pdu;         // the response PDU
+  std::uint8_t exception = 0;  // 0: no exception
+  std::string message;         // "0x04 server device failure: motion blocked ..." for the page
+  bool ok() const { return exception == 0 && !pdu.empty(); }
+};
+
+// The gateway as handlers and streams see it. Console thread only.
+class Commissioning;
+
+class Services {
+ public:
+  virtual ~Services() = default;
+  virtual const config::Config& config() const = 0;
+  virtual const config::ConsoleConfig& settings() const = 0;
+  virtual const UnitRouter& units() const = 0;
+  // The overview's JSON, made at most once per push period whoever asks.
+  virtual const nlohmann::json& overview() = 0;
+  virtual SessionStore& sessions() = 0;
+  // The commissioning jobs (console_commission.h).
+  virtual Commissioning& commissioning() = 0;
+  // Set-Cookie text for a session token (empty: clears the cookie).
+  virtual std::string session_cookie(const std::string& token) const = 0;
+  // A Modbus request made as `who`: first the role policy of Modbus/TCP Security (refused: an
+  // exception answer without reaching the router), then the unit router on the gateway's io
+  // thread, like any Modbus client. `done` runs on the console thread.
+  virtual void modbus(const Principal& who, std::uint8_t unit, protocol::Bytes pdu,
+                      std::function<void(ModbusAnswer)> done) = 0;
+};
+
+// One HTTP request a JSON handler answers. `answer` may be called later (after Modbus answers),
+// exactly once, on the console thread.
+struct ApiCall {
+  Services& services;
+  PathParams params;
+  std::string body;
+  Principal who;
+  std::optional<Session> session;
+  bool peer_loopback = false;
+  std::function<void(HttpAnswer)> answer;
+};
+using ApiHandler = void (*)(const std::shared_ptr<ApiCall>& call);
+
+// One open WebSocket: what it pushes and what it does with a page's messages.
+class Stream {
+ public:
+  using Send = std::function<void(std::string)>;
+  virtual ~Stream() = default;
+  // Every sample period (10 ms): look at the gateway (e.g. a new poll of the servo).
+  virtual void sample(SteadyClock::time_point now) { (void)now; }
+  // Every push period (100 ms): the batched message, or nullopt when there is nothing new.
+  virtual std::optional<std::string> flush(SteadyClock::time_point now) = 0;
+  // A text message from the page (at most ConsoleLimits::max_message_bytes).
+  virtual void on_message(std::string_view text, const Send& send) { (void)text, (void)send; }
+  // The page went away (tab closed, connection lost, server stopping).
+  virtual void on_close() {}
+};
+using StreamFactory = Expected<std::unique_ptr<Stream>> (*)(Services& services, const PathParams& params,
+                                                            const Principal& who);
+
+enum class RouteKind : std::uint8_t {
+  Page,    // an embedded file (`page`; empty: the {file} parameter, for /static/{file})
+  Api,     // `api`, JSON
+  Socket,  // a WebSocket upgrade; `socket` makes the stream
+};
+
+struct Route {
+  std::string_view method;  // "GET" or "POST"
+  std::string_view pattern;
+  config::Role need = config::Role::Read;  // None: anyone (login page, static files)
+  RouteKind kind = RouteKind::Page;
+  std::string_view page = {};
+  ApiHandler api = nullptr;
+  StreamFactory socket = nullptr;
+  bool csrf = true;  // POST only: needs the session's X-CSRF-Token (false: the login itself)
+};
+
+std::span<const Route> console_routes();
+
+// The push and sample periods (docs/CONSOLE.md: pushed at most every 100 ms, batched).
+inline constexpr std::chrono::milliseconds kPushPeriod{100};
+inline constexpr std::chrono::milliseconds kSamplePeriod{10};
+// A hold-to-run move stops when no heartbeat came for this long (the page sends one every 50 ms).
+inline constexpr std::chrono::milliseconds kJogHeartbeatTimeout{150};
+// While held, the move's goal is written again this often (it is the operator's presence: it
+// feeds the bus watchdog like any carried-out write).
+inline constexpr std::chrono::milliseconds kJogRefreshPeriod{250};
+
+// The Modbus exception in a response PDU as text for a page, e.g. "exception 0x04 (server device
+// failure): motion is blocked — the e-stop is latched or the watchdog tripped"; empty for none.
+std::string exception_text(std::uint8_t exception);
+
+}  // namespace sms::gateway::console

@@ -1,0 +1,289 @@
+"""The browser console end to end: real pages in headless Chromium against the real gateway on
+sms-sim (docs/CONSOLE.md). Witnesses are the simulator's own state (its control socket) and an
+independent Modbus client (pymodbus)."""
+import json
+import time
+import unittest
+
+from selenium.webdriver.common.action_chains import ActionChains
+from selenium.webdriver.common.by import By
+
+from console_support import ConsoleCase, wait_until
+
+
+class ConsoleTest(ConsoleCase):
+
+    def test_a_overview_lists_the_servos_live(self):
+        self.login("eng")
+        self.open("/", "#servos-table tr[data-unit='3'] td.online")
+        # The tables are redrawn on every push: read them in one go from the page.
+        units = self.browser.execute_script(
+            "return [...document.querySelectorAll('#servos-table tr[data-unit]')].map(r => r.dataset.unit)")
+        self.assertEqual(units, ["1", "2", "3"])
+        bus = self.text("#buses-table tr[data-bus='arm']")
+        self.assertIn("3 / 3", bus)
+        # Live: a position changed on the wire shows without a reload.
+        self.sim.command("set 1 42 00 04")  # servo 1's goal := 1024 through the simulator's backdoor
+        wait_until(lambda: abs(int(self.text("#servos-table tr[data-unit='1'] td.position") or 0) - 1024) < 5,
+                   timeout=10, what="servo 1's position to reach 1024 on the overview")
+        self.screenshot("overview.png")
+
+    def test_b_editing_a_field_changes_the_simulator(self):
+        self.login("eng")
+        self.open("/servo/2", "#field-acceleration input.edit")
+        field = self.browser.find_element(By.CSS_SELECTOR, "#field-acceleration input.edit")
+        field.send_keys("37")
+        self.browser.find_element(By.CSS_SELECTOR, "#field-acceleration button.write").click()
+        wait_until(lambda: self.sim.field(2, "acceleration") == 37, what="the simulator's acceleration of servo 2 to be 37")
+        wait_until(lambda: "written" in self.text("#message"), what="the page to say it was written")
+        wait_until(lambda: self.text("#field-acceleration td.value") == "37", what="the table to read 37 back")
+        # Out of range: a clear message, nothing written.
+        field = self.browser.find_element(By.CSS_SELECTOR, "#field-acceleration input.edit")
+        field.send_keys("9999")
+        self.browser.find_element(By.CSS_SELECTOR, "#field-acceleration button.write").click()
+        message = wait_until(lambda: self.browser.find_element(By.ID, "message").text, what="a message")
+        self.assertIn("outside", message)
+        # The server refuses it too, whatever the page checks.
+        answer = self.fetch("POST", "/api/servo/2/write", {"field": "acceleration", "value": 9999})
+        self.assertEqual(answer["status"], 400, answer)
+        self.assertIn("nothing written", answer["body"])
+        self.assertEqual(self.sim.field(2, "acceleration"), 37)
+
+    def test_c_plot_follows_a_modbus_client_moving_the_servo(self):
+        self.login("op")
+        self.open("/servo/2", "#plot[data-samples]")
+        client = self.modbus()
+        start = self.sim.field(2, "present_position")
+        goal = 3500 if start < 2500 else 500
+        for _ in range(3):  # a servo timeout (0x0B) on a loaded test machine is retried, as a PLC would
+            written = client.write_register(42, goal, slave=2)
+            if not written.isError() or getattr(written, "exception_code", 0) != 0x0B:
+                break
+        self.assertFalse(written.isError(), written)
+        client.close()
+
+        def plotted_near_goal():
+            data = self.browser.execute_script(
+                "const c = Chart.getChart('plot'); return c.data.datasets.length ? c.data.datasets[0].data.map(p => p.y) : [];")
+            return data and abs(data[-1] - goal) < 10 and any(abs(y - start) < 10 for y in data)
+        wait_until(plotted_near_goal, timeout=10, what="the plot to show the move from start to goal")
+        self.screenshot("servo-plot.png")
+
+    def hold(self, seconds, release=True):
+        button = self.browser.find_element(By.ID, "hold-position")
+        actions = ActionChains(self.browser).click_and_hold(button).pause(seconds)
+        if release:
+            actions = actions.release()
+        actions.perform()
+
+    def wait_stopped(self, servo):
+        """The servo's position stays put for 300 ms (the simulator's own motion model)."""
+        def still():
+            first = self.sim.field(servo, "present_position")
+            time.sleep(0.3)
+            return first == self.sim.field(servo, "present_position")
+        wait_until(still, timeout=3, what=f"servo {servo} to stand still")
+
+    def start_far_move(self, servo):
+        self.open(f"/servo/{servo}", "#hold-position:not([disabled])")
+        wait_until(lambda: self.browser.execute_script("return document.getElementById('link-state').textContent") == "live",
+                   what="the page's WebSocket")
+        start = self.sim.field(servo, "present_position")
+        goal = 4000 if start < 2048 else 100
+        box = self.browser.find_element(By.ID, "jog-position")
+        box.clear()
+        box.send_keys(str(goal))
+        return start, goal
+
+    def test_d_hold_to_run_stops_when_released(self):
+        self.login("op")
+        self.sim.command("set 3 41 0a")  # a slow acceleration, so the move outlasts the hold
+        start, goal = self.start_far_move(3)
+        self.hold(0.4)
+        released = time.monotonic()
+        self.wait_stopped(3)
+        self.assertLess(time.monotonic() - released, 3)
+        stopped = self.sim.field(3, "present_position")
+        self.assertNotEqual(stopped, start, "the servo did not move while the button was held")
+        self.assertGreater(abs(goal - stopped), 200, "the servo ran on to its goal after the release")
+        self.assertLess(abs(self.sim.field(3, "goal_position") - stopped), 50, "the goal was not held at the position")
+
+    def test_e_hold_to_run_stops_when_the_tab_closes(self):
+        self.login("op")
+        self.sim.command("set 1 41 0a")  # a slow acceleration, so the move outlasts the hold
+        main_window = self.browser.current_window_handle
+        self.browser.switch_to.new_window("tab")
+        start, goal = self.start_far_move(1)
+        self.hold(0.3, release=False)  # still held when the tab goes
+        self.browser.close()
+        closed = time.monotonic()
+        self.browser.switch_to.window(main_window)
+        self.wait_stopped(1)
+        self.assertLess(time.monotonic() - closed, 3)
+        stopped = self.sim.field(1, "present_position")
+        self.assertNotEqual(stopped, start, "the servo did not move while the button was held")
+        self.assertGreater(abs(goal - stopped), 200, "the servo ran on to its goal after the tab closed")
+
+    def test_f_a_read_user_cannot_write_or_jog(self):
+        self.login("viewer")
+        self.open("/servo/2", "#field-acceleration")
+        self.assertFalse(self.browser.find_elements(By.CSS_SELECTOR, "#field-acceleration input.edit"))
+        self.assertIn("needs operate", self.browser.find_element(By.ID, "field-acceleration").text)
+        self.assertFalse(self.browser.find_element(By.ID, "hold-position").is_enabled())
+        self.assertFalse(self.browser.find_element(By.ID, "estop").is_enabled())
+        before = self.sim.field(2, "acceleration")
+        answer = self.fetch("POST", "/api/servo/2/write", {"field": "acceleration", "value": before + 1})
+        self.assertEqual(answer["status"], 403, answer)
+        answer = self.fetch("POST", "/api/estop", {"latch": True})
+        self.assertEqual(answer["status"], 403, answer)
+        # The jog message over the page's own WebSocket is refused as well.
+        goal_before = self.sim.field(2, "goal_position")
+        reply = self.browser.execute_async_script("""
+            const done = arguments[0];
+            fetch('/api/session').then(r => r.json()).then(s => {
+              const ws = new WebSocket('ws://' + location.host + '/ws/servo/2?csrf=' + s.csrf);
+              ws.onopen = () => ws.send(JSON.stringify({type: 'jog', mode: 'position', value: 100}));
+              ws.onmessage = (e) => { const m = JSON.parse(e.data); if (m.type === 'error') { ws.close(); done(m.message); } };
+            });""")
+        self.assertIn("operate", reply)
+        self.assertEqual(self.sim.field(2, "acceleration"), before)
+        self.assertEqual(self.sim.field(2, "goal_position"), goal_before)
+
+    def test_g_estop_latches_and_modbus_writes_get_0x04(self):
+        self.login("op")
+        self.open("/", "#estop:not([disabled])")
+        self.browser.find_element(By.ID, "estop").click()
+        wait_until(lambda: "LATCHED" in self.browser.find_element(By.ID, "estop").text, what="the e-stop to latch")
+        client = self.modbus()
+        answer = client.write_register(42, 2048, slave=1)
+        self.assertTrue(answer.isError())
+        self.assertEqual(answer.exception_code, 0x04)
+        latched = client.read_discrete_inputs(0, 1, slave=255)
+        self.assertTrue(latched.bits[0], "unit 255 discrete input 0 (e-stop latched) is not set")
+        # Reset needs a confirmation.
+        self.browser.find_element(By.ID, "estop").click()
+        alert = wait_until(lambda: self._alert(), what="the reset confirmation")
+        alert.accept()
+        wait_until(lambda: "LATCHED" not in self.browser.find_element(By.ID, "estop").text, what="the e-stop to reset")
+        self.assertFalse(client.write_register(42, 2048, slave=1).isError())
+        client.close()
+
+    def test_h_stale_csrf_and_bad_requests_are_refused(self):
+        self.login("eng")
+        self.open("/", "#servos-table tr[data-unit]")
+        stale = self.browser.execute_script("return fetch('/api/session').then(r => r.json()).then(s => s.csrf)")
+        self.login("eng")  # a new login replaces the session and its token
+        self.browser.get(self.base + "/")
+        answer = self.fetch("POST", "/api/estop", {"latch": True}, csrf=stale)
+        self.assertEqual(answer["status"], 403, answer)
+        self.assertIn("stale", answer["body"])
+        answer = self.fetch("POST", "/api/servo/99/write", {"field": "acceleration", "value": 1})
+        self.assertEqual(answer["status"], 404, answer)
+        answer = self.fetch("POST", "/api/servo/1/write", {"field": "no_such_field", "value": 1})
+        self.assertEqual(answer["status"], 400, answer)
+
+    def test_i_bad_input_gets_a_clear_error_and_modbus_keeps_serving(self):
+        import socket
+        def exchange(data, read=True):
+            with socket.create_connection(("127.0.0.1", self.console_port), timeout=5) as s:
+                s.sendall(data)
+                if not read:
+                    return b""
+                reply = b""
+                try:
+                    while True:
+                        chunk = s.recv(65536)
+                        if not chunk:
+                            break
+                        reply += chunk
+                except (socket.timeout, ConnectionResetError):
+                    pass
+                return reply
+        self.assertIn(b"400", exchange(b"BREW /pot HTCPCP/1.0\r\n\r\n").split(b"\r\n")[0])
+        self.assertIn(b"431", exchange(b"GET / HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 20000 + b"\r\n\r\n").split(b"\r\n")[0])
+        big = b"POST /api/login HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
+        self.assertIn(b"413", exchange(big + b"{" * 100000).split(b"\r\n")[0])
+        self.assertIn(b"404", exchange(b"GET /nowhere HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").split(b"\r\n")[0])
+        # A WebSocket frame that says it carries 2^62 bytes: the connection is closed, nothing else happens.
+        self.login("viewer")
+        cookie = self.browser.get_cookie("sms_console")["value"]
+        csrf = self.browser.execute_script("return fetch('/api/session').then(r => r.json()).then(s => s.csrf)")
+        upgrade = (f"GET /ws/overview?csrf={csrf} HTTP/1.1\r\nHost: 127.0.0.1:{self.console_port}\r\n"
+                   f"Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                   f"Sec-WebSocket-Version: 13\r\nCookie: sms_console={cookie}\r\n\r\n").encode()
+        with socket.create_connection(("127.0.0.1", self.console_port), timeout=5) as s:
+            s.sendall(upgrade)
+            self.assertIn(b"101", s.recv(4096).split(b"\r\n")[0])
+            s.sendall(bytes([0x81, 0xFF]) + (1 << 62).to_bytes(8, "big") + b"\x00\x00\x00\x00" + b"x" * 64)
+            s.settimeout(5)
+            closed = False
+            try:
+                while s.recv(65536):
+                    pass
+                closed = True
+            except ConnectionResetError:
+                closed = True
+            self.assertTrue(closed)
+        client = self.modbus()
+        answer = client.read_input_registers(56, 2, slave=1)
+        self.assertFalse(answer.isError(), answer)
+        client.close()
+
+    def test_j_commissioning_scans_a_free_line_and_sets_an_id(self):
+        import os
+        import subprocess
+        self.login("eng")
+        self.open("/commission", "#scan:not([disabled])")
+        # A line the gateway's bus owns is refused.
+        self.browser.find_element(By.ID, "device").send_keys(self.sim.link)
+        self.browser.find_element(By.ID, "scan").click()
+        wait_until(lambda: "bus `arm`" in self.text("#message"), what="the refusal of the bus's own line")
+        device = self.browser.find_element(By.ID, "device")
+        device.clear()
+        device.send_keys(self.free_line.link)
+        self.browser.find_element(By.ID, "bauds").send_keys("1000000, 115200")
+        self.browser.find_element(By.ID, "last-id").send_keys("12")
+        self.browser.find_element(By.ID, "scan").click()
+        wait_until(lambda: self.browser.execute_script(
+            "return [...document.querySelectorAll('#found-table tr[data-id]')].map(r => r.dataset.id).join(',')") == "4,9",
+                   timeout=30, what="servos 4 and 9 in the scan's result")
+        # The downloadable configuration is one --check-config accepts.
+        yaml = self.browser.execute_async_script(
+            "fetch('/api/commission/config.yaml').then(r => r.text()).then(arguments[0])")
+        path = os.path.join(self.workdir, "scanned.yaml")
+        with open(path, "w") as f:
+            f.write(yaml)
+        check = subprocess.run([os.path.join(self.bin_dir, "sms-gateway"), "--check-config", path],
+                               capture_output=True, text=True)
+        self.assertEqual(check.returncode, 0, check.stdout + check.stderr + yaml)
+        self.assertIn("2 servo(s)", check.stdout)
+        # Set ID 9 -> 10; the simulator's own list is the witness.
+        self.browser.find_element(By.CSS_SELECTOR, "#found-table tr[data-id='9'] input.new-id").send_keys("10")
+        self.browser.find_element(By.CSS_SELECTOR, "#found-table tr[data-id='9'] button.set-id").click()
+        wait_until(lambda: self._alert(), what="the confirmation").accept()
+        wait_until(lambda: "10:sts" in self.free_line.command("list"), timeout=15, what="servo 9 to answer as 10")
+        self.assertNotIn("9:sts", self.free_line.command("list"))
+
+    # --- helpers ----------------------------------------------------------------------------------
+
+    def text(self, css):
+        return self.browser.execute_script("const e = document.querySelector(arguments[0]); return e ? e.textContent : ''", css)
+
+    def _alert(self):
+        try:
+            return self.browser.switch_to.alert
+        except Exception:  # NoAlertPresentException until it shows
+            return None
+
+    def fetch(self, method, path, body, csrf=None):
+        """A request from the page itself (same origin, its cookie), with its CSRF token unless given."""
+        return self.browser.execute_async_script("""
+            const [method, path, body, given, done] = arguments;
+            fetch('/api/session').then(r => r.json()).then(s =>
+              fetch(path, {method, headers: {'Content-Type': 'application/json', 'X-CSRF-Token': given || s.csrf},
+                           body: JSON.stringify(body)}))
+              .then(r => r.text().then(t => done({status: r.status, body: t})));""", method, path, body, csrf)
+
+
+if __name__ == "__main__":
+    unittest.main(verbosity=2)
