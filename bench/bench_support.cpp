@@ -30,7 +30,6 @@
 
 #include <spdlog/spdlog.h>
 
-
 namespace sms::bench {
 
 namespace fs = std::filesystem;
@@ -139,7 +138,8 @@ std::string gateway_yaml(const GatewaySetup& setup) {
   if (setup.modbus_rtu_baud != 0) yaml << "    frame_gap: " << setup.frame_gap << "\n";
   yaml << "servos:\n";
   const char* table = setup.modbus_rtu_baud != 0 ? "smsmb" : "sts";
-  for (unsigned id = 1; id <= setup.servos; ++id) yaml << "  - {bus: bench, id: " << id << ", table: " << table << "}\n";
+  for (unsigned id = 1; id <= setup.servos; ++id)
+    yaml << "  - {bus: bench, id: " << id << ", table: " << table << "}\n";
   yaml << setup.extra_yaml;
   return yaml.str();
 }
@@ -175,11 +175,11 @@ void BenchGateway::wait_ready(unsigned online) {
     }
   };
   if (!test::poll_until(ready)) {
-    throw std::runtime_error("sms-gateway on port " + std::to_string(port()) + ": " +
-                             test::await_failure("its bus up with " + std::to_string(online) +
-                                                     " servos online and a poll cycle done",
-                                                 test::kAwaitTimeout) +
-                             " (last seen: " + last_state + "); its output:\n" + process_.process().output());
+    throw std::runtime_error(
+        "sms-gateway on port " + std::to_string(port()) + ": " +
+        test::await_failure("its bus up with " + std::to_string(online) + " servos online and a poll cycle done",
+                            test::kAwaitTimeout) +
+        " (last seen: " + last_state + "); its output:\n" + process_.process().output());
   }
 }
 
@@ -267,12 +267,8 @@ ClientTotals run_clients(std::uint16_t port, int unit, unsigned clients, std::ch
           const Outcome outcome = request(client->context(), index, iteration);
           const auto latency = to_ns(Clock::now() - before);
           switch (outcome) {
-            case Outcome::Ok:
-              totals.ok_ns.push_back(latency);
-              break;
-            case Outcome::Busy:
-              totals.busy_ns.push_back(latency);
-              break;
+            case Outcome::Ok: totals.ok_ns.push_back(latency); break;
+            case Outcome::Busy: totals.busy_ns.push_back(latency); break;
             case Outcome::Error:
               if (totals.errors++ == 0) totals.first_error = modbus_error_text();
               break;

@@ -78,8 +78,8 @@ using test::GatewayProcess;
 using test::ModbusClient;
 
 struct GatewaySetup {
-  std::string device;                    // the simulated bus's pty
-  unsigned servos = 6;                   // sts IDs 1..servos = units 1..servos
+  std::string device;   // the simulated bus's pty
+  unsigned servos = 6;  // sts IDs 1..servos = units 1..servos
   std::chrono::milliseconds poll_period{20};
   std::chrono::milliseconds probe_period{1000};
   std::size_t max_connections = 200;
@@ -159,7 +159,7 @@ struct ClientTotals {
   std::vector<std::uint32_t> busy_ns;  // latency of each exception 0x06 answer
   std::uint64_t errors = 0;            // any other failure
   std::string first_error;
-  double seconds = 0;                  // from the common start to the last client's end
+  double seconds = 0;  // from the common start to the last client's end
 };
 
 // Runs `clients` threads, each with its own connection to `unit`, all starting together and

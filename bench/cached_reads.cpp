@@ -30,7 +30,6 @@
 
 #include "bench/bench_support.h"
 
-
 namespace {
 
 using namespace sms::bench;
@@ -46,8 +45,7 @@ constexpr unsigned kServos = 6;
 
 int serve_bare(std::uint16_t port) {
   modbus_t* context = modbus_new_tcp("127.0.0.1", port);
-  modbus_mapping_t* map =
-      modbus_mapping_new_start_address(0, 0, 0, 0, 0, 0, kFeedbackAddress, kFeedbackCount);
+  modbus_mapping_t* map = modbus_mapping_new_start_address(0, 0, 0, 0, 0, 0, kFeedbackAddress, kFeedbackCount);
   if (context == nullptr || map == nullptr) {
     std::cerr << "bare server: " << modbus_strerror(errno) << "\n";
     return 1;
@@ -201,7 +199,8 @@ void measure_flood(std::uint16_t port, std::chrono::milliseconds duration, int n
   print_figure(name + ".other_errors", static_cast<double>(totals.errors), "requests");
   print_figure(name + ".bus_frames_ok", after.frames_ok - before.frames_ok, "frames");
   print_figure(name + ".bus_timeouts", after.timeouts - before.timeouts, "frames");
-  print_figure(name + ".bus_transaction_mean", 1e6 * totals.seconds / std::max(1.0, static_cast<double>(after.frames_ok - before.frames_ok)), "us");
+  print_figure(name + ".bus_transaction_mean",
+               1e6 * totals.seconds / std::max(1.0, static_cast<double>(after.frames_ok - before.frames_ok)), "us");
   print_figure(name + ".bus_transaction_wire_model", wire_us(8 + 6 + kFeedbackCount) + kStsFastestReturnDelayUs, "us");
   print_figure(name + ".servo1_cache_age_max", max_cache_age_ms, "ms");
   if (totals.errors > 0) print_note(name + ": first other error: " + totals.first_error);
@@ -239,8 +238,9 @@ int main(int argc, char** argv) {
     BenchGateway gateway(setup);
     gateway.wait_ready(kServos);
     BareServerProcess bare;
-    print_note("gateway: sms-gateway, 6 simulated sts servos at 1 Mbaud, poll period 20 ms; bare: libmodbus "
-               "select() loop, static map; FC04 unit 1 address 56 count 15");
+    print_note(
+        "gateway: sms-gateway, 6 simulated sts servos at 1 Mbaud, poll period 20 ms; bare: libmodbus "
+        "select() loop, static map; FC04 unit 1 address 56 count 15");
 
     for (const unsigned clients : kClientCounts) {
       const Throughput through_gateway = measure_reads("gateway", gateway.port(), clients, duration);

@@ -17,12 +17,12 @@
 #include <sstream>
 #include <thread>
 
+#include <modbus/modbus.h>
 #include <boost/asio/connect.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/beast/core.hpp>
 #include <boost/beast/http.hpp>
 #include <boost/beast/websocket.hpp>
-#include <modbus/modbus.h>
 #include <nlohmann/json.hpp>
 
 #include "bench/bench_support.h"
@@ -70,10 +70,12 @@ Phase measure(GatewayProcess& gateway, std::chrono::milliseconds duration) {
   }
   const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
   const double cpu_after = cpu_seconds(gateway.pid());
-  const ClientTotals totals = run_clients(gateway.port(), 1, 1, duration, [](modbus_t* context, unsigned, std::uint64_t) {
-    std::uint16_t registers[kFeedbackCount];
-    return outcome_of(modbus_read_input_registers(context, kFeedbackAddress, kFeedbackCount, registers), kFeedbackCount);
-  });
+  const ClientTotals totals =
+      run_clients(gateway.port(), 1, 1, duration, [](modbus_t* context, unsigned, std::uint64_t) {
+        std::uint16_t registers[kFeedbackCount];
+        return outcome_of(modbus_read_input_registers(context, kFeedbackAddress, kFeedbackCount, registers),
+                          kFeedbackCount);
+      });
   Phase phase;
   phase.cpu_percent = 100.0 * (cpu_after - cpu_before) / elapsed;
   std::sort(cycles.begin(), cycles.end());
@@ -96,15 +98,15 @@ void console_client(std::uint16_t port, unsigned servo, std::atomic<bool>& stop,
   beast::flat_buffer buffer;
   http::response<http::string_body> response;
   http::read(stream, buffer, response);
-  const std::string cookie = std::string(response[http::field::set_cookie]).substr(0, std::string(response[http::field::set_cookie]).find(';'));
+  const std::string cookie = std::string(response[http::field::set_cookie])
+                                 .substr(0, std::string(response[http::field::set_cookie]).find(';'));
   const std::string csrf = nlohmann::json::parse(response.body())["csrf"];
   std::vector<std::unique_ptr<websocket::stream<tcp::socket>>> sockets;
   for (const std::string& path : {std::string("/ws/overview"), "/ws/servo/" + std::to_string(servo)}) {
     auto socket = std::make_unique<websocket::stream<tcp::socket>>(io);
     boost::asio::connect(socket->next_layer(), endpoints);
-    socket->set_option(websocket::stream_base::decorator([&cookie](websocket::request_type& upgrade) {
-      upgrade.set(http::field::cookie, cookie);
-    }));
+    socket->set_option(websocket::stream_base::decorator(
+        [&cookie](websocket::request_type& upgrade) { upgrade.set(http::field::cookie, cookie); }));
     socket->handshake("127.0.0.1", path + "?csrf=" + csrf);
     sockets.push_back(std::move(socket));
   }
@@ -160,8 +162,9 @@ int main(int argc, char** argv) {
     gateway.wait_ready(kServos);
     std::this_thread::sleep_for(500ms);
     const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
-    print_note("20 sts servos at 1 Mbaud polled every 20 ms; phase idle: no console client; phase streaming: 5 "
-               "consoles, each /ws/overview + /ws/servo/N (every poll of one servo)");
+    print_note(
+        "20 sts servos at 1 Mbaud polled every 20 ms; phase idle: no console client; phase streaming: 5 "
+        "consoles, each /ws/overview + /ws/servo/N (every poll of one servo)");
     const Phase idle = measure(gateway, duration);
 
     std::atomic<bool> stop{false};
@@ -170,7 +173,8 @@ int main(int argc, char** argv) {
     std::atomic<std::uint64_t> messages{0};
     std::vector<std::thread> consoles;
     for (unsigned i = 0; i < kConsoles; ++i) {
-      consoles.emplace_back([&, i] { console_client(console_port, 1 + i * (kServos / kConsoles), stop, mutex, latencies, messages); });
+      consoles.emplace_back(
+          [&, i] { console_client(console_port, 1 + i * (kServos / kConsoles), stop, mutex, latencies, messages); });
     }
     std::this_thread::sleep_for(1s);  // connected and streaming
     {

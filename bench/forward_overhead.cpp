@@ -22,8 +22,8 @@
 
 #include "bench/bench_support.h"
 #include "config/config.h"
-#include "gateway/units/passthrough.h"
 #include "gateway/bus/rtu_master.h"
+#include "gateway/units/passthrough.h"
 
 namespace {
 

@@ -46,8 +46,8 @@ modbus_map::ServoTables sts_tables() {
 }
 
 // An sts answer to the poll cycle's SYNC READ of the 15-byte feedback block.
-const protocol::Bytes kAnswer{0xFF, 0xFF, 0x01, 0x11, 0x00, 0x00, 0x08, 0x00, 0x00, 0x00,
-                              0x00, 0x79, 0x1E, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x4C};
+const protocol::Bytes kAnswer{0xFF, 0xFF, 0x01, 0x11, 0x00, 0x00, 0x08, 0x00, 0x00, 0x00, 0x00,
+                              0x79, 0x1E, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x4C};
 
 // CPU time of the calling thread, or of the whole process: what the work costs, whatever else
 // runs on the machine (wall time on a loaded machine counts the waits for a CPU too).
@@ -98,8 +98,8 @@ gateway::BusSettings engine_settings(const std::string& device) {
   settings.poll_period = 0ms;  // back to back: every cycle is bus work
   const auto block = modbus_map::default_poll_block(modbus_map::TableId::Sts);
   for (std::uint8_t id = 1; id <= kServos; ++id) {
-    settings.servos.push_back({id, modbus_map::TableId::Sts, modbus_map::ByteOrder::LowFirst,
-                               {block.address, block.count}});
+    settings.servos.push_back(
+        {id, modbus_map::TableId::Sts, modbus_map::ByteOrder::LowFirst, {block.address, block.count}});
   }
   return settings;
 }
@@ -107,7 +107,7 @@ gateway::BusSettings engine_settings(const std::string& device) {
 struct CycleFigures {
   double cycles_per_s = 0;
   double median_cycle_us = 0;
-  double cpu_us_per_cycle = 0;  // the whole process (bus thread and simulated servos) per cycle
+  double cpu_us_per_cycle = 0;   // the whole process (bus thread and simulated servos) per cycle
   double records_per_cycle = 0;  // with the tap: records the bus thread made per cycle
 };
 
@@ -152,9 +152,12 @@ int main(int argc, char** argv) {
   int rounds = 3;
   for (int i = 1; i + 1 < argc; i += 2) {
     const std::string option = argv[i];
-    if (option == "--records") records = std::stoul(argv[i + 1]);
-    else if (option == "--seconds") seconds = std::stoi(argv[i + 1]);
-    else if (option == "--rounds") rounds = std::stoi(argv[i + 1]);
+    if (option == "--records")
+      records = std::stoul(argv[i + 1]);
+    else if (option == "--seconds")
+      seconds = std::stoi(argv[i + 1]);
+    else if (option == "--rounds")
+      rounds = std::stoi(argv[i + 1]);
     else {
       std::cerr << "monitor_overhead: unknown option " << option << "\n";
       return 2;

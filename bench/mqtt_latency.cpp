@@ -9,17 +9,17 @@
 // the poll's time, so this is cache -> node -> broker -> host; ms resolution); write -> first
 // DDATA that shows the servo moving (Modbus FC06 of the goal until the host sees the new
 // position: poll period + data period + MQTT); the broker's CPU is not separated.
-#include <mosquitto.h>
 #include <modbus/modbus.h>
+#include <mosquitto.h>
 
 #include <fcntl.h>
 
 #include <algorithm>
 #include <atomic>
-#include <map>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <map>
 #include <mutex>
 #include <thread>
 
@@ -37,7 +37,8 @@ constexpr int kTorqueEnable = 40;
 
 std::uint64_t epoch_us() {
   return static_cast<std::uint64_t>(
-      std::chrono::duration_cast<std::chrono::microseconds>(std::chrono::system_clock::now().time_since_epoch()).count());
+      std::chrono::duration_cast<std::chrono::microseconds>(std::chrono::system_clock::now().time_since_epoch())
+          .count());
 }
 
 struct Observed {
@@ -72,9 +73,10 @@ int main(int argc, char** argv) {
     GatewaySetup setup;
     setup.device = bus.slave_path();
     setup.servos = count;
-    setup.extra_yaml = "mqtt: {broker: \"127.0.0.1:" + std::to_string(broker.port()) +
-                       "\", group_id: bench, edge_node_id: gw, data_period_ms: " +
-                       std::to_string(static_cast<int>(data_period_ms)) + "}\n";
+    setup.extra_yaml =
+        "mqtt: {broker: \"127.0.0.1:" + std::to_string(broker.port()) +
+        "\", group_id: bench, edge_node_id: gw, data_period_ms: " + std::to_string(static_cast<int>(data_period_ms)) +
+        "}\n";
 
     Observed observed;
     mosquitto_lib_init();

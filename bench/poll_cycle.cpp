@@ -56,7 +56,7 @@ struct Window {
   BusFacts last;
   ServoFacts watched_first;  // servo unit 1 (always online)
   ServoFacts watched_last;
-  ServoFacts silent_first;   // the servo taken offline
+  ServoFacts silent_first;  // the servo taken offline
   ServoFacts silent_last;
 };
 
@@ -146,7 +146,8 @@ void measure_rtu_cycle(const RtuGap& gap, std::uint16_t return_delay_us, std::ch
   // SMSMB register 0x0C: the return delay in us, high byte first (Modbus).
   const std::uint8_t delay[] = {static_cast<std::uint8_t>(return_delay_us >> 8),
                                 static_cast<std::uint8_t>(return_delay_us & 0xFF)};
-  for (unsigned id = 1; id <= kRtuServos; ++id) bus.write_memory(static_cast<std::uint8_t>(id), kSmsmbReturnDelayRegister, delay);
+  for (unsigned id = 1; id <= kRtuServos; ++id)
+    bus.write_memory(static_cast<std::uint8_t>(id), kSmsmbReturnDelayRegister, delay);
   GatewaySetup setup;
   setup.device = bus.slave_path();
   setup.servos = kRtuServos;
@@ -220,10 +221,10 @@ void measure_silent_servo(std::chrono::milliseconds duration) {
   // One probe = one READ of the feedback block, one attempt: its wire time + the response timeout.
   const double probe_cost_ms =
       (wire_us(8) + wire_us(6 + kFeedbackCount)) / 1000.0 + static_cast<double>(kResponseTimeout.count());
-  const double rate_all = per_second(all_online.watched_first.replies_ok, all_online.watched_last.replies_ok,
-                                     all_online.seconds);
-  const double rate_one_off = per_second(one_offline.watched_first.replies_ok, one_offline.watched_last.replies_ok,
-                                         one_offline.seconds);
+  const double rate_all =
+      per_second(all_online.watched_first.replies_ok, all_online.watched_last.replies_ok, all_online.seconds);
+  const double rate_one_off =
+      per_second(one_offline.watched_first.replies_ok, one_offline.watched_last.replies_ok, one_offline.seconds);
   const std::string name = "silent_servo.servos_6.return_delay_us_100";
   print_figure(name + ".detected_offline_after", detection_ms, "ms");
   print_figure(name + ".others.wire_limit", limit, "us");
@@ -251,20 +252,22 @@ int main(int argc, char** argv) {
   double only_servos = 0;
   double only_return_delay_us = -1;
   double rtu_seconds = 2;
-  if (!parse_arguments(argc, argv,
-                       "poll cycle time vs the SYNC READ wire-time limit for 6, 20, 60 servos at 1 Mbaud; the cost "
-                       "of one silent servo",
-                       {{"seconds", &seconds, "sampling time per bus size"},
-                        {"silent-seconds", &silent_seconds, "sampling time with and without the silent servo (0: skip)"},
-                        {"servos", &only_servos, "only this bus size (6, 20 or 60; 0: all)"},
-                        {"return-delay-us", &only_return_delay_us, "only this return delay (100 or 500; -1: both)"},
-                        {"rtu-seconds", &rtu_seconds, "sampling time per modbus-rtu frame gap setting (0: skip)"}})) {
+  if (!parse_arguments(
+          argc, argv,
+          "poll cycle time vs the SYNC READ wire-time limit for 6, 20, 60 servos at 1 Mbaud; the cost "
+          "of one silent servo",
+          {{"seconds", &seconds, "sampling time per bus size"},
+           {"silent-seconds", &silent_seconds, "sampling time with and without the silent servo (0: skip)"},
+           {"servos", &only_servos, "only this bus size (6, 20 or 60; 0: all)"},
+           {"return-delay-us", &only_return_delay_us, "only this return delay (100 or 500; -1: both)"},
+           {"rtu-seconds", &rtu_seconds, "sampling time per modbus-rtu frame gap setting (0: skip)"}})) {
     return 2;
   }
   try {
     quiet_logs();
-    print_note("sms-gateway polling back to back (poll_period_ms 0); cycle = gateway unit 255 input register 102, "
-               "sampled every 10 ms; limit = SYNC READ of 15 bytes, docs/PROTOCOL.md §5");
+    print_note(
+        "sms-gateway polling back to back (poll_period_ms 0); cycle = gateway unit 255 input register 102, "
+        "sampled every 10 ms; limit = SYNC READ of 15 bytes, docs/PROTOCOL.md §5");
     for (const std::uint8_t return_delay : kReturnDelays) {
       if (seconds <= 0) break;
       if (only_return_delay_us >= 0 && only_return_delay_us != return_delay * kReturnDelayUsPerUnit) continue;
@@ -274,9 +277,10 @@ int main(int argc, char** argv) {
       }
     }
     if (rtu_seconds > 0) {
-      print_note("modbus-rtu: 6 SMSMB servos at 115200 bit/s, FC03 of 8 registers each, return delay 0 and 500 us "
-                 "(the SMSMB default), with each frame_gap setting; limit = frames on the wire + return delay + one "
-                 "gap per transaction");
+      print_note(
+          "modbus-rtu: 6 SMSMB servos at 115200 bit/s, FC03 of 8 registers each, return delay 0 and 500 us "
+          "(the SMSMB default), with each frame_gap setting; limit = frames on the wire + return delay + one "
+          "gap per transaction");
       const double characters_us = 3.5 * 10 * 1e6 / kRtuBaud;
       for (const std::uint16_t return_delay_us : kRtuReturnDelaysUs) {
         if (only_return_delay_us >= 0 && only_return_delay_us != return_delay_us) continue;

@@ -7,8 +7,8 @@
 //
 // Printed: the reader's p50 / p99 / max latency and how many reads it got, the writers'
 // throughput, and one bus transaction's time for scale (an FC06 is 150 us on the wire, the FC03
-// of 15 registers 290 us, each + 100 us return delay: the fastest an sts servo answers). The rule (docs/DECISIONS.md "Gateway"): a client read waits at
-// most 2 ms behind higher-priority work before it goes next, oldest first.
+// of 15 registers 290 us, each + 100 us return delay: the fastest an sts servo answers). The rule (docs/DECISIONS.md
+// "Gateway"): a client read waits at most 2 ms behind higher-priority work before it goes next, oldest first.
 #include <modbus/modbus.h>
 
 #include <algorithm>
@@ -48,11 +48,14 @@ int main(int argc, char** argv) {
     ClientTotals writers;
     std::thread flood([&] {
       // Writer i writes servo i + 1 (the unit is set per request).
-      writers = run_clients(gateway.port(), 1, kServos, duration, [](modbus_t* context, unsigned client, std::uint64_t i) {
-        modbus_set_slave(context, static_cast<int>(client + 1));
-        const auto value = static_cast<std::uint16_t>(i % 2 == 0 ? 2000 : 2100);
-        return outcome_of(modbus_write_register(context, kGoalPosition, value), 1);
-      }, 10);
+      writers = run_clients(
+          gateway.port(), 1, kServos, duration,
+          [](modbus_t* context, unsigned client, std::uint64_t i) {
+            modbus_set_slave(context, static_cast<int>(client + 1));
+            const auto value = static_cast<std::uint16_t>(i % 2 == 0 ? 2000 : 2100);
+            return outcome_of(modbus_write_register(context, kGoalPosition, value), 1);
+          },
+          10);
     });
     std::this_thread::sleep_for(200ms);  // the flood is on
     std::vector<std::uint32_t> reads_ns;
@@ -82,7 +85,8 @@ int main(int argc, char** argv) {
                  "req/s");
     print_figure("read_under_flood.write.p50", writes.p50_us, "us");
     print_figure("read_under_flood.write_busy_0x06", static_cast<double>(writers.busy_ns.size()), "");
-    print_figure("read_under_flood.wire.fc03_feedback", wire_us(8 + 6 + kFeedbackCount) + kStsFastestReturnDelayUs, "us");
+    print_figure("read_under_flood.wire.fc03_feedback", wire_us(8 + 6 + kFeedbackCount) + kStsFastestReturnDelayUs,
+                 "us");
   } catch (const std::exception& error) {
     std::cerr << "read_under_flood: " << error.what() << "\n";
     return 1;

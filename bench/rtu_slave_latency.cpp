@@ -88,7 +88,8 @@ class PanelLine {
       answer.insert(answer.end(), buffer, buffer + n);
     }
     return answer.size() == expected && answer[1] == 0x03 &&
-           sms::protocol::rtu::crc16(std::span(answer).first(expected - 2)) == (answer[expected - 2] | answer[expected - 1] << 8);
+           sms::protocol::rtu::crc16(std::span(answer).first(expected - 2)) ==
+               (answer[expected - 2] | answer[expected - 1] << 8);
   }
 
  private:
@@ -136,18 +137,21 @@ std::unique_ptr<sms::gateway::Gateway> start_gateway(const std::string& bus_devi
   const std::string yaml =
       "modbus_tcp: {listen: \"127.0.0.1:0\"}\n"
       "buses:\n"
-      "  - {name: lift, device: \"" + bus_device + "\", protocol: modbus-rtu, baud: " + std::to_string(kBusRate) +
+      "  - {name: lift, device: \"" +
+      bus_device + "\", protocol: modbus-rtu, baud: " + std::to_string(kBusRate) +
       ", poll_period_ms: 3600000, response_timeout_ms: 100}\n"  // no poll cycle competing with the panel
       "servos:\n"
       "  - {bus: lift, id: 1, table: smsmb}\n"
       "modbus_rtu_slave:\n"
-      "  - {device: \"" + panel + "\", baud: " + std::to_string(rate) + "}\n";
+      "  - {device: \"" +
+      panel + "\", baud: " + std::to_string(rate) + "}\n";
   auto config = sms::config::load_config_string(yaml, "<rtu_slave_latency>");
   if (!config) throw std::runtime_error(config.error().to_string());
   auto gateway = std::make_unique<sms::gateway::Gateway>(std::move(*config));
   gateway->start();
   const auto deadline = Clock::now() + 20s;
-  while (!(gateway->engine(0).bus_up() && !gateway->metrics().rtu_slaves.empty() && gateway->metrics().rtu_slaves[0].open)) {
+  while (!(gateway->engine(0).bus_up() && !gateway->metrics().rtu_slaves.empty() &&
+           gateway->metrics().rtu_slaves[0].open)) {
     if (Clock::now() > deadline) throw std::runtime_error("the gateway's bus or upstream port did not come up");
     std::this_thread::sleep_for(5ms);
   }
@@ -222,9 +226,9 @@ void hmi_poll(std::chrono::milliseconds duration) {
 int main(int argc, char** argv) {
   double seconds = 3;
   double hmi_seconds = 20;
-  if (!parse_arguments(argc, argv, "the upstream RTU port's added latency, and a 10 Hz HMI poll through it",
-                       {{"seconds", &seconds, "per latency measurement"},
-                        {"hmi-seconds", &hmi_seconds, "of the 10 Hz HMI poll"}})) {
+  if (!parse_arguments(
+          argc, argv, "the upstream RTU port's added latency, and a 10 Hz HMI poll through it",
+          {{"seconds", &seconds, "per latency measurement"}, {"hmi-seconds", &hmi_seconds, "of the 10 Hz HMI poll"}})) {
     return 2;
   }
   try {

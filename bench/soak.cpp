@@ -38,13 +38,13 @@ const char* const kRequestNames[kRequestKinds] = {"fc04", "fc03", "fc06", "fc16"
 
 struct OwnedField {
   std::uint16_t address;
-  const char* name;  // modbus_map field name, for the check against the simulator's memory
+  const char* name;   // modbus_map field name, for the check against the simulator's memory
   std::uint16_t max;  // values written stay in 0..max (inside every field's range)
 };
 struct Slot {
-  OwnedField single;                 // FC06 target
-  std::uint16_t block_start;         // FC16 block
-  std::vector<OwnedField> block;     // fields in the block (their first addresses)
+  OwnedField single;              // FC06 target
+  std::uint16_t block_start;      // FC16 block
+  std::vector<OwnedField> block;  // fields in the block (their first addresses)
   std::uint16_t block_count;
 };
 const Slot kSlots[] = {
@@ -166,8 +166,10 @@ int main(int argc, char** argv) {
     setup.servos = kServos;
     BenchGateway gateway(setup);
     gateway.wait_ready(kServos);
-    print_note("sms-gateway, 6 simulated sts servos at 1 Mbaud (factory return delay 0, answered after 100 us: the sts floor), poll period 20 ms; 16 "
-               "libmodbus clients; RSS = VmRSS of the gateway process, sampled every second");
+    print_note(
+        "sms-gateway, 6 simulated sts servos at 1 Mbaud (factory return delay 0, answered after 100 us: the sts "
+        "floor), poll period 20 ms; 16 "
+        "libmodbus clients; RSS = VmRSS of the gateway process, sampled every second");
 
     std::vector<ClientState> states(kClients);
     for (unsigned k = 0; k < kClients; ++k) {
@@ -197,12 +199,12 @@ int main(int argc, char** argv) {
     });
 
     // Each client's unit is set per request: run_clients connects them all to unit 1.
-    ClientTotals totals = run_clients(gateway.port(), 1, kClients, duration,
-                                      [&](modbus_t* context, unsigned client, std::uint64_t) {
-                                        ClientState& state = states[client];
-                                        modbus_set_slave(context, state.unit);
-                                        return one_request(context, state);
-                                      });
+    ClientTotals totals =
+        run_clients(gateway.port(), 1, kClients, duration, [&](modbus_t* context, unsigned client, std::uint64_t) {
+          ClientState& state = states[client];
+          modbus_set_slave(context, state.unit);
+          return one_request(context, state);
+        });
     sampling.store(false);
     sampler.join();
 
@@ -218,7 +220,8 @@ int main(int argc, char** argv) {
           ++unsettled;
           continue;
         }
-        const std::uint16_t through_gateway = checker.read_holding(address, 1).or_throw("FC03 " + std::to_string(address)).at(0);
+        const std::uint16_t through_gateway =
+            checker.read_holding(address, 1).or_throw("FC03 " + std::to_string(address)).at(0);
         const char* field_name = nullptr;
         for (const OwnedField& field : state.slot->block) {
           if (field.address == address) field_name = field.name;

@@ -1,4 +1,5 @@
-// trip_latency: watchdog trip latency — last feed (a client's last Modbus write) to the safe stop's SYNC WRITE on the simulated wire, 6 and 60 sts servos at 1 Mbaud, timed by the simulator's frame observer.
+// trip_latency: watchdog trip latency — last feed (a client's last Modbus write) to the safe stop's SYNC WRITE on the
+// simulated wire, 6 and 60 sts servos at 1 Mbaud, timed by the simulator's frame observer.
 //
 //   trip_latency [--rounds 30] [--timeout-ms 100] [--servos N] [--quick]
 //
@@ -45,15 +46,15 @@ using namespace sms::bench;
 using namespace std::chrono_literals;
 
 constexpr unsigned kServoCounts[] = {6, 60};
-constexpr int kModeAddress = 33;         // sts operating_mode
-constexpr int kGoalSpeedAddress = 46;    // sts goal_speed
+constexpr int kModeAddress = 33;       // sts operating_mode
+constexpr int kGoalSpeedAddress = 46;  // sts goal_speed
 constexpr std::uint16_t kSpeedMode = 1;
 constexpr std::uint16_t kGoalSpeed = 1000;
-constexpr int kWatchdogCoil = 2;         // gateway unit: write 0 re-arms every tripped watchdog
-constexpr int kBusSafetyBlock = 110;     // bus 0: 100 + 20 * 0 + 10 ...
-constexpr std::size_t kStateOffset = 0;  // 110 watchdog state
-constexpr std::size_t kTripsOffset = 2;  // 112-113 trips
-constexpr std::size_t kCauseOffset = 5;  // 115 cause of the last safe stop
+constexpr int kWatchdogCoil = 2;           // gateway unit: write 0 re-arms every tripped watchdog
+constexpr int kBusSafetyBlock = 110;       // bus 0: 100 + 20 * 0 + 10 ...
+constexpr std::size_t kStateOffset = 0;    // 110 watchdog state
+constexpr std::size_t kTripsOffset = 2;    // 112-113 trips
+constexpr std::size_t kCauseOffset = 5;    // 115 cause of the last safe stop
 constexpr std::size_t kLatencyOffset = 6;  // 116-117 its latency, µs
 constexpr int kSafetyRegisters = 8;
 constexpr std::uint16_t kTripped = 3;
@@ -127,8 +128,8 @@ class FrameLog {
 void write_or_throw(modbus_t* context, int unit, int address, std::uint16_t value) {
   modbus_set_slave(context, unit);
   if (modbus_write_register(context, address, value) != 1) {
-    throw std::runtime_error("unit " + std::to_string(unit) + ": FC06 " + std::to_string(address) + " := " +
-                             std::to_string(value) + " failed: " + modbus_error_text());
+    throw std::runtime_error("unit " + std::to_string(unit) + ": FC06 " + std::to_string(address) +
+                             " := " + std::to_string(value) + " failed: " + modbus_error_text());
   }
 }
 
@@ -142,10 +143,10 @@ bool all_stopped(sms::simulator::SimulatedBus& bus, unsigned servos) {
 struct SizeResult {
   unsigned servos = 0;
   std::chrono::milliseconds timeout{0};
-  unsigned missed = 0;       // no complete stop seen in time
-  unsigned not_stopped = 0;  // the frames came but a servo's goal_speed was not 0
-  unsigned no_figure = 0;    // the gateway's register did not show this round's stop
-  std::size_t polls_in_reads = 0;   // poll SYNC READs between the stop's first and last READ
+  unsigned missed = 0;                 // no complete stop seen in time
+  unsigned not_stopped = 0;            // the frames came but a servo's goal_speed was not 0
+  unsigned no_figure = 0;              // the gateway's register did not show this round's stop
+  std::size_t polls_in_reads = 0;      // poll SYNC READs between the stop's first and last READ
   std::size_t polls_before_write = 0;  // ... between its last READ and its first SYNC WRITE
   LatencySummary total, beyond, wake, stop, reported, wire_floor, write_gap;
   std::optional<double> bench_minus_gateway_us;  // median per round: this bench's figure - the gateway's
@@ -168,7 +169,9 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
   ModbusClient client(gateway.port(), kGatewayUnit);
   ModbusClient facts_client(gateway.port(), kGatewayUnit);
 
-  const auto safety_registers = [&] { return facts_client.read_input(kBusSafetyBlock, kSafetyRegisters).or_throw("FC04 unit 255, bus safety block"); };
+  const auto safety_registers = [&] {
+    return facts_client.read_input(kBusSafetyBlock, kSafetyRegisters).or_throw("FC04 unit 255, bus safety block");
+  };
   auto registers = safety_registers();
   std::uint32_t trips_seen = u32(registers[kTripsOffset], registers[kTripsOffset + 1]);
   std::uint32_t previous_figure = u32(registers[kLatencyOffset], registers[kLatencyOffset + 1]);
@@ -186,7 +189,8 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
     }
     log.clear();
     Clock::time_point last_feed;
-    for (unsigned id = 1; id <= servos; ++id) write_or_throw(client.context(), static_cast<int>(id), kModeAddress, kSpeedMode);
+    for (unsigned id = 1; id <= servos; ++id)
+      write_or_throw(client.context(), static_cast<int>(id), kModeAddress, kSpeedMode);
     for (unsigned id = 1; id <= servos; ++id) {
       last_feed = Clock::now();  // sent now; the gateway's count starts at its arrival
       write_or_throw(client.context(), static_cast<int>(id), kGoalSpeedAddress, kGoalSpeed);
@@ -197,7 +201,8 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
       continue;
     }
     const Frame& end = frames->back();
-    const auto first_read = std::find_if(frames->begin(), frames->end(), [](const Frame& f) { return f.code == kRead; });
+    const auto first_read =
+        std::find_if(frames->begin(), frames->end(), [](const Frame& f) { return f.code == kRead; });
     const Clock::time_point stop_start = first_read != frames->end() ? first_read->arrived : end.arrived;
     const Clock::time_point deadline = last_feed + timeout;
     // The last stop READ's reply has left the wire at `reads_end` (the reply's frames carry their
@@ -291,7 +296,8 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
   print_figure(name + ".polls_between_reads_and_sync_write", static_cast<double>(result.polls_before_write), "");
   print_latency(name + ".gateway_reported", result.reported, LatencyUnit::Ms, false);
   print_figure(name + ".gateway_reported.rounds", static_cast<double>(result.reported.count), "");
-  if (result.bench_minus_gateway_us) print_figure(name + ".bench_minus_gateway.p50", *result.bench_minus_gateway_us, "us");
+  if (result.bench_minus_gateway_us)
+    print_figure(name + ".bench_minus_gateway.p50", *result.bench_minus_gateway_us, "us");
   return result;
 }
 
@@ -304,16 +310,20 @@ std::string fixed(double value, int decimals = 1) {
 void print_table(const std::vector<SizeResult>& results) {
   char line[320];
   print_note("");
-  print_note("servos | timeout | rounds | last feed -> stop frame p50 / p99 / max | beyond timeout p50 / p99 | "
-             "wake p50 | stop p50 (wire floor) | reads -> write gap p50 / p99, polls in the stop | gateway-reported p50 / p99");
+  print_note(
+      "servos | timeout | rounds | last feed -> stop frame p50 / p99 / max | beyond timeout p50 / p99 | "
+      "wake p50 | stop p50 (wire floor) | reads -> write gap p50 / p99, polls in the stop | gateway-reported p50 / "
+      "p99");
   for (const SizeResult& r : results) {
-    std::snprintf(line, sizeof line, "%6u | %4lld ms | %6zu | %8s / %s / %s ms | %6s / %s ms | %5s ms | %5s ms (%s) | %s / %s ms, %zu | %s / %s ms",
-                  r.servos, static_cast<long long>(r.timeout.count()), r.total.count, fixed(ms(r.total.p50_us)).c_str(),
-                  fixed(ms(r.total.p99_us)).c_str(), fixed(ms(r.total.max_us)).c_str(), fixed(ms(r.beyond.p50_us)).c_str(),
-                  fixed(ms(r.beyond.p99_us)).c_str(), fixed(ms(r.wake.p50_us), 2).c_str(),
-                  fixed(ms(r.stop.p50_us)).c_str(), fixed(ms(r.wire_floor.p50_us)).c_str(),
-                  fixed(ms(r.write_gap.p50_us), 2).c_str(), fixed(ms(r.write_gap.p99_us), 2).c_str(),
-                  r.polls_in_reads + r.polls_before_write, fixed(ms(r.reported.p50_us)).c_str(), fixed(ms(r.reported.p99_us)).c_str());
+    std::snprintf(
+        line, sizeof line,
+        "%6u | %4lld ms | %6zu | %8s / %s / %s ms | %6s / %s ms | %5s ms | %5s ms (%s) | %s / %s ms, %zu | %s / %s ms",
+        r.servos, static_cast<long long>(r.timeout.count()), r.total.count, fixed(ms(r.total.p50_us)).c_str(),
+        fixed(ms(r.total.p99_us)).c_str(), fixed(ms(r.total.max_us)).c_str(), fixed(ms(r.beyond.p50_us)).c_str(),
+        fixed(ms(r.beyond.p99_us)).c_str(), fixed(ms(r.wake.p50_us), 2).c_str(), fixed(ms(r.stop.p50_us)).c_str(),
+        fixed(ms(r.wire_floor.p50_us)).c_str(), fixed(ms(r.write_gap.p50_us), 2).c_str(),
+        fixed(ms(r.write_gap.p99_us), 2).c_str(), r.polls_in_reads + r.polls_before_write,
+        fixed(ms(r.reported.p50_us)).c_str(), fixed(ms(r.reported.p99_us)).c_str());
     print_note(line);
   }
 }
@@ -336,7 +346,8 @@ int main(int argc, char** argv) {
   }
   if (!parse_arguments(static_cast<int>(arguments.size()), arguments.data(),
                        "watchdog trip latency (last feed -> stop frame on the wire) for 6 and 60 servos at 1 Mbaud; "
-                       "--quick: " + std::to_string(kQuickRounds) + " rounds per size",
+                       "--quick: " +
+                           std::to_string(kQuickRounds) + " rounds per size",
                        {{"rounds", &rounds, "trips per bus size"},
                         {"timeout-ms", &timeout_ms, "the watchdog timeout"},
                         {"servos", &only_servos, "only a bus of this many servos, 1-253 (0: 6 and 60)"}})) {
@@ -354,15 +365,16 @@ int main(int argc, char** argv) {
       print_figure("load_average_1min", load[0], "");
       print_note("load average " + fixed(load[0], 2) + " " + fixed(load[1], 2) + " " + fixed(load[2], 2));
     }
-    print_note("sms-gateway child, sts servos at 1 Mbaud with wire timing, watchdog any_write; each round a client "
-               "sets every servo turning, then goes silent; stop frame = end on the simulated wire of the SYNC WRITE "
-               "that completes the stop (simulator frame observer); gateway_reported = unit 255 input registers 116-117");
+    print_note(
+        "sms-gateway child, sts servos at 1 Mbaud with wire timing, watchdog any_write; each round a client "
+        "sets every servo turning, then goes silent; stop frame = end on the simulated wire of the SYNC WRITE "
+        "that completes the stop (simulator frame observer); gateway_reported = unit 255 input registers 116-117");
     std::vector<unsigned> sizes(std::begin(kServoCounts), std::end(kServoCounts));
     if (only_servos > 0) sizes = {static_cast<unsigned>(only_servos)};
     std::vector<SizeResult> results;
     for (const unsigned servos : sizes) {
-      results.push_back(measure(servos, static_cast<unsigned>(rounds),
-                                std::chrono::milliseconds(static_cast<long>(timeout_ms))));
+      results.push_back(
+          measure(servos, static_cast<unsigned>(rounds), std::chrono::milliseconds(static_cast<long>(timeout_ms))));
     }
     if (getloadavg(load, 3) == 3) print_figure("load_average_1min_after", load[0], "");
     print_table(results);

@@ -80,12 +80,13 @@ Direct measure_direct(std::chrono::milliseconds duration) {
   if (const auto opened = port.open(); !opened) throw std::runtime_error("direct: " + opened.error());
   const std::uint8_t goal[] = {0xD0, 0x07};  // 2000, low byte first
   Direct direct;
-  direct.write = direct_latency(port, sms::protocol::encode(sms::protocol::kFeetechFormat,
-                                                            sms::protocol::write(1, kGoalPositionAddress, goal)),
-                                kAckBytes, duration);
-  direct.read = direct_latency(port, sms::protocol::encode(sms::protocol::kFeetechFormat,
-                                                           sms::protocol::read(1, kFeedbackAddress, kFeedbackCount)),
-                               kReadReplyBytes, duration);
+  direct.write = direct_latency(
+      port, sms::protocol::encode(sms::protocol::kFeetechFormat, sms::protocol::write(1, kGoalPositionAddress, goal)),
+      kAckBytes, duration);
+  direct.read = direct_latency(
+      port,
+      sms::protocol::encode(sms::protocol::kFeetechFormat, sms::protocol::read(1, kFeedbackAddress, kFeedbackCount)),
+      kReadReplyBytes, duration);
   return direct;
 }
 
@@ -98,8 +99,8 @@ void print_latency(const std::string& name, const LatencySummary& latency, doubl
   print_figure(name + ".overhead_vs_direct.p99", latency.p99_us - direct.p99_us, "us");
 }
 
-void measure_gateway(const std::string& mode, std::chrono::milliseconds poll_period,
-                     std::chrono::milliseconds duration, const Direct& direct) {
+void measure_gateway(const std::string& mode, std::chrono::milliseconds poll_period, std::chrono::milliseconds duration,
+                     const Direct& direct) {
   sms::simulator::SimulatedBus bus(sts_bus(1));
   start_precise(bus);
   set_return_delay(bus, 1, kStsFastestReturnDelay);
@@ -135,8 +136,7 @@ void measure_gateway(const std::string& mode, std::chrono::milliseconds poll_per
   }
   print_latency("write_latency." + kWrite.name + ".gateway_" + mode, summarize(writes.ok_ns), kWrite.wire_us,
                 direct.write);
-  print_latency("write_latency." + kRead.name + ".gateway_" + mode, summarize(reads.ok_ns), kRead.wire_us,
-                direct.read);
+  print_latency("write_latency." + kRead.name + ".gateway_" + mode, summarize(reads.ok_ns), kRead.wire_us, direct.read);
   gateway.stop();
 }
 

@@ -150,9 +150,10 @@ Expected<FrameGap> parse_frame_gap(std::string_view text) {
       return FrameGap{FrameGap::Kind::Fixed, std::chrono::microseconds{value}};
     }
   }
-  return unexpected(in_quotes(text) + " is not a frame gap; write spec (3.5 characters, 1.75 ms above 19200 "
-                                      "bit/s), 3.5chars (3.5 characters at every rate) or a time such as 500us "
-                                      "(0us..1000000us)");
+  return unexpected(in_quotes(text) +
+                    " is not a frame gap; write spec (3.5 characters, 1.75 ms above 19200 "
+                    "bit/s), 3.5chars (3.5 characters at every rate) or a time such as 500us "
+                    "(0us..1000000us)");
 }
 
 modbus_map::ByteOrder effective_byte_order(const ServoConfig& servo) {
@@ -186,9 +187,7 @@ std::string_view to_string(RtsMode rts) { return detail::name_of(detail::kRtsNam
 std::string_view to_string(Profile profile) { return detail::name_of(detail::kProfileNames, profile); }
 std::string_view to_string(LogLevel level) { return detail::name_of(detail::kLogLevelNames, level); }
 std::string_view to_string(LogFormat format) { return detail::name_of(detail::kLogFormatNames, format); }
-std::string_view to_string(modbus_map::ByteOrder order) {
-  return detail::name_of(detail::kByteOrderNames, order);
-}
+std::string_view to_string(modbus_map::ByteOrder order) { return detail::name_of(detail::kByteOrderNames, order); }
 std::string_view to_string(WatchdogFeed feed) { return detail::name_of(detail::kWatchdogFeedNames, feed); }
 std::string_view to_string(StartAction action) { return detail::name_of(detail::kStartActionNames, action); }
 std::string_view to_string(Role role) { return detail::name_of(detail::kRoleNames, role); }
@@ -205,7 +204,8 @@ std::string sparkplug_device_id(const ServoConfig& servo) {
 std::chrono::milliseconds worst_transaction(const BusConfig& bus) {
   constexpr std::uint64_t kLongestExchangeBytes = 2 * 256;
   const std::uint64_t bits_per_byte = 1 + 8 + (bus.parity == Parity::None ? 0 : 1) + bus.stop_bits;
-  const std::uint64_t wire_us = bus.baud == 0 ? 0 : (kLongestExchangeBytes * bits_per_byte * std::uint64_t{1000000} + bus.baud - 1) / bus.baud;
+  const std::uint64_t wire_us =
+      bus.baud == 0 ? 0 : (kLongestExchangeBytes * bits_per_byte * std::uint64_t{1000000} + bus.baud - 1) / bus.baud;
   const auto per_attempt = bus.response_timeout + std::chrono::milliseconds{(wire_us + 999) / 1000};
   return per_attempt * (kLateAnswerWindowAttempts + 1 + bus.retries);
 }
@@ -243,13 +243,14 @@ Expected<RtuSlaveConfig> parse_rtu_slave_option(std::string_view text) {
     }
     port.baud = baud;
     drop_last_part();
-  } else if (const auto baud_text = last_part(); !baud_text.empty() && std::all_of(baud_text.begin(), baud_text.end(), [](char c) {
-               return c >= '0' && c <= '9';
-             })) {
+  } else if (const auto baud_text = last_part();
+             !baud_text.empty() &&
+             std::all_of(baud_text.begin(), baud_text.end(), [](char c) { return c >= '0' && c <= '9'; })) {
     // Only digits: a rate (a by-path device name ends in "...:1.0-port0", which is not one).
     std::uint32_t baud = 0;
     const auto [end, error] = std::from_chars(baud_text.data(), baud_text.data() + baud_text.size(), baud);
-    if (error != std::errc{}) return unexpected("`" + std::string(text) + "`: `" + std::string(baud_text) + "` is not a rate; " + form);
+    if (error != std::errc{})
+      return unexpected("`" + std::string(text) + "`: `" + std::string(baud_text) + "` is not a rate; " + form);
     port.baud = baud;
     drop_last_part();
   }

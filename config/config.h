@@ -67,9 +67,9 @@ struct TlsRoleMapping {
 // authentication). The files are PEM; SIGHUP reloads them.
 struct TlsConfig {
   HostPort listen;
-  std::string certificate;  // the gateway's certificate (chain), PEM
-  std::string private_key;  // its key, PEM, unencrypted
-  std::string ca;           // CA certificates client certificates must chain to, PEM
+  std::string certificate;            // the gateway's certificate (chain), PEM
+  std::string private_key;            // its key, PEM, unencrypted
+  std::string ca;                     // CA certificates client certificates must chain to, PEM
   std::vector<TlsRoleMapping> roles;  // in file order; names unique
   Role default_role = Role::None;     // for a certificate with no extension and no mapping
   // Role extension texts of other schemes ("Operator") and the role each gives; an extension
@@ -119,8 +119,8 @@ struct AddressRange {
 // What the poll cycle reads from each servo of a bus. Both empty: the table's feedback block
 // (resolved by the gateway from modbus_map). Never both set.
 struct PollSelection {
-  std::vector<std::string> fields;     // field names, each present in every table on the bus
-  std::optional<AddressRange> range;   // fits every table on the bus
+  std::vector<std::string> fields;    // field names, each present in every table on the bus
+  std::optional<AddressRange> range;  // fits every table on the bus
 
   bool table_default() const { return fields.empty() && !range; }
   bool operator==(const PollSelection&) const = default;
@@ -131,10 +131,10 @@ struct PollSelection {
 // bit/s). Slaves that time their frames by 3.5 characters take the shorter gap at high rates.
 struct FrameGap {
   enum class Kind : std::uint8_t { Spec, Characters, Fixed };
-  Kind kind = Kind::Spec;             // Spec: 3.5 characters, 1.75 ms above 19200 bit/s
+  Kind kind = Kind::Spec;              // Spec: 3.5 characters, 1.75 ms above 19200 bit/s
   std::chrono::microseconds fixed{0};  // Fixed only
 
-  std::string to_string() const;     // "spec", "3.5chars", "250us"
+  std::string to_string() const;  // "spec", "3.5chars", "250us"
   bool operator==(const FrameGap&) const = default;
 };
 // "spec", "3.5chars" or "<N>us" (0..1000000); the error says what is wrong and the valid forms.
@@ -142,11 +142,11 @@ Expected<FrameGap> parse_frame_gap(std::string_view text);
 
 // Line settings only a modbus-rtu bus uses (libmodbus).
 struct ModbusRtuOptions {
-  bool rs485 = false;                               // MODBUS_RTU_RS485 serial mode (TIOCSRS485)
+  bool rs485 = false;  // MODBUS_RTU_RS485 serial mode (TIOCSRS485)
   RtsMode rts = RtsMode::None;
   std::optional<std::chrono::microseconds> rts_delay;  // empty: libmodbus's one character time
-  std::chrono::milliseconds byte_timeout{50};      // longest silence inside one reply
-  FrameGap frame_gap;                               // between frames, from the last byte on the wire
+  std::chrono::milliseconds byte_timeout{50};          // longest silence inside one reply
+  FrameGap frame_gap;                                  // between frames, from the last byte on the wire
 
   bool operator==(const ModbusRtuOptions&) const = default;
 };
@@ -186,20 +186,20 @@ std::chrono::milliseconds worst_transaction(const BusConfig& bus);
 
 struct BusConfig {
   std::string name;
-  std::string device;                   // /dev/ttyUSB0, /dev/serial/by-id/..., a pty path
+  std::string device;  // /dev/ttyUSB0, /dev/serial/by-id/..., a pty path
   protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
-  std::uint32_t baud = 0;               // bits per second, a rate of the protocol's table (docs/PROTOCOL.md §3)
-  std::uint8_t baud_code = 0;           // that rate's code in the protocol's table
+  std::uint32_t baud = 0;      // bits per second, a rate of the protocol's table (docs/PROTOCOL.md §3)
+  std::uint8_t baud_code = 0;  // that rate's code in the protocol's table
   Parity parity = Parity::None;
-  std::uint8_t stop_bits = 1;           // 1 or 2
+  std::uint8_t stop_bits = 1;  // 1 or 2
   // Wait for a reply beyond its wire time: return delay plus adapter latency (docs/PROTOCOL.md §5).
   std::chrono::milliseconds response_timeout{20};
-  unsigned retries = 2;                 // attempts after the first one
-  std::chrono::milliseconds poll_period{20};  // start of one poll cycle to the next; 0 = back to back
+  unsigned retries = 2;                                  // attempts after the first one
+  std::chrono::milliseconds poll_period{20};             // start of one poll cycle to the next; 0 = back to back
   std::chrono::milliseconds offline_probe_period{1000};  // an offline servo is asked once per period
   std::chrono::milliseconds reopen_period{1000};         // a missing or lost port is retried this often
   PollSelection poll;
-  ModbusRtuOptions modbus_rtu;          // used only when protocol is ModbusRtu
+  ModbusRtuOptions modbus_rtu;             // used only when protocol is ModbusRtu
   std::optional<WatchdogConfig> watchdog;  // empty: no watchdog on this bus
   StartAction on_start = StartAction::Keep;
   // What SIGTERM / SIGINT do to the bus's servos before the gateway lets go of the port.
@@ -212,22 +212,22 @@ struct BusConfig {
 enum class Profile : std::uint8_t { Native, Smsmb };
 
 struct ServoConfig {
-  std::uint8_t unit_id = 0;             // Modbus unit 1..247
-  std::string bus;                      // a BusConfig::name
-  std::size_t bus_index = 0;            // that bus's index in Config::buses
-  std::uint8_t servo_id = 0;            // 0..253 on packet buses, 1..247 on modbus-rtu
+  std::uint8_t unit_id = 0;   // Modbus unit 1..247
+  std::string bus;            // a BusConfig::name
+  std::size_t bus_index = 0;  // that bus's index in Config::buses
+  std::uint8_t servo_id = 0;  // 0..253 on packet buses, 1..247 on modbus-rtu
   // Empty: passthrough (modbus-rtu buses only): Modbus PDUs for this unit are forwarded to the
   // slave unchanged.
   std::optional<modbus_map::TableId> table;
   // Smsmb only for sts/sms1; an smsmb table's native map already is the SMSMB map, so it is
   // stored as Native.
   Profile profile = Profile::Native;
-  std::optional<modbus_map::ByteOrder> byte_order;   // overrides the table's (docs/PROTOCOL.md §2.2)
+  std::optional<modbus_map::ByteOrder> byte_order;  // overrides the table's (docs/PROTOCOL.md §2.2)
   // The servo's response level as set in it, so the gateway knows whether writes are
   // answered; empty: the gateway finds out from the servo.
   std::optional<std::uint8_t> response_level;
-  bool read_only = false;               // client writes refused (0x02)
-  std::string name;                     // label for logs and dumps, may be empty
+  bool read_only = false;  // client writes refused (0x02)
+  std::string name;        // label for logs and dumps, may be empty
   // What a watchdog trip or the e-stop does to this servo; empty: the table's default
   // (modbus_map::motion_spec(table).default_stop). Passthrough units are never stopped.
   std::optional<modbus_map::StopAction> safe_stop;
@@ -249,8 +249,8 @@ modbus_map::ByteOrder effective_byte_order(const ServoConfig& servo);
 // frame per bus (docs/PLC_GUIDE.md "The gateway unit").
 struct SyncGroupConfig {
   std::string name;
-  std::string field;                    // a writable field of every member's table
-  std::vector<std::uint8_t> members;    // unit IDs, register i of the block is members[i]
+  std::string field;                  // a writable field of every member's table
+  std::vector<std::uint8_t> members;  // unit IDs, register i of the block is members[i]
   std::uint16_t holding_register_start = 0;
 
   std::uint16_t register_count() const { return static_cast<std::uint16_t>(members.size()); }
@@ -288,12 +288,12 @@ struct MqttDeadband {
 };
 
 struct MqttConfig {
-  HostPort broker;                  // the broker's host:port (1883 plain, 8883 TLS by custom)
-  std::string group_id;             // Sparkplug group ID
-  std::string edge_node_id;         // Sparkplug edge node ID
-  std::string client_id;            // MQTT client ID; empty: "sms-gateway-<edge_node_id>"
-  std::string username;             // empty: none
-  std::string password_file;        // the password's file (first line); empty: none
+  HostPort broker;            // the broker's host:port (1883 plain, 8883 TLS by custom)
+  std::string group_id;       // Sparkplug group ID
+  std::string edge_node_id;   // Sparkplug edge node ID
+  std::string client_id;      // MQTT client ID; empty: "sms-gateway-<edge_node_id>"
+  std::string username;       // empty: none
+  std::string password_file;  // the password's file (first line); empty: none
   std::optional<MqttTlsConfig> tls;
   std::chrono::seconds keepalive{30};
   // The rights of DCMD/NCMD writes (the Modbus/TCP Security roles): read refuses every write,
@@ -322,15 +322,15 @@ inline constexpr std::uint32_t kMinRtuSlaveBaud = 300;
 inline constexpr std::uint32_t kMaxRtuSlaveBaud = 4000000;
 
 struct RtuSlaveConfig {
-  std::string device;                 // a tty (the panel's RS-485 adapter), never a bus's device
-  std::uint32_t baud = 19200;         // the Modbus serial line spec's default rate
-  Parity parity = Parity::Even;       // the spec's default (8E1)
-  std::uint8_t stop_bits = 1;         // 1 or 2
+  std::string device;            // a tty (the panel's RS-485 adapter), never a bus's device
+  std::uint32_t baud = 19200;    // the Modbus serial line spec's default rate
+  Parity parity = Parity::Even;  // the spec's default (8E1)
+  std::uint8_t stop_bits = 1;    // 1 or 2
   // rs485, rts, rts_delay and frame_gap as on a modbus-rtu bus (byte_timeout is not used): here
   // frame_gap is the port's t3.5, which ends a request and comes before each answer.
   ModbusRtuOptions line;
-  std::vector<std::uint8_t> units;    // the units the port answers; empty: every configured unit and the gateway unit
-  Role role = Role::Operate;          // the rights of its requests, as Modbus/TCP Security roles
+  std::vector<std::uint8_t> units;  // the units the port answers; empty: every configured unit and the gateway unit
+  Role role = Role::Operate;        // the rights of its requests, as Modbus/TCP Security roles
   std::chrono::milliseconds reopen_period{1000};  // a missing or lost device is retried this often
 
   bool operator==(const RtuSlaveConfig&) const = default;
@@ -349,8 +349,8 @@ struct ConsoleUser {
 // The browser commissioning console (docs/CONSOLE.md): HTTP/1.1 and WebSocket on `listen`.
 struct ConsoleConfig {
   HostPort listen{"127.0.0.1", 8080};
-  bool tls = false;                 // HTTPS with modbus_tcp.tls's certificate, key and CA (client certificates give roles)
-  std::vector<ConsoleUser> users;   // in file order; names unique
+  bool tls = false;  // HTTPS with modbus_tcp.tls's certificate, key and CA (client certificates give roles)
+  std::vector<ConsoleUser> users;                  // in file order; names unique
   std::chrono::seconds session_timeout{8 * 3600};  // a login lasts this long without use
   // `--simulate` only (never from a file): the local (loopback) user has every right, and when
   // the default port is taken (another demo, a test running several) any free port is used.

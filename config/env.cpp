@@ -87,7 +87,8 @@ Expected<Ok> apply_allow(Config& config, std::string_view value) {
   std::size_t start = 0;
   while (start <= value.size()) {
     const auto comma = value.find(',', start);
-    const auto item = trim(value.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start));
+    const auto item =
+        trim(value.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start));
     const std::string position = "item " + std::to_string(networks.size() + 1);
     if (item.empty()) return unexpected(position + " is empty");
     auto network = parse_ip_network(item);

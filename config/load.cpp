@@ -31,47 +31,72 @@ using protocol::BusProtocol;
 
 // ---- the keys allowed at each place (config/README.md) ----
 
-constexpr std::array<std::string_view, 9> kTopKeys{"modbus_tcp", "buses",  "servos",   "sync_groups",
-                                                  "logging",    "mqtt",   "state_dir", "modbus_rtu_slave",
-                                                  "console"};
-constexpr std::array<std::string_view, 8> kModbusTcpKeys{"listen",          "max_connections",     "idle_timeout_s",
-                                                         "gateway_unit_id", "request_queue_depth", "allow",
-                                                         "plain",           "tls"};
-constexpr std::array<std::string_view, 10> kTlsKeys{"listen",         "certificate",          "private_key",
-                                                    "ca",             "roles",                "default_role",
-                                                    "role_names",     "handshake_timeout_ms", "max_handshakes",
-                                                    "max_handshakes_per_address"};
-constexpr std::array<std::string_view, 21> kBusKeys{
-    "name",        "device",         "protocol",   "baud",  "parity", "stop_bits",    "response_timeout_ms",
-    "retries",     "poll_period_ms", "offline_probe_period_ms",      "reopen_period_ms",
-    "poll_fields", "poll_range",     "rs485",      "rts",   "rts_delay_us",           "byte_timeout_ms",
-    "frame_gap",   "watchdog",       "on_start",   "on_stop"};
+constexpr std::array<std::string_view, 9> kTopKeys{
+    "modbus_tcp", "buses", "servos", "sync_groups", "logging", "mqtt", "state_dir", "modbus_rtu_slave", "console"};
+constexpr std::array<std::string_view, 8> kModbusTcpKeys{
+    "listen", "max_connections", "idle_timeout_s", "gateway_unit_id", "request_queue_depth", "allow", "plain", "tls"};
+constexpr std::array<std::string_view, 10> kTlsKeys{"listen",         "certificate",
+                                                    "private_key",    "ca",
+                                                    "roles",          "default_role",
+                                                    "role_names",     "handshake_timeout_ms",
+                                                    "max_handshakes", "max_handshakes_per_address"};
+constexpr std::array<std::string_view, 21> kBusKeys{"name",
+                                                    "device",
+                                                    "protocol",
+                                                    "baud",
+                                                    "parity",
+                                                    "stop_bits",
+                                                    "response_timeout_ms",
+                                                    "retries",
+                                                    "poll_period_ms",
+                                                    "offline_probe_period_ms",
+                                                    "reopen_period_ms",
+                                                    "poll_fields",
+                                                    "poll_range",
+                                                    "rs485",
+                                                    "rts",
+                                                    "rts_delay_us",
+                                                    "byte_timeout_ms",
+                                                    "frame_gap",
+                                                    "watchdog",
+                                                    "on_start",
+                                                    "on_stop"};
 constexpr std::array<std::string_view, 3> kWatchdogKeys{"timeout_ms", "feed", "action"};
 // Keys of kBusKeys that only a modbus-rtu bus takes.
 constexpr std::array<std::string_view, 5> kModbusRtuOnlyKeys{"rs485", "rts", "rts_delay_us", "byte_timeout_ms",
-                                                              "frame_gap"};
+                                                             "frame_gap"};
 constexpr std::array<std::string_view, 2> kPollRangeKeys{"start", "count"};
-constexpr std::array<std::string_view, 10> kServoKeys{"unit",       "bus",           "id",        "table", "profile",
-                                                      "byte_order", "response_level", "read_only", "name",
-                                                      "safe_stop"};
+constexpr std::array<std::string_view, 10> kServoKeys{
+    "unit", "bus", "id", "table", "profile", "byte_order", "response_level", "read_only", "name", "safe_stop"};
 constexpr std::array<std::string_view, 4> kSyncGroupKeys{"name", "field", "members", "holding_register_start"};
 constexpr std::array<std::string_view, 3> kLoggingKeys{"level", "format", "metrics_listen"};
-constexpr std::array<std::string_view, 16> kMqttKeys{
-    "broker",      "group_id",       "edge_node_id",  "client_id",     "username",
-    "password_file", "tls",          "keepalive_s",   "role",          "data_period_ms",
-    "report_period_s", "deadband",   "reconnect_min_ms", "reconnect_max_ms", "enabled",
-    "primary_host_id"};
+constexpr std::array<std::string_view, 16> kMqttKeys{"broker",
+                                                     "group_id",
+                                                     "edge_node_id",
+                                                     "client_id",
+                                                     "username",
+                                                     "password_file",
+                                                     "tls",
+                                                     "keepalive_s",
+                                                     "role",
+                                                     "data_period_ms",
+                                                     "report_period_s",
+                                                     "deadband",
+                                                     "reconnect_min_ms",
+                                                     "reconnect_max_ms",
+                                                     "enabled",
+                                                     "primary_host_id"};
 constexpr std::array<std::string_view, 3> kMqttTlsKeys{"ca", "certificate", "private_key"};
-constexpr std::array<std::string_view, 11> kRtuSlaveKeys{"device", "baud",  "parity", "stop_bits", "frame_gap",
-                                                          "rs485",  "rts",   "rts_delay_us", "units", "role",
-                                                          "reopen_period_ms"};
+constexpr std::array<std::string_view, 11> kRtuSlaveKeys{
+    "device", "baud",         "parity", "stop_bits", "frame_gap",       "rs485",
+    "rts",    "rts_delay_us", "units",  "role",      "reopen_period_ms"};
 
 constexpr std::array<std::string_view, 4> kConsoleKeys{"listen", "tls", "users", "session_timeout_s"};
 constexpr std::array<std::string_view, 3> kConsoleUserKeys{"name", "role", "password_hash"};
 
 constexpr std::string_view kPassthroughTable = "passthrough";
-constexpr std::uint8_t kMaxUnitId = 247;            // Modbus slave addresses
-constexpr std::uint8_t kMaxPacketServoId = 253;     // 254 is the broadcast ID (docs/PROTOCOL.md §1)
+constexpr std::uint8_t kMaxUnitId = 247;         // Modbus slave addresses
+constexpr std::uint8_t kMaxPacketServoId = 253;  // 254 is the broadcast ID (docs/PROTOCOL.md §1)
 // A sync group is one FC16 write; a modbus-rtu poll block one FC03.
 constexpr std::size_t kMaxWriteRegisters = protocol::modbus_limits::kWriteRegisters;
 constexpr std::uint16_t kMaxRtuReadRegisters = protocol::modbus_limits::kReadRegisters;
@@ -196,14 +221,10 @@ std::optional<std::string_view> closest(std::string_view name, std::span<const s
 std::string describe(const YAML::Node& node) {
   switch (node.Type()) {
     case YAML::NodeType::Null:
-    case YAML::NodeType::Undefined:
-      return "nothing";
-    case YAML::NodeType::Sequence:
-      return "a list";
-    case YAML::NodeType::Map:
-      return "a map";
-    case YAML::NodeType::Scalar:
-      break;
+    case YAML::NodeType::Undefined: return "nothing";
+    case YAML::NodeType::Sequence: return "a list";
+    case YAML::NodeType::Map: return "a map";
+    case YAML::NodeType::Scalar: break;
   }
   if (node.Tag() == "!") return "the quoted string \"" + node.Scalar() + "\"";
   return "`" + node.Scalar() + "`";
@@ -271,7 +292,7 @@ std::string field_names_text(const TableSpec& table) {
 // Places of a servo's nodes, kept for messages that name two places.
 struct ServoPlaces {
   YAML::Mark item;
-  YAML::Mark unit;     // the `unit` value, or the `id` value when the unit defaults to it
+  YAML::Mark unit;  // the `unit` value, or the `id` value when the unit defaults to it
   YAML::Mark id;
   bool unit_given = false;
   std::string path;
@@ -344,8 +365,9 @@ class Loader {
     }
     if (value.node.Scalar().empty()) fail(value.mark, value.path + ": must not be empty");
     if (!is_printable_utf8(value.node.Scalar())) {
-      fail(value.mark, value.path + ": must be printable UTF-8 text (it has a control character or "
-                                    "bytes that are not UTF-8); names end up in logs and metrics labels");
+      fail(value.mark, value.path +
+                           ": must be printable UTF-8 text (it has a control character or "
+                           "bytes that are not UTF-8); names end up in logs and metrics labels");
     }
     return value.node.Scalar();
   }
@@ -372,8 +394,8 @@ class Loader {
     std::vector<Value> items;
     std::size_t index = 0;
     for (const auto& item : value.node) {
-      items.push_back(Value{item, item.IsNull() ? value.mark : item.Mark(),
-                            value.path + "[" + std::to_string(index++) + "]"});
+      items.push_back(
+          Value{item, item.IsNull() ? value.mark : item.Mark(), value.path + "[" + std::to_string(index++) + "]"});
     }
     return items;
   }
@@ -388,7 +410,8 @@ class Loader {
       const YAML::Node& name_node = entry.first;
       const std::string name = string(Value{name_node, name_node.Mark(), value.path});
       for (const auto& [other, mark] : seen) {
-        if (other == name) fail(name_node.Mark(), value.path + ": `" + name + "` is given twice (first at " + place(mark) + ")");
+        if (other == name)
+          fail(name_node.Mark(), value.path + ": `" + name + "` is given twice (first at " + place(mark) + ")");
       }
       seen.emplace_back(name, name_node.Mark());
       each(name, name_node.Mark(), entry_value(name_node, entry.second, value.path + "." + name));
@@ -560,16 +583,18 @@ TlsConfig Loader::parse_tls(const Value& value) {
   tls.private_key = string(keys.require("private_key"));
   tls.ca = string(keys.require("ca"));
   if (const auto v = keys.find("roles")) {
-    named_map(*v, "a map of certificate names (subject CN or subjectAltName) to roles (read, operate, engineer, "
-                  "none), e.g. {plc-1: operate}",
+    named_map(*v,
+              "a map of certificate names (subject CN or subjectAltName) to roles (read, operate, engineer, "
+              "none), e.g. {plc-1: operate}",
               [&](const std::string& name, const YAML::Mark&, const Value& role) {
                 tls.roles.push_back(TlsRoleMapping{name, choice(role, detail::kRoleNames)});
               });
   }
   if (const auto v = keys.find("default_role")) tls.default_role = choice(*v, detail::kRoleNames);
   if (const auto v = keys.find("role_names")) {
-    named_map(*v, "a map of role extension texts of other schemes to roles (read, operate, engineer, none), e.g. "
-                  "{Operator: operate}",
+    named_map(*v,
+              "a map of role extension texts of other schemes to roles (read, operate, engineer, none), e.g. "
+              "{Operator: operate}",
               [&](const std::string& name, const YAML::Mark& mark, const Value& role) {
                 if (role_from_name(name)) {
                   fail(mark, v->path + ": `" + name + "` already is a role; list only other names here");
@@ -593,13 +618,16 @@ TlsConfig Loader::parse_tls(const Value& value) {
   if (tls.max_handshakes_per_address > tls.max_handshakes) {
     fail(keys.key_mark("max_handshakes_per_address"),
          value.path + ".max_handshakes_per_address: " + std::to_string(tls.max_handshakes_per_address) +
-             " is more than max_handshakes (" + std::to_string(tls.max_handshakes) + "); lower it or raise max_handshakes");
+             " is more than max_handshakes (" + std::to_string(tls.max_handshakes) +
+             "); lower it or raise max_handshakes");
   }
   return tls;
 }
 
 // A Sparkplug ID (group, edge node, device): MQTT topic levels, so no '/', '+' or '#'.
-bool valid_sparkplug_id(std::string_view id) { return !id.empty() && id.find_first_of("/+#") == std::string_view::npos; }
+bool valid_sparkplug_id(std::string_view id) {
+  return !id.empty() && id.find_first_of("/+#") == std::string_view::npos;
+}
 
 std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& config) {
   const MapReader keys(*this, value, kMqttKeys);
@@ -611,8 +639,9 @@ std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& c
     const Value v = keys.require(key);
     std::string text = string(v);
     if (!valid_sparkplug_id(text)) {
-      fail(v.mark, v.path + ": `" + text + "` cannot be a Sparkplug ID: it is an MQTT topic level, so no '/', '+' "
-                                           "or '#'");
+      fail(v.mark, v.path + ": `" + text +
+                       "` cannot be a Sparkplug ID: it is an MQTT topic level, so no '/', '+' "
+                       "or '#'");
     }
     return text;
   };
@@ -623,7 +652,8 @@ std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& c
   if (const auto v = keys.find("client_id")) mqtt.client_id = string(*v);
   if (const auto v = keys.find("username")) mqtt.username = string(*v);
   if (const auto v = keys.find("password_file")) {
-    if (mqtt.username.empty()) fail(v->mark, v->path + ": a password needs a username; add " + value.path + ".username");
+    if (mqtt.username.empty())
+      fail(v->mark, v->path + ": a password needs a username; add " + value.path + ".username");
     mqtt.password_file = string(*v);
   }
   if (const auto v = keys.find("tls")) {
@@ -633,8 +663,9 @@ std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& c
     const auto certificate = tls_keys.find("certificate");
     const auto key = tls_keys.find("private_key");
     if (certificate.has_value() != key.has_value()) {
-      fail(v->mark, v->path + ": certificate and private_key go together (a client certificate for the broker); "
-                              "give both or neither");
+      fail(v->mark, v->path +
+                        ": certificate and private_key go together (a client certificate for the broker); "
+                        "give both or neither");
     }
     if (certificate) tls.certificate = string(*certificate);
     if (key) tls.private_key = string(*key);
@@ -644,14 +675,15 @@ std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& c
   if (const auto v = keys.find("role")) mqtt.role = choice(*v, detail::kRoleNames);
   if (const auto v = keys.find("data_period_ms")) mqtt.data_period = duration<std::chrono::milliseconds>(*v, 10, 60000);
   if (const auto v = keys.find("report_period_s")) mqtt.report_period = duration<std::chrono::seconds>(*v, 0, 86400);
-  if (const auto v = keys.find("reconnect_min_ms")) mqtt.reconnect_min = duration<std::chrono::milliseconds>(*v, 100, 60000);
+  if (const auto v = keys.find("reconnect_min_ms"))
+    mqtt.reconnect_min = duration<std::chrono::milliseconds>(*v, 100, 60000);
   if (const auto v = keys.find("reconnect_max_ms")) {
     mqtt.reconnect_max = duration<std::chrono::milliseconds>(*v, 100, 3600000);
   }
   if (mqtt.reconnect_max < mqtt.reconnect_min) {
-    fail(keys.key_mark("reconnect_max_ms"), value.path + ".reconnect_max_ms: " +
-                                                std::to_string(mqtt.reconnect_max.count()) + " is below reconnect_min_ms (" +
-                                                std::to_string(mqtt.reconnect_min.count()) + ")");
+    fail(keys.key_mark("reconnect_max_ms"),
+         value.path + ".reconnect_max_ms: " + std::to_string(mqtt.reconnect_max.count()) +
+             " is below reconnect_min_ms (" + std::to_string(mqtt.reconnect_min.count()) + ")");
   }
   if (const auto v = keys.find("deadband")) {
     named_map(*v, "a map of field names to deadbands in register units, e.g. {present_position: 2}",
@@ -661,8 +693,9 @@ std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& c
                   for (const auto& spec : table->fields) known = known || spec.name == field;
                 }
                 if (!known) {
-                  fail(mark, v->path + ": `" + field + "` is not a field of any table (docs/REGISTER_MAP.md lists "
-                                       "each table's fields)");
+                  fail(mark, v->path + ": `" + field +
+                                 "` is not a field of any table (docs/REGISTER_MAP.md lists "
+                                 "each table's fields)");
                 }
                 mqtt.deadbands.push_back(MqttDeadband{field, static_cast<std::uint32_t>(integer(band, 0, 65535))});
               });
@@ -673,8 +706,9 @@ std::optional<MqttConfig> Loader::parse_mqtt(const Value& value, const Config& c
     if (servo.passthrough()) continue;
     const std::string device = sparkplug_device_id(servo);
     if (!valid_sparkplug_id(device)) {
-      fail(servo_places_[i].item, servo_places_[i].path + ".name: `" + device + "` cannot be a Sparkplug device ID "
-                                  "(mqtt is configured): no '/', '+' or '#'");
+      fail(servo_places_[i].item, servo_places_[i].path + ".name: `" + device +
+                                      "` cannot be a Sparkplug device ID "
+                                      "(mqtt is configured): no '/', '+' or '#'");
     }
     for (std::size_t j = 0; j < i; ++j) {
       if (!config.servos[j].passthrough() && sparkplug_device_id(config.servos[j]) == device) {
@@ -695,8 +729,8 @@ void Loader::parse_buses(const Value& value, Config& config) {
     BusConfig bus = parse_bus(item, places);
     for (std::size_t i = 0; i < config.buses.size(); ++i) {
       if (config.buses[i].name == bus.name) {
-        fail(places.name, item.path + ".name: bus name `" + bus.name + "` is already used by " +
-                              bus_places_[i].path + " (" + place(bus_places_[i].name) + ")");
+        fail(places.name, item.path + ".name: bus name `" + bus.name + "` is already used by " + bus_places_[i].path +
+                              " (" + place(bus_places_[i].name) + ")");
       }
       if (config.buses[i].device == bus.device) {
         fail(places.device, item.path + ".device: " + bus.device + " is already the device of bus `" +
@@ -724,8 +758,8 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
   places.device = device.mark;
 
   const Value protocol = keys.require("protocol");
-  const auto parsed_protocol = protocol.node.IsScalar() ? protocol::bus_protocol_from_string(protocol.node.Scalar())
-                                                        : std::nullopt;
+  const auto parsed_protocol =
+      protocol.node.IsScalar() ? protocol::bus_protocol_from_string(protocol.node.Scalar()) : std::nullopt;
   if (!parsed_protocol) {
     fail(protocol.mark, protocol.path + ": expected one of feetech, d55d, modbus-rtu, got " + describe(protocol.node));
   }
@@ -803,21 +837,22 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
     const MapReader watchdog_keys(*this, *v, kWatchdogKeys);
     WatchdogConfig watchdog;
     watchdog.timeout = duration<std::chrono::milliseconds>(watchdog_keys.require("timeout_ms"), kMinWatchdogTimeoutMs,
-                                                            kMaxWatchdogTimeoutMs);
+                                                           kMaxWatchdogTimeoutMs);
     if (const auto feed = watchdog_keys.find("feed")) watchdog.feed = choice(*feed, detail::kWatchdogFeedNames);
     if (const auto action = watchdog_keys.find("action")) watchdog.action = choice(*action, detail::kStopActionNames);
     // A trip's stop waits for the transaction on the wire to end: a watchdog shorter than the
     // bus's worst transaction could not keep its promise (docs/PLC_GUIDE.md "Safety", the stop's bound).
     const auto worst = worst_transaction(bus);
     if (watchdog.timeout <= worst) {
-      fail(watchdog_keys.require("timeout_ms").mark,
-           v->path + ".timeout_ms: " + std::to_string(watchdog.timeout.count()) +
-               " ms is not longer than this bus's worst transaction (a late-answer window of " +
-               std::to_string(kLateAnswerWindowAttempts) + " and " + std::to_string(1 + bus.retries) +
-               " attempts, each response_timeout_ms " + std::to_string(bus.response_timeout.count()) +
-               " + the longest frames' wire time = " + std::to_string(worst.count()) +
-               " ms): a stop could wait behind one transaction longer than the watchdog itself. Give timeout_ms above " +
-               std::to_string(worst.count()) + ", or lower response_timeout_ms or retries");
+      fail(
+          watchdog_keys.require("timeout_ms").mark,
+          v->path + ".timeout_ms: " + std::to_string(watchdog.timeout.count()) +
+              " ms is not longer than this bus's worst transaction (a late-answer window of " +
+              std::to_string(kLateAnswerWindowAttempts) + " and " + std::to_string(1 + bus.retries) +
+              " attempts, each response_timeout_ms " + std::to_string(bus.response_timeout.count()) +
+              " + the longest frames' wire time = " + std::to_string(worst.count()) +
+              " ms): a stop could wait behind one transaction longer than the watchdog itself. Give timeout_ms above " +
+              std::to_string(worst.count()) + ", or lower response_timeout_ms or retries");
     }
     bus.watchdog = watchdog;
   }
@@ -844,7 +879,8 @@ void Loader::parse_rtu_line(const MapReader& keys, const Value& value, ModbusRtu
   if (const auto v = keys.find("frame_gap")) {
     const auto gap = v->node.IsScalar() ? parse_frame_gap(v->node.Scalar())
                                         : Expected<FrameGap>(unexpected("expected spec, 3.5chars or a time such as "
-                                                                        "500us, got " + describe(v->node)));
+                                                                        "500us, got " +
+                                                                        describe(v->node)));
     if (!gap) fail(v->mark, v->path + ": " + gap.error());
     line.frame_gap = *gap;
   }
@@ -858,8 +894,9 @@ ConsoleConfig Loader::parse_console(const Value& value, const Config& config) {
   if (const auto v = keys.find("tls")) {
     console.tls = boolean(*v);
     if (console.tls && !config.modbus_tcp.tls) {
-      fail(v->mark, v->path + ": true needs modbus_tcp.tls (the console serves HTTPS with its certificate, key and "
-                              "CA); configure Modbus/TCP Security first, or set tls: false");
+      fail(v->mark, v->path +
+                        ": true needs modbus_tcp.tls (the console serves HTTPS with its certificate, key and "
+                        "CA); configure Modbus/TCP Security first, or set tls: false");
     }
   }
   if (const auto v = keys.find("session_timeout_s")) {
@@ -886,14 +923,16 @@ ConsoleConfig Loader::parse_console(const Value& value, const Config& config) {
       const Value role = user_keys.require("role");
       user.role = choice(role, detail::kRoleNames);
       if (user.role == Role::None) {
-        fail(role.mark, role.path + ": a user with role none could do nothing; give read, operate or engineer, or "
-                                    "remove the user");
+        fail(role.mark, role.path +
+                            ": a user with role none could do nothing; give read, operate or engineer, or "
+                            "remove the user");
       }
       const Value hash = user_keys.require("password_hash");
       user.password_hash = string(hash);
       if (!user.password_hash.starts_with("$argon2id$") && !user.password_hash.starts_with("$argon2i$")) {
-        fail(hash.mark, hash.path + ": not a password hash (expected the \"$argon2id$...\" text that `sms-gateway "
-                                    "hash-password` prints; never the password itself)");
+        fail(hash.mark, hash.path +
+                            ": not a password hash (expected the \"$argon2id$...\" text that `sms-gateway "
+                            "hash-password` prints; never the password itself)");
       }
       console.users.push_back(std::move(user));
       marks.push_back(name.mark);
@@ -937,7 +976,8 @@ RtuSlaveConfig Loader::parse_rtu_slave(const Value& value, const Config& config)
   const MapReader keys(*this, value, kRtuSlaveKeys);
   RtuSlaveConfig port;
   port.device = string(keys.require("device"));
-  if (const auto v = keys.find("baud")) port.baud = static_cast<std::uint32_t>(integer(*v, kMinRtuSlaveBaud, kMaxRtuSlaveBaud));
+  if (const auto v = keys.find("baud"))
+    port.baud = static_cast<std::uint32_t>(integer(*v, kMinRtuSlaveBaud, kMaxRtuSlaveBaud));
   if (const auto v = keys.find("parity")) port.parity = choice(*v, detail::kParityNames);
   if (const auto v = keys.find("stop_bits")) port.stop_bits = static_cast<std::uint8_t>(integer(*v, 1, 2));
   parse_rtu_line(keys, value, port.line);
@@ -963,8 +1003,9 @@ RtuSlaveConfig Loader::parse_rtu_slave(const Value& value, const Config& config)
   if (const auto v = keys.find("role")) {
     port.role = choice(*v, detail::kRoleNames);
     if (port.role == Role::None) {
-      fail(v->mark, v->path + ": a port with role none could ask nothing; give read, operate or engineer, or remove "
-                              "the port");
+      fail(v->mark, v->path +
+                        ": a port with role none could ask nothing; give read, operate or engineer, or remove "
+                        "the port");
     }
   }
   if (const auto v = keys.find("reopen_period_ms")) {
@@ -1019,13 +1060,15 @@ void Loader::check_second_view(const ServoConfig& servo, const ServoPlaces& plac
   if (servo.response_level != other.response_level) differs = "response_level";
   if (servo.safe_stop != other.safe_stop) differs = "safe_stop";
   if (!differs.empty()) {
-    fail(places.item, already + " with another " + differs + "; units of one servo must agree on byte_order, "
-                                "response_level and safe_stop (they describe the servo): give both the same");
+    fail(places.item, already + " with another " + differs +
+                          "; units of one servo must agree on byte_order, "
+                          "response_level and safe_stop (they describe the servo): give both the same");
   }
   if (!servo.read_only && !other.read_only) {
-    fail(places.id, already + "; IDs on one bus must differ, or a second unit of the same servo must be "
-                              "`read_only: true` (two writable units would let two clients command one servo "
-                              "against each other)");
+    fail(places.id, already +
+                        "; IDs on one bus must differ, or a second unit of the same servo must be "
+                        "`read_only: true` (two writable units would let two clients command one servo "
+                        "against each other)");
   }
 }
 
@@ -1072,8 +1115,8 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
 
   const Value id_value = keys.require("id");
   const bool packet_bus = bus.protocol != BusProtocol::ModbusRtu;
-  servo.servo_id = static_cast<std::uint8_t>(
-      integer(id_value, packet_bus ? 0 : 1, packet_bus ? kMaxPacketServoId : kMaxUnitId));
+  servo.servo_id =
+      static_cast<std::uint8_t>(integer(id_value, packet_bus ? 0 : 1, packet_bus ? kMaxPacketServoId : kMaxUnitId));
   places.id = id_value.mark;
 
   if (const auto v = keys.find("unit")) {
@@ -1119,8 +1162,9 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
   if (const auto v = keys.find("response_level")) {
     const auto* field = table ? modbus_map::field_by_name(*table, "response_level") : nullptr;
     if (!field) {
-      fail(v->mark, v->path + ": " + table_name + " servos have no response level (a Modbus slave answers every "
-                                                  "unicast request)");
+      fail(v->mark, v->path + ": " + table_name +
+                        " servos have no response level (a Modbus slave answers every "
+                        "unicast request)");
     }
     servo.response_level = static_cast<std::uint8_t>(integer(*v, field->min, field->max));
   }
@@ -1141,8 +1185,9 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
   if (const auto v = keys.find("read_only")) servo.read_only = boolean(*v);
   if (const auto v = keys.find("safe_stop")) {
     if (!servo.table) {
-      fail(keys.key_mark("safe_stop"), value.path + ".safe_stop: a passthrough unit has no table the gateway "
-                                                    "could stop it with; remove the key");
+      fail(keys.key_mark("safe_stop"), value.path +
+                                           ".safe_stop: a passthrough unit has no table the gateway "
+                                           "could stop it with; remove the key");
     }
     servo.safe_stop = choice(*v, detail::kStopActionNames);
   }
@@ -1251,8 +1296,8 @@ SyncGroupConfig Loader::parse_sync_group(const MapReader& keys, const Config& co
       std::vector<int> units;
       for (const auto& servo : config.servos) units.push_back(servo.unit_id);
       std::sort(units.begin(), units.end());
-      fail(item.mark, item.path + ": unknown unit " + std::to_string(unit) + "; configured units: " +
-                          (units.empty() ? std::string("none") : join_numbers(units)));
+      fail(item.mark, item.path + ": unknown unit " + std::to_string(unit) +
+                          "; configured units: " + (units.empty() ? std::string("none") : join_numbers(units)));
     }
     const ServoConfig& servo = *servo_it;
     const std::string who = "unit " + std::to_string(unit);
@@ -1270,8 +1315,8 @@ SyncGroupConfig Loader::parse_sync_group(const MapReader& keys, const Config& co
     }
     const auto [entry, inserted] = field_on_bus.try_emplace(servo.bus_index, spec, unit);
     if (!inserted && (entry->second.first->addr != spec->addr || entry->second.first->size != spec->size)) {
-      fail(field.mark, field.path + ": `" + group.field + "` is at address " + std::to_string(spec->addr) +
-                           " (size " + std::to_string(spec->size) + ") on " + who + " but at address " +
+      fail(field.mark, field.path + ": `" + group.field + "` is at address " + std::to_string(spec->addr) + " (size " +
+                           std::to_string(spec->size) + ") on " + who + " but at address " +
                            std::to_string(entry->second.first->addr) + " (size " +
                            std::to_string(entry->second.first->size) + ") on unit " +
                            std::to_string(entry->second.second) + "; members on one bus (`" + servo.bus +

@@ -7,13 +7,13 @@
 
 #include "config/load.h"
 #include "gateway/console/console_server.h"
-#include "gateway/observability/metrics_server.h"
-#include "gateway/units/safety.h"
-#include "gateway/mqtt/sparkplug_node.h"
-#include "gateway/modbus_tcp/tcp_serving.h"
 #include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/modbus_tcp/tcp_serving.h"
 #include "gateway/modbus_tcp/tls.h"
+#include "gateway/mqtt/sparkplug_node.h"
+#include "gateway/observability/metrics_server.h"
 #include "gateway/rtu_slave/rtu_slave_port.h"
+#include "gateway/units/safety.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/register_map.h"
 
@@ -55,8 +55,8 @@ BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index
   settings.queue_depth = config.modbus_tcp.request_queue_depth;
   for (const auto& servo : config.servos) {
     if (servo.bus_index != bus_index || servo.passthrough() || servo.view_of) continue;  // polled once
-    settings.servos.push_back(ServoSettings{servo.servo_id, *servo.table, config::effective_byte_order(servo),
-                                            poll_block_of(bus, servo)});
+    settings.servos.push_back(
+        ServoSettings{servo.servo_id, *servo.table, config::effective_byte_order(servo), poll_block_of(bus, servo)});
   }
   return settings;
 }
@@ -67,20 +67,26 @@ config::Config simulated_config(const std::string& device, const config::HostPor
                      "\"\n"
                      "buses:\n"
                      "  - name: sim\n"
-                     "    device: \"" + device + "\"\n"
+                     "    device: \"" +
+                     device +
+                     "\"\n"
                      "    protocol: feetech\n"
                      "    baud: 1000000\n"
                      // A demonstration that moves motors: its watchdog is armed (docs/PLC_GUIDE.md "Safety").
-                     "    watchdog: {timeout_ms: " + std::to_string(kSimulateWatchdog.count()) + ", feed: any_write}\n"
+                     "    watchdog: {timeout_ms: " +
+                     std::to_string(kSimulateWatchdog.count()) +
+                     ", feed: any_write}\n"
                      "servos:\n";
   for (int id = 1; id <= 6; ++id) {
     yaml += "  - {unit: " + std::to_string(id) + ", bus: sim, id: " + std::to_string(id) + ", table: sts}\n";
   }
   // The six goal positions as holding registers 0-5 of the gateway unit: one SYNC WRITE frame.
-  yaml += "sync_groups:\n"
-          "  - {name: goal_position, field: goal_position, members: [1, 2, 3, 4, 5, 6], holding_register_start: 0}\n";
+  yaml +=
+      "sync_groups:\n"
+      "  - {name: goal_position, field: goal_position, members: [1, 2, 3, 4, 5, 6], holding_register_start: 0}\n";
   auto config = config::load_config_string(yaml, "<--simulate>");
-  if (!config) throw std::logic_error("the built-in --simulate configuration is invalid: " + config.error().to_string());
+  if (!config)
+    throw std::logic_error("the built-in --simulate configuration is invalid: " + config.error().to_string());
   return std::move(*config);
 }
 
@@ -149,8 +155,9 @@ class Gateway::Impl {
     if (!config_.modbus_rtu_slave.empty()) {
       rtu_policy_ = std::make_unique<RolePolicy>(config_);
       for (const auto& port : config_.modbus_rtu_slave) {
-        rtu_slaves_.push_back(std::make_unique<RtuSlavePort>(
-            port, config_, *router_, *rtu_policy_, [this](std::function<void()> work) { serving_.post(std::move(work)); }));
+        rtu_slaves_.push_back(
+            std::make_unique<RtuSlavePort>(port, config_, *router_, *rtu_policy_,
+                                           [this](std::function<void()> work) { serving_.post(std::move(work)); }));
       }
     }
     // The browser console (docs/CONSOLE.md): its own thread, a Modbus client of the router.
@@ -243,10 +250,10 @@ class Gateway::Impl {
   std::vector<std::unique_ptr<BusEngine>> engines_;
   std::unique_ptr<SafetySupervisor> safety_;  // before the router, which holds a reference
   std::unique_ptr<UnitRouter> router_;
-  std::unique_ptr<TlsService> tls_;  // after the router it holds, before the sessions that use it
+  std::unique_ptr<TlsService> tls_;                  // after the router it holds, before the sessions that use it
   std::unique_ptr<console::ConsoleServer> console_;  // after the router it asks; stopped first
-  std::unique_ptr<SparkplugNode> sparkplug_;  // after the router it asks; its callbacks end with the io thread
-  std::unique_ptr<RolePolicy> rtu_policy_;             // the RTU ports' role gate
+  std::unique_ptr<SparkplugNode> sparkplug_;         // after the router it asks; its callbacks end with the io thread
+  std::unique_ptr<RolePolicy> rtu_policy_;           // the RTU ports' role gate
   std::vector<std::unique_ptr<RtuSlavePort>> rtu_slaves_;  // after the router and policy they use
   std::optional<std::size_t> plain_index_;
   std::optional<std::size_t> tls_index_;

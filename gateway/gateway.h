@@ -1,7 +1,8 @@
 #pragma once
 // The whole gateway in one object: configuration -> one bus engine per bus -> unit router
 // (servo units and the gateway unit) -> Modbus TCP server, with the io thread that runs the
-// TCP side, and the upstream Modbus RTU ports (gateway/rtu_slave) in front of the same router. sms-gateway's main() and the in-process tests use it the same way:
+// TCP side, and the upstream Modbus RTU ports (gateway/rtu_slave) in front of the same router. sms-gateway's main() and
+// the in-process tests use it the same way:
 //
 //   sms::gateway::Gateway gateway(config);
 //   gateway.start();                 // throws std::runtime_error with what to do
@@ -16,8 +17,8 @@
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/wire_monitor.h"
-#include "gateway/observability/metrics.h"
 #include "gateway/modbus_tcp/tcp_server.h"
+#include "gateway/observability/metrics.h"
 
 namespace sms::gateway {
 

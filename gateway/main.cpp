@@ -16,18 +16,18 @@
 #include <string_view>
 #include <vector>
 
-#include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
 
 #include "config/env.h"
 #include "config/load.h"
 #include "gateway/console/console_access.h"
 #include "gateway/gateway.h"
-#include "gateway/units/state_file.h"
-#include "gateway/observability/logging.h"
-#include "gateway/mqtt/sparkplug_node.h"
 #include "gateway/modbus_tcp/tls.h"
+#include "gateway/mqtt/sparkplug_node.h"
+#include "gateway/observability/logging.h"
 #include "gateway/tools/tool_cli.h"
+#include "gateway/units/state_file.h"
 #include "process/stop_signals.h"
 #include "simulator/simulated_bus.h"
 
@@ -74,8 +74,8 @@ std::string summary(const Config& config) {
   return std::to_string(config.buses.size()) + " bus(es), " + std::to_string(config.servos.size()) + " servo(s), " +
          std::to_string(config.sync_groups.size()) + " sync group(s); " + listeners + ", gateway unit " +
          std::to_string(config.modbus_tcp.gateway_unit_id) +
-         (config.mqtt ? "; Sparkplug B node " + config.mqtt->group_id + "/" + config.mqtt->edge_node_id + " on broker " +
-                            config.mqtt->broker.to_string()
+         (config.mqtt ? "; Sparkplug B node " + config.mqtt->group_id + "/" + config.mqtt->edge_node_id +
+                            " on broker " + config.mqtt->broker.to_string()
                       : std::string()) +
          (config.modbus_rtu_slave.empty()
               ? std::string()
@@ -281,8 +281,9 @@ int run_gateway(const Options& options) {
 }  // namespace
 
 static int run_command_line(int argc, char** argv) {
-  CLI::App app{"sms-gateway: Modbus TCP gateway for Feetech (FF FF), D5 5D and SMSMB serial-bus servos.\n"
-               "Runs the gateway from a configuration file, or on a built-in simulated bus (--simulate)."};
+  CLI::App app{
+      "sms-gateway: Modbus TCP gateway for Feetech (FF FF), D5 5D and SMSMB serial-bus servos.\n"
+      "Runs the gateway from a configuration file, or on a built-in simulated bus (--simulate)."};
   Options options;
   auto* config_option = app.add_option("--config", options.config_file, "YAML configuration file to run");
   auto* simulate_option =

@@ -19,8 +19,7 @@ struct BaudEntry {
 // baud_from_code's `base_motor` flag; bps -> code never yields 0 there (codes 2/4 say it).
 std::span<const BaudEntry> baud_table(protocol::BusProtocol protocol);
 
-std::optional<std::uint32_t> baud_from_code(protocol::BusProtocol protocol, std::uint8_t code,
-                                            bool base_motor = false);
+std::optional<std::uint32_t> baud_from_code(protocol::BusProtocol protocol, std::uint8_t code, bool base_motor = false);
 // Error text names the protocol, the rejected rate and every valid rate.
 Expected<std::uint8_t> baud_code(protocol::BusProtocol protocol, std::uint32_t bps);
 // "1000000, 500000, ..." for messages.

@@ -36,18 +36,18 @@ inline constexpr Encoding kTwosComplement{EncodingKind::TwosComplement, 0};
 enum class BitSpace : std::uint8_t { None, Coil, DiscreteInput };
 
 struct FieldSpec {
-  std::uint16_t addr = 0;       // byte address, or register number (Addressing::Register)
-  std::string_view name;        // snake_case, stable: used in configs, dumps and docs
-  std::uint8_t size = 1;        // bytes on the bus: 1 or 2 (a register is 2)
+  std::uint16_t addr = 0;  // byte address, or register number (Addressing::Register)
+  std::string_view name;   // snake_case, stable: used in configs, dumps and docs
+  std::uint8_t size = 1;   // bytes on the bus: 1 or 2 (a register is 2)
   Access access = Access::ReadWrite;
   Area area = Area::Ram;
   std::optional<std::int32_t> default_value;  // factory value where the documents give one
   Encoding encoding = kUnsigned;
-  std::int32_t min = 0;         // valid range as a Modbus client sees the value
+  std::int32_t min = 0;  // valid range as a Modbus client sees the value
   std::int32_t max = 0;
-  std::string_view unit;        // "0.1 V", "steps", "°C", "" ...
+  std::string_view unit;  // "0.1 V", "steps", "°C", "" ...
   BitSpace bit_space = BitSpace::None;
-  std::string_view notes;       // one line for the generated register map
+  std::string_view notes;  // one line for the generated register map
   // When not empty, the only values a write may carry (inside [min, max]); e.g. sts torque
   // enable: 0, 1 and 128 (mid-point calibration), nothing in between.
   std::span<const std::int32_t> allowed_values = {};
@@ -55,13 +55,13 @@ struct FieldSpec {
 
 struct TableSpec {
   TableId id;
-  std::string_view name;        // "sts", "sms1", "d55d", "smsmb", "scs"
-  std::string_view title;       // human title for docs
+  std::string_view name;           // "sts", "sms1", "d55d", "smsmb", "scs"
+  std::string_view title;          // human title for docs
   protocol::BusProtocol protocol;  // the only bus protocol this table is spoken over
   Addressing addressing;
   ByteOrder default_byte_order;
   std::span<const FieldSpec> fields;  // sorted by addr, non-overlapping
-  bool has_sync_read;           // the poll cache may use one SYNC READ per cycle
+  bool has_sync_read;                 // the poll cache may use one SYNC READ per cycle
 };
 
 // Bus address units one field address stands for: a byte on packet tables, a 16-bit register
@@ -88,8 +88,7 @@ constexpr bool fields_sorted_and_disjoint(std::span<const FieldSpec> fields, Add
 constexpr bool range_representable(const FieldSpec& field) {
   const int bits = field.size * 8;
   switch (field.encoding.kind) {
-    case EncodingKind::Unsigned:
-      return field.min >= 0 && field.max < (std::int64_t{1} << bits);
+    case EncodingKind::Unsigned: return field.min >= 0 && field.max < (std::int64_t{1} << bits);
     case EncodingKind::SignMagnitude: {
       if (field.encoding.sign_bit >= bits) return false;
       const std::int64_t largest = (std::int64_t{1} << field.encoding.sign_bit) - 1;

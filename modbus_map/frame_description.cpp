@@ -13,8 +13,8 @@
 namespace sms::modbus_map {
 namespace {
 
-using protocol::Bytes;
 using protocol::BusProtocol;
+using protocol::Bytes;
 
 struct StatusBit {
   std::uint8_t mask;
@@ -109,8 +109,8 @@ void add_fields(std::vector<FieldValue>& out, const ServoTables& tables, std::ui
     }
   }
   if (out.size() == before) {
-    out.push_back({"address " + std::to_string(address) + (count > 1 ? "+" + std::to_string(count) : ""), address,
-                   {}, member});
+    out.push_back(
+        {"address " + std::to_string(address) + (count > 1 ? "+" + std::to_string(count) : ""), address, {}, member});
   }
 }
 
@@ -131,9 +131,14 @@ std::optional<std::size_t> rtu_frame_size(WireDirection direction, std::span<con
   };
   if (direction == WireDirection::ToServos) {
     switch (function) {
-      case fc::kReadCoils: case fc::kReadDiscreteInputs: case fc::kReadHoldingRegisters:
-      case fc::kReadInputRegisters: case fc::kWriteSingleCoil: case fc::kWriteSingleRegister: return 8;
-      case fc::kWriteMultipleCoils: case fc::kWriteMultipleRegisters: return counted(6, 9);
+      case fc::kReadCoils:
+      case fc::kReadDiscreteInputs:
+      case fc::kReadHoldingRegisters:
+      case fc::kReadInputRegisters:
+      case fc::kWriteSingleCoil:
+      case fc::kWriteSingleRegister: return 8;
+      case fc::kWriteMultipleCoils:
+      case fc::kWriteMultipleRegisters: return counted(6, 9);
       case fc::kReadWriteMultipleRegisters: return counted(10, 13);
       case fc::kReportServerId: return 4;
       default: return std::nullopt;
@@ -141,9 +146,15 @@ std::optional<std::size_t> rtu_frame_size(WireDirection direction, std::span<con
   }
   if (function & fc::kExceptionBit) return 5;
   switch (function) {
-    case fc::kReadCoils: case fc::kReadDiscreteInputs: case fc::kReadHoldingRegisters: case fc::kReadInputRegisters:
-    case fc::kReadWriteMultipleRegisters: case fc::kReportServerId: return counted(2, 5);
-    case fc::kWriteSingleCoil: case fc::kWriteSingleRegister: case fc::kWriteMultipleCoils:
+    case fc::kReadCoils:
+    case fc::kReadDiscreteInputs:
+    case fc::kReadHoldingRegisters:
+    case fc::kReadInputRegisters:
+    case fc::kReadWriteMultipleRegisters:
+    case fc::kReportServerId: return counted(2, 5);
+    case fc::kWriteSingleCoil:
+    case fc::kWriteSingleRegister:
+    case fc::kWriteMultipleCoils:
     case fc::kWriteMultipleRegisters: return 8;
     default: return std::nullopt;
   }
@@ -359,7 +370,8 @@ std::vector<FrameDescription> FrameDescriber::feed_rtu(WireDirection direction, 
   while (pending.size() - used >= 2) {
     const auto rest = std::span<const std::uint8_t>(pending).subspan(used);
     // An unknown function's frame ends with the piece it came in (the silence is not recorded).
-    const std::size_t size = std::min(rtu_frame_size(direction, rest).value_or(rest.size()), protocol::rtu::kMaxAduSize);
+    const std::size_t size =
+        std::min(rtu_frame_size(direction, rest).value_or(rest.size()), protocol::rtu::kMaxAduSize);
     if (rest.size() < size) break;
     frames.push_back(describe_rtu(direction, rest.first(size), size));
     used += size;
@@ -386,7 +398,8 @@ FrameDescription FrameDescriber::describe_rtu(WireDirection direction, std::span
       direction == WireDirection::ToServos ? describe_rtu_request(frame) : describe_rtu_answer(frame);
   if (frame.size() < expected_size) {
     description.kind = FrameKind::Damaged;
-    description.error = "cut short: " + std::to_string(frame.size()) + " of " + std::to_string(expected_size) + " bytes";
+    description.error =
+        "cut short: " + std::to_string(frame.size()) + " of " + std::to_string(expected_size) + " bytes";
     description.fields.clear();
   } else if (!crc_ok(frame)) {
     description.kind = FrameKind::Damaged;
@@ -429,12 +442,11 @@ FrameDescription FrameDescriber::describe_rtu_request(std::span<const std::uint8
       break;
     case fc::kWriteSingleCoil:
       if (pdu.size() >= 6) {
-        description.fields.push_back({"coil " + std::to_string(be16(pdu, 2)), be16(pdu, 2),
-                                      be16(pdu, 4) == 0xFF00 ? 1 : 0, std::nullopt});
+        description.fields.push_back(
+            {"coil " + std::to_string(be16(pdu, 2)), be16(pdu, 2), be16(pdu, 4) == 0xFF00 ? 1 : 0, std::nullopt});
       }
       break;
-    default:
-      break;
+    default: break;
   }
   return description;
 }
@@ -472,8 +484,7 @@ FrameDescription FrameDescriber::describe_rtu_answer(std::span<const std::uint8_
     case fc::kWriteMultipleRegisters:
       if (pdu.size() >= 6) add_fields(description.fields, tables_, slave, be16(pdu, 2), be16(pdu, 4), std::nullopt);
       break;
-    default:
-      break;
+    default: break;
   }
   return description;
 }

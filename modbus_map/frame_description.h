@@ -43,7 +43,7 @@ enum class FrameKind : std::uint8_t {
 std::string_view to_string(FrameKind kind);  // "request", "answer", "damaged", "noise"
 
 struct FieldValue {
-  std::string name;     // the table's field name; "address N" where no field starts there
+  std::string name;  // the table's field name; "address N" where no field starts there
   std::uint16_t address = 0;
   std::optional<std::int32_t> value;  // as a Modbus client sees it; empty where the frame carries none (READ)
   std::optional<std::uint8_t> servo;  // SYNC WRITE / SYNC READ: whose field
@@ -52,16 +52,16 @@ struct FieldValue {
 struct FrameDescription {
   WireDirection direction = WireDirection::ToServos;
   FrameKind kind = FrameKind::Request;
-  std::optional<std::uint8_t> servo;     // the addressed or answering ID (0xFE / 0 broadcast)
-  std::vector<std::uint8_t> servos;      // every servo the frame concerns (SYNC members), for filters
-  std::string instruction;               // "WRITE", "SYNC READ", "write_multiple_registers", ...; an answer names its request's
-  std::optional<std::uint8_t> code;      // instruction or function code as sent
+  std::optional<std::uint8_t> servo;  // the addressed or answering ID (0xFE / 0 broadcast)
+  std::vector<std::uint8_t> servos;   // every servo the frame concerns (SYNC members), for filters
+  std::string instruction;  // "WRITE", "SYNC READ", "write_multiple_registers", ...; an answer names its request's
+  std::optional<std::uint8_t> code;  // instruction or function code as sent
   std::vector<FieldValue> fields;
-  std::optional<std::uint8_t> status;    // the ERROR/status byte of a packet answer
+  std::optional<std::uint8_t> status;         // the ERROR/status byte of a packet answer
   std::vector<std::string_view> status_bits;  // its bits by name: "overload", "instruction", ...
-  std::string error;                     // checksum/CRC error, noise, Modbus exception: what, in words
-  bool retry = false;                    // the same request again, with no answer in between
-  protocol::Bytes bytes;                 // the frame as on the wire
+  std::string error;                          // checksum/CRC error, noise, Modbus exception: what, in words
+  bool retry = false;                         // the same request again, with no answer in between
+  protocol::Bytes bytes;                      // the frame as on the wire
 };
 
 // Describes the frames of one bus. One per reader: it keeps the partial frames of each
@@ -81,7 +81,8 @@ class FrameDescriber {
   FrameDescription describe_packet_request(const protocol::Packet& packet) const;
   FrameDescription describe_packet_answer(const protocol::Packet& packet) const;
   void flush_rtu(WireDirection direction, std::vector<FrameDescription>& frames);
-  FrameDescription describe_rtu(WireDirection direction, std::span<const std::uint8_t> frame, std::size_t expected_size);
+  FrameDescription describe_rtu(WireDirection direction, std::span<const std::uint8_t> frame,
+                                std::size_t expected_size);
   FrameDescription describe_rtu_request(std::span<const std::uint8_t> frame) const;
   FrameDescription describe_rtu_answer(std::span<const std::uint8_t> frame) const;
   void note_request(const protocol::Bytes& bytes, FrameDescription& description);
@@ -95,7 +96,8 @@ class FrameDescriber {
   protocol::Bytes last_request_bytes_;
   bool answered_since_request_ = true;
   std::array<std::size_t, 2> damaged_tail_{};
-  std::array<protocol::Bytes, 2> rtu_pending_{};  // per direction: an RTU frame not yet whole  // per direction: bytes of a damaged frame still to come back as skipped
+  std::array<protocol::Bytes, 2> rtu_pending_{};  // per direction: an RTU frame not yet whole  // per direction: bytes
+                                                  // of a damaged frame still to come back as skipped
 };
 
 }  // namespace sms::modbus_map

@@ -1,9 +1,9 @@
 // gen-register-map: prints the register map (docs/REGISTER_MAP.md) generated from the tables.
 //   gen-register-map                 -> stdout
 //   gen-register-map <output-file>   -> writes the file
-#include <string>
 #include <fstream>
 #include <iostream>
+#include <string>
 
 #include "modbus_map/register_map_doc.h"
 

@@ -10,8 +10,7 @@ namespace sms::modbus_map {
 namespace {
 
 // sts: 0 position, 1 constant speed, 2 open-loop PWM, 3 step (docs/PROTOCOL.md §2.1 address 33).
-constexpr DriveMode kStsModes[] = {
-    {0, Drive::Position}, {1, Drive::Velocity}, {2, Drive::Pwm}, {3, Drive::Step}};
+constexpr DriveMode kStsModes[] = {{0, Drive::Position}, {1, Drive::Velocity}, {2, Drive::Pwm}, {3, Drive::Step}};
 // sms1: 0 servo, 1 motor speed, 2 torque (run_time is the signed torque) (docs/PROTOCOL.md §2.2 address 35).
 constexpr DriveMode kSms1Modes[] = {{0, Drive::Position}, {1, Drive::Velocity}, {2, Drive::Pwm}};
 // SMSMB: 0 servo, 1 constant speed, 3 torque off on arrival (a position mode), 4 stepper (§2.4).
@@ -24,12 +23,12 @@ constexpr std::string_view kSms1MotionFields[] = {"operating_mode", "torque_swit
                                                   "run_speed"};
 // d55d: both angle limits 0 select wheel mode; releasing the brake or waking the motor resumes
 // the goal it holds; homing turns the motor.
-constexpr std::string_view kD55dMotionFields[] = {"cw_angle_limit", "ccw_angle_limit", "goal_position", "run_speed",
-                                                  "brake", "sleep", "photo_switch_homing"};
+constexpr std::string_view kD55dMotionFields[] = {
+    "cw_angle_limit", "ccw_angle_limit", "goal_position", "run_speed", "brake", "sleep", "photo_switch_homing"};
 // scs has no mode byte: both angle limits 0 select the open-loop motor (SCSCL SDK PWMMode).
 constexpr DriveMode kScsLimitsZeroDrive[] = {{0, Drive::Pwm}};
 constexpr std::string_view kScsMotionFields[] = {"min_angle_limit", "max_angle_limit", "torque_enable",
-                                                 "goal_position", "goal_time", "goal_speed"};
+                                                 "goal_position",   "goal_time",       "goal_speed"};
 constexpr std::string_view kSmsmbMotionFields[] = {"mode", "goal_position", "torque_switch", "running_speed"};
 
 constexpr StoppingWrite kStsStops[] = {{"torque_enable", 0}};
@@ -40,21 +39,77 @@ constexpr StoppingWrite kSmsmbStops[] = {{"torque_switch", 0}};
 constexpr StoppingWrite kScsStops[] = {{"torque_enable", 0}};
 
 constexpr std::array kMotionSpecs{
-    MotionSpec{TableId::Sts, "operating_mode", kStsModes, "min_angle_limit", "max_angle_limit", "torque_enable",
-               "goal_position", "goal_time", "goal_speed", "present_position", {"torque_enable", 0}, kStsMotionFields,
-               kStsStops, StopAction::Hold},
-    MotionSpec{TableId::Sms1, "operating_mode", kSms1Modes, "min_angle_limit", "max_angle_limit", "torque_switch",
-               "goal_position", "run_time", "run_speed", "present_position", {"torque_switch", 0}, kSms1MotionFields,
-               kSms1Stops, StopAction::Hold},
+    MotionSpec{TableId::Sts,
+               "operating_mode",
+               kStsModes,
+               "min_angle_limit",
+               "max_angle_limit",
+               "torque_enable",
+               "goal_position",
+               "goal_time",
+               "goal_speed",
+               "present_position",
+               {"torque_enable", 0},
+               kStsMotionFields,
+               kStsStops,
+               StopAction::Hold},
+    MotionSpec{TableId::Sms1,
+               "operating_mode",
+               kSms1Modes,
+               "min_angle_limit",
+               "max_angle_limit",
+               "torque_switch",
+               "goal_position",
+               "run_time",
+               "run_speed",
+               "present_position",
+               {"torque_switch", 0},
+               kSms1MotionFields,
+               kSms1Stops,
+               StopAction::Hold},
     // d55d has no torque switch: run speed 0 is its own "stop without torque" (docs/PROTOCOL.md §2.3).
-    MotionSpec{TableId::D55d, "", {}, "cw_angle_limit", "ccw_angle_limit", "", "goal_position", "", "run_speed",
-               "present_position", {"run_speed", 0}, kD55dMotionFields, kD55dStops, StopAction::Hold},
-    MotionSpec{TableId::Smsmb, "mode", kSmsmbModes, "min_angle_limit", "max_angle_limit", "torque_switch",
-               "goal_position", "", "running_speed", "present_position", {"torque_switch", 0}, kSmsmbMotionFields,
-               kSmsmbStops, StopAction::Hold},
-    MotionSpec{TableId::Scs, "", kScsLimitsZeroDrive, "min_angle_limit", "max_angle_limit", "torque_enable",
-               "goal_position", "goal_time", "goal_speed", "present_position", {"torque_enable", 0}, kScsMotionFields,
-               kScsStops, StopAction::Hold},
+    MotionSpec{TableId::D55d,
+               "",
+               {},
+               "cw_angle_limit",
+               "ccw_angle_limit",
+               "",
+               "goal_position",
+               "",
+               "run_speed",
+               "present_position",
+               {"run_speed", 0},
+               kD55dMotionFields,
+               kD55dStops,
+               StopAction::Hold},
+    MotionSpec{TableId::Smsmb,
+               "mode",
+               kSmsmbModes,
+               "min_angle_limit",
+               "max_angle_limit",
+               "torque_switch",
+               "goal_position",
+               "",
+               "running_speed",
+               "present_position",
+               {"torque_switch", 0},
+               kSmsmbMotionFields,
+               kSmsmbStops,
+               StopAction::Hold},
+    MotionSpec{TableId::Scs,
+               "",
+               kScsLimitsZeroDrive,
+               "min_angle_limit",
+               "max_angle_limit",
+               "torque_enable",
+               "goal_position",
+               "goal_time",
+               "goal_speed",
+               "present_position",
+               {"torque_enable", 0},
+               kScsMotionFields,
+               kScsStops,
+               StopAction::Hold},
 };
 
 const FieldSpec& field_named(const MotionSpec& spec, std::string_view name) {
@@ -222,8 +277,8 @@ Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action,
   if (data.empty()) return unexpected(std::string("the goal block was not read"));
   const auto set_field = [&](std::string_view name, std::span<const std::uint8_t> bytes) {
     const FieldSpec& field = field_named(spec, name);
-    const std::size_t offset =
-        std::size_t{static_cast<std::size_t>(field.addr - block.address)} * bytes_per_address(table(spec.table).addressing);
+    const std::size_t offset = std::size_t{static_cast<std::size_t>(field.addr - block.address)} *
+                               bytes_per_address(table(spec.table).addressing);
     std::copy(bytes.begin(), bytes.end(), data.begin() + static_cast<std::ptrdiff_t>(offset));
   };
   const protocol::Bytes zero(2, 0);
@@ -236,8 +291,7 @@ Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action,
       protocol::Bytes bytes(present.size, 0);
       store_raw(bytes, present.size, field_order(spec, order), *raw);
       set_field(spec.goal_position, bytes);
-      plan.what = "hold (position mode: goal := present position " +
-                  std::to_string(decode_value(present, *raw)) + ")";
+      plan.what = "hold (position mode: goal := present position " + std::to_string(decode_value(present, *raw)) + ")";
       break;
     }
     case Drive::Velocity:
@@ -249,8 +303,7 @@ Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action,
       set_field(spec.goal_time, std::span(zero).first(field_named(spec, spec.goal_time).size));
       plan.what = "hold (PWM mode: duty := 0)";
       break;
-    case Drive::Step:
-      break;  // handled above
+    case Drive::Step: break;  // handled above
   }
   plan.writes.push_back(BusWrite{block.address, std::move(data)});
   return plan;
@@ -290,10 +343,10 @@ std::optional<std::string> motion_in_plan(const MotionSpec& spec, ByteOrder orde
       const FieldSpec& field = field_named(spec, name);
       if (!overlaps(spec, write, field)) continue;
       const auto raw = written_raw(spec, order, write, field);
-      const bool stopping = raw && std::any_of(spec.stopping_writes.begin(), spec.stopping_writes.end(),
-                                               [&](const StoppingWrite& stop) {
-                                                 return stop.field == name && encode_value(field, stop.value) == raw;
-                                               });
+      const bool stopping =
+          raw && std::any_of(spec.stopping_writes.begin(), spec.stopping_writes.end(), [&](const StoppingWrite& stop) {
+            return stop.field == name && encode_value(field, stop.value) == raw;
+          });
       if (!stopping) return std::string(name) + " (" + std::to_string(field.addr) + ")";
     }
   }

@@ -52,20 +52,20 @@ struct MotionSpec {
   std::span<const DriveMode> modes;
   std::string_view min_limit;
   std::string_view max_limit;
-  std::string_view torque;            // torque switch (1 = on); empty: the table has none
+  std::string_view torque;  // torque switch (1 = on); empty: the table has none
   // The goal block, written whole by `hold` so that one SYNC WRITE frame stops every servo of a
   // bus: from goal_position to the last of goal_time / goal_speed (fields between keep their
   // values, read just before).
   std::string_view goal_position;
-  std::string_view goal_time;         // PWM duty in PWM mode; empty: none
+  std::string_view goal_time;  // PWM duty in PWM mode; empty: none
   std::string_view goal_speed;
   std::string_view present_position;
-  StoppingWrite torque_off;           // what `torque_off` writes
+  StoppingWrite torque_off;  // what `torque_off` writes
   // Fields whose writes can set a motor moving (goals, mode, torque, brake, homing).
   std::span<const std::string_view> motion_fields;
   // Writes of these values are stops, allowed while motion is blocked.
   std::span<const StoppingWrite> stopping_writes;
-  StopAction default_stop;            // a servo's `safe_stop` when the configuration names none
+  StopAction default_stop;  // a servo's `safe_stop` when the configuration names none
 };
 
 const MotionSpec& motion_spec(TableId id);
@@ -83,7 +83,7 @@ struct StopContext {
 struct SafeStopPlan {
   std::vector<BusWrite> writes;  // empty: nothing to do (action none, or torque already off)
   Drive drive = Drive::Position;
-  std::string what;              // for the log: "hold (position mode: goal := 1523)"
+  std::string what;  // for the log: "hold (position mode: goal := 1523)"
 };
 // The writes that stop one servo. `Hold` on a servo in step mode (every goal is a move relative
 // to the running target, so no goal holds it) becomes a torque off, said in `what`.

@@ -30,10 +30,8 @@ struct PollBlockDefault {
   BusRange block;
 };
 constexpr std::array kDefaultPollBlocks{
-    PollBlockDefault{TableId::Sts, {56, 15}},
-    PollBlockDefault{TableId::Sms1, {56, 15}},
-    PollBlockDefault{TableId::D55d, {36, 14}},
-    PollBlockDefault{TableId::Smsmb, kSmsmbFeedbackRegisters},
+    PollBlockDefault{TableId::Sts, {56, 15}},  PollBlockDefault{TableId::Sms1, {56, 15}},
+    PollBlockDefault{TableId::D55d, {36, 14}}, PollBlockDefault{TableId::Smsmb, kSmsmbFeedbackRegisters},
     PollBlockDefault{TableId::Scs, {56, 15}},
 };
 
@@ -145,8 +143,8 @@ Expected<BusRange> poll_block_for_fields(TableId table_id, std::span<const std::
         if (candidate.access == Access::WriteOnly) continue;
         known += (known.empty() ? "" : ", ") + std::string(candidate.name);
       }
-      return unexpected("table " + std::string(spec.name) + " has no field '" + name + "' to poll; its readable fields: " +
-                        known);
+      return unexpected("table " + std::string(spec.name) + " has no field '" + name +
+                        "' to poll; its readable fields: " + known);
     }
     if (field->access == Access::WriteOnly) {
       return unexpected("field '" + name + "' of table " + std::string(spec.name) +
@@ -242,8 +240,7 @@ Expected<RegisterMap> RegisterMap::create(TableId table_id, Profile profile, std
         case Conversion::BaudRate:
         case Conversion::StatusBits:
         case Conversion::BytePair:
-        case Conversion::FaultReset:
-          break;  // the shown register's own range; the conversion checks the rest
+        case Conversion::FaultReset: break;  // the shown register's own range; the conversion checks the rest
       }
     }
     map.entries_.push_back(entry);
@@ -374,7 +371,8 @@ MapResult<ReadPlan> RegisterMap::plan_read(RequestSpace space, std::uint16_t sta
   const bool from_cache =
       space == RequestSpace::InputRegisters ||
       (space == RequestSpace::DiscreteInputs && poll_block &&
-       poll_block->contains(BusRange{addresses.front(), static_cast<std::uint16_t>(addresses.back() - addresses.front() + 1)}));
+       poll_block->contains(
+           BusRange{addresses.front(), static_cast<std::uint16_t>(addresses.back() - addresses.front() + 1)}));
   plan.source = from_cache ? ReadSource::PollCache : ReadSource::Bus;
   if (!from_cache && servo_table_->addressing == Addressing::Register) {
     // A Modbus-RTU servo may refuse a read over registers it does not have: one FC03 per run.
@@ -401,9 +399,9 @@ MapResult<std::uint16_t> read_register(const RegisterEntry& entry, const TableSp
   const auto raw_of = [&](const FieldSpec& field) -> MapResult<std::uint32_t> {
     const auto bytes = image.bytes(field.addr, address_span(servo.addressing, field));
     if (!bytes) {
-      return fail(ModbusException::ServerDeviceFailure,
-                  "servo field " + std::string(field.name) + " (" + address_text(servo, field.addr) +
-                      ") is not in the data read for this request");
+      return fail(ModbusException::ServerDeviceFailure, "servo field " + std::string(field.name) + " (" +
+                                                            address_text(servo, field.addr) +
+                                                            ") is not in the data read for this request");
     }
     return load_raw(*bytes, field.size, order);
   };
@@ -415,11 +413,8 @@ MapResult<std::uint16_t> read_register(const RegisterEntry& entry, const TableSp
   const Conversion conversion = entry.link != nullptr ? entry.link->conversion : Conversion::Same;
   switch (conversion) {
     case Conversion::Same:
-    case Conversion::FaultReset:
-      break;
-    case Conversion::Scale:
-      value = scale_round(field_value, entry.link->scale_num, entry.link->scale_den);
-      break;
+    case Conversion::FaultReset: break;
+    case Conversion::Scale: value = scale_round(field_value, entry.link->scale_num, entry.link->scale_den); break;
     case Conversion::ValueMap:
       for (const ValueMapping& mapping : entry.link->values) {
         if (mapping.direction != MapDirection::WriteOnly && mapping.field_value == field_value) {
@@ -437,9 +432,7 @@ MapResult<std::uint16_t> read_register(const RegisterEntry& entry, const TableSp
       }
       break;
     }
-    case Conversion::StatusBits:
-      value = field_value & entry.link->status_mask;
-      break;
+    case Conversion::StatusBits: value = field_value & entry.link->status_mask; break;
     case Conversion::BytePair: {
       const auto low = raw_of(*field_at(servo, entry.link->low_field_addr));
       if (!low) return unexpected(low.error());
@@ -461,10 +454,10 @@ MapResult<std::vector<std::uint16_t>> RegisterMap::registers_from(const ReadPlan
   for (std::size_t i = 0; i < replies.size(); ++i) {
     const std::size_t expected = std::size_t{plan.reads[i].count} * bytes_per_bus_address();
     if (replies[i].size() != expected) {
-      return fail(ModbusException::ServerDeviceFailure,
-                  "servo answered " + std::to_string(replies[i].size()) + " bytes to a READ of " +
-                      std::to_string(expected) + " at " + address_text(*servo_table_, plan.reads[i].address) + " (" +
-                      description_ + ")");
+      return fail(ModbusException::ServerDeviceFailure, "servo answered " + std::to_string(replies[i].size()) +
+                                                            " bytes to a READ of " + std::to_string(expected) + " at " +
+                                                            address_text(*servo_table_, plan.reads[i].address) + " (" +
+                                                            description_ + ")");
     }
   }
   const BusImage image(plan.reads, replies, bytes_per_bus_address());
@@ -491,13 +484,15 @@ MapResult<std::vector<bool>> RegisterMap::bits_from(const ReadPlan& plan, std::s
 
 // --- writes ------------------------------------------------------------------------------------------
 
-MapResult<WritePlan> RegisterMap::plan_register_write(std::uint16_t start, std::span<const std::uint16_t> values) const {
+MapResult<WritePlan> RegisterMap::plan_register_write(std::uint16_t start,
+                                                      std::span<const std::uint16_t> values) const {
   return plan_write(RequestSpace::HoldingRegisters, start, values);
 }
 
 MapResult<WritePlan> RegisterMap::plan_coil_write(std::uint16_t start, const std::vector<bool>& values) const {
   std::vector<std::uint16_t> registers(values.size());
-  std::transform(values.begin(), values.end(), registers.begin(), [](bool bit) -> std::uint16_t { return bit ? 1 : 0; });
+  std::transform(values.begin(), values.end(), registers.begin(),
+                 [](bool bit) -> std::uint16_t { return bit ? 1 : 0; });
   return plan_write(RequestSpace::Coils, start, registers);
 }
 
@@ -510,25 +505,22 @@ MapResult<std::optional<RegisterMap::FieldWrite>> RegisterMap::convert_write(con
                      range_text(entry.min, entry.max));
   }
   const FieldSpec& field = *entry.counterpart;
-  const std::string servo_label =
-      "table " + std::string(servo_table_->name) + " field " + std::string(field.name) + " (" +
-      address_text(*servo_table_, field.addr) + ")";
+  const std::string servo_label = "table " + std::string(servo_table_->name) + " field " + std::string(field.name) +
+                                  " (" + address_text(*servo_table_, field.addr) + ")";
   std::int32_t field_value = value;
   const Conversion conversion = entry.link != nullptr ? entry.link->conversion : Conversion::Same;
   switch (conversion) {
-    case Conversion::Same:
-      break;
-    case Conversion::Scale:
-      field_value = scale_round(value, entry.link->scale_den, entry.link->scale_num);
-      break;
+    case Conversion::Same: break;
+    case Conversion::Scale: field_value = scale_round(value, entry.link->scale_den, entry.link->scale_num); break;
     case Conversion::ValueMap: {
-      const auto mapping = std::find_if(entry.link->values.begin(), entry.link->values.end(), [&](const ValueMapping& m) {
-        return m.direction != MapDirection::ReadOnly && m.register_value == value;
-      });
+      const auto mapping = std::find_if(
+          entry.link->values.begin(), entry.link->values.end(),
+          [&](const ValueMapping& m) { return m.direction != MapDirection::ReadOnly && m.register_value == value; });
       if (mapping == entry.link->values.end()) {
         std::string accepted;
         for (const ValueMapping& m : entry.link->values) {
-          if (m.direction != MapDirection::ReadOnly) accepted += (accepted.empty() ? "" : ", ") + std::to_string(m.register_value);
+          if (m.direction != MapDirection::ReadOnly)
+            accepted += (accepted.empty() ? "" : ", ") + std::to_string(m.register_value);
         }
         return bad_value("value " + std::to_string(value) + " for " + label + " has no counterpart in " + servo_label +
                          "; accepted: " + accepted);
@@ -538,12 +530,13 @@ MapResult<std::optional<RegisterMap::FieldWrite>> RegisterMap::convert_write(con
     }
     case Conversion::BaudRate: {
       const auto bps = baud_from_code(BusProtocol::ModbusRtu, static_cast<std::uint8_t>(value));
-      const auto code = bps ? baud_code(servo_table_->protocol, *bps) : Expected<std::uint8_t>(unexpected(std::string()));
+      const auto code =
+          bps ? baud_code(servo_table_->protocol, *bps) : Expected<std::uint8_t>(unexpected(std::string()));
       if (!bps || !code) {
-        return bad_value("Modbus baud code " + std::to_string(value) + " for " + label + " (" +
-                         (bps ? std::to_string(*bps) + " bps" : std::string("no rate")) +
-                         "): the servo cannot run at that rate; its rates: " +
-                         valid_bauds_text(servo_table_->protocol));
+        return bad_value(
+            "Modbus baud code " + std::to_string(value) + " for " + label + " (" +
+            (bps ? std::to_string(*bps) + " bps" : std::string("no rate")) +
+            "): the servo cannot run at that rate; its rates: " + valid_bauds_text(servo_table_->protocol));
       }
       field_value = *code;
       if (field_value > field.max) {
@@ -565,8 +558,7 @@ MapResult<std::optional<RegisterMap::FieldWrite>> RegisterMap::convert_write(con
       break;
     }
     case Conversion::StatusBits:
-    case Conversion::BytePair:
-      return bad_address(label + " of " + description_ + " is read-only");
+    case Conversion::BytePair: return bad_address(label + " of " + description_ + " is read-only");
   }
   const auto raw = encode_value(field, field_value);
   if (!raw) {
@@ -628,11 +620,11 @@ MapResult<WritePlan> RegisterMap::plan_write(RequestSpace space, std::uint16_t s
                          std::string(servo_table_->name) + " (" + description_ + ")");
     }
     if (!entry->writable) {
-      return bad_address(field_label(*entry->shown) + " of " + description_ + " is read-only" +
-                         (entry->counterpart != entry->shown
-                              ? " (table " + std::string(servo_table_->name) + " field " +
-                                    std::string(entry->counterpart->name) + ")"
-                              : ""));
+      return bad_address(
+          field_label(*entry->shown) + " of " + description_ + " is read-only" +
+          (entry->counterpart != entry->shown
+               ? " (table " + std::string(servo_table_->name) + " field " + std::string(entry->counterpart->name) + ")"
+               : ""));
     }
     selected.push_back(Selected{entry, values[i]});
   }
@@ -661,8 +653,8 @@ MapResult<WritePlan> RegisterMap::plan_write(RequestSpace space, std::uint16_t s
   const std::uint8_t unit_bytes = bytes_per_bus_address();
   for (const FieldWrite& write : writes) {
     const FieldSpec& field = *write.field;
-    const bool continues = !plan.writes.empty() &&
-                           plan.writes.back().address + plan.writes.back().data.size() / unit_bytes == field.addr;
+    const bool continues =
+        !plan.writes.empty() && plan.writes.back().address + plan.writes.back().data.size() / unit_bytes == field.addr;
     if (!continues) plan.writes.push_back(BusWrite{field.addr, {}});
     Bytes& data = plan.writes.back().data;
     data.resize(data.size() + field.size);
@@ -671,9 +663,10 @@ MapResult<WritePlan> RegisterMap::plan_write(RequestSpace space, std::uint16_t s
   if (staged && plan.writes.size() > 1) {
     std::string frames;
     for (const BusWrite& write : plan.writes) frames += (frames.empty() ? "" : ", ") + address_label(write.address);
-    return bad_address("a staged write must be one contiguous run of fields (the servo holds one REG WRITE until "
-                       "ACTION); this one needs frames at " +
-                       frames + " of " + description_);
+    return bad_address(
+        "a staged write must be one contiguous run of fields (the servo holds one REG WRITE until "
+        "ACTION); this one needs frames at " +
+        frames + " of " + description_);
   }
   return plan;
 }

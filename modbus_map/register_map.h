@@ -142,8 +142,8 @@ struct BusWrite {
   friend bool operator==(const BusWrite&, const BusWrite&) = default;
 };
 struct WritePlan {
-  bool staged = false;            // REG WRITE: runs on ACTION (gateway coil 0)
-  std::vector<BusWrite> writes;   // ascending bus address; empty: nothing to send, answer OK
+  bool staged = false;           // REG WRITE: runs on ACTION (gateway coil 0)
+  std::vector<BusWrite> writes;  // ascending bus address; empty: nothing to send, answer OK
 };
 
 // One Modbus-visible register (or coil / discrete input) of a unit.
@@ -210,14 +210,13 @@ class RegisterMap {
   RegisterMap() = default;
 
   struct FieldWrite {
-    const FieldSpec* field;       // the servo's field
-    std::uint32_t raw;            // its new raw value
-    std::uint16_t from_address;   // the Modbus address that asked for it
+    const FieldSpec* field;      // the servo's field
+    std::uint32_t raw;           // its new raw value
+    std::uint16_t from_address;  // the Modbus address that asked for it
   };
   MapResult<ReadPlan> plan_read(RequestSpace space, std::uint16_t start, std::uint16_t count,
                                 std::optional<BusRange> poll_block) const;
-  MapResult<WritePlan> plan_write(RequestSpace space, std::uint16_t start,
-                                  std::span<const std::uint16_t> values) const;
+  MapResult<WritePlan> plan_write(RequestSpace space, std::uint16_t start, std::span<const std::uint16_t> values) const;
   const RegisterEntry* entry_covering(std::uint16_t address) const;
   bool in_space(const RegisterEntry& entry, RequestSpace space) const;
   MapResult<std::optional<FieldWrite>> convert_write(const RegisterEntry& entry, std::uint16_t register_value) const;

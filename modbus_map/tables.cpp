@@ -87,8 +87,8 @@ void check_size(std::size_t available, std::uint8_t size) {
     throw std::invalid_argument("field size " + std::to_string(size) + " is not 1 or 2 bytes");
   }
   if (available < size) {
-    throw std::out_of_range("a " + std::to_string(size) + "-byte field needs " + std::to_string(size) +
-                            " bytes, " + std::to_string(available) + " given");
+    throw std::out_of_range("a " + std::to_string(size) + "-byte field needs " + std::to_string(size) + " bytes, " +
+                            std::to_string(available) + " given");
   }
 }
 
@@ -140,8 +140,7 @@ std::uint16_t end_address(const TableSpec& table) {
 std::int32_t decode_value(const FieldSpec& field, std::uint32_t raw) {
   raw &= width_mask(field.size);
   switch (field.encoding.kind) {
-    case EncodingKind::Unsigned:
-      return static_cast<std::int32_t>(raw);
+    case EncodingKind::Unsigned: return static_cast<std::int32_t>(raw);
     case EncodingKind::SignMagnitude: {
       // Bits above the direction bit are not part of the value (docs/PROTOCOL.md §4).
       const std::uint32_t direction = std::uint32_t{1} << field.encoding.sign_bit;

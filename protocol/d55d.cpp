@@ -33,7 +33,6 @@ std::uint16_t little_endian_at(std::span<const std::uint8_t> bytes, std::size_t 
   return static_cast<std::uint16_t>(bytes[offset] | (bytes[offset + 1] << 8));
 }
 
-
 }  // namespace
 
 std::optional<std::string_view> instruction_name(std::uint8_t code) {

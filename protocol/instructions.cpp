@@ -6,8 +6,7 @@
 namespace sms::protocol {
 namespace {
 
-Packet address_and_data(std::uint8_t id, std::uint8_t code, std::uint8_t address,
-                        std::span<const std::uint8_t> data) {
+Packet address_and_data(std::uint8_t id, std::uint8_t code, std::uint8_t address, std::span<const std::uint8_t> data) {
   Packet packet{id, code, {}};
   packet.params.reserve(1 + data.size());
   packet.params.push_back(address);
@@ -45,9 +44,9 @@ Packet sync_write(std::uint8_t address, std::uint8_t length, std::span<const Syn
   }
   const std::size_t param_count = 2 + entries.size() * (1U + length);
   if (param_count > kMaxParams) {
-    throw std::length_error("SYNC WRITE of " + std::to_string(length) + " bytes to " +
-                            std::to_string(entries.size()) + " servos needs " + std::to_string(param_count) +
-                            " parameter bytes, LEN allows " + std::to_string(kMaxParams) + "; split it");
+    throw std::length_error("SYNC WRITE of " + std::to_string(length) + " bytes to " + std::to_string(entries.size()) +
+                            " servos needs " + std::to_string(param_count) + " parameter bytes, LEN allows " +
+                            std::to_string(kMaxParams) + "; split it");
   }
   Packet packet{kBroadcastId, common::kSyncWrite, {}};
   packet.params.reserve(param_count);

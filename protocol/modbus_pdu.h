@@ -50,7 +50,7 @@ struct ModbusFunction {
   std::uint8_t code;
   std::string_view name;  // Modbus Application Protocol v1.1b3 name, snake_case (metrics labels)
   FunctionEffect effect;
-  bool served;            // the gateway serves it for table units (docs/PLC_GUIDE.md "A servo unit")
+  bool served;  // the gateway serves it for table units (docs/PLC_GUIDE.md "A servo unit")
 };
 
 // The public function codes (Modbus Application Protocol v1.1b3 §5.1), ascending by code.

@@ -18,15 +18,15 @@ struct RequestLayout {
   std::size_t byte_count_offset = kNoByteCount;
 };
 constexpr std::array<RequestLayout, 11> kRequestLayouts{{
-    {0x01, 8},     // read coils: addr, quantity
-    {0x02, 8},     // read discrete inputs
-    {0x03, 8},     // read holding registers
-    {0x04, 8},     // read input registers
-    {0x05, 8},     // write single coil: addr, value
-    {0x06, 8},     // write single register
-    {0x0F, 9, 6},  // write multiple coils: addr, quantity, byte count, data
-    {0x10, 9, 6},  // write multiple registers
-    {0x11, 4},     // report slave id: no fields (docs/PROTOCOL.md §1.3)
+    {0x01, 8},       // read coils: addr, quantity
+    {0x02, 8},       // read discrete inputs
+    {0x03, 8},       // read holding registers
+    {0x04, 8},       // read input registers
+    {0x05, 8},       // write single coil: addr, value
+    {0x06, 8},       // write single register
+    {0x0F, 9, 6},    // write multiple coils: addr, quantity, byte count, data
+    {0x10, 9, 6},    // write multiple registers
+    {0x11, 4},       // report slave id: no fields (docs/PROTOCOL.md §1.3)
     {0x17, 13, 10},  // read/write multiple: read addr, qty, write addr, qty, byte count, data
     // Feetech restart: docs/PROTOCOL.md §1.3 says only "0x41 restart (0 = every slave)"; neither the seed
     // documents nor Feetech's wiki as searchable here give its layout. Decision: no fields,
@@ -61,9 +61,7 @@ bool crc_matches(std::span<const std::uint8_t> adu) {
   return adu[adu.size() - 2] == (crc & 0xFF) && adu[adu.size() - 1] == (crc >> 8);
 }
 
-Adu adu_of(std::span<const std::uint8_t> adu) {
-  return Adu{adu[0], Bytes(adu.begin() + 1, adu.end() - 2)};
-}
+Adu adu_of(std::span<const std::uint8_t> adu) { return Adu{adu[0], Bytes(adu.begin() + 1, adu.end() - 2)}; }
 
 }  // namespace
 

@@ -73,8 +73,8 @@ void MbapDecoder::reset() {
 
 Bytes encode_mbap(std::uint16_t transaction_id, std::uint8_t unit_id, std::span<const std::uint8_t> pdu) {
   if (pdu.empty() || pdu.size() > kMaxPduSize) {
-    throw std::length_error("encode_mbap: PDU of " + std::to_string(pdu.size()) +
-                            " bytes; a Modbus PDU holds 1.." + std::to_string(kMaxPduSize));
+    throw std::length_error("encode_mbap: PDU of " + std::to_string(pdu.size()) + " bytes; a Modbus PDU holds 1.." +
+                            std::to_string(kMaxPduSize));
   }
   Bytes out;
   out.reserve(kMbapHeaderSize + pdu.size());

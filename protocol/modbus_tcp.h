@@ -46,9 +46,9 @@ struct Frame {
 // the connection (Modbus messaging on TCP/IP implementation guide §4.4.1.2 / §3.1.3): after a
 // BadHeader the decoder stays failed and yields nothing more until reset().
 struct BadHeader {
-  std::string reason;              // what was wrong, with the offending values, for the log
+  std::string reason;  // what was wrong, with the offending values, for the log
   std::uint16_t transaction_id = 0;
-  bool close_connection = true;    // always true: said explicitly so callers need not guess
+  bool close_connection = true;  // always true: said explicitly so callers need not guess
   friend bool operator==(const BadHeader&, const BadHeader&) = default;
 };
 

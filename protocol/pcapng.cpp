@@ -65,8 +65,8 @@ void block(Bytes& out, std::uint32_t type, Body&& body) {
 Writer::Writer(std::string_view application) {
   block(out_, kSectionHeader, [&](Bytes& out) {
     put32(out, kByteOrderMagic);
-    put16(out, 1);  // major version
-    put16(out, 0);  // minor version
+    put16(out, 1);           // major version
+    put16(out, 0);           // minor version
     put32(out, 0xFFFFFFFF);  // section length: not given
     put32(out, 0xFFFFFFFF);
     put_option(out, kShbUserApplication, application);

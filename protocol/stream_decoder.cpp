@@ -83,8 +83,7 @@ std::optional<DecodeEvent> StreamDecoder::next() {
   if (bytes.size() < frame_size) return std::nullopt;
 
   const auto frame = bytes.first(frame_size);
-  Packet packet{frame[kIdOffset], frame[kCodeOffset],
-                Bytes(frame.begin() + kParamsOffset, frame.end() - 1)};
+  Packet packet{frame[kIdOffset], frame[kCodeOffset], Bytes(frame.begin() + kParamsOffset, frame.end() - 1)};
   const auto body = frame.subspan(kIdOffset, frame_size - kIdOffset - 1);
   if (checksum(format_, body) == frame.back()) {
     auto event = make_event(DecodeEvent::Kind::Frame, std::move(packet));

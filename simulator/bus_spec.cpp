@@ -90,9 +90,7 @@ modbus_map::TableId default_table(BusProtocol protocol) {
   return modbus_map::TableId::Sts;
 }
 
-std::uint32_t default_baud(BusProtocol protocol) {
-  return protocol == BusProtocol::Feetech ? 1'000'000 : 115'200;
-}
+std::uint32_t default_baud(BusProtocol protocol) { return protocol == BusProtocol::Feetech ? 1'000'000 : 115'200; }
 
 Expected<ServoConfig> parse_servo_spec(std::string_view text) {
   const auto parts = split(text, ':');
@@ -131,8 +129,7 @@ Expected<std::pair<std::uint8_t, std::uint32_t>> parse_id_value(std::string_view
   const auto id = parse_id(text.substr(0, colon), text);
   if (!id) return unexpected(id.error());
   const auto value = parse_number(text.substr(colon + 1));
-  if (!value) return unexpected(quoted(text.substr(colon + 1)) + " in '" + std::string(text) +
-                                "' is not a number");
+  if (!value) return unexpected(quoted(text.substr(colon + 1)) + " in '" + std::string(text) + "' is not a number");
   return std::pair{*id, *value};
 }
 

@@ -192,7 +192,8 @@ const std::array<ControlCommand, 16> kCommands{{
        }
        return on_servo(bus, w, w.size() - 1, [&](std::uint8_t id) -> std::optional<std::string> {
          const auto bytes = bus.read_memory(id, static_cast<std::uint16_t>(address), static_cast<std::uint16_t>(count));
-         if (!bytes) return "error: " + std::to_string(count) + " from address " + w[2] + " leave servo " + w[1] + "'s table";
+         if (!bytes)
+           return "error: " + std::to_string(count) + " from address " + w[2] + " leave servo " + w[1] + "'s table";
          return hex_bytes(*bytes);
        });
      }},
@@ -226,9 +227,8 @@ const std::array<ControlCommand, 16> kCommands{{
        std::string text;
        for (const ServoSummary& servo : bus.servos()) {
          if (!text.empty()) text += ' ';
-         text += std::to_string(servo.config.id) + ":" + std::string(modbus_map::table(servo.config.table).name) +
-                 ":" + std::string(protocol::to_string(servo.config.protocol)) + ":" +
-                 std::to_string(servo.config.baud);
+         text += std::to_string(servo.config.id) + ":" + std::string(modbus_map::table(servo.config.table).name) + ":" +
+                 std::string(protocol::to_string(servo.config.protocol)) + ":" + std::to_string(servo.config.baud);
          if (servo.offline) text += ":offline";
          if (servo.duplicate) text += ":duplicate";
        }
@@ -284,7 +284,7 @@ class ControlServer::Impl {
       throw std::system_error(ENAMETOOLONG, std::generic_category(), "control socket path " + path_);
     }
     std::memcpy(address.sun_path, path_.c_str(), path_.size() + 1);
-    struct stat existing{};
+    struct stat existing {};
     if (::lstat(path_.c_str(), &existing) == 0 && S_ISSOCK(existing.st_mode)) ::unlink(path_.c_str());
     listen_fd_ = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC | SOCK_NONBLOCK, 0);
     if (listen_fd_ < 0) throw std::system_error(errno, std::generic_category(), "cannot create control socket");
@@ -340,8 +340,7 @@ class ControlServer::Impl {
     const ssize_t received = ::read(client.fd, buffer, sizeof buffer);
     if (received <= 0) return false;
     client.pending.append(buffer, static_cast<std::size_t>(received));
-    for (auto newline = client.pending.find('\n'); newline != std::string::npos;
-         newline = client.pending.find('\n')) {
+    for (auto newline = client.pending.find('\n'); newline != std::string::npos; newline = client.pending.find('\n')) {
       std::string line = client.pending.substr(0, newline);
       client.pending.erase(0, newline + 1);
       if (!line.empty() && line.back() == '\r') line.pop_back();

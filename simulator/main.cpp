@@ -7,8 +7,8 @@
 #include <string>
 #include <vector>
 
-#include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
 
 #include "modbus_map/tables.h"
 #include "process/stop_signals.h"
@@ -59,7 +59,8 @@ std::vector<ServoConfig> build_servos(const std::optional<std::string>& protocol
   std::optional<protocol::BusProtocol> protocol;
   if (protocol_name) {
     protocol = protocol::bus_protocol_from_string(*protocol_name);
-    if (!protocol) throw CLI::ValidationError("--protocol", "'" + *protocol_name + "': use feetech, d55d or modbus-rtu");
+    if (!protocol)
+      throw CLI::ValidationError("--protocol", "'" + *protocol_name + "': use feetech, d55d or modbus-rtu");
   }
   std::optional<modbus_map::TableId> table;
   if (table_name) {
@@ -71,7 +72,8 @@ std::vector<ServoConfig> build_servos(const std::optional<std::string>& protocol
                                               std::string(protocol::to_string(protocol_of(*table))) + ", not " +
                                               *protocol_name);
   }
-  const protocol::BusProtocol bus_protocol = protocol ? *protocol : (table ? protocol_of(*table) : protocol::BusProtocol::Feetech);
+  const protocol::BusProtocol bus_protocol =
+      protocol ? *protocol : (table ? protocol_of(*table) : protocol::BusProtocol::Feetech);
   const modbus_map::TableId bus_table = table ? *table : default_table(bus_protocol);
 
   std::vector<ServoConfig> servos;
@@ -113,24 +115,29 @@ static int run_command_line(int argc, char** argv) {
   unsigned reboot_ms = 500;
   bool verbose = false;
 
-  app.add_option("--protocol", protocol_name, "Bus protocol of the --ids servos: feetech, d55d or modbus-rtu "
-                                              "(default: the table's, else feetech)");
-  app.add_option("--table", table_name, "Control table of the --ids servos: sts, sms1, scs, d55d or smsmb "
-                                        "(default: sts / d55d / smsmb by protocol)");
+  app.add_option("--protocol", protocol_name,
+                 "Bus protocol of the --ids servos: feetech, d55d or modbus-rtu "
+                 "(default: the table's, else feetech)");
+  app.add_option("--table", table_name,
+                 "Control table of the --ids servos: sts, sms1, scs, d55d or smsmb "
+                 "(default: sts / d55d / smsmb by protocol)");
   auto* ids_option = app.add_option("--ids", ids, "Servo IDs: 1-6, 1,3,7 or 1-3,7")->capture_default_str();
   app.add_option("--baud", baud, "Baud of the --ids servos (default: 1000000 feetech, 115200 d55d and modbus-rtu)");
   app.add_option("--servo", servo_specs,
                  "One more servo, ID:TABLE:PROTOCOL:BAUD (repeatable; PROTOCOL and BAUD may be left out) - "
                  "several rates and protocols may share the bus. Without --ids, only these servos are simulated");
   app.add_option("--link", options.link, "Also make this symlink to the pty (e.g. /tmp/ttySIM0)");
-  app.add_option("--device", options.device, "Answer on this serial device instead of a pty (set to the first servo's baud)");
-  app.add_flag("--no-timing", no_timing, "Answer at once instead of after the wire time (request + return delay + reply, "
-                                         "10 bits a character)");
+  app.add_option("--device", options.device,
+                 "Answer on this serial device instead of a pty (set to the first servo's baud)");
+  app.add_flag("--no-timing", no_timing,
+               "Answer at once instead of after the wire time (request + return delay + reply, "
+               "10 bits a character)");
   app.add_option("--state-file", options.state_file,
                  "Keep EEPROM here across restarts: unlocked EEPROM writes survive (sts lock 55, sms1 48, smsmb 0x85)");
   app.add_option("--control", control_path, "Unix socket for run-time commands (listed above)");
   app.add_option("--drop", drop, "Drop each reply with probability P (0-1)")->check(CLI::Range(0.0, 1.0));
-  app.add_option("--corrupt", corrupt, "Flip a byte in each reply with probability P (0-1)")->check(CLI::Range(0.0, 1.0));
+  app.add_option("--corrupt", corrupt, "Flip a byte in each reply with probability P (0-1)")
+      ->check(CLI::Range(0.0, 1.0));
   app.add_option("--late", late, "ID:MS - servo ID answers MS milliseconds late (repeatable)");
   app.add_option("--offline", offline, "Servo ID does not answer (repeatable)")->check(CLI::Range(0, 253));
   app.add_option("--error", errors, "ID:BITS - servo ID reports these ERROR/status bits, e.g. 2:0x04 (repeatable)");

@@ -23,8 +23,8 @@ class MotionModel {
 
   explicit MotionModel(double position = 0) : position_(position), target_(position) {}
 
-  void release();                    // torque off
-  void hold();                       // stop at once and hold here (brake, heartbeat stop)
+  void release();  // torque off
+  void hold();     // stop at once and hold here (brake, heartbeat stop)
   void move_to(double target, const MotionLimits& limits);
   void run_at(double velocity, const MotionLimits& limits);
   // Re-bases the coordinate (calibration, zero marking): the motor does not move.

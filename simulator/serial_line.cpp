@@ -26,8 +26,8 @@ termios2 get_termios(int fd) {
 
 void configure_raw_serial(int fd, std::uint32_t baud) {
   termios2 settings = get_termios(fd);
-  settings.c_iflag &= ~static_cast<tcflag_t>(IGNBRK | BRKINT | PARMRK | ISTRIP | INLCR | IGNCR | ICRNL | IXON |
-                                             IXOFF | IXANY | INPCK);
+  settings.c_iflag &=
+      ~static_cast<tcflag_t>(IGNBRK | BRKINT | PARMRK | ISTRIP | INLCR | IGNCR | ICRNL | IXON | IXOFF | IXANY | INPCK);
   settings.c_oflag &= ~static_cast<tcflag_t>(OPOST);
   settings.c_lflag &= ~static_cast<tcflag_t>(ECHO | ECHONL | ICANON | ISIG | IEXTEN);
   settings.c_cflag &= ~static_cast<tcflag_t>(CSIZE | PARENB | CSTOPB | CRTSCTS | CBAUD | (CBAUD << IBSHIFT));
@@ -37,8 +37,9 @@ void configure_raw_serial(int fd, std::uint32_t baud) {
   settings.c_cc[VMIN] = 1;
   settings.c_cc[VTIME] = 0;
   if (const int error = tty::set(fd, settings); error != 0) {
-    throw std::system_error(error, std::generic_category(),
-                            "cannot set fd " + std::to_string(fd) + " to raw 8N1 at " + std::to_string(baud) + " bit/s");
+    throw std::system_error(
+        error, std::generic_category(),
+        "cannot set fd " + std::to_string(fd) + " to raw 8N1 at " + std::to_string(baud) + " bit/s");
   }
 }
 

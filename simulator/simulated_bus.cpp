@@ -192,8 +192,7 @@ SimulatedBus::Impl::Impl(BusOptions options) : options_(std::move(options)), tim
   dice_.seed(options_.seed != 0 ? options_.seed : std::random_device{}());
   const Clock::time_point now = Clock::now();
   for (std::size_t index = 0; index < options_.servos.size(); ++index) {
-    slots_.push_back(
-        Slot{std::make_unique<VirtualServo>(options_.servos[index], now, options_.reboot_time), index});
+    slots_.push_back(Slot{std::make_unique<VirtualServo>(options_.servos[index], now, options_.reboot_time), index});
   }
 }
 
@@ -240,9 +239,7 @@ void SimulatedBus::Impl::stop() {
 
 void SimulatedBus::Impl::open_line() {
   const std::uint32_t initial_baud = slots_.front().servo->baud();
-  const auto fail = [](const std::string& what) {
-    throw std::system_error(errno, std::generic_category(), what);
-  };
+  const auto fail = [](const std::string& what) { throw std::system_error(errno, std::generic_category(), what); };
   if (!options_.device.empty()) {
     line_fd_ = ::open(options_.device.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);
     if (line_fd_ < 0) fail("cannot open serial device " + options_.device);
@@ -260,7 +257,7 @@ void SimulatedBus::Impl::open_line() {
     configure_raw_serial(slave_fd_, initial_baud);
   }
   if (!options_.link.empty()) {
-    struct stat existing{};
+    struct stat existing {};
     if (::lstat(options_.link.c_str(), &existing) == 0) {
       if (!S_ISLNK(existing.st_mode)) {
         throw std::runtime_error("--link " + options_.link + " exists and is not a symlink; not replacing it");
@@ -397,8 +394,8 @@ void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::ti
 
   // A servo at another rate sees only framing errors: its decoder forgets what it had.
   bool packet_frame = false;
-  for (const auto& [protocol, decoder] : {std::pair{BusProtocol::Feetech, &feetech_decoder_},
-                                          std::pair{BusProtocol::D55d, &d55d_decoder_}}) {
+  for (const auto& [protocol, decoder] :
+       {std::pair{BusProtocol::Feetech, &feetech_decoder_}, std::pair{BusProtocol::D55d, &d55d_decoder_}}) {
     if (!listens(protocol, speed)) {
       decoder->reset();
       continue;
@@ -429,9 +426,10 @@ void SimulatedBus::Impl::on_bytes(std::span<const std::uint8_t> bytes, Clock::ti
     if (timing_ && !rtu_merging_ && rtu_decoder_.buffered() == 0 && now < previous_frame_end + rtu_interframe()) {
       rtu_merging_ = true;
       ++stats_.merged_requests;
-      spdlog::debug("sms-sim: modbus-rtu request {} us after the previous frame, less than 3.5 characters: "
-                    "merged with it and ignored",
-                    std::chrono::duration_cast<std::chrono::microseconds>(now - previous_frame_end).count());
+      spdlog::debug(
+          "sms-sim: modbus-rtu request {} us after the previous frame, less than 3.5 characters: "
+          "merged with it and ignored",
+          std::chrono::duration_cast<std::chrono::microseconds>(now - previous_frame_end).count());
     }
     if (rtu_merging_ || packet_frame) {
       // Merging: the rest of a request glued to the one before is ignored too. A packet frame:
@@ -489,7 +487,8 @@ void SimulatedBus::Impl::on_packet(const protocol::PacketFormat& format, const p
     const auto reply = servo.handle_packet(request, now);
     if (!reply) continue;
     const auto listed = std::find(sync_read_ids.begin(), sync_read_ids.end(), id);
-    const std::size_t rank = listed == sync_read_ids.end() ? 0 : static_cast<std::size_t>(listed - sync_read_ids.begin());
+    const std::size_t rank =
+        listed == sync_read_ids.end() ? 0 : static_cast<std::size_t>(listed - sync_read_ids.begin());
     replies.push_back(Reply{rank, &servo, protocol::encode(format, *reply)});
   }
   schedule(std::move(replies), speed, request_end, now);
@@ -571,8 +570,8 @@ void SimulatedBus::Impl::add_scheduled(ScheduledReply reply, Clock::duration cha
     // characters AND together; each one's own characters fill the rest.
     ScheduledReply& earlier = reply.wire_start < other.wire_start ? reply : other;
     ScheduledReply& later = reply.wire_start < other.wire_start ? other : reply;
-    const auto offset =
-        static_cast<std::size_t>(std::max<long>(0, static_cast<long>((later.wire_start - earlier.wire_start) / character)));
+    const auto offset = static_cast<std::size_t>(
+        std::max<long>(0, static_cast<long>((later.wire_start - earlier.wire_start) / character)));
     Bytes merged = earlier.bytes;
     merged.resize(std::max(merged.size(), offset + later.bytes.size()), 0xFF);
     for (std::size_t index = 0; index < later.bytes.size(); ++index) {
@@ -616,8 +615,8 @@ void SimulatedBus::Impl::save_state_if_dirty() {
   PersistedState state;
   for (const Slot& slot : slots_) {
     if (!slot.persisted_as) continue;
-    state[*slot.persisted_as] =
-        PersistedServo{std::string(slot.servo->table().name), slot.servo->persisted_eeprom(), slot.servo->backup_eeprom()};
+    state[*slot.persisted_as] = PersistedServo{std::string(slot.servo->table().name), slot.servo->persisted_eeprom(),
+                                               slot.servo->backup_eeprom()};
   }
   try {
     save_state_file(options_.state_file, state);
@@ -633,8 +632,8 @@ void SimulatedBus::Impl::add_duplicate(std::uint8_t id) {
     throw std::invalid_argument("cannot duplicate servo " + std::to_string(id) + ": no servo has that ID");
   }
   const ServoConfig config{id, twin->table().id, twin->protocol(), twin->baud()};
-  slots_.push_back(Slot{std::make_unique<VirtualServo>(config, Clock::now(), options_.reboot_time, kDuplicateSkew),
-                        std::nullopt});
+  slots_.push_back(
+      Slot{std::make_unique<VirtualServo>(config, Clock::now(), options_.reboot_time, kDuplicateSkew), std::nullopt});
 }
 
 // --- SimulatedBus -----------------------------------------------------------------------
@@ -698,7 +697,8 @@ std::optional<Bytes> SimulatedBus::read_memory(std::uint8_t id, std::uint16_t ad
 bool SimulatedBus::write_memory(std::uint8_t id, std::uint16_t address, std::span<const std::uint8_t> bytes) {
   const Clock::time_point now = Clock::now();
   bool written = false;
-  const bool found = impl_->for_id(id, [&](VirtualServo& servo) { written = servo.write_raw(address, bytes, now) || written; });
+  const bool found =
+      impl_->for_id(id, [&](VirtualServo& servo) { written = servo.write_raw(address, bytes, now) || written; });
   return found && written;
 }
 

@@ -65,12 +65,12 @@ struct ServoSummary {
 };
 
 struct BusStats {
-  std::uint64_t requests = 0;        // frames decoded (any servo, any protocol)
-  std::uint64_t replies = 0;         // replies written to the line
-  std::uint64_t dropped = 0;         // replies dropped by fault injection
-  std::uint64_t corrupted = 0;       // replies corrupted by fault injection
-  std::uint64_t collisions = 0;      // replies that overlapped another on the wire
-  std::uint64_t checksum_errors = 0; // request frames with a bad checksum or CRC
+  std::uint64_t requests = 0;         // frames decoded (any servo, any protocol)
+  std::uint64_t replies = 0;          // replies written to the line
+  std::uint64_t dropped = 0;          // replies dropped by fault injection
+  std::uint64_t corrupted = 0;        // replies corrupted by fault injection
+  std::uint64_t collisions = 0;       // replies that overlapped another on the wire
+  std::uint64_t checksum_errors = 0;  // request frames with a bad checksum or CRC
   // Modbus-RTU requests that began less than 3.5 characters after the previous frame (wire
   // timing on): a slave hears them as the tail of that frame and ignores them.
   std::uint64_t merged_requests = 0;
@@ -81,12 +81,12 @@ struct BusStats {
 // read that completed the frame ends on the modelled wire (several frames read at once share
 // it); without timing it is `arrived` plus the bytes' wire time all the same.
 struct ReceivedFrame {
-  std::chrono::steady_clock::time_point arrived;   // its last bytes were read from the line
+  std::chrono::steady_clock::time_point arrived;  // its last bytes were read from the line
   std::chrono::steady_clock::time_point wire_end;
   protocol::BusProtocol protocol = protocol::BusProtocol::Feetech;
-  std::uint8_t id = 0;    // packet ID (0xFE broadcast) or Modbus slave address
-  std::uint8_t code = 0;  // instruction, or Modbus function code
-  protocol::Bytes params; // packet parameters, or the Modbus PDU after the function code
+  std::uint8_t id = 0;     // packet ID (0xFE broadcast) or Modbus slave address
+  std::uint8_t code = 0;   // instruction, or Modbus function code
+  protocol::Bytes params;  // packet parameters, or the Modbus PDU after the function code
 };
 // Runs on the bus thread with the bus locked, before the servos handle the frame: keep it short
 // and do not call the SimulatedBus from it.

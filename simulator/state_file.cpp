@@ -19,8 +19,9 @@ PersistedState load_state_file(const std::string& path) {
     ++line_number;
     if (line.empty() || line[0] == '#') continue;
     const auto fail = [&](const std::string& why) {
-      throw std::runtime_error(path + ":" + std::to_string(line_number) + ": " + why +
-                               " (expected `eeprom|backup SLOT TABLE name=value ...`; delete the file to start afresh)");
+      throw std::runtime_error(
+          path + ":" + std::to_string(line_number) + ": " + why +
+          " (expected `eeprom|backup SLOT TABLE name=value ...`; delete the file to start afresh)");
     };
     std::istringstream words(line);
     std::string kind;

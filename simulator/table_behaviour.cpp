@@ -68,8 +68,8 @@ constexpr ModeBinding kStsModes[] = {
     {3, ControlMode::Step},
 };
 constexpr std::uint8_t kStsInstructions[] = {
-    common::kPing,        common::kRead,        common::kWrite,     common::kRegWrite,
-    common::kAction,      feetech::kRecovery,   feetech::kReboot,   feetech::kBackup,
+    common::kPing,         common::kRead,       common::kWrite,     common::kRegWrite,
+    common::kAction,       feetech::kRecovery,  feetech::kReboot,   feetech::kBackup,
     feetech::kResetStatus, feetech::kCalibrate, feetech::kSyncRead, common::kSyncWrite,
 };
 // The FD tool's SM40BL/STS3215 readout in doc 001 §15: firmware 2.48, servo 8.42.
@@ -204,9 +204,8 @@ constexpr RoleBinding kD55dRoles[] = {
     {Role::PhotoSwitchState, "photo_switch_state"},
 };
 constexpr std::uint8_t kD55dInstructions[] = {
-    common::kPing,          common::kRead,         common::kWrite,    common::kRegWrite,
-    common::kAction,        d55d::kReset,          d55d::kStartEnd,   d55d::kTrajectoryWrite,
-    d55d::kTrajectoryAction, common::kSyncWrite,   d55d::kCustom,
+    common::kPing,   common::kRead,          common::kWrite,          common::kRegWrite,  common::kAction, d55d::kReset,
+    d55d::kStartEnd, d55d::kTrajectoryWrite, d55d::kTrajectoryAction, common::kSyncWrite, d55d::kCustom,
 };
 constexpr SimulatedDefault kD55dIdentity[] = {
     {Role::ModelMajor, 0x5D},
@@ -359,8 +358,8 @@ constexpr TableBehaviour kD55d{
     .simulated_defaults = kD55dIdentity,
     .return_delay_us_per_unit = 500.0,
     .return_delay_floor = 0,
-    .degrees_per_position_unit = 0.0,       // angle resolution × 0.1°
-    .degrees_per_s_per_speed_unit = 0.0,    // position units per second
+    .degrees_per_position_unit = 0.0,     // angle resolution × 0.1°
+    .degrees_per_s_per_speed_unit = 0.0,  // position units per second
     .phase_bit_speed_in_steps = 0,
     .degrees_per_s2_per_accel_unit = 10.0,  // ×10 °/s²
     .top_speed_degrees_per_s = 360.0,

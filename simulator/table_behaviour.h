@@ -89,7 +89,7 @@ struct TableBehaviour {
   std::span<const RoleBinding> roles;
   // Empty: position mode, `limits_zero_mode` when both angle limits are 0.
   std::span<const ModeBinding> modes;
-  ControlMode limits_zero_mode;  // d55d: wheel (velocity); scs: open-loop motor (PWM)
+  ControlMode limits_zero_mode;                // d55d: wheel (velocity); scs: open-loop motor (PWM)
   std::span<const std::uint8_t> instructions;  // packet instruction codes the firmware knows
   std::span<const SimulatedDefault> simulated_defaults;
 
@@ -107,18 +107,18 @@ struct TableBehaviour {
   std::int32_t power_on_position;
 
   // ERROR / status bits (docs/PROTOCOL.md §1.1, §1.2, §2.4)
-  std::uint8_t refused_bit;      // WRITE to a read-only field, bad range, unknown instruction
-  std::uint8_t checksum_bit;     // 0: the protocol has none
+  std::uint8_t refused_bit;   // WRITE to a read-only field, bad range, unknown instruction
+  std::uint8_t checksum_bit;  // 0: the protocol has none
   std::uint8_t temperature_bit;
   std::uint8_t overvoltage_bit;
-  std::uint8_t error_mask;       // bits that are errors (SMSMB status bit 4 is "torque on")
+  std::uint8_t error_mask;            // bits that are errors (SMSMB status bit 4 is "torque on")
   std::uint8_t torque_on_status_bit;  // 0: none
 
   // Feetech response level: 0 = READ and PING only. d55d: 0 none, 1 READ, 2 all.
   bool d55d_response_levels;
-  bool speed_zero_stops;           // d55d: run speed 0 = stop without torque
-  bool move_time_in_position_mode; // sms1: run time (ms) when run speed is 0
-  bool torque_128_calibrates;      // writing 128 to torque enable = mid-point calibration
+  bool speed_zero_stops;             // d55d: run speed 0 = stop without torque
+  bool move_time_in_position_mode;   // sms1: run time (ms) when run speed is 0
+  bool torque_128_calibrates;        // writing 128 to torque enable = mid-point calibration
   std::uint16_t factory_area_start;  // SMSMB: fields from here are writable only after lock 128
 };
 

@@ -309,8 +309,7 @@ ControlMode VirtualServo::control_mode() const {
   if (behaviour_->modes.empty()) {
     // No mode byte: both angle limits 0 select the other mode (d55d wheel, doc 002 §3.2; scs
     // open-loop motor, SCSCL SDK PWMMode).
-    return get(Role::MinLimit) == 0 && get(Role::MaxLimit) == 0 ? behaviour_->limits_zero_mode
-                                                                  : ControlMode::Position;
+    return get(Role::MinLimit) == 0 && get(Role::MaxLimit) == 0 ? behaviour_->limits_zero_mode : ControlMode::Position;
   }
   const std::int32_t mode = get(Role::Mode);
   for (const ModeBinding& binding : behaviour_->modes) {
@@ -322,9 +321,8 @@ ControlMode VirtualServo::control_mode() const {
 bool VirtualServo::multi_turn() const {
   const ControlMode mode = control_mode();
   return behaviour_->steps_per_turn > 0 &&
-         (mode == ControlMode::Step ||
-          ((mode == ControlMode::Position || mode == ControlMode::PositionRelease) && get(Role::MinLimit) == 0 &&
-           get(Role::MaxLimit) == 0));
+         (mode == ControlMode::Step || ((mode == ControlMode::Position || mode == ControlMode::PositionRelease) &&
+                                        get(Role::MinLimit) == 0 && get(Role::MaxLimit) == 0));
 }
 
 bool VirtualServo::torque_on() const {
@@ -386,9 +384,7 @@ void VirtualServo::apply_written(const ServoMemory& before, std::span<const Fiel
     const auto role = role_of(*spec);
     if (!role) continue;
     switch (*role) {
-      case Role::GoalPosition:
-        goal_written = true;
-        break;
+      case Role::GoalPosition: goal_written = true; break;
       case Role::GoalSpeed:
         speed_written = true;
         motion_changed = true;
@@ -403,9 +399,7 @@ void VirtualServo::apply_written(const ServoMemory& before, std::span<const Fiel
       case Role::Acceleration:
       case Role::Deceleration:
       case Role::TorqueLimit:
-      case Role::Sleep:
-        motion_changed = true;
-        break;
+      case Role::Sleep: motion_changed = true; break;
       case Role::TorqueEnable: {
         const std::int32_t value = get(Role::TorqueEnable);
         if (value == kTorqueCalibrate && behaviour_->torque_128_calibrates) {
@@ -450,9 +444,7 @@ void VirtualServo::apply_written(const ServoMemory& before, std::span<const Fiel
           stop_homing(0);
         }
         break;
-      case Role::ClearUnload:
-        memory_.set_raw(*spec, 0);
-        break;
+      case Role::ClearUnload: memory_.set_raw(*spec, 0); break;
       case Role::FaultReset: {
         const std::uint32_t bits = memory_.raw(*spec);
         for (const FaultResetBit& mapping : kFaultResetBits) {
@@ -462,15 +454,14 @@ void VirtualServo::apply_written(const ServoMemory& before, std::span<const Fiel
         memory_.set_raw(*spec, 0);
         break;
       }
-      default:
-        break;
+      default: break;
     }
   }
   // The command of the present mode: a goal position, a speed in constant-speed mode, a duty
   // in PWM mode.
   const ControlMode mode = control_mode();
-  const bool commanded = goal_written || (speed_written && mode == ControlMode::Velocity) ||
-                         (duty_written && mode == ControlMode::Pwm);
+  const bool commanded =
+      goal_written || (speed_written && mode == ControlMode::Velocity) || (duty_written && mode == ControlMode::Pwm);
   if (commanded && field(Role::TorqueEnable) != nullptr && get(Role::TorqueEnable) != 1) {
     // A command switches the torque on, as after a protection trip (doc 001 §15, address 28:
     // "write a position command again to lift the protection"), from damping (2) too; Feetech's
@@ -539,8 +530,7 @@ void VirtualServo::drive_from_table(bool goal_written) {
     }
     case ControlMode::Step:
       if (goal_written) {
-        const double base =
-            motion_.drive() == MotionModel::Drive::Position ? motion_.target() : motion_.position();
+        const double base = motion_.drive() == MotionModel::Drive::Position ? motion_.target() : motion_.position();
         motion_.move_to(base + get(Role::GoalPosition), limits);
       } else if (motion_.drive() == MotionModel::Drive::Position) {
         motion_.move_to(motion_.target(), limits);
@@ -659,8 +649,8 @@ double VirtualServo::load_permille() const {
   const double friction = speed > 0 ? 40.0 + 160.0 * speed / top : 0.0;
   const double inertia = std::abs(motion_.acceleration()) / top * 60.0;
   const double magnitude = std::min<double>(get(Role::TorqueLimit, 1000), 8.0 + friction + inertia);
-  const double sign = motion_.velocity() != 0 ? motion_.velocity()
-                                              : (motion_.acceleration() != 0 ? motion_.acceleration() : 1.0);
+  const double sign =
+      motion_.velocity() != 0 ? motion_.velocity() : (motion_.acceleration() != 0 ? motion_.acceleration() : 1.0);
   return std::copysign(magnitude, sign);
 }
 
@@ -731,13 +721,15 @@ void VirtualServo::refresh_present() {
   put(Role::Moving, moving ? 1 : 0);
   put(Role::RegWriteFlag, reg_write_ ? 1 : 0);
   // d55d accumulated angle: a 16-bit counter that wraps (doc 002 §0x28).
-  put(Role::AccumulatedAngle, static_cast<std::int16_t>(static_cast<std::uint16_t>(std::llround(accumulated_) & 0xFFFF)));
-  if (const FieldSpec* spec = field(Role::Homing)) memory_.set_raw(*spec, static_cast<std::uint32_t>(homing_status_) << 4);
+  put(Role::AccumulatedAngle,
+      static_cast<std::int16_t>(static_cast<std::uint16_t>(std::llround(accumulated_) & 0xFFFF)));
+  if (const FieldSpec* spec = field(Role::Homing))
+    memory_.set_raw(*spec, static_cast<std::uint32_t>(homing_status_) << 4);
   if (field(Role::PhotoSwitchState) != nullptr) {
     const double width = units(kSwitchWidthDegrees);
     const double position = motion_.position();
-    const std::int32_t state = (std::abs(position - cw_switch_) <= width ? 1 : 0) |
-                               (std::abs(position - ccw_switch_) <= width ? 2 : 0);
+    const std::int32_t state =
+        (std::abs(position - cw_switch_) <= width ? 1 : 0) | (std::abs(position - ccw_switch_) <= width ? 2 : 0);
     put(Role::PhotoSwitchState, state);
   }
 }
@@ -760,12 +752,9 @@ bool VirtualServo::answers(ReplyClass reply, bool broadcast) const {
   const std::int32_t level = get(Role::ResponseLevel, behaviour_->d55d_response_levels ? 2 : 1);
   switch (reply) {
     case ReplyClass::Ping:
-    case ReplyClass::SyncRead:
-      return true;
-    case ReplyClass::Read:
-      return !broadcast && (!behaviour_->d55d_response_levels || level >= 1);
-    case ReplyClass::Other:
-      return !broadcast && level >= (behaviour_->d55d_response_levels ? 2 : 1);
+    case ReplyClass::SyncRead: return true;
+    case ReplyClass::Read: return !broadcast && (!behaviour_->d55d_response_levels || level >= 1);
+    case ReplyClass::Other: return !broadcast && level >= (behaviour_->d55d_response_levels ? 2 : 1);
   }
   return false;
 }
@@ -1012,10 +1001,8 @@ std::optional<Bytes> VirtualServo::handle_modbus(const protocol::rtu::Adu& reque
     Handler handler;
   };
   static constexpr ModbusFunction kFunctions[] = {
-      {0x03, true, &VirtualServo::on_read_holding},
-      {0x06, false, &VirtualServo::on_write_single},
-      {0x10, false, &VirtualServo::on_write_multiple},
-      {0x11, true, &VirtualServo::on_report_slave_id},
+      {0x03, true, &VirtualServo::on_read_holding},    {0x06, false, &VirtualServo::on_write_single},
+      {0x10, false, &VirtualServo::on_write_multiple}, {0x11, true, &VirtualServo::on_report_slave_id},
       {0x41, false, &VirtualServo::on_restart},
   };
   const std::uint8_t code = request.pdu[0];

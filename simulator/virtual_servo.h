@@ -116,7 +116,7 @@ class VirtualServo {
 
   // --- Modbus functions --------------------------------------------------------------------
   struct ModbusOutcome {
-    protocol::Bytes pdu;        // reply PDU when exception == 0
+    protocol::Bytes pdu;  // reply PDU when exception == 0
     std::uint8_t exception = 0;
   };
   ModbusOutcome on_read_holding(std::span<const std::uint8_t> pdu);
@@ -128,10 +128,10 @@ class VirtualServo {
   // --- table access --------------------------------------------------------------------------
   enum class WriteResult : std::uint8_t { Ok, NotWritable, BadValue };
   enum class WriteCheck : std::uint8_t {
-    Bus,      // packet WRITE: read-only fields refused, bytes of no field ignored
-    Modbus,   // FC 06/10: also refused when an address is no field's first
-    DryRun,   // REG WRITE: check as Bus, write nothing
-    Backdoor, // tests: anything inside the table
+    Bus,       // packet WRITE: read-only fields refused, bytes of no field ignored
+    Modbus,    // FC 06/10: also refused when an address is no field's first
+    DryRun,    // REG WRITE: check as Bus, write nothing
+    Backdoor,  // tests: anything inside the table
   };
   WriteResult write_checked(std::uint16_t address, std::span<const std::uint8_t> bytes, WriteCheck check);
   const modbus_map::FieldSpec* field(Role role) const { return fields_[static_cast<std::size_t>(role)]; }
@@ -193,7 +193,7 @@ class VirtualServo {
   enum class HomingPhase : std::uint8_t { Idle, SeekZero, SeekEnd };
   HomingPhase homing_phase_ = HomingPhase::Idle;
   std::uint8_t homing_status_ = 0;  // high nibble of address 24: 0 idle, 1 running, 2 done, 3 failed
-  double cw_switch_ = 0;             // photo-switch positions, position units
+  double cw_switch_ = 0;            // photo-switch positions, position units
   double ccw_switch_ = 0;
   double zero_switch_ = 0;
   double end_switch_ = 0;

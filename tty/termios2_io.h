@@ -68,9 +68,12 @@ inline int set_plain(int fd, const termios2& settings, int termios2_error) {
   if (rate == kStandardRates.end() && !pty) return termios2_error;
   const tcflag_t code = rate == kStandardRates.end() ? static_cast<tcflag_t>(B0) : rate->code;
   // One rate for both directions (input speed bits 0), as the termios2 settings ask.
-  termios plain{settings.c_iflag, settings.c_oflag,
+  termios plain{settings.c_iflag,
+                settings.c_oflag,
                 (settings.c_cflag & ~static_cast<tcflag_t>(CBAUD | (CBAUD << IBSHIFT))) | code,
-                settings.c_lflag, settings.c_line, {}};
+                settings.c_lflag,
+                settings.c_line,
+                {}};
   std::copy(std::begin(settings.c_cc), std::end(settings.c_cc), std::begin(plain.c_cc));
   if (::ioctl(fd, TCSETS, &plain) != 0) return errno;
   termios held{};

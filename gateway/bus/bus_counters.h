@@ -9,16 +9,16 @@
 namespace sms::gateway {
 
 struct BusCountersSnapshot {
-  std::uint64_t frames_ok = 0;         // valid reply frames taken as an answer
-  std::uint64_t timeouts = 0;          // expected replies that did not come (each attempt, each servo of a SYNC READ)
-  std::uint64_t checksum_errors = 0;   // frames with a wrong checksum or an impossible LEN (framing)
-  std::uint64_t stray_frames = 0;      // valid frames that were not the answer: late replies, echoes, other IDs
-  std::uint64_t discarded_bytes = 0;   // bytes dropped while hunting for a header in an answer window
-  std::uint64_t retries = 0;           // attempts after the first
-  std::uint64_t transactions = 0;      // bus operations finished (any outcome but QueueFull)
-  std::uint64_t queue_full = 0;        // submissions refused with QueueFull
-  std::uint64_t bus_down_events = 0;   // times the port was lost or could not be reopened after loss
-  std::uint64_t poll_cycles = 0;       // finished poll cycles
+  std::uint64_t frames_ok = 0;           // valid reply frames taken as an answer
+  std::uint64_t timeouts = 0;            // expected replies that did not come (each attempt, each servo of a SYNC READ)
+  std::uint64_t checksum_errors = 0;     // frames with a wrong checksum or an impossible LEN (framing)
+  std::uint64_t stray_frames = 0;        // valid frames that were not the answer: late replies, echoes, other IDs
+  std::uint64_t discarded_bytes = 0;     // bytes dropped while hunting for a header in an answer window
+  std::uint64_t retries = 0;             // attempts after the first
+  std::uint64_t transactions = 0;        // bus operations finished (any outcome but QueueFull)
+  std::uint64_t queue_full = 0;          // submissions refused with QueueFull
+  std::uint64_t bus_down_events = 0;     // times the port was lost or could not be reopened after loss
+  std::uint64_t poll_cycles = 0;         // finished poll cycles
   std::uint32_t last_poll_cycle_us = 0;  // duration of the last finished poll cycle
   // Bytes that came when no answer was awaited (late answers to requests that gave up, noise
   // between transactions): read and dropped before a request or during the late-answer guard.
@@ -41,10 +41,10 @@ struct BusCounters {
 
   BusCountersSnapshot snapshot() const {
     constexpr auto relaxed = std::memory_order_relaxed;
-    return {frames_ok.load(relaxed),       timeouts.load(relaxed),     checksum_errors.load(relaxed),
-            stray_frames.load(relaxed),    discarded_bytes.load(relaxed), retries.load(relaxed),
-            transactions.load(relaxed),    queue_full.load(relaxed),   bus_down_events.load(relaxed),
-            poll_cycles.load(relaxed),     last_poll_cycle_us.load(relaxed), stray_bytes.load(relaxed)};
+    return {frames_ok.load(relaxed),    timeouts.load(relaxed),           checksum_errors.load(relaxed),
+            stray_frames.load(relaxed), discarded_bytes.load(relaxed),    retries.load(relaxed),
+            transactions.load(relaxed), queue_full.load(relaxed),         bus_down_events.load(relaxed),
+            poll_cycles.load(relaxed),  last_poll_cycle_us.load(relaxed), stray_bytes.load(relaxed)};
   }
 };
 

@@ -56,7 +56,8 @@ std::unique_ptr<BusEngine> make_bus_engine(BusSettings settings, const config::M
     case protocol::BusProtocol::ModbusRtu:
       return std::make_unique<EngineCore<RtuTransactor>>(
           std::move(settings), [&](const BusSettings& bus, BusCounters& counters) {
-            auto transactor = std::make_unique<RtuTransactor>(RtuLineSettings{bus.serial, modbus_rtu}, timing(bus), counters);
+            auto transactor =
+                std::make_unique<RtuTransactor>(RtuLineSettings{bus.serial, modbus_rtu}, timing(bus), counters);
             transactor->set_monitor(bus.wire_monitor.get());
             return transactor;
           });

@@ -19,8 +19,8 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/bus/bus_operations.h"
 #include "gateway/bus/bus_counters.h"
+#include "gateway/bus/bus_operations.h"
 #include "gateway/bus/motion_gate.h"
 #include "gateway/bus/poll_cache.h"
 #include "gateway/bus/serial_port.h"
@@ -46,13 +46,13 @@ struct BusSettings {
   // (sts: address 7 x 2 us; d55d: address 5 x 500 us) plus the adapter's latency (an FTDI
   // adapter holds short replies up to its latency timer, 16 ms by default).
   std::chrono::milliseconds response_timeout{20};
-  unsigned retries = 2;                          // attempts after the first one
-  std::chrono::milliseconds poll_period{20};     // start of one cycle to the next; 0 = back to back
-  std::chrono::milliseconds probe_period{1000};  // an offline servo is asked once per period
-  std::chrono::milliseconds reopen_period{1000}; // a lost or missing port is retried this often
-  std::size_t queue_depth = 64;                  // client operations waiting, all priorities
-  bool discover = true;                          // PING and identity READs before polling starts
-  bool poll = true;                              // cyclic polling into the cache (off: live operations only)
+  unsigned retries = 2;                           // attempts after the first one
+  std::chrono::milliseconds poll_period{20};      // start of one cycle to the next; 0 = back to back
+  std::chrono::milliseconds probe_period{1000};   // an offline servo is asked once per period
+  std::chrono::milliseconds reopen_period{1000};  // a lost or missing port is retried this often
+  std::size_t queue_depth = 64;                   // client operations waiting, all priorities
+  bool discover = true;                           // PING and identity READs before polling starts
+  bool poll = true;                               // cyclic polling into the cache (off: live operations only)
   std::vector<ServoSettings> servos;
   // The safety rules' gate for this bus's motion writes (docs/PLC_GUIDE.md "Safety"); empty: none.
   std::shared_ptr<const MotionGate> motion_gate;

@@ -43,14 +43,14 @@ struct WriteOp {
   std::uint8_t servo_id = 0;
   std::uint16_t address = 0;
   Bytes data;
-  bool staged = false;        // REG WRITE (packet protocols): runs on ACTION
-  bool expect_reply = true;   // false when the servo's response level says it does not answer writes
+  bool staged = false;       // REG WRITE (packet protocols): runs on ACTION
+  bool expect_reply = true;  // false when the servo's response level says it does not answer writes
   MotionEpoch motion_epoch = 0;
 };
-struct ActionOp {             // broadcast ACTION: runs every staged write on the bus
+struct ActionOp {  // broadcast ACTION: runs every staged write on the bus
   MotionEpoch motion_epoch = 0;
 };
-struct SyncWriteOp {          // one broadcast SYNC WRITE frame, no reply
+struct SyncWriteOp {  // one broadcast SYNC WRITE frame, no reply
   std::uint16_t address = 0;
   std::uint8_t length = 0;
   std::vector<protocol::SyncWriteEntry> entries;
@@ -64,11 +64,11 @@ struct PingOp {
 // `count` bytes (zeros for a silent servo): sync_read_answers() takes it apart.
 struct SyncReadOp {
   std::uint16_t address = 0;
-  std::uint16_t count = 0;    // bytes per servo
+  std::uint16_t count = 0;  // bytes per servo
   std::vector<std::uint8_t> ids;
 };
-struct RawPduOp {             // modbus-rtu passthrough: forward a PDU as it is
-  std::uint8_t slave = 0;     // 0 = broadcast, no reply awaited
+struct RawPduOp {          // modbus-rtu passthrough: forward a PDU as it is
+  std::uint8_t slave = 0;  // 0 = broadcast, no reply awaited
   Bytes pdu;
   MotionEpoch motion_epoch = 0;
 };

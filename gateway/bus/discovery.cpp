@@ -68,7 +68,8 @@ std::optional<std::uint8_t> decode_response_level(const IdentityLayout& layout, 
 
 std::string format_identity_value(const IdentityLayout* layout, bool model, std::optional<std::uint16_t> value) {
   if (!value) return "-";
-  const std::optional<IdentityField> field = layout == nullptr ? std::nullopt : (model ? layout->model : layout->firmware);
+  const std::optional<IdentityField> field =
+      layout == nullptr ? std::nullopt : (model ? layout->model : layout->firmware);
   if (field && field->format == IdentityFormat::MajorMinor) return fmt::format("{}.{}", *value >> 8, *value & 0xFF);
   if (field && field->format == IdentityFormat::ModelNumber) {
     const std::string_view name = model_name(*value);
@@ -82,8 +83,8 @@ std::string format_identity_value(const IdentityLayout* layout, bool model, std:
 std::string format_discovery_summary(const DiscoveryReport& report) {
   const auto online = std::count_if(report.servos.begin(), report.servos.end(),
                                     [](const DiscoveredServo& servo) { return servo.online; });
-  std::string text = fmt::format("bus {}: {}, {} at {} bit/s, {} of {} servos online", report.bus_name,
-                                 report.device, report.protocol, report.baud, online, report.servos.size());
+  std::string text = fmt::format("bus {}: {}, {} at {} bit/s, {} of {} servos online", report.bus_name, report.device,
+                                 report.protocol, report.baud, online, report.servos.size());
   for (const auto& servo : report.servos) {
     const auto& table = modbus_map::table(servo.table);
     const IdentityLayout* layout = identity_layout(servo.table);

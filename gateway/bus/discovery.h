@@ -46,15 +46,27 @@ struct IdentityLayout {
 // code 0, software version 2, response level 16 (§2.3); smsmb: registers 0x00 firmware version
 // and 0x01 servo (model) version, two bytes each, high byte first (§2.4).
 inline constexpr std::array<IdentityLayout, 5> kIdentityLayouts{{
-    {modbus_map::TableId::Sts, {0, 9}, IdentityField{3, 2, IdentityFormat::ModelNumber},
-     IdentityField{0, 2, IdentityFormat::MajorMinor}, 8},
-    {modbus_map::TableId::Scs, {0, 9}, IdentityField{3, 2, IdentityFormat::ModelNumber},
-     IdentityField{0, 2, IdentityFormat::MajorMinor}, 8},
+    {modbus_map::TableId::Sts,
+     {0, 9},
+     IdentityField{3, 2, IdentityFormat::ModelNumber},
+     IdentityField{0, 2, IdentityFormat::MajorMinor},
+     8},
+    {modbus_map::TableId::Scs,
+     {0, 9},
+     IdentityField{3, 2, IdentityFormat::ModelNumber},
+     IdentityField{0, 2, IdentityFormat::MajorMinor},
+     8},
     {modbus_map::TableId::Sms1, {3, 6}, std::nullopt, IdentityField{0, 2, IdentityFormat::Value}, 5},
-    {modbus_map::TableId::D55d, {0, 17}, IdentityField{0, 1, IdentityFormat::Value},
-     IdentityField{2, 1, IdentityFormat::Value}, 16},
-    {modbus_map::TableId::Smsmb, {0, 2}, IdentityField{2, 2, IdentityFormat::Value},
-     IdentityField{0, 2, IdentityFormat::Value}, std::nullopt},
+    {modbus_map::TableId::D55d,
+     {0, 17},
+     IdentityField{0, 1, IdentityFormat::Value},
+     IdentityField{2, 1, IdentityFormat::Value},
+     16},
+    {modbus_map::TableId::Smsmb,
+     {0, 2},
+     IdentityField{2, 2, IdentityFormat::Value},
+     IdentityField{0, 2, IdentityFormat::Value},
+     std::nullopt},
 }};
 
 const IdentityLayout* identity_layout(modbus_map::TableId table);
@@ -85,7 +97,7 @@ struct DiscoveredServo {
   bool online = false;
   std::uint8_t status = 0;  // ERROR byte of its PING answer
   ServoIdentity identity;
-  std::string detail;       // why it is offline
+  std::string detail;  // why it is offline
 };
 
 struct DiscoveryReport {

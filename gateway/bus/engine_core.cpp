@@ -213,10 +213,11 @@ void EngineCore<Transactor>::run(Job job) {
     // A client polling a dead servo must not make the bus pay timeouts; the servo's probe
     // brings it back within one probe period.
     counters_.transactions.fetch_add(1, std::memory_order_relaxed);
-    queue_.complete(job,
-                    BusResult{BusStatus::Timeout, 0, {},
-                       fmt::format("bus {}: servo {} is offline (it stopped answering; probed every {} ms)",
-                                   settings_.name, target, settings_.probe_period.count())});
+    queue_.complete(job, BusResult{BusStatus::Timeout,
+                                   0,
+                                   {},
+                                   fmt::format("bus {}: servo {} is offline (it stopped answering; probed every {} ms)",
+                                               settings_.name, target, settings_.probe_period.count())});
     return;
   }
   sync_answered_.reset();
@@ -257,9 +258,12 @@ void EngineCore<Transactor>::run(Job job) {
 template <BusTransactor Transactor>
 std::optional<BusResult> EngineCore<Transactor>::motion_refusal(MotionEpoch admitted) const {
   if (admitted == 0 || !settings_.motion_gate || settings_.motion_gate->admits(admitted)) return std::nullopt;
-  return BusResult{BusStatus::MotionBlocked, 0, {},
-                   "bus " + settings_.name + ": motion write dropped: a watchdog trip or the e-stop stopped the bus "
-                   "after it was accepted (README \"Safety\")"};
+  return BusResult{BusStatus::MotionBlocked,
+                   0,
+                   {},
+                   "bus " + settings_.name +
+                       ": motion write dropped: a watchdog trip or the e-stop stopped the bus "
+                       "after it was accepted (README \"Safety\")"};
 }
 
 template <BusTransactor Transactor>
@@ -357,8 +361,8 @@ bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
                  settings_.name, servo_id, owed.stop.why, late.count(), owed.attempts + 1);
     if (write.expect_reply || offline) servo_answered(servo_id);
   } else {
-    spdlog::debug("bus {}: servo {}: owed safe stop not taken yet ({}); next try in {} ms", settings_.name,
-                  servo_id, result.detail, settings_.probe_period.count());
+    spdlog::debug("bus {}: servo {}: owed safe stop not taken yet ({}); next try in {} ms", settings_.name, servo_id,
+                  result.detail, settings_.probe_period.count());
   }
   return true;
 }
@@ -372,7 +376,9 @@ std::optional<BusResult> EngineCore<Transactor>::owed_refusal(const Request& req
   const bool broadcast = Transactor::broadcast(request);
   if (!broadcast && owed_.count(target) == 0) return std::nullopt;
   const std::uint8_t owing = broadcast ? owed_.begin()->first : target;
-  return BusResult{BusStatus::MotionBlocked, 0, {},
+  return BusResult{BusStatus::MotionBlocked,
+                   0,
+                   {},
                    fmt::format("bus {}: servo {} has not taken its owed safe stop yet ({}); motion writes to it "
                                "are refused until it has",
                                settings_.name, owing, owed_.at(owing).stop.why)};
@@ -387,9 +393,10 @@ void EngineCore<Transactor>::neutralise_staged(const Job& job) {
     const BusResult result = transactor_->execute(transactor_->prepare(BusOp{staged}, attempts()), events_);
     counters_.transactions.fetch_add(1, std::memory_order_relaxed);
     if (result.status == BusStatus::Ok) {
-      spdlog::info("bus {}: servo {} held a staged write: the stop is staged over it (a later ACTION cannot run "
-                   "the old move)",
-                   settings_.name, write.servo_id);
+      spdlog::info(
+          "bus {}: servo {} held a staged write: the stop is staged over it (a later ACTION cannot run "
+          "the old move)",
+          settings_.name, write.servo_id);
     } else {
       spdlog::warn("bus {}: servo {} holds a staged write that the stop could not replace: {}", settings_.name,
                    write.servo_id, result.detail);
@@ -404,7 +411,8 @@ bool EngineCore<Transactor>::try_open() {
   const auto opened = transactor_->open();
   if (!opened) {
     if (!open_failure_logged_) {
-      spdlog::error("bus {}: {}; retrying every {} ms", settings_.name, opened.error(), settings_.reopen_period.count());
+      spdlog::error("bus {}: {}; retrying every {} ms", settings_.name, opened.error(),
+                    settings_.reopen_period.count());
       open_failure_logged_ = true;
     } else {
       spdlog::debug("bus {}: still cannot open: {}", settings_.name, opened.error());
@@ -421,7 +429,8 @@ bool EngineCore<Transactor>::try_open() {
 
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::port_lost(const std::string& reason) {
-  spdlog::error("bus {}: {} — bus down; reopening every {} ms", settings_.name, reason, settings_.reopen_period.count());
+  spdlog::error("bus {}: {} — bus down; reopening every {} ms", settings_.name, reason,
+                settings_.reopen_period.count());
   transactor_->close();
   counters_.bus_down_events.fetch_add(1, std::memory_order_relaxed);
   // Before the bus reads down: whoever sees bus_up() false sees the loss logged and counted and
@@ -589,11 +598,8 @@ void EngineCore<Transactor>::on_poll_read(std::uint8_t servo_id, AddressBlock bl
       }
       break;
     case BusStatus::Timeout:
-    case BusStatus::Corrupt:
-      servo_silent(servo_id, probe ? "probe unanswered" : result.detail, true);
-      break;
-    default:
-      break;
+    case BusStatus::Corrupt: servo_silent(servo_id, probe ? "probe unanswered" : result.detail, true); break;
+    default: break;
   }
   poll_job_done();
 }
@@ -617,9 +623,9 @@ void EngineCore<Transactor>::poll_job_done() {
   cycle_.running = false;
   counters_.poll_cycles.fetch_add(1, std::memory_order_relaxed);
   counters_.last_poll_cycle_us.store(saturate_us(now - cycle_.started), std::memory_order_relaxed);
-  const bool anyone_online =
-      std::any_of(scheduler_.targets().begin(), scheduler_.targets().end(),
-                  [this](const PollTarget& target) { return scheduler_.presence(target.servo_id) != Presence::Offline; });
+  const bool anyone_online = std::any_of(
+      scheduler_.targets().begin(), scheduler_.targets().end(),
+      [this](const PollTarget& target) { return scheduler_.presence(target.servo_id) != Presence::Offline; });
   next_cycle_ = anyone_online ? std::optional(cycle_.started + settings_.poll_period) : scheduler_.next_probe_due();
 }
 
@@ -680,11 +686,11 @@ void EngineCore<Transactor>::note_written(const Request& request) {
     if (!level_address || *level_address < address || *level_address >= address + data.size()) return;
     cache_.set_response_level(servo_id, data[*level_address - address]);
   };
-  transactor_->for_each_write(request, [&](std::uint8_t servo_id, std::uint16_t address,
-                                           std::span<const std::uint8_t> data) {
-    if (!Transactor::broadcast_id(servo_id)) return apply(servo_id, address, data);
-    for (const auto& each : settings_.servos) apply(each.servo_id, address, data);
-  });
+  transactor_->for_each_write(request,
+                              [&](std::uint8_t servo_id, std::uint16_t address, std::span<const std::uint8_t> data) {
+                                if (!Transactor::broadcast_id(servo_id)) return apply(servo_id, address, data);
+                                for (const auto& each : settings_.servos) apply(each.servo_id, address, data);
+                              });
 }
 
 // ==== what transactions report ====================================================================

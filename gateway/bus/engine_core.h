@@ -68,15 +68,15 @@ class EngineCore final : public BusEngine {
   using Request = typename Transactor::Request;
   struct Job {
     Request request;
-    bool client = false;  // from submit(): holds a slot of the bounded queue, completes on every outcome
+    bool client = false;           // from submit(): holds a slot of the bounded queue, completes on every outcome
     MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
     SteadyClock::time_point queued_at{};  // the age rule (job_queue.h)
     Completion done;
     // A safe stop's writes (Priority::Safety on packet buses): a servo holding a staged write
     // gets the same write staged too, so a later ACTION cannot run a move staged before the stop.
     std::vector<WriteOp> stop_writes;
-    bool staged_write = false;  // REG WRITE: the servo holds it until ACTION
-    bool action = false;        // ACTION: runs (and so clears) every staged write
+    bool staged_write = false;                // REG WRITE: the servo holds it until ACTION
+    bool action = false;                      // ACTION: runs (and so clears) every staged write
     std::vector<std::uint8_t> sync_read_ids;  // a client's SYNC READ: whose answers it collects
     std::uint16_t sync_read_count = 0;        // and how many bytes each
   };
@@ -110,9 +110,9 @@ class EngineCore final : public BusEngine {
   std::optional<BusResult> motion_refusal(MotionEpoch admitted) const;
   // --- owed safe stops (owe_stop) ----------------------------------------------------------------
   void deliver_owed_stops();
-  bool deliver(std::uint8_t servo_id, const Owed& owed);  // false: the port was lost
+  bool deliver(std::uint8_t servo_id, const Owed& owed);                // false: the port was lost
   std::optional<BusResult> owed_refusal(const Request& request) const;  // a motion write to an owed servo
-  void make_owed_due(std::optional<std::uint8_t> servo_id);  // nullopt: all of them
+  void make_owed_due(std::optional<std::uint8_t> servo_id);             // nullopt: all of them
   void neutralise_staged(const Job& job);
 
   // --- port -------------------------------------------------------------------------------------
@@ -149,7 +149,7 @@ class EngineCore final : public BusEngine {
   JobQueue<Job> queue_{settings_, counters_};  // its own lock
   Wakeup wake_;
   mutable std::mutex owed_mutex_;
-  std::map<std::uint8_t, Owed> owed_;  // guarded by owed_mutex_
+  std::map<std::uint8_t, Owed> owed_;       // guarded by owed_mutex_
   std::atomic<std::size_t> owed_count_{0};  // owed_.size(), set under owed_mutex_, read without it
   std::atomic<bool> discovered_{false};
   std::thread thread_;
@@ -171,7 +171,7 @@ class EngineCore final : public BusEngine {
   std::bitset<256> sync_answered_;  // members that answered the SYNC READ under way
   // A client's SYNC READ under way collects its answers here instead of the poll cache.
   std::map<std::uint8_t, protocol::Bytes>* sync_collect_ = nullptr;
-  std::bitset<256> staged_;         // servos holding a staged write (REG WRITE since the last ACTION)
+  std::bitset<256> staged_;  // servos holding a staged write (REG WRITE since the last ACTION)
   bool open_failure_logged_ = false;
 };
 

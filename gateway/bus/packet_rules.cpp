@@ -41,18 +41,15 @@ Verdict judge_reply(const PacketRules& rules, ReplyKind kind, std::uint8_t servo
   }
   if (kind == ReplyKind::None || (kind != ReplyKind::SyncRead && frame.id != servo_id)) return Verdict::NotOurs;
   switch (kind) {
-    case ReplyKind::None:
-      break;
+    case ReplyKind::None: break;
     case ReplyKind::Ack:
       if ((frame.code & rules.refusal_bits) != 0) return refusal();
       return frame.params.empty() ? Verdict::Answer : Verdict::NotOurs;
     case ReplyKind::Data:
       if (frame.params.size() == count) return Verdict::Answer;
       return (frame.code & rules.refusal_bits) != 0 ? refusal() : Verdict::NotOurs;
-    case ReplyKind::Ping:
-      return frame.params.size() <= rules.max_ping_params ? Verdict::Answer : Verdict::NotOurs;
-    case ReplyKind::SyncRead:
-      return frame.params.size() == count ? Verdict::Answer : Verdict::NotOurs;
+    case ReplyKind::Ping: return frame.params.size() <= rules.max_ping_params ? Verdict::Answer : Verdict::NotOurs;
+    case ReplyKind::SyncRead: return frame.params.size() == count ? Verdict::Answer : Verdict::NotOurs;
   }
   return Verdict::NotOurs;
 }

@@ -37,7 +37,7 @@ enum class ReplyKind : std::uint8_t {
 };
 
 enum class Verdict : std::uint8_t {
-  NotOurs,         // valid frame, but not the answer: another ID, another shape, a late reply
+  NotOurs,  // valid frame, but not the answer: another ID, another shape, a late reply
   Answer,
   Refused,         // the servo answered with a refusal bit
   RefusedDamaged,  // the servo says our frame arrived damaged: send it again

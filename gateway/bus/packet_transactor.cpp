@@ -46,8 +46,8 @@ std::string PacketTransactor::check_servo(const ServoSettings& servo) {
   if (servo.servo_id >= protocol::kBroadcastId) return "a servo ID is 0-253";
   const auto& block = servo.poll_block;
   if (block.count == 0 || block.count > protocol::kMaxParams || block.address > 0xFF || block.end() > 0x100) {
-    return fmt::format("poll block {}+{} cannot be read in one READ (byte addresses 0-255, 1-253 bytes)",
-                       block.address, block.count);
+    return fmt::format("poll block {}+{} cannot be read in one READ (byte addresses 0-255, 1-253 bytes)", block.address,
+                       block.count);
   }
   return {};
 }
@@ -140,7 +140,8 @@ PacketTransactor::Request PacketTransactor::prepare(BusOp&& op, unsigned attempt
     return read_request(read->servo_id, {read->address, read->count}, attempts);
   }
   if (auto* write = std::get_if<WriteOp>(&op)) {
-    if (write->address > 0xFF) throw refuse("WRITE address " + std::to_string(write->address) + " is not a byte address");
+    if (write->address > 0xFF)
+      throw refuse("WRITE address " + std::to_string(write->address) + " is not a byte address");
     if (write->data.empty() || write->data.size() >= protocol::kMaxParams) {
       throw refuse("WRITE of " + std::to_string(write->data.size()) + " bytes: one WRITE carries 1-252 bytes");
     }
@@ -198,8 +199,7 @@ std::string PacketTransactor::describe(const Request& request) const {
       return fmt::format("{} of servo {}", name, request.servo_id);
     case ReplyKind::SyncRead:
       return fmt::format("{} {}+{} of servos {}", name, params.at(0), params.at(1), join_ids(request.sync_ids));
-    case ReplyKind::None:
-      break;
+    case ReplyKind::None: break;
   }
   if (broadcast(request)) return fmt::format("broadcast {}", name);
   return fmt::format("{} to servo {} (not answered)", name, request.servo_id);
@@ -248,7 +248,8 @@ Expected<Ok> PacketTransactor::settle(const Request& request) {
       if (!received) return unexpected(received.error());
       if (*received == 0) break;
       const std::span<const std::uint8_t> bytes(rx_buffer_.data(), *received);
-      if (spdlog::should_log(spdlog::level::trace)) spdlog::trace("{}rx (late) {}", timing_.label, spdlog::to_hex(bytes));
+      if (spdlog::should_log(spdlog::level::trace))
+        spdlog::trace("{}rx (late) {}", timing_.label, spdlog::to_hex(bytes));
       dropped += bytes.size();
       watch.feed(bytes);
       while (const auto event = watch.next()) {
@@ -261,7 +262,8 @@ Expected<Ok> PacketTransactor::settle(const Request& request) {
     now = SteadyClock::now();
     until = owed_until(request, now);
   }
-  stray_.count(dropped, timing_.label, [&] { return "while waiting for owed late answers before " + describe(request); });
+  stray_.count(dropped, timing_.label,
+               [&] { return "while waiting for owed late answers before " + describe(request); });
   return Ok{};
 }
 
@@ -337,8 +339,8 @@ class PacketTransactor::Transaction {
   const std::chrono::nanoseconds reply_time_;    // the answer's wire time plus the reply allowance
   const std::chrono::nanoseconds timeout_;       // one attempt's wait
   const std::chrono::milliseconds write_timeout_;
-  const std::chrono::nanoseconds late_window_;   // how long an unanswered attempt's answer may still come
-  const bool anyone_;                            // a rate scan's PING to the broadcast ID
+  const std::chrono::nanoseconds late_window_;  // how long an unanswered attempt's answer may still come
+  const bool anyone_;                           // a rate scan's PING to the broadcast ID
   std::bitset<256> sync_expected_;
   std::bitset<256> sync_answered_;
   AttemptFindings found_;
@@ -499,8 +501,8 @@ bool PacketTransactor::Transaction::wait_out_bytes_in_flight(SteadyClock::time_p
 
 // A valid frame: the answer, a refusal, our frame sent back, or somebody else's (not ours).
 void PacketTransactor::Transaction::on_frame(Packet frame) {
-  const bool owed = request_.reply != ReplyKind::SyncRead ||
-                    (sync_expected_.test(frame.id) && !sync_answered_.test(frame.id));
+  const bool owed =
+      request_.reply != ReplyKind::SyncRead || (sync_expected_.test(frame.id) && !sync_answered_.test(frame.id));
   const Verdict verdict =
       owed ? judge_reply(line_.rules_, request_.reply, request_.servo_id, request_.count, frame) : Verdict::NotOurs;
   const bool first = attempt_.frames++ == 0;
@@ -530,7 +532,9 @@ void PacketTransactor::Transaction::on_frame(Packet frame) {
       return accept(std::move(frame));
     case Verdict::Refused:
       events_.answered(frame.id, frame.code);
-      attempt_.outcome = BusResult{BusStatus::ServoRefused, frame.code, {},
+      attempt_.outcome = BusResult{BusStatus::ServoRefused,
+                                   frame.code,
+                                   {},
                                    fmt::format("{}servo {} refused {} (ERROR 0x{:02X})", line_.timing_.label, frame.id,
                                                line_.describe(request_), frame.code)};
       return;
@@ -579,16 +583,22 @@ void PacketTransactor::Transaction::accept(Packet frame) {
 BusResult PacketTransactor::fail(const Request& request, const AttemptFindings& last, unsigned attempts_made) const {
   const auto attempts = fmt::format("{} attempt{}", attempts_made, attempts_made == 1 ? "" : "s");
   if (last.refused_damaged) {
-    return BusResult{BusStatus::ServoRefused, last.last_error, {},
+    return BusResult{BusStatus::ServoRefused,
+                     last.last_error,
+                     {},
                      fmt::format("{}servo {} reported our {} as damaged (ERROR 0x{:02X}) after {}", timing_.label,
                                  request.servo_id, describe(request), last.last_error, attempts)};
   }
   if (last.damaged_any) {
-    return BusResult{BusStatus::Corrupt, 0, {},
+    return BusResult{BusStatus::Corrupt,
+                     0,
+                     {},
                      fmt::format("{}only damaged answers to {} after {} (checksum or framing errors)", timing_.label,
                                  describe(request), attempts)};
   }
-  return BusResult{BusStatus::Timeout, 0, {},
+  return BusResult{BusStatus::Timeout,
+                   0,
+                   {},
                    fmt::format("{}no answer to {} after {} of {:.1f} ms", timing_.label, describe(request), attempts,
                                to_ms(last.timeout))};
 }

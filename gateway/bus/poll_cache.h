@@ -45,15 +45,15 @@ struct ServoIdentity {
 struct CachedServoState {
   std::uint8_t servo_id = 0;
   AddressBlock block;
-  bool online = false;               // answered its last poll or probe
-  bool has_data = false;             // the block was read at least once
-  SteadyClock::time_point updated;   // when the block was last read (meaningless without has_data)
+  bool online = false;              // answered its last poll or probe
+  bool has_data = false;            // the block was read at least once
+  SteadyClock::time_point updated;  // when the block was last read (meaningless without has_data)
   ServoIdentity identity;
   // The servo's response-level field (sts/sms1 address 8, d55d 16) as read at discovery and
   // kept current when a client WRITE or SYNC WRITE through this gateway changes it: whether
   // the servo answers writes. Empty until read.
   std::optional<std::uint8_t> response_level;
-  ServoCountersSnapshot counters;    // replies OK, timeouts, last status byte
+  ServoCountersSnapshot counters;  // replies OK, timeouts, last status byte
 
   // Age of the data at `now`; nullopt before the first read.
   std::optional<SteadyClock::duration> age(SteadyClock::time_point now) const {

@@ -32,7 +32,7 @@ namespace {
 // The rates libmodbus 3.1.6 maps to Bxxx constants on Linux (_get_termios_speed in
 // modbus-rtu.c); any other rate becomes B9600 there.
 constexpr std::array<std::uint32_t, 23> kLibmodbusRates{
-    110,    300,    600,    1200,   2400,    4800,    9600,    19200,   38400,   57600,   115200,  230400,
+    110,    300,    600,    1200,   2400,    4800,    9600,    19200,   38400,   57600,   115200, 230400,
     460800, 500000, 576000, 921600, 1000000, 1152000, 1500000, 2500000, 3000000, 3500000, 4000000};
 
 constexpr std::uint32_t kFixedGapAbove = 19200;
@@ -49,10 +49,8 @@ std::chrono::nanoseconds rtu_frame_gap(const SerialSettings& serial, const confi
   switch (gap.kind) {
     case config::FrameGap::Kind::Spec:
       return serial.baud > kFixedGapAbove ? std::chrono::nanoseconds{kFixedFrameGap} : three_and_a_half_characters;
-    case config::FrameGap::Kind::Characters:
-      return three_and_a_half_characters;
-    case config::FrameGap::Kind::Fixed:
-      return gap.fixed;
+    case config::FrameGap::Kind::Characters: return three_and_a_half_characters;
+    case config::FrameGap::Kind::Fixed: return gap.fixed;
   }
   return three_and_a_half_characters;
 }
@@ -99,15 +97,11 @@ std::string open_hint(int error) {
       return " — the device does not exist: is the adapter plugged in, and is the device path right? "
              "(ls -l /dev/serial/by-id/ lists adapters by a name that survives re-plugging)";
     case EACCES:
-    case EPERM:
-      return " — no permission: add the user to the group owning the device (usually `dialout`)";
-    case EBUSY:
-      return " — another program holds the device (fuser -v DEVICE shows which)";
+    case EPERM: return " — no permission: add the user to the group owning the device (usually `dialout`)";
+    case EBUSY: return " — another program holds the device (fuser -v DEVICE shows which)";
     case ENOTTY:
-    case EINVAL:
-      return " — this is not a serial device, or its driver refuses these line settings";
-    default:
-      return "";
+    case EINVAL: return " — this is not a serial device, or its driver refuses these line settings";
+    default: return "";
   }
 }
 
@@ -120,7 +114,8 @@ void split_timeout(std::chrono::nanoseconds timeout, std::uint32_t& seconds, std
 
 int poll_ms(std::chrono::nanoseconds timeout) {
   if (timeout <= 0ns) return 0;
-  return static_cast<int>(std::min<std::int64_t>(std::chrono::ceil<std::chrono::milliseconds>(timeout).count(), 60'000));
+  return static_cast<int>(
+      std::min<std::int64_t>(std::chrono::ceil<std::chrono::milliseconds>(timeout).count(), 60'000));
 }
 
 }  // namespace
@@ -156,10 +151,10 @@ Expected<Ok> RtuMaster::open() {
   close();
   const SerialSettings& serial = settings_.serial;
   const std::string where = serial.device + " at " + std::to_string(serial.baud) + " bit/s";
-  modbus_t* context =
-      modbus_new_rtu(serial.device.c_str(), static_cast<int>(serial.baud), parity_letter(serial.parity), 8,
-                     serial.stop_bits == 2 ? 2 : 1);
-  if (context == nullptr) return unexpected("cannot set up a Modbus RTU line on " + where + ": " + modbus_strerror(errno));
+  modbus_t* context = modbus_new_rtu(serial.device.c_str(), static_cast<int>(serial.baud), parity_letter(serial.parity),
+                                     8, serial.stop_bits == 2 ? 2 : 1);
+  if (context == nullptr)
+    return unexpected("cannot set up a Modbus RTU line on " + where + ": " + modbus_strerror(errno));
   if (modbus_connect(context) != 0) {
     const int error = errno;
     modbus_free(context);
@@ -176,8 +171,7 @@ Expected<Ok> RtuMaster::open() {
   (void)ioctl(fd, TIOCEXCL);
   // Every rate through termios2: libmodbus 3.1.6 would have set 9600 for 256000, 128000,
   // 56000, 14400 ... without a word (see the header).
-  if (const int error = detail::configure_raw_line(fd, serial.baud, serial.parity, serial.stop_bits);
-      error != 0) {
+  if (const int error = detail::configure_raw_line(fd, serial.baud, serial.parity, serial.stop_bits); error != 0) {
     return fail("cannot set " + where + ": " + std::strerror(error) + open_hint(error));
   }
   const config::ModbusRtuOptions& options = settings_.options;
@@ -265,9 +259,10 @@ RtuExchange RtuMaster::receive_answer(std::uint8_t slave, std::uint8_t function,
   if (received < 0) {
     switch (error) {
       case ETIMEDOUT:
-        return {RtuOutcome::Timeout, {}, fmt::format("no answer from slave {} within {} us", slave,
-                                                     std::chrono::duration_cast<std::chrono::microseconds>(
-                                                         response_timeout).count())};
+        return {RtuOutcome::Timeout,
+                {},
+                fmt::format("no answer from slave {} within {} us", slave,
+                            std::chrono::duration_cast<std::chrono::microseconds>(response_timeout).count())};
       case EMBBADCRC:
       case EMBBADDATA:
       case EMBMDATA:
@@ -280,7 +275,8 @@ RtuExchange RtuMaster::receive_answer(std::uint8_t slave, std::uint8_t function,
   }
   // libmodbus 3.1.6 returns 0 for a frame addressed from another slave (filtered before its CRC).
   if (received < 4 || answer[0] != slave) {
-    RtuExchange exchange{RtuOutcome::WrongSlave, {}, fmt::format("asked slave {}, a frame from another slave came", slave)};
+    RtuExchange exchange{
+        RtuOutcome::WrongSlave, {}, fmt::format("asked slave {}, a frame from another slave came", slave)};
     if (received >= 1) exchange.other_slave = answer[0];
     return exchange;
   }
@@ -306,8 +302,10 @@ RtuExchange RtuMaster::receive_until_silence(std::uint8_t slave, std::chrono::na
     const ssize_t got = ::read(fd, buffer.data(), buffer.size());
     if (got < 0 && (errno == EAGAIN || errno == EINTR)) continue;
     if (got <= 0) {
-      return {RtuOutcome::PortError, {}, "read from " + settings_.serial.device + ": " +
-                                             (got == 0 ? std::string("end of file") : std::strerror(errno))};
+      return {RtuOutcome::PortError,
+              {},
+              "read from " + settings_.serial.device + ": " +
+                  (got == 0 ? std::string("end of file") : std::strerror(errno))};
     }
     frame.insert(frame.end(), buffer.begin(), buffer.begin() + got);
     if (frame.size() > protocol::rtu::kMaxAduSize) {

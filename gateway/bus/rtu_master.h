@@ -58,10 +58,10 @@ std::string_view to_string(RtuOutcome outcome);
 
 struct RtuExchange {
   RtuOutcome outcome;
-  protocol::Bytes pdu;  // Reply: function code first, no slave, no CRC
-  std::string detail;   // what went wrong, for logs
+  protocol::Bytes pdu;                      // Reply: function code first, no slave, no CRC
+  std::string detail;                       // what went wrong, for logs
   std::optional<std::uint8_t> other_slave;  // WrongSlave: who answered, when the frame says so
-  std::size_t dropped = 0;  // bytes the input held before the request, read and dropped unseen
+  std::size_t dropped = 0;                  // bytes the input held before the request, read and dropped unseen
 
   // A constructor rather than an aggregate, so `{outcome, pdu, detail}` leaves other_slave empty.
   RtuExchange(RtuOutcome result = RtuOutcome::Timeout, protocol::Bytes reply_pdu = {}, std::string what = {},

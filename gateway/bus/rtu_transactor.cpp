@@ -172,8 +172,7 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
     stray_.count(sent.dropped, timing_.label, [&] { return what_for(request); });
     return BusResult{};
   }
-  const auto late_window =
-      kLateAnswerWindowAttempts * (master_.wire_time(request.pdu.size() + 3) + reply_timeout);
+  const auto late_window = kLateAnswerWindowAttempts * (master_.wire_time(request.pdu.size() + 3) + reply_timeout);
   if (const auto now = SteadyClock::now(); owed_.owes(request.slave, now)) {
     // Late answers this slave still owes would look like this request's answer: let them come.
     const auto watched = master_.watch_line(request.slave, owed_.count(request.slave), owed_.until(request.slave));
@@ -233,15 +232,14 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
         corrupt = true;
         last_problem = exchange.detail;
         break;
-      case RtuOutcome::PortError:
-        return BusResult{BusStatus::BusDown, 0, {}, exchange.detail};
-      case RtuOutcome::Sent:
-        break;
+      case RtuOutcome::PortError: return BusResult{BusStatus::BusDown, 0, {}, exchange.detail};
+      case RtuOutcome::Sent: break;
     }
   }
   const auto attempts = fmt::format("{} attempt{}", request.attempts, request.attempts == 1 ? "" : "s");
   if (corrupt) {
-    return BusResult{BusStatus::Corrupt, 0, {}, where(request) + ": answers stayed corrupt (" + attempts + "): " + last_problem};
+    return BusResult{
+        BusStatus::Corrupt, 0, {}, where(request) + ": answers stayed corrupt (" + attempts + "): " + last_problem};
   }
   return BusResult{BusStatus::Timeout, 0, {}, where(request) + ": no answer (" + attempts + "): " + last_problem};
 }
@@ -257,7 +255,9 @@ BusResult RtuTransactor::check_reply(const Request& request, Bytes reply) const 
     if (request.forward_exceptions || request.shape == ReplyShape::AnyOfFunction) {
       return BusResult{BusStatus::Ok, reply[1], std::move(reply), {}};
     }
-    return BusResult{BusStatus::ServoRefused, reply[1], {},
+    return BusResult{BusStatus::ServoRefused,
+                     reply[1],
+                     {},
                      fmt::format("{}: the slave answered exception 0x{:02X} ({})", where(request), reply[1],
                                  protocol::modbus_exception_name(reply[1]))};
   }
@@ -276,8 +276,7 @@ BusResult RtuTransactor::check_reply(const Request& request, Bytes reply) const 
         return corrupt("FC16 answer does not repeat address and quantity");
       }
       return BusResult{};
-    case ReplyShape::AnyOfFunction:
-      return BusResult{BusStatus::Ok, 0, std::move(reply), {}};
+    case ReplyShape::AnyOfFunction: return BusResult{BusStatus::Ok, 0, std::move(reply), {}};
   }
   return corrupt("unexpected answer");
 }

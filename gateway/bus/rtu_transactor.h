@@ -13,8 +13,8 @@
 // echo the request, FC16 must repeat address and quantity; anything else from the addressed
 // slave counts as corrupt and is retried. Late answers are guarded against as transactor.h says:
 // the input is read and dropped before each request, and a slave that owes answers to requests
-// that gave up is asked again only once they came or their window passed. An exception answer is a refusal (ServoRefused with
-// the code as servo_error), except for PING and passthrough, where it is the answer.
+// that gave up is asked again only once they came or their window passed. An exception answer is a refusal
+// (ServoRefused with the code as servo_error), except for PING and passthrough, where it is the answer.
 #include <cstdint>
 #include <optional>
 #include <span>

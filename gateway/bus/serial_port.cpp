@@ -51,24 +51,26 @@ std::string SerialPort::describe_errno(std::string_view action, int error) const
   std::string text = std::string(action) + " " + path + ": " + errno_text(error);
   switch (error) {
     case ENOENT:
-      return text + " — the device does not exist: is the adapter plugged in, and is `device` of this bus right? "
-                    "(ls -l /dev/serial/by-id/ lists the adapters by a name that survives re-plugging)";
+      return text +
+             " — the device does not exist: is the adapter plugged in, and is `device` of this bus right? "
+             "(ls -l /dev/serial/by-id/ lists the adapters by a name that survives re-plugging)";
     case ENXIO:
     case ENODEV:
-      return text + " — nothing answers behind this device node (adapter unplugged, or a pty whose other side "
-                    "closed): plug it in again; the gateway reopens it by itself";
+      return text +
+             " — nothing answers behind this device node (adapter unplugged, or a pty whose other side "
+             "closed): plug it in again; the gateway reopens it by itself";
     case EACCES:
     case EPERM:
-      return text + " — no permission: add the gateway's user to the group owning the device (usually `dialout`: "
-                    "sudo usermod -aG dialout <user>, then log in again) or run the container with the device mapped";
+      return text +
+             " — no permission: add the gateway's user to the group owning the device (usually `dialout`: "
+             "sudo usermod -aG dialout <user>, then log in again) or run the container with the device mapped";
     case EBUSY:
       return text + " — another program holds the device exclusively: stop it (fuser -v " + path + " shows which)";
     case ENOTTY:
     case EINVAL:
       return text + " — this is not a serial device, or its driver refuses raw mode at " +
              std::to_string(settings_.baud) + " bit/s: point `device` at a tty such as /dev/ttyUSB0";
-    default:
-      return text;
+    default: return text;
   }
 }
 
@@ -100,9 +102,10 @@ Expected<Ok> SerialPort::open() {
   }
   if (actual == 0) {
     // Only a pseudo-terminal is left without a rate, where termios2 is missing (tty/termios2_io.h).
-    spdlog::debug("serial device {} is a pseudo-terminal that holds no bit rate (termios2 is missing: an emulator "
-                  "such as qemu-user); no wire behind it, so timing goes by the configured {} bit/s",
-                  settings_.device, settings_.baud);
+    spdlog::debug(
+        "serial device {} is a pseudo-terminal that holds no bit rate (termios2 is missing: an emulator "
+        "such as qemu-user); no wire behind it, so timing goes by the configured {} bit/s",
+        settings_.device, settings_.baud);
     actual = settings_.baud;
   }
   ::tcflush(fd, TCIOFLUSH);

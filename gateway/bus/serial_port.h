@@ -20,10 +20,10 @@ class WireMonitor;
 using config::Parity;
 
 struct SerialSettings {
-  std::string device;              // /dev/ttyUSB0, /dev/serial/by-id/..., a pty slave path
+  std::string device;  // /dev/ttyUSB0, /dev/serial/by-id/..., a pty slave path
   std::uint32_t baud = 1'000'000;
-  Parity parity = Parity::None;    // the servos use 8N1 (docs/PROTOCOL.md §1); adapters in between may not
-  std::uint8_t stop_bits = 1;      // 1 or 2
+  Parity parity = Parity::None;  // the servos use 8N1 (docs/PROTOCOL.md §1); adapters in between may not
+  std::uint8_t stop_bits = 1;    // 1 or 2
 
   // Start bit, 8 data bits, parity bit if any, stop bits.
   unsigned bits_per_character() const;

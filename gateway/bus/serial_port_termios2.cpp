@@ -11,8 +11,8 @@ namespace sms::gateway::detail {
 int configure_raw_line(int fd, std::uint32_t baud, config::Parity parity, std::uint8_t stop_bits) {
   termios2 settings{};
   if (const int error = tty::get(fd, settings); error != 0) return error;
-  settings.c_iflag &= ~static_cast<tcflag_t>(IGNBRK | BRKINT | PARMRK | ISTRIP | INLCR | IGNCR | ICRNL | IXON |
-                                             IXOFF | IXANY | INPCK | IGNPAR);
+  settings.c_iflag &= ~static_cast<tcflag_t>(IGNBRK | BRKINT | PARMRK | ISTRIP | INLCR | IGNCR | ICRNL | IXON | IXOFF |
+                                             IXANY | INPCK | IGNPAR);
   settings.c_oflag &= ~static_cast<tcflag_t>(OPOST);
   settings.c_lflag &= ~static_cast<tcflag_t>(ECHO | ECHONL | ICANON | ISIG | IEXTEN);
   settings.c_cflag &= ~static_cast<tcflag_t>(CSIZE | PARENB | PARODD | CSTOPB | CRTSCTS | CBAUD | (CBAUD << IBSHIFT));

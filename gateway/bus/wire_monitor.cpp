@@ -81,7 +81,8 @@ void WireMonitor::record(WireDirection direction, std::span<const std::uint8_t> 
   record_at(direction, bytes, now_ns());
 }
 
-void WireMonitor::record_at(WireDirection direction, std::span<const std::uint8_t> bytes, std::int64_t time_ns) noexcept {
+void WireMonitor::record_at(WireDirection direction, std::span<const std::uint8_t> bytes,
+                            std::int64_t time_ns) noexcept {
   if (bytes.empty()) return;
   // A piece longer than the whole ring keeps its tail.
   const std::size_t limit = ring_.size() * kRecordBytes;
@@ -166,7 +167,7 @@ protocol::Bytes WireMonitor::pcapng() const {
     for (const auto& frame : describer.feed(chunk.direction, chunk.bytes)) {
       if (frame.bytes.empty()) continue;  // noise the decoder skipped without keeping its bytes
       const auto direction = frame.direction == WireDirection::ToServos ? protocol::pcapng::Direction::Outbound
-                                                                         : protocol::pcapng::Direction::Inbound;
+                                                                        : protocol::pcapng::Direction::Inbound;
       writer.add_packet(interface, static_cast<std::uint64_t>(chunk.time_ns / 1000), direction, frame.bytes,
                         packet_comment(frame));
     }

@@ -101,7 +101,7 @@ class WireMonitor {
   mutable std::mutex mutex_;
   std::vector<Record> ring_;  // a power of two long: record `s` is ring_[s & mask_]
   const std::uint64_t mask_;
-  std::uint64_t next_ = 0;    // sequence of the next record
+  std::uint64_t next_ = 0;                         // sequence of the next record
   mutable std::atomic<std::uint64_t> dropped_{0};  // counted by readers
 };
 

@@ -41,9 +41,9 @@ std::string random_token();
 bool same_token(std::string_view a, std::string_view b);
 
 struct Principal {
-  std::string name;                 // "alice", "CN=hmi-3", "local user", "anonymous"
+  std::string name;  // "alice", "CN=hmi-3", "local user", "anonymous"
   config::Role role = config::Role::None;
-  std::string how;                  // "password", "client certificate", "loopback", "simulate"
+  std::string how;  // "password", "client certificate", "loopback", "simulate"
 };
 
 struct Session {
@@ -72,9 +72,9 @@ class SessionStore {
 
 // How a request without a session is seen, from the configuration alone.
 struct AccessRules {
-  bool users = false;             // console.users configured: log in with a password
-  bool certificates = false;      // console.tls: client certificates give roles
-  bool local_every_right = false; // --simulate: the loopback user may do everything
+  bool users = false;              // console.users configured: log in with a password
+  bool certificates = false;       // console.tls: client certificates give roles
+  bool local_every_right = false;  // --simulate: the loopback user may do everything
 };
 AccessRules access_rules(const config::ConsoleConfig& console);
 // The principal a visitor from `peer_loopback` is without a session and without a certificate:

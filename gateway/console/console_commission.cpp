@@ -46,10 +46,12 @@ Expected<LineRequest> line_request(const ApiCall& call, bool needs_baud) {
   if (!protocol) return unexpected("`protocol` must be feetech, d55d or modbus-rtu, got " + printable(protocol_name));
   request.link.protocol = *protocol;
   request.table = tool_protocol(*protocol).default_table;
-  if (const auto table = body.find("table"); table != body.end() && table->is_string() && !table->get<std::string>().empty()) {
+  if (const auto table = body.find("table");
+      table != body.end() && table->is_string() && !table->get<std::string>().empty()) {
     const auto id = modbus_map::table_from_name(table->get<std::string>());
     if (!id || modbus_map::table(*id).protocol != *protocol) {
-      return unexpected("table " + printable(table->get<std::string>()) + " is not spoken on " + protocol_name + " buses");
+      return unexpected("table " + printable(table->get<std::string>()) + " is not spoken on " + protocol_name +
+                        " buses");
     }
     request.table = *id;
   }
@@ -94,7 +96,8 @@ std::optional<std::string> Commissioning::owner_of(const std::string& device) co
   for (const auto& bus : config_.buses) {
     if (canonical(bus.device) == wanted) {
       return device + " is the line of bus `" + bus.name +
-             "`, which the gateway runs: commission a line no bus owns (or stop the gateway and use `sms-gateway scan`)";
+             "`, which the gateway runs: commission a line no bus owns (or stop the gateway and use `sms-gateway "
+             "scan`)";
     }
   }
   for (const auto& port : config_.modbus_rtu_slave) {
@@ -139,8 +142,8 @@ bool Commissioning::start(std::string kind, std::function<json(const std::functi
 
 json Commissioning::state() const {
   std::lock_guard lock(mutex_);
-  return {{"running", running_}, {"kind", kind_}, {"log", log_}, {"result", result_},
-          {"error", error_}, {"config_ready", !config_yaml_.empty()}};
+  return {{"running", running_}, {"kind", kind_},   {"log", log_},
+          {"result", result_},   {"error", error_}, {"config_ready", !config_yaml_.empty()}};
 }
 
 std::string Commissioning::config_yaml() const {
@@ -155,7 +158,9 @@ void api_commission_state(const std::shared_ptr<ApiCall>& call) {
 void api_commission_config(const std::shared_ptr<ApiCall>& call) {
   const std::string yaml = call->services.commissioning().config_yaml();
   if (yaml.empty()) return call->answer(HttpAnswer::error(404, "no scan yet: scan a line first"));
-  call->answer(HttpAnswer{200, "application/yaml; charset=utf-8", yaml,
+  call->answer(HttpAnswer{200,
+                          "application/yaml; charset=utf-8",
+                          yaml,
                           {{"Content-Disposition", "attachment; filename=\"sms-gateway-scan.yaml\""}}});
 }
 
@@ -167,8 +172,8 @@ void api_commission_scan(const std::shared_ptr<ApiCall>& call) {
   if (const auto bauds = request->body.find("bauds"); bauds != request->body.end() && bauds->is_array()) {
     for (const auto& baud : *bauds) {
       if (!baud.is_number_unsigned() || !modbus_map::baud_code(request->link.protocol, baud.get<std::uint32_t>())) {
-        return call->answer(HttpAnswer::error(400, "scan: `bauds` must be rates of the table: " +
-                                                       modbus_map::valid_bauds_text(request->link.protocol)));
+        return call->answer(HttpAnswer::error(
+            400, "scan: `bauds` must be rates of the table: " + modbus_map::valid_bauds_text(request->link.protocol)));
       }
       options.bauds.push_back(baud.get<std::uint32_t>());
     }
@@ -226,22 +231,25 @@ void servo_job(const std::shared_ptr<ApiCall>& call, const std::string& what, co
 }  // namespace
 
 void api_commission_set_id(const std::shared_ptr<ApiCall>& call) {
-  servo_job(call, "set-id", "new_id", [](ServoLink& link, const ToolTarget& target, std::uint32_t value, const Say& say) {
-    if (value > 253) return Expected<std::string>(unexpected(std::string("`new_id` must be 0-253")));
-    return set_servo_id(link, target, static_cast<std::uint8_t>(value), say);
-  });
+  servo_job(call, "set-id", "new_id",
+            [](ServoLink& link, const ToolTarget& target, std::uint32_t value, const Say& say) {
+              if (value > 253) return Expected<std::string>(unexpected(std::string("`new_id` must be 0-253")));
+              return set_servo_id(link, target, static_cast<std::uint8_t>(value), say);
+            });
 }
 
 void api_commission_set_baud(const std::shared_ptr<ApiCall>& call) {
-  servo_job(call, "set-baud", "new_baud", [](ServoLink& link, const ToolTarget& target, std::uint32_t value, const Say& say) {
-    return set_servo_baud(link, target, value, say);
-  });
+  servo_job(call, "set-baud", "new_baud",
+            [](ServoLink& link, const ToolTarget& target, std::uint32_t value, const Say& say) {
+              return set_servo_baud(link, target, value, say);
+            });
 }
 
 void api_commission_calibrate(const std::shared_ptr<ApiCall>& call) {
-  servo_job(call, "calibrate-middle", nullptr, [](ServoLink& link, const ToolTarget& target, std::uint32_t, const Say& say) {
-    return calibrate_middle(link, target, say);
-  });
+  servo_job(call, "calibrate-middle", nullptr,
+            [](ServoLink& link, const ToolTarget& target, std::uint32_t, const Say& say) {
+              return calibrate_middle(link, target, say);
+            });
 }
 
 }  // namespace sms::gateway::console

@@ -200,8 +200,8 @@ Expected<JogMessage> parse_jog_message(std::string_view text) {
 std::string printable(std::string_view text, std::size_t max) {
   std::string out;
   for (const char c : text.substr(0, max)) {
-    const bool plain = (c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') ||
-                       c == '_' || c == '-' || c == '.' || c == ' ';
+    const bool plain = (c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || c == '_' ||
+                       c == '-' || c == '.' || c == ' ';
     out.push_back(plain ? c : '?');
   }
   if (text.size() > max) out += "...";

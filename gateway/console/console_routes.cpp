@@ -35,7 +35,8 @@ Bytes read_registers_pdu(std::uint16_t address, std::uint16_t count) {
 }
 std::vector<std::uint16_t> registers_in(const Bytes& pdu) {
   std::vector<std::uint16_t> values;
-  for (std::size_t i = 2; i + 1 < pdu.size(); i += 2) values.push_back(static_cast<std::uint16_t>(pdu[i] << 8 | pdu[i + 1]));
+  for (std::size_t i = 2; i + 1 < pdu.size(); i += 2)
+    values.push_back(static_cast<std::uint16_t>(pdu[i] << 8 | pdu[i + 1]));
   return values;
 }
 
@@ -68,8 +69,9 @@ Expected<const ServoUnit*, HttpAnswer> servo_of(Services& services, const PathPa
   const auto unit_id = parse_unit(text);
   const ServoUnit* unit = unit_id ? services.units().servo_unit(*unit_id) : nullptr;
   if (unit == nullptr) {
-    return unexpected(HttpAnswer::error(404, "unit " + printable(text) + " is not a servo unit of this gateway (servo units: " +
-                                                 units_list(services) + ")"));
+    return unexpected(
+        HttpAnswer::error(404, "unit " + printable(text) +
+                                   " is not a servo unit of this gateway (servo units: " + units_list(services) + ")"));
   }
   return unit;
 }
@@ -102,7 +104,8 @@ void api_login(const std::shared_ptr<ApiCall>& call) {
   if (call->session) call->services.sessions().remove(call->session->token);  // its CSRF token goes stale
   const Session session = call->services.sessions().create(*who);
   spdlog::info("console: user `{}` logged in ({})", who->name, role_text(who->role));
-  HttpAnswer answer = HttpAnswer::json(200, {{"user", who->name}, {"role", role_text(who->role)}, {"csrf", session.csrf}});
+  HttpAnswer answer =
+      HttpAnswer::json(200, {{"user", who->name}, {"role", role_text(who->role)}, {"csrf", session.csrf}});
   answer.headers.emplace_back("Set-Cookie", call->services.session_cookie(session.token));
   call->answer(std::move(answer));
 }
@@ -114,7 +117,9 @@ void api_logout(const std::shared_ptr<ApiCall>& call) {
   call->answer(std::move(answer));
 }
 
-void api_overview(const std::shared_ptr<ApiCall>& call) { call->answer(HttpAnswer::json(200, call->services.overview())); }
+void api_overview(const std::shared_ptr<ApiCall>& call) {
+  call->answer(HttpAnswer::json(200, call->services.overview()));
+}
 
 // The table with the value of every readable field, read live through the router (FC03).
 void api_servo(const std::shared_ptr<ApiCall>& call) {
@@ -131,21 +136,23 @@ void api_servo(const std::shared_ptr<ApiCall>& call) {
   if (first > last) return call->answer(HttpAnswer::json(200, body));
   const auto count = static_cast<std::uint16_t>(std::min<int>(last - first + 1, limits::kReadRegisters));
   const std::uint8_t unit_id = (*unit)->unit_id;
-  call->services.modbus(call->who, unit_id, read_registers_pdu(first, count),
-                        [call, body = std::move(body), first, unit = *unit](ModbusAnswer answer) mutable {
-                          json values = json::object();
-                          if (answer.ok()) {
-                            const auto registers = registers_in(answer.pdu);
-                            for (const auto& entry : unit->map.entries()) {
-                              if (!entry.readable || entry.address < first || std::size_t{entry.address} - first >= registers.size()) continue;
-                              values[std::string(entry.shown->name)] = register_to_value(entry, registers[entry.address - first]);
-                            }
-                          } else {
-                            body["values_error"] = answer.message;
-                          }
-                          body["values"] = std::move(values);
-                          call->answer(HttpAnswer::json(200, body));
-                        });
+  call->services.modbus(
+      call->who, unit_id, read_registers_pdu(first, count),
+      [call, body = std::move(body), first, unit = *unit](ModbusAnswer answer) mutable {
+        json values = json::object();
+        if (answer.ok()) {
+          const auto registers = registers_in(answer.pdu);
+          for (const auto& entry : unit->map.entries()) {
+            if (!entry.readable || entry.address < first || std::size_t{entry.address} - first >= registers.size())
+              continue;
+            values[std::string(entry.shown->name)] = register_to_value(entry, registers[entry.address - first]);
+          }
+        } else {
+          body["values_error"] = answer.message;
+        }
+        body["values"] = std::move(values);
+        call->answer(HttpAnswer::json(200, body));
+      });
 }
 
 // The EEPROM lock of a table (docs/PROTOCOL.md): unlocked to write EEPROM, locked again after,
@@ -158,14 +165,17 @@ struct WriteStep {
   std::uint16_t value;
   std::string what;
 };
-void run_steps(Services& services, const Principal& who, std::uint8_t unit, std::vector<WriteStep> steps, std::size_t index,
+void run_steps(Services& services, const Principal& who, std::uint8_t unit, std::vector<WriteStep> steps,
+               std::size_t index,
                std::function<void(std::optional<ModbusAnswer> failed, std::string failed_step)> done) {
   if (index == steps.size()) return done(std::nullopt, "");
   const Bytes pdu = write_register_pdu(steps[index].address, steps[index].value);
-  services.modbus(who, unit, pdu, [&services, who, unit, steps = std::move(steps), index, done = std::move(done)](ModbusAnswer answer) mutable {
-    if (!answer.ok()) return done(std::move(answer), steps[index].what);
-    run_steps(services, who, unit, std::move(steps), index + 1, std::move(done));
-  });
+  services.modbus(
+      who, unit, pdu,
+      [&services, who, unit, steps = std::move(steps), index, done = std::move(done)](ModbusAnswer answer) mutable {
+        if (!answer.ok()) return done(std::move(answer), steps[index].what);
+        run_steps(services, who, unit, std::move(steps), index + 1, std::move(done));
+      });
 }
 
 void api_servo_write(const std::shared_ptr<ApiCall>& call) {
@@ -176,14 +186,14 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   const ServoUnit& servo = **unit;
   const auto* entry = entry_named(servo.map, request->field);
   if (entry == nullptr) {
-    return call->answer(HttpAnswer::error(400, "no field `" + printable(request->field) + "` in " + servo.map.description() +
-                                                   "; nothing written"));
+    return call->answer(HttpAnswer::error(
+        400, "no field `" + printable(request->field) + "` in " + servo.map.description() + "; nothing written"));
   }
   const std::string name(entry->shown->name);
   if (!entry->writable || servo.read_only) {
-    return call->answer(HttpAnswer::error(400, name + " cannot be written" +
-                                                   (servo.read_only ? " (the unit is read_only)" : " (read-only field)") +
-                                                   "; nothing written"));
+    return call->answer(HttpAnswer::error(
+        400, name + " cannot be written" + (servo.read_only ? " (the unit is read_only)" : " (read-only field)") +
+                 "; nothing written"));
   }
   if (commissioning_only(name)) {
     return call->answer(HttpAnswer::error(400, name + " takes the servo off this bus: change it with `sms-gateway " +
@@ -200,13 +210,14 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   if (!allowed.empty() && std::find(allowed.begin(), allowed.end(), value) == allowed.end()) {
     std::string list;
     for (const auto v : allowed) list += (list.empty() ? "" : ", ") + std::to_string(v);
-    return call->answer(HttpAnswer::error(400, name + ": " + std::to_string(value) + " is not one of " + list +
-                                                   "; nothing written"));
+    return call->answer(
+        HttpAnswer::error(400, name + ": " + std::to_string(value) + " is not one of " + list + "; nothing written"));
   }
   const bool engineer = entry->counterpart != nullptr && engineer_only_field(*entry->counterpart);
   if (engineer && !role_allows(call->who.role, Role::Engineer)) {
-    return call->answer(HttpAnswer::error(403, "writing " + name + " (EEPROM) needs the engineer role; " + call->who.name +
-                                                   " has " + role_text(call->who.role) + "; nothing written"));
+    return call->answer(HttpAnswer::error(403, "writing " + name + " (EEPROM) needs the engineer role; " +
+                                                   call->who.name + " has " + role_text(call->who.role) +
+                                                   "; nothing written"));
   }
   const auto reg = static_cast<std::uint16_t>(static_cast<std::int16_t>(value));
   std::vector<WriteStep> steps{{entry->address, reg, name + " := " + std::to_string(value)}};
@@ -222,26 +233,28 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
     return run_steps(call->services, call->who, servo.unit_id, std::move(steps), 0, std::move(finish));
   }
   // EEPROM with a lock: read it; when locked, unlock, write, lock again (the write persists).
-  call->services.modbus(call->who, servo.unit_id, read_registers_pdu(lock->address, 1),
-                        [call, steps = std::move(steps), lock, unit_id = servo.unit_id, finish](ModbusAnswer answer) mutable {
-                          if (!answer.ok()) return finish(std::move(answer), "reading the EEPROM lock");
-                          const std::uint16_t previous = registers_in(answer.pdu).at(0);
-                          if (previous != 0) {
-                            steps.insert(steps.begin(), WriteStep{lock->address, 0, "unlocking the EEPROM (lock := 0)"});
-                            steps.push_back(WriteStep{lock->address, previous, "locking the EEPROM again"});
-                          }
-                          run_steps(call->services, call->who, unit_id, std::move(steps), 0, finish);
-                        });
+  call->services.modbus(
+      call->who, servo.unit_id, read_registers_pdu(lock->address, 1),
+      [call, steps = std::move(steps), lock, unit_id = servo.unit_id, finish](ModbusAnswer answer) mutable {
+        if (!answer.ok()) return finish(std::move(answer), "reading the EEPROM lock");
+        const std::uint16_t previous = registers_in(answer.pdu).at(0);
+        if (previous != 0) {
+          steps.insert(steps.begin(), WriteStep{lock->address, 0, "unlocking the EEPROM (lock := 0)"});
+          steps.push_back(WriteStep{lock->address, previous, "locking the EEPROM again"});
+        }
+        run_steps(call->services, call->who, unit_id, std::move(steps), 0, finish);
+      });
 }
 
 void gateway_coil(const std::shared_ptr<ApiCall>& call, std::uint16_t coil, bool on, std::string what) {
-  call->services.modbus(call->who, call->services.config().modbus_tcp.gateway_unit_id, write_coil_pdu(coil, on),
-                        [call, what = std::move(what)](ModbusAnswer answer) {
-                          if (!answer.ok()) {
-                            return call->answer(HttpAnswer::error(status_for_exception(answer.exception), what + ": " + answer.message));
-                          }
-                          call->answer(HttpAnswer::json(200, {{"ok", true}, {"done", what}}));
-                        });
+  call->services.modbus(
+      call->who, call->services.config().modbus_tcp.gateway_unit_id, write_coil_pdu(coil, on),
+      [call, what = std::move(what)](ModbusAnswer answer) {
+        if (!answer.ok()) {
+          return call->answer(HttpAnswer::error(status_for_exception(answer.exception), what + ": " + answer.message));
+        }
+        call->answer(HttpAnswer::json(200, {{"ok", true}, {"done", what}}));
+      });
 }
 
 void api_estop(const std::shared_ptr<ApiCall>& call) {
@@ -278,7 +291,9 @@ Expected<std::unique_ptr<Stream>> make_overview_stream(Services& services, const
 class ServoStream final : public Stream {
  public:
   ServoStream(Services& services, const ServoUnit& unit, Principal who)
-      : services_(services), unit_(unit), who_(std::move(who)),
+      : services_(services),
+        unit_(unit),
+        who_(std::move(who)),
         spec_(modbus_map::motion_spec(unit.map.servo_table().id)),
         goal_position_(entry_for_servo_field(unit.map, spec_.goal_position)),
         goal_speed_(entry_for_servo_field(unit.map, spec_.goal_speed)),
@@ -288,7 +303,8 @@ class ServoStream final : public Stream {
   ~ServoStream() override { *alive_ = false; }
 
   void sample(SteadyClock::time_point now) override {
-    if (jog_ && now - last_heartbeat_ > kJogHeartbeatTimeout) stop_jog("no heartbeat from the page for " + std::to_string(kJogHeartbeatTimeout.count()) + " ms");
+    if (jog_ && now - last_heartbeat_ > kJogHeartbeatTimeout)
+      stop_jog("no heartbeat from the page for " + std::to_string(kJogHeartbeatTimeout.count()) + " ms");
     if (jog_ && now - last_refresh_ >= kJogRefreshPeriod) {
       last_refresh_ = now;
       write_jog_goal();
@@ -335,8 +351,10 @@ class ServoStream final : public Stream {
     }
     if (message->kind == Kind::Release) return stop_jog("released");
     if (!role_allows(who_.role, Role::Operate)) {
-      return send(json{{"type", "error"}, {"message", "the jog panel needs the operate role; " + who_.name + " has " +
-                                                          role_text(who_.role)}}.dump());
+      return send(
+          json{{"type", "error"},
+               {"message", "the jog panel needs the operate role; " + who_.name + " has " + role_text(who_.role)}}
+              .dump());
     }
     if (message->kind == Kind::Torque) {
       if (torque_ == nullptr) return send(error_json("this table has no torque switch"));
@@ -344,7 +362,8 @@ class ServoStream final : public Stream {
     }
     const bool speed = message->kind == Kind::JogSpeed;
     const auto* entry = speed ? goal_speed_ : goal_position_;
-    if (entry == nullptr) return send(error_json(std::string("this table has no ") + (speed ? "goal speed" : "goal position")));
+    if (entry == nullptr)
+      return send(error_json(std::string("this table has no ") + (speed ? "goal speed" : "goal position")));
     if (message->value < entry->min || message->value > entry->max) {
       return send(error_json(std::string(entry->shown->name) + ": " + std::to_string(message->value) + " is outside " +
                              std::to_string(entry->min) + ".." + std::to_string(entry->max) + "; not moved"));
@@ -363,7 +382,9 @@ class ServoStream final : public Stream {
   void on_close() override { stop_jog("the page went away"); }
 
  private:
-  static std::string error_json(std::string message) { return json{{"type", "error"}, {"message", std::move(message)}}.dump(); }
+  static std::string error_json(std::string message) {
+    return json{{"type", "error"}, {"message", std::move(message)}}.dump();
+  }
 
   void write(std::uint16_t address, std::int64_t value, std::string what, const Send& send) {
     const auto reg = static_cast<std::uint16_t>(static_cast<std::int16_t>(value));
@@ -377,14 +398,15 @@ class ServoStream final : public Stream {
 
   void write_jog_goal() {
     const auto* entry = jog_speed_ ? goal_speed_ : goal_position_;
-    services_.modbus(who_, unit_.unit_id,
-                     write_register_pdu(entry->address, static_cast<std::uint16_t>(static_cast<std::int16_t>(jog_value_))),
-                     [this, alive = alive_](ModbusAnswer answer) {
-                       if (!*alive || answer.ok() || !jog_) return;
-                       // Refused (e-stop, watchdog) or lost (a timeout): the move is over, and the
-                       // goal an earlier write set must not carry it on.
-                       stop_jog("the goal write failed: " + answer.message);
-                     });
+    services_.modbus(
+        who_, unit_.unit_id,
+        write_register_pdu(entry->address, static_cast<std::uint16_t>(static_cast<std::int16_t>(jog_value_))),
+        [this, alive = alive_](ModbusAnswer answer) {
+          if (!*alive || answer.ok() || !jog_) return;
+          // Refused (e-stop, watchdog) or lost (a timeout): the move is over, and the
+          // goal an earlier write set must not carry it on.
+          stop_jog("the goal write failed: " + answer.message);
+        });
   }
 
   // The servo's safe stop `hold` (units/safety, modbus_map/motion.h): speed moves get speed 0,
@@ -423,7 +445,8 @@ class ServoStream final : public Stream {
     services.modbus(who, unit_id, write_register_pdu(address, value),
                     [&services, who, unit_id, address, value, attempts](ModbusAnswer answer) {
                       if (answer.ok() || answer.exception == 0x04 || attempts <= 1) {
-                        if (!answer.ok()) spdlog::warn("console: the hold-to-run stop of unit {}: {}", unit_id, answer.message);
+                        if (!answer.ok())
+                          spdlog::warn("console: the hold-to-run stop of unit {}: {}", unit_id, answer.message);
                         return;
                       }
                       send_stop(services, who, unit_id, address, value, attempts - 1);
@@ -454,7 +477,8 @@ class ServoStream final : public Stream {
   Send send_;
 };
 
-Expected<std::unique_ptr<Stream>> make_servo_stream(Services& services, const PathParams& params, const Principal& who) {
+Expected<std::unique_ptr<Stream>> make_servo_stream(Services& services, const PathParams& params,
+                                                    const Principal& who) {
   const auto unit = servo_of(services, params);
   if (!unit) return unexpected(unit.error().body);
   return std::unique_ptr<Stream>(std::make_unique<ServoStream>(services, **unit, who));
@@ -508,7 +532,9 @@ std::string exception_text(std::uint8_t exception) {
     case 0x01: return "exception 0x01 (illegal function): the role may not make this request";
     case 0x02: return "exception 0x02 (illegal data address): not writable here, or not with this role";
     case 0x03: return "exception 0x03 (illegal data value): the value is out of range";
-    case 0x04: return "exception 0x04 (server device failure): motion is blocked (e-stop latched or watchdog tripped), or the servo refused";
+    case 0x04:
+      return "exception 0x04 (server device failure): motion is blocked (e-stop latched or watchdog tripped), or the "
+             "servo refused";
     case 0x06: return "exception 0x06 (busy): the bus queue is full, try again";
     case 0x0A: return "exception 0x0A (gateway path unavailable): the bus is down";
     case 0x0B: return "exception 0x0B (target failed to respond): the servo did not answer";

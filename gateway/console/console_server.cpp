@@ -10,6 +10,7 @@
 #include <stdexcept>
 #include <thread>
 
+#include <spdlog/spdlog.h>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/asio/post.hpp>
@@ -20,7 +21,6 @@
 #include <boost/beast/ssl.hpp>
 #include <boost/beast/websocket.hpp>
 #include <boost/beast/websocket/ssl.hpp>
-#include <spdlog/spdlog.h>
 
 #include "gateway/console/console_commission.h"
 #include "gateway/console/console_routes.h"
@@ -192,7 +192,8 @@ class ConsoleServer::Impl final : public Services {
 
   std::uint16_t port() const { return port_; }
   std::string url() const {
-    return std::string(settings_.tls ? "https" : "http") + "://" + config::HostPort{settings_.listen.host, port_}.to_string() + "/";
+    return std::string(settings_.tls ? "https" : "http") + "://" +
+           config::HostPort{settings_.listen.host, port_}.to_string() + "/";
   }
 
   // --- Services -------------------------------------------------------------------------------
@@ -252,7 +253,8 @@ class ConsoleServer::Impl final : public Services {
   Identity identify(const http::request<http::string_body>& request, const Peer& peer) {
     Identity identity;
     if (const auto header = request.find(http::field::cookie); header != request.end()) {
-      if (const auto token = cookie_value(view(header->value()), kCookieName)) identity.session = sessions_.find(*token);
+      if (const auto token = cookie_value(view(header->value()), kCookieName))
+        identity.session = sessions_.find(*token);
     }
     if (identity.session) {
       identity.who = identity.session->who;
@@ -285,8 +287,9 @@ class ConsoleServer::Impl final : public Services {
       found.params = std::move(params);
       return found;
     }
-    found.refusal = path_known ? HttpAnswer::error(405, "method " + printable(method) + " is not used on " + printable(path))
-                               : HttpAnswer::error(404, "no page " + printable(path) + " here; the overview is at /");
+    found.refusal = path_known
+                        ? HttpAnswer::error(405, "method " + printable(method) + " is not used on " + printable(path))
+                        : HttpAnswer::error(404, "no page " + printable(path) + " here; the overview is at /");
     return found;
   }
 
@@ -296,22 +299,24 @@ class ConsoleServer::Impl final : public Services {
     if (!role_allows(identity.who.role, route.need)) {
       if (identity.who.role == config::Role::None) {
         if (route.kind == RouteKind::Page) {
-          HttpAnswer answer{303, "text/plain; charset=utf-8", "log in first\n", {{"Location", "/login?next=" + std::string(path)}}};
+          HttpAnswer answer{
+              303, "text/plain; charset=utf-8", "log in first\n", {{"Location", "/login?next=" + std::string(path)}}};
           return answer;
         }
         return HttpAnswer::json(401, {{"error", "log in first"}, {"login", true}});
       }
-      return HttpAnswer::error(403, std::string(route.pattern) + " needs the " + std::string(config::to_string(route.need)) +
-                                        " role; " + identity.who.name + " has " +
-                                        std::string(config::to_string(identity.who.role)) + "; nothing done");
+      return HttpAnswer::error(403, std::string(route.pattern) + " needs the " +
+                                        std::string(config::to_string(route.need)) + " role; " + identity.who.name +
+                                        " has " + std::string(config::to_string(identity.who.role)) + "; nothing done");
     }
     if (route.method == "POST" && route.csrf) {
       const auto header = request.find("X-CSRF-Token");
       const std::string_view token = header == request.end() ? std::string_view() : view(header->value());
       if (!identity.session || !same_token(token, identity.session->csrf)) {
-        return HttpAnswer::error(403, token.empty() ? "missing CSRF token (X-CSRF-Token); nothing done"
-                                                    : "stale CSRF token (a new login or a gateway restart replaced it): "
-                                                      "reload the page; nothing done");
+        return HttpAnswer::error(403, token.empty()
+                                          ? "missing CSRF token (X-CSRF-Token); nothing done"
+                                          : "stale CSRF token (a new login or a gateway restart replaced it): "
+                                            "reload the page; nothing done");
       }
     }
     return std::nullopt;
@@ -322,16 +327,19 @@ class ConsoleServer::Impl final : public Services {
     if (name.empty()) name = params.get("file").value_or("");
     if (name == "chart.js") {
       if (chart_js_.empty()) {
-        return HttpAnswer{503, "text/plain; charset=utf-8", "Chart.js is not installed: apt install libjs-chart.js\n", {}};
+        return HttpAnswer{
+            503, "text/plain; charset=utf-8", "Chart.js is not installed: apt install libjs-chart.js\n", {}};
       }
       return HttpAnswer{200, "text/javascript; charset=utf-8", chart_js_, {{"Cache-Control", "max-age=3600"}}};
     }
     const WebAsset* asset = find_web_asset(name);
     if (asset == nullptr) return HttpAnswer::error(404, "no file " + printable(name) + " here");
-    return HttpAnswer{200, std::string(asset->content_type), std::string(asset->bytes), {{"Cache-Control", "no-cache"}}};
+    return HttpAnswer{
+        200, std::string(asset->content_type), std::string(asset->bytes), {{"Cache-Control", "no-cache"}}};
   }
 
-  void handle_http(const http::request<http::string_body>& request, const Peer& peer, std::function<void(HttpAnswer)> done) {
+  void handle_http(const http::request<http::string_body>& request, const Peer& peer,
+                   std::function<void(HttpAnswer)> done) {
     const std::string_view target = view(request.target());
     Match found = match(view(request.method_string()), target);
     if (!found.route) return done(std::move(*found.refusal));
@@ -362,7 +370,8 @@ class ConsoleServer::Impl final : public Services {
     if (!found.route) return unexpected(std::move(*found.refusal));
     if (found.route->kind != RouteKind::Socket) return unexpected(HttpAnswer::error(400, "not a WebSocket URL"));
     Identity identity = identify(request, peer);
-    if (auto refused = refusal(*found.route, identity, request, path_of(target))) return unexpected(std::move(*refused));
+    if (auto refused = refusal(*found.route, identity, request, path_of(target)))
+      return unexpected(std::move(*refused));
     // Another site's page may open a WebSocket here with the user's cookie: the origin must be
     // this server and the URL must carry the session's CSRF token.
     if (const auto origin = request.find(http::field::origin); origin != request.end()) {
@@ -531,11 +540,12 @@ class WebSocketSession final : public Socket, public std::enable_shared_from_thi
 
   void write() {
     ws_.text(true);
-    ws_.async_write(asio::buffer(queue_.front()), [self = this->shared_from_this()](const beast::error_code& error, std::size_t) {
-      if (error) return self->finish();
-      self->queue_.pop_front();
-      if (!self->queue_.empty()) self->write();
-    });
+    ws_.async_write(asio::buffer(queue_.front()),
+                    [self = this->shared_from_this()](const beast::error_code& error, std::size_t) {
+                      if (error) return self->finish();
+                      self->queue_.pop_front();
+                      if (!self->queue_.empty()) self->write();
+                    });
   }
 
   // The page is gone (or the server stops): the stream hears it once (a hold-to-run move stops).
@@ -569,14 +579,15 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
   void start() {
     if constexpr (std::is_same_v<Transport, beast::ssl_stream<beast::tcp_stream>>) {
       beast::get_lowest_layer(transport_).expires_after(server_.limits().request_timeout);
-      transport_.async_handshake(ssl::stream_base::server, [self = this->shared_from_this()](const beast::error_code& error) {
-        if (error) {
-          spdlog::debug("console: TLS handshake with {} failed: {}", self->peer_.address, error.message());
-          return self->close();
-        }
-        self->peer_.certificate = self->server_.certificate_principal(self->transport_.native_handle());
-        self->read();
-      });
+      transport_.async_handshake(
+          ssl::stream_base::server, [self = this->shared_from_this()](const beast::error_code& error) {
+            if (error) {
+              spdlog::debug("console: TLS handshake with {} failed: {}", self->peer_.address, error.message());
+              return self->close();
+            }
+            self->peer_.certificate = self->server_.certificate_principal(self->transport_.native_handle());
+            self->read();
+          });
     } else {
       read();
     }
@@ -594,9 +605,9 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
     parser_->header_limit(static_cast<std::uint32_t>(server_.limits().max_header_bytes));
     parser_->body_limit(server_.limits().max_body_bytes);
     beast::get_lowest_layer(transport_).expires_after(server_.limits().request_timeout);
-    http::async_read(transport_, buffer_, *parser_, [self = this->shared_from_this()](const beast::error_code& error, std::size_t) {
-      self->on_read(error);
-    });
+    http::async_read(
+        transport_, buffer_, *parser_,
+        [self = this->shared_from_this()](const beast::error_code& error, std::size_t) { self->on_read(error); });
   }
 
   void on_read(const beast::error_code& error) {
@@ -617,10 +628,11 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
     const unsigned version = request.version();
     const bool head = request.method() == http::verb::head;
     if (head) request.method(http::verb::get);
-    server_.handle_http(request, peer_, [self = this->shared_from_this(), keep_alive, version, head](HttpAnswer answer) {
-      if (head) answer.body.clear();
-      self->write(std::move(answer), keep_alive, version);
-    });
+    server_.handle_http(request, peer_,
+                        [self = this->shared_from_this(), keep_alive, version, head](HttpAnswer answer) {
+                          if (head) answer.body.clear();
+                          self->write(std::move(answer), keep_alive, version);
+                        });
   }
 
   void write(HttpAnswer answer, bool keep_alive, unsigned version) {
@@ -640,11 +652,12 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
     response_->body() = std::move(answer.body);
     response_->prepare_payload();
     beast::get_lowest_layer(transport_).expires_after(server_.limits().request_timeout);
-    http::async_write(transport_, *response_, [self = this->shared_from_this(), keep_alive](const beast::error_code& error, std::size_t) {
-      self->response_.reset();
-      if (error || !keep_alive) return self->close();
-      self->read();
-    });
+    http::async_write(transport_, *response_,
+                      [self = this->shared_from_this(), keep_alive](const beast::error_code& error, std::size_t) {
+                        self->response_.reset();
+                        if (error || !keep_alive) return self->close();
+                        self->read();
+                      });
   }
 
   Transport transport_;
@@ -679,7 +692,8 @@ void ConsoleServer::Impl::accept() {
           beast::ssl_stream<beast::tcp_stream>(beast::tcp_stream(std::move(socket)), *ssl_), *this, std::move(peer))
           ->start();
     } else {
-      std::make_shared<HttpSession<beast::tcp_stream>>(beast::tcp_stream(std::move(socket)), *this, std::move(peer))->start();
+      std::make_shared<HttpSession<beast::tcp_stream>>(beast::tcp_stream(std::move(socket)), *this, std::move(peer))
+          ->start();
     }
     accept();
   });

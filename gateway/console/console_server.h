@@ -27,9 +27,9 @@ namespace sms::gateway::console {
 // What the console needs of the running gateway; everything must outlive the server.
 struct ConsoleBackend {
   const config::Config* config = nullptr;
-  const UnitRouter* units = nullptr;    // servo units: register maps, engines (immutable after start)
-  RequestHandler* router = nullptr;     // called on the gateway's io thread only
-  PostFn post_to_router;                // runs work on that thread
+  const UnitRouter* units = nullptr;         // servo units: register maps, engines (immutable after start)
+  RequestHandler* router = nullptr;          // called on the gateway's io thread only
+  PostFn post_to_router;                     // runs work on that thread
   std::function<MetricsSnapshot()> metrics;  // any thread (as /metrics calls it)
 };
 

@@ -12,8 +12,8 @@ namespace sms::gateway::console {
 
 namespace {
 
-using nlohmann::json;
 using modbus_map::RegisterEntry;
+using nlohmann::json;
 
 // The input window FC04 serves for the unit (native: the poll block; smsmb profile: 0x100-0x107).
 modbus_map::BusRange input_window(const ServoUnit& unit) {
@@ -96,7 +96,8 @@ std::optional<PolledValues> read_polled(const ServoUnit& unit) {
   if (!registers) return polled;
   for (const auto& entry : unit.map.entries()) {
     if (!entry.readable || entry.address < window.address || entry.address >= window.address + window.count) continue;
-    if (entry.shown->bit_space == modbus_map::BitSpace::Coil && entry.shown->access == modbus_map::Access::WriteOnly) continue;
+    if (entry.shown->bit_space == modbus_map::BitSpace::Coil && entry.shown->access == modbus_map::Access::WriteOnly)
+      continue;
     polled.values.emplace_back(&entry, register_to_value(entry, (*registers)[entry.address - window.address]));
   }
   return polled;
@@ -113,10 +114,11 @@ std::vector<std::string> status_faults(modbus_map::TableId table, std::uint8_t s
     for (const auto& bit : bits) mask |= bit.mask;
     return mask;
   }();
-  if (status & ~known) names.push_back("bits 0x" + [](unsigned v) {
-    constexpr char kHex[] = "0123456789abcdef";
-    return std::string{kHex[v >> 4], kHex[v & 15]};
-  }(status & ~known));
+  if (status & ~known)
+    names.push_back("bits 0x" + [](unsigned v) {
+      constexpr char kHex[] = "0123456789abcdef";
+      return std::string{kHex[v >> 4], kHex[v & 15]};
+    }(status & ~known));
   return names;
 }
 
@@ -150,7 +152,7 @@ std::uint64_t poll_wire_floor_us(const config::Config& config, std::size_t bus_i
     if (bus.protocol == protocol::BusProtocol::ModbusRtu) {
       bytes += 8 + 5 + data;  // FC03 request, answer
     } else {
-      bytes += 6 + data;      // each servo's answer: FF FF ID LEN ERR data CHK
+      bytes += 6 + data;                                       // each servo's answer: FF FF ID LEN ERR data CHK
       if (!unit->map.servo_table().has_sync_read) bytes += 8;  // one READ each
     }
   }
@@ -165,8 +167,9 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
       {"connections", metrics.tcp.open_connections},
       {"estop", {{"latched", metrics.estop_latched}, {"count", metrics.estops}}},
       {"tls", metrics.tls ? json{{"listen", config.modbus_tcp.tls->listen.to_string()}} : json(nullptr)},
-      {"mqtt", metrics.mqtt ? json{{"connected", metrics.mqtt->link.connected}, {"broker", config.mqtt->broker.to_string()}}
-                            : json(nullptr)},
+      {"mqtt", metrics.mqtt
+                   ? json{{"connected", metrics.mqtt->link.connected}, {"broker", config.mqtt->broker.to_string()}}
+                   : json(nullptr)},
   };
   json buses = json::array();
   json servos = json::array();
@@ -217,8 +220,8 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
       row["online"] = polled->online;
       row["status"] = polled->status;
       row["faults"] = status_faults(unit->map.servo_table().id, polled->status);
-      for (const char* field : {"present_position", "present_temperature", "present_voltage", "present_load",
-                                "present_current"}) {
+      for (const char* field :
+           {"present_position", "present_temperature", "present_voltage", "present_load", "present_current"}) {
         if (const auto value = polled->value_of(field)) row[std::string(field).substr(8)] = *value;
       }
     }
@@ -230,9 +233,8 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
 json servo_description_json(const config::Config& config, const ServoUnit& unit) {
   const config::ServoConfig* servo = config::find_unit(config, unit.unit_id);
   json fields = json::array();
-  const modbus_map::BusRange window = unit.map.profile() == modbus_map::Profile::Smsmb
-                                          ? modbus_map::kSmsmbFeedbackRegisters
-                                          : unit.poll_block;
+  const modbus_map::BusRange window =
+      unit.map.profile() == modbus_map::Profile::Smsmb ? modbus_map::kSmsmbFeedbackRegisters : unit.poll_block;
   for (const auto& entry : unit.map.entries()) {
     const auto& field = *entry.shown;
     const bool eeprom = entry.counterpart != nullptr && entry.counterpart->area == modbus_map::Area::Eeprom;

@@ -36,7 +36,8 @@ std::vector<std::string> status_faults(modbus_map::TableId table, std::uint8_t s
 // The entry of a shown field by name, or nullptr.
 const modbus_map::RegisterEntry* entry_named(const modbus_map::RegisterMap& map, std::string_view field);
 // The entry whose servo field is `servo_field` (motion spec names), or nullptr.
-const modbus_map::RegisterEntry* entry_for_servo_field(const modbus_map::RegisterMap& map, std::string_view servo_field);
+const modbus_map::RegisterEntry* entry_for_servo_field(const modbus_map::RegisterMap& map,
+                                                       std::string_view servo_field);
 // Fields only the Commissioning tools change (the servo leaves the bus when they change).
 bool commissioning_only(std::string_view field);
 

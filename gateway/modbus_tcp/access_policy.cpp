@@ -84,12 +84,9 @@ std::string AccessPolicy::describe() const {
 
 std::optional<Fault> read_only_refusal(std::uint8_t function) {
   switch (function_effect(function)) {
-    case FunctionEffect::Reads:
-      return std::nullopt;
-    case FunctionEffect::Writes:
-      return Fault::BadAddress;
-    case FunctionEffect::Unknown:
-      break;
+    case FunctionEffect::Reads: return std::nullopt;
+    case FunctionEffect::Writes: return Fault::BadAddress;
+    case FunctionEffect::Unknown: break;
   }
   return Fault::UnsupportedFunction;
 }

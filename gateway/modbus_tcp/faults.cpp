@@ -13,7 +13,8 @@ namespace code = protocol::tcp::exception_code;
 
 constexpr std::array kFaults{
     FaultSpec{Fault::UnsupportedFunction, code::kIllegalFunction, "function code not supported"},
-    FaultSpec{Fault::BadAddress, code::kIllegalDataAddress, "address not served (no field, read-only, beyond the table)"},
+    FaultSpec{Fault::BadAddress, code::kIllegalDataAddress,
+              "address not served (no field, read-only, beyond the table)"},
     FaultSpec{Fault::QuantityOverLimit, code::kIllegalDataAddress, "quantity outside the Modbus limits"},
     FaultSpec{Fault::BadValue, code::kIllegalDataValue, "value outside the field's range"},
     FaultSpec{Fault::MalformedRequest, code::kIllegalDataValue, "request PDU malformed for its function"},

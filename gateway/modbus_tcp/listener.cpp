@@ -18,7 +18,8 @@ std::string advice_for(const boost::system::error_code& error, const std::string
   }
   if (error == asio::error::access_denied) {
     return "; ports below 1024 need root or CAP_NET_BIND_SERVICE: run with that capability, or use a port above 1023 "
-           "(e.g. " + host + ":" + std::to_string(role.unprivileged_port) + ")";
+           "(e.g. " +
+           host + ":" + std::to_string(role.unprivileged_port) + ")";
   }
   if (error == boost::system::errc::address_not_available) {
     return "; no network interface of this machine has that address: use 0.0.0.0 (every interface), 127.0.0.1, or an "

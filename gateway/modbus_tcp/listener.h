@@ -2,7 +2,8 @@
 // Opening a TCP listening socket with an error that says what to do: shared by the Modbus TCP
 // server and the metrics endpoint (internal to gateway/; Asio in the header is fine here).
 //
-//   open_listener(acceptor, "127.0.0.1", 502, {"listen for Modbus TCP", "--listen HOST:PORT or modbus_tcp.listen", 5020});
+//   open_listener(acceptor, "127.0.0.1", 502, {"listen for Modbus TCP", "--listen HOST:PORT or modbus_tcp.listen",
+//   5020});
 #include <cstdint>
 #include <string>
 #include <string_view>
@@ -13,8 +14,8 @@ namespace sms::gateway {
 
 // Who listens, for the error text.
 struct ListenerRole {
-  std::string_view action;        // "listen for Modbus TCP", "serve metrics"
-  std::string_view setting;       // where the address is set: "--listen HOST:PORT or modbus_tcp.listen"
+  std::string_view action;          // "listen for Modbus TCP", "serve metrics"
+  std::string_view setting;         // where the address is set: "--listen HOST:PORT or modbus_tcp.listen"
   std::uint16_t unprivileged_port;  // a port to suggest when one below 1024 is refused
 };
 

@@ -1,7 +1,7 @@
 #include "gateway/modbus_tcp/mbap_session.h"
 
-#include <boost/asio/write.hpp>
 #include <spdlog/spdlog.h>
+#include <boost/asio/write.hpp>
 
 #include "gateway/modbus_tcp/tls.h"
 
@@ -37,10 +37,9 @@ void MbapSession<Stream>::start() {
     arm_idle_timer(std::chrono::steady_clock::now() + host_->tls()->settings().handshake_timeout);
     // The handshake starts once the client's first bytes are there: until then the connection
     // is silent() without doubt (no bytes sitting unseen in a read buffer of the TLS stream).
-    socket().async_wait(boost::asio::socket_base::wait_read,
-                        [self = this->shared_from_this()](const boost::system::error_code&) {
-                          self->start_handshake();
-                        });
+    socket().async_wait(
+        boost::asio::socket_base::wait_read,
+        [self = this->shared_from_this()](const boost::system::error_code&) { self->start_handshake(); });
   } else {
     handler_ = &host_->handler();
     begin_serving();
@@ -52,10 +51,9 @@ void MbapSession<Stream>::start_handshake() {
   if constexpr (kTls) {
     if (closed_) return;
     client_spoke_ = true;  // or its connection failed: the handshake says which
-    stream_.async_handshake(boost::asio::ssl::stream_base::server,
-                            [self = this->shared_from_this()](const boost::system::error_code& error) {
-                              self->on_handshake(error);
-                            });
+    stream_.async_handshake(
+        boost::asio::ssl::stream_base::server,
+        [self = this->shared_from_this()](const boost::system::error_code& error) { self->on_handshake(error); });
   }
 }
 
@@ -175,7 +173,7 @@ void MbapSession<Stream>::deliver(std::uint64_t request_serial, Bytes response_p
     return;
   }
   if (!in_flight_ || in_flight_->serial != request_serial) return;  // answered already
-  if (!response_pdu.empty()) {  // empty: Reply::finish_without_answer()
+  if (!response_pdu.empty()) {                                      // empty: Reply::finish_without_answer()
     host_->count_response(response_pdu);
     const Bytes adu = protocol::tcp::encode_mbap(in_flight_->transaction_id, in_flight_->unit_id, response_pdu);
     outbox_.insert(outbox_.end(), adu.begin(), adu.end());
@@ -251,9 +249,8 @@ void MbapSession<Stream>::close() {
 template <typename Stream>
 void MbapSession<Stream>::arm_idle_timer(std::chrono::steady_clock::time_point deadline) {
   idle_timer_.expires_at(deadline);
-  idle_timer_.async_wait([self = this->shared_from_this()](const boost::system::error_code& error) {
-    self->on_idle_timer(error);
-  });
+  idle_timer_.async_wait(
+      [self = this->shared_from_this()](const boost::system::error_code& error) { self->on_idle_timer(error); });
 }
 
 template <typename Stream>

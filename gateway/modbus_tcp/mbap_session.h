@@ -2,9 +2,9 @@
 // One Modbus TCP connection (internal to the TCP server; tests drive it through TcpServer).
 // Plain connections are MbapSession<tcp::socket>; Modbus/TCP Security connections are
 // MbapSession<ssl::stream<tcp::socket>>, which first completes the TLS handshake (within
-// modbus_tcp.tls.handshake_timeout_ms) and asks the server's TlsService for the connection's handler (a RoleGate in front of
-// the router), then runs exactly as a plain one. The session owns its socket, read buffer and MBAP decoder and keeps itself alive with
-// shared_from_this() in every pending handler, as the classic Asio server examples do.
+// modbus_tcp.tls.handshake_timeout_ms) and asks the server's TlsService for the connection's handler (a RoleGate in
+// front of the router), then runs exactly as a plain one. The session owns its socket, read buffer and MBAP decoder and
+// keeps itself alive with shared_from_this() in every pending handler, as the classic Asio server examples do.
 //
 //   read -> MbapDecoder -> pending requests -> handler (one at a time) -> outbox -> write
 //
@@ -111,11 +111,11 @@ class MbapSession final : public Session,
   boost::asio::steady_timer idle_timer_;
   std::shared_ptr<SessionHost> host_;
   std::string peer_;
-  RequestHandler* handler_ = nullptr;                 // the host's, or own_handler_ (TLS)
+  RequestHandler* handler_ = nullptr;  // the host's, or own_handler_ (TLS)
   std::unique_ptr<RequestHandler> own_handler_;
   bool handshaking_ = false;
   bool client_spoke_ = false;  // TLS: the client's first bytes came (or its connection failed)
-  bool admitted_ = false;  // TLS: counted open by the TlsService
+  bool admitted_ = false;      // TLS: counted open by the TlsService
 
   std::array<std::uint8_t, 4096> read_buffer_{};
   protocol::tcp::MbapDecoder decoder_;

@@ -90,7 +90,8 @@ Expected<Request, Fault> parse_read_write_registers(std::uint8_t /*function*/, s
     return unexpected(Fault::QuantityOverLimit);
   }
   const std::size_t byte_count = body[8];
-  if (byte_count != std::size_t{2} * write_count || body.size() != 9 + byte_count) return unexpected(Fault::MalformedRequest);
+  if (byte_count != std::size_t{2} * write_count || body.size() != 9 + byte_count)
+    return unexpected(Fault::MalformedRequest);
   WriteRegistersRequest write{fc::kReadWriteMultipleRegisters, write_address,
                               registers_from(body.subspan(9), write_count)};
   return Request{ReadWriteRegistersRequest{read, std::move(write)}};

@@ -63,7 +63,7 @@ std::uint8_t function_of(const Request& request);
 Bytes request_pdu(const Request& request);
 
 // Response PDUs.
-Bytes bits_response(std::uint8_t function, const std::vector<bool>& values);  // 01 02
+Bytes bits_response(std::uint8_t function, const std::vector<bool>& values);             // 01 02
 Bytes registers_response(std::uint8_t function, std::span<const std::uint16_t> values);  // 03 04 23
 // 05 06 echo the request; 15 16 answer address and quantity.
 Bytes write_response(const WriteBitsRequest& request);

@@ -32,7 +32,9 @@ class Reply {
   Reply(std::shared_ptr<Target> target, std::uint64_t request_serial,
         std::shared_ptr<const std::string> origin = nullptr)
       : target_(std::move(target)), request_serial_(request_serial), origin_(std::move(origin)) {}
-  std::string_view origin() const { return origin_ ? std::string_view(*origin_) : std::string_view("a Modbus TCP client"); }
+  std::string_view origin() const {
+    return origin_ ? std::string_view(*origin_) : std::string_view("a Modbus TCP client");
+  }
   const std::shared_ptr<const std::string>& origin_text() const { return origin_; }
   void send(Bytes response_pdu) const { target_->deliver(request_serial_, std::move(response_pdu)); }
   // The request is done and gets no answer (a broadcast, as Modbus TCP gateways answer them by

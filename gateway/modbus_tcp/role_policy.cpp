@@ -29,10 +29,8 @@ bool standard_write(std::uint8_t function) {
     case 0x0F:
     case 0x10:
     case 0x16:
-    case 0x17:
-      return true;
-    default:
-      return false;
+    case 0x17: return true;
+    default: return false;
   }
 }
 
@@ -73,15 +71,12 @@ std::optional<RoleRefusal> RolePolicy::refusal(Role role, std::uint8_t unit_id,
   const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
   const FunctionEffect effect = function_effect(function);
   switch (role) {
-    case Role::Engineer:
-      return std::nullopt;
-    case Role::None:
-      return RoleRefusal{Fault::UnsupportedFunction, "the connection has no role"};
+    case Role::Engineer: return std::nullopt;
+    case Role::None: return RoleRefusal{Fault::UnsupportedFunction, "the connection has no role"};
     case Role::Read:
       if (effect == FunctionEffect::Reads) return std::nullopt;
       return RoleRefusal{Fault::UnsupportedFunction, "role read may only read"};
-    case Role::Operate:
-      break;
+    case Role::Operate: break;
   }
   if (effect == FunctionEffect::Reads) return std::nullopt;
   if (effect == FunctionEffect::Unknown) {
@@ -111,9 +106,8 @@ std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const Unit& unit, std
 
   const modbus_map::TableSpec& table = unit.map.servo_table();
   const std::size_t per_address = unit.map.bytes_per_bus_address();
-  const modbus_map::ByteOrder order = table.addressing == modbus_map::Addressing::Register
-                                          ? modbus_map::ByteOrder::HighFirst
-                                          : unit.map.byte_order();
+  const modbus_map::ByteOrder order =
+      table.addressing == modbus_map::Addressing::Register ? modbus_map::ByteOrder::HighFirst : unit.map.byte_order();
   for (const auto& write : (**plan).writes) {
     const std::size_t count = write.data.size() / per_address;
     std::set<const modbus_map::FieldSpec*> seen;
@@ -121,17 +115,18 @@ std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const Unit& unit, std
       const auto* field = modbus_map::field_covering(table, static_cast<std::uint16_t>(write.address + i));
       if (field == nullptr || !seen.insert(field).second) continue;
       if (engineer_only_field(*field)) {
-        return RoleRefusal{Fault::BadAddress, "writes " +
-                                                  std::string(field->area == modbus_map::Area::Eeprom ? "EEPROM " : "") +
-                                                  "field " + field_text(*field) + ", which needs role engineer"};
+        return RoleRefusal{Fault::BadAddress,
+                           "writes " + std::string(field->area == modbus_map::Area::Eeprom ? "EEPROM " : "") +
+                               "field " + field_text(*field) + ", which needs role engineer"};
       }
       if (!is_torque_switch(*field) || field->addr < write.address) continue;
       const std::size_t offset = static_cast<std::size_t>(field->addr - write.address) * per_address;
       if (offset + field->size > write.data.size()) continue;
-      const auto raw = modbus_map::load_raw(std::span<const std::uint8_t>(write.data).subspan(offset), field->size, order);
+      const auto raw =
+          modbus_map::load_raw(std::span<const std::uint8_t>(write.data).subspan(offset), field->size, order);
       if (raw == static_cast<std::uint32_t>(modbus_map::kCalibrateTorqueValue)) {
-        return RoleRefusal{Fault::BadAddress, "mid-point calibration (" + field_text(*field) +
-                                                  " := 128) needs role engineer"};
+        return RoleRefusal{Fault::BadAddress,
+                           "mid-point calibration (" + field_text(*field) + " := 128) needs role engineer"};
       }
     }
   }

@@ -8,17 +8,17 @@
 #include <set>
 #include <stdexcept>
 
+#include <spdlog/spdlog.h>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
-#include <spdlog/spdlog.h>
 
 #include "gateway/modbus_tcp/access_policy.h"
 #include "gateway/modbus_tcp/listener.h"
 #include "gateway/modbus_tcp/mbap_session.h"
-#include "gateway/modbus_tcp/traffic_counters.h"
 #include "gateway/modbus_tcp/tls.h"
+#include "gateway/modbus_tcp/traffic_counters.h"
 
 namespace sms::gateway {
 
@@ -41,13 +41,13 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
                     {"listen for Modbus/TCP Security", "modbus_tcp.tls.listen in the configuration", 8020});
       port_ = acceptor_.local_endpoint().port();
       const config::TlsConfig& tls = options_.tls->settings();
-      spdlog::info("modbus tcp security: listening on {}:{} (TLS 1.2/1.3, client certificates of CA {} required; at "
-                   "most {} connections served, idle timeout {}; at most {} handshakes at once, {} per client "
-                   "address, each within {}; clients allowed: {})",
-                   options_.host, port_, tls.ca, options_.max_connections,
-                   options_.idle_timeout.count() > 0 ? duration_text(options_.idle_timeout) : std::string("off"),
-                   tls.max_handshakes, tls.max_handshakes_per_address, duration_text(tls.handshake_timeout),
-                   access_.describe());
+      spdlog::info(
+          "modbus tcp security: listening on {}:{} (TLS 1.2/1.3, client certificates of CA {} required; at "
+          "most {} connections served, idle timeout {}; at most {} handshakes at once, {} per client "
+          "address, each within {}; clients allowed: {})",
+          options_.host, port_, tls.ca, options_.max_connections,
+          options_.idle_timeout.count() > 0 ? duration_text(options_.idle_timeout) : std::string("off"),
+          tls.max_handshakes, tls.max_handshakes_per_address, duration_text(tls.handshake_timeout), access_.describe());
       accept();
       return;
     }
@@ -183,9 +183,10 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
     }
     // Logged once per episode: a client retrying in a loop must not flood the log.
     if (!refusal_logged_) {
-      spdlog::warn("{}: refusing connection from {}: {} connections {}, the limit (modbus_tcp.max_connections); "
-                   "further refusals are counted, not logged",
-                   log_prefix(), client, options_.max_connections, options_.tls != nullptr ? "served" : "open");
+      spdlog::warn(
+          "{}: refusing connection from {}: {} connections {}, the limit (modbus_tcp.max_connections); "
+          "further refusals are counted, not logged",
+          log_prefix(), client, options_.max_connections, options_.tls != nullptr ? "served" : "open");
       refusal_logged_ = true;
     }
   }
@@ -228,10 +229,10 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
     const auto now = std::chrono::steady_clock::now();
     // Once per 10 s at most: this is what a flood of connections looks like.
     if (now - eviction_logged_at_ >= kEvictionLogInterval) {
-      spdlog::warn("modbus tcp security: closing {} in the TLS handshake{} to make room for a new connection from {} "
-                   "({} reached) [evicted]; {} such closing(s) since the last line",
-                   session->peer(), oldest_silent != nullptr ? " (silent so far)" : "", address, limit,
-                   evictions_unlogged_);
+      spdlog::warn(
+          "modbus tcp security: closing {} in the TLS handshake{} to make room for a new connection from {} "
+          "({} reached) [evicted]; {} such closing(s) since the last line",
+          session->peer(), oldest_silent != nullptr ? " (silent so far)" : "", address, limit, evictions_unlogged_);
       eviction_logged_at_ = now;
       evictions_unlogged_ = 0;
     }
@@ -279,9 +280,10 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
     // Each address is logged once (a client retrying in a loop must not flood the log); the
     // set is bounded so a scan of many addresses cannot grow it without limit.
     if (denial_logged_.size() < kMaxDenialsLogged && denial_logged_.insert(address).second) {
-      spdlog::warn("modbus tcp: refusing connection from {}: not in modbus_tcp.allow ({}); further refusals of this "
-                   "address are counted, not logged",
-                   address, access_.describe());
+      spdlog::warn(
+          "modbus tcp: refusing connection from {}: not in modbus_tcp.allow ({}); further refusals of this "
+          "address are counted, not logged",
+          address, access_.describe());
     }
     socket.shutdown(tcp::socket::shutdown_both, ignored);
     socket.close(ignored);

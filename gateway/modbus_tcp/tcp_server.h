@@ -72,8 +72,8 @@ struct ConnectionRefusals {
 struct TcpServerStats {
   std::size_t open_connections = 0;  // TLS: handshakes in progress included
   std::uint64_t accepted = 0;
-  std::uint64_t refused = 0;     // over the connection limit
-  std::uint64_t denied = 0;      // not in the allow-list
+  std::uint64_t refused = 0;  // over the connection limit
+  std::uint64_t denied = 0;   // not in the allow-list
   std::uint64_t requests = 0;
   std::uint64_t bad_headers = 0;  // connections closed for an MBAP header that is not Modbus
   std::uint64_t idle_closed = 0;

@@ -17,9 +17,9 @@
 #include <fstream>
 #include <stdexcept>
 
+#include <spdlog/spdlog.h>
 #include <boost/asio/error.hpp>
 #include <boost/asio/ssl/error.hpp>
-#include <spdlog/spdlog.h>
 
 #include "gateway/modbus_tcp/modbus_request.h"
 
@@ -28,7 +28,6 @@ namespace {
 
 namespace ssl = boost::asio::ssl;
 using config::Role;
-
 
 std::string openssl_error_text() {
   std::string text;
@@ -79,33 +78,28 @@ std::string asn1_string_text(const ASN1_STRING* value) {
 void check_readable(std::string_view key, const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) {
-    throw std::runtime_error("modbus_tcp.tls." + std::string(key) + " " + path + ": cannot open: " +
-                             std::strerror(errno));
+    throw std::runtime_error("modbus_tcp.tls." + std::string(key) + " " + path +
+                             ": cannot open: " + std::strerror(errno));
   }
 }
 
 std::string_view result_of_verify_error(long code) {
   switch (code) {
-    case X509_V_ERR_CERT_HAS_EXPIRED:
-      return "expired";
-    case X509_V_ERR_CERT_NOT_YET_VALID:
-      return "not_yet_valid";
+    case X509_V_ERR_CERT_HAS_EXPIRED: return "expired";
+    case X509_V_ERR_CERT_NOT_YET_VALID: return "not_yet_valid";
     case X509_V_ERR_UNABLE_TO_GET_ISSUER_CERT:
     case X509_V_ERR_UNABLE_TO_GET_ISSUER_CERT_LOCALLY:
     case X509_V_ERR_UNABLE_TO_VERIFY_LEAF_SIGNATURE:
     case X509_V_ERR_SELF_SIGNED_CERT_IN_CHAIN:
-    case X509_V_ERR_DEPTH_ZERO_SELF_SIGNED_CERT:
-      return "unknown_ca";
-    default:
-      return "bad_certificate";
+    case X509_V_ERR_DEPTH_ZERO_SELF_SIGNED_CERT: return "unknown_ca";
+    default: return "bad_certificate";
   }
 }
 
 // What a failed handshake was, from OpenSSL's reason code.
 std::string_view result_of_ssl_reason(int reason) {
   switch (reason) {
-    case SSL_R_PEER_DID_NOT_RETURN_A_CERTIFICATE:
-      return "no_certificate";
+    case SSL_R_PEER_DID_NOT_RETURN_A_CERTIFICATE: return "no_certificate";
     case SSL_R_WRONG_VERSION_NUMBER:
     case SSL_R_HTTP_REQUEST:
     case SSL_R_HTTPS_PROXY_REQUEST:
@@ -114,16 +108,13 @@ std::string_view result_of_ssl_reason(int reason) {
     case SSL_R_UNEXPECTED_MESSAGE:
     case SSL_R_UNEXPECTED_RECORD:
     case SSL_R_LENGTH_MISMATCH:
-    case SSL_R_BAD_PACKET_LENGTH:
-      return "not_tls";
+    case SSL_R_BAD_PACKET_LENGTH: return "not_tls";
     case SSL_R_UNSUPPORTED_PROTOCOL:
     case SSL_R_NO_SHARED_CIPHER:
     case SSL_R_VERSION_TOO_LOW:
     case SSL_R_NO_PROTOCOLS_AVAILABLE:
-    case SSL_R_NO_SHARED_SIGNATURE_ALGORITHMS:
-      return "protocol";
-    default:
-      return "failed";
+    case SSL_R_NO_SHARED_SIGNATURE_ALGORITHMS: return "protocol";
+    default: return "failed";
   }
 }
 
@@ -131,16 +122,15 @@ std::string_view result_of_ssl_reason(int reason) {
 EVP_PKEY* read_private_key(const std::string& path) {
   BIO* file = BIO_new_file(path.c_str(), "r");
   if (file == nullptr) return nullptr;
-  EVP_PKEY* key = PEM_read_bio_PrivateKey(file, nullptr, [](char*, int, int, void*) { return 0; }, nullptr);
+  EVP_PKEY* key = PEM_read_bio_PrivateKey(
+      file, nullptr, [](char*, int, int, void*) { return 0; }, nullptr);
   BIO_free(file);
   return key;
 }
 
 // The certificate verification refused first, described for the log line of the refusal: the
 // peer's certificate is not kept by OpenSSL when its verification fails.
-void free_refused_text(void*, void* text, CRYPTO_EX_DATA*, int, long, void*) {
-  delete static_cast<std::string*>(text);
-}
+void free_refused_text(void*, void* text, CRYPTO_EX_DATA*, int, long, void*) { delete static_cast<std::string*>(text); }
 
 int refused_text_index() {
   static const int index = SSL_get_ex_new_index(0, nullptr, nullptr, nullptr, free_refused_text);
@@ -228,15 +218,14 @@ PeerCertificate read_certificate(X509* certificate) {
   const int cn = X509_NAME_get_index_by_NID(subject, NID_commonName, -1);
   if (cn >= 0) peer.common_name = asn1_string_text(X509_NAME_ENTRY_get_data(X509_NAME_get_entry(subject, cn)));
 
-  if (auto* names = static_cast<GENERAL_NAMES*>(X509_get_ext_d2i(certificate, NID_subject_alt_name, nullptr, nullptr))) {
+  if (auto* names =
+          static_cast<GENERAL_NAMES*>(X509_get_ext_d2i(certificate, NID_subject_alt_name, nullptr, nullptr))) {
     for (int i = 0; i < sk_GENERAL_NAME_num(names); ++i) {
       const GENERAL_NAME* name = sk_GENERAL_NAME_value(names, i);
       switch (name->type) {
         case GEN_DNS:
         case GEN_EMAIL:
-        case GEN_URI:
-          peer.alt_names.push_back(asn1_string_text(name->d.ia5));
-          break;
+        case GEN_URI: peer.alt_names.push_back(asn1_string_text(name->d.ia5)); break;
         case GEN_IPADD: {
           const ASN1_OCTET_STRING* ip = name->d.iPAddress;
           char text[64] = {};
@@ -246,8 +235,7 @@ PeerCertificate read_certificate(X509* certificate) {
           }
           break;
         }
-        default:
-          break;
+        default: break;
       }
     }
     GENERAL_NAMES_free(names);
@@ -301,8 +289,9 @@ RoleDecision role_for(const config::TlsConfig& settings, const PeerCertificate& 
                             "`, which is not read, operate, engineer nor in modbus_tcp.tls.role_names; no "
                             "modbus_tcp.tls.roles entry for its CN or subjectAltName, and no default_role"};
   }
-  return {Role::None, "no role extension, no modbus_tcp.tls.roles entry for its CN or subjectAltName, and no "
-                      "default_role"};
+  return {Role::None,
+          "no role extension, no modbus_tcp.tls.roles entry for its CN or subjectAltName, and no "
+          "default_role"};
 }
 
 std::shared_ptr<ssl::context> make_tls_context(const config::TlsConfig& settings) {
@@ -339,12 +328,12 @@ std::shared_ptr<ssl::context> make_tls_context(const config::TlsConfig& settings
   const bool used = SSL_CTX_use_PrivateKey(native, key) == 1;
   EVP_PKEY_free(key);
   if (!used) {
-    throw std::runtime_error("modbus_tcp.tls.private_key " + settings.private_key + ": cannot be used: " +
-                             openssl_error_text());
+    throw std::runtime_error("modbus_tcp.tls.private_key " + settings.private_key +
+                             ": cannot be used: " + openssl_error_text());
   }
   if (SSL_CTX_load_verify_locations(native, settings.ca.c_str(), nullptr) != 1) {
-    throw std::runtime_error("modbus_tcp.tls.ca " + settings.ca + ": no PEM CA certificate in it: " +
-                             openssl_error_text());
+    throw std::runtime_error("modbus_tcp.tls.ca " + settings.ca +
+                             ": no PEM CA certificate in it: " + openssl_error_text());
   }
   // Tells clients which CAs are accepted, so one with several certificates can pick.
   if (STACK_OF(X509_NAME)* names = SSL_load_client_CA_file(settings.ca.c_str())) {
@@ -438,9 +427,10 @@ void TlsService::handshake_failed(const boost::system::error_code& error, SSL* s
 
 void TlsService::handshake_timed_out(const std::string& peer) {
   count("timeout");
-  spdlog::warn("modbus tcp security: refused handshake from {}: no complete TLS handshake within {} "
-               "(modbus_tcp.tls.handshake_timeout_ms) [timeout]",
-               peer, duration_text(settings_.handshake_timeout));
+  spdlog::warn(
+      "modbus tcp security: refused handshake from {}: no complete TLS handshake within {} "
+      "(modbus_tcp.tls.handshake_timeout_ms) [timeout]",
+      peer, duration_text(settings_.handshake_timeout));
 }
 
 void TlsService::handshake_evicted() { count("evicted"); }

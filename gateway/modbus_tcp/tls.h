@@ -91,7 +91,7 @@ class TlsService {
   mutable std::mutex mutex_;
   std::shared_ptr<boost::asio::ssl::context> context_;
   std::string certificate_expiry_;  // "2034-05-01 12:00:00 GMT", for the log
-  TlsStats stats_;  // under mutex_
+  TlsStats stats_;                  // under mutex_
 };
 
 }  // namespace sms::gateway

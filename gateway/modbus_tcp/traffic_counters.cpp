@@ -19,7 +19,6 @@ void ModbusTrafficCounters::count_response(std::span<const std::uint8_t> pdu) {
   if (const auto code = protocol::tcp::exception_code_of(pdu)) exceptions_by_code_[*code].fetch_add(1, kRelaxed);
 }
 
-
 ModbusTrafficSnapshot ModbusTrafficCounters::snapshot() const {
   ModbusTrafficSnapshot snapshot;
   for (std::size_t i = 0; i < snapshot.requests_by_function.size(); ++i) {

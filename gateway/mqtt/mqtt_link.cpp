@@ -31,7 +31,8 @@ MqttLink::~MqttLink() { stop(); }
 void MqttLink::start() {
   std::call_once(library_once, [] { mosquitto_lib_init(); });
   client_ = mosquitto_new(options_.client_id.c_str(), /*clean_session=*/true, this);
-  if (client_ == nullptr) throw std::runtime_error("mqtt: cannot create the MQTT client: " + error_text(MOSQ_ERR_ERRNO));
+  if (client_ == nullptr)
+    throw std::runtime_error("mqtt: cannot create the MQTT client: " + error_text(MOSQ_ERR_ERRNO));
   // publish() is called from the io thread while run() drives the socket.
   mosquitto_threaded_set(client_, true);
   mosquitto_int_option(client_, MOSQ_OPT_PROTOCOL_VERSION, MQTT_PROTOCOL_V311);
@@ -42,9 +43,9 @@ void MqttLink::start() {
   }
   if (const auto& tls = options_.tls) {
     const bool with_certificate = !tls->certificate.empty();
-    const int rc = mosquitto_tls_set(client_, tls->ca.c_str(), nullptr,
-                                     with_certificate ? tls->certificate.c_str() : nullptr,
-                                     with_certificate ? tls->private_key.c_str() : nullptr, nullptr);
+    const int rc =
+        mosquitto_tls_set(client_, tls->ca.c_str(), nullptr, with_certificate ? tls->certificate.c_str() : nullptr,
+                          with_certificate ? tls->private_key.c_str() : nullptr, nullptr);
     if (rc != MOSQ_ERR_SUCCESS) {
       throw std::runtime_error("mqtt.tls: cannot use " + tls->ca +
                                (with_certificate ? ", " + tls->certificate + ", " + tls->private_key : std::string()) +
@@ -182,8 +183,8 @@ bool MqttLink::publish(const std::string& topic, std::span<const std::uint8_t> p
     ++publish_failures_;
     return false;
   }
-  const int rc = mosquitto_publish(client_, nullptr, topic.c_str(), static_cast<int>(payload.size()), payload.data(),
-                                   qos, retain);
+  const int rc =
+      mosquitto_publish(client_, nullptr, topic.c_str(), static_cast<int>(payload.size()), payload.data(), qos, retain);
   if (rc != MOSQ_ERR_SUCCESS) {
     ++publish_failures_;
     return false;
@@ -224,7 +225,7 @@ void MqttLink::stop(std::optional<MqttWill> last, std::chrono::milliseconds grac
 }
 
 MqttLinkStats MqttLink::stats() const {
-  return MqttLinkStats{connected_.load(), connects_.load(),  connect_failures_.load(), disconnects_.load(),
+  return MqttLinkStats{connected_.load(), connects_.load(),         connect_failures_.load(), disconnects_.load(),
                        published_.load(), publish_failures_.load(), received_.load()};
 }
 

@@ -34,13 +34,13 @@ namespace sms::gateway {
 struct MqttLinkOptions {
   config::HostPort broker;
   std::string client_id;
-  std::string username;                       // empty: none
-  std::string password;                       // with username
-  std::optional<config::MqttTlsConfig> tls;   // empty: plain TCP
+  std::string username;                      // empty: none
+  std::string password;                      // with username
+  std::optional<config::MqttTlsConfig> tls;  // empty: plain TCP
   std::chrono::seconds keepalive{30};
   std::chrono::milliseconds reconnect_min{500};
   std::chrono::milliseconds reconnect_max{30000};
-  std::vector<std::string> subscriptions;     // subscribed at QoS 1 after every connection
+  std::vector<std::string> subscriptions;  // subscribed at QoS 1 after every connection
 };
 
 struct MqttWill {
@@ -50,16 +50,15 @@ struct MqttWill {
   bool retain = false;
 };
 
-
 class MqttLink {
  public:
   struct Events {
-    std::function<MqttWill()> will;                             // before each connection attempt
+    std::function<MqttWill()> will;  // before each connection attempt
     // The attempt's CONNECT went out (the transport came up): at most once per attempt, before
     // `connected`. An attempt that never reached the broker (refused, unreachable, failed TLS
     // handshake) does not call it.
     std::function<void()> connect_sent;
-    std::function<void()> connected;                            // session up, subscriptions sent
+    std::function<void()> connected;                              // session up, subscriptions sent
     std::function<void(const std::string& reason)> disconnected;  // session lost
     std::function<void(std::string topic, protocol::Bytes payload)> message;
   };
@@ -97,7 +96,7 @@ class MqttLink {
   mosquitto* client_ = nullptr;
   std::thread thread_;
   std::atomic<bool> stopping_{false};
-  std::atomic<bool> closing_{false};  // stop() sent DISCONNECT: the session's end is not a loss
+  std::atomic<bool> closing_{false};     // stop() sent DISCONNECT: the session's end is not a loss
   std::atomic<bool> restarting_{false};  // reconnect() sent DISCONNECT: connect again
   bool connect_sent_ = false;            // this attempt's CONNECT went out (link thread)
   std::atomic<bool> connected_{false};
@@ -108,8 +107,8 @@ class MqttLink {
   // stays away (or alternates between refusing and resetting) does not fill the log.
   bool first_time_failure(const std::string& reason);
   std::vector<std::string> failures_logged_;
-  std::atomic<std::uint64_t> connects_{0}, connect_failures_{0}, disconnects_{0}, published_{0},
-      publish_failures_{0}, received_{0};
+  std::atomic<std::uint64_t> connects_{0}, connect_failures_{0}, disconnects_{0}, published_{0}, publish_failures_{0},
+      received_{0};
 };
 
 }  // namespace sms::gateway

@@ -10,14 +10,14 @@
 #include <stdexcept>
 #include <unordered_map>
 
+#include <spdlog/spdlog.h>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
-#include <spdlog/spdlog.h>
 
-#include "gateway/units/state_file.h"
-#include "gateway/units/gateway_unit.h"
 #include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/units/gateway_unit.h"
+#include "gateway/units/state_file.h"
 #include "gateway/units/unit_router.h"
 
 namespace sms::gateway {
@@ -43,7 +43,8 @@ std::uint64_t epoch_ms() {
 
 std::ifstream open_mqtt_file(const std::string& key, const std::string& path) {
   std::ifstream in(path);
-  if (!in) throw std::runtime_error(key + ": cannot read " + path + " (check that it exists and the gateway may read it)");
+  if (!in)
+    throw std::runtime_error(key + ": cannot read " + path + " (check that it exists and the gateway may read it)");
   return in;
 }
 
@@ -63,7 +64,8 @@ struct Answer {
   }
   std::vector<std::uint16_t> registers() const {
     std::vector<std::uint16_t> values;
-    for (std::size_t i = 2; i + 1 < pdu.size(); i += 2) values.push_back(static_cast<std::uint16_t>(pdu[i] << 8 | pdu[i + 1]));
+    for (std::size_t i = 2; i + 1 < pdu.size(); i += 2)
+      values.push_back(static_cast<std::uint16_t>(pdu[i] << 8 | pdu[i + 1]));
     return values;
   }
   bool bit(std::size_t index) const {
@@ -79,7 +81,9 @@ std::int64_t field_value(const RegisterEntry& entry, std::uint16_t reg) {
 }
 
 // The datatype a table field is born with: the register as a PLC reads it.
-sp::DataType field_type(const RegisterEntry& entry) { return entry.min < 0 ? sp::DataType::Int16 : sp::DataType::UInt16; }
+sp::DataType field_type(const RegisterEntry& entry) {
+  return entry.min < 0 ? sp::DataType::Int16 : sp::DataType::UInt16;
+}
 
 sp::Metric field_metric(const std::string& name, const RegisterEntry& entry, std::optional<std::int64_t> value) {
   sp::Metric metric = sp::Metric::of(name, field_type(entry), std::monostate{});
@@ -117,7 +121,8 @@ std::string sent(const sp::Metric& metric) {
       metric.value);
 }
 
-Expected<std::int64_t> command_value(const sp::Metric& metric, sp::DataType born_as, std::int64_t min, std::int64_t max) {
+Expected<std::int64_t> command_value(const sp::Metric& metric, sp::DataType born_as, std::int64_t min,
+                                     std::int64_t max) {
   const std::string born = std::string(sp::to_string(born_as));
   if (born_as == sp::DataType::Boolean) {
     if (const auto* flag = std::get_if<bool>(&metric.value); flag && metric.type == sp::DataType::Boolean) {
@@ -127,7 +132,8 @@ Expected<std::int64_t> command_value(const sp::Metric& metric, sp::DataType born
   }
   const auto range = sp::integer_range(born_as);
   const auto value = sp::integer_value(metric.value);
-  const bool integer = std::holds_alternative<std::int64_t>(metric.value) || std::holds_alternative<std::uint64_t>(metric.value);
+  const bool integer =
+      std::holds_alternative<std::int64_t>(metric.value) || std::holds_alternative<std::uint64_t>(metric.value);
   if (!range || !sp::integer_range(metric.type) || !integer || !value) {
     return unexpected("got " + sent(metric) + ", the metric is " + born + " (send a whole number, datatype " + born +
                       " as in the birth)");
@@ -199,12 +205,19 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     replies_ = std::make_shared<Replies>(weak);
     MqttLink::Events events;
     events.will = [this] { return next_will(); };
-    events.connect_sent = [this] { bd_seq_ = candidate_bd_seq_; candidate_used_ = true; };
+    events.connect_sent = [this] {
+      bd_seq_ = candidate_bd_seq_;
+      candidate_used_ = true;
+    };
     events.connected = [this, weak] {
-      asio::post(io_, [weak] { if (auto self = weak.lock()) self->on_connected(); });
+      asio::post(io_, [weak] {
+        if (auto self = weak.lock()) self->on_connected();
+      });
     };
     events.disconnected = [this, weak](const std::string&) {
-      asio::post(io_, [weak] { if (auto self = weak.lock()) self->on_disconnected(); });
+      asio::post(io_, [weak] {
+        if (auto self = weak.lock()) self->on_disconnected();
+      });
     };
     events.message = [this, weak](std::string topic, Bytes payload) {
       asio::post(io_, [weak, topic = std::move(topic), payload = std::move(payload)]() mutable {
@@ -215,9 +228,10 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     link_->start();
     spdlog::info("mqtt: Sparkplug B edge node {}/{} with {} device(s), broker {}{}", settings_.group_id,
                  settings_.edge_node_id, devices_.size(), settings_.broker.to_string(),
-                 settings_.primary_host_id.empty() ? std::string()
-                                                   : ", primary host " + settings_.primary_host_id);
-    asio::post(io_, [weak] { if (auto self = weak.lock()) self->schedule(); });
+                 settings_.primary_host_id.empty() ? std::string() : ", primary host " + settings_.primary_host_id);
+    asio::post(io_, [weak] {
+      if (auto self = weak.lock()) self->schedule();
+    });
   }
 
   void stop() {
@@ -320,11 +334,13 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     for (std::size_t i = 0; i < live.size();) {
       std::size_t j = i + 1;
       while (j < live.size() && live[j]->address - live[i]->address < limits::kReadRegisters &&
-             map.plan_holding_read(live[i]->address, static_cast<std::uint16_t>(live[j]->address - live[i]->address + 1))) {
+             map.plan_holding_read(live[i]->address,
+                                   static_cast<std::uint16_t>(live[j]->address - live[i]->address + 1))) {
         ++j;
       }
-      device.live_reads.push_back(ReadRegistersRequest{fc::kReadHoldingRegisters, live[i]->address,
-                                                       static_cast<std::uint16_t>(live[j - 1]->address - live[i]->address + 1)});
+      device.live_reads.push_back(
+          ReadRegistersRequest{fc::kReadHoldingRegisters, live[i]->address,
+                               static_cast<std::uint16_t>(live[j - 1]->address - live[i]->address + 1)});
       i = j;
     }
     return device;
@@ -343,8 +359,9 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
 
   void load_bd_seq() {
     if (bd_seq_path_.empty()) {
-      spdlog::info("mqtt: no state_dir: the Sparkplug bdSeq starts at 0 at every start (config/README.md "
-                   "\"state_dir\")");
+      spdlog::info(
+          "mqtt: no state_dir: the Sparkplug bdSeq starts at 0 at every start (config/README.md "
+          "\"state_dir\")");
       return;
     }
     {
@@ -418,8 +435,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   // role says what the hosts may change, not what the node reports.
   void ask(std::uint8_t unit_id, const Request& request, std::function<void(const Answer&)> done) {
     const Bytes pdu = request_pdu(request);
-    const bool command = !std::holds_alternative<ReadBitsRequest>(request) &&
-                         !std::holds_alternative<ReadRegistersRequest>(request);
+    const bool command =
+        !std::holds_alternative<ReadBitsRequest>(request) && !std::holds_alternative<ReadRegistersRequest>(request);
     if (const auto refusal = command ? policy_.refusal(settings_.role, unit_id, pdu) : std::nullopt) {
       return done(Answer{exception_response(function_of(request), refusal->fault),
                          "role " + std::string(config::to_string(settings_.role)) + " may not: " + refusal->reason});
@@ -435,11 +452,12 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
                 std::function<void(std::vector<Answer>)> done) {
     if (answers.size() == reads.size() || (!answers.empty() && !answers.back().ok())) return done(std::move(answers));
     const ReadRegistersRequest next = reads[answers.size()];
-    ask(unit_id, next, [this, unit_id, reads = std::move(reads), answers = std::move(answers),
-                        done = std::move(done)](const Answer& answer) mutable {
-      answers.push_back(answer);
-      read_all(unit_id, std::move(reads), std::move(answers), std::move(done));
-    });
+    ask(unit_id, next,
+        [this, unit_id, reads = std::move(reads), answers = std::move(answers),
+         done = std::move(done)](const Answer& answer) mutable {
+          answers.push_back(answer);
+          read_all(unit_id, std::move(reads), std::move(answers), std::move(done));
+        });
   }
 
   // ---- the session ----
@@ -476,11 +494,12 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   // session (NDEATH, DISCONNECT, connect again, wait). Older timestamps are stale: ignored.
   void on_host_state(const Bytes& bytes) {
     const std::string& host = settings_.primary_host_id;
-    const auto state = sp::parse_host_state(std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+    const auto state =
+        sp::parse_host_state(std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
     if (!state) return bad_message("mqtt: ignored the STATE of primary host " + host + ": " + state.error());
     if (host_timestamp_ && state->timestamp < *host_timestamp_) {
-      spdlog::info("mqtt: ignored a stale STATE of primary host {} (timestamp {} is before {})", host,
-                   state->timestamp, *host_timestamp_);
+      spdlog::info("mqtt: ignored a stale STATE of primary host {} (timestamp {} is before {})", host, state->timestamp,
+                   *host_timestamp_);
       return;
     }
     host_timestamp_ = state->timestamp;
@@ -502,7 +521,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
 
   void publish_node_birth() {
     sp::Payload payload;
-    payload.metrics.push_back(sp::Metric::int64(std::string(sp::kBdSeqMetric), static_cast<std::int64_t>(bd_seq_.load())));
+    payload.metrics.push_back(
+        sp::Metric::int64(std::string(sp::kBdSeqMetric), static_cast<std::int64_t>(bd_seq_.load())));
     payload.metrics.push_back(sp::Metric::boolean(std::string(sp::kRebirthMetric), false));
     payload.metrics.push_back(sp::Metric::string(std::string(metric_name::kVersion), SMS_GATEWAY_VERSION));
     payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kEStop), estop_));
@@ -551,7 +571,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
         });
     // A stop that could not be delivered yet (docs/SAFETY.md): a host must see it, not only a PLC.
     ask(config_.modbus_tcp.gateway_unit_id,
-        ReadRegistersRequest{fc::kReadInputRegisters, gateway_unit_layout::kOwedStops, 1}, [this](const Answer& answer) {
+        ReadRegistersRequest{fc::kReadInputRegisters, gateway_unit_layout::kOwedStops, 1},
+        [this](const Answer& answer) {
           if (!answer.ok() || !session_) return;
           const auto registers = answer.registers();
           if (registers.empty() || registers[0] == stops_owed_) return;
@@ -567,7 +588,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     Device& device = devices_[index];
     device.busy = true;
     ask(device.unit_id,
-        ReadRegistersRequest{fc::kReadInputRegisters, servo_facts_layout::kFirstRegister, servo_facts_layout::kRegisterCount},
+        ReadRegistersRequest{fc::kReadInputRegisters, servo_facts_layout::kFirstRegister,
+                             servo_facts_layout::kRegisterCount},
         [this, index, now](const Answer& answer) {
           Device& device = devices_[index];
           const auto facts = answer.registers();
@@ -618,7 +640,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     const bool report_all = settings_.report_period.count() > 0 && now - device.reported >= settings_.report_period;
     if (!device.cache_read) {
       device.busy = false;
-      if (report_all || facts[servo_facts_layout::kStatus] != device.status) publish_data(device, facts, {}, report_all);
+      if (report_all || facts[servo_facts_layout::kStatus] != device.status)
+        publish_data(device, facts, {}, report_all);
       return;
     }
     ask(device.unit_id, *device.cache_read, [this, index, facts, report_all](const Answer& answer) {
@@ -639,7 +662,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
           changed.push_back(m);
         }
       }
-      if (!changed.empty() || facts[servo_facts_layout::kStatus] != device.status || report_all) publish_data(device, facts, changed, report_all);
+      if (!changed.empty() || facts[servo_facts_layout::kStatus] != device.status || report_all)
+        publish_data(device, facts, changed, report_all);
     });
   }
 
@@ -666,7 +690,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   // since they change on every poll.
   void append_facts(sp::Payload& payload, Device& device, const std::vector<std::uint16_t>& facts, bool everything) {
     if (everything || facts[servo_facts_layout::kStatus] != device.status) {
-      payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStatus), facts[servo_facts_layout::kStatus]));
+      payload.metrics.push_back(
+          sp::Metric::uint16(std::string(metric_name::kStatus), facts[servo_facts_layout::kStatus]));
       device.status = facts[servo_facts_layout::kStatus];
     }
     if (everything) {
@@ -738,8 +763,9 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     }
     for (const auto& metric : payload->metrics) {
       if (commands_.size() >= kMaxQueuedCommands) {
-        refuse_command(device, metric.name, "the command queue is full (" + std::to_string(kMaxQueuedCommands) +
-                                                " waiting); the bus is not keeping up");
+        refuse_command(device, metric.name,
+                       "the command queue is full (" + std::to_string(kMaxQueuedCommands) +
+                           " waiting); the bus is not keeping up");
         continue;
       }
       commands_.push_back(Command{device, metric});
@@ -883,7 +909,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     for (std::size_t bus = 0; bus < heartbeats_.size(); ++bus) {
       if (metric.name != heartbeats_[bus]) continue;
       return ask(gateway,
-                 WriteRegistersRequest{fc::kWriteSingleRegister, static_cast<std::uint16_t>(config::kHeartbeatRegisterBase + bus),
+                 WriteRegistersRequest{fc::kWriteSingleRegister,
+                                       static_cast<std::uint16_t>(config::kHeartbeatRegisterBase + bus),
                                        {static_cast<std::uint16_t>(*value)}},
                  done);
     }
@@ -902,7 +929,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   void refuse_command(std::optional<std::size_t> device, const std::string& name, const std::string& why) {
     std::lock_guard lock(stats_mutex_);
     ++stats_.commands_refused;
-    spdlog::warn("mqtt: {} refused: {}: {}", device ? "DCMD for " + devices_[*device].id : std::string("NCMD"), name, why);
+    spdlog::warn("mqtt: {} refused: {}: {}", device ? "DCMD for " + devices_[*device].id : std::string("NCMD"), name,
+                 why);
   }
 
   const config::Config& config_;
@@ -919,8 +947,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   std::uint64_t next_serial_ = 1;
   std::deque<Command> commands_;
   bool command_running_ = false;
-  bool connected_ = false;  // an MQTT session is up
-  bool session_ = false;    // connected and NBIRTH sent
+  bool connected_ = false;                       // an MQTT session is up
+  bool session_ = false;                         // connected and NBIRTH sent
   std::optional<std::uint64_t> host_timestamp_;  // of the primary host's latest STATE
   bool estop_ = false;
   bool tripped_ = false;

@@ -21,9 +21,9 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/mqtt/mqtt_link.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/mqtt/mqtt_link.h"
 #include "modbus_map/register_map.h"
 #include "protocol/sparkplug/sparkplug.h"
 
@@ -37,14 +37,14 @@ class UnitRouter;
 
 // Device metric names that are not control-table fields.
 namespace sparkplug_metric {
-inline constexpr std::string_view kStatus = "Gateway/Status";           // last status byte
+inline constexpr std::string_view kStatus = "Gateway/Status";  // last status byte
 inline constexpr std::string_view kRepliesOk = "Gateway/Replies OK";
 inline constexpr std::string_view kTimeouts = "Gateway/Timeouts";
 inline constexpr std::string_view kLastCommand = "Gateway/Last Command";  // "ok: goal_position := 1000"
 // Node metrics (gateway unit coils and heartbeat registers).
 inline constexpr std::string_view kEStop = "Gateway/E-Stop";                      // coil 1
 inline constexpr std::string_view kWatchdogTripped = "Gateway/Watchdog Tripped";  // coil 2; write false re-arms
-inline constexpr std::string_view kStopsOwed = "Gateway/Safe Stops Owed";  // input register 13 (docs/SAFETY.md)
+inline constexpr std::string_view kStopsOwed = "Gateway/Safe Stops Owed";         // input register 13 (docs/SAFETY.md)
 inline constexpr std::string_view kHeartbeatPrefix = "Gateway/Heartbeat/";        // + bus name: holding 1000 + n
 inline constexpr std::string_view kVersion = "Gateway/Version";
 }  // namespace sparkplug_metric

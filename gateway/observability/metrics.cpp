@@ -4,15 +4,14 @@
 #include <charconv>
 #include <variant>
 
-#include "gateway/modbus_tcp/access_policy.h"
 #include "gateway/bus/bus_engine.h"
+#include "gateway/modbus_tcp/access_policy.h"
 #include "protocol/bus_protocol.h"
 #include "protocol/modbus_pdu.h"
 #include "protocol/modbus_tcp.h"
 
 namespace sms::gateway {
 namespace {
-
 
 // ---- the exposition format ----
 
@@ -206,7 +205,8 @@ constexpr Family<ServoMetrics> kServoFamilies[] = {
      [](const ServoMetrics& s) -> std::optional<Value> { return std::uint64_t{s.counters.last_status}; }},
     {"sms_gateway_servo_replies_ok_total", MetricType::Counter, "Valid answers from the servo",
      [](const ServoMetrics& s) -> std::optional<Value> { return s.counters.replies_ok; }},
-    {"sms_gateway_servo_timeouts_total", MetricType::Counter, "Attempts addressed to the servo that got no valid answer",
+    {"sms_gateway_servo_timeouts_total", MetricType::Counter,
+     "Attempts addressed to the servo that got no valid answer",
      [](const ServoMetrics& s) -> std::optional<Value> { return s.counters.timeouts; }},
 };
 
@@ -244,7 +244,8 @@ void render_requests(Exposition& out, const ModbusTrafficSnapshot& traffic) {
     const auto* function = find_modbus_function(static_cast<std::uint8_t>(code));
     const std::uint64_t count = traffic.requests_by_function[code];
     if (count == 0 && !(function && function->served)) continue;
-    out.sample(kName, {{"function", std::to_string(code)}, {"name", std::string(function ? function->name : "unknown")}},
+    out.sample(kName,
+               {{"function", std::to_string(code)}, {"name", std::string(function ? function->name : "unknown")}},
                count);
   }
 }
@@ -288,7 +289,8 @@ BusMetrics read_bus_metrics(const config::Config& config, std::size_t bus_index,
     entry.name = servo.name;
     entry.online = state->online;
     if (const auto age = state->age(now)) {
-      entry.cache_age = std::max(std::chrono::duration_cast<std::chrono::microseconds>(*age), std::chrono::microseconds{0});
+      entry.cache_age =
+          std::max(std::chrono::duration_cast<std::chrono::microseconds>(*age), std::chrono::microseconds{0});
     }
     entry.counters = state->counters;
     metrics.servos.push_back(std::move(entry));
@@ -325,7 +327,8 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
   out.family("sms_gateway_build_info", MetricType::Gauge, "Always 1; the version is in the label");
   out.sample("sms_gateway_build_info", {{"version", snapshot.version}}, std::uint64_t{1});
   out.family("sms_gateway_uptime_seconds", MetricType::Gauge, "Seconds since the gateway started");
-  out.sample("sms_gateway_uptime_seconds", {}, static_cast<std::uint64_t>(std::max<std::int64_t>(snapshot.uptime.count(), 0)));
+  out.sample("sms_gateway_uptime_seconds", {},
+             static_cast<std::uint64_t>(std::max<std::int64_t>(snapshot.uptime.count(), 0)));
 
   for (const auto& family : kBusFamilies) {
     out.family(family.name, family.type, family.help);
@@ -374,7 +377,8 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
     out.sample(kRefusedRequests, {{"role", "read"}}, tls.requests_refused_read);
     out.sample(kRefusedRequests, {{"role", "operate"}}, tls.requests_refused_operate);
     constexpr std::string_view kReloads = "sms_gateway_tls_reloads_total";
-    out.family(kReloads, MetricType::Counter, "Certificate reloads (SIGHUP) by outcome; a failed one keeps the old files");
+    out.family(kReloads, MetricType::Counter,
+               "Certificate reloads (SIGHUP) by outcome; a failed one keeps the old files");
     out.sample(kReloads, {{"result", "ok"}}, tls.reloads_ok);
     out.sample(kReloads, {{"result", "failed"}}, tls.reloads_failed);
   }
@@ -392,7 +396,8 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
     constexpr std::string_view kMessages = "sms_gateway_mqtt_messages_published_total";
     out.family(kMessages, MetricType::Counter, "Sparkplug messages published by type");
     constexpr std::array<std::string_view, 6> kTypes{"NBIRTH", "NDEATH", "DBIRTH", "DDEATH", "NDATA", "DDATA"};
-    for (std::size_t i = 0; i < kTypes.size(); ++i) out.sample(kMessages, {{"type", std::string(kTypes[i])}}, mqtt.published[i]);
+    for (std::size_t i = 0; i < kTypes.size(); ++i)
+      out.sample(kMessages, {{"type", std::string(kTypes[i])}}, mqtt.published[i]);
     out.family("sms_gateway_mqtt_publish_failures_total", MetricType::Counter,
                "Messages not handed to the broker (no session at the time)");
     out.sample("sms_gateway_mqtt_publish_failures_total", {}, mqtt.link.publish_failures);
@@ -417,7 +422,8 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
     };
     static constexpr std::array<RtuSlaveFamily, 8> kRtuSlaveFamilies{{
         {"sms_gateway_rtu_slave_requests_total", MetricType::Counter,
-         "Requests received on an upstream RTU port for a unit it serves (broadcasts included)", &RtuSlaveStats::requests},
+         "Requests received on an upstream RTU port for a unit it serves (broadcasts included)",
+         &RtuSlaveStats::requests},
         {"sms_gateway_rtu_slave_answers_total", MetricType::Counter, "Answer frames sent on an upstream RTU port",
          &RtuSlaveStats::answers},
         {"sms_gateway_rtu_slave_broadcasts_total", MetricType::Counter,
@@ -440,7 +446,8 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
     }
     for (const auto& family : kRtuSlaveFamilies) {
       out.family(family.name, family.type, family.help);
-      for (const auto& port : snapshot.rtu_slaves) out.sample(family.name, {{"device", port.device}}, port.*family.value);
+      for (const auto& port : snapshot.rtu_slaves)
+        out.sample(family.name, {{"device", port.device}}, port.*family.value);
     }
   }
 

@@ -20,13 +20,13 @@
 
 #include "config/config.h"
 #include "gateway/bus/bus_counters.h"
-#include "gateway/mqtt/mqtt_stats.h"
 #include "gateway/bus/poll_cache.h"
-#include "gateway/units/safety.h"
 #include "gateway/modbus_tcp/tcp_server.h"
 #include "gateway/modbus_tcp/tls_stats.h"
 #include "gateway/modbus_tcp/traffic_counters.h"
+#include "gateway/mqtt/mqtt_stats.h"
 #include "gateway/rtu_slave/rtu_slave_stats.h"
+#include "gateway/units/safety.h"
 
 namespace sms::gateway {
 
@@ -35,7 +35,7 @@ class BusEngine;
 struct ServoMetrics {
   std::uint8_t unit_id = 0;
   std::uint8_t servo_id = 0;
-  std::string name;                               // servos[].name, may be empty
+  std::string name;  // servos[].name, may be empty
   bool online = false;
   std::optional<std::chrono::microseconds> cache_age;  // nullopt: never polled successfully
   ServoCountersSnapshot counters;
@@ -47,7 +47,7 @@ struct BusMetrics {
   bool up = false;
   BusCountersSnapshot counters;
   std::size_t servos_online = 0;
-  std::vector<ServoMetrics> servos;  // the polled servos, in configuration order
+  std::vector<ServoMetrics> servos;      // the polled servos, in configuration order
   std::optional<BusSafetyFacts> safety;  // docs/PLC_GUIDE.md "Safety"; empty where no supervisor runs
   // Bus monitor records its readers missed (docs/MONITOR.md); empty where the bus has no monitor.
   std::optional<std::uint64_t> monitor_dropped;
@@ -58,7 +58,7 @@ struct MetricsSnapshot {
   std::chrono::seconds uptime{0};
   std::vector<BusMetrics> buses;
   TcpServerStats tcp;
-  std::optional<TlsStats> tls;  // empty without modbus_tcp.tls
+  std::optional<TlsStats> tls;         // empty without modbus_tcp.tls
   std::optional<SparkplugStats> mqtt;  // empty without mqtt
   ModbusTrafficSnapshot traffic;
   bool estop_latched = false;

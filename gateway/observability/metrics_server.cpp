@@ -7,6 +7,7 @@
 #include <string>
 #include <thread>
 
+#include <spdlog/spdlog.h>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/asio/post.hpp>
@@ -20,7 +21,6 @@
 #include <boost/beast/http/read.hpp>
 #include <boost/beast/http/string_body.hpp>
 #include <boost/beast/http/write.hpp>
-#include <spdlog/spdlog.h>
 
 #include "gateway/modbus_tcp/listener.h"
 
@@ -117,7 +117,8 @@ class MetricsServer::Impl {
     open_listener(acceptor_, options_.listen.host, options_.listen.port,
                   {"serve metrics", "--metrics HOST:PORT or logging.metrics_listen", 9102});
     port_ = acceptor_.local_endpoint().port();
-    spdlog::info("metrics: serving /metrics and /healthz on http://{}", config::HostPort{options_.listen.host, port_}.to_string());
+    spdlog::info("metrics: serving /metrics and /healthz on http://{}",
+                 config::HostPort{options_.listen.host, port_}.to_string());
     accept();
     thread_ = std::thread([this] { io_.run(); });
   }
@@ -183,8 +184,9 @@ class MetricsSession : public std::enable_shared_from_this<MetricsSession> {
     parser_->header_limit(static_cast<std::uint32_t>(server_.options().max_request_bytes));
     parser_->body_limit(0);
     stream_.expires_after(server_.options().request_timeout);
-    http::async_read(stream_, buffer_, *parser_,
-                     [self = shared_from_this()](const beast::error_code& error, std::size_t) { self->on_read(error); });
+    http::async_read(
+        stream_, buffer_, *parser_,
+        [self = shared_from_this()](const beast::error_code& error, std::size_t) { self->on_read(error); });
   }
 
   void on_read(const beast::error_code& error) {

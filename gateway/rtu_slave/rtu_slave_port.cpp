@@ -75,7 +75,8 @@ struct RtuSlavePort::Mailbox final : Reply::Target {
 RtuSlavePort::RtuSlavePort(const config::RtuSlaveConfig& port, const config::Config& config, RequestHandler& router,
                            const RolePolicy& policy, PostFn post)
     : port_(port),
-      timing_(rtu_slave_timing(SerialSettings{port.device, port.baud, port.parity, port.stop_bits}, port.line.frame_gap)),
+      timing_(
+          rtu_slave_timing(SerialSettings{port.device, port.baud, port.parity, port.stop_bits}, port.line.frame_gap)),
       router_(router),
       policy_(policy),
       post_(std::move(post)),
@@ -301,14 +302,16 @@ void RtuSlavePort::accept(protocol::rtu::Adu adu, SteadyClock::time_point ended)
   }
   if (broadcast && (adu.pdu.empty() || !broadcastable(adu.pdu[0]))) {
     counters_.dropped_frames.fetch_add(1, std::memory_order_relaxed);
-    spdlog::debug("{}: broadcast FC{:02X} dropped: only writes are broadcast", what(), adu.pdu.empty() ? 0 : adu.pdu[0]);
+    spdlog::debug("{}: broadcast FC{:02X} dropped: only writes are broadcast", what(),
+                  adu.pdu.empty() ? 0 : adu.pdu[0]);
     return;
   }
   if (waiting_.size() >= kMaxWaiting) {
     counters_.dropped_frames.fetch_add(1, std::memory_order_relaxed);
-    spdlog::warn("{}: request for unit {} dropped: {} requests already wait behind the one being answered (a "
-                 "master that does not wait for its answers?)",
-                 what(), adu.slave, kMaxWaiting);
+    spdlog::warn(
+        "{}: request for unit {} dropped: {} requests already wait behind the one being answered (a "
+        "master that does not wait for its answers?)",
+        what(), adu.slave, kMaxWaiting);
     return;
   }
   counters_.requests.fetch_add(1, std::memory_order_relaxed);

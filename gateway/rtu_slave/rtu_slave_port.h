@@ -37,9 +37,9 @@
 #include "config/config.h"
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/rtu_master.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/rate_limited_log.h"
 #include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/rtu_slave/rtu_slave_stats.h"
 #include "protocol/modbus_rtu.h"
 
@@ -94,11 +94,11 @@ class RtuSlavePort {
   };
   struct InFlight {
     Request request;
-    std::size_t waiting_for = 0;              // answers still to come (a broadcast has one per unit)
-    std::optional<protocol::Bytes> answer;    // a unicast's answer, once it came
-    std::uint64_t first_serial = 0;           // serials first_serial .. first_serial + count - 1
+    std::size_t waiting_for = 0;            // answers still to come (a broadcast has one per unit)
+    std::optional<protocol::Bytes> answer;  // a unicast's answer, once it came
+    std::uint64_t first_serial = 0;         // serials first_serial .. first_serial + count - 1
     std::size_t count = 0;
-    bool orphaned = false;                    // the port was lost meanwhile: no answer will be sent
+    bool orphaned = false;  // the port was lost meanwhile: no answer will be sent
   };
 
   void run_thread();
@@ -132,16 +132,16 @@ class RtuSlavePort {
 
   // The port thread's own state.
   protocol::rtu::RequestDecoder decoder_;
-  protocol::Bytes received_;                  // the frame arriving, until t3.5 of silence
-  bool receiving_ = false;                    // a frame has begun and not yet ended
-  bool frame_broken_ = false;                 // a t1.5 silence inside it, or past 256 bytes
-  SteadyClock::time_point last_byte_{};       // the last byte received
+  protocol::Bytes received_;                   // the frame arriving, until t3.5 of silence
+  bool receiving_ = false;                     // a frame has begun and not yet ended
+  bool frame_broken_ = false;                  // a t1.5 silence inside it, or past 256 bytes
+  SteadyClock::time_point last_byte_{};        // the last byte received
   SteadyClock::time_point line_busy_until_{};  // the last byte of our own answer on the wire
-  protocol::Bytes last_sent_;                 // our last answer, to recognise its echo
+  protocol::Bytes last_sent_;                  // our last answer, to recognise its echo
   std::deque<Request> waiting_;
   std::optional<InFlight> in_flight_;
   std::uint64_t next_serial_ = 1;
-  SteadyClock::time_point reopen_at_{};       // the next open attempt (none before it)
+  SteadyClock::time_point reopen_at_{};  // the next open attempt (none before it)
   bool open_failure_logged_ = false;
   bool ever_opened_ = false;
 

@@ -9,12 +9,12 @@
 #include <string>
 #include <vector>
 
-#include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
 
-#include "gateway/units/passthrough.h"
 #include "gateway/tools/tool_scan.h"
 #include "gateway/tools/tool_servo.h"
+#include "gateway/units/passthrough.h"
 #include "modbus_map/baud_tables.h"
 #include "modbus_map/tables.h"
 #include "process/stop_signals.h"
@@ -38,7 +38,7 @@ struct ParityName {
   config::Parity parity;
 };
 constexpr ParityName kParityNames[] = {
-    {"none", config::Parity::None}, {"N", config::Parity::None}, {"even", config::Parity::Even},
+    {"none", config::Parity::None}, {"N", config::Parity::None},  {"even", config::Parity::Even},
     {"E", config::Parity::Even},    {"odd", config::Parity::Odd}, {"O", config::Parity::Odd},
 };
 
@@ -46,7 +46,8 @@ struct RtsName {
   std::string_view name;
   config::RtsMode rts;
 };
-constexpr RtsName kRtsNames[] = {{"none", config::RtsMode::None}, {"up", config::RtsMode::Up}, {"down", config::RtsMode::Down}};
+constexpr RtsName kRtsNames[] = {
+    {"none", config::RtsMode::None}, {"up", config::RtsMode::Up}, {"down", config::RtsMode::Down}};
 
 config::Parity parity_from(const std::string& name) {
   for (const auto& entry : kParityNames) {
@@ -134,13 +135,18 @@ void add_line_options(CLI::App& command, LineArgs& args, bool baud_required) {
   command.add_option("--parity", args.parity, "Line parity (modbus-rtu): none, even, odd (N, E, O)")
       ->check(CLI::IsMember({"none", "even", "odd", "N", "E", "O"}))
       ->capture_default_str();
-  command.add_option("--stop-bits", args.stop_bits, "Stop bits: 1 or 2")->check(CLI::IsMember({1U, 2U}))->capture_default_str();
-  command.add_option("--latency-ms", args.latency_ms,
-                     "Added to every reply timeout: the adapter's latency (FTDI adapters: 16 unless their latency "
-                     "timer is set to 1)")
+  command.add_option("--stop-bits", args.stop_bits, "Stop bits: 1 or 2")
+      ->check(CLI::IsMember({1U, 2U}))
       ->capture_default_str();
-  command.add_option("--table", args.table, "The servos' table: sts or sms1 (feetech), d55d, smsmb (modbus-rtu); "
-                                            "default the protocol's usual one")
+  command
+      .add_option("--latency-ms", args.latency_ms,
+                  "Added to every reply timeout: the adapter's latency (FTDI adapters: 16 unless their latency "
+                  "timer is set to 1)")
+      ->capture_default_str();
+  command
+      .add_option("--table", args.table,
+                  "The servos' table: sts or sms1 (feetech), d55d, smsmb (modbus-rtu); "
+                  "default the protocol's usual one")
       ->check(CLI::IsMember({"sts", "sms1", "scs", "d55d", "smsmb"}));
 }
 
@@ -167,7 +173,8 @@ modbus_map::TableId table_of(const LineArgs& args, std::string_view command) {
 
 std::unique_ptr<ServoLink> open_link(const LinkSettings& settings, std::string_view command) {
   if (settings.baud != 0) {
-    if (auto code = modbus_map::baud_code(settings.protocol, settings.baud); !code) fail(command, code.error(), kExitUsage);
+    if (auto code = modbus_map::baud_code(settings.protocol, settings.baud); !code)
+      fail(command, code.error(), kExitUsage);
   }
   auto link = make_servo_link(settings);
   if (auto opened = link->open(); !opened) fail(command, opened.error());
@@ -188,7 +195,8 @@ void add_scan(CLI::App& app) {
   CLI::App* command = app.add_subcommand(
       "scan", "Find the servos on a line: every rate of the protocol's baud table (or --baud), every ID (or --ids)");
   add_line_options(*command, *args, false);
-  command->add_option("--baud", *bauds, "Only these rates (repeat the option, or separate with commas)")->delimiter(',');
+  command->add_option("--baud", *bauds, "Only these rates (repeat the option, or separate with commas)")
+      ->delimiter(',');
   command->add_option("--ids", *ids, "Only these IDs, e.g. 1-10,20 (default: every ID of the protocol)");
   command->add_option("--write-config", *config_file, "Write a gateway configuration for the servos found to FILE");
   command->add_flag("--no-broadcast-probe", *no_probe,
@@ -207,7 +215,8 @@ void add_scan(CLI::App& app) {
     for (const std::uint32_t baud : options.bauds) {
       if (auto code = modbus_map::baud_code(settings.protocol, baud); !code) fail("scan", code.error(), kExitUsage);
     }
-    settings.baud = options.bauds.empty() ? modbus_map::baud_table(settings.protocol).front().bps : options.bauds.front();
+    settings.baud =
+        options.bauds.empty() ? modbus_map::baud_table(settings.protocol).front().bps : options.bauds.front();
     auto link = open_link(settings, "scan");
     auto report = scan_bus(*link, options, printer());
     if (!report) fail("scan", report.error());
@@ -229,8 +238,9 @@ void add_set_id(CLI::App& app) {
   add_line_options(*command, *args, true);
   command->add_option("--id", args->id, "The servo's current ID")->required();
   command->add_option("--new-id", *new_id, "The ID to give it")->required()->check(CLI::Range(0U, 253U));
-  command->add_flag("--force", args->force, "Allow --id to be the broadcast ID (254; modbus-rtu 0): every servo on "
-                                            "the line takes the new ID");
+  command->add_flag("--force", args->force,
+                    "Allow --id to be the broadcast ID (254; modbus-rtu 0): every servo on "
+                    "the line takes the new ID");
   command->callback([args, new_id] {
     auto link = open_link(link_settings(*args), "set-id");
     const ToolTarget target{table_of(*args, "set-id"), static_cast<std::uint8_t>(args->id), args->force};
@@ -244,7 +254,8 @@ void add_set_id(CLI::App& app) {
 void add_set_baud(CLI::App& app) {
   auto args = std::make_shared<LineArgs>();
   auto new_baud = std::make_shared<std::uint32_t>(0);
-  CLI::App* command = app.add_subcommand("set-baud", "Move a servo to another rate of its baud table (kept over power-off)");
+  CLI::App* command =
+      app.add_subcommand("set-baud", "Move a servo to another rate of its baud table (kept over power-off)");
   add_line_options(*command, *args, true);
   command->add_option("--id", args->id, "The servo's ID")->required();
   command->add_option("--new-baud", *new_baud, "The rate to move it to")->required();
@@ -316,7 +327,8 @@ void add_forward(CLI::App& app) {
   CLI::App* command = app.add_subcommand(
       "forward", "Plain Modbus TCP -> RTU gateway, no configuration: unit u is RTU slave u, unit 0 the broadcast");
   command->add_option("--device", args->device, "Serial device of the RTU line")->required();
-  command->add_option("--baud", args->baud, "Bit rate of the line (any rate the adapter runs)")->required()
+  command->add_option("--baud", args->baud, "Bit rate of the line (any rate the adapter runs)")
+      ->required()
       ->check(CLI::Range(1U, 20'000'000U));
   command->add_option("--parity", args->parity, "none, even, odd (N, E, O)")
       ->check(CLI::IsMember({"none", "even", "odd", "N", "E", "O"}))
@@ -331,19 +343,22 @@ void add_forward(CLI::App& app) {
   command->add_option("--byte-timeout-ms", args->byte_timeout_ms, "Longest silence inside one answer")
       ->check(CLI::Range(1U, 10'000U))
       ->capture_default_str();
-  command->add_option("--response-timeout-ms", args->response_timeout_ms,
-                      "Time a slave may take to start answering, beyond the frames' wire time")
+  command
+      ->add_option("--response-timeout-ms", args->response_timeout_ms,
+                   "Time a slave may take to start answering, beyond the frames' wire time")
       ->check(CLI::Range(1U, 60'000U))
       ->capture_default_str();
   command->add_option("--retries", args->retries, "Attempts after the first on timeouts and CRC errors")
       ->capture_default_str();
-  command->add_option("--max-connections", args->max_connections, "Concurrent Modbus TCP clients")->capture_default_str();
+  command->add_option("--max-connections", args->max_connections, "Concurrent Modbus TCP clients")
+      ->capture_default_str();
   command->add_option("--queue-depth", args->queue_depth, "Requests waiting for the line; past it 0x06 (busy)")
       ->check(CLI::Range(std::size_t{1}, std::size_t{100'000}))
       ->capture_default_str();
-  command->add_option("--frame-gap", args->frame_gap,
-                      "Silence before each frame, from the last byte on the wire: spec (3.5 characters, 1.75 ms "
-                      "above 19200 bit/s), 3.5chars, or a time such as 500us")
+  command
+      ->add_option("--frame-gap", args->frame_gap,
+                   "Silence before each frame, from the last byte on the wire: spec (3.5 characters, 1.75 ms "
+                   "above 19200 bit/s), 3.5chars, or a time such as 500us")
       ->capture_default_str();
   command->add_option("--idle-timeout-s", args->idle_timeout_s, "Close a client silent this long (0: never)")
       ->check(CLI::Range(0U, 86'400U))
@@ -362,8 +377,8 @@ void add_forward(CLI::App& app) {
     spdlog::set_level(spdlog::level::from_str(args->log_level));
 
     ForwardOptions options;
-    options.serial = SerialSettings{args->device, args->baud, parity_from(args->parity),
-                                    static_cast<std::uint8_t>(args->stop_bits)};
+    options.serial =
+        SerialSettings{args->device, args->baud, parity_from(args->parity), static_cast<std::uint8_t>(args->stop_bits)};
     options.rtu.rs485 = args->rs485;
     options.rtu.rts = rts_from(args->rts);
     if (args->rts_delay_us) options.rtu.rts_delay = std::chrono::microseconds{*args->rts_delay_us};
@@ -382,10 +397,11 @@ void add_forward(CLI::App& app) {
       ForwardGateway gateway(options);
       gateway.start();
       // The bound port: --listen HOST:0 picks a free one.
-      spdlog::info("forwarding Modbus TCP on {}:{} to {} at {} bit/s ({}{}{}): unit u -> slave u, unit 0 -> broadcast "
-                   "({})",
-                   listen->host, gateway.port(), args->device, args->baud, 8, parity_letter(options.serial.parity),
-                   args->stop_bits, args->reply_on_broadcast ? "answered once sent" : "not answered");
+      spdlog::info(
+          "forwarding Modbus TCP on {}:{} to {} at {} bit/s ({}{}{}): unit u -> slave u, unit 0 -> broadcast "
+          "({})",
+          listen->host, gateway.port(), args->device, args->baud, 8, parity_letter(options.serial.parity),
+          args->stop_bits, args->reply_on_broadcast ? "answered once sent" : "not answered");
       spdlog::info("{} received: answering the requests in flight, then stopping",
                    process::StopSignals::name(stop_signals.wait()));
       gateway.stop();

@@ -15,8 +15,8 @@
 namespace sms::gateway {
 
 using namespace std::chrono_literals;
-using protocol::BusProtocol;
 using modbus_map::TableId;
+using protocol::BusProtocol;
 
 namespace {
 
@@ -80,7 +80,8 @@ class TransactorLink final : public ServoLink {
   Expected<Ok> set_baud(std::uint32_t baud) override {
     settings_.baud = baud;
     auto changed = transactor_->set_baud(baud);
-    if (!changed) return unexpected(fmt::format("cannot set {} to {} bit/s: {}", settings_.device, baud, changed.error()));
+    if (!changed)
+      return unexpected(fmt::format("cannot set {} to {} bit/s: {}", settings_.device, baud, changed.error()));
     return Ok{};
   }
 
@@ -91,7 +92,9 @@ class TransactorLink final : public ServoLink {
     transactor_->set_reply_allowance(tool_timing(settings_).reply_allowance);
   }
 
-  LinkAnswer ping(std::uint8_t id) override { return run(id, [&] { return transactor_->ping_request(id, settings_.attempts); }); }
+  LinkAnswer ping(std::uint8_t id) override {
+    return run(id, [&] { return transactor_->ping_request(id, settings_.attempts); });
+  }
 
   LinkAnswer read(std::uint8_t id, std::uint16_t address, std::uint16_t count) override {
     return run(id, [&] { return transactor_->prepare(ReadOp{id, address, count}, settings_.attempts); });
@@ -164,13 +167,15 @@ std::string_view to_string(LinkStatus status) {
 
 std::unique_ptr<ServoLink> make_servo_link(const LinkSettings& settings) {
   if (settings.protocol == BusProtocol::ModbusRtu) {
-    return std::make_unique<TransactorLink<RtuTransactor>>(settings, [](const LinkSettings& link, BusCounters& counters) {
+    return std::make_unique<TransactorLink<RtuTransactor>>(settings, [](const LinkSettings& link,
+                                                                        BusCounters& counters) {
       return std::make_unique<RtuTransactor>(RtuLineSettings{serial_of(link), link.rtu}, tool_timing(link), counters);
     });
   }
-  return std::make_unique<TransactorLink<PacketTransactor>>(settings, [](const LinkSettings& link, BusCounters& counters) {
-    return std::make_unique<PacketTransactor>(link.protocol, serial_of(link), tool_timing(link), counters);
-  });
+  return std::make_unique<TransactorLink<PacketTransactor>>(
+      settings, [](const LinkSettings& link, BusCounters& counters) {
+        return std::make_unique<PacketTransactor>(link.protocol, serial_of(link), tool_timing(link), counters);
+      });
 }
 
 std::chrono::nanoseconds tool_reply_timeout(const ServoLink& link, std::size_t request_bytes, std::size_t reply_bytes) {

@@ -66,11 +66,12 @@ std::string_view to_string(LinkStatus status);
 
 struct LinkAnswer {
   LinkStatus status = LinkStatus::Timeout;
-  Bytes data;                    // READ: the bytes (packet) or registers high byte first (modbus)
-  std::uint8_t servo_status = 0; // packet: the ERROR byte; modbus: the exception code (Refused, or a PING answered with one)
-  bool heard_anything = false;   // some bytes came back, valid or not (collisions, other IDs)
+  Bytes data;  // READ: the bytes (packet) or registers high byte first (modbus)
+  std::uint8_t servo_status =
+      0;  // packet: the ERROR byte; modbus: the exception code (Refused, or a PING answered with one)
+  bool heard_anything = false;          // some bytes came back, valid or not (collisions, other IDs)
   std::vector<std::uint8_t> other_ids;  // valid answers from other IDs heard meanwhile (late answers)
-  bool damaged = false;          // bytes that made no valid frame came back (colliding answers, noise)
+  bool damaged = false;                 // bytes that made no valid frame came back (colliding answers, noise)
   std::string detail;
 
   bool ok() const { return status == LinkStatus::Ok; }

@@ -162,20 +162,21 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
         link.set_attempts(1);
         finding.conflict = answers_collide(link, options.table, id);
         if (finding.table != options.table) {
-          finding.note = fmt::format("table {}: address 2 says {} byte first",
-                                     modbus_map::table(finding.table).name,
+          finding.note = fmt::format("table {}: address 2 says {} byte first", modbus_map::table(finding.table).name,
                                      finding.table == TableId::Scs ? "high" : "low");
         }
         if (protocol == BusProtocol::ModbusRtu && answer.servo_status != 0) {
-          finding.note = fmt::format("a Modbus slave, not an SMSMB servo (FC03 of register 0 answered exception 0x{:02X})",
-                                     answer.servo_status);
+          finding.note =
+              fmt::format("a Modbus slave, not an SMSMB servo (FC03 of register 0 answered exception 0x{:02X})",
+                          answer.servo_status);
         }
       } else {
         finding.conflict = true;  // still only damaged answers
       }
       if (finding.conflict) {
-        finding.note = "two or more servos answer on this ID (their replies collide): connect one at a time and "
-                       "give each its own ID with set-id";
+        finding.note =
+            "two or more servos answer on this ID (their replies collide): connect one at a time and "
+            "give each its own ID with set-id";
       }
       report.found.push_back(std::move(finding));
       ++at_this_baud;
@@ -206,7 +207,8 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
       std::sort(report.found.begin() + static_cast<std::ptrdiff_t>(first_at_this_baud), report.found.end(),
                 [](const ScanFinding& a, const ScanFinding& b) { return a.id < b.id; });
     }
-    const auto took = std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - baud_started);
+    const auto took =
+        std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - baud_started);
     say(fmt::format("{:>8} bit/s: {} found ({} IDs in {} ms)", baud, at_this_baud, ids.size(), took.count()));
   }
   link.set_attempts(attempts);
@@ -217,15 +219,15 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
 std::string format_scan(const ScanReport& report) {
   std::string text = fmt::format("{:>8}  {:>3}  {:<8}  {:<8}  {}\n", "baud", "id", "model", "firmware", "note");
   for (const ScanFinding& finding : report.found) {
-    text += fmt::format("{:>8}  {:>3}  {:<8}  {:<8}  {}\n", finding.baud, finding.id,
-                        identity_text(finding, true), identity_text(finding, false),
-                        finding.note);
+    text += fmt::format("{:>8}  {:>3}  {:<8}  {:<8}  {}\n", finding.baud, finding.id, identity_text(finding, true),
+                        identity_text(finding, false), finding.note);
   }
   const auto conflicts = std::count_if(report.found.begin(), report.found.end(),
                                        [](const ScanFinding& finding) { return finding.conflict; });
-  text += fmt::format("{} servo ID(s) answering on {} ({} rate(s) x {} IDs, {} rate(s) silent) in {:.1f} s", report.found.size(),
-                      protocol::to_string(report.protocol), report.bauds.size(), report.ids_per_baud,
-                      report.skipped_bauds.size(), static_cast<double>(report.elapsed.count()) / 1000.0);
+  text +=
+      fmt::format("{} servo ID(s) answering on {} ({} rate(s) x {} IDs, {} rate(s) silent) in {:.1f} s",
+                  report.found.size(), protocol::to_string(report.protocol), report.bauds.size(), report.ids_per_baud,
+                  report.skipped_bauds.size(), static_cast<double>(report.elapsed.count()) / 1000.0);
   if (conflicts > 0) text += fmt::format("; {} ID conflict(s)", conflicts);
   return text + "\n";
 }
@@ -268,16 +270,18 @@ std::string scan_config_yaml(const ScanReport& report, const LinkSettings& link)
     const std::string identity =
         fmt::format("model {}, firmware {}", identity_text(finding, true), identity_text(finding, false));
     if (finding.conflict) {
-      later += fmt::format("# ID {} at {} bit/s: two or more servos answer; give them distinct IDs (set-id) and "
-                           "scan again\n",
-                           finding.id, finding.baud);
+      later += fmt::format(
+          "# ID {} at {} bit/s: two or more servos answer; give them distinct IDs (set-id) and "
+          "scan again\n",
+          finding.id, finding.baud);
       continue;
     }
     if (finding.baud != bus_baud) {
-      later += fmt::format("# ID {} answers at {} bit/s ({}): one bus runs at one rate; move it with\n"
-                           "#   sms-gateway set-baud --device {} --protocol {} --baud {} --id {} --new-baud {}\n",
-                           finding.id, finding.baud, identity, link.device, protocol::to_string(report.protocol),
-                           finding.baud, finding.id, bus_baud);
+      later += fmt::format(
+          "# ID {} answers at {} bit/s ({}): one bus runs at one rate; move it with\n"
+          "#   sms-gateway set-baud --device {} --protocol {} --baud {} --id {} --new-baud {}\n",
+          finding.id, finding.baud, identity, link.device, protocol::to_string(report.protocol), finding.baud,
+          finding.id, bus_baud);
       continue;
     }
     std::uint8_t unit = finding.id;

@@ -31,7 +31,7 @@ struct ScanOptions {
   std::vector<std::uint32_t> bauds;  // empty: the protocol's whole baud table (docs/PROTOCOL.md §3)
   std::vector<std::uint8_t> ids;     // empty: every unicast ID of the protocol
   modbus_map::TableId table = modbus_map::TableId::Sts;  // how to read identity and position
-  bool broadcast_probe = true;       // packet protocols: skip rates where a broadcast PING stays unanswered
+  bool broadcast_probe = true;  // packet protocols: skip rates where a broadcast PING stays unanswered
 };
 
 struct ScanFinding {

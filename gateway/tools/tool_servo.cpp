@@ -138,13 +138,13 @@ Expected<Ok> require_answer(ServoLink& link, std::uint8_t id, std::string_view h
   const LinkAnswer answer = link.ping(id);
   if (answer.ok()) return Ok{};
   if (answer.status == LinkStatus::PortError) return unexpected(answer.detail);
-  return unexpected(fmt::format("no servo answers on ID {} at {} bit/s ({}){}", id, link.settings().baud,
-                                answer.detail, hint));
+  return unexpected(
+      fmt::format("no servo answers on ID {} at {} bit/s ({}){}", id, link.settings().baud, answer.detail, hint));
 }
 
 // Unlocks the EEPROM when the table has a lock; returns the lock's previous value to restore.
-Expected<std::optional<std::int32_t>> unlock(ServoLink& link, const TableSpec& table, std::uint8_t id,
-                                              bool broadcast, const Say& say) {
+Expected<std::optional<std::int32_t>> unlock(ServoLink& link, const TableSpec& table, std::uint8_t id, bool broadcast,
+                                             const Say& say) {
   const auto lock = std::find_if(kEepromLocks.begin(), kEepromLocks.end(),
                                  [&](const EepromLock& entry) { return entry.table == table.id; });
   if (lock == kEepromLocks.end()) {
@@ -187,7 +187,8 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
   const TableSpec& table = modbus_map::table(target.table);
   const ToolProtocol& rules = tool_protocol(link.settings().protocol);
   const FieldSpec& id_field = require_field(table, "id");
-  if (new_id < std::max<std::int32_t>(id_field.min, rules.first_id) || new_id > std::min<std::int32_t>(id_field.max, rules.last_id)) {
+  if (new_id < std::max<std::int32_t>(id_field.min, rules.first_id) ||
+      new_id > std::min<std::int32_t>(id_field.max, rules.last_id)) {
     return unexpected(fmt::format("ID {} cannot be given: table {} takes IDs {}-{}", new_id, table.name,
                                   std::max<std::int32_t>(id_field.min, rules.first_id),
                                   std::min<std::int32_t>(id_field.max, rules.last_id)));
@@ -219,8 +220,9 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
     (void)relock(link, table, target.id, *previous_lock, say);
     return unexpected(written.error());
   }
-  if (auto present = require_answer(link, new_id, " after the ID write: the write did not land; the servo "
-                                                  "should still answer on its old ID");
+  if (auto present = require_answer(link, new_id,
+                                    " after the ID write: the write did not land; the servo "
+                                    "should still answer on its old ID");
       !present) {
     return unexpected(present.error());
   }
@@ -228,8 +230,8 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
   auto stored = read_field(link, table, new_id, id_field);
   if (!stored) return unexpected(stored.error());
   if (*stored != new_id) {
-    return unexpected(fmt::format("servo on ID {} reports {} = {}: the change did not hold", new_id, id_field.name,
-                                  *stored));
+    return unexpected(
+        fmt::format("servo on ID {} reports {} = {}: the change did not hold", new_id, id_field.name, *stored));
   }
   if (!broadcast && ask_carefully(link, target.id).ok()) {
     return unexpected(fmt::format("ID {} answers as well as ID {}: two servos were on ID {}; one of them moved",
@@ -249,10 +251,10 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
   if (!code) return unexpected(code.error());
   const FieldSpec& baud_field = require_field(table, "baud_rate");
   if (*code < baud_field.min || *code > baud_field.max) {
-    return unexpected(fmt::format("{} bit/s is code {} of the {} baud table, but table {} takes codes {}-{} only "
-                                  "(docs/PROTOCOL.md §3: codes 8-11 need sts firmware 2.45 or later)",
-                                  new_baud, *code, protocol::to_string(rules.protocol), table.name, baud_field.min,
-                                  baud_field.max));
+    return unexpected(
+        fmt::format("{} bit/s is code {} of the {} baud table, but table {} takes codes {}-{} only "
+                    "(docs/PROTOCOL.md §3: codes 8-11 need sts firmware 2.45 or later)",
+                    new_baud, *code, protocol::to_string(rules.protocol), table.name, baud_field.min, baud_field.max));
   }
   const std::uint32_t old_baud = link.settings().baud;
   if (new_baud == old_baud) return unexpected(fmt::format("the line already runs at {} bit/s", new_baud));
@@ -269,9 +271,10 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
     if (auto back = link.set_baud(old_baud); !back) return unexpected(back.error());
     if (taken.status == LinkStatus::PortError) return unexpected(taken.detail);
     if (taken.ok() || taken.damaged) {  // a late answer of another ID is no sign
-      return unexpected(fmt::format("ID {} is already taken at {} bit/s: another servo answers there. Give one of "
-                                    "them another ID first (set-id)",
-                                    target.id, new_baud));
+      return unexpected(
+          fmt::format("ID {} is already taken at {} bit/s: another servo answers there. Give one of "
+                      "them another ID first (set-id)",
+                      target.id, new_baud));
     }
     say(fmt::format("{} answers at {} bit/s; ID {} is free at {} bit/s", who(target, rules), old_baud, target.id,
                     new_baud));
@@ -290,8 +293,9 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
     return fmt::format("sent to every servo: baud code {} ({} bit/s); check with `sms-gateway scan --baud {}`", *code,
                        new_baud, new_baud);
   }
-  if (auto present = require_answer(link, target.id, " after the baud write: the servo may still run at " +
-                                                         std::to_string(old_baud) + " bit/s (try scan)");
+  if (auto present = require_answer(
+          link, target.id,
+          " after the baud write: the servo may still run at " + std::to_string(old_baud) + " bit/s (try scan)");
       !present) {
     return unexpected(present.error());
   }
@@ -303,9 +307,10 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
                                   baud_field.name, *stored, *code));
   }
   const bool persists = previous_lock->has_value() || table.id == TableId::D55d;
-  return fmt::format("servo {} now answers at {} bit/s (code {}){}; set `baud: {}` on its bus in the gateway "
-                     "configuration",
-                     target.id, new_baud, *code, persists ? ", kept over power-off" : "", new_baud);
+  return fmt::format(
+      "servo {} now answers at {} bit/s (code {}){}; set `baud: {}` on its bus in the gateway "
+      "configuration",
+      target.id, new_baud, *code, persists ? ", kept over power-off" : "", new_baud);
 }
 
 Expected<std::string> calibrate_middle(ServoLink& link, const ToolTarget& target, const Say& say) {
@@ -314,9 +319,10 @@ Expected<std::string> calibrate_middle(ServoLink& link, const ToolTarget& target
   const auto calibration = std::find_if(kCalibrations.begin(), kCalibrations.end(),
                                         [&](const MidpointCalibration& entry) { return entry.table == table.id; });
   if (calibration == kCalibrations.end()) {
-    return unexpected(fmt::format("table {} has no documented mid-point calibration (sts: 128 to torque_enable; "
-                                  "smsmb: fault_reset bit 2)",
-                                  table.name));
+    return unexpected(
+        fmt::format("table {} has no documented mid-point calibration (sts: 128 to torque_enable; "
+                    "smsmb: fault_reset bit 2)",
+                    table.name));
   }
   const ToolProtocol& rules = tool_protocol(link.settings().protocol);
   const bool broadcast = target.id == rules.broadcast_id;
@@ -351,7 +357,8 @@ Expected<std::vector<DumpRow>> dump_servo(ServoLink& link, const ToolTarget& tar
   for (const FieldSpec& field : table.fields) {
     const std::uint16_t span = span_of(table, field);
     const std::uint16_t limit = table.addressing == Addressing::Register ? kMaxReadRegisters : kDumpChunkBytes;
-    const bool adjacent = !runs.empty() && (table.addressing == Addressing::Byte || runs.back().address + runs.back().count == field.addr);
+    const bool adjacent = !runs.empty() && (table.addressing == Addressing::Byte ||
+                                            runs.back().address + runs.back().count == field.addr);
     if (adjacent && field.addr + span - runs.back().address <= limit) {
       runs.back().count = static_cast<std::uint16_t>(field.addr + span - runs.back().address);
     } else {
@@ -383,7 +390,9 @@ std::string format_dump(const TableSpec& table, const std::vector<DumpRow>& rows
                                  "name", "value", "unit", "acc", "area");
   for (const DumpRow& row : rows) {
     const FieldSpec& field = *row.field;
-    const std::string_view access = field.access == Access::ReadOnly ? "R" : field.access == Access::WriteOnly ? "W" : "RW";
+    const std::string_view access = field.access == Access::ReadOnly    ? "R"
+                                    : field.access == Access::WriteOnly ? "W"
+                                                                        : "RW";
     text += fmt::format("{:>5}  0x{:<4X}  {:<30}  {:>7}  {:<12}  {:<3}  {}\n", field.addr, field.addr, field.name,
                         row.value, field.unit, access, field.area == modbus_map::Area::Eeprom ? "EEPROM" : "RAM");
   }

@@ -27,7 +27,7 @@ using Say = std::function<void(const std::string&)>;
 
 struct ToolTarget {
   modbus_map::TableId table = modbus_map::TableId::Sts;  // must be spoken by the link's protocol
-  std::uint8_t id = 1;        // the protocol's broadcast ID (254, or 0 on modbus-rtu) needs `force`
+  std::uint8_t id = 1;  // the protocol's broadcast ID (254, or 0 on modbus-rtu) needs `force`
   bool force = false;
 };
 
@@ -39,8 +39,7 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
 // Moves the servo to `new_baud` (a rate of its protocol's table): writes the protocol's own
 // baud code with the EEPROM unlocked, switches the link to the new rate, relocks there and
 // verifies the servo answers and holds the code. The link is left at `new_baud`.
-Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, std::uint32_t new_baud,
-                                     const Say& say);
+Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, std::uint32_t new_baud, const Say& say);
 
 // Mid-point calibration: the present position becomes the centre (2048).
 // sts: 128 to torque enable (address 40); smsmb: fault reset (0x86) bit 2. Other tables have

@@ -8,10 +8,10 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/write_batch.h"
+#include "gateway/modbus_tcp/faults.h"
 #include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
 #include "gateway/units/unit_router.h"
-#include "gateway/modbus_tcp/faults.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
 #include "protocol/overloaded.h"
@@ -21,7 +21,6 @@ namespace {
 
 namespace fc = function_code;
 namespace layout = gateway_unit_layout;
-
 
 std::uint16_t saturate16(std::uint64_t value) {
   return static_cast<std::uint16_t>(std::min<std::uint64_t>(value, 0xFFFF));
@@ -96,9 +95,11 @@ GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> e
       }
       auto map = modbus_map::RegisterMap::create(*servo->table, modbus_map::Profile::Native,
                                                  config::effective_byte_order(*servo));
-      if (!map) throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) + ": " + map.error());
-      group.members.push_back(
-          SyncMember{unit, servo->bus_index, servo->servo_id, field, std::move(*map), servo->read_only, servo->response_level});
+      if (!map)
+        throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) + ": " +
+                                    map.error());
+      group.members.push_back(SyncMember{unit, servo->bus_index, servo->servo_id, field, std::move(*map),
+                                         servo->read_only, servo->response_level});
     }
     groups_.push_back(std::move(group));
   }
@@ -138,9 +139,10 @@ std::optional<std::vector<std::uint16_t>> GatewayUnit::input_registers(std::uint
       const BusSafetyFacts& watchdog = safety.buses[bus];
       const std::size_t at = block + layout::kWatchdogState;
       image[at] = static_cast<std::uint16_t>(watchdog.state);
-      image[at + 1] = watchdog.since_feed ? saturate16(static_cast<std::uint64_t>(std::max<std::int64_t>(
-                                                watchdog.since_feed->count(), 0)))
-                                          : std::uint16_t{0xFFFF};
+      image[at + 1] =
+          watchdog.since_feed
+              ? saturate16(static_cast<std::uint64_t>(std::max<std::int64_t>(watchdog.since_feed->count(), 0)))
+              : std::uint16_t{0xFFFF};
       put_words(image, at + 2, 2, watchdog.trips);
       image[at + 4] = saturate16(static_cast<std::uint64_t>(watchdog.timeout.count()));
       image[at + 5] = static_cast<std::uint16_t>(watchdog.last_cause);
@@ -187,8 +189,8 @@ void GatewayUnit::handle(const Request& request, const Reply& reply) {
                              any([](const BusSafetyFacts& b) { return b.motion_blocked; }),
                              any([](const BusSafetyFacts& b) { return b.owed_stops > 0; })};
                    }
-                   reply.send(bits_response(read.function, std::vector<bool>(bits.begin() + read.address,
-                                                                             bits.begin() + end)));
+                   reply.send(bits_response(read.function,
+                                            std::vector<bool>(bits.begin() + read.address, bits.begin() + end)));
                  },
                  [&](const WriteBitsRequest& write) { write_coil(write, reply); },
                  [&](const WriteRegistersRequest& write) {
@@ -252,24 +254,23 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
     }
     plans.push_back(std::move(*plan));
   }
-  auto join = BusJoin::create(members.size(), post_,
-                              [function, members, plans, reply](std::vector<BusResult> results) {
-                                if (const BusResult* failure = BusJoin::first_failure(results)) {
-                                  reply.send(exception_response(function, fault_from(failure->status)));
-                                  return;
-                                }
-                                std::vector<std::uint16_t> values;
-                                for (std::size_t i = 0; i < members.size(); ++i) {
-                                  const protocol::Bytes replies[] = {results[i].data};
-                                  const auto value = members[i]->map.registers_from(plans[i], replies);
-                                  if (!value) {
-                                    reply.send(exception_response(function, fault_from(value.error().code)));
-                                    return;
-                                  }
-                                  values.push_back(value->at(0));
-                                }
-                                reply.send(registers_response(function, values));
-                              });
+  auto join = BusJoin::create(members.size(), post_, [function, members, plans, reply](std::vector<BusResult> results) {
+    if (const BusResult* failure = BusJoin::first_failure(results)) {
+      reply.send(exception_response(function, fault_from(failure->status)));
+      return;
+    }
+    std::vector<std::uint16_t> values;
+    for (std::size_t i = 0; i < members.size(); ++i) {
+      const protocol::Bytes replies[] = {results[i].data};
+      const auto value = members[i]->map.registers_from(plans[i], replies);
+      if (!value) {
+        reply.send(exception_response(function, fault_from(value.error().code)));
+        return;
+      }
+      values.push_back(value->at(0));
+    }
+    reply.send(registers_response(function, values));
+  });
   for (std::size_t i = 0; i < members.size(); ++i) {
     const auto& range = plans[i].reads.front();
     engines_[members[i]->bus]->submit(ReadOp{members[i]->servo_id, range.address, range.count}, Priority::ClientRead,
@@ -327,9 +328,9 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   }
   for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
     if (motion_member[bus] == nullptr) continue;
-    const auto admitted = admit_or_refuse(safety_, refusal_log_, bus,
-                                          "gateway unit sync group (" + std::string(motion_member[bus]->field->name) + ")",
-                                          request.function, reply);
+    const auto admitted = admit_or_refuse(
+        safety_, refusal_log_, bus, "gateway unit sync group (" + std::string(motion_member[bus]->field->name) + ")",
+        request.function, reply);
     if (!admitted) return;
     epochs[bus] = *admitted;
   }
@@ -346,10 +347,10 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
     const auto& spec = modbus_map::motion_spec(member->map.servo_table().id);
     if (spec.torque.empty() || member->field->name != spec.torque || request.values[i] != 1) continue;
-    switched_on.push_back(HoldTarget{engines_[member->bus], member->servo_id, &spec, member->map.byte_order(),
-                                     answers_writes(member->map.servo_table().id, member->response_level, *engines_[member->bus],
-                                                    member->servo_id), epochs[member->bus],
-                                     "unit " + std::to_string(member->unit_id)});
+    switched_on.push_back(HoldTarget{
+        engines_[member->bus], member->servo_id, &spec, member->map.byte_order(),
+        answers_writes(member->map.servo_table().id, member->response_level, *engines_[member->bus], member->servo_id),
+        epochs[member->bus], "unit " + std::to_string(member->unit_id)});
   }
   auto send_frames = [this, frames = std::move(frames), buses, function = request.function, reply,
                       after = std::move(after)](std::optional<BusResult> hold_failure) mutable {
@@ -358,16 +359,17 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
       reply.send(exception_response(function, fault_from(hold_failure->status)));
       return;
     }
-    auto join = BusJoin::create(frames.size(), post_,
-                                [this, buses, function, reply, after = std::move(after)](const std::vector<BusResult>& results) {
-                                  if (const BusResult* failure = BusJoin::first_failure(results)) {
-                                    spdlog::warn("gateway unit: sync group write failed: {}", failure->detail);
-                                    reply.send(exception_response(function, fault_from(failure->status)));
-                                    return;
-                                  }
-                                  for (const std::size_t bus : buses) safety_.feed_write(bus);
-                                  after(reply);
-                                });
+    auto join = BusJoin::create(
+        frames.size(), post_,
+        [this, buses, function, reply, after = std::move(after)](const std::vector<BusResult>& results) {
+          if (const BusResult* failure = BusJoin::first_failure(results)) {
+            spdlog::warn("gateway unit: sync group write failed: {}", failure->detail);
+            reply.send(exception_response(function, fault_from(failure->status)));
+            return;
+          }
+          for (const std::size_t bus : buses) safety_.feed_write(bus);
+          after(reply);
+        });
     for (std::size_t i = 0; i < frames.size(); ++i) {
       engines_[frames[i].bus]->submit(std::move(frames[i].op), Priority::ClientWrite, join->completion(i));
     }
@@ -410,12 +412,8 @@ void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply
     return;
   }
   switch (request.address) {
-    case layout::kActionCoil:
-      write_action_coil(request, reply);
-      return;
-    case layout::kEStopCoil:
-      write_estop_coil(request, reply);
-      return;
+    case layout::kActionCoil: write_action_coil(request, reply); return;
+    case layout::kEStopCoil: write_estop_coil(request, reply); return;
     case layout::kWatchdogCoil:
       if (request.values[0]) {  // a trip comes from silence, not from a write
         reply.send(exception_response(request.function, Fault::BadValue));
@@ -424,8 +422,7 @@ void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply
       safety_.rearm_watchdogs(reply.origin());
       reply.send(write_response(request));
       return;
-    default:
-      reply.send(exception_response(request.function, Fault::BadAddress));
+    default: reply.send(exception_response(request.function, Fault::BadAddress));
   }
 }
 
@@ -436,14 +433,17 @@ void GatewayUnit::write_estop_coil(const WriteBitsRequest& request, const Reply&
     return;
   }
   // Answered once every bus has its stop frames on the wire; the latch holds either way.
-  safety_.estop(post_, [request, reply](bool ok) {
-    if (!ok) {
-      spdlog::error("gateway unit: e-stop latched, but a bus could not take its stop frames (see above)");
-      reply.send(exception_response(request.function, Fault::ServoRefused));
-      return;
-    }
-    reply.send(write_response(request));
-  }, reply.origin());
+  safety_.estop(
+      post_,
+      [request, reply](bool ok) {
+        if (!ok) {
+          spdlog::error("gateway unit: e-stop latched, but a bus could not take its stop frames (see above)");
+          reply.send(exception_response(request.function, Fault::ServoRefused));
+          return;
+        }
+        reply.send(write_response(request));
+      },
+      reply.origin());
 }
 
 void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply& reply) {
@@ -465,17 +465,18 @@ void GatewayUnit::write_action_coil(const WriteBitsRequest& request, const Reply
     if (!admitted) return;
     epochs.push_back(*admitted);
   }
-  auto join = BusJoin::create(packet_buses.size(), post_, [this, request, reply](const std::vector<BusResult>& results) {
-    if (const BusResult* failure = BusJoin::first_failure(results)) {
-      spdlog::warn("gateway unit: ACTION failed on a bus: {}", failure->detail);
-      reply.send(exception_response(request.function, fault_from(failure->status)));
-      return;
-    }
-    for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
-      if (engines_[bus]->settings().protocol != protocol::BusProtocol::ModbusRtu) safety_.feed_write(bus);
-    }
-    reply.send(write_response(request));
-  });
+  auto join =
+      BusJoin::create(packet_buses.size(), post_, [this, request, reply](const std::vector<BusResult>& results) {
+        if (const BusResult* failure = BusJoin::first_failure(results)) {
+          spdlog::warn("gateway unit: ACTION failed on a bus: {}", failure->detail);
+          reply.send(exception_response(request.function, fault_from(failure->status)));
+          return;
+        }
+        for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
+          if (engines_[bus]->settings().protocol != protocol::BusProtocol::ModbusRtu) safety_.feed_write(bus);
+        }
+        reply.send(write_response(request));
+      });
   for (std::size_t i = 0; i < packet_buses.size(); ++i) {
     packet_buses[i]->submit(ActionOp{epochs[i]}, Priority::ClientWrite, join->completion(i));
   }

@@ -17,8 +17,8 @@
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/bus_join.h"
 #include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/units/safety.h"
 #include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/units/safety.h"
 #include "modbus_map/control_table.h"
 #include "modbus_map/register_map.h"
 
@@ -26,8 +26,8 @@ namespace sms::gateway {
 
 // Register offsets inside bus n's block of input registers (100 + 20·n).
 namespace gateway_unit_layout {
-inline constexpr std::uint16_t kVersion = 0;     // 0-2 major, minor, patch
-inline constexpr std::uint16_t kUptime = 3;      // 3-4 seconds, high word first
+inline constexpr std::uint16_t kVersion = 0;  // 0-2 major, minor, patch
+inline constexpr std::uint16_t kUptime = 3;   // 3-4 seconds, high word first
 inline constexpr std::uint16_t kBusCount = 5;
 inline constexpr std::uint16_t kServoCount = 6;
 inline constexpr std::uint16_t kFirstBusBlock = 100;

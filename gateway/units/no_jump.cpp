@@ -43,8 +43,8 @@ void hold_before_torque_on(std::vector<HoldTarget> targets, const PostFn& post,
         spdlog::debug("safety: {}: torque already on: no hold (it would cancel the move under way)", target.label);
         continue;
       }
-      const auto hold = modbus_map::plan_safe_stop(*target.spec, modbus_map::StopAction::Hold, target.order, context,
-                                                   true);
+      const auto hold =
+          modbus_map::plan_safe_stop(*target.spec, modbus_map::StopAction::Hold, target.order, context, true);
       if (!hold) {
         done(BusResult{BusStatus::ServoRefused, 0, {}, target.label + ": torque on refused: " + hold.error()});
         return;

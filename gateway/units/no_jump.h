@@ -23,9 +23,9 @@ struct HoldTarget {
   std::uint8_t servo_id = 0;
   const modbus_map::MotionSpec* spec = nullptr;
   modbus_map::ByteOrder order = modbus_map::ByteOrder::LowFirst;
-  bool expect_reply = true;   // the servo answers writes (its response level)
-  MotionEpoch epoch = 0;      // the admission of the torque-on write
-  std::string label;          // "unit 1 (bus arm, servo 1)", for the log
+  bool expect_reply = true;  // the servo answers writes (its response level)
+  MotionEpoch epoch = 0;     // the admission of the torque-on write
+  std::string label;         // "unit 1 (bus arm, servo 1)", for the log
 };
 
 // Reads every target's state, writes the holds where the torque is off, then runs `done` on the

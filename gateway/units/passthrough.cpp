@@ -6,11 +6,11 @@
 
 #include <spdlog/spdlog.h>
 
-#include "gateway/units/bus_faults.h"
+#include "gateway/bus/bus_engine.h"
 #include "gateway/modbus_tcp/faults.h"
 #include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/bus/bus_engine.h"
 #include "gateway/modbus_tcp/tcp_serving.h"
+#include "gateway/units/bus_faults.h"
 
 namespace sms::gateway {
 
@@ -21,9 +21,9 @@ constexpr std::uint8_t kBroadcastSlave = 0;
 constexpr std::uint8_t kMaxSlave = 247;
 
 // Functions that only read: a broadcast of them is pointless (nobody answers).
-constexpr std::array<std::uint8_t, 6> kReadFunctions{fc::kReadCoils,          fc::kReadDiscreteInputs,
-                                                     fc::kReadHoldingRegisters, fc::kReadInputRegisters,
-                                                     fc::kReadWriteMultipleRegisters, fc::kReportServerId};
+constexpr std::array<std::uint8_t, 6> kReadFunctions{
+    fc::kReadCoils,          fc::kReadDiscreteInputs,         fc::kReadHoldingRegisters,
+    fc::kReadInputRegisters, fc::kReadWriteMultipleRegisters, fc::kReportServerId};
 
 // What the client is told for a broadcast write: the answer the slave would have given.
 struct BroadcastAnswerRule {
@@ -72,21 +72,22 @@ void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uin
     }
   }
   const bool silent = broadcast && broadcast_reply == BroadcastReply::None;
-  Completion done = on_io_thread(post, [reply, function, label, silent, broadcast = std::move(broadcast)](BusResult result) {
-    if (result.status != BusStatus::Ok) {
-      spdlog::debug("passthrough: {} FC{:02X}: {}", label, function, result.detail);
-      // A broadcast's client expects no answer: an exception would be taken for the next one's.
-      if (silent) return reply.finish_without_answer();
-      reply.send(exception_response(function, fault_from(result.status)));
-      return;
-    }
-    if (silent) return reply.finish_without_answer();
-    if (broadcast) {
-      reply.send(*broadcast);
-    } else {
-      reply.send(std::move(result.data));
-    }
-  });
+  Completion done =
+      on_io_thread(post, [reply, function, label, silent, broadcast = std::move(broadcast)](BusResult result) {
+        if (result.status != BusStatus::Ok) {
+          spdlog::debug("passthrough: {} FC{:02X}: {}", label, function, result.detail);
+          // A broadcast's client expects no answer: an exception would be taken for the next one's.
+          if (silent) return reply.finish_without_answer();
+          reply.send(exception_response(function, fault_from(result.status)));
+          return;
+        }
+        if (silent) return reply.finish_without_answer();
+        if (broadcast) {
+          reply.send(*broadcast);
+        } else {
+          reply.send(std::move(result.data));
+        }
+      });
   try {
     engine.submit(RawPduOp{slave, Bytes(pdu.begin(), pdu.end()), motion_epoch}, priority_of(function), std::move(done));
   } catch (const std::invalid_argument& error) {

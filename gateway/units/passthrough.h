@@ -58,8 +58,8 @@ class ForwardHandler final : public RequestHandler {
 };
 
 struct ForwardOptions {
-  SerialSettings serial;                 // device, baud (any rate), parity, stop bits
-  config::ModbusRtuOptions rtu;          // RS-485 mode, RTS, byte timeout
+  SerialSettings serial;                            // device, baud (any rate), parity, stop bits
+  config::ModbusRtuOptions rtu;                     // RS-485 mode, RTS, byte timeout
   std::chrono::milliseconds response_timeout{100};  // a plain slave may take its time
   unsigned retries = 1;
   std::size_t queue_depth = 64;

@@ -8,19 +8,19 @@
 #include <mutex>
 #include <thread>
 
+#include <spdlog/spdlog.h>
 #include <boost/asio/executor_work_guard.hpp>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
-#include <spdlog/spdlog.h>
 
 #include <yaml-cpp/yaml.h>
 
 #include "gateway/bus/bus_join.h"
+#include "gateway/bus/write_batch.h"
 #include "gateway/modbus_tcp/faults.h"
 #include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/modbus_tcp/request_handler.h"
-#include "gateway/bus/write_batch.h"
 #include "gateway/units/state_file.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/motion.h"
@@ -48,7 +48,7 @@ struct StopTarget {
   const modbus_map::MotionSpec* spec = nullptr;
   modbus_map::ByteOrder order = modbus_map::ByteOrder::LowFirst;
   StopAction action = StopAction::Hold;
-  std::vector<modbus_map::BusRange> context;  // what to read before a hold
+  std::vector<modbus_map::BusRange> context;   // what to read before a hold
   std::optional<std::uint8_t> response_level;  // as configured; empty: as read from the servo
 };
 
@@ -57,7 +57,7 @@ struct BusSafety {
   std::string name;
   BusEngine* engine = nullptr;
   std::shared_ptr<MotionGate> gate;
-  bool packet = true;  // SYNC WRITE exists
+  bool packet = true;      // SYNC WRITE exists
   bool sync_read = false;  // SYNC READ exists (feetech)
   std::optional<config::WatchdogConfig> watchdog;
   config::StartAction on_start = config::StartAction::Keep;
@@ -143,8 +143,7 @@ class SafetySupervisor::Impl {
       for (const auto& servo : config.servos) {
         if (servo.bus_index == i && !servo.passthrough() && !servo.view_of) servos.push_back(&servo);
       }
-      std::sort(servos.begin(), servos.end(),
-                [](const auto* a, const auto* b) { return a->unit_id < b->unit_id; });
+      std::sort(servos.begin(), servos.end(), [](const auto* a, const auto* b) { return a->unit_id < b->unit_id; });
       for (const config::ServoConfig* servo : servos) {
         const auto& spec = modbus_map::motion_spec(*servo->table);
         bus->targets.push_back(StopTarget{servo->unit_id, servo->servo_id, &spec, config::effective_byte_order(*servo),
@@ -166,8 +165,9 @@ class SafetySupervisor::Impl {
   void start() {
     thread_ = std::thread([this] { io_.run(); });
     if (state_path_.empty()) {
-      spdlog::warn("safety: no state_dir: a restart forgets a latched e-stop and tripped watchdogs (set state_dir, "
-                   "config/README.md)");
+      spdlog::warn(
+          "safety: no state_dir: a restart forgets a latched e-stop and tripped watchdogs (set state_dir, "
+          "config/README.md)");
     }
     for (const auto& bus : buses_) {
       if (bus->watchdog) {
@@ -188,8 +188,7 @@ class SafetySupervisor::Impl {
         continue;
       }
       if (bus->on_start == config::StartAction::Keep) continue;
-      const StopAction action =
-          bus->on_start == config::StartAction::Hold ? StopAction::Hold : StopAction::TorqueOff;
+      const StopAction action = bus->on_start == config::StartAction::Hold ? StopAction::Hold : StopAction::TorqueOff;
       asio::post(io_, [this, index = bus->index, action] {
         run_stop(index, StopCause::Start, action, Clock::now(), "on_start", nullptr);
       });
@@ -244,8 +243,9 @@ class SafetySupervisor::Impl {
   Expected<MotionEpoch> admit_motion(std::size_t index) {
     BusSafety& bus = *buses_.at(index);
     if (estop_latched_.load()) {
-      return unexpected("bus " + bus.name +
-                        ": the e-stop is latched; motion writes are refused until it is reset (gateway unit coil 1 := 0)");
+      return unexpected(
+          "bus " + bus.name +
+          ": the e-stop is latched; motion writes are refused until it is reset (gateway unit coil 1 := 0)");
     }
     if (bus.state.load() == WatchdogState::Tripped) {
       return unexpected("bus " + bus.name + ": its watchdog tripped (no feed for " +
@@ -274,9 +274,10 @@ class SafetySupervisor::Impl {
     }
     if (!already) {
       estops_.fetch_add(1);
-      spdlog::warn("safety: E-STOP latched by {} (gateway unit coil 1): every bus stops; motion writes are refused "
-                   "until coil 1 is written 0",
-                   who);
+      spdlog::warn(
+          "safety: E-STOP latched by {} (gateway unit coil 1): every bus stops; motion writes are refused "
+          "until coil 1 is written 0",
+          who);
     }
     const auto requested = Clock::now();
     auto remaining = std::make_shared<std::atomic<std::size_t>>(buses_.size());
@@ -293,11 +294,10 @@ class SafetySupervisor::Impl {
     }
     for (const auto& bus : buses_) {
       asio::post(io_, [this, index = bus->index, requested, remaining, all_ok, finish] {
-        run_stop(index, StopCause::EStop, std::nullopt, requested, "e-stop",
-                 [remaining, all_ok, finish](bool ok) {
-                   if (!ok) all_ok->store(false);
-                   if (remaining->fetch_sub(1) == 1) finish();
-                 });
+        run_stop(index, StopCause::EStop, std::nullopt, requested, "e-stop", [remaining, all_ok, finish](bool ok) {
+          if (!ok) all_ok->store(false);
+          if (remaining->fetch_sub(1) == 1) finish();
+        });
       });
     }
   }
@@ -406,9 +406,10 @@ class SafetySupervisor::Impl {
             continue;
           }
           (*found)->state = WatchdogState::Tripped;
-          spdlog::warn("safety: bus {}: its watchdog was tripped before the restart ({}): it stays tripped until a "
-                       "client re-arms it (gateway unit coil 2 := 0)",
-                       bus_name, state_path_);
+          spdlog::warn(
+              "safety: bus {}: its watchdog was tripped before the restart ({}): it stays tripped until a "
+              "client re-arms it (gateway unit coil 2 := 0)",
+              bus_name, state_path_);
         }
         for (const auto& name : unknown) {
           spdlog::warn("safety: {} names a tripped watchdog on bus `{}`, which has none now: ignored", state_path_,
@@ -416,9 +417,10 @@ class SafetySupervisor::Impl {
         }
         if (latched) {
           estop_latched_ = true;
-          spdlog::warn("safety: the E-STOP was latched before the restart ({}): it stays latched until a client "
-                       "resets it (gateway unit coil 1 := 0)",
-                       state_path_);
+          spdlog::warn(
+              "safety: the E-STOP was latched before the restart ({}): it stays latched until a client "
+              "resets it (gateway unit coil 1 := 0)",
+              state_path_);
         }
       } catch (const YAML::Exception& error) {
         problem = state_path_ + " is damaged: " + error.what();
@@ -426,9 +428,10 @@ class SafetySupervisor::Impl {
     }
     if (!problem.empty()) {
       estop_latched_ = true;
-      spdlog::error("safety: {}; the e-stop is latched as a precaution: check the cell, then reset it (gateway unit "
-                    "coil 1 := 0)",
-                    problem);
+      spdlog::error(
+          "safety: {}; the e-stop is latched as a precaution: check the cell, then reset it (gateway unit "
+          "coil 1 := 0)",
+          problem);
     }
     std::lock_guard lock(state_mutex_);
     apply_gates_locked();
@@ -439,8 +442,9 @@ class SafetySupervisor::Impl {
     if (state_path_.empty()) return;
     std::lock_guard file_lock(persist_mutex_);
     YAML::Emitter out;
-    out << YAML::Comment("sms-gateway safety state: written by the gateway. A latched e-stop or a tripped watchdog "
-                         "survives a restart; reset it over Modbus (gateway unit coils 1 and 2), not here.");
+    out << YAML::Comment(
+        "sms-gateway safety state: written by the gateway. A latched e-stop or a tripped watchdog "
+        "survives a restart; reset it over Modbus (gateway unit coils 1 and 2), not here.");
     out << YAML::BeginMap;
     {
       std::lock_guard lock(state_mutex_);
@@ -490,14 +494,14 @@ class SafetySupervisor::Impl {
       }
       bus->trips.fetch_add(1);
       const auto silent = std::chrono::duration_cast<std::chrono::milliseconds>(now - last);
-      spdlog::warn("safety: bus {}: WATCHDOG TRIPPED: no {} for {} ms (timeout {} ms); stopping its servos; motion "
-                   "writes are refused until a client re-arms it (gateway unit coil 2 := 0)",
-                   bus->name,
-                   bus->watchdog->feed == config::WatchdogFeed::AnyWrite
-                       ? std::string("write")
-                       : "change of heartbeat register " +
-                             std::to_string(config::kHeartbeatRegisterBase + bus->index),
-                   silent.count(), bus->watchdog->timeout.count());
+      spdlog::warn(
+          "safety: bus {}: WATCHDOG TRIPPED: no {} for {} ms (timeout {} ms); stopping its servos; motion "
+          "writes are refused until a client re-arms it (gateway unit coil 2 := 0)",
+          bus->name,
+          bus->watchdog->feed == config::WatchdogFeed::AnyWrite
+              ? std::string("write")
+              : "change of heartbeat register " + std::to_string(config::kHeartbeatRegisterBase + bus->index),
+          silent.count(), bus->watchdog->timeout.count());
       // The stop first, then the file: a trip has no answer to wait for, and the stop must not.
       run_stop(bus->index, StopCause::Watchdog, bus->watchdog->action, last, "watchdog", nullptr);
       persist();
@@ -567,22 +571,23 @@ class SafetySupervisor::Impl {
       for (const std::size_t t : members) frame.ids.push_back(bus.targets[t].servo_id);
       frames.push_back(std::move(frame));
     }
-    auto join = BusJoin::create(
-        groups.size(), run_here(), [this, index, groups, frames, singly, contexts, write_phase](std::vector<BusResult> results) {
-          std::vector<std::size_t> again = singly;
-          for (std::size_t g = 0; g < groups.size(); ++g) {
-            const auto answers = sync_read_answers(frames[g], results[g]);
-            const auto& members = groups[g].second;
-            for (std::size_t m = 0; m < members.size(); ++m) {
-              if (answers[m]) {
-                (*contexts)[members[m]].push_back(BusResult{BusStatus::Ok, 0, *answers[m], {}});
-              } else {
-                again.push_back(members[m]);
-              }
-            }
-          }
-          read_contexts(*buses_[index], again, contexts, write_phase);
-        });
+    auto join =
+        BusJoin::create(groups.size(), run_here(),
+                        [this, index, groups, frames, singly, contexts, write_phase](std::vector<BusResult> results) {
+                          std::vector<std::size_t> again = singly;
+                          for (std::size_t g = 0; g < groups.size(); ++g) {
+                            const auto answers = sync_read_answers(frames[g], results[g]);
+                            const auto& members = groups[g].second;
+                            for (std::size_t m = 0; m < members.size(); ++m) {
+                              if (answers[m]) {
+                                (*contexts)[members[m]].push_back(BusResult{BusStatus::Ok, 0, *answers[m], {}});
+                              } else {
+                                again.push_back(members[m]);
+                              }
+                            }
+                          }
+                          read_contexts(*buses_[index], again, contexts, write_phase);
+                        });
     for (std::size_t g = 0; g < frames.size(); ++g) submit_safely(bus, frames[g], join->completion(g));
   }
 
@@ -616,14 +621,14 @@ class SafetySupervisor::Impl {
     return OwedStop{WriteOp{target.servo_id, write.address, write.data, false, answers, 0}, std::string(reason)};
   }
 
-  void send_stop_frames(std::size_t index, StopCause cause, std::optional<StopAction> override,
-                        Clock::time_point since, const std::string& reason, const std::function<void(bool)>& done,
+  void send_stop_frames(std::size_t index, StopCause cause, std::optional<StopAction> override, Clock::time_point since,
+                        const std::string& reason, const std::function<void(bool)>& done,
                         const std::map<std::size_t, std::vector<const BusResult*>>& context) {
     BusSafety& bus = *buses_[index];
     std::vector<std::string> report;
-    WriteBatch batch(bus.packet);  // one SYNC WRITE per write shape on packet buses
+    WriteBatch batch(bus.packet);                         // one SYNC WRITE per write shape on packet buses
     std::vector<std::vector<std::size_t>> frame_targets;  // the targets each frame reaches
-    std::vector<std::size_t> unconfirmed;  // torque off broadcast blind: owed until acknowledged
+    std::vector<std::size_t> unconfirmed;                 // torque off broadcast blind: owed until acknowledged
     const auto add_write = [&](std::size_t t, modbus_map::BusWrite write) {
       const std::size_t frame = batch.add(bus.targets[t].servo_id, write.address, std::move(write.data));
       if (frame_targets.size() <= frame) frame_targets.resize(frame + 1);
@@ -682,7 +687,8 @@ class SafetySupervisor::Impl {
       std::string failure;
       for (std::size_t i = 0; i < results.size(); ++i) {
         if (results[i].status == BusStatus::Ok) continue;
-        if (failure.empty()) failure = results[i].detail.empty() ? std::string(to_string(results[i].status)) : results[i].detail;
+        if (failure.empty())
+          failure = results[i].detail.empty() ? std::string(to_string(results[i].status)) : results[i].detail;
         unreached.insert(unreached.end(), frame_targets[i].begin(), frame_targets[i].end());
       }
       std::sort(unreached.begin(), unreached.end());
@@ -707,10 +713,11 @@ class SafetySupervisor::Impl {
       } else {
         b.failed_stops.fetch_add(1);
         b.last_latency_us.store(-1);
-        spdlog::error("safety: bus {}: safe stop ({}) FAILED: {}; planned: {}; servo(s) {} are owed their stop (torque "
-                      "off): it is sent the moment they can be reached, before anything else, and motion writes to "
-                      "them are refused until they have taken it",
-                      b.name, reason, failure, targets_text(report), owed);
+        spdlog::error(
+            "safety: bus {}: safe stop ({}) FAILED: {}; planned: {}; servo(s) {} are owed their stop (torque "
+            "off): it is sent the moment they can be reached, before anything else, and motion writes to "
+            "them are refused until they have taken it",
+            b.name, reason, failure, targets_text(report), owed);
       }
       if (done) done(frames_ok);
     };

@@ -68,7 +68,7 @@ struct BusSafetyFacts {
   std::optional<std::chrono::milliseconds> since_feed;  // nullopt: never fed
   std::chrono::milliseconds timeout{0};
   std::uint64_t trips = 0;
-  std::uint64_t stops = 0;                 // safe stops performed on this bus, every cause
+  std::uint64_t stops = 0;  // safe stops performed on this bus, every cause
   StopCause last_cause = StopCause::None;
   std::optional<std::chrono::microseconds> last_stop_latency;  // of the last stop that succeeded
   bool motion_blocked = false;

@@ -5,9 +5,9 @@
 
 #include <spdlog/spdlog.h>
 
-#include "gateway/units/bus_faults.h"
 #include "gateway/modbus_tcp/access_policy.h"
 #include "gateway/modbus_tcp/faults.h"
+#include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
 #include "gateway/units/passthrough.h"
 #include "modbus_map/motion.h"
@@ -20,7 +20,6 @@ namespace {
 namespace fc = function_code;
 namespace facts_layout = servo_facts_layout;
 using modbus_map::TableId;
-
 
 // The lowest response level at which a servo answers unicast writes (docs/PROTOCOL.md §2.1 address 8,
 // §2.2 address 8, §2.3 address 16). SMSMB servos always answer (Modbus).
@@ -80,9 +79,9 @@ bool writes_answered(TableId table, std::uint8_t response_level) {
 }
 
 std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registers(const ServoFacts& facts) {
-  const std::uint16_t age = facts.cache_age ? saturate16(static_cast<std::uint64_t>(std::max<std::int64_t>(
-                                                  facts.cache_age->count(), 0)))
-                                            : std::uint16_t{0xFFFF};
+  const std::uint16_t age =
+      facts.cache_age ? saturate16(static_cast<std::uint64_t>(std::max<std::int64_t>(facts.cache_age->count(), 0)))
+                      : std::uint16_t{0xFFFF};
   return {
       facts.last_status,
       static_cast<std::uint16_t>(facts.online ? 1 : 0),
@@ -123,9 +122,9 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
     const modbus_map::BusRange poll_block{settings->poll_block.address, settings->poll_block.count};
     std::string label = "unit " + std::to_string(servo.unit_id) + " (bus " + servo.bus + ", servo " +
                         std::to_string(servo.servo_id) + ")";
-    units_[servo.unit_id] = std::make_unique<ServoUnit>(
-        ServoUnit{servo.unit_id, servo.bus_index, engine, servo.servo_id, std::move(*map), poll_block,
-                  servo.response_level, servo.read_only, std::move(label)});
+    units_[servo.unit_id] =
+        std::make_unique<ServoUnit>(ServoUnit{servo.unit_id, servo.bus_index, engine, servo.servo_id, std::move(*map),
+                                              poll_block, servo.response_level, servo.read_only, std::move(label)});
   }
   gateway_unit_ = std::make_unique<GatewayUnit>(config, std::move(engines), std::move(post), safety);
 }
@@ -281,8 +280,8 @@ void UnitRouter::read_input(const ServoUnit& unit, const ReadRegistersRequest& r
     }
     const auto registers = servo_fact_registers(facts_of(unit));
     const std::size_t offset = request.address - facts_layout::kFirstRegister;
-    reply.send(registers_response(request.function,
-                                  std::span<const std::uint16_t>(registers).subspan(offset, request.count)));
+    reply.send(
+        registers_response(request.function, std::span<const std::uint16_t>(registers).subspan(offset, request.count)));
     return;
   }
   const auto plan = unit.map.plan_input_read(request.address, request.count, unit.poll_block);
@@ -342,8 +341,7 @@ std::optional<std::vector<protocol::Bytes>> UnitRouter::copy_from_cache(const Se
   for (const auto& range : plan.reads) {
     protocol::Bytes bytes(std::size_t{range.count} * unit.map.bytes_per_bus_address());
     switch (unit.engine->cache().copy(unit.servo_id, range.address, bytes)) {
-      case CacheRead::Ok:
-        break;
+      case CacheRead::Ok: break;
       case CacheRead::NoData:
         // Never answered a poll since the gateway started: nothing to serve, as a live read would fail.
         reply.send(exception_response(function, Fault::ServoTimeout));
@@ -400,7 +398,12 @@ struct WriteChain : std::enable_shared_from_this<WriteChain> {
 
   WriteChain(const ServoUnit* u, std::uint8_t f, modbus_map::WritePlan p, MotionEpoch e, Reply r,
              std::function<void(const Reply&)> a, PostFn po)
-      : unit(u), function(f), plan(std::move(p)), epoch(e), reply(std::move(r)), after(std::move(a)),
+      : unit(u),
+        function(f),
+        plan(std::move(p)),
+        epoch(e),
+        reply(std::move(r)),
+        after(std::move(a)),
         post(std::move(po)) {}
 
   void step() {
@@ -410,17 +413,16 @@ struct WriteChain : std::enable_shared_from_this<WriteChain> {
     }
     const auto& write = plan.writes[next];
     WriteOp op{unit->servo_id, write.address, write.data, plan.staged, expects_write_reply(*unit), epoch};
-    unit->engine->submit(std::move(op), Priority::ClientWrite,
-                         on_io_thread(post, [self = shared_from_this()](BusResult result) {
-                           if (result.status != BusStatus::Ok) {
-                             spdlog::debug("modbus: {} FC{:02X}: write failed: {}", self->unit->label, self->function,
-                                           result.detail);
-                             self->reply.send(exception_response(self->function, fault_from(result.status)));
-                             return;
-                           }
-                           ++self->next;
-                           self->step();
-                         }));
+    unit->engine->submit(
+        std::move(op), Priority::ClientWrite, on_io_thread(post, [self = shared_from_this()](BusResult result) {
+          if (result.status != BusStatus::Ok) {
+            spdlog::debug("modbus: {} FC{:02X}: write failed: {}", self->unit->label, self->function, result.detail);
+            self->reply.send(exception_response(self->function, fault_from(result.status)));
+            return;
+          }
+          ++self->next;
+          self->step();
+        }));
   }
 };
 
@@ -454,8 +456,13 @@ void UnitRouter::run_admitted_writes(const ServoUnit& unit, std::uint8_t functio
 void UnitRouter::hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
                                             MotionEpoch epoch, const Reply& reply,
                                             std::function<void(const Reply&)> after) {
-  HoldTarget target{unit.engine, unit.servo_id, &modbus_map::motion_spec(unit.map.servo_table().id),
-                    unit.map.byte_order(), expects_write_reply(unit), epoch, unit.label};
+  HoldTarget target{unit.engine,
+                    unit.servo_id,
+                    &modbus_map::motion_spec(unit.map.servo_table().id),
+                    unit.map.byte_order(),
+                    expects_write_reply(unit),
+                    epoch,
+                    unit.label};
   hold_before_torque_on({std::move(target)}, post_,
                         [this, &unit, function, plan = std::move(plan), epoch, reply,
                          after = std::move(after)](std::optional<BusResult> failure) mutable {

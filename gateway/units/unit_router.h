@@ -20,10 +20,10 @@
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/bus_join.h"
-#include "gateway/units/gateway_unit.h"
 #include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/units/safety.h"
 #include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/units/gateway_unit.h"
+#include "gateway/units/safety.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {
@@ -32,8 +32,8 @@ namespace sms::gateway {
 // keeps about the servo (no table uses these addresses).
 namespace servo_facts_layout {
 inline constexpr std::uint16_t kFirstRegister = 1000;
-inline constexpr std::uint16_t kRegisterCount = 8;   // 1000 .. 1007
-inline constexpr std::uint16_t kFirstBit = 1000;     // 1000 + b: bit b of register 1000
+inline constexpr std::uint16_t kRegisterCount = 8;  // 1000 .. 1007
+inline constexpr std::uint16_t kFirstBit = 1000;    // 1000 + b: bit b of register 1000
 inline constexpr std::uint16_t kOnlineBit = 1008;
 // Offsets inside the block: 0 status byte, 1 online, 2 cache age ms, 3 identity, 4-5 replies ok
 // and 6-7 timeouts (32-bit, high word first).
@@ -72,7 +72,7 @@ struct ServoUnit {
   // the servo (poll cache), else the table's factory behaviour (writes answered).
   std::optional<std::uint8_t> configured_response_level;
   bool read_only = false;
-  std::string label;                // "unit 3 (bus arm, servo 3)" for logs
+  std::string label;  // "unit 3 (bus arm, servo 3)" for logs
 };
 
 // Whether a WRITE to this unit's servo waits for its answer: the configured response level,
@@ -130,8 +130,8 @@ class UnitRouter : public RequestHandler {
   // gets the hold of the goal block first ("no jump on enable", gateway/units/no_jump.h).
   void run_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan, const Reply& reply,
                   std::function<void(const Reply&)> after);
-  void run_admitted_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
-                           MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after);
+  void run_admitted_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan, MotionEpoch epoch,
+                           const Reply& reply, std::function<void(const Reply&)> after);
   // Holds the servo's goal block where its torque is off (gateway/units/no_jump.h), then runs `plan`.
   void hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
                                   MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after);

@@ -15,8 +15,8 @@ namespace wire = sms::sparkplug::wire;
 
 constexpr std::array<std::string_view, 9> kTypeNames{"NBIRTH", "NDEATH", "DBIRTH", "DDEATH", "NDATA",
                                                      "DDATA",  "NCMD",   "DCMD",   "STATE"};
-constexpr std::array<std::string_view, 15> kDataTypeNames{"Unknown", "Int8",    "Int16",  "Int32",   "Int64",
-                                                          "UInt8",   "UInt16",  "UInt32", "UInt64",  "Float",
+constexpr std::array<std::string_view, 15> kDataTypeNames{"Unknown", "Int8",    "Int16",  "Int32",    "Int64",
+                                                          "UInt8",   "UInt16",  "UInt32", "UInt64",   "Float",
                                                           "Double",  "Boolean", "String", "DateTime", "Text"};
 constexpr std::string_view kEngUnitProperty = "engUnit";
 constexpr std::string_view kReadOnlyProperty = "readOnly";
@@ -104,21 +104,17 @@ Expected<MetricValue> value_from_wire(const wire::Payload::Metric& in, DataType 
   using Case = wire::Payload::Metric::ValueCase;
   switch (in.value_case()) {
     case Case::kIntValue:
-      return integer_from_wire(type == DataType::Unknown ? DataType::UInt32 : type, in.int_value(), true, declared, name);
+      return integer_from_wire(type == DataType::Unknown ? DataType::UInt32 : type, in.int_value(), true, declared,
+                               name);
     case Case::kLongValue:
       return integer_from_wire(type == DataType::Unknown ? DataType::UInt64 : type, in.long_value(), false, declared,
                                name);
-    case Case::kFloatValue:
-      return MetricValue{in.float_value()};
-    case Case::kDoubleValue:
-      return MetricValue{in.double_value()};
-    case Case::kBooleanValue:
-      return MetricValue{in.boolean_value()};
-    case Case::kStringValue:
-      return MetricValue{in.string_value()};
+    case Case::kFloatValue: return MetricValue{in.float_value()};
+    case Case::kDoubleValue: return MetricValue{in.double_value()};
+    case Case::kBooleanValue: return MetricValue{in.boolean_value()};
+    case Case::kStringValue: return MetricValue{in.string_value()};
     case Case::kBytesValue:
-    case Case::VALUE_NOT_SET:
-      break;
+    case Case::VALUE_NOT_SET: break;
   }
   return MetricValue{};
 }
@@ -135,8 +131,8 @@ std::string_view to_string(DataType type) {
 bool valid_id(std::string_view id) { return !id.empty() && id.find_first_of("/+#") == std::string_view::npos; }
 
 std::string topic_text(const Topic& topic) {
-  std::string text = std::string(kNamespace) + "/" + topic.group + "/" + std::string(to_string(topic.type)) + "/" +
-                     topic.edge_node;
+  std::string text =
+      std::string(kNamespace) + "/" + topic.group + "/" + std::string(to_string(topic.type)) + "/" + topic.edge_node;
   if (!topic.device.empty()) text += "/" + topic.device;
   return text;
 }
@@ -204,8 +200,9 @@ Expected<Payload> decode(std::span<const std::uint8_t> bytes, const BirthTypes& 
   if (in.has_seq()) payload.seq = in.seq();
   for (const auto& m : in.metrics()) {
     if (!m.has_name() || m.name().empty()) {
-      return unexpected(std::string("a metric without a name (this gateway does not assign aliases, so every "
-                                    "command metric must carry its name)"));
+      return unexpected(
+          std::string("a metric without a name (this gateway does not assign aliases, so every "
+                      "command metric must carry its name)"));
     }
     Metric metric;
     metric.name = m.name();
@@ -218,8 +215,10 @@ Expected<Payload> decode(std::span<const std::uint8_t> bytes, const BirthTypes& 
     if (m.has_properties()) {
       const auto& set = m.properties();
       for (int i = 0; i < set.keys_size() && i < set.values_size(); ++i) {
-        if (set.keys(i) == kEngUnitProperty && set.values(i).has_string_value()) metric.eng_unit = set.values(i).string_value();
-        if (set.keys(i) == kReadOnlyProperty && set.values(i).has_boolean_value()) metric.read_only = set.values(i).boolean_value();
+        if (set.keys(i) == kEngUnitProperty && set.values(i).has_string_value())
+          metric.eng_unit = set.values(i).string_value();
+        if (set.keys(i) == kReadOnlyProperty && set.values(i).has_boolean_value())
+          metric.read_only = set.values(i).boolean_value();
       }
     }
     payload.metrics.push_back(std::move(metric));
@@ -232,7 +231,8 @@ std::optional<IntegerRange> integer_range(DataType type) {
   switch (type) {
     case DataType::Int8: return IntegerRange{-128, 127};
     case DataType::Int16: return IntegerRange{-32768, 32767};
-    case DataType::Int32: return IntegerRange{std::numeric_limits<std::int32_t>::min(), std::numeric_limits<std::int32_t>::max()};
+    case DataType::Int32:
+      return IntegerRange{std::numeric_limits<std::int32_t>::min(), std::numeric_limits<std::int32_t>::max()};
     case DataType::Int64: return IntegerRange{std::numeric_limits<std::int64_t>::min(), kMax64};
     case DataType::UInt8: return IntegerRange{0, 255};
     case DataType::UInt16: return IntegerRange{0, 65535};
@@ -367,7 +367,8 @@ class JsonReader {
 Expected<HostState> parse_host_state(std::string_view json) {
   JsonReader reader(json);
   const auto not_json = [] {
-    return unexpected(std::string(R"(not a Sparkplug 3.0 STATE payload (expected JSON {"online": true|false, "timestamp": <ms>}))"));
+    return unexpected(
+        std::string(R"(not a Sparkplug 3.0 STATE payload (expected JSON {"online": true|false, "timestamp": <ms>}))"));
   };
   if (!reader.eat('{')) return not_json();
   std::optional<bool> online;

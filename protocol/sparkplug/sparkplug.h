@@ -84,13 +84,21 @@ struct Metric {
     metric.value = std::move(value);
     return metric;
   }
-  static Metric int16(std::string name, std::int16_t value) { return of(std::move(name), DataType::Int16, std::int64_t{value}); }
-  static Metric uint16(std::string name, std::uint16_t value) { return of(std::move(name), DataType::UInt16, std::uint64_t{value}); }
-  static Metric uint32(std::string name, std::uint32_t value) { return of(std::move(name), DataType::UInt32, std::uint64_t{value}); }
+  static Metric int16(std::string name, std::int16_t value) {
+    return of(std::move(name), DataType::Int16, std::int64_t{value});
+  }
+  static Metric uint16(std::string name, std::uint16_t value) {
+    return of(std::move(name), DataType::UInt16, std::uint64_t{value});
+  }
+  static Metric uint32(std::string name, std::uint32_t value) {
+    return of(std::move(name), DataType::UInt32, std::uint64_t{value});
+  }
   static Metric int64(std::string name, std::int64_t value) { return of(std::move(name), DataType::Int64, value); }
   static Metric uint64(std::string name, std::uint64_t value) { return of(std::move(name), DataType::UInt64, value); }
   static Metric boolean(std::string name, bool value) { return of(std::move(name), DataType::Boolean, value); }
-  static Metric string(std::string name, std::string value) { return of(std::move(name), DataType::String, std::move(value)); }
+  static Metric string(std::string name, std::string value) {
+    return of(std::move(name), DataType::String, std::move(value));
+  }
   bool is_null() const { return std::holds_alternative<std::monostate>(value); }
   friend bool operator==(const Metric&, const Metric&) = default;
 };

@@ -61,22 +61,19 @@ TEST(ConfigEnv, NoVariablesLeaveTheConfigurationAsItWas) {
 
 TEST(ConfigEnv, EveryVariableReplacesItsSetting) {
   const Variables variables{
-      {"SMS_GATEWAY_LISTEN", "0.0.0.0:502"},
-      {"SMS_GATEWAY_MAX_CONNECTIONS", "200"},
-      {"SMS_GATEWAY_IDLE_TIMEOUT_S", "0"},
-      {"SMS_GATEWAY_ALLOW", "192.168.10.0/24, fd00::/8,10.1.2.3"},
-      {"SMS_GATEWAY_LOG_LEVEL", "debug"},
-      {"SMS_GATEWAY_LOG_FORMAT", "json"},
+      {"SMS_GATEWAY_LISTEN", "0.0.0.0:502"}, {"SMS_GATEWAY_MAX_CONNECTIONS", "200"},
+      {"SMS_GATEWAY_IDLE_TIMEOUT_S", "0"},   {"SMS_GATEWAY_ALLOW", "192.168.10.0/24, fd00::/8,10.1.2.3"},
+      {"SMS_GATEWAY_LOG_LEVEL", "debug"},    {"SMS_GATEWAY_LOG_FORMAT", "json"},
       {"SMS_GATEWAY_METRICS", "[::]:9102"},
   };
   Config config = file_config();
   const auto applied = apply_environment(config, lookup_in(variables));
   ASSERT_TRUE(applied) << applied.error();
 
-  EXPECT_EQ(*applied, (std::vector<std::string>{"SMS_GATEWAY_LISTEN", "SMS_GATEWAY_MAX_CONNECTIONS",
-                                                 "SMS_GATEWAY_IDLE_TIMEOUT_S", "SMS_GATEWAY_ALLOW",
-                                                 "SMS_GATEWAY_LOG_LEVEL", "SMS_GATEWAY_LOG_FORMAT",
-                                                 "SMS_GATEWAY_METRICS"}));
+  EXPECT_EQ(*applied,
+            (std::vector<std::string>{"SMS_GATEWAY_LISTEN", "SMS_GATEWAY_MAX_CONNECTIONS", "SMS_GATEWAY_IDLE_TIMEOUT_S",
+                                      "SMS_GATEWAY_ALLOW", "SMS_GATEWAY_LOG_LEVEL", "SMS_GATEWAY_LOG_FORMAT",
+                                      "SMS_GATEWAY_METRICS"}));
   EXPECT_EQ(config.modbus_tcp.listen, (HostPort{"0.0.0.0", 502}));
   EXPECT_EQ(config.modbus_tcp.max_connections, 200u);
   EXPECT_EQ(config.modbus_tcp.idle_timeout, 0s);
@@ -94,8 +91,7 @@ TEST(ConfigEnv, EveryVariableReplacesItsSetting) {
 
 TEST(ConfigEnv, EmptyOrBlankVariableCountsAsNotSet) {
   Config config = file_config();
-  const auto applied =
-      apply_environment(config, lookup_in({{"SMS_GATEWAY_ALLOW", ""}, {"SMS_GATEWAY_LISTEN", "  "}}));
+  const auto applied = apply_environment(config, lookup_in({{"SMS_GATEWAY_ALLOW", ""}, {"SMS_GATEWAY_LISTEN", "  "}}));
   ASSERT_TRUE(applied) << applied.error();
   EXPECT_TRUE(applied->empty());
   EXPECT_EQ(config, file_config());
@@ -148,8 +144,8 @@ TEST(ConfigEnv, AllowListErrorsSayWhichItem) {
 
 TEST(ConfigEnv, OneInvalidVariableLeavesEveryOtherSettingUnchanged) {
   Config config = file_config();
-  const auto applied = apply_environment(
-      config, lookup_in({{"SMS_GATEWAY_LISTEN", "0.0.0.0:502"}, {"SMS_GATEWAY_LOG_FORMAT", "xml"}}));
+  const auto applied =
+      apply_environment(config, lookup_in({{"SMS_GATEWAY_LISTEN", "0.0.0.0:502"}, {"SMS_GATEWAY_LOG_FORMAT", "xml"}}));
   ASSERT_FALSE(applied);
   EXPECT_EQ(config, file_config());
 }

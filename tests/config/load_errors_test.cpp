@@ -774,52 +774,51 @@ sync_groups:
 std::string with_groups(std::string_view groups) { return std::string(kArmAndBase) + std::string(groups); }
 
 TEST(ConfigErrors, SyncGroupMemberIsNoUnit) {
-  EXPECT_EQ(error_text(with_groups(
-                "  - {name: arm, field: goal_position, members: [1, 2, 9], holding_register_start: 0}\n")),
-            "plant.yaml:12:55: sync_groups[0].members[2]: unknown unit 9; configured units: 1, 2, 3, 11, 21");
+  EXPECT_EQ(
+      error_text(with_groups("  - {name: arm, field: goal_position, members: [1, 2, 9], holding_register_start: 0}\n")),
+      "plant.yaml:12:55: sync_groups[0].members[2]: unknown unit 9; configured units: 1, 2, 3, 11, 21");
 }
 
 TEST(ConfigErrors, SyncGroupMemberIsAPassthroughUnit) {
-  EXPECT_EQ(error_text(with_groups(
-                "  - {name: arm, field: goal_position, members: [1, 21], holding_register_start: 0}\n")),
-            "plant.yaml:12:52: sync_groups[0].members[1]: unit 21 is a passthrough unit and has no fields to write");
+  EXPECT_EQ(
+      error_text(with_groups("  - {name: arm, field: goal_position, members: [1, 21], holding_register_start: 0}\n")),
+      "plant.yaml:12:52: sync_groups[0].members[1]: unit 21 is a passthrough unit and has no fields to write");
 }
 
 TEST(ConfigErrors, SyncGroupMemberIsReadOnly) {
-  EXPECT_EQ(error_text(with_groups(
-                "  - {name: arm, field: goal_position, members: [1, 3], holding_register_start: 0}\n")),
-            "plant.yaml:12:52: sync_groups[0].members[1]: unit 3 is read_only");
+  EXPECT_EQ(
+      error_text(with_groups("  - {name: arm, field: goal_position, members: [1, 3], holding_register_start: 0}\n")),
+      "plant.yaml:12:52: sync_groups[0].members[1]: unit 3 is read_only");
 }
 
 TEST(ConfigErrors, SyncGroupMemberListedTwice) {
-  EXPECT_EQ(error_text(with_groups(
-                "  - {name: arm, field: goal_position, members: [1, 2, 1], holding_register_start: 0}\n")),
-            "plant.yaml:12:55: sync_groups[0].members[2]: unit 1 is listed twice");
+  EXPECT_EQ(
+      error_text(with_groups("  - {name: arm, field: goal_position, members: [1, 2, 1], holding_register_start: 0}\n")),
+      "plant.yaml:12:55: sync_groups[0].members[2]: unit 1 is listed twice");
 }
 
 TEST(ConfigErrors, SyncGroupWithoutMembers) {
-  EXPECT_EQ(error_text(with_groups(
-                "  - {name: arm, field: goal_position, members: [], holding_register_start: 0}\n")),
+  EXPECT_EQ(error_text(with_groups("  - {name: arm, field: goal_position, members: [], holding_register_start: 0}\n")),
             "plant.yaml:12:48: sync_groups[0].members: a sync group needs at least one member unit");
 }
 
 TEST(ConfigErrors, SyncGroupFieldMissingFromAMembersTable) {
-  EXPECT_EQ(error_text(with_groups(
-                "  - {name: speeds, field: goal_speed, members: [1, 11], holding_register_start: 0}\n")),
-            "plant.yaml:12:27: sync_groups[0].field: unit 11 (table d55d) has no field `goal_speed`; its fields: "
-            "vendor_code, software_version, id, baud_rate, return_delay, cw_angle_limit, ccw_angle_limit, "
-            "max_temperature, max_current, angle_resolution, response_level, heartbeat_enable, unload_conditions, "
-            "photo_switch_zero_direction, rs485_termination, base_acceleration, base_deceleration, "
-            "photo_switch_homing, clear_unload_condition, goal_position, run_speed, acceleration, deceleration, "
-            "present_position, present_speed, accumulated_angle, moving, brake, reg_write_flag, "
-            "present_temperature, sleep, photo_switch_state, move_without_photo_coupler");
+  EXPECT_EQ(
+      error_text(with_groups("  - {name: speeds, field: goal_speed, members: [1, 11], holding_register_start: 0}\n")),
+      "plant.yaml:12:27: sync_groups[0].field: unit 11 (table d55d) has no field `goal_speed`; its fields: "
+      "vendor_code, software_version, id, baud_rate, return_delay, cw_angle_limit, ccw_angle_limit, "
+      "max_temperature, max_current, angle_resolution, response_level, heartbeat_enable, unload_conditions, "
+      "photo_switch_zero_direction, rs485_termination, base_acceleration, base_deceleration, "
+      "photo_switch_homing, clear_unload_condition, goal_position, run_speed, acceleration, deceleration, "
+      "present_position, present_speed, accumulated_angle, moving, brake, reg_write_flag, "
+      "present_temperature, sleep, photo_switch_state, move_without_photo_coupler");
 }
 
 TEST(ConfigErrors, SyncGroupFieldIsReadOnly) {
-  EXPECT_EQ(error_text(with_groups(
-                "  - {name: arm, field: present_position, members: [1], holding_register_start: 0}\n")),
-            "plant.yaml:12:24: sync_groups[0].field: `present_position` is read-only in table sts (unit 1); a sync "
-            "group writes its field");
+  EXPECT_EQ(
+      error_text(with_groups("  - {name: arm, field: present_position, members: [1], holding_register_start: 0}\n")),
+      "plant.yaml:12:24: sync_groups[0].field: `present_position` is read-only in table sts (unit 1); a sync "
+      "group writes its field");
 }
 
 TEST(ConfigErrors, SyncGroupFieldAtTwoAddressesOnOneBus) {
@@ -846,9 +845,9 @@ TEST(ConfigErrors, SyncGroupNamedTwice) {
 }
 
 TEST(ConfigErrors, SyncGroupBlockPastTheLastRegister) {
-  EXPECT_EQ(error_text(with_groups(
-                "  - {name: a, field: goal_position, members: [1, 2], holding_register_start: 65535}\n")),
-            "plant.yaml:12:78: sync_groups[0].holding_register_start: 65535 is outside 0..65534");
+  EXPECT_EQ(
+      error_text(with_groups("  - {name: a, field: goal_position, members: [1, 2], holding_register_start: 65535}\n")),
+      "plant.yaml:12:78: sync_groups[0].holding_register_start: 65535 is outside 0..65534");
 }
 
 // ---- files ----
@@ -880,15 +879,17 @@ TEST(ConfigErrors, LoneCommaIsRefusedInsteadOfLoopingForever) {
 
 // Fuzz findings (finding-servo-name-*.yaml): such names did not survive a dump and would garble logs.
 TEST(ConfigErrors, NameWithControlCharacterOrBrokenUtf8IsRefused) {
-  const std::string prefix = "buses:\n  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}\n"
-                             "servos:\n  - {bus: arm, id: 1, table: sts, name: \"a";
+  const std::string prefix =
+      "buses:\n  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}\n"
+      "servos:\n  - {bus: arm, id: 1, table: sts, name: \"a";
   EXPECT_EQ(error_text(prefix + "\\x01b\"}\n"),
             "plant.yaml:4:41: servos[0].name: must be printable UTF-8 text (it has a control character or bytes "
             "that are not UTF-8); names end up in logs and metrics labels");
   EXPECT_EQ(error_text(prefix + "\xFF" + "b\"}\n"),
             "plant.yaml:4:41: servos[0].name: must be printable UTF-8 text (it has a control character or bytes "
             "that are not UTF-8); names end up in logs and metrics labels");
-  EXPECT_TRUE(load_config_string(prefix + "\xC3\xA9t\xC3\xA9\"}\n", "plant.yaml").has_value()) << "UTF-8 names are fine";
+  EXPECT_TRUE(load_config_string(prefix + "\xC3\xA9t\xC3\xA9\"}\n", "plant.yaml").has_value())
+      << "UTF-8 names are fine";
 }
 
 }  // namespace

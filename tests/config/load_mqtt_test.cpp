@@ -20,8 +20,9 @@ servos:
 )";
 
 TEST(LoadMqtt, MinimalSectionGetsTheDefaults) {
-  const auto config = load_config_string(kServos + "mqtt: {broker: \"127.0.0.1:1883\", group_id: plant, "
-                                                   "edge_node_id: gw1}\n",
+  const auto config = load_config_string(kServos +
+                                             "mqtt: {broker: \"127.0.0.1:1883\", group_id: plant, "
+                                             "edge_node_id: gw1}\n",
                                          "plant.yaml");
   ASSERT_TRUE(config) << config.error().to_string();
   ASSERT_TRUE(config->mqtt);
@@ -106,8 +107,9 @@ TEST(LoadMqtt, RefusesWithPlaces) {
   EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  tls: {ca: /ca, certificate: /c}\n"),
             "plant.yaml:10:8: mqtt.tls: certificate and private_key go together (a client certificate for the "
             "broker); give both or neither");
-  EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  reconnect_min_ms: 5000\n  reconnect_max_ms: 1000\n"),
-            "plant.yaml:11:3: mqtt.reconnect_max_ms: 1000 is below reconnect_min_ms (5000)");
+  EXPECT_EQ(
+      error_text(head + "  group_id: g\n  edge_node_id: gw\n  reconnect_min_ms: 5000\n  reconnect_max_ms: 1000\n"),
+      "plant.yaml:11:3: mqtt.reconnect_max_ms: 1000 is below reconnect_min_ms (5000)");
   EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  role: admin\n"),
             "plant.yaml:10:9: mqtt.role: expected one of none, read, operate, engineer, got `admin`");
   EXPECT_EQ(error_text(head + "  group_id: g\n  edge_node_id: gw\n  last_will: x\n"),

@@ -68,7 +68,8 @@ TEST(IpNetworkParse, PrefixZeroIsEveryAddress) {
 TEST(IpNetworkParse, RefusesWhatIsNotANetwork) {
   constexpr std::string_view kForm =
       "write ADDRESS/PREFIX (e.g. 192.168.10.0/24, fd00::/8) or one address (10.0.0.7, ::1)";
-  EXPECT_EQ(parse_ip_network("plc.local").error(), "\"plc.local\" is not an IPv4 or IPv6 address; " + std::string(kForm));
+  EXPECT_EQ(parse_ip_network("plc.local").error(),
+            "\"plc.local\" is not an IPv4 or IPv6 address; " + std::string(kForm));
   EXPECT_EQ(parse_ip_network("10.0.0/8").error(), "\"10.0.0/8\" is not an IPv4 or IPv6 address; " + std::string(kForm));
   EXPECT_EQ(parse_ip_network("").error(), "\"\" is not an IPv4 or IPv6 address; " + std::string(kForm));
   EXPECT_EQ(parse_ip_network("[::1]/128").error(),

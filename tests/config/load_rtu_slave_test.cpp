@@ -53,7 +53,9 @@ TEST(LoadRtuSlave, EveryKeyIsReadAndSurvivesADump) {
 }
 
 TEST(LoadRtuSlave, MistakesAreNamedWithTheirPlace) {
-  const auto with = [](const std::string& port) { return error_text(kBusAndServo + "modbus_rtu_slave:\n  - " + port + "\n"); };
+  const auto with = [](const std::string& port) {
+    return error_text(kBusAndServo + "modbus_rtu_slave:\n  - " + port + "\n");
+  };
   EXPECT_EQ(with("{device: /dev/ttyUSB0}"),
             "plant.yaml:6:14: modbus_rtu_slave[0].device: /dev/ttyUSB0 is the device of bus `arm` (line 2, column 25); "
             "an upstream port needs a serial line of its own (a second adapter)");

@@ -179,16 +179,14 @@ Config every_key_expected() {
                                      .baud = 9600,
                                      .baud_code = 2,
                                      .poll = {.range = AddressRange{36, 8}}});
-  expected.buses.push_back(BusConfig{.name = "lift",
-                                     .device = "/dev/ttyUSB2",
-                                     .protocol = BusProtocol::ModbusRtu,
-                                     .baud = 57600,
-                                     .baud_code = 3,
-                                     .parity = Parity::Odd,
-                                     .modbus_rtu = {.rs485 = true,
-                                                    .rts = RtsMode::Down,
-                                                    .rts_delay = 250us,
-                                                    .byte_timeout = 15ms}});
+  expected.buses.push_back(
+      BusConfig{.name = "lift",
+                .device = "/dev/ttyUSB2",
+                .protocol = BusProtocol::ModbusRtu,
+                .baud = 57600,
+                .baud_code = 3,
+                .parity = Parity::Odd,
+                .modbus_rtu = {.rs485 = true, .rts = RtsMode::Down, .rts_delay = 250us, .byte_timeout = 15ms}});
   expected.servos.push_back(ServoConfig{.unit_id = 100,
                                         .bus = "arm",
                                         .bus_index = 0,
@@ -215,8 +213,8 @@ Config every_key_expected() {
       SyncGroupConfig{.name = "goals", .field = "goal_position", .members = {7, 3}, .holding_register_start = 16});
   expected.sync_groups.push_back(
       SyncGroupConfig{.name = "speed", .field = "run_speed", .members = {7}, .holding_register_start = 18});
-  expected.logging = LoggingConfig{
-      .level = LogLevel::Debug, .format = LogFormat::Json, .metrics_listen = HostPort{"0.0.0.0", 9102}};
+  expected.logging =
+      LoggingConfig{.level = LogLevel::Debug, .format = LogFormat::Json, .metrics_listen = HostPort{"0.0.0.0", 9102}};
   return expected;
 }
 
@@ -389,7 +387,7 @@ TEST(ConfigLoad, EffectiveByteOrderFollowsTableUnlessOverridden) {
   EXPECT_EQ(effective_byte_order(servo), ByteOrder::HighFirst);
   EXPECT_EQ(effective_byte_order(ServoConfig{.table = TableId::Smsmb}), ByteOrder::HighFirst);
   EXPECT_EQ(effective_byte_order(ServoConfig{.table = TableId::Scs}), ByteOrder::HighFirst);  // SCSCL SDK End = 1
-  EXPECT_EQ(effective_byte_order(ServoConfig{}), ByteOrder::HighFirst);  // passthrough
+  EXPECT_EQ(effective_byte_order(ServoConfig{}), ByteOrder::HighFirst);                       // passthrough
 }
 
 TEST(ConfigLoad, ReadsAFileAndNamesItInErrors) {

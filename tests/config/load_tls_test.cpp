@@ -88,34 +88,43 @@ TEST(LoadTls, RefusesWithPlaces) {
   EXPECT_EQ(error_text("modbus_tcp: {plain: false}\n" + kBusAndServo),
             "plant.yaml:1:21: modbus_tcp.plain: false leaves the gateway without a listener; configure "
             "modbus_tcp.tls (Modbus/TCP Security) or remove the key");
-  EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b}\n" + kBusAndServo),
-            "plant.yaml:2:8: missing required key `ca` in modbus_tcp.tls");
+  EXPECT_EQ(
+      error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b}\n" + kBusAndServo),
+      "plant.yaml:2:8: missing required key `ca` in modbus_tcp.tls");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
-                       "roles: {plc-1: admin}}\n" + kBusAndServo),
+                       "roles: {plc-1: admin}}\n" +
+                       kBusAndServo),
             "plant.yaml:2:86: modbus_tcp.tls.roles.plc-1: expected one of none, read, operate, engineer, got `admin`");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
-                       "roles: {plc-1: read, plc-1: operate}}\n" + kBusAndServo),
+                       "roles: {plc-1: read, plc-1: operate}}\n" +
+                       kBusAndServo),
             "plant.yaml:2:92: modbus_tcp.tls.roles: `plc-1` is given twice (first at line 2, column 79)");
   EXPECT_EQ(error_text("modbus_tcp:\n  listen: \"0.0.0.0:802\"\n  tls: {listen: \"0.0.0.0:802\", certificate: a, "
-                       "private_key: b, ca: c}\n" + kBusAndServo),
+                       "private_key: b, ca: c}\n" +
+                       kBusAndServo),
             "plant.yaml:3:3: modbus_tcp.tls.listen: 0.0.0.0:802 is also modbus_tcp.listen (plain Modbus TCP); give "
             "TLS its own port (802 is Modbus/TCP Security's) or set plain: false");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
-                       "default_role: admin}\n" + kBusAndServo),
+                       "default_role: admin}\n" +
+                       kBusAndServo),
             "plant.yaml:2:85: modbus_tcp.tls.default_role: expected one of none, read, operate, engineer, got `admin`");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
-                       "role_names: {read: operate}}\n" + kBusAndServo),
+                       "role_names: {read: operate}}\n" +
+                       kBusAndServo),
             "plant.yaml:2:84: modbus_tcp.tls.role_names: `read` already is a role; list only other names here");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
-                       "role_names: {Operator: admin}}\n" + kBusAndServo),
+                       "role_names: {Operator: admin}}\n" +
+                       kBusAndServo),
             "plant.yaml:2:94: modbus_tcp.tls.role_names.Operator: expected one of none, read, operate, engineer, got "
             "`admin`");
   EXPECT_EQ(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
-                       "max_handshakes: 4, max_handshakes_per_address: 5}\n" + kBusAndServo),
+                       "max_handshakes: 4, max_handshakes_per_address: 5}\n" +
+                       kBusAndServo),
             "plant.yaml:2:90: modbus_tcp.tls.max_handshakes_per_address: 5 is more than max_handshakes (4); lower it "
             "or raise max_handshakes");
   EXPECT_NE(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificate: a, private_key: b, ca: c, "
-                       "handshake_timeout_ms: 50}\n" + kBusAndServo)
+                       "handshake_timeout_ms: 50}\n" +
+                       kBusAndServo)
                 .find("modbus_tcp.tls.handshake_timeout_ms"),
             std::string::npos);
   EXPECT_NE(error_text("modbus_tcp:\n  tls: {listen: \"0.0.0.0:802\", certificat: a}\n" + kBusAndServo)

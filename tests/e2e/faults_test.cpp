@@ -58,7 +58,7 @@ servos:
   - {unit: 102, bus: base, id: 2, table: d55d}
 )";
 
-constexpr int kStsGoalPosition = 42;   // sts holding register (docs/PROTOCOL.md §2.1)
+constexpr int kStsGoalPosition = 42;  // sts holding register (docs/PROTOCOL.md §2.1)
 // A client's own timeout (s): longer than the gateway's worst case (three attempts of two
 // seconds each, behind a queue), so a late answer is never taken for the next one's.
 constexpr std::chrono::seconds kPatient{60};
@@ -168,8 +168,9 @@ class Witness {
       const auto written =
           k % 2 == 0 ? client_.write_register(address_, value) : client_.write_registers(address_, {value});
       if (!written.ok()) {
-        return fail("write #" + std::to_string(k) + " of " + std::to_string(value) + " (FC" + (k % 2 == 0 ? "06" : "16") +
-                    ") not acknowledged: exception " + std::to_string(written.exception) + " " + written.error);
+        return fail("write #" + std::to_string(k) + " of " + std::to_string(value) + " (FC" +
+                    (k % 2 == 0 ? "06" : "16") + ") not acknowledged: exception " + std::to_string(written.exception) +
+                    " " + written.error);
       }
       {
         std::lock_guard lock(mutex_);
@@ -220,8 +221,13 @@ void expect_witness_intact(Witness& witness, SimProcess& sim, int servo_id) {
 // --- raw Modbus TCP ---------------------------------------------------------------------
 
 Bytes adu(std::uint16_t tid, std::uint8_t unit, const Bytes& pdu) {
-  Bytes out{static_cast<std::uint8_t>(tid >> 8), static_cast<std::uint8_t>(tid), 0, 0, 0,
-            static_cast<std::uint8_t>(pdu.size() + 1), unit};
+  Bytes out{static_cast<std::uint8_t>(tid >> 8),
+            static_cast<std::uint8_t>(tid),
+            0,
+            0,
+            0,
+            static_cast<std::uint8_t>(pdu.size() + 1),
+            unit};
   out.insert(out.end(), pdu.begin(), pdu.end());
   return out;
 }
@@ -325,7 +331,8 @@ class RawClient {
 
  private:
   bool wait_readable(std::chrono::steady_clock::time_point deadline) {
-    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+    const auto left =
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
     if (left.count() <= 0) return false;
     pollfd readable{fd_, POLLIN, 0};
     return ::poll(&readable, 1, static_cast<int>(left.count())) > 0;
@@ -366,7 +373,8 @@ std::optional<SocketQueues> socket_queues(std::uint16_t local_port, std::uint16_
     fields >> slot >> local_address >> remote_address >> state >> queues;  // queues: "tx:rx" in hex
     if (local_address.ends_with(local) && remote_address.ends_with(remote)) {
       const auto colon = queues.find(':');
-      return SocketQueues{std::stol(queues.substr(0, colon), nullptr, 16), std::stol(queues.substr(colon + 1), nullptr, 16)};
+      return SocketQueues{std::stol(queues.substr(0, colon), nullptr, 16),
+                          std::stol(queues.substr(colon + 1), nullptr, 16)};
     }
   }
   return std::nullopt;
@@ -515,8 +523,7 @@ TEST(Faults, SlowClientTricklingBytesAndPausingMidFrameIsAnsweredWhileOthersAreS
   const Bytes read = adu(0x0032, 2, {0x03, 0x00, 0x2A, 0x00, 0x01});
   for (const std::uint8_t byte : write + read) {
     slow.send({byte});
-    ASSERT_TRUE(witness.answered_now(1)) << "the witness must be served while a client trickles: "
-                                         << witness.failure();
+    ASSERT_TRUE(witness.answered_now(1)) << "the witness must be served while a client trickles: " << witness.failure();
   }
   EXPECT_EQ(slow.receive(23), write + adu(0x0032, 2, {0x03, 0x02, 0x08, 0xAE}));
   EXPECT_EQ(cell.arm().field(2, "goal_position"), 2222);
@@ -652,7 +659,7 @@ TEST(Faults, TwoHundredConcurrentClientsAreAllAnsweredAndOneOverTheLimitIsRefuse
   constexpr std::array<Field, 8> kFields{{{21, "p_gain"},
                                           {22, "d_gain"},
                                           {23, "i_gain"},
-                                          {25, "integral_limit"},   // 26/27 dead bands stop at 16
+                                          {25, "integral_limit"},  // 26/27 dead bands stop at 16
                                           {35, "protection_time"},
                                           {37, "speed_p_gain"},
                                           {39, "speed_i_gain"},
@@ -663,10 +670,13 @@ TEST(Faults, TwoHundredConcurrentClientsAreAllAnsweredAndOneOverTheLimitIsRefuse
   ModbusClient setup(cell.port(), 1, kPatient);  // stays open: counted for the whole test
   for (int unit = 1; unit <= kServos; ++unit) {
     setup.set_unit(unit);
-    ASSERT_TRUE(eventually([&] {
-      const auto age = setup.read_input(1002, 1);
-      return age.ok() && age.values[0] != 0xFFFF;
-    }, 15s)) << "unit " << unit << " was never polled";
+    ASSERT_TRUE(eventually(
+        [&] {
+          const auto age = setup.read_input(1002, 1);
+          return age.ok() && age.values[0] != 0xFFFF;
+        },
+        15s))
+        << "unit " << unit << " was never polled";
   }
   Witness witness(cell.port(), 1, kStsGoalPosition);
   ASSERT_TRUE(witness.answered_now()) << witness.failure();
@@ -719,7 +729,8 @@ TEST(Faults, TwoHundredConcurrentClientsAreAllAnsweredAndOneOverTheLimitIsRefuse
   EXPECT_TRUE(eventually([&] { return connected == kClients; }, deadline)) << connected << " clients connected";
   go = true;
   const bool all_finished = eventually([&] { return finished == kClients; }, deadline);
-  EXPECT_TRUE(all_finished) << finished << " of " << kClients << " clients finished within " << deadline.count() << " s";
+  EXPECT_TRUE(all_finished) << finished << " of " << kClients << " clients finished within " << deadline.count()
+                            << " s";
   if (all_finished) {
     // All 200 still connected: one more is accepted and closed at once, without a word.
     RawClient one_too_many(cell.port());
@@ -738,8 +749,8 @@ TEST(Faults, TwoHundredConcurrentClientsAreAllAnsweredAndOneOverTheLimitIsRefuse
   for (int i = 0; i < kClients; ++i) {
     const int unit = 1 + i / static_cast<int>(kFields.size());
     const Field field = kFields[static_cast<std::size_t>(i) % kFields.size()];
-    EXPECT_EQ(cell.arm().field(unit, field.name), value_of(i)) << "client " << i << "'s write of " << field.name
-                                                              << " on unit " << unit << " is not on the servo";
+    EXPECT_EQ(cell.arm().field(unit, field.name), value_of(i))
+        << "client " << i << "'s write of " << field.name << " on unit " << unit << " is not on the servo";
   }
   EXPECT_TRUE(witness.answered_now()) << witness.failure();
   expect_witness_intact(witness, cell.arm(), 1);
@@ -795,7 +806,8 @@ TEST(Faults, ServoAnsweringGarbageIsAnExceptionWhileItsNeighboursOnTheBusAreServ
   const auto clean_exception = [](int code) { return code == 0x04 || code == 0x0B; };
   for (int i = 0; i < 3; ++i) {
     const auto read = garbled.read_holding(kStsGoalPosition, 1);
-    EXPECT_TRUE(clean_exception(read.exception)) << "read " << i << ": exception " << read.exception << " " << read.error;
+    EXPECT_TRUE(clean_exception(read.exception))
+        << "read " << i << ": exception " << read.exception << " " << read.error;
   }
   const auto write = garbled.write_register(kStsGoalPosition, 1900);
   EXPECT_TRUE(clean_exception(write.exception)) << "exception " << write.exception << " " << write.error;

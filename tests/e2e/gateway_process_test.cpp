@@ -79,8 +79,8 @@ TEST(GatewayProcess, GatewayUnitShowsVersionUptimeAndEveryBus) {
   EXPECT_EQ(head.values[1], 1);
   EXPECT_EQ(head.values[2], 0);
   EXPECT_LT((head.values[3] << 16) | head.values[4], 120);  // uptime seconds
-  EXPECT_EQ(head.values[5], 2);  // buses
-  EXPECT_EQ(head.values[6], 7);  // servos
+  EXPECT_EQ(head.values[5], 2);                             // buses
+  EXPECT_EQ(head.values[6], 7);                             // servos
   const auto arm = gateway.read_input(100, 10);
   ASSERT_TRUE(arm.ok()) << arm.error;
   EXPECT_EQ(arm.values[0], 1);      // up
@@ -118,20 +118,21 @@ TEST(GatewayProcess, PipelinedRequestsAreAnsweredInOrderWithTheirTransactionIds)
   ASSERT_TRUE(ModbusClient(plant.port(), 1).write_register(42, 2000).ok());
   RawConnection connection(plant.port());
   Bytes burst;
-  for (const Bytes& request : {adu(0x0101, 1, {0x03, 0x00, 0x2A, 0x00, 0x01}),          // goal position: 2000
-                               adu(0x0102, 99, {0x03, 0x00, 0x00, 0x00, 0x01}),         // unknown unit
-                               adu(0x0103, 1, {0x06, 0x00, 0x2A, 0x08, 0x34}),          // goal := 2100
-                               adu(0x0104, 1, {0x03, 0x00, 0x2A, 0x00, 0x01}),          // 2100
-                               adu(0x0105, 255, {0x04, 0x00, 0x05, 0x00, 0x02}),        // 2 buses, 7 servos
-                               adu(0x0106, 1, {0x07})}) {                               // unsupported
+  for (const Bytes& request : {adu(0x0101, 1, {0x03, 0x00, 0x2A, 0x00, 0x01}),    // goal position: 2000
+                               adu(0x0102, 99, {0x03, 0x00, 0x00, 0x00, 0x01}),   // unknown unit
+                               adu(0x0103, 1, {0x06, 0x00, 0x2A, 0x08, 0x34}),    // goal := 2100
+                               adu(0x0104, 1, {0x03, 0x00, 0x2A, 0x00, 0x01}),    // 2100
+                               adu(0x0105, 255, {0x04, 0x00, 0x05, 0x00, 0x02}),  // 2 buses, 7 servos
+                               adu(0x0106, 1, {0x07})}) {                         // unsupported
     burst.insert(burst.end(), request.begin(), request.end());
   }
   connection.send(burst);
   const Bytes expected = [] {
     Bytes all;
-    for (const Bytes& answer : {adu(0x0101, 1, {0x03, 0x02, 0x07, 0xD0}), adu(0x0102, 99, {0x83, 0x0A}),
-                                adu(0x0103, 1, {0x06, 0x00, 0x2A, 0x08, 0x34}), adu(0x0104, 1, {0x03, 0x02, 0x08, 0x34}),
-                                adu(0x0105, 255, {0x04, 0x04, 0x00, 0x02, 0x00, 0x07}), adu(0x0106, 1, {0x87, 0x01})}) {
+    for (const Bytes& answer :
+         {adu(0x0101, 1, {0x03, 0x02, 0x07, 0xD0}), adu(0x0102, 99, {0x83, 0x0A}),
+          adu(0x0103, 1, {0x06, 0x00, 0x2A, 0x08, 0x34}), adu(0x0104, 1, {0x03, 0x02, 0x08, 0x34}),
+          adu(0x0105, 255, {0x04, 0x04, 0x00, 0x02, 0x00, 0x07}), adu(0x0106, 1, {0x87, 0x01})}) {
       all.insert(all.end(), answer.begin(), answer.end());
     }
     return all;
@@ -146,10 +147,10 @@ TEST(GatewayProcess, FiftyConcurrentClientsAreAllServed) {
   constexpr int kRequests = 40;
   struct Target {
     int unit;
-    int live;  // a holding register read over the bus (goal position in the unit's map)
+    int live;    // a holding register read over the bus (goal position in the unit's map)
     int cached;  // an input register served from the poll cache
   };
-  const Target targets[] = {{1, 42, 56}, {2, 42, 56}, {3, 0x80, 0x101}, {4, 42, 56},
+  const Target targets[] = {{1, 42, 56},      {2, 42, 56},  {3, 0x80, 0x101}, {4, 42, 56},
                             {5, 0x80, 0x101}, {11, 30, 36}, {12, 30, 36}};
   std::atomic<int> failures{0};
   std::mutex first_failure_mutex;
@@ -162,8 +163,9 @@ TEST(GatewayProcess, FiftyConcurrentClientsAreAllServed) {
       ModbusClient client(plant.port(), target.unit);
       for (int r = 0; r < kRequests; ++r) {
         // Mostly cached reads (what an HMI does), every fourth a live read over the bus.
-        const auto answer = r % 4 == 3 ? client.read_holding(target.live, 1)
-                                       : r % 2 == 0 ? client.read_input(target.cached, 1) : client.read_input(1000, 8);
+        const auto answer = r % 4 == 3   ? client.read_holding(target.live, 1)
+                            : r % 2 == 0 ? client.read_input(target.cached, 1)
+                                         : client.read_input(1000, 8);
         if (!answer.ok()) {
           ++failures;
           std::lock_guard lock(first_failure_mutex);
@@ -210,7 +212,8 @@ TEST(GatewayProcess, WritesOfOneConnectionApplyInArrivalOrder) {
   // Unit 1's goal position 1000, 1001, ... 1029, interleaved with a staged write and a read.
   for (std::uint16_t i = 0; i < 30; ++i) {
     const std::uint16_t value = static_cast<std::uint16_t>(1000 + i);
-    const Bytes write = adu(i, 1, {0x06, 0x00, 0x2A, static_cast<std::uint8_t>(value >> 8), static_cast<std::uint8_t>(value)});
+    const Bytes write =
+        adu(i, 1, {0x06, 0x00, 0x2A, static_cast<std::uint8_t>(value >> 8), static_cast<std::uint8_t>(value)});
     burst.insert(burst.end(), write.begin(), write.end());
     expected.insert(expected.end(), write.begin(), write.end());  // FC06 echoes the request
   }
@@ -320,7 +323,8 @@ TEST(GatewayProcess, ConfigErrorNamesFileLineAndColumn) {
 
 TEST(GatewayProcess, CheckConfigAcceptsTheShippedExamples) {
   for (const char* example : {"simulated.yaml", "mixed.yaml", "mqtt.yaml"}) {
-    ChildProcess check({bin("sms-gateway"), "--check-config", std::string(SMS_SOURCE_DIR) + "/config/examples/" + example});
+    ChildProcess check(
+        {bin("sms-gateway"), "--check-config", std::string(SMS_SOURCE_DIR) + "/config/examples/" + example});
     EXPECT_EQ(check.wait_exit(10s), std::optional<int>{0}) << check.output();
     EXPECT_NE(check.output().find("OK"), std::string::npos) << check.output();
   }

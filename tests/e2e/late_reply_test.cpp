@@ -12,9 +12,9 @@
 #include <string>
 #include <vector>
 
-#include "tests/support/processes.h"
 #include "tests/support/eventually.h"
 #include "tests/support/metrics_http_client.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 
@@ -127,7 +127,8 @@ void late_servo_never_yields_a_wrong_value(SimProcess& sim, GatewayProcess& gate
   ASSERT_FALSE(stray.empty()) << metric << " missing";
   EXPECT_GT(std::stod(stray), 0.0) << "the late answers dropped were not counted";
   EXPECT_TRUE(gateway.process().wait_for_line("sms_gateway_bus_stray_bytes_total", 1s))
-      << "the first stray bytes were not logged:\n" << gateway.process().output();
+      << "the first stray bytes were not logged:\n"
+      << gateway.process().output();
 }
 
 TEST(LateReply, FeetechLateServoNeverAnswersOneReadWithAnotherReadsValues) {

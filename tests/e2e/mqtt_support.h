@@ -16,8 +16,8 @@
 #include <functional>
 #include <map>
 #include <mutex>
-#include <sstream>
 #include <optional>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -52,7 +52,8 @@ class SparkplugHost {
   explicit SparkplugHost(std::uint16_t port, HostOptions options = {}) {
     mosquitto_lib_init();
     client_ = mosquitto_new(nullptr, true, this);
-    if (!options.username.empty()) mosquitto_username_pw_set(client_, options.username.c_str(), options.password.c_str());
+    if (!options.username.empty())
+      mosquitto_username_pw_set(client_, options.username.c_str(), options.password.c_str());
     if (!options.ca.empty()) mosquitto_tls_set(client_, options.ca.c_str(), nullptr, nullptr, nullptr, nullptr);
     mosquitto_connect_callback_set(client_, [](mosquitto* c, void* self, int rc) {
       if (rc == 0) mosquitto_subscribe(c, nullptr, "spBv1.0/#", 1);
@@ -61,7 +62,8 @@ class SparkplugHost {
     mosquitto_message_callback_set(client_, [](mosquitto*, void* self, const mosquitto_message* message) {
       static_cast<SparkplugHost*>(self)->record(message);
     });
-    if (mosquitto_connect(client_, "localhost", port, 30) != MOSQ_ERR_SUCCESS) throw std::runtime_error("host: cannot connect");
+    if (mosquitto_connect(client_, "localhost", port, 30) != MOSQ_ERR_SUCCESS)
+      throw std::runtime_error("host: cannot connect");
     mosquitto_loop_start(client_);
     if (!eventually([&] { return subscribed_.load(); })) throw std::runtime_error("host: not subscribed");
     std::this_thread::sleep_for(100ms);  // SUBACK
@@ -91,12 +93,13 @@ class SparkplugHost {
   std::string summary() {
     std::lock_guard lock(mutex_);
     std::string text;
-    for (const auto& m : messages_) text += sparkplug::topic_text(m.topic) + " (" + std::to_string(m.payload.metrics.size()) + " metrics)\n";
+    for (const auto& m : messages_)
+      text += sparkplug::topic_text(m.topic) + " (" + std::to_string(m.payload.metrics.size()) + " metrics)\n";
     return text;
   }
 
-  void command(sparkplug::MessageType type, const std::string& group, const std::string& node, const std::string& device,
-               std::vector<sparkplug::Metric> metrics) {
+  void command(sparkplug::MessageType type, const std::string& group, const std::string& node,
+               const std::string& device, std::vector<sparkplug::Metric> metrics) {
     sparkplug::Payload payload;
     payload.timestamp = 1;
     payload.metrics = std::move(metrics);
@@ -116,7 +119,8 @@ class SparkplugHost {
     const auto topic = sparkplug::parse_topic(message->topic);
     if (!topic) return;
     const auto* bytes = static_cast<const std::uint8_t*>(message->payload);
-    const auto payload = sparkplug::decode(std::span<const std::uint8_t>(bytes, static_cast<std::size_t>(message->payloadlen)));
+    const auto payload =
+        sparkplug::decode(std::span<const std::uint8_t>(bytes, static_cast<std::size_t>(message->payloadlen)));
     if (!payload) return;
     std::lock_guard lock(mutex_);
     messages_.push_back(SparkplugMessage{*topic, *payload, std::chrono::steady_clock::now(),
@@ -139,8 +143,8 @@ using ProtocMetric = std::map<std::string, std::string>;
 inline std::vector<ProtocMetric> protoc_metrics(const std::vector<std::uint8_t>& bytes, const TempDir& dir) {
   static int count = 0;
   const std::string in = dir.file("payload-" + std::to_string(++count) + ".bin");
-  std::ofstream(in, std::ios::binary).write(reinterpret_cast<const char*>(bytes.data()),
-                                            static_cast<std::streamsize>(bytes.size()));
+  std::ofstream(in, std::ios::binary)
+      .write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
   const std::string command = std::string(SMS_PROTOC) + " --proto_path=" + SMS_SOURCE_DIR +
                               "/protocol/sparkplug --decode=sms.sparkplug.wire.Payload sparkplug_b.proto < " + in;
   FILE* pipe = popen(command.c_str(), "r");

@@ -7,8 +7,8 @@
 #include <string>
 #include <vector>
 
-#include "tests/support/processes.h"
 #include "tests/support/metrics_http_client.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 

@@ -45,8 +45,8 @@ struct PlantOptions {
 class Plant {
  public:
   explicit Plant(PlantOptions options = {})
-      : arm_(dir_, "arm", {"--servo", "1:sts", "--servo", "2:sts", "--servo", "3:sts", "--servo", "4:sms1", "--servo",
-                           "5:sms1"}),
+      : arm_(dir_, "arm",
+             {"--servo", "1:sts", "--servo", "2:sts", "--servo", "3:sts", "--servo", "4:sms1", "--servo", "5:sms1"}),
         base_(dir_, "base", {"--servo", "1:d55d:d55d:115200", "--servo", "2:d55d:d55d:115200"}) {
     std::string yaml = substitute(kPlantConfig, "@ARM@", arm_.pty());
     yaml = substitute(yaml, "@BASE@", base_.pty());

@@ -10,9 +10,9 @@
 #include <vector>
 
 #include "tests/support/child_process.h"
-#include "tests/support/processes.h"
 #include "tests/support/eventually.h"
 #include "tests/support/modbus_client.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 
@@ -57,8 +57,7 @@ TEST(ForwardProcess, ForwardsToSmsmbServosAtARateLibmodbusCannotSetAndStopsOnSig
   {
     ModbusClient broadcaster(port, 0, std::chrono::milliseconds{300});
     EXPECT_FALSE(broadcaster.write_register(0x84, 700).ok());
-    EXPECT_TRUE(
-        eventually([&] { return sim.field(1, "torque_limit") == 700 && sim.field(2, "torque_limit") == 700; }));
+    EXPECT_TRUE(eventually([&] { return sim.field(1, "torque_limit") == 700 && sim.field(2, "torque_limit") == 700; }));
     EXPECT_EQ(broadcaster.read_holding(0x84, 1).exception, 0x0A);
   }
 
@@ -69,8 +68,8 @@ TEST(ForwardProcess, ForwardsToSmsmbServosAtARateLibmodbusCannotSetAndStopsOnSig
 TEST(ForwardProcess, SeveralClientsAtOnceAllGetTheirAnswers) {
   TempDir dir;
   SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "1-4", "--baud", "115200"}, true);
-  ChildProcess forward({bin("sms-gateway"), "forward", "--device", sim.pty(), "--baud", "115200", "--listen",
-                        "127.0.0.1:0"});
+  ChildProcess forward(
+      {bin("sms-gateway"), "forward", "--device", sim.pty(), "--baud", "115200", "--listen", "127.0.0.1:0"});
   const std::uint16_t port = start_forward(forward);
   std::vector<std::thread> clients;
   std::vector<int> failures(4, 0);
@@ -99,12 +98,12 @@ TEST(ForwardProcess, SeveralClientsAtOnceAllGetTheirAnswers) {
 TEST(ForwardProcess, PymodbusWithBroadcastEnabledGetsNoAnswerToABroadcast) {
   TempDir dir;
   SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "1-2", "--baud", "115200"}, true);
-  ChildProcess forward({bin("sms-gateway"), "forward", "--device", sim.pty(), "--baud", "115200", "--listen",
-                        "127.0.0.1:0"});
+  ChildProcess forward(
+      {bin("sms-gateway"), "forward", "--device", sim.pty(), "--baud", "115200", "--listen", "127.0.0.1:0"});
   const std::uint16_t port = start_forward(forward);
   EXPECT_NE(forward.output().find("unit 0 -> broadcast (not answered)"), std::string::npos) << forward.output();
-  ChildProcess client({"/usr/bin/python3", std::string(SMS_SOURCE_DIR) + "/tests/e2e/pymodbus_broadcast.py",
-                       std::to_string(port)});
+  ChildProcess client(
+      {"/usr/bin/python3", std::string(SMS_SOURCE_DIR) + "/tests/e2e/pymodbus_broadcast.py", std::to_string(port)});
   EXPECT_EQ(client.wait_exit(30s), 0) << client.output() << forward.output();
   EXPECT_EQ(sim.field(2, "torque_limit"), 630);
   forward.signal(SIGTERM);
@@ -131,12 +130,14 @@ TEST(ForwardProcess, ReplyOnBroadcastAnswersAWriteToUnitZeroOnceSent) {
 TEST(PassthroughProcess, ReadOnlyPassthroughUnitForwardsReadsOnly) {
   TempDir dir;
   SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "7-8", "--baud", "115200"});
-  auto gateway = GatewayProcess::with_config(
-      dir, "buses:\n  - {name: line, device: \"" + sim.pty() + "\", protocol: modbus-rtu, baud: 115200}\n"
-           "servos:\n"
-           "  - {bus: line, id: 7, table: passthrough, read_only: true}\n"
-           "  - {bus: line, id: 8, table: passthrough}\n",
-      0);  // a line of passthrough units only is not discovered: no summary to wait for
+  auto gateway =
+      GatewayProcess::with_config(dir,
+                                  "buses:\n  - {name: line, device: \"" + sim.pty() +
+                                      "\", protocol: modbus-rtu, baud: 115200}\n"
+                                      "servos:\n"
+                                      "  - {bus: line, id: 7, table: passthrough, read_only: true}\n"
+                                      "  - {bus: line, id: 8, table: passthrough}\n",
+                                  0);  // a line of passthrough units only is not discovered: no summary to wait for
   const long before = sim.field(7, "torque_limit");
   ModbusClient client(gateway.port(), 7);
   const auto read = client.read_holding(0x84, 1);

@@ -18,9 +18,9 @@
 #include <vector>
 
 #include "protocol/modbus_rtu.h"
-#include "tests/support/processes.h"
 #include "tests/support/eventually.h"
 #include "tests/support/metrics_http_client.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 
@@ -34,7 +34,8 @@ using test::parse_exposition;
 // Two pty ends joined by socat: the gateway opens one, the master the other.
 class PtyPair {
  public:
-  PtyPair(const TempDir& dir, const std::string& name) : gateway_end_(dir.file(name + "-up")), master_end_(dir.file(name + "-panel")) {
+  PtyPair(const TempDir& dir, const std::string& name)
+      : gateway_end_(dir.file(name + "-up")), master_end_(dir.file(name + "-panel")) {
     plug();
   }
   ~PtyPair() { unplug(); }
@@ -117,7 +118,8 @@ class RtuClient {
     std::vector<std::uint8_t> got;
     const auto deadline = std::chrono::steady_clock::now() + wait;
     for (;;) {
-      const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+      const auto left =
+          std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
       if (left.count() <= 0) return got;
       pollfd fd{modbus_get_socket(ctx_), POLLIN, 0};
       if (::poll(&fd, 1, static_cast<int>(left.count())) <= 0) return got;
@@ -195,7 +197,8 @@ class RtuSlave : public ::testing::Test {
   // A counter of one port from /metrics (sms_gateway_rtu_slave_<name>), -1 when absent.
   long counter(const PtyPair& port, const std::string& name) {
     const auto metrics = parse_exposition(http_request(metrics_port_, "GET", "/metrics").body);
-    const std::string value = metrics.value("sms_gateway_rtu_slave_" + name + "{device=\"" + port.gateway_end() + "\"}");
+    const std::string value =
+        metrics.value("sms_gateway_rtu_slave_" + name + "{device=\"" + port.gateway_end() + "\"}");
     return value == "(absent)" ? -1 : std::stol(value);
   }
 
@@ -224,7 +227,8 @@ TEST_F(RtuSlave, LibmodbusMasterReadsFeedbackWritesAGoalAndSeesItMoveAtEveryRate
     EXPECT_TRUE(eventually([&] {
       const auto position = master.read_input(56, 1);
       return position.ok() && position.values[0] == rate.goal;
-    })) << "servo 1 did not move to " << rate.goal;
+    })) << "servo 1 did not move to "
+        << rate.goal;
     // Exceptions as over TCP: past the table, a read-only field.
     EXPECT_EQ(master.read_holding(1000, 1).exception, 0x02);
     EXPECT_EQ(master.write_register(56, 1).exception, 0x02);
@@ -356,7 +360,8 @@ TEST_F(RtuSlave, ABroadcastWriteIsCarriedOutAndNeverAnswered) {
   RtuClient master(p115200_.master_end(), 115200, 'E', 1);
   const long broadcasts = counter(p115200_, "broadcasts_total");
   master.send_raw(protocol::rtu::frame(0, std::vector<std::uint8_t>{0x06, 0x00, 0x2A, 0x0B, 0xB8}));  // goal := 3000
-  EXPECT_TRUE(eventually([&] { return arm_.field(1, "goal_position") == 3000 && arm_.field(2, "goal_position") == 3000; }));
+  EXPECT_TRUE(
+      eventually([&] { return arm_.field(1, "goal_position") == 3000 && arm_.field(2, "goal_position") == 3000; }));
   ASSERT_TRUE(eventually([&] { return counter(p115200_, "broadcasts_total") == broadcasts + 1; }));
   EXPECT_TRUE(master.read_raw(100ms).empty());
   EXPECT_TRUE(master.read_holding(42, 1).ok());  // the line goes on
@@ -366,7 +371,7 @@ TEST_F(RtuSlave, UnitsThePortDoesNotServeGetSilenceAndTheRoleRefusesWrites) {
   RtuClient master(pread_.master_end(), 19200, 'N', 1, 0.6);
   const long silent = counter(pread_, "silent_units_total");
   EXPECT_EQ(master.read_holding(42, 1).exception, -1);  // unit 1 is not this port's: a timeout
-  master.set_unit(9);                                     // nor is an unconfigured unit
+  master.set_unit(9);                                   // nor is an unconfigured unit
   EXPECT_EQ(master.read_holding(42, 1).exception, -1);
   EXPECT_EQ(counter(pread_, "silent_units_total"), silent + 2);
   master.set_unit(2);

@@ -35,9 +35,8 @@ class Relay {
   }
 
   void plug() {
-    process_ = std::make_unique<ChildProcess>(std::vector<std::string>{
-        "/usr/bin/socat", "PTY,link=" + link_ + ",rawer",
-        sim_pty_ + ",rawer,b" + baud_});
+    process_ = std::make_unique<ChildProcess>(
+        std::vector<std::string>{"/usr/bin/socat", "PTY,link=" + link_ + ",rawer", sim_pty_ + ",rawer,b" + baud_});
     if (!eventually([&] { return std::filesystem::exists(link_); })) {
       throw std::runtime_error("socat made no " + link_ + ":\n" + process_->output());
     }
@@ -62,8 +61,8 @@ class Relay {
 class SafetyCell {
  public:
   struct Options {
-    std::string bus_extra;   // more keys of the bus
-    std::string more_yaml;   // more servos, sync groups ...
+    std::string bus_extra;  // more keys of the bus
+    std::string more_yaml;  // more servos, sync groups ...
     bool relay = false;
     bool second_servo = false;
   };
@@ -79,8 +78,8 @@ class SafetyCell {
 
   void start_gateway() {
     const std::string device = relay_ ? relay_->device() : sim_->pty();
-    std::string yaml = config_for(protocol_, device, options_.bus_extra) + options_.more_yaml +
-                       "state_dir: \"" + dir_.file("state") + "\"\n";
+    std::string yaml = config_for(protocol_, device, options_.bus_extra) + options_.more_yaml + "state_dir: \"" +
+                       dir_.file("state") + "\"\n";
     gateway_.reset();
     gateway_ = std::make_unique<GatewayProcess>(GatewayProcess::with_config(dir_, yaml, 1));
     wait_until_polled(gateway_->port(), kUnit);
@@ -196,9 +195,9 @@ TEST_P(SafetyFaults, ServoLeftTurningByAKilledGatewayIsStoppedAtStart) {
 // Writes the gateway refuses — to a read-only unit, to a register that does not exist — prove
 // nothing of the client that sends them: they do not keep a dead PLC's servo turning.
 TEST_P(SafetyFaults, RefusedWritesDoNotFeedTheWatchdog) {
-  SafetyCell cell(GetParam(), {watched_bus(),
-                               "  - {unit: 2, bus: line, id: 2, table: " + GetParam().table + ", read_only: true}\n",
-                               false, true});
+  SafetyCell cell(GetParam(),
+                  {watched_bus(), "  - {unit: 2, bus: line, id: 2, table: " + GetParam().table + ", read_only: true}\n",
+                   false, true});
   cell.spin();  // the PLC's last write
   std::atomic<bool> writing{true};
   std::atomic<int> refused{0};
@@ -261,9 +260,9 @@ TEST(SafetyRestart, EStopLatchAndTripSurviveARestart) {
 // The no-jump cases of one table: its addresses, and how the simulator is given a stale speed.
 struct NoJumpCase {
   const Protocol* protocol;
-  std::string torque_field;             // the table's field (sync group) and the simulator's
-  std::vector<std::string> stale_speed; // simulator commands: speed mode, a stale speed, torque off last
-  int torque, goal, goal_speed;         // holding registers
+  std::string torque_field;                    // the table's field (sync group) and the simulator's
+  std::vector<std::string> stale_speed;        // simulator commands: speed mode, a stale speed, torque off last
+  int torque, goal, goal_speed;                // holding registers
   std::vector<std::uint16_t> torque_and_goal;  // FC16 at min(torque, goal): torque 1 and goal 2048
 };
 void PrintTo(const NoJumpCase& c, std::ostream* out) { *out << c.protocol->name; }
@@ -271,15 +270,21 @@ void PrintTo(const NoJumpCase& c, std::ostream* out) { *out << c.protocol->name;
 const std::vector<NoJumpCase> kNoJumpCases{
     // (A goal write switches an STS servo's torque on: the torque goes off last.)
     {&kSafetyProtocols[0], "torque_enable", {"set 1 33 01", "set 1 46 DC 05", "set 1 40 00"}, 40, 42, 46, {1, 0, 2048}},
-    {&kSafetyProtocols[3], "torque_switch", {"set 1 16 00 01", "set 1 131 01 F4", "set 1 129 00 00"}, 0x81, 0x80, 0x83,
+    {&kSafetyProtocols[3],
+     "torque_switch",
+     {"set 1 16 00 01", "set 1 131 01 F4", "set 1 129 00 00"},
+     0x81,
+     0x80,
+     0x83,
      {2048, 1}},
 };
 
 class NoJump : public testing::TestWithParam<NoJumpCase> {
  protected:
   NoJump()
-      : cell_(*GetParam().protocol, {"", "sync_groups:\n  - {name: torque, field: " + GetParam().torque_field +
-                                             ", members: [1], holding_register_start: 0}\n",
+      : cell_(*GetParam().protocol, {"",
+                                     "sync_groups:\n  - {name: torque, field: " + GetParam().torque_field +
+                                         ", members: [1], holding_register_start: 0}\n",
                                      false, false}) {}
 
   // Torque off, speed mode, a stale goal speed left in the servo's RAM.

@@ -21,8 +21,8 @@ inline constexpr int kGateway = 255;
 inline constexpr int kWatchdogTimeoutMs = 500;
 // Gateway unit registers (docs/PLC_GUIDE.md "Safety"): bus 0's block starts at 100.
 inline constexpr int kEStopLatchedRegister = 10;
-inline constexpr int kOwedStops = 13;     // servos owed a safe stop, every bus
-inline constexpr int kFailedStops = 14;   // 14-15: safe stops that failed (32-bit)
+inline constexpr int kOwedStops = 13;    // servos owed a safe stop, every bus
+inline constexpr int kFailedStops = 14;  // 14-15: safe stops that failed (32-bit)
 inline constexpr int kBus0WatchdogState = 110;
 inline constexpr int kBus0Trips = 112;
 inline constexpr int kBus0LastCause = 115;
@@ -40,16 +40,16 @@ struct Write {
 };
 
 struct Protocol {
-  std::string name;           // test name suffix
-  std::string sim_servo;      // sms-sim --servo
-  std::string bus_protocol;   // config
+  std::string name;          // test name suffix
+  std::string sim_servo;     // sms-sim --servo
+  std::string bus_protocol;  // config
   int baud;
   std::string table;
-  std::vector<Write> spin;    // puts servo 1 into speed mode and turns it
-  Write goal;                 // a goal position write (a motion write)
-  Write harmless;             // a write that cannot move anything (allowed while latched)
+  std::vector<Write> spin;          // puts servo 1 into speed mode and turns it
+  Write goal;                       // a goal position write (a motion write)
+  Write harmless;                   // a write that cannot move anything (allowed while latched)
   std::optional<Write> torque_off;  // allowed while latched
-  std::string torque_field;   // sim field name, empty when the table has none
+  std::string torque_field;         // sim field name, empty when the table has none
   int goal_address;
   int present_address;
 };
@@ -68,15 +68,54 @@ inline std::string watchdog(const std::string& feed) {
 
 // Every protocol, a table of each.
 inline const std::vector<Protocol> kSafetyProtocols{
-    Protocol{"feetech_sts", "1:sts", "feetech", 1000000, "sts",
-             {{33, 1}, {46, 1500}}, {42, 3000}, {41, 20}, Write{40, 0}, "torque_enable", 42, 56},
-    Protocol{"feetech_sms1", "1:sms1", "feetech", 1000000, "sms1",
-             {{35, 1}, {40, 1}, {46, 1500}}, {42, 3000}, {48, 1}, Write{40, 0}, "torque_switch", 42, 56},
-    Protocol{"d55d", "1:d55d:d55d:115200", "d55d", 115200, "d55d",
-             {{6, 0}, {8, 0}, {32, 300}}, {30, 90}, {34, 20}, std::nullopt, "", 30, 36},
-    Protocol{"modbus_rtu_smsmb", "1:smsmb:modbus-rtu:115200", "modbus-rtu", 115200, "smsmb",
-             {{0x10, 1}, {0x81, 1}, {0x83, 500}}, {0x80, 3000}, {0x82, 20}, Write{0x81, 0}, "torque_switch",
-             0x80, 0x101},
+    Protocol{"feetech_sts",
+             "1:sts",
+             "feetech",
+             1000000,
+             "sts",
+             {{33, 1}, {46, 1500}},
+             {42, 3000},
+             {41, 20},
+             Write{40, 0},
+             "torque_enable",
+             42,
+             56},
+    Protocol{"feetech_sms1",
+             "1:sms1",
+             "feetech",
+             1000000,
+             "sms1",
+             {{35, 1}, {40, 1}, {46, 1500}},
+             {42, 3000},
+             {48, 1},
+             Write{40, 0},
+             "torque_switch",
+             42,
+             56},
+    Protocol{"d55d",
+             "1:d55d:d55d:115200",
+             "d55d",
+             115200,
+             "d55d",
+             {{6, 0}, {8, 0}, {32, 300}},
+             {30, 90},
+             {34, 20},
+             std::nullopt,
+             "",
+             30,
+             36},
+    Protocol{"modbus_rtu_smsmb",
+             "1:smsmb:modbus-rtu:115200",
+             "modbus-rtu",
+             115200,
+             "smsmb",
+             {{0x10, 1}, {0x81, 1}, {0x83, 500}},
+             {0x80, 3000},
+             {0x82, 20},
+             Write{0x81, 0},
+             "torque_switch",
+             0x80,
+             0x101},
 };
 inline std::string protocol_name(const testing::TestParamInfo<Protocol>& info) { return info.param.name; }
 

@@ -37,8 +37,8 @@ class Safety : public testing::TestWithParam<Protocol> {
       const auto answer = plc.write_register(write.address, write.value);
       ASSERT_TRUE(answer.ok()) << "write " << write.address << " := " << write.value << ": " << answer.error;
     }
-    ASSERT_TRUE(eventually([&] { return sim_->field(1, "present_speed") != 0; }))
-        << "servo 1 never turned\n" << gateway_->process().output();
+    ASSERT_TRUE(eventually([&] { return sim_->field(1, "present_speed") != 0; })) << "servo 1 never turned\n"
+                                                                                  << gateway_->process().output();
   }
 
   bool stopped() { return sim_->field(1, "present_speed") == 0; }
@@ -114,12 +114,11 @@ TEST_P(Safety, FrozenPlcThatKeepsItsConnectionTripsTheHeartbeatWatchdog) {
   EXPECT_EQ(gateway_register(kBus0WatchdogState), kRunning) << gateway_->process().output();
   EXPECT_FALSE(stopped());
   // Frozen: the connection stays, the same value keeps arriving, the goal is read back.
-  const bool stopped_in_time = eventually(
-      [&] {
-        heartbeat.write_register(kHeartbeatRegister, 36);
-        plc.read_holding(GetParam().goal_address, 1);
-        return stopped();
-      });
+  const bool stopped_in_time = eventually([&] {
+    heartbeat.write_register(kHeartbeatRegister, 36);
+    plc.read_holding(GetParam().goal_address, 1);
+    return stopped();
+  });
   ASSERT_TRUE(stopped_in_time) << gateway_->process().output();
   EXPECT_EQ(gateway_register(kBus0WatchdogState), kTripped);
   const auto read_back = heartbeat.read_holding(kHeartbeatRegister, 1);
@@ -191,9 +190,12 @@ INSTANTIATE_TEST_SUITE_P(EveryProtocol, Safety, testing::ValuesIn(kSafetyProtoco
 TEST(SafetyTorqueOn, TorqueOnHoldsThePresentPositionInsteadOfAStaleGoal) {
   TempDir dir;
   SimProcess sim(dir, "sim", {"--servo", "1:sts"});
-  auto gateway = GatewayProcess::with_config(
-      dir, "buses:\n  - {name: line, device: \"" + sim.pty() + "\", protocol: feetech, baud: 1000000}\n"
-           "servos:\n  - {bus: line, id: 1, table: sts}\nlogging: {level: debug}\n", 1);
+  auto gateway =
+      GatewayProcess::with_config(dir,
+                                  "buses:\n  - {name: line, device: \"" + sim.pty() +
+                                      "\", protocol: feetech, baud: 1000000}\n"
+                                      "servos:\n  - {bus: line, id: 1, table: sts}\nlogging: {level: debug}\n",
+                                  1);
   wait_until_polled(gateway.port(), kUnit);
   ModbusClient plc(gateway.port(), kUnit);
   // A stale goal far away, left in the servo's RAM behind the gateway's back, with the torque off.
@@ -224,16 +226,21 @@ TEST(SafetyEStop, CoversSyncGroupsStagedWritesActionAndPassthroughUnits) {
   SimProcess arm(dir, "arm", {"--servo", "1:sts", "--servo", "2:sts"});
   SimProcess line(dir, "line", {"--servo", "7:smsmb:modbus-rtu:115200"});
   auto gateway = GatewayProcess::with_config(
-      dir, "buses:\n"
-           "  - {name: arm, device: \"" + arm.pty() + "\", protocol: feetech, baud: 1000000}\n"
-           "  - {name: line, device: \"" + line.pty() + "\", protocol: modbus-rtu, baud: 115200}\n"
-           "servos:\n"
-           "  - {bus: arm, id: 1, table: sts}\n"
-           "  - {bus: arm, id: 2, table: sts}\n"
-           "  - {bus: line, id: 7, table: passthrough}\n"
-           "sync_groups:\n"
-           "  - {name: goals, field: goal_position, members: [1, 2], holding_register_start: 0}\n"
-           "  - {name: accelerations, field: acceleration, members: [1, 2], holding_register_start: 10}\n",
+      dir,
+      "buses:\n"
+      "  - {name: arm, device: \"" +
+          arm.pty() +
+          "\", protocol: feetech, baud: 1000000}\n"
+          "  - {name: line, device: \"" +
+          line.pty() +
+          "\", protocol: modbus-rtu, baud: 115200}\n"
+          "servos:\n"
+          "  - {bus: arm, id: 1, table: sts}\n"
+          "  - {bus: arm, id: 2, table: sts}\n"
+          "  - {bus: line, id: 7, table: passthrough}\n"
+          "sync_groups:\n"
+          "  - {name: goals, field: goal_position, members: [1, 2], holding_register_start: 0}\n"
+          "  - {name: accelerations, field: acceleration, members: [1, 2], holding_register_start: 10}\n",
       2);
   wait_until_polled(gateway.port(), 1);
   ModbusClient gateway_unit(gateway.port(), kGateway);
@@ -243,11 +250,11 @@ TEST(SafetyEStop, CoversSyncGroupsStagedWritesActionAndPassthroughUnits) {
   ASSERT_TRUE(gateway_unit.write_coils(kEStopCoil, {1}).ok()) << gateway.process().output();
 
   EXPECT_EQ(gateway_unit.write_registers(0, {1000, 1000}).exception, 0x04);  // sync group of goals
-  EXPECT_TRUE(gateway_unit.write_registers(10, {5, 5}).ok());               // of accelerations: no motion
-  EXPECT_EQ(servo.write_register(512 + 42, 1500).exception, 0x04);          // staged goal
-  EXPECT_EQ(gateway_unit.write_coils(0, {1}).exception, 0x04);              // ACTION
-  EXPECT_EQ(passthrough.write_register(0x80, 1000).exception, 0x04);        // a foreign slave's write
-  EXPECT_TRUE(passthrough.read_holding(0x101, 1).ok());                     // its reads go on
+  EXPECT_TRUE(gateway_unit.write_registers(10, {5, 5}).ok());                // of accelerations: no motion
+  EXPECT_EQ(servo.write_register(512 + 42, 1500).exception, 0x04);           // staged goal
+  EXPECT_EQ(gateway_unit.write_coils(0, {1}).exception, 0x04);               // ACTION
+  EXPECT_EQ(passthrough.write_register(0x80, 1000).exception, 0x04);         // a foreign slave's write
+  EXPECT_TRUE(passthrough.read_holding(0x101, 1).ok());                      // its reads go on
   EXPECT_EQ(arm.field(1, "goal_position"), arm.field(1, "present_position"));
 
   ASSERT_TRUE(gateway_unit.write_coils(kEStopCoil, {0}).ok());

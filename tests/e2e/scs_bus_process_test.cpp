@@ -90,12 +90,10 @@ TEST(ScsBusProcess, MbpollReadsAndWritesGoalAndPresentPosition) {
       run({"/usr/bin/mbpoll", "-m", "tcp", "-p", port, "-a", "1", "-t", "4", "-r", "43", "-c", "1", "-1", "127.0.0.1"},
           &exit_code);
   EXPECT_TRUE(std::regex_search(goal, std::regex(R"(\[43\]:\s+900\b)"))) << goal;
-  EXPECT_TRUE(eventually(
-      [&] {
-        const auto present = ModbusClient(gateway.port(), 1).read_input(56, 1);
-        return present.ok() && std::abs(int{present.values[0]} - 900) <= 2;
-      }))
-      << "the SCS servo did not reach its goal";
+  EXPECT_TRUE(eventually([&] {
+    const auto present = ModbusClient(gateway.port(), 1).read_input(56, 1);
+    return present.ok() && std::abs(int{present.values[0]} - 900) <= 2;
+  })) << "the SCS servo did not reach its goal";
 
   // The lock sits at 48 on SCS (coil 48), at 55 on STS.
   ModbusClient scs(gateway.port(), 1);

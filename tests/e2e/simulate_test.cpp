@@ -16,7 +16,9 @@ namespace {
 
 class Simulate : public ::testing::Test {
  protected:
-  static void SetUpTestSuite() { gateway_ = std::make_unique<GatewayProcess>(std::vector<std::string>{"--simulate"}, 1); }
+  static void SetUpTestSuite() {
+    gateway_ = std::make_unique<GatewayProcess>(std::vector<std::string>{"--simulate"}, 1);
+  }
   static void TearDownTestSuite() { gateway_.reset(); }
   std::uint16_t port() const { return gateway_->port(); }
   static std::unique_ptr<GatewayProcess> gateway_;
@@ -45,11 +47,10 @@ TEST_F(Simulate, PresentPositionFollowsAGoalPosition) {
   const std::uint16_t goal = start.values[0] < 2048 ? 3000 : 1000;
   ASSERT_TRUE(client.write_register(42, goal).ok());
   // The simulated servo moves at its goal speed with wire timing on: it gets there in seconds.
-  EXPECT_TRUE(eventually(
-      [&] {
-        const auto now = client.read_input(56, 1);
-        return now.ok() && std::abs(int{now.values[0]} - int{goal}) <= 5;
-      }));
+  EXPECT_TRUE(eventually([&] {
+    const auto now = client.read_input(56, 1);
+    return now.ok() && std::abs(int{now.values[0]} - int{goal}) <= 5;
+  }));
 }
 
 TEST_F(Simulate, SyncGroupOfTheSixGoalPositions) {
@@ -71,9 +72,9 @@ TEST_F(Simulate, MbpollReadsFeedbackAndWritesAGoal) {
   const std::string p = std::to_string(port());
   int exit_code = 0;
   // mbpoll counts from 1: -r 57 is address 56 (present position); -t 3 input registers.
-  const std::string feedback = run({"/usr/bin/mbpoll", "-m", "tcp", "-p", p, "-a", "1", "-t", "3", "-r", "57", "-c",
-                                    "15", "-1", "127.0.0.1"},
-                                   &exit_code);
+  const std::string feedback =
+      run({"/usr/bin/mbpoll", "-m", "tcp", "-p", p, "-a", "1", "-t", "3", "-r", "57", "-c", "15", "-1", "127.0.0.1"},
+          &exit_code);
   EXPECT_EQ(exit_code, 0) << feedback;
   std::smatch position;
   ASSERT_TRUE(std::regex_search(feedback, position, std::regex(R"(\[57\]:\s+(\d+))"))) << feedback;
@@ -81,9 +82,9 @@ TEST_F(Simulate, MbpollReadsFeedbackAndWritesAGoal) {
   EXPECT_NE(feedback.find("[71]:"), std::string::npos) << feedback;
 
   // -t 4 holding registers; -r 43 is address 42 (goal position).
-  const std::string write = run({"/usr/bin/mbpoll", "-m", "tcp", "-p", p, "-a", "1", "-t", "4", "-r", "43", "-1",
-                                 "127.0.0.1", "1777"},
-                                &exit_code);
+  const std::string write =
+      run({"/usr/bin/mbpoll", "-m", "tcp", "-p", p, "-a", "1", "-t", "4", "-r", "43", "-1", "127.0.0.1", "1777"},
+          &exit_code);
   EXPECT_EQ(exit_code, 0) << write;
   EXPECT_EQ(ModbusClient(port(), 1).read_holding(42, 1).values, std::vector<std::uint16_t>{1777});
 }

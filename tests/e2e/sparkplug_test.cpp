@@ -25,18 +25,23 @@ constexpr const char* kNode = "gw1";
 
 std::string gateway_yaml(const std::string& pty, std::uint16_t broker, const std::string& mqtt_extra = "") {
   return "buses:\n"
-         "  - {name: arm, device: \"" + pty + "\", protocol: feetech, baud: 1000000, poll_period_ms: 20,\n"
+         "  - {name: arm, device: \"" +
+         pty +
+         "\", protocol: feetech, baud: 1000000, poll_period_ms: 20,\n"
          "     offline_probe_period_ms: 50}\n"
          "servos:\n"
          "  - {unit: 1, bus: arm, id: 1, table: sts, name: shoulder}\n"
          "  - {unit: 2, bus: arm, id: 2, table: sts}\n"
          "mqtt:\n"
-         "  broker: \"127.0.0.1:" + std::to_string(broker) + "\"\n"
+         "  broker: \"127.0.0.1:" +
+         std::to_string(broker) +
+         "\"\n"
          "  group_id: plant\n"
          "  edge_node_id: gw1\n"
          "  data_period_ms: 20\n"
          "  reconnect_min_ms: 100\n"
-         "  reconnect_max_ms: 400\n" + mqtt_extra;
+         "  reconnect_max_ms: 400\n" +
+         mqtt_extra;
 }
 
 std::optional<std::int64_t> int_of(const sp::Metric* metric) {
@@ -55,9 +60,11 @@ std::string text_of(const sp::Metric* metric) {
 std::string command_result(SparkplugHost& host, sp::Metric metric) {
   const std::size_t from = host.count();
   host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {std::move(metric)});
-  const auto answer = host.wait([](const SparkplugMessage& m) {
-    return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
-  }, 10s, from);
+  const auto answer = host.wait(
+      [](const SparkplugMessage& m) {
+        return m.topic.type == MessageType::DData && m.metric("Gateway/Last Command") != nullptr;
+      },
+      10s, from);
   return answer ? text_of(answer->metric("Gateway/Last Command")) : "<none>\n" + host.summary();
 }
 
@@ -112,12 +119,14 @@ TEST(Sparkplug, BirthsCarryEveryFieldAndDeathsFollowTheServo) {
   // Every message after NBIRTH carries the next seq (0..255).
   std::uint64_t expected = 0;
   bool in_order = true;
-  plant.host.wait([&](const SparkplugMessage& m) {
-    if (m.topic.type == MessageType::NBirth) expected = 0;
-    in_order = in_order && m.payload.seq == expected;
-    expected = (expected + 1) % 256;
-    return false;
-  }, 0ms);
+  plant.host.wait(
+      [&](const SparkplugMessage& m) {
+        if (m.topic.type == MessageType::NBirth) expected = 0;
+        in_order = in_order && m.payload.seq == expected;
+        expected = (expected + 1) % 256;
+        return false;
+      },
+      0ms);
   EXPECT_TRUE(in_order) << plant.host.summary();
 }
 
@@ -130,9 +139,12 @@ TEST(Sparkplug, DcmdMovesTheServoAndDdataFollows) {
   plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder",
                      {sp::Metric::uint16("torque_enable", 1), sp::Metric::int16("goal_position", 3000)});
   // The acknowledgement: the written value and the command's result in DDATA.
-  const auto ack = plant.host.wait([](const SparkplugMessage& m) {
-    return m.topic.type == MessageType::DData && m.topic.device == "shoulder" && m.metric("goal_position") != nullptr;
-  }, 10s, from);
+  const auto ack = plant.host.wait(
+      [](const SparkplugMessage& m) {
+        return m.topic.type == MessageType::DData && m.topic.device == "shoulder" &&
+               m.metric("goal_position") != nullptr;
+      },
+      10s, from);
   ASSERT_TRUE(ack) << plant.host.summary() << gateway.process().output();
   EXPECT_EQ(int_of(ack->metric("goal_position")), 3000);
   EXPECT_EQ(text_of(ack->metric("Gateway/Last Command")), "ok: goal_position := 3000");
@@ -140,11 +152,13 @@ TEST(Sparkplug, DcmdMovesTheServoAndDdataFollows) {
   EXPECT_EQ(plant.sim.field(1, "torque_enable"), 1);
 
   // The simulated servo moves; DDATA reports its position from the poll cache until it is there.
-  const auto arrived = plant.host.wait([](const SparkplugMessage& m) {
-    const auto* position = m.metric("present_position");
-    return m.topic.type == MessageType::DData && m.topic.device == "shoulder" && position != nullptr &&
-           std::llabs(sp::integer_value(position->value).value_or(0) - 3000) <= 2;
-  }, 20s, from);
+  const auto arrived = plant.host.wait(
+      [](const SparkplugMessage& m) {
+        const auto* position = m.metric("present_position");
+        return m.topic.type == MessageType::DData && m.topic.device == "shoulder" && position != nullptr &&
+               std::llabs(sp::integer_value(position->value).value_or(0) - 3000) <= 2;
+      },
+      20s, from);
   ASSERT_TRUE(arrived) << plant.host.summary();
   ASSERT_TRUE(arrived->metric("present_position")->timestamp);  // when the poll read it
 
@@ -172,9 +186,11 @@ TEST(Sparkplug, EstopOverNcmdBlocksMotionCommands) {
 
   std::size_t from = plant.host.count();
   plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::boolean("Gateway/E-Stop", true)});
-  const auto latched = plant.host.wait([](const SparkplugMessage& m) {
-    return m.topic.type == MessageType::NData && m.metric("Gateway/E-Stop") != nullptr;
-  }, 10s, from);
+  const auto latched = plant.host.wait(
+      [](const SparkplugMessage& m) {
+        return m.topic.type == MessageType::NData && m.metric("Gateway/E-Stop") != nullptr;
+      },
+      10s, from);
   ASSERT_TRUE(latched) << plant.host.summary();
   EXPECT_EQ(int_of(latched->metric("Gateway/E-Stop")), 1);
   EXPECT_TRUE(gateway.process().wait_for_line("E-STOP latched by the Sparkplug host (NCMD/DCMD)", 2s))
@@ -220,28 +236,38 @@ TEST(Sparkplug, RebirthAndHeartbeatOverNcmd) {
                        {sp::Metric::uint16("Gateway/Heartbeat/arm", static_cast<std::uint16_t>(beat))});
     std::this_thread::sleep_for(100ms);
   }
-  EXPECT_FALSE(plant.host.wait([](const SparkplugMessage& m) {
-    const auto* tripped = m.metric("Gateway/Watchdog Tripped");
-    return m.topic.type == MessageType::NData && tripped != nullptr && sp::integer_value(tripped->value) == 1;
-  }, 0ms, from)) << gateway.process().output();
+  EXPECT_FALSE(plant.host.wait(
+      [](const SparkplugMessage& m) {
+        const auto* tripped = m.metric("Gateway/Watchdog Tripped");
+        return m.topic.type == MessageType::NData && tripped != nullptr && sp::integer_value(tripped->value) == 1;
+      },
+      0ms, from))
+      << gateway.process().output();
   // Heartbeats stop: the watchdog trips, NDATA says so, and re-arming over NCMD clears it.
-  const auto tripped = plant.host.wait([](const SparkplugMessage& m) {
-    const auto* metric = m.metric("Gateway/Watchdog Tripped");
-    return m.topic.type == MessageType::NData && metric != nullptr && sp::integer_value(metric->value) == 1;
-  }, 10s, from);
+  const auto tripped = plant.host.wait(
+      [](const SparkplugMessage& m) {
+        const auto* metric = m.metric("Gateway/Watchdog Tripped");
+        return m.topic.type == MessageType::NData && metric != nullptr && sp::integer_value(metric->value) == 1;
+      },
+      10s, from);
   ASSERT_TRUE(tripped) << plant.host.summary() << gateway.process().output();
   from = plant.host.count();
   plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::boolean("Gateway/Watchdog Tripped", false)});
-  ASSERT_TRUE(plant.host.wait([](const SparkplugMessage& m) {
-    const auto* metric = m.metric("Gateway/Watchdog Tripped");
-    return m.topic.type == MessageType::NData && metric != nullptr && sp::integer_value(metric->value) == 0;
-  }, 10s, from)) << plant.host.summary() << gateway.process().output();
+  ASSERT_TRUE(plant.host.wait(
+      [](const SparkplugMessage& m) {
+        const auto* metric = m.metric("Gateway/Watchdog Tripped");
+        return m.topic.type == MessageType::NData && metric != nullptr && sp::integer_value(metric->value) == 0;
+      },
+      10s, from))
+      << plant.host.summary() << gateway.process().output();
 }
 
 TEST(Sparkplug, RoleReadPublishesButRefusesEveryCommand) {
   Plant plant;
-  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port(), "  role: read\n"), 1);
-  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary() << gateway.process().output();
+  auto gateway =
+      GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port(), "  role: read\n"), 1);
+  ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder")))
+      << plant.host.summary() << gateway.process().output();
   const long goal = plant.sim.field(1, "goal_position");
   const std::string result = command_result(plant.host, sp::Metric::int16("goal_position", 1234));
   EXPECT_NE(result.find("exception 0x01"), std::string::npos) << result;
@@ -306,14 +332,16 @@ TEST(Sparkplug, ADeliveredCommandIsCarriedOutWhenTheBrokerDiesMeanwhile) {
   ModbusClient modbus(gateway.port(), 1);
   ASSERT_TRUE(modbus.write_register(42, 0).ok());  // a goal none of the commands has
   std::vector<sp::Metric> writes;
-  for (int i = 0; i < 1000; ++i) writes.push_back(sp::Metric::int16("goal_position", static_cast<std::int16_t>(100 + i)));
+  for (int i = 0; i < 1000; ++i)
+    writes.push_back(sp::Metric::int16("goal_position", static_cast<std::int16_t>(100 + i)));
   writes.push_back(sp::Metric::int16("goal_position", 2222));
   plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", writes);
   ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") >= 100; })) << gateway.process().output();
   plant.broker.kill();
   EXPECT_NE(plant.sim.field(1, "goal_position"), 2222) << "all writes were done before the broker died";
   ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 2222; }))
-      << "goal " << plant.sim.field(1, "goal_position") << "\n" << gateway.process().output();
+      << "goal " << plant.sim.field(1, "goal_position") << "\n"
+      << gateway.process().output();
 
   plant.broker.start();
   SparkplugHost host(plant.broker.port());
@@ -355,7 +383,8 @@ TEST(Sparkplug, TlsAndCredentialsToTheBrokerAndARefusedPassword) {
   };
   {
     auto refused = GatewayProcess::with_config(dir, yaml(dir.file("wrong.password")), 1);
-    EXPECT_TRUE(refused.process().wait_for_line("the broker refused the connection", 10s)) << refused.process().output();
+    EXPECT_TRUE(refused.process().wait_for_line("the broker refused the connection", 10s))
+        << refused.process().output();
     EXPECT_FALSE(host.wait(is(MessageType::NBirth), 500ms));
   }
   auto gateway = GatewayProcess::with_config(dir, yaml(dir.file("gateway.password")), 1);
@@ -406,9 +435,11 @@ TEST(Sparkplug, ProtocReadsTimestampsAndTypesOnEveryBirthAndDataMetric) {
 
   std::size_t from = plant.host.count();
   plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {sp::Metric::int16("goal_position", -100)});
-  const auto ack = plant.host.wait([](const SparkplugMessage& m) {
-    return m.topic.type == MessageType::DData && m.metric("goal_position") != nullptr;
-  }, 10s, from);
+  const auto ack = plant.host.wait(
+      [](const SparkplugMessage& m) {
+        return m.topic.type == MessageType::DData && m.metric("goal_position") != nullptr;
+      },
+      10s, from);
   ASSERT_TRUE(ack) << plant.host.summary() << gateway.process().output();
   EXPECT_EQ(plant.sim.field(1, "goal_position"), 0);
   EXPECT_EQ(int_of(ack->metric("goal_position")), 0);  // what the servo holds, not the -100 sent
@@ -482,7 +513,8 @@ TEST(Sparkplug, DcmdValuesAreCheckedAgainstTheBirthTypeAndTheMapRangeBeforeAnyWr
   untyped.type = sp::DataType::Unknown;
   plant.host.command(MessageType::DCmd, kGroup, kNode, "shoulder", {untyped});
   EXPECT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 0; }))  // clamped at 0
-      << plant.sim.field(1, "goal_position") << "\n" << gateway.process().output();
+      << plant.sim.field(1, "goal_position") << "\n"
+      << gateway.process().output();
 
   // A node command of the wrong kind: the e-stop takes a Boolean only.
   plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::uint16("Gateway/E-Stop", 1)});
@@ -553,7 +585,8 @@ TEST(Sparkplug, ABrokenBdSeqFileOrStateDirIsLoggedAndTheNodeGoesOn) {
   const std::string not_a_dir = plant.dir.file("plain-file");
   std::ofstream(not_a_dir) << "x";
   const std::string path = plant.dir.file("unwritable.yaml");
-  std::ofstream(path) << gateway_yaml(plant.sim.pty(), plant.broker.port()) + "state_dir: \"" + not_a_dir + "/state\"\n";
+  std::ofstream(path) << gateway_yaml(plant.sim.pty(), plant.broker.port()) + "state_dir: \"" + not_a_dir +
+                             "/state\"\n";
   ChildProcess refused({bin("sms-gateway"), "--config", path, "--listen", "127.0.0.1:0"});
   const auto status = refused.wait_exit(10s);
   ASSERT_TRUE(status.has_value()) << refused.output();

@@ -6,20 +6,20 @@
 // value (read through the simulator's control socket) never changes on a refusal.
 #include <gtest/gtest.h>
 
-#include <signal.h>
 #include <arpa/inet.h>
 #include <netinet/in.h>
 #include <poll.h>
+#include <signal.h>
 #include <sys/socket.h>
 #include <sys/time.h>
 
 #include <array>
 #include <atomic>
-#include <iostream>
-#include <thread>
 #include <cstdlib>
 #include <filesystem>
+#include <iostream>
 #include <optional>
+#include <thread>
 
 #include <boost/asio/connect.hpp>
 #include <boost/asio/io_context.hpp>
@@ -28,9 +28,9 @@
 #include <boost/asio/ssl.hpp>
 #include <boost/asio/write.hpp>
 
-#include "tests/support/processes.h"
 #include "tests/support/eventually.h"
 #include "tests/support/metrics_http_client.h"
+#include "tests/support/processes.h"
 
 namespace sms::e2e {
 
@@ -88,8 +88,12 @@ class TlsClient {
   std::optional<Pdu> request(const Pdu& pdu, int unit = kUnit) {
     if (handshake_error_) return std::nullopt;
     ++transaction_;
-    Pdu adu{static_cast<std::uint8_t>(transaction_ >> 8), static_cast<std::uint8_t>(transaction_), 0, 0,
-            static_cast<std::uint8_t>((pdu.size() + 1) >> 8), static_cast<std::uint8_t>(pdu.size() + 1),
+    Pdu adu{static_cast<std::uint8_t>(transaction_ >> 8),
+            static_cast<std::uint8_t>(transaction_),
+            0,
+            0,
+            static_cast<std::uint8_t>((pdu.size() + 1) >> 8),
+            static_cast<std::uint8_t>(pdu.size() + 1),
             static_cast<std::uint8_t>(unit)};
     adu.insert(adu.end(), pdu.begin(), pdu.end());
     boost::system::error_code error;
@@ -210,20 +214,32 @@ constexpr auto kServedWithin = 1s;
 struct SecureGateway {
   SecureGateway(const TempDir& dir, const std::string& certs, const std::string& pty, std::uint16_t plain_port,
                 const std::string& extra_tls = "") {
-    const std::string yaml = "modbus_tcp:\n"
-                             "  listen: \"127.0.0.1:" + std::to_string(plain_port) + "\"\n"
-                             "  plain: false\n"
-                             "  tls:\n"
-                             "    listen: \"127.0.0.1:0\"\n"
-                             "    certificate: \"" + certs + "/server.crt\"\n"
-                             "    private_key: \"" + certs + "/server.key\"\n"
-                             "    ca: \"" + certs + "/ca.crt\"\n"
-                             "    roles: {hmi-2.plant: read, plc-3: operate}\n"
-                             "    role_names: {Engineer: engineer}\n" + extra_tls +
-                             "buses:\n"
-                             "  - {name: line, device: \"" + pty + "\", protocol: feetech, baud: 1000000}\n"
-                             "servos:\n"
-                             "  - {bus: line, id: 1, table: sts}\n";
+    const std::string yaml =
+        "modbus_tcp:\n"
+        "  listen: \"127.0.0.1:" +
+        std::to_string(plain_port) +
+        "\"\n"
+        "  plain: false\n"
+        "  tls:\n"
+        "    listen: \"127.0.0.1:0\"\n"
+        "    certificate: \"" +
+        certs +
+        "/server.crt\"\n"
+        "    private_key: \"" +
+        certs +
+        "/server.key\"\n"
+        "    ca: \"" +
+        certs +
+        "/ca.crt\"\n"
+        "    roles: {hmi-2.plant: read, plc-3: operate}\n"
+        "    role_names: {Engineer: engineer}\n" +
+        extra_tls +
+        "buses:\n"
+        "  - {name: line, device: \"" +
+        pty +
+        "\", protocol: feetech, baud: 1000000}\n"
+        "servos:\n"
+        "  - {bus: line, id: 1, table: sts}\n";
     const std::string path = dir.file("secure.yaml");
     std::ofstream(path) << yaml;
     process = std::make_unique<ChildProcess>(
@@ -303,10 +319,12 @@ TEST_F(Tls, CheckConfigLoadsTheTlsFiles) {
   ChildProcess ok({bin("sms-gateway"), "--check-config", dir_->file("secure.yaml")});
   EXPECT_EQ(ok.wait_exit(10s), 0) << ok.output();
   const std::string broken = dir_->file("broken.yaml");
-  std::ofstream(broken) << substitute([&] {
-    std::ifstream in(dir_->file("secure.yaml"));
-    return std::string(std::istreambuf_iterator<char>(in), {});
-  }(), "/server.key", "/read.key");
+  std::ofstream(broken) << substitute(
+      [&] {
+        std::ifstream in(dir_->file("secure.yaml"));
+        return std::string(std::istreambuf_iterator<char>(in), {});
+      }(),
+      "/server.key", "/read.key");
   ChildProcess refused({bin("sms-gateway"), "--check-config", broken});
   EXPECT_EQ(refused.wait_exit(10s), 2);
   // The key of another certificate is said to be that, not "not a PEM private key".
@@ -370,7 +388,8 @@ TEST_F(Tls, OpenSslClientWithTheCriticalRoleExtensionIsServed) {
   const std::string request = dir_->file("request.bin");
   std::ofstream(request, std::ios::binary) << std::string("\x00\x07\x00\x00\x00\x06\x01\x03\x00\x2A\x00\x01", 12);
   const std::string answer = dir_->file("answer.bin");
-  const std::string command = "(cat " + request + "; sleep 1) | timeout 10 openssl s_client -quiet -no_ign_eof -connect 127.0.0.1:" +
+  const std::string command = "(cat " + request +
+                              "; sleep 1) | timeout 10 openssl s_client -quiet -no_ign_eof -connect 127.0.0.1:" +
                               std::to_string(gateway_->port) + " -CAfile " + certs_ + "/ca.crt -cert " + certs_ +
                               "/critical.crt -key " + certs_ + "/critical.key > " + answer + " 2>/dev/null";
   std::system(command.c_str());
@@ -580,7 +599,8 @@ TEST_F(Tls, TwoHundredSilentConnectionsDoNotDelayTheFirstClient) {
 
 TEST_F(Tls, SilentHandshakeIsClosedAfterTheHandshakeTimeout) {
   gateway_.reset();
-  gateway_ = std::make_unique<SecureGateway>(*dir_, certs_, sim_->pty(), free_port(), "    handshake_timeout_ms: 400\n");
+  gateway_ =
+      std::make_unique<SecureGateway>(*dir_, certs_, sim_->pty(), free_port(), "    handshake_timeout_ms: 400\n");
   asio::io_context io;
   tcp::socket socket(io);
   socket.connect(tcp::endpoint(asio::ip::make_address("127.0.0.1"), gateway_->port));
@@ -627,8 +647,8 @@ TEST_F(Tls, ServedConnectionsOverTheLimitAreRefusedAndCountedForTheTlsListener) 
     TlsClient second(certs_, "operate", port);
     EXPECT_FALSE(second.request(read_registers_pdu(kGoalPosition, 1)));
   }
-  EXPECT_TRUE(limited.wait_for_line("modbus tcp security: refusing connection from 127.0.0.1: 1 connections served",
-                                    5s))
+  EXPECT_TRUE(
+      limited.wait_for_line("modbus tcp security: refusing connection from 127.0.0.1: 1 connections served", 5s))
       << limited.output();
   const auto body = test::http_request(metrics_port, "GET", "/metrics").body;
   EXPECT_NE(body.find("sms_gateway_tcp_connections_refused_total{listener=\"tls\",reason=\"max_connections\"} 1"),

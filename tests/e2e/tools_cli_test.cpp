@@ -43,7 +43,7 @@ TEST(ToolsCli, ScanFindsServosAtTwoRatesAndWritesAConfigThatChecks) {
   SimProcess sim(dir, "sim", {"--servo", "1:sts:feetech:1000000", "--servo", "5:sts:feetech:500000"}, true);
   const std::string config = dir.file("scan.yaml");
   const Finished scan = run_gateway({"scan", "--device", sim.pty(), "--protocol", "feetech", "--baud", "1000000,500000",
-                                "--ids", "1-8", "--write-config", config});
+                                     "--ids", "1-8", "--write-config", config});
   ASSERT_EQ(scan.status, 0) << scan.output;
   EXPECT_TRUE(contains(scan.output, " 1000000    1 ")) << scan.output;
   EXPECT_TRUE(contains(scan.output, "  500000    5 ")) << scan.output;
@@ -55,8 +55,8 @@ TEST(ToolsCli, ScanFindsServosAtTwoRatesAndWritesAConfigThatChecks) {
 TEST(ToolsCli, ScanReportsTwoServosOnOneId) {
   TempDir dir;
   SimProcess sim(dir, "sim", {"--protocol", "modbus-rtu", "--ids", "2,3", "--duplicate", "3"}, true);
-  const Finished scan = run_gateway({"scan", "--device", sim.pty(), "--protocol", "modbus-rtu", "--baud", "115200",
-                                "--ids", "1-4"});
+  const Finished scan =
+      run_gateway({"scan", "--device", sim.pty(), "--protocol", "modbus-rtu", "--baud", "115200", "--ids", "1-4"});
   ASSERT_EQ(scan.status, 0) << scan.output;
   EXPECT_TRUE(contains(scan.output, "two or more servos answer on this ID")) << scan.output;
   EXPECT_TRUE(contains(scan.output, "1 ID conflict(s)")) << scan.output;
@@ -68,17 +68,17 @@ TEST(ToolsCli, SetIdAndSetBaudSurviveASimulatorRestart) {
   const std::vector<std::string> bus{"--servo", "1:smsmb:modbus-rtu:115200", "--state-file", state};
   {
     SimProcess sim(dir, "first", bus, true);
-    const Finished set_id = run_gateway({"set-id", "--device", sim.pty(), "--protocol", "modbus-rtu", "--baud", "115200",
-                                    "--id", "1", "--new-id", "9"});
+    const Finished set_id = run_gateway({"set-id", "--device", sim.pty(), "--protocol", "modbus-rtu", "--baud",
+                                         "115200", "--id", "1", "--new-id", "9"});
     ASSERT_EQ(set_id.status, 0) << set_id.output;
     EXPECT_TRUE(contains(set_id.output, "now answers on ID 9")) << set_id.output;
     const Finished set_baud = run_gateway({"set-baud", "--device", sim.pty(), "--protocol", "modbus-rtu", "--baud",
-                                      "115200", "--id", "9", "--new-baud", "14400"});
+                                           "115200", "--id", "9", "--new-baud", "14400"});
     ASSERT_EQ(set_baud.status, 0) << set_baud.output;
   }
   SimProcess again(dir, "second", bus, true);
-  const Finished dump = run_gateway({"dump", "--device", again.pty(), "--protocol", "modbus-rtu", "--baud", "14400",
-                                "--id", "9"});
+  const Finished dump =
+      run_gateway({"dump", "--device", again.pty(), "--protocol", "modbus-rtu", "--baud", "14400", "--id", "9"});
   ASSERT_EQ(dump.status, 0) << dump.output;
   EXPECT_TRUE(contains(dump.output, "id ")) << dump.output;
   // The dump's id and baud_rate lines: register 0x0A holds 9, 0x0B holds code 7 (14400).
@@ -128,8 +128,8 @@ TEST(ToolsCli, CalibrateMiddleMakesThePresentPositionTheCentre) {
   SimProcess sim(dir, "sim", {"--ids", "3"}, true);
   sim.control("set 3 42 28 0A");  // goal position 2600
   ASSERT_TRUE(eventually([&] { return sim.field(3, "present_position") == 2600; }));
-  const Finished calibrate = run_gateway({"calibrate-middle", "--device", sim.pty(), "--protocol", "feetech", "--baud",
-                                     "1000000", "--id", "3"});
+  const Finished calibrate = run_gateway(
+      {"calibrate-middle", "--device", sim.pty(), "--protocol", "feetech", "--baud", "1000000", "--id", "3"});
   ASSERT_EQ(calibrate.status, 0) << calibrate.output;
   EXPECT_EQ(sim.field(3, "present_position"), 2048);
 }

@@ -25,10 +25,13 @@ constexpr int kGoalPosition = 42;  // sts, holding register (RAM)
 
 std::string config_yaml(const std::string& pty, const std::string& hmi_unit_extra) {
   return "buses:\n"
-         "  - {name: line, device: \"" + pty + "\", protocol: feetech, baud: 1000000}\n"
+         "  - {name: line, device: \"" +
+         pty +
+         "\", protocol: feetech, baud: 1000000}\n"
          "servos:\n"
          "  - {unit: 1, bus: line, id: 1, table: sts, name: axis-1}\n"
-         "  - {unit: 101, bus: line, id: 1, table: sts, name: axis-1-hmi" + hmi_unit_extra + "}\n";
+         "  - {unit: 101, bus: line, id: 1, table: sts, name: axis-1-hmi" +
+         hmi_unit_extra + "}\n";
 }
 
 class UnitViews : public testing::Test {

@@ -24,8 +24,8 @@ void check_rejection(std::string_view text, const sms::config::ConfigError& erro
   SMS_FUZZ_CHECK(error.file == kSource, "error names source \"" + error.file + "\"");
   SMS_FUZZ_CHECK(!error.message.empty(), "error without a message");
   const auto lines = static_cast<std::uint32_t>(std::count(text.begin(), text.end(), '\n')) + 1;
-  SMS_FUZZ_CHECK(error.line <= lines, "error at line " + std::to_string(error.line) + " of a " +
-                                          std::to_string(lines) + "-line text: " + error.to_string());
+  SMS_FUZZ_CHECK(error.line <= lines, "error at line " + std::to_string(error.line) + " of a " + std::to_string(lines) +
+                                          "-line text: " + error.to_string());
   SMS_FUZZ_CHECK(error.to_string().starts_with(kSource), "to_string() does not start with the source");
 }
 

@@ -25,8 +25,17 @@ namespace http = boost::beast::http;
 
 // The patterns of gateway/console/console_routes.cpp's table (and the bus monitor's).
 constexpr std::string_view kPatterns[] = {
-    "/", "/servo/{unit}", "/login", "/commission", "/static/{file}", "/api/session", "/api/servo/{unit}",
-    "/api/servo/{unit}/write", "/ws/servo/{unit}", "/bus/{name}/monitor", "/ws/bus/{name}/monitor",
+    "/",
+    "/servo/{unit}",
+    "/login",
+    "/commission",
+    "/static/{file}",
+    "/api/session",
+    "/api/servo/{unit}",
+    "/api/servo/{unit}/write",
+    "/ws/servo/{unit}",
+    "/bus/{name}/monitor",
+    "/ws/bus/{name}/monitor",
 };
 
 void check(bool condition) {

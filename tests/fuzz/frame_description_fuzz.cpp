@@ -37,7 +37,8 @@ bool packet_frame_valid(const sms::protocol::PacketFormat& format, const sms::pr
 bool rtu_frame_valid(const sms::protocol::Bytes& bytes) {
   if (bytes.size() < sms::protocol::rtu::kMinAduSize) return false;
   const auto body = std::span<const std::uint8_t>(bytes).first(bytes.size() - 2);
-  return sms::protocol::rtu::crc16(body) == static_cast<std::uint16_t>(bytes[bytes.size() - 2] | bytes[bytes.size() - 1] << 8);
+  return sms::protocol::rtu::crc16(body) ==
+         static_cast<std::uint16_t>(bytes[bytes.size() - 2] | bytes[bytes.size() - 1] << 8);
 }
 
 void check(BusProtocol protocol, const FrameDescription& frame) {
@@ -59,9 +60,7 @@ void check(BusProtocol protocol, const FrameDescription& frame) {
       SMS_FUZZ_CHECK(!frame.error.empty(), "a damaged frame that does not say why: " + hex(frame.bytes));
       SMS_FUZZ_CHECK(!frame.bytes.empty(), "a damaged frame without bytes");
       break;
-    case FrameKind::Noise:
-      SMS_FUZZ_CHECK(!frame.error.empty(), "noise that does not say how much");
-      break;
+    case FrameKind::Noise: SMS_FUZZ_CHECK(!frame.error.empty(), "noise that does not say how much"); break;
   }
   for (const auto& field : frame.fields) SMS_FUZZ_CHECK(!field.name.empty(), "a field without a name");
 }
@@ -87,8 +86,6 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
       [&](std::span<const std::uint8_t> chunk) {
         for (const auto& frame : describer.feed(direction, chunk)) check(protocol, frame);
       },
-      [&] {
-        direction = direction == WireDirection::ToServos ? WireDirection::FromServos : WireDirection::ToServos;
-      });
+      [&] { direction = direction == WireDirection::ToServos ? WireDirection::FromServos : WireDirection::ToServos; });
   return 0;
 }

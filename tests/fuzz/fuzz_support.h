@@ -18,8 +18,8 @@ namespace sms::fuzz {
   std::abort();
 }
 
-#define SMS_FUZZ_CHECK(condition, what)                                    \
-  do {                                                                     \
+#define SMS_FUZZ_CHECK(condition, what)                                                      \
+  do {                                                                                       \
     if (!(condition)) ::sms::fuzz::invariant_failed(#condition, __FILE__, __LINE__, (what)); \
   } while (false)
 

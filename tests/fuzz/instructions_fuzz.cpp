@@ -62,9 +62,8 @@ void check_common(Params params) {
   if (sync_write) {
     SMS_FUZZ_CHECK(sync_write->entries.size() == (params.size() - 2) / (params[1] + 1U),
                    "parse_sync_write entry count wrong for " + hex(params));
-    check_rebuilds("SYNC WRITE", params, [&] {
-      return protocol::sync_write(sync_write->address, sync_write->length, sync_write->entries);
-    });
+    check_rebuilds("SYNC WRITE", params,
+                   [&] { return protocol::sync_write(sync_write->address, sync_write->length, sync_write->entries); });
   }
 }
 
@@ -73,9 +72,8 @@ void check_feetech(Params params) {
   const auto sync_read = protocol::feetech::parse_sync_read(params);
   SMS_FUZZ_CHECK(sync_read.has_value() == sync_read_ok, "parse_sync_read acceptance wrong for " + hex(params));
   if (sync_read) {
-    check_rebuilds("SYNC READ", params, [&] {
-      return protocol::feetech::sync_read(sync_read->address, sync_read->count, sync_read->ids);
-    });
+    check_rebuilds("SYNC READ", params,
+                   [&] { return protocol::feetech::sync_read(sync_read->address, sync_read->count, sync_read->ids); });
   }
 
   const auto calibrate = protocol::feetech::parse_calibrate(params);

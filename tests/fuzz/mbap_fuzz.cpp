@@ -52,7 +52,8 @@ struct ReferenceReader {
         break;
       }
       if (rest.size() < 6U + length) break;
-      const tcp::Frame frame{transaction, 0, rest[6], sms::protocol::Bytes(rest.begin() + 7, rest.begin() + 6 + length)};
+      const tcp::Frame frame{transaction, 0, rest[6],
+                             sms::protocol::Bytes(rest.begin() + 7, rest.begin() + 6 + length)};
       events.push_back({frame, offset});
       offset += 6U + length;
     }
@@ -108,8 +109,8 @@ class Checker {
  private:
   void check_event(const tcp::MbapEvent& event, const ReferenceReader::Event& reference) {
     const tcp::MbapEvent& expected = reference.event;
-    SMS_FUZZ_CHECK(event.index() == expected.index(), "event kind differs from the reference on segment " +
-                                                          hex(reference_.segment));
+    SMS_FUZZ_CHECK(event.index() == expected.index(),
+                   "event kind differs from the reference on segment " + hex(reference_.segment));
     if (const auto* frame = std::get_if<tcp::Frame>(&event)) {
       SMS_FUZZ_CHECK(*frame == std::get<tcp::Frame>(expected),
                      "frame differs from the reference on segment " + hex(reference_.segment));

@@ -127,9 +127,9 @@ void check_accepted(std::span<const std::uint8_t> pdu, const gw::Request& reques
           SMS_FUZZ_CHECK(answer.size() == 2U + 2U * r.count && answer.size() <= tcp::kMaxPduSize,
                          "registers response of " + std::to_string(answer.size()) + " bytes");
         } else if constexpr (std::is_same_v<T, gw::ReadWriteRegistersRequest>) {
-          SMS_FUZZ_CHECK(in_range(r.read.address, r.read.count, 125) &&
-                             in_range(r.write.address, r.write.values.size(), 121),
-                         "FC23 outside the limits: " + hex(pdu));
+          SMS_FUZZ_CHECK(
+              in_range(r.read.address, r.read.count, 125) && in_range(r.write.address, r.write.values.size(), 121),
+              "FC23 outside the limits: " + hex(pdu));
           const std::vector<std::uint16_t> values(r.read.count, 0xBEEF);
           SMS_FUZZ_CHECK(gw::registers_response(0x17, values).size() <= tcp::kMaxPduSize, "FC23 response too long");
         } else {
@@ -144,8 +144,8 @@ void check_accepted(std::span<const std::uint8_t> pdu, const gw::Request& reques
 }
 
 void check_refused(std::span<const std::uint8_t> pdu, gw::Fault fault) {
-  const bool served = !pdu.empty() && std::find(kServedFunctions.begin(), kServedFunctions.end(), pdu[0]) !=
-                                          kServedFunctions.end();
+  const bool served =
+      !pdu.empty() && std::find(kServedFunctions.begin(), kServedFunctions.end(), pdu[0]) != kServedFunctions.end();
   if (pdu.empty()) {
     SMS_FUZZ_CHECK(fault == gw::Fault::MalformedRequest, "empty PDU not refused as malformed");
     return;

@@ -65,10 +65,10 @@ std::string request_label(const char* function, std::uint16_t start, std::size_t
 }
 
 void check_planning_error(const mm::MapError& error, const std::string& request) {
-  SMS_FUZZ_CHECK(error.code == mm::ModbusException::IllegalDataAddress ||
-                     error.code == mm::ModbusException::IllegalDataValue,
-                 request + ": planning answered exception " + std::to_string(static_cast<int>(error.code)) + " (" +
-                     error.message + ")");
+  SMS_FUZZ_CHECK(
+      error.code == mm::ModbusException::IllegalDataAddress || error.code == mm::ModbusException::IllegalDataValue,
+      request + ": planning answered exception " + std::to_string(static_cast<int>(error.code)) + " (" + error.message +
+          ")");
   SMS_FUZZ_CHECK(!error.message.empty(), request + ": exception without a message");
 }
 
@@ -84,14 +84,10 @@ void check_read(Reader& input, const mm::RegisterMap& map, mm::RequestSpace spac
                               : (space == mm::RequestSpace::HoldingRegisters ? "FC03" : "FC04");
   const auto plan = [&]() -> mm::MapResult<mm::ReadPlan> {
     switch (space) {
-      case mm::RequestSpace::HoldingRegisters:
-        return map.plan_holding_read(start, count);
-      case mm::RequestSpace::InputRegisters:
-        return map.plan_input_read(start, count, poll_block);
-      case mm::RequestSpace::Coils:
-        return map.plan_coil_read(start, count);
-      case mm::RequestSpace::DiscreteInputs:
-        break;
+      case mm::RequestSpace::HoldingRegisters: return map.plan_holding_read(start, count);
+      case mm::RequestSpace::InputRegisters: return map.plan_input_read(start, count, poll_block);
+      case mm::RequestSpace::Coils: return map.plan_coil_read(start, count);
+      case mm::RequestSpace::DiscreteInputs: break;
     }
     return map.plan_discrete_read(start, count, have_poll_block ? std::optional(poll_block) : std::nullopt);
   }();
@@ -126,13 +122,13 @@ void check_read(Reader& input, const mm::RegisterMap& map, mm::RequestSpace spac
   }
   if (bits) {
     const auto values = map.bits_from(*plan, replies);
-    SMS_FUZZ_CHECK(values.has_value(), request + ": whole replies refused: " +
-                                           (values ? std::string() : values.error().message));
+    SMS_FUZZ_CHECK(values.has_value(),
+                   request + ": whole replies refused: " + (values ? std::string() : values.error().message));
     SMS_FUZZ_CHECK(values->size() == count, request + ": " + std::to_string(values->size()) + " bits answered");
   } else {
     const auto values = map.registers_from(*plan, replies);
-    SMS_FUZZ_CHECK(values.has_value(), request + ": whole replies refused: " +
-                                           (values ? std::string() : values.error().message));
+    SMS_FUZZ_CHECK(values.has_value(),
+                   request + ": whole replies refused: " + (values ? std::string() : values.error().message));
     SMS_FUZZ_CHECK(values->size() == count, request + ": " + std::to_string(values->size()) + " registers answered");
   }
 
@@ -205,8 +201,8 @@ void check_field_bytes(Reader& input, const mm::RegisterMap& map) {
   if (fields.empty()) return;
   const mm::FieldSpec& field = fields[input.u8() % fields.size()];
   const std::uint16_t value = input.u16();
-  const std::string request = "field_bytes(" + std::string(field.name) + ", " + std::to_string(value) + ") on " +
-                              map.description();
+  const std::string request =
+      "field_bytes(" + std::string(field.name) + ", " + std::to_string(value) + ") on " + map.description();
   const auto bytes = map.field_bytes(field, value);
   if (!bytes) {
     check_planning_error(bytes.error(), request);
@@ -223,14 +219,9 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   const auto profile = input.flag() ? mm::Profile::Smsmb : mm::Profile::Native;
   std::optional<mm::ByteOrder> byte_order;
   switch (input.u8() % 3) {
-    case 1:
-      byte_order = mm::ByteOrder::LowFirst;
-      break;
-    case 2:
-      byte_order = mm::ByteOrder::HighFirst;
-      break;
-    default:
-      break;
+    case 1: byte_order = mm::ByteOrder::LowFirst; break;
+    case 2: byte_order = mm::ByteOrder::HighFirst; break;
+    default: break;
   }
   const auto map = mm::RegisterMap::create(table, profile, byte_order);
   if (!map) {
@@ -244,27 +235,13 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   while (!input.empty()) {
     switch (input.u8() % 7) {
-      case 0:
-        check_read(input, *map, mm::RequestSpace::HoldingRegisters);
-        break;
-      case 1:
-        check_read(input, *map, mm::RequestSpace::InputRegisters);
-        break;
-      case 2:
-        check_read(input, *map, mm::RequestSpace::Coils);
-        break;
-      case 3:
-        check_read(input, *map, mm::RequestSpace::DiscreteInputs);
-        break;
-      case 4:
-        check_register_write(input, *map);
-        break;
-      case 5:
-        check_coil_write(input, *map);
-        break;
-      default:
-        check_field_bytes(input, *map);
-        break;
+      case 0: check_read(input, *map, mm::RequestSpace::HoldingRegisters); break;
+      case 1: check_read(input, *map, mm::RequestSpace::InputRegisters); break;
+      case 2: check_read(input, *map, mm::RequestSpace::Coils); break;
+      case 3: check_read(input, *map, mm::RequestSpace::DiscreteInputs); break;
+      case 4: check_register_write(input, *map); break;
+      case 5: check_coil_write(input, *map); break;
+      default: check_field_bytes(input, *map); break;
     }
   }
   return 0;

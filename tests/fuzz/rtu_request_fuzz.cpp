@@ -68,8 +68,7 @@ class Checker {
 
   void check_event(const rtu::RequestDecoder::Event& event, Source source, std::size_t discarded_before) {
     const std::size_t size = event.adu.pdu.size() + 3;
-    SMS_FUZZ_CHECK(size >= rtu::kMinAduSize && size <= rtu::kMaxAduSize,
-                   "event of " + std::to_string(size) + " bytes");
+    SMS_FUZZ_CHECK(size >= rtu::kMinAduSize && size <= rtu::kMaxAduSize, "event of " + std::to_string(size) + " bytes");
     if (event.kind == rtu::RequestDecoder::Event::Kind::Frame) {
       const std::size_t start = frame_bytes_ + decoder_.discarded_bytes();
       SMS_FUZZ_CHECK(size <= rtu::kMaxAduSize, "frame larger than an ADU");
@@ -79,21 +78,21 @@ class Checker {
       SMS_FUZZ_CHECK(std::equal(framed.begin(), framed.end(), original.begin(), original.end()),
                      "decoded ADU re-frames to " + hex(framed) + " but the stream held " + hex(original));
       if (source == Source::Next) {
-        SMS_FUZZ_CHECK(std::find(kSizedFunctions.begin(), kSizedFunctions.end(), event.adu.pdu[0]) !=
-                           kSizedFunctions.end(),
-                       "next() completed a frame of unsized function " + hex(original.subspan(1, 1)));
+        SMS_FUZZ_CHECK(
+            std::find(kSizedFunctions.begin(), kSizedFunctions.end(), event.adu.pdu[0]) != kSizedFunctions.end(),
+            "next() completed a frame of unsized function " + hex(original.subspan(1, 1)));
       }
       frame_bytes_ += size;
       return;
     }
     // CrcError: next() discards one byte of it before returning, silence discards all of it.
-    const std::size_t start = source == Source::Next ? decoder_.discarded_bytes() - 1 + frame_bytes_
-                                                     : discarded_before + frame_bytes_;
+    const std::size_t start =
+        source == Source::Next ? decoder_.discarded_bytes() - 1 + frame_bytes_ : discarded_before + frame_bytes_;
     SMS_FUZZ_CHECK(start + size <= fed_, "CRC error on bytes not fed");
     const auto original = stream_.subspan(start, size);
-    SMS_FUZZ_CHECK(original[0] == event.adu.slave &&
-                       std::equal(event.adu.pdu.begin(), event.adu.pdu.end(), original.begin() + 1),
-                   "CRC error reports other bytes than the stream's " + hex(original));
+    SMS_FUZZ_CHECK(
+        original[0] == event.adu.slave && std::equal(event.adu.pdu.begin(), event.adu.pdu.end(), original.begin() + 1),
+        "CRC error reports other bytes than the stream's " + hex(original));
     const auto reframed = rtu::frame(event.adu.slave, event.adu.pdu);
     SMS_FUZZ_CHECK(!std::equal(reframed.begin(), reframed.end(), original.begin(), original.end()),
                    "CRC error on a frame whose CRC is right: " + hex(original));

@@ -45,7 +45,8 @@ TEST(BaudErrors, NameTheProtocolTheRateAndEveryValidRate) {
   const auto code = baud_code(BusProtocol::ModbusRtu, 1'000'000);
   ASSERT_FALSE(code);
   EXPECT_EQ(code.error(),
-            "modbus-rtu bus: 1000000 bps is not in the baud table (docs/PROTOCOL.md §3); valid rates: 256000, 128000, 115200, "
+            "modbus-rtu bus: 1000000 bps is not in the baud table (docs/PROTOCOL.md §3); valid rates: 256000, 128000, "
+            "115200, "
             "57600, 56000, 38400, 19200, 14400, 9600, 4800");
   EXPECT_EQ(valid_bauds_text(BusProtocol::Feetech),
             "1000000, 500000, 250000, 128000, 115200, 76800, 57600, 38400, 19200, 14400, 9600, 4800");

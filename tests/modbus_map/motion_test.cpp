@@ -13,7 +13,8 @@ using protocol::Bytes;
 // The bytes of stop_context_reads(spec) with named fields set, in the table's byte order.
 class Context {
  public:
-  Context(TableId table, ByteOrder order) : spec_(motion_spec(table)), order_(order), ranges_(stop_context_reads(spec_)) {
+  Context(TableId table, ByteOrder order)
+      : spec_(motion_spec(table)), order_(order), ranges_(stop_context_reads(spec_)) {
     for (const auto& range : ranges_) data_.emplace_back(std::size_t{range.count} * per(), 0);
   }
 
@@ -43,7 +44,9 @@ class Context {
 
  private:
   std::size_t per() const { return bytes_per_address(table(spec_.table).addressing); }
-  ByteOrder order() const { return table(spec_.table).addressing == Addressing::Register ? ByteOrder::HighFirst : order_; }
+  ByteOrder order() const {
+    return table(spec_.table).addressing == Addressing::Register ? ByteOrder::HighFirst : order_;
+  }
 
   const MotionSpec& spec_;
   ByteOrder order_;
@@ -70,8 +73,7 @@ TEST(Motion, StopContextReadsMergeFieldsThatLieClose) {
   // d55d: the angle limits (6-9) are too far from the goal block and present position (30-37).
   EXPECT_EQ(stop_context_reads(motion_spec(TableId::D55d)), (std::vector<BusRange>{{6, 4}, {30, 8}}));
   // SMSMB registers lie far apart: mode, goal block, present position.
-  EXPECT_EQ(stop_context_reads(motion_spec(TableId::Smsmb)),
-            (std::vector<BusRange>{{0x10, 1}, {0x80, 4}, {0x101, 1}}));
+  EXPECT_EQ(stop_context_reads(motion_spec(TableId::Smsmb)), (std::vector<BusRange>{{0x10, 1}, {0x80, 4}, {0x101, 1}}));
 }
 
 TEST(Motion, HoldInPositionModeMakesThePresentPositionTheGoalAndKeepsTheRestOfTheBlock) {
@@ -161,21 +163,21 @@ TEST(Motion, AnUndocumentedModeOrAMissingReadIsAnErrorNotAGuess) {
 
 TEST(Motion, MotionWritesAreGoalsModeTorqueOnBrakeReleaseAndHoming) {
   const MotionSpec& sts = motion_spec(TableId::Sts);
-  EXPECT_TRUE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(42, {0x10, 0x00})));       // goal position
-  EXPECT_TRUE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(33, {1})));                // mode
-  EXPECT_TRUE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(40, {1})));                // torque on
-  EXPECT_FALSE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(40, {0})));               // torque off stops
-  EXPECT_FALSE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(41, {20})));              // acceleration
-  EXPECT_TRUE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(40, {0, 20, 0x10, 0})));   // torque off + goal
+  EXPECT_TRUE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(42, {0x10, 0x00})));      // goal position
+  EXPECT_TRUE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(33, {1})));               // mode
+  EXPECT_TRUE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(40, {1})));               // torque on
+  EXPECT_FALSE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(40, {0})));              // torque off stops
+  EXPECT_FALSE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(41, {20})));             // acceleration
+  EXPECT_TRUE(motion_in_plan(sts, ByteOrder::LowFirst, plan_of(40, {0, 20, 0x10, 0})));  // torque off + goal
   const auto named = motion_in_plan(sts, ByteOrder::LowFirst, plan_of(46, {0xDC, 0x05}));
   ASSERT_TRUE(named);
   EXPECT_EQ(*named, "goal_speed (46)");
 
   const MotionSpec& d55d = motion_spec(TableId::D55d);
-  EXPECT_FALSE(motion_in_plan(d55d, ByteOrder::LowFirst, plan_of(43, {1})));  // brake on
-  EXPECT_TRUE(motion_in_plan(d55d, ByteOrder::LowFirst, plan_of(43, {0})));   // brake off resumes
+  EXPECT_FALSE(motion_in_plan(d55d, ByteOrder::LowFirst, plan_of(43, {1})));     // brake on
+  EXPECT_TRUE(motion_in_plan(d55d, ByteOrder::LowFirst, plan_of(43, {0})));      // brake off resumes
   EXPECT_FALSE(motion_in_plan(d55d, ByteOrder::LowFirst, plan_of(32, {0, 0})));  // speed 0 stops
-  EXPECT_TRUE(motion_in_plan(d55d, ByteOrder::LowFirst, plan_of(24, {1})));   // homing turns the motor
+  EXPECT_TRUE(motion_in_plan(d55d, ByteOrder::LowFirst, plan_of(24, {1})));      // homing turns the motor
 
   const MotionSpec& smsmb = motion_spec(TableId::Smsmb);
   EXPECT_FALSE(motion_in_plan(smsmb, ByteOrder::HighFirst, plan_of(0x81, {0, 0})));

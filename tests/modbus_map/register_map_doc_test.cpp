@@ -21,7 +21,8 @@ TEST(RegisterMapDoc, CommittedFileMatchesTheGenerator) {
   const std::string committed = read_file(SMS_REGISTER_MAP_PATH);
   ASSERT_FALSE(committed.empty()) << SMS_REGISTER_MAP_PATH << " is missing or empty";
   EXPECT_TRUE(committed == register_map_markdown())
-      << SMS_REGISTER_MAP_PATH << " is out of date: run `build/bin/gen-register-map docs/REGISTER_MAP.md` and commit it";
+      << SMS_REGISTER_MAP_PATH
+      << " is out of date: run `build/bin/gen-register-map docs/REGISTER_MAP.md` and commit it";
 }
 
 TEST(RegisterMapDoc, ListsEveryTableAndProfile) {

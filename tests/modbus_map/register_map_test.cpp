@@ -91,8 +91,7 @@ TEST(HoldingRead, ModbusRtuServoGetsOneReadPerRunOfRegisters) {
   ASSERT_TRUE(control);
   EXPECT_EQ(control->reads, (std::vector<BusRange>{{0x80, 6}}));
   const std::vector<Bytes> replies{{0xFC, 0x18, 0x00, 0x01, 0x00, 0x0A, 0xFF, 0x9C, 0x03, 0xE8, 0x00, 0x01}};
-  EXPECT_EQ(*smsmb.registers_from(*control, replies),
-            (std::vector<std::uint16_t>{0xFC18, 1, 10, 0xFF9C, 1000, 1, 0}));
+  EXPECT_EQ(*smsmb.registers_from(*control, replies), (std::vector<std::uint16_t>{0xFC18, 1, 10, 0xFF9C, 1000, 1, 0}));
 }
 
 TEST(HoldingRead, RepliesOfTheWrongLengthAreADeviceFailure) {
@@ -116,7 +115,8 @@ TEST(InputRead, ServesThePollBlockFromTheCache) {
   EXPECT_EQ(plan->source, ReadSource::PollCache);
   ASSERT_EQ(plan->reads, (std::vector<BusRange>{{56, 15}}));
   // position 2047, 12.1 V, 30 °C, moving, current 100 × 6.5 mA
-  const std::vector<Bytes> cache{{0xFF, 0x07, 0x00, 0x00, 0x00, 0x00, 0x79, 0x1E, 0x00, 0x00, 0x01, 0x00, 0x00, 0x64, 0x00}};
+  const std::vector<Bytes> cache{
+      {0xFF, 0x07, 0x00, 0x00, 0x00, 0x00, 0x79, 0x1E, 0x00, 0x00, 0x01, 0x00, 0x00, 0x64, 0x00}};
   EXPECT_EQ(*sts.registers_from(*plan, cache),
             (std::vector<std::uint16_t>{2047, 0, 0, 0, 0, 0, 121, 30, 0, 0, 1, 0, 0, 100, 0}));
 }
@@ -218,8 +218,7 @@ TEST(RegisterWrite, ContiguousFieldsShareOneFrame) {
   // 46 speed 2500 -> one WRITE 40..47 (docs/PROTOCOL.md §1.1 writes 42..47 the same way).
   const auto plan = write(sts, 40, {1, 10, 0xFC18, 0xBEEF, 0, 0xBEEF, 2500});
   ASSERT_TRUE(plan) << plan.error().message;
-  EXPECT_EQ(plan->writes,
-            (std::vector<BusWrite>{{40, {0x01, 0x0A, 0xE8, 0x83, 0x00, 0x00, 0xC4, 0x09}}}));
+  EXPECT_EQ(plan->writes, (std::vector<BusWrite>{{40, {0x01, 0x0A, 0xE8, 0x83, 0x00, 0x00, 0xC4, 0x09}}}));
 }
 
 TEST(RegisterWrite, GapsSplitFramesAndAreNeverWritten) {
@@ -285,7 +284,8 @@ TEST(Exceptions, AddressBeyondTheTableIs02) {
 
 TEST(Exceptions, WriteToAReadOnlyFieldIs02EvenInsideALongerWrite) {
   const RegisterMap sts = make(TableId::Sts);
-  expect_exception(write(sts, 56, {0}), ModbusException::IllegalDataAddress, "present_position (56) of table sts is read-only");
+  expect_exception(write(sts, 56, {0}), ModbusException::IllegalDataAddress,
+                   "present_position (56) of table sts is read-only");
   expect_exception(write(sts, 55, {0, 0}), ModbusException::IllegalDataAddress, "read-only");
 }
 
@@ -318,7 +318,8 @@ TEST(Exceptions, QuantityOverTheModbusLimitsIs02) {
 
 TEST(Exceptions, ValueOutsideTheRangeIs03) {
   const RegisterMap sts = make(TableId::Sts);
-  expect_exception(write(sts, 13, {300}), ModbusException::IllegalDataValue, "max_temperature (13) of table sts is outside 0..100");
+  expect_exception(write(sts, 13, {300}), ModbusException::IllegalDataValue,
+                   "max_temperature (13) of table sts is outside 0..100");
   expect_exception(write(sts, 31, {5000}), ModbusException::IllegalDataValue, "outside -2047..2047");
   expect_exception(write(sts, 42, {30720}), ModbusException::IllegalDataValue);
   expect_exception(write(sts, 16, {0xFFFF}), ModbusException::IllegalDataValue, "value 65535");

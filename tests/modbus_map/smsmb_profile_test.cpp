@@ -32,8 +32,8 @@ MapResult<WritePlan> write(const RegisterMap& map, std::uint16_t start, std::vec
 }
 
 // Reads `count` registers at `start` and answers the plan's single READ with `bytes`.
-std::vector<std::uint16_t> read(const RegisterMap& map, std::uint16_t start, std::uint16_t count, BusRange expected_read,
-                                const Bytes& bytes) {
+std::vector<std::uint16_t> read(const RegisterMap& map, std::uint16_t start, std::uint16_t count,
+                                BusRange expected_read, const Bytes& bytes) {
   const auto plan = map.plan_holding_read(start, count);
   if (!plan) throw std::runtime_error(plan.error().message);
   EXPECT_EQ(plan->reads, std::vector<BusRange>{expected_read});
@@ -61,8 +61,7 @@ TEST(SmsmbProfile, FeedbackInputRegistersComeFromTheStsPollBlock) {
       0x00, 0x08,  // 67 present goal (not in the SMSMB block)
       0x64, 0x00,  // 69 current 100
   }};
-  EXPECT_EQ(*sts.registers_from(*plan, cache),
-            (std::vector<std::uint16_t>{0x25, 0xFF9C, 26, 0xFED4, 121, 30, 1, 100}));
+  EXPECT_EQ(*sts.registers_from(*plan, cache), (std::vector<std::uint16_t>{0x25, 0xFF9C, 26, 0xFED4, 121, 30, 1, 100}));
 }
 
 TEST(SmsmbProfile, InputRegistersOutsideTheFeedbackBlockAre02) {
@@ -215,7 +214,7 @@ TEST(SmsmbProfile, ScaledRegistersRoundHalfAwayFromZero) {
   expect_exception(write(sms1, 0x83, {656}), ModbusException::IllegalDataValue, "outside -655..655");
   EXPECT_EQ(read(sms1, 0x102, 1, {58, 2}, {0x19, 0x80}), std::vector<std::uint16_t>{0xFFFF});  // -25 -> -1
   EXPECT_EQ(read(sms1, 0x102, 1, {58, 2}, {0x18, 0x00}), std::vector<std::uint16_t>{0});       // 24 -> 0
-  const auto torque = write(sts, 0x190, {205});  // 20.5 % -> 21 %
+  const auto torque = write(sts, 0x190, {205});                                                // 20.5 % -> 21 %
   ASSERT_TRUE(torque);
   EXPECT_EQ(torque->writes, (std::vector<BusWrite>{{34, {0x15}}}));
   EXPECT_EQ(read(sts, 0x18F, 1, {38, 1}, {0xC8}), std::vector<std::uint16_t>{2000});  // 200 × 10 ms

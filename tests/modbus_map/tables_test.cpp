@@ -88,9 +88,9 @@ TEST(Tables, AreFoundByIdAndName) {
 }
 
 TEST(Tables, EndAddressIsOnePastTheLastFieldsLastAddress) {
-  EXPECT_EQ(end_address(table(TableId::Sts)), 71);     // present_current 69-70
-  EXPECT_EQ(end_address(table(TableId::Sms1)), 71);    // present_current 69-70
-  EXPECT_EQ(end_address(table(TableId::D55d)), 50);    // 49 move without photo-coupler
+  EXPECT_EQ(end_address(table(TableId::Sts)), 71);       // present_current 69-70
+  EXPECT_EQ(end_address(table(TableId::Sms1)), 71);      // present_current 69-70
+  EXPECT_EQ(end_address(table(TableId::D55d)), 50);      // 49 move without photo-coupler
   EXPECT_EQ(end_address(table(TableId::Smsmb)), 0x197);  // 0x196 speed default
 }
 

@@ -65,14 +65,17 @@ const Bytes kWriteData{0x00, 0x08, 0x00, 0x00, 0xE8, 0x03};
 TEST(FeetechInstructions, EveryInstructionRoundTrips) {
   const std::vector<RoundTrip> trips{
       {"PING", ping(1), {0xFF, 0xFF, 0x01, 0x02, 0x01, 0xFB}, no_params},
-      {"READ", read(1, 56, 2), {0xFF, 0xFF, 0x01, 0x04, 0x02, 0x38, 0x02, 0xBE},
+      {"READ",
+       read(1, 56, 2),
+       {0xFF, 0xFF, 0x01, 0x04, 0x02, 0x38, 0x02, 0xBE},
        [](const Packet& p) {
          auto request = parse_read(p.params);
          ASSERT_TRUE(request);
          EXPECT_EQ(request->address, 56);
          EXPECT_EQ(request->count, 2);
        }},
-      {"WRITE", write(1, 42, kWriteData),
+      {"WRITE",
+       write(1, 42, kWriteData),
        {0xFF, 0xFF, 0x01, 0x09, 0x03, 0x2A, 0x00, 0x08, 0x00, 0x00, 0xE8, 0x03, 0xD5},
        [](const Packet& p) {
          auto request = parse_write(p.params);
@@ -80,7 +83,9 @@ TEST(FeetechInstructions, EveryInstructionRoundTrips) {
          EXPECT_EQ(request->address, 42);
          EXPECT_EQ(request->data, kWriteData);
        }},
-      {"REG WRITE", reg_write(2, 42, Bytes{0x00, 0x08}), {0xFF, 0xFF, 0x02, 0x05, 0x04, 0x2A, 0x00, 0x08, 0xC2},
+      {"REG WRITE",
+       reg_write(2, 42, Bytes{0x00, 0x08}),
+       {0xFF, 0xFF, 0x02, 0x05, 0x04, 0x2A, 0x00, 0x08, 0xC2},
        [](const Packet& p) {
          auto request = parse_write(p.params);
          ASSERT_TRUE(request);
@@ -92,19 +97,24 @@ TEST(FeetechInstructions, EveryInstructionRoundTrips) {
       {"REBOOT", feetech::reboot(1), {0xFF, 0xFF, 0x01, 0x02, 0x08, 0xF4}, no_params},
       {"BACKUP", feetech::backup(1), {0xFF, 0xFF, 0x01, 0x02, 0x09, 0xF3}, no_params},
       {"RESET STATUS", feetech::reset_status(1), {0xFF, 0xFF, 0x01, 0x02, 0x0A, 0xF2}, no_params},
-      {"CALIBRATE to 1024", feetech::calibrate(1, 1024), {0xFF, 0xFF, 0x01, 0x04, 0x0B, 0x00, 0x04, 0xEB},
+      {"CALIBRATE to 1024",
+       feetech::calibrate(1, 1024),
+       {0xFF, 0xFF, 0x01, 0x04, 0x0B, 0x00, 0x04, 0xEB},
        [](const Packet& p) {
          auto position = feetech::parse_calibrate(p.params);
          ASSERT_TRUE(position);
          EXPECT_EQ(*position, std::optional<std::uint16_t>(1024));
        }},
-      {"CALIBRATE to 2048", feetech::calibrate(1), {0xFF, 0xFF, 0x01, 0x02, 0x0B, 0xF1},
+      {"CALIBRATE to 2048",
+       feetech::calibrate(1),
+       {0xFF, 0xFF, 0x01, 0x02, 0x0B, 0xF1},
        [](const Packet& p) {
          auto position = feetech::parse_calibrate(p.params);
          ASSERT_TRUE(position);
          EXPECT_EQ(*position, std::nullopt);
        }},
-      {"SYNC READ", feetech::sync_read(56, 8, kSyncReadIds),
+      {"SYNC READ",
+       feetech::sync_read(56, 8, kSyncReadIds),
        {0xFF, 0xFF, 0xFE, 0x06, 0x82, 0x38, 0x08, 0x01, 0x02, 0x36},
        [](const Packet& p) {
          auto request = feetech::parse_sync_read(p.params);
@@ -113,7 +123,8 @@ TEST(FeetechInstructions, EveryInstructionRoundTrips) {
          EXPECT_EQ(request->count, 8);
          EXPECT_EQ(request->ids, kSyncReadIds);
        }},
-      {"SYNC WRITE", sync_write(42, 2, kFeetechSyncEntries),
+      {"SYNC WRITE",
+       sync_write(42, 2, kFeetechSyncEntries),
        {0xFF, 0xFF, 0xFE, 0x0A, 0x83, 0x2A, 0x02, 0x01, 0x00, 0x08, 0x02, 0xFF, 0x07, 0x37},
        [](const Packet& p) {
          auto request = parse_sync_write(p.params);
@@ -141,14 +152,17 @@ TEST(D55dInstructions, EveryInstructionRoundTrips) {
   const ChangeSpeed change{1000};
   const std::vector<RoundTrip> trips{
       {"PING", ping(1), {0xD5, 0x5D, 0x01, 0x02, 0x01, 0x04}, no_params},
-      {"READ", read(1, 36, 2), {0xD5, 0x5D, 0x01, 0x04, 0x02, 0x24, 0x02, 0x2D},
+      {"READ",
+       read(1, 36, 2),
+       {0xD5, 0x5D, 0x01, 0x04, 0x02, 0x24, 0x02, 0x2D},
        [](const Packet& p) {
          auto request = parse_read(p.params);
          ASSERT_TRUE(request);
          EXPECT_EQ(request->address, 36);
          EXPECT_EQ(request->count, 2);
        }},
-      {"WRITE (docs/PROTOCOL.md example: every ID to 1)", write(kBroadcastId, 3, Bytes{0x01}),
+      {"WRITE (docs/PROTOCOL.md example: every ID to 1)",
+       write(kBroadcastId, 3, Bytes{0x01}),
        {0xD5, 0x5D, 0xFE, 0x04, 0x03, 0x03, 0x01, 0x09},
        [](const Packet& p) {
          auto request = parse_write(p.params);
@@ -156,7 +170,9 @@ TEST(D55dInstructions, EveryInstructionRoundTrips) {
          EXPECT_EQ(request->address, 3);
          EXPECT_EQ(request->data, (Bytes{0x01}));
        }},
-      {"REG WRITE", reg_write(1, 30, Bytes{0x10, 0x27}), {0xD5, 0x5D, 0x01, 0x05, 0x04, 0x1E, 0x10, 0x27, 0x5F},
+      {"REG WRITE",
+       reg_write(1, 30, Bytes{0x10, 0x27}),
+       {0xD5, 0x5D, 0x01, 0x05, 0x04, 0x1E, 0x10, 0x27, 0x5F},
        [](const Packet& p) {
          auto request = parse_write(p.params);
          ASSERT_TRUE(request);
@@ -165,9 +181,14 @@ TEST(D55dInstructions, EveryInstructionRoundTrips) {
        }},
       {"ACTION", action(), {0xD5, 0x5D, 0xFE, 0x02, 0x05, 0x05}, no_params},
       {"RESET", reset(1), {0xD5, 0x5D, 0x01, 0x02, 0x06, 0x09}, no_params},
-      {"START END", start_end(1, Bytes{0x01, 0x02}), {0xD5, 0x5D, 0x01, 0x04, 0x07, 0x01, 0x02, 0x0F},
-       [](const Packet& p) { EXPECT_EQ(p.params, (Bytes{0x01, 0x02})); }},
-      {"TRAJECTORY WRITE", trajectory_write(1, kTrajectory),
+      {"START END",
+       start_end(1, Bytes{0x01, 0x02}),
+       {0xD5, 0x5D, 0x01, 0x04, 0x07, 0x01, 0x02, 0x0F},
+       [](const Packet& p) {
+         EXPECT_EQ(p.params, (Bytes{0x01, 0x02}));
+       }},
+      {"TRAJECTORY WRITE",
+       trajectory_write(1, kTrajectory),
        {0xD5, 0x5D, 0x01, 0x09, 0x0A, 0x02, 0x84, 0x03, 0x32, 0x08, 0x07, 0x64, 0x42},
        [](const Packet& p) {
          auto points = parse_trajectory_write(p.params);
@@ -175,7 +196,8 @@ TEST(D55dInstructions, EveryInstructionRoundTrips) {
          EXPECT_EQ(*points, kTrajectory);
        }},
       {"TRAJECTORY ACTION", trajectory_action(1), {0xD5, 0x5D, 0x01, 0x02, 0x0B, 0x0E}, no_params},
-      {"SYNC WRITE", sync_write(30, 2, kD55dSyncEntries),
+      {"SYNC WRITE",
+       sync_write(30, 2, kD55dSyncEntries),
        {0xD5, 0x5D, 0xFE, 0x0A, 0x83, 0x1E, 0x02, 0x01, 0x10, 0x27, 0x02, 0xE8, 0x03, 0xD0},
        [](const Packet& p) {
          auto request = parse_sync_write(p.params);
@@ -183,14 +205,21 @@ TEST(D55dInstructions, EveryInstructionRoundTrips) {
          EXPECT_EQ(request->address, 30);
          EXPECT_EQ(request->entries, kD55dSyncEntries);
        }},
-      {"CUSTOM relative, 4 bytes", custom(1, relative),
-       {0xD5, 0x5D, 0x01, 0x07, 0xFF, 0x01, 0x10, 0x0E, 0x2C, 0x81, 0xD3}, custom_parses_to(relative)},
-      {"CUSTOM relative, 6 bytes", custom(1, relative_ramped),
+      {"CUSTOM relative, 4 bytes",
+       custom(1, relative),
+       {0xD5, 0x5D, 0x01, 0x07, 0xFF, 0x01, 0x10, 0x0E, 0x2C, 0x81, 0xD3},
+       custom_parses_to(relative)},
+      {"CUSTOM relative, 6 bytes",
+       custom(1, relative_ramped),
        {0xD5, 0x5D, 0x01, 0x09, 0xFF, 0x01, 0x10, 0x0E, 0x2C, 0x81, 0x0A, 0x14, 0xF3},
        custom_parses_to(relative_ramped)},
-      {"CUSTOM absolute", custom(1, absolute),
-       {0xD5, 0x5D, 0x01, 0x09, 0xFF, 0x02, 0x08, 0x07, 0xF4, 0x01, 0x05, 0x06, 0x1A}, custom_parses_to(absolute)},
-      {"CUSTOM change speed", custom(1, change), {0xD5, 0x5D, 0x01, 0x05, 0xFF, 0x03, 0xE8, 0x03, 0xF3},
+      {"CUSTOM absolute",
+       custom(1, absolute),
+       {0xD5, 0x5D, 0x01, 0x09, 0xFF, 0x02, 0x08, 0x07, 0xF4, 0x01, 0x05, 0x06, 0x1A},
+       custom_parses_to(absolute)},
+      {"CUSTOM change speed",
+       custom(1, change),
+       {0xD5, 0x5D, 0x01, 0x05, 0xFF, 0x03, 0xE8, 0x03, 0xF3},
        custom_parses_to(change)},
   };
   run_round_trips(kD55dFormat, trips, d55d::kInstructions);

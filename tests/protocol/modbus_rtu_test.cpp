@@ -55,9 +55,9 @@ TEST(ModbusRtuFrame, AppendsCrcLowByteFirst) {
 }
 
 TEST(ModbusRtuRequestDecoder, DecodesEveryFunctionCodeByItsLength) {
-  for (const Bytes* request : {&kReadFeedback, &kWriteGoal, &kWriteTwoRegisters, &kReportSlaveId, &kRestart,
-                               &kRestartEverySlave, &kReadCoils, &kReadDiscreteInputs, &kReadInputRegisters,
-                               &kWriteCoil, &kWriteCoils, &kReadWriteRegisters}) {
+  for (const Bytes* request :
+       {&kReadFeedback, &kWriteGoal, &kWriteTwoRegisters, &kReportSlaveId, &kRestart, &kRestartEverySlave, &kReadCoils,
+        &kReadDiscreteInputs, &kReadInputRegisters, &kWriteCoil, &kWriteCoils, &kReadWriteRegisters}) {
     const std::string context = "function " + std::to_string((*request)[1]);
     RequestDecoder decoder;
     // Byte by byte: the frame must come out exactly when its last byte arrives.

@@ -23,12 +23,12 @@ TEST(SparkplugTopic, NodeAndDeviceTopicsRoundTrip) {
 }
 
 TEST(SparkplugTopic, RefusesWhatIsNotANodeOrDeviceTopic) {
-  EXPECT_FALSE(parse_topic("spBv1.0/g/DCMD/gw1"));          // device type without a device
-  EXPECT_FALSE(parse_topic("spBv1.0/g/NCMD/gw1/dev"));      // node type with a device
-  EXPECT_FALSE(parse_topic("spBv1.0/STATE/host"));          // a host's state topic
-  EXPECT_FALSE(parse_topic("spAv1.0/g/NCMD/gw1"));          // another namespace
+  EXPECT_FALSE(parse_topic("spBv1.0/g/DCMD/gw1"));      // device type without a device
+  EXPECT_FALSE(parse_topic("spBv1.0/g/NCMD/gw1/dev"));  // node type with a device
+  EXPECT_FALSE(parse_topic("spBv1.0/STATE/host"));      // a host's state topic
+  EXPECT_FALSE(parse_topic("spAv1.0/g/NCMD/gw1"));      // another namespace
   EXPECT_FALSE(parse_topic("spBv1.0/g/NOPE/gw1"));
-  EXPECT_FALSE(parse_topic("spBv1.0//NCMD/gw1"));           // empty group
+  EXPECT_FALSE(parse_topic("spBv1.0//NCMD/gw1"));  // empty group
   EXPECT_FALSE(parse_topic("spBv1.0/g/DCMD/gw1/a/b"));
   EXPECT_TRUE(valid_id("line_3.cell-2"));
   EXPECT_FALSE(valid_id("a/b"));
@@ -117,9 +117,8 @@ TEST(SparkplugPayload, CommandMetricsWithoutADatatypeAreReadAsTheirBirthSays) {
   std::vector<std::uint8_t> bytes{0x12, 0x15, 0x0A, 0x0D};
   for (const char c : std::string("goal_position")) bytes.push_back(static_cast<std::uint8_t>(c));
   for (const std::uint8_t b : {0x50, 0x9C, 0xFF, 0xFF, 0xFF, 0x0F}) bytes.push_back(b);
-  const auto as_born = decode(bytes, [](std::string_view name) {
-    return name == "goal_position" ? DataType::Int16 : DataType::Unknown;
-  });
+  const auto as_born = decode(
+      bytes, [](std::string_view name) { return name == "goal_position" ? DataType::Int16 : DataType::Unknown; });
   ASSERT_TRUE(as_born) << as_born.error();
   EXPECT_EQ(as_born->metrics[0].type, DataType::Int16);
   EXPECT_EQ(as_born->metrics[0].value, MetricValue{std::int64_t{-100}});
@@ -165,24 +164,25 @@ std::optional<HostState> host_state(std::string_view json) {
 
 TEST(SparkplugState, HostStatePayloadsAndTopic) {
   EXPECT_EQ(state_topic("scada-1"), "spBv1.0/STATE/scada-1");
-  EXPECT_EQ(host_state(R"({"online" : true, "timestamp" : 1668114759262})"),
-            (HostState{true, 1668114759262}));
+  EXPECT_EQ(host_state(R"({"online" : true, "timestamp" : 1668114759262})"), (HostState{true, 1668114759262}));
   EXPECT_EQ(host_state(R"({"timestamp":5,"online":false})"), (HostState{false, 5}));
   // Keys of later versions are skipped, nested or not.
-  EXPECT_EQ(host_state(R"( {"online":true,"x":{"a":[1,"}",null]},"timestamp":7,"y":"z"} )"),
-            (HostState{true, 7}));
+  EXPECT_EQ(host_state(R"( {"online":true,"x":{"a":[1,"}",null]},"timestamp":7,"y":"z"} )"), (HostState{true, 7}));
   EXPECT_EQ(host_state(host_state_json(HostState{false, 42})), (HostState{false, 42}));
 
   const auto error = [](std::string_view json) {
     const auto state = parse_host_state(json);
     return state ? std::string("accepted") : state.error();
   };
-  EXPECT_EQ(error("ONLINE"), R"(not a Sparkplug 3.0 STATE payload (expected JSON {"online": true|false, "timestamp": <ms>}))");
+  EXPECT_EQ(error("ONLINE"),
+            R"(not a Sparkplug 3.0 STATE payload (expected JSON {"online": true|false, "timestamp": <ms>}))");
   EXPECT_EQ(error(R"({"timestamp":5})"), "STATE: no `online` key");
   EXPECT_EQ(error(R"({"online":"yes","timestamp":5})"), "STATE: `online` is not true or false");
   EXPECT_EQ(error(R"({"online":true})"), "STATE: no `timestamp` key");
-  EXPECT_EQ(error(R"({"online":true,"timestamp":-1})"), "STATE: `timestamp` is not a whole number of ms since the epoch");
-  EXPECT_EQ(error(R"({"online":true,"timestamp":1.5})"), "STATE: `timestamp` is not a whole number of ms since the epoch");
+  EXPECT_EQ(error(R"({"online":true,"timestamp":-1})"),
+            "STATE: `timestamp` is not a whole number of ms since the epoch");
+  EXPECT_EQ(error(R"({"online":true,"timestamp":1.5})"),
+            "STATE: `timestamp` is not a whole number of ms since the epoch");
   EXPECT_NE(error(R"({"online":true,"timestamp":5} x)"), "accepted");
   EXPECT_NE(error(R"({"online":true,"timestamp":5)"), "accepted");
   EXPECT_NE(error(""), "accepted");
@@ -211,8 +211,8 @@ TEST(SparkplugPayload, ProtocDecodeRawShowsTheSpecificationsFieldNumbers) {
   payload.metrics.push_back(Metric::int64(std::string(kBdSeqMetric), 5));
   const auto bytes = encode(payload);
   const std::string in = ::testing::TempDir() + "sparkplug_raw.bin";
-  std::ofstream(in, std::ios::binary).write(reinterpret_cast<const char*>(bytes.data()),
-                                            static_cast<std::streamsize>(bytes.size()));
+  std::ofstream(in, std::ios::binary)
+      .write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
   const std::string text = run(std::string(SMS_PROTOC) + " --decode_raw < " + in);
   EXPECT_NE(text.find("1: 1234\n"), std::string::npos) << text;
   EXPECT_NE(text.find("3: 3\n"), std::string::npos) << text;
@@ -229,8 +229,8 @@ TEST(SparkplugPayload, ProtocDecodesOurBytesAsTheSpecificationsFields) {
   payload.metrics.push_back(Metric::boolean("torque_enable", true));
   const auto bytes = encode(payload);
   const std::string in = ::testing::TempDir() + "sparkplug_payload.bin";
-  std::ofstream(in, std::ios::binary).write(reinterpret_cast<const char*>(bytes.data()),
-                                            static_cast<std::streamsize>(bytes.size()));
+  std::ofstream(in, std::ios::binary)
+      .write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
   const std::string command = std::string(SMS_PROTOC) + " --proto_path=" + SMS_SPARKPLUG_PROTO_DIR +
                               " --decode=sms.sparkplug.wire.Payload sparkplug_b.proto < " + in;
   FILE* pipe = popen(command.c_str(), "r");
@@ -242,9 +242,9 @@ TEST(SparkplugPayload, ProtocDecodesOurBytesAsTheSpecificationsFields) {
   EXPECT_NE(text.find("timestamp: 1234"), std::string::npos) << text;
   EXPECT_NE(text.find("seq: 3"), std::string::npos) << text;
   EXPECT_NE(text.find("name: \"present_load\""), std::string::npos) << text;
-  EXPECT_NE(text.find("datatype: 2"), std::string::npos) << text;             // Int16
-  EXPECT_NE(text.find("int_value: 4294967293"), std::string::npos) << text;    // -3 in 32 bits
-  EXPECT_NE(text.find("datatype: 11"), std::string::npos) << text;            // Boolean
+  EXPECT_NE(text.find("datatype: 2"), std::string::npos) << text;            // Int16
+  EXPECT_NE(text.find("int_value: 4294967293"), std::string::npos) << text;  // -3 in 32 bits
+  EXPECT_NE(text.find("datatype: 11"), std::string::npos) << text;           // Boolean
   EXPECT_NE(text.find("boolean_value: true"), std::string::npos) << text;
 }
 

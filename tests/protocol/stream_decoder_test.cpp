@@ -124,7 +124,7 @@ TEST(D55dDecoder, RejectsTheFeetechInvertedChecksum) {
 
 TEST(D55dDecoder, AcceptsPingRepliesWithLen2And3) {
   // docs/PROTOCOL.md §1.2 decision: ERROR at byte 5, LEN 3 carries one parameter.
-  auto events = decode_all(kD55dFormat, Bytes{0xD5, 0x5D, 0x01, 0x03, 0x01, 0x00, 0x05,   //
+  auto events = decode_all(kD55dFormat, Bytes{0xD5, 0x5D, 0x01, 0x03, 0x01, 0x00, 0x05,  //
                                               0xD5, 0x5D, 0x01, 0x02, 0x00, 0x03});
   ASSERT_EQ(events.size(), 2U);
   EXPECT_EQ(events[0].kind, Kind::Frame);
@@ -252,7 +252,8 @@ TEST(FeetechDecoder, ErrorEventsDoNotDependOnChunking) {
     for (std::size_t second = first; second <= stream.size(); ++second) {
       StreamDecoder decoder(kFeetechFormat);
       std::vector<DecodeEvent> events;
-      const std::array<std::pair<std::size_t, std::size_t>, 3> parts{{{0, first}, {first, second}, {second, stream.size()}}};
+      const std::array<std::pair<std::size_t, std::size_t>, 3> parts{
+          {{0, first}, {first, second}, {second, stream.size()}}};
       for (const auto& [from, to] : parts) {
         decoder.feed(std::span(stream).subspan(from, to - from));
         auto more = drain(decoder);
@@ -336,7 +337,8 @@ TEST(StreamDecoderFuzz, RandomStreamsNeverCrashAndAccountForEveryByte) {
           packet.params.resize(random() % 40);
           for (auto& byte : packet.params) byte = static_cast<std::uint8_t>(random());
           Bytes frame = encode(*format, packet);
-          if (!clean && random() % 2 == 0) frame[random() % frame.size()] ^= static_cast<std::uint8_t>(1 + random() % 255);
+          if (!clean && random() % 2 == 0)
+            frame[random() % frame.size()] ^= static_cast<std::uint8_t>(1 + random() % 255);
           if (!clean && random() % 3 == 0) frame.resize(random() % frame.size());
           stream.insert(stream.end(), frame.begin(), frame.end());
           if (clean) clean_packets.push_back(packet);

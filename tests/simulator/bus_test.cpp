@@ -30,8 +30,7 @@ using protocol::kFeetechFormat;
 using Clock = std::chrono::steady_clock;
 
 std::string temporary_path(const std::string& name) {
-  return (std::filesystem::temp_directory_path() /
-          ("sms-sim-test-" + std::to_string(::getpid()) + "-" + name))
+  return (std::filesystem::temp_directory_path() / ("sms-sim-test-" + std::to_string(::getpid()) + "-" + name))
       .string();
 }
 
@@ -459,10 +458,11 @@ TEST(SimulatedBusControl, SocketCommandsInjectFaultsAndReadMemory) {
   EXPECT_EQ(control.ask("garble 1"), "error: usage: garble ID on|off");
   EXPECT_EQ(control.ask("error 1 300"), "error: usage: error ID BITS   (BITS 0-255, e.g. 0x04)");
   // The help is made from the command table: every command, in its form.
-  EXPECT_EQ(control.ask("help"),
-            "commands: offline ID | online ID | drop P | corrupt P | corrupt-next [N] | garble ID on|off | late ID MS | "
-            "error ID BITS | duplicate ID | timing on|off | get ID ADDR COUNT | set ID ADDR HEX... | field ID NAME | "
-            "list | stats | help");
+  EXPECT_EQ(
+      control.ask("help"),
+      "commands: offline ID | online ID | drop P | corrupt P | corrupt-next [N] | garble ID on|off | late ID MS | "
+      "error ID BITS | duplicate ID | timing on|off | get ID ADDR COUNT | set ID ADDR HEX... | field ID NAME | "
+      "list | stats | help");
 }
 
 // --- the sms-sim program ------------------------------------------------------------------
@@ -479,9 +479,26 @@ std::string run_and_capture(const std::string& command) {
 
 TEST(SmsSimProgram, HelpDocumentsEveryOption) {
   const std::string help = run_and_capture(std::string(SMS_SIM_PATH) + " --help");
-  for (const char* option : {"--protocol", "--table", "--ids", "--baud", "--servo", "--link", "--device",
-                             "--no-timing", "--state-file", "--control", "--drop", "--corrupt", "--late",
-                             "--offline", "--error", "--duplicate", "modbus-rtu", "smsmb", "sts, sms1 and scs", "scs 48 = 0",
+  for (const char* option : {"--protocol",
+                             "--table",
+                             "--ids",
+                             "--baud",
+                             "--servo",
+                             "--link",
+                             "--device",
+                             "--no-timing",
+                             "--state-file",
+                             "--control",
+                             "--drop",
+                             "--corrupt",
+                             "--late",
+                             "--offline",
+                             "--error",
+                             "--duplicate",
+                             "modbus-rtu",
+                             "smsmb",
+                             "sts, sms1 and scs",
+                             "scs 48 = 0",
                              "get ID ADDR COUNT"}) {
     EXPECT_NE(help.find(option), std::string::npos) << option << " missing from --help";
   }
@@ -498,8 +515,8 @@ TEST(SmsSimProgram, PrintsThePtyPathServesItAndStopsOnSigterm) {
     ::dup2(out[1], STDOUT_FILENO);
     ::close(out[0]);
     ::close(out[1]);
-    ::execl(SMS_SIM_PATH, SMS_SIM_PATH, "--protocol", "feetech", "--table", "sts", "--ids", "1,3", "--baud",
-            "1000000", "--link", link.c_str(), "--no-timing", "--control", socket_path.c_str(), "--late", "3:40",
+    ::execl(SMS_SIM_PATH, SMS_SIM_PATH, "--protocol", "feetech", "--table", "sts", "--ids", "1,3", "--baud", "1000000",
+            "--link", link.c_str(), "--no-timing", "--control", socket_path.c_str(), "--late", "3:40",
             static_cast<char*>(nullptr));
     ::_exit(127);
   }

@@ -183,8 +183,7 @@ TEST_F(D55dSim, PhotoSwitchHomingFindsZeroThenTheEndAndRecordsTheTravel) {
   const Bytes running = read(1, 24, 1);
   ASSERT_EQ(running.size(), 1U);
   EXPECT_EQ(running[0] >> 4, 1) << "high nibble 1: running";
-  ASSERT_TRUE(eventually([&] { return read(1, 24, 1) == Bytes{0x20}; }))
-      << "high nibble 2: done";
+  ASSERT_TRUE(eventually([&] { return read(1, 24, 1) == Bytes{0x20}; })) << "high nibble 2: done";
   EXPECT_EQ(read(1, 8, 2), (Bytes{0x90, 0x01})) << "CCW limit = the 400° travel";
   EXPECT_EQ(read(1, 36, 2), (Bytes{0x90, 0x01})) << "stopped on the end switch";
   EXPECT_EQ(read(1, 48, 1), Bytes{2}) << "switch 2 high";

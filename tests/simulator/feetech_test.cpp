@@ -15,7 +15,9 @@ class FeetechSim : public ::testing::Test {
   void start(std::vector<ServoConfig> servos) { rig = std::make_unique<Rig>(quick_options(std::move(servos))); }
   HostPort& host() { return *rig->host; }
 
-  std::optional<protocol::Packet> ask(const protocol::Packet& request) { return host().transact(kFeetechFormat, request); }
+  std::optional<protocol::Packet> ask(const protocol::Packet& request) {
+    return host().transact(kFeetechFormat, request);
+  }
   Bytes read(std::uint8_t id, std::uint8_t address, std::uint8_t count) {
     const auto reply = ask(protocol::read(id, address, count));
     return reply ? reply->params : Bytes{};
@@ -103,7 +105,7 @@ TEST_F(FeetechSim, ValueOutsideTheFieldRangeIsNotStored) {
 TEST_F(FeetechSim, GoalOutsideTheAngleLimitsIsClampedToThem) {
   start({sts(1)});
   write(1, 9, {0xE8, 0x03, 0xB8, 0x0B});  // limits 1000..3000
-  write(1, 42, {0xA0, 0x0F});              // goal 4000
+  write(1, 42, {0xA0, 0x0F});             // goal 4000
   EXPECT_EQ(read(1, 42, 2), (Bytes{0xB8, 0x0B}));
   EXPECT_TRUE(reaches(1, 56, {0xB8, 0x0B}));
   write(1, 42, {0x64, 0x00});  // goal 100

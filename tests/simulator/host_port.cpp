@@ -58,7 +58,8 @@ Bytes HostPort::receive(std::chrono::milliseconds quiet, std::chrono::millisecon
   for (;;) {
     const auto now = std::chrono::steady_clock::now();
     if (now >= give_up) return bytes;
-    const auto wait = bytes.empty() ? give_up - now : std::min<std::chrono::steady_clock::duration>(quiet, give_up - now);
+    const auto wait =
+        bytes.empty() ? give_up - now : std::min<std::chrono::steady_clock::duration>(quiet, give_up - now);
     pollfd pfd{fd_, POLLIN, 0};
     const int ready =
         ::poll(&pfd, 1, static_cast<int>(std::chrono::duration_cast<std::chrono::milliseconds>(wait).count()) + 1);

@@ -41,8 +41,7 @@ inline BusOptions quick_options(std::vector<ServoConfig> servos) {
 }
 
 struct Rig {
-  explicit Rig(BusOptions options, std::uint32_t host_baud = 0)
-      : bus(std::make_unique<SimulatedBus>(options)) {
+  explicit Rig(BusOptions options, std::uint32_t host_baud = 0) : bus(std::make_unique<SimulatedBus>(options)) {
     bus->start();
     host = std::make_unique<HostPort>(bus->slave_path(), host_baud != 0 ? host_baud : options.servos.front().baud);
   }

@@ -31,8 +31,8 @@ Bytes frame(std::uint8_t id, std::uint8_t instruction, const Bytes& params = {})
   // initializer list for a write out of bounds (-Warray-bounds), a false positive.
   Bytes bytes;
   bytes.reserve(params.size() + 6);
-  for (const std::uint8_t byte : {std::uint8_t{0xFF}, std::uint8_t{0xFF}, id,
-                                  static_cast<std::uint8_t>(params.size() + 2), instruction}) {
+  for (const std::uint8_t byte :
+       {std::uint8_t{0xFF}, std::uint8_t{0xFF}, id, static_cast<std::uint8_t>(params.size() + 2), instruction}) {
     bytes.push_back(byte);
   }
   for (const std::uint8_t param : params) bytes.push_back(param);

@@ -52,8 +52,7 @@ inline AddressBlock feedback_block(modbus_map::TableId table) {
 // Settings for a bus on `device` with the servos `ids`. The response timeout is generous: on a
 // loaded machine (2 cores, sanitizers) a pty and the simulator's thread add milliseconds.
 inline BusSettings bus_settings(std::string device, std::vector<std::uint8_t> ids,
-                                modbus_map::TableId table = modbus_map::TableId::Sts,
-                                std::uint32_t baud = 1'000'000) {
+                                modbus_map::TableId table = modbus_map::TableId::Sts, std::uint32_t baud = 1'000'000) {
   BusSettings settings;
   settings.name = "test";
   settings.protocol = protocol_of(table);
@@ -65,7 +64,8 @@ inline BusSettings bus_settings(std::string device, std::vector<std::uint8_t> id
   settings.probe_period = 200ms;
   settings.reopen_period = 50ms;
   settings.queue_depth = 64;
-  const auto order = table == modbus_map::TableId::Smsmb ? modbus_map::ByteOrder::HighFirst : modbus_map::ByteOrder::LowFirst;
+  const auto order =
+      table == modbus_map::TableId::Smsmb ? modbus_map::ByteOrder::HighFirst : modbus_map::ByteOrder::LowFirst;
   for (const auto id : ids) settings.servos.push_back({id, table, order, feedback_block(table)});
   return settings;
 }

@@ -53,7 +53,8 @@ class EchoingAdapter {
       }
       if ((fds[1].revents & POLLIN) != 0) {
         const ssize_t n = ::read(line_, buffer.data(), buffer.size());
-        if (n > 0) [[maybe_unused]] const auto passed = ::write(host_, buffer.data(), static_cast<std::size_t>(n));
+        if (n > 0) [[maybe_unused]]
+          const auto passed = ::write(host_, buffer.data(), static_cast<std::size_t>(n));
       }
     }
   }

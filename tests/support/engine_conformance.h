@@ -34,12 +34,12 @@ struct ProtocolCase {
   protocol::BusProtocol protocol;
   modbus_map::TableId table;
   std::uint32_t baud;
-  AddressBlock feedback;        // readable live, and what the poll caches
-  std::uint16_t ram_field;      // writable, one byte / one register, in RAM (no EEPROM wear)
-  std::uint8_t legal_value;     // a value it takes; 1..200 are all legal for every case
-  std::uint16_t id_field;       // reads back the servo's own ID
-  std::uint8_t refusal_bit;     // an ERROR bit that makes the servo's answer to a WRITE a refusal; 0: none
-  std::uint8_t condition_bit;   // an ERROR / status bit for a condition (recorded, logged)
+  AddressBlock feedback;       // readable live, and what the poll caches
+  std::uint16_t ram_field;     // writable, one byte / one register, in RAM (no EEPROM wear)
+  std::uint8_t legal_value;    // a value it takes; 1..200 are all legal for every case
+  std::uint16_t id_field;      // reads back the servo's own ID
+  std::uint8_t refusal_bit;    // an ERROR bit that makes the servo's answer to a WRITE a refusal; 0: none
+  std::uint8_t condition_bit;  // an ERROR / status bit for a condition (recorded, logged)
 
   bool registers() const { return protocol == protocol::BusProtocol::ModbusRtu; }
   // One value of the RAM field (or the ID field) as the bus carries it.
@@ -170,7 +170,7 @@ class WriteFlood {
   std::function<unsigned()> answered_counter() const {
     return [state = state_] { return state->answered.load(); };
   }
-  unsigned failed() const { return state_->failed.load(); }      // any other answer
+  unsigned failed() const { return state_->failed.load(); }  // any other answer
 
  private:
   struct State {  // shared with the completions, which may outlive a failed test's flood

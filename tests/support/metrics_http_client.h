@@ -75,7 +75,8 @@ class HttpConnection {
     while (line_end != std::string::npos) {
       const std::size_t start = line_end + 2;
       line_end = head_text.find("\r\n", start);
-      const std::string line = head_text.substr(start, line_end == std::string::npos ? std::string::npos : line_end - start);
+      const std::string line =
+          head_text.substr(start, line_end == std::string::npos ? std::string::npos : line_end - start);
       const auto colon = line.find(':');
       if (colon == std::string::npos) throw std::runtime_error("bad header line: " + line);
       std::string name = line.substr(0, colon);
@@ -84,9 +85,10 @@ class HttpConnection {
       value.erase(0, value.find_first_not_of(' '));
       response.headers[name] = value;
     }
-    const std::size_t length = head ? 0 : std::stoul(response.header("content-length").empty()
-                                                         ? std::string("0")
-                                                         : response.header("content-length"));
+    const std::size_t length =
+        head ? 0
+             : std::stoul(response.header("content-length").empty() ? std::string("0")
+                                                                    : response.header("content-length"));
     while (pending_.size() < length) {
       if (!receive_more(deadline)) return std::nullopt;
     }
@@ -143,11 +145,11 @@ inline HttpResponse http_request(std::uint16_t port, const std::string& method, 
 // read: HELP then TYPE before each family's samples, each family once and contiguous, counter
 // names ending in _total, valid names and label syntax, numeric values, one trailing newline.
 struct Exposition {
-  std::map<std::string, std::string> samples;     // `name{labels}` as written -> value text
-  std::map<std::string, std::string> types;       // family -> counter | gauge
-  std::map<std::string, std::string> help;        // family -> help text as written
-  std::vector<std::string> families;              // in order of appearance
-  std::vector<std::string> errors;                // format violations, empty when valid
+  std::map<std::string, std::string> samples;  // `name{labels}` as written -> value text
+  std::map<std::string, std::string> types;    // family -> counter | gauge
+  std::map<std::string, std::string> help;     // family -> help text as written
+  std::vector<std::string> families;           // in order of appearance
+  std::vector<std::string> errors;             // format violations, empty when valid
 
   bool has(const std::string& key) const { return samples.count(key) > 0; }
   std::string value(const std::string& key) const {

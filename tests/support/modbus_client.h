@@ -23,7 +23,8 @@ struct Answer {
   // The values, or std::runtime_error naming `request` and the failure (setup and check reads).
   const std::vector<T>& or_throw(const std::string& request) const {
     if (!ok()) {
-      throw std::runtime_error(request + ": " + (error.empty() ? "Modbus exception " + std::to_string(exception) : error));
+      throw std::runtime_error(request + ": " +
+                               (error.empty() ? "Modbus exception " + std::to_string(exception) : error));
     }
     return values;
   }
@@ -35,7 +36,8 @@ class ModbusClient {
     ctx_ = modbus_new_tcp("127.0.0.1", port);
     if (ctx_ == nullptr) throw std::runtime_error("modbus_new_tcp failed");
     const auto us = response_timeout.count() * 1000;
-    modbus_set_response_timeout(ctx_, static_cast<std::uint32_t>(us / 1'000'000), static_cast<std::uint32_t>(us % 1'000'000));
+    modbus_set_response_timeout(ctx_, static_cast<std::uint32_t>(us / 1'000'000),
+                                static_cast<std::uint32_t>(us % 1'000'000));
     if (modbus_connect(ctx_) != 0) {
       const std::string reason = modbus_strerror(errno);
       modbus_free(ctx_);
@@ -86,7 +88,8 @@ class ModbusClient {
   Answer<std::uint8_t> raw(const std::vector<std::uint8_t>& pdu, int unit) {
     std::vector<std::uint8_t> request{static_cast<std::uint8_t>(unit)};
     request.insert(request.end(), pdu.begin(), pdu.end());
-    if (modbus_send_raw_request(ctx_, request.data(), static_cast<int>(request.size())) < 0) return failure<std::uint8_t>();
+    if (modbus_send_raw_request(ctx_, request.data(), static_cast<int>(request.size())) < 0)
+      return failure<std::uint8_t>();
     std::vector<std::uint8_t> reply(MODBUS_TCP_MAX_ADU_LENGTH);
     const int n = modbus_receive_confirmation(ctx_, reply.data());
     if (n < 0) return failure<std::uint8_t>();

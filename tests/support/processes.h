@@ -187,17 +187,21 @@ inline std::uint16_t free_port() {
   return ntohs(address.sin_port);
 }
 
-// One mosquitto process (Debian's /usr/sbin/mosquitto) on a free loopback port; `extra` lines go into its listener's configuration (TLS, passwords).
+// One mosquitto process (Debian's /usr/sbin/mosquitto) on a free loopback port; `extra` lines go into its listener's
+// configuration (TLS, passwords).
 class MosquittoBroker {
  public:
   MosquittoBroker(const TempDir& dir, std::string extra = "allow_anonymous true\n")
-      : config_(dir.file("mosquitto-" + std::to_string(++count_) + ".conf")), port_(free_port()), extra_(std::move(extra)) {
+      : config_(dir.file("mosquitto-" + std::to_string(++count_) + ".conf")),
+        port_(free_port()),
+        extra_(std::move(extra)) {
     start();
   }
   void start() {
     std::ofstream(config_) << "listener " << port_ << " 127.0.0.1\n" << extra_ << "persistence false\n";
     process_ = std::make_unique<ChildProcess>(std::vector<std::string>{"/usr/sbin/mosquitto", "-c", config_, "-v"});
-    if (!process_->wait_for_line("running", 10s)) throw std::runtime_error("mosquitto did not start:\n" + process_->output());
+    if (!process_->wait_for_line("running", 10s))
+      throw std::runtime_error("mosquitto did not start:\n" + process_->output());
   }
   void kill() {
     process_->signal(SIGKILL);

@@ -10,8 +10,8 @@
 #include <string>
 #include <vector>
 
-#include "tests/support/bus_test_support.h"
 #include "gateway/bus/bus_engine.h"
+#include "tests/support/bus_test_support.h"
 
 namespace sms::gateway {
 namespace {
@@ -388,9 +388,8 @@ TEST_F(BusEngineTest, StopCancelsWhatIsQueued) {
   EXPECT_NE(statuses.front(), BusStatus::Cancelled);
   EXPECT_EQ(std::count(statuses.begin(), statuses.end(), BusStatus::Cancelled), 3);
   bool after_stop = false;
-  engine_->submit(ReadOp{1, 5, 1}, Priority::ClientRead, [&](BusResult result) {
-    after_stop = result.status == BusStatus::Cancelled;
-  });
+  engine_->submit(ReadOp{1, 5, 1}, Priority::ClientRead,
+                  [&](BusResult result) { after_stop = result.status == BusStatus::Cancelled; });
   EXPECT_TRUE(after_stop);
 }
 

@@ -36,8 +36,8 @@ using conformance::FrameLog;
 using conformance::ProtocolCase;
 using conformance::WriteFlood;
 using protocol::Bytes;
-using testing::transact;
 using testing::eventually;
+using testing::transact;
 
 using Clock = std::chrono::steady_clock;
 
@@ -155,9 +155,7 @@ class Conformance : public ::testing::TestWithParam<ProtocolCase> {
     if (bus_) bus_->stop();
   }
 
-  Bytes memory(std::uint8_t id, std::uint16_t address) {
-    return bus_->read_memory(id, address, 1).value_or(Bytes{});
-  }
+  Bytes memory(std::uint8_t id, std::uint16_t address) { return bus_->read_memory(id, address, 1).value_or(Bytes{}); }
   std::uint8_t recorded_status(std::uint8_t id) const { return engine_->cache().state(id)->counters.last_status; }
   bool poll_cycles(unsigned n) const {
     const auto cycles = engine_->counters().poll_cycles;
@@ -429,8 +427,8 @@ TEST_P(Conformance, ALostPortTakesTheBusDownAndTheEngineReopensItByItself) {
   bus_ = std::make_unique<simulator::SimulatedBus>(options_);
   bus_->start();
   const auto replugged = Clock::now();
-  ASSERT_TRUE(eventually(
-      [&] { return engine_->bus_up() && engine_->discovered() && engine_->cache().online_count() == 3; }));
+  ASSERT_TRUE(
+      eventually([&] { return engine_->bus_up() && engine_->discovered() && engine_->cache().online_count() == 3; }));
   const auto reopened = Clock::now() - replugged;
   const BusResult result = transact(*engine_, pc().read_id(2), Priority::ClientRead);
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;

@@ -20,8 +20,8 @@ namespace {
 using namespace std::chrono_literals;
 using modbus_map::TableId;
 using protocol::Bytes;
-using testing::transact;
 using testing::eventually;
+using testing::transact;
 
 using testing::EngineKind;
 
@@ -104,19 +104,18 @@ TEST_P(Fairness, PollCacheIsRefreshedUnderAClientFlood) {
   flood_writes(16, kFloodLimit);
   ASSERT_TRUE(eventually([&] { return written_.load() >= 20; }));
   const auto before = engine_->counters().poll_cycles;
-  ASSERT_TRUE(eventually([&] { return engine_->counters().poll_cycles >= before + 3 || written_.load() >= kFloodLimit; },
-                         60s));
+  ASSERT_TRUE(
+      eventually([&] { return engine_->counters().poll_cycles >= before + 3 || written_.load() >= kFloodLimit; }, 60s));
   EXPECT_GE(engine_->counters().poll_cycles, before + 3);
   EXPECT_LT(written_.load(), kFloodLimit) << "polls ran only after the flood ended";
   flooding_ = false;
 }
 
-INSTANTIATE_TEST_SUITE_P(
-    BothEngines, Fairness,
-    ::testing::Values(EngineKind{"feetech_sts", TableId::Sts, 1'000'000, 41, {56, 15}},
-                      EngineKind{"d55d", TableId::D55d, 115'200, 34, {36, 8}},
-                      EngineKind{"modbus_rtu_smsmb", TableId::Smsmb, 115'200, 0x82, {0x100, 8}}),
-    [](const ::testing::TestParamInfo<EngineKind>& info) { return info.param.name; });
+INSTANTIATE_TEST_SUITE_P(BothEngines, Fairness,
+                         ::testing::Values(EngineKind{"feetech_sts", TableId::Sts, 1'000'000, 41, {56, 15}},
+                                           EngineKind{"d55d", TableId::D55d, 115'200, 34, {36, 8}},
+                                           EngineKind{"modbus_rtu_smsmb", TableId::Smsmb, 115'200, 0x82, {0x100, 8}}),
+                         [](const ::testing::TestParamInfo<EngineKind>& info) { return info.param.name; });
 
 // One rule for the status byte: a servo that sets the refusal bit (feetech bit 4) in every answer
 // shows the same register-1000 byte after polls and after refused writes; the log says nothing.
@@ -151,9 +150,9 @@ struct StatusCase {
   std::string name;
   TableId table;
   std::uint32_t baud;
-  std::uint16_t field;          // a RAM field written by the test
-  std::uint8_t refusal_bit;     // set in every answer: writes are refused
-  std::uint8_t condition_bit;   // the servo's condition, recorded and logged
+  std::uint16_t field;         // a RAM field written by the test
+  std::uint8_t refusal_bit;    // set in every answer: writes are refused
+  std::uint8_t condition_bit;  // the servo's condition, recorded and logged
 };
 inline void PrintTo(const StatusCase& c, std::ostream* out) { *out << c.name; }
 
@@ -178,9 +177,7 @@ TEST_P(StatusByteRule, OneByteForEveryAnswerKindAndOneLogLinePerChangeOfConditio
     const auto cycles = engine->counters().poll_cycles;
     return eventually([&] { return engine->counters().poll_cycles > cycles + 1; });
   };
-  const auto write = [&](std::uint8_t value) {
-    return transact(*engine, WriteOp{1, param.field, {value}});
-  };
+  const auto write = [&](std::uint8_t value) { return transact(*engine, WriteOp{1, param.field, {value}}); };
   ASSERT_EQ(write(1).status, BusStatus::Ok);  // the servo answers writes
 
   bus.set_error_bits(1, static_cast<std::uint8_t>(param.refusal_bit | param.condition_bit));

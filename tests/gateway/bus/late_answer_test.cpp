@@ -8,9 +8,9 @@
 
 #include <chrono>
 #include <iostream>
-#include <thread>
 #include <memory>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "gateway/bus/packet_transactor.h"

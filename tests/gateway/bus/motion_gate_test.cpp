@@ -19,8 +19,8 @@ namespace {
 using namespace std::chrono_literals;
 using modbus_map::TableId;
 using protocol::Bytes;
-using testing::transact;
 using testing::eventually;
+using testing::transact;
 
 using testing::EngineKind;
 

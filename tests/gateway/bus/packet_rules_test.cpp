@@ -13,7 +13,9 @@ namespace {
 using protocol::BusProtocol;
 using protocol::Packet;
 
-Packet status(std::uint8_t id, std::uint8_t error, protocol::Bytes params = {}) { return Packet{id, error, std::move(params)}; }
+Packet status(std::uint8_t id, std::uint8_t error, protocol::Bytes params = {}) {
+  return Packet{id, error, std::move(params)};
+}
 
 TEST(PacketRules, EachProtocolHasItsRulesAndModbusHasNone) {
   EXPECT_EQ(packet_rules(BusProtocol::Feetech).format, &protocol::kFeetechFormat);
@@ -42,7 +44,8 @@ TEST(PacketRules, BroadcastPingIsAnsweredByAnyServoButNotByItsOwnEcho) {
   const std::uint8_t broadcast = protocol::kBroadcastId;
   EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(7, 0)), Verdict::Answer);
   EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(0, 0x20)), Verdict::Answer);
-  EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(7, 0, {1})), Verdict::NotOurs);  // not a PING answer
+  EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(7, 0, {1})),
+            Verdict::NotOurs);  // not a PING answer
   // FF FF FE 02 01 FE: the request itself, handed back by an echoing adapter.
   EXPECT_EQ(judge_reply(rules, ReplyKind::Ping, broadcast, 0, status(broadcast, 0x01)), Verdict::NotOurs);
 }

@@ -88,8 +88,10 @@ TEST_F(PollCycleTest, CacheFollowsTheServoWhileClientWritesGoFirst) {
   ASSERT_EQ(write.status, BusStatus::Ok) << write.detail;
   std::array<std::uint8_t, 2> position{};
   ASSERT_TRUE(eventually([&] {
-    return engine_->cache().copy(2, 56, position) == CacheRead::Ok && position == std::array<std::uint8_t, 2>{0x64, 0x08};
-  })) << "cached position " << int(position[0]) << "," << int(position[1]);
+    return engine_->cache().copy(2, 56, position) == CacheRead::Ok &&
+           position == std::array<std::uint8_t, 2>{0x64, 0x08};
+  })) << "cached position "
+      << int(position[0]) << "," << int(position[1]);
 }
 
 TEST_F(PollCycleTest, Sms1ServosShareOneSyncReadToo) {
@@ -160,8 +162,8 @@ TEST_F(PollCycleTest, OfflineServoCostsOneTimeoutPerProbePeriodWhileOthersKeepTh
 TEST_F(PollCycleTest, DiscoveryLogsOneSummaryAndStoresIdentities) {
   LogCapture log;
   start({1, 2}, TableId::Sts, 1'000'000, {1, 2, 7});
-  EXPECT_TRUE(log.contains("bus test: " + simulator_->slave_path() +
-                           ", feetech at 1000000 bit/s, 2 of 3 servos online"))
+  EXPECT_TRUE(
+      log.contains("bus test: " + simulator_->slave_path() + ", feetech at 1000000 bit/s, 2 of 3 servos online"))
       << log.text();
   EXPECT_TRUE(log.contains("servo   1  sts   online   model 10760 (SM40BL) firmware 2.48   status 0x00")) << log.text();
   EXPECT_TRUE(log.contains("servo   7  sts   OFFLINE  no answer to PING (3 attempts)")) << log.text();

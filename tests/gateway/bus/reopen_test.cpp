@@ -72,7 +72,8 @@ TEST(BusReopen, OperationInFlightWhenThePortIsLostEndsBusDown) {
   simulator->set_reply_delay(1, 500ms);
   const auto requests_before = simulator->stats().requests;
   std::promise<BusResult> promise;
-  engine->submit(ReadOp{1, 5, 1}, Priority::ClientRead, [&](BusResult result) { promise.set_value(std::move(result)); });
+  engine->submit(ReadOp{1, 5, 1}, Priority::ClientRead,
+                 [&](BusResult result) { promise.set_value(std::move(result)); });
   ASSERT_TRUE(eventually([&] { return simulator->stats().requests > requests_before; }));
   simulator->stop();
   auto future = promise.get_future();

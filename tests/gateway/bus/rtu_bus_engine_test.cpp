@@ -24,11 +24,11 @@ namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
-using protocol::Bytes;
-using protocol::BusProtocol;
 using modbus_map::TableId;
-using testing::transact;
+using protocol::BusProtocol;
+using protocol::Bytes;
 using testing::eventually;
+using testing::transact;
 
 constexpr AddressBlock kFeedback{0x100, 8};
 
@@ -51,7 +51,8 @@ BusSettings rtu_settings(std::string device, std::vector<std::uint8_t> ids, std:
   settings.poll_period = 10ms;
   settings.probe_period = 200ms;
   settings.reopen_period = 50ms;
-  for (const auto id : ids) settings.servos.push_back({id, TableId::Smsmb, modbus_map::ByteOrder::HighFirst, kFeedback});
+  for (const auto id : ids)
+    settings.servos.push_back({id, TableId::Smsmb, modbus_map::ByteOrder::HighFirst, kFeedback});
   return settings;
 }
 
@@ -74,7 +75,7 @@ TEST(RtuRates, LibmodbusSetsOnlyItsOwnConstants) {
 TEST(RtuRates, FrameGapIsThreeAndAHalfCharactersUpTo19200ThenFixed) {
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 115'200}), 1750us);
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 19'200}), 1'822'917ns);  // 35 bits / 19200 /s, rounded up
-  EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 9'600}), 3'645'833ns);  // 7'291'667 ns halved
+  EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 9'600}), 3'645'833ns);   // 7'291'667 ns halved
   // The configurable gaps: 3.5 characters at every rate, or a fixed time.
   const config::FrameGap characters{config::FrameGap::Kind::Characters, {}};
   EXPECT_EQ(rtu_frame_gap(SerialSettings{"", 115'200}, characters), 303'819ns);  // 35 bits / 115200 /s
@@ -89,8 +90,8 @@ TEST(RtuRates, FrameGapIsThreeAndAHalfCharactersUpTo19200ThenFixed) {
 // Each rate of the SMSMB baud table (docs/PROTOCOL.md §3 modbus-rtu column): the simulated servo answers
 // only when the host's line runs at its rate, so an answer proves the rate was set.
 TEST(RtuMaster, ReachesAServoAtEveryRateOfTheModbusTable) {
-  for (const std::uint32_t baud : {256'000U, 128'000U, 115'200U, 57'600U, 56'000U, 38'400U, 19'200U, 14'400U,
-                                   9'600U, 4'800U}) {
+  for (const std::uint32_t baud :
+       {256'000U, 128'000U, 115'200U, 57'600U, 56'000U, 38'400U, 19'200U, 14'400U, 9'600U, 4'800U}) {
     SCOPED_TRACE(baud);
     simulator::SimulatedBus bus(smsmb_servos({1}, baud));
     bus.start();
@@ -287,9 +288,8 @@ TEST_F(RtuEngineTest, PollsTheFeedbackBlockIntoTheCacheWithOneFc03PerServo) {
   // and lifts the temperature (0x105) past the 70 °C default limit.
   bus_->set_error_bits(2, 0x04);
   Bytes block(16);
-  ASSERT_TRUE(eventually([&] {
-    return engine_->cache().copy(2, 0x100, block) == CacheRead::Ok && (block[1] & 0x04) != 0;
-  }));
+  ASSERT_TRUE(
+      eventually([&] { return engine_->cache().copy(2, 0x100, block) == CacheRead::Ok && (block[1] & 0x04) != 0; }));
   Bytes temperature(2);
   ASSERT_EQ(engine_->cache().copy(2, 0x105, temperature), CacheRead::Ok);
   EXPECT_GE((temperature[0] << 8) | temperature[1], 73);
@@ -321,7 +321,8 @@ TEST_F(RtuEngineTest, SilentServoGoesOfflineAndComesBackByItself) {
 }
 
 TEST(RtuEngine, LostPortGoesDownAndComesBackWhenTheDeviceReturns) {
-  const std::string link = (std::filesystem::temp_directory_path() / ("rtu-engine-test-" + std::to_string(::getpid()))).string();
+  const std::string link =
+      (std::filesystem::temp_directory_path() / ("rtu-engine-test-" + std::to_string(::getpid()))).string();
   auto options = smsmb_servos({1});
   options.link = link;
   auto bus = std::make_unique<simulator::SimulatedBus>(options);

@@ -120,7 +120,8 @@ TEST_F(Scheduling, ALineThatGoesDownHandsBackTheClientJobsAndRefusesMore) {
   ASSERT_EQ(clients.size(), 1u);  // the engine's own work is dropped, rebuilt when the bus is back
   EXPECT_EQ(clients[0].name, "read");
   EXPECT_FALSE(queue_.line_is_up());
-  EXPECT_EQ(submit("write", Priority::ClientWrite), "bus down: bus arm: serial port /dev/ttyUSB0 is not open (bus down)");
+  EXPECT_EQ(submit("write", Priority::ClientWrite),
+            "bus down: bus arm: serial port /dev/ttyUSB0 is not open (bus down)");
   EXPECT_EQ(next(SteadyClock::now()), "nothing");
   queue_.line_up();
   EXPECT_EQ(submit("write", Priority::ClientWrite), "queued");

@@ -92,7 +92,8 @@ TEST(SerialPort, WritesAndReadsRawBytesWithoutLineProcessing) {
   const auto got = port.read_available(buffer);
   ASSERT_TRUE(got) << got.error();
   ASSERT_EQ(*got, 4U);
-  EXPECT_EQ(std::vector<std::uint8_t>(buffer.begin(), buffer.begin() + 4), (std::vector<std::uint8_t>{0x0D, 0x0A, 0x03, 0x1C}));
+  EXPECT_EQ(std::vector<std::uint8_t>(buffer.begin(), buffer.begin() + 4),
+            (std::vector<std::uint8_t>{0x0D, 0x0A, 0x03, 0x1C}));
 }
 
 TEST(SerialPort, ReadWithNothingWaitingReturnsZeroAtOnce) {

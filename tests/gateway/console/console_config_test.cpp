@@ -12,8 +12,10 @@ constexpr const char* kBase =
 constexpr const char* kHash = "\"$argon2id$v=19$m=65536,t=2,p=1$c29tZXNhbHQ$aGFzaA\"";
 
 TEST(ConsoleConfig, LoadsUsersAndRoundTrips) {
-  const auto config = load_config_string(std::string(kBase) + "console:\n  listen: 0.0.0.0:8443\n  users:\n"
-                                                              "    - {name: alice, role: engineer, password_hash: " + kHash + "}\n",
+  const auto config = load_config_string(std::string(kBase) +
+                                             "console:\n  listen: 0.0.0.0:8443\n  users:\n"
+                                             "    - {name: alice, role: engineer, password_hash: " +
+                                             kHash + "}\n",
                                          "c.yaml");
   ASSERT_TRUE(config) << config.error().to_string();
   ASSERT_TRUE(config->console);
@@ -35,8 +37,8 @@ TEST(ConsoleConfig, ErrorsSayWhatToDo) {
       {"console: {tls: true}\n", "needs modbus_tcp.tls"},
       {"console: {users: [{name: a, role: read, password_hash: hunter2}]}\n", "not a password hash"},
       {"console: {users: [{name: a, role: none, password_hash: " + std::string(kHash) + "}]}\n", "role none"},
-      {"console: {users: [{name: a, role: read, password_hash: " + std::string(kHash) + "}, {name: a, role: read, password_hash: " +
-           kHash + "}]}\n",
+      {"console: {users: [{name: a, role: read, password_hash: " + std::string(kHash) +
+           "}, {name: a, role: read, password_hash: " + kHash + "}]}\n",
        "already"},
       {"console: {users: [{name: 'a b', role: read, password_hash: " + std::string(kHash) + "}]}\n", "letters, digits"},
       {"console: {listn: 1}\n", "did you mean `listen`"},

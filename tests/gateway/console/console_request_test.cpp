@@ -68,7 +68,8 @@ TEST(ConsoleRequest, JogMessages) {
   EXPECT_EQ(jog->value, -300);
   EXPECT_TRUE(parse_jog_message(R"({"type":"torque","on":true})")->on);
   EXPECT_FALSE(parse_jog_message(R"({"type":"jog","mode":"fly","value":1})"));
-  EXPECT_EQ(parse_jog_message(R"({"type":"dance"})").error(), "unknown message type dance (heartbeat, jog, release, torque)");
+  EXPECT_EQ(parse_jog_message(R"({"type":"dance"})").error(),
+            "unknown message type dance (heartbeat, jog, release, torque)");
 }
 
 }  // namespace

@@ -23,8 +23,7 @@ IpAddress address(std::string_view text) {
 
 TEST(IpAddress, ParsesBothFamiliesAndRefusesNames) {
   EXPECT_EQ(address("192.168.10.7"), IpAddress::v4({192, 168, 10, 7}));
-  EXPECT_EQ(address("fd00::1"),
-            IpAddress::v6({0xfd, 0x00, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0x01}));
+  EXPECT_EQ(address("fd00::1"), IpAddress::v6({0xfd, 0x00, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0x01}));
   EXPECT_FALSE(IpAddress::parse("plc.local"));
   EXPECT_FALSE(IpAddress::parse("10.0.0.0/8"));
   EXPECT_FALSE(IpAddress::parse(""));

@@ -55,8 +55,8 @@ TEST(ModbusRequest, WriteMultipleCoilsUnpacksLowBitFirst) {
 }
 
 TEST(ModbusRequest, WriteMultipleRegisters) {
-  const auto write = std::get<WriteRegistersRequest>(
-      *parse({0x10, 0x00, 0x2A, 0x00, 0x03, 0x06, 0x08, 0x00, 0x00, 0x00, 0x03, 0xE8}));
+  const auto write =
+      std::get<WriteRegistersRequest>(*parse({0x10, 0x00, 0x2A, 0x00, 0x03, 0x06, 0x08, 0x00, 0x00, 0x00, 0x03, 0xE8}));
   EXPECT_EQ(write.address, 42);
   EXPECT_EQ(write.values, (std::vector<std::uint16_t>{2048, 0, 1000}));
 }
@@ -106,10 +106,11 @@ TEST(ModbusRequest, RangePastAddress65535IsOverTheLimit) {
 }
 
 TEST(ModbusRequest, MalformedPdus) {
-  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00}).error(), Fault::MalformedRequest);                    // short
-  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00, 0x01, 0x00}).error(), Fault::MalformedRequest);        // long
+  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00}).error(), Fault::MalformedRequest);              // short
+  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00, 0x01, 0x00}).error(), Fault::MalformedRequest);  // long
   EXPECT_EQ(parse({0x06, 0x00, 0x00, 0x00}).error(), Fault::MalformedRequest);
-  EXPECT_EQ(parse({0x10, 0x00, 0x00, 0x00, 0x02, 0x02, 0x00, 0x01}).error(), Fault::MalformedRequest);  // 2 regs, 2 bytes
+  EXPECT_EQ(parse({0x10, 0x00, 0x00, 0x00, 0x02, 0x02, 0x00, 0x01}).error(),
+            Fault::MalformedRequest);                                                             // 2 regs, 2 bytes
   EXPECT_EQ(parse({0x10, 0x00, 0x00, 0x00, 0x01, 0x02, 0x00}).error(), Fault::MalformedRequest);  // bytes missing
   EXPECT_EQ(parse({0x0F, 0x00, 0x00, 0x00, 0x09, 0x01, 0xFF}).error(), Fault::MalformedRequest);  // 9 coils in 1 byte
   EXPECT_EQ(parse({0x17, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x01, 0x02, 0x00}).error(), Fault::MalformedRequest);

@@ -47,7 +47,7 @@ TEST(RolePolicy, ReadRoleReadsOnlyAndGetsIllegalFunctionForEveryWrite) {
   EXPECT_EQ(refused(policy, Role::Read, 1, {0x03, 0x00, 0x2A, 0x00, 0x01}), std::nullopt);
   EXPECT_EQ(refused(policy, Role::Read, 1, {0x04, 0x00, 0x38, 0x00, 0x01}), std::nullopt);
   EXPECT_EQ(refused(policy, Role::Read, 1, write_register(42, 2048)), 0x01);
-  EXPECT_EQ(refused(policy, Role::Read, 1, {0x05, 0x00, 0x28, 0x00, 0x00}), 0x01);  // torque off too
+  EXPECT_EQ(refused(policy, Role::Read, 1, {0x05, 0x00, 0x28, 0x00, 0x00}), 0x01);    // torque off too
   EXPECT_EQ(refused(policy, Role::Read, 255, {0x05, 0x00, 0x01, 0xFF, 0x00}), 0x01);  // the e-stop coil
   EXPECT_EQ(refused(policy, Role::Read, 10, {0x08, 0x00, 0x01, 0x00, 0x00}), 0x01);
   EXPECT_EQ(refused(policy, Role::Read, 10, {0x11}), std::nullopt);  // report server id only reads
@@ -56,14 +56,14 @@ TEST(RolePolicy, ReadRoleReadsOnlyAndGetsIllegalFunctionForEveryWrite) {
 
 TEST(RolePolicy, OperateWritesRamButNotEepromLockOrCalibration) {
   const RolePolicy policy(plant());
-  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(42, 2048)), std::nullopt);          // goal
-  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(40, 1)), std::nullopt);             // torque on
-  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(512 + 42, 2048)), std::nullopt);    // staged goal
-  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(13, 75)), 0x02);    // max_temperature (EEPROM)
-  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(5, 7)), 0x02);      // id
-  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(6, 0)), 0x02);      // baud_rate
-  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(55, 0)), 0x02);     // lock
-  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(40, 128)), 0x02);   // mid-point calibration
+  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(42, 2048)), std::nullopt);        // goal
+  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(40, 1)), std::nullopt);           // torque on
+  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(512 + 42, 2048)), std::nullopt);  // staged goal
+  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(13, 75)), 0x02);   // max_temperature (EEPROM)
+  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(5, 7)), 0x02);     // id
+  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(6, 0)), 0x02);     // baud_rate
+  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(55, 0)), 0x02);    // lock
+  EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(40, 128)), 0x02);  // mid-point calibration
   // FC16 over goal acceleration .. goal position: RAM only.
   EXPECT_EQ(refused(policy, Role::Operate, 1, {0x10, 0x00, 0x29, 0x00, 0x02, 0x04, 0x00, 0x0A, 0x08, 0x00}),
             std::nullopt);

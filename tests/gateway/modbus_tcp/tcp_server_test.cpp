@@ -56,9 +56,8 @@ class ScriptedHandler : public RequestHandler {
       return;
     }
     auto timer = std::make_shared<asio::steady_timer>(io_, delay);
-    timer->async_wait([this, timer, address, answer = std::move(answer), reply](const boost::system::error_code&) mutable {
-      finish(address, std::move(answer), reply);
-    });
+    timer->async_wait([this, timer, address, answer = std::move(answer),
+                       reply](const boost::system::error_code&) mutable { finish(address, std::move(answer), reply); });
   }
 
   std::vector<std::pair<std::uint8_t, std::uint16_t>> started() {
@@ -135,22 +134,41 @@ class TcpServerTest : public ::testing::Test {
 
 // FC03 request: transaction `tid`, unit `unit`, `count` registers from `address`.
 ByteVector read_request(std::uint16_t tid, std::uint8_t unit, std::uint16_t address, std::uint16_t count) {
-  return {static_cast<std::uint8_t>(tid >> 8), static_cast<std::uint8_t>(tid), 0x00, 0x00, 0x00, 0x06, unit, 0x03,
-          static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address),
-          static_cast<std::uint8_t>(count >> 8), static_cast<std::uint8_t>(count)};
+  return {static_cast<std::uint8_t>(tid >> 8),
+          static_cast<std::uint8_t>(tid),
+          0x00,
+          0x00,
+          0x00,
+          0x06,
+          unit,
+          0x03,
+          static_cast<std::uint8_t>(address >> 8),
+          static_cast<std::uint8_t>(address),
+          static_cast<std::uint8_t>(count >> 8),
+          static_cast<std::uint8_t>(count)};
 }
 
 // The answer ScriptedHandler gives to a one-register read at `address`.
 ByteVector one_register_answer(std::uint16_t tid, std::uint8_t unit, std::uint16_t address) {
-  return {static_cast<std::uint8_t>(tid >> 8), static_cast<std::uint8_t>(tid), 0x00, 0x00, 0x00, 0x05, unit, 0x03, 0x02,
-          static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address)};
+  return {static_cast<std::uint8_t>(tid >> 8),
+          static_cast<std::uint8_t>(tid),
+          0x00,
+          0x00,
+          0x00,
+          0x05,
+          unit,
+          0x03,
+          0x02,
+          static_cast<std::uint8_t>(address >> 8),
+          static_cast<std::uint8_t>(address)};
 }
 
 TEST_F(TcpServerTest, AnswersWithTheTransactionIdAndUnitEchoed) {
   start();
   LoopbackClient client(port());
   client.send({0xBE, 0xEF, 0x00, 0x00, 0x00, 0x06, 0x07, 0x03, 0x00, 0x38, 0x00, 0x02});
-  EXPECT_EQ(client.receive(13), (ByteVector{0xBE, 0xEF, 0x00, 0x00, 0x00, 0x07, 0x07, 0x03, 0x04, 0x00, 0x38, 0x00, 0x39}));
+  EXPECT_EQ(client.receive(13),
+            (ByteVector{0xBE, 0xEF, 0x00, 0x00, 0x00, 0x07, 0x07, 0x03, 0x04, 0x00, 0x38, 0x00, 0x39}));
 }
 
 TEST_F(TcpServerTest, RequestTricklingInByteByByteIsAnsweredOnce) {
@@ -398,7 +416,7 @@ TEST_F(TcpServerTest, ShutdownAnswersTheRequestInFlightThenClosesAndDropsTheQueu
   EXPECT_EQ(client.receive(11), one_register_answer(1, 1, 1));
   EXPECT_TRUE(client.closed_by_peer());
   EXPECT_EQ(all_closed.get_future().wait_for(2s), std::future_status::ready);
-  EXPECT_EQ(handler_.started().size(), 1u);  // the queued request never started
+  EXPECT_EQ(handler_.started().size(), 1u);                       // the queued request never started
   EXPECT_THROW(LoopbackClient late(port()), std::runtime_error);  // not listening any more
 }
 

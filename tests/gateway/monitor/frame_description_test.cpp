@@ -15,8 +15,8 @@
 namespace sms::modbus_map {
 namespace {
 
-using protocol::Bytes;
 using protocol::BusProtocol;
+using protocol::Bytes;
 
 Bytes hex(const std::string& text) {
   Bytes bytes;
@@ -140,10 +140,11 @@ TEST(FrameDescription, ManualSyncReadAndEachServosAnswer) {
   EXPECT_EQ(sync.instruction, "SYNC READ");
   EXPECT_EQ(sync.servos, (std::vector<std::uint8_t>{1, 2}));
   EXPECT_EQ(names(sync), (std::vector<std::string>{"present_position", "present_speed", "present_load",
-                                                    "present_voltage", "present_temperature"}));
+                                                   "present_voltage", "present_temperature"}));
   // Both answers in one read.
-  auto answers = describer.feed(WireDirection::FromServos,
-                                hex("FF FF 01 0A 00 00 08 00 00 00 00 79 1E 55 FF FF 02 0A 00 FF 07 00 00 00 00 77 23 53"));
+  auto answers =
+      describer.feed(WireDirection::FromServos,
+                     hex("FF FF 01 0A 00 00 08 00 00 00 00 79 1E 55 FF FF 02 0A 00 FF 07 00 00 00 00 77 23 53"));
   ASSERT_EQ(answers.size(), 2u);
   EXPECT_EQ(answers[0].instruction, "SYNC READ");
   EXPECT_EQ(answers[0].servo, 1);

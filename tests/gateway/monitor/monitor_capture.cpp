@@ -29,7 +29,7 @@ struct Kind {
   modbus_map::TableId table;
   protocol::BusProtocol bus_protocol;
   std::uint32_t baud;
-  int goal_address;      // the unit's holding register of goal_position
+  int goal_address;  // the unit's holding register of goal_position
   std::uint16_t goal;
 };
 
@@ -40,14 +40,15 @@ int run(const Kind& kind, const std::string& out_path) {
   options.seed = 1;
   simulator::SimulatedBus bus(options);
   bus.start();
-  const std::string yaml = "modbus_tcp: {listen: \"127.0.0.1:0\"}\n"
-                           "buses:\n"
-                           "  - {name: cell, device: \"" + bus.slave_path() + "\", protocol: " + kind.protocol +
-                           ", baud: " + std::to_string(kind.baud) +
-                           ", response_timeout_ms: 100, poll_period_ms: 50, offline_probe_period_ms: 100}\n"
-                           "servos:\n"
-                           "  - {unit: 1, bus: cell, id: 1, table: " + std::string(modbus_map::table(kind.table).name) +
-                           "}\n";
+  const std::string yaml =
+      "modbus_tcp: {listen: \"127.0.0.1:0\"}\n"
+      "buses:\n"
+      "  - {name: cell, device: \"" +
+      bus.slave_path() + "\", protocol: " + kind.protocol + ", baud: " + std::to_string(kind.baud) +
+      ", response_timeout_ms: 100, poll_period_ms: 50, offline_probe_period_ms: 100}\n"
+      "servos:\n"
+      "  - {unit: 1, bus: cell, id: 1, table: " +
+      std::string(modbus_map::table(kind.table).name) + "}\n";
   auto config = config::load_config_string(yaml, "<monitor_capture>");
   if (!config) {
     std::cerr << config.error().to_string() << "\n";
@@ -56,7 +57,8 @@ int run(const Kind& kind, const std::string& out_path) {
   gateway::Gateway gateway(std::move(*config));
   gateway.start();
   const auto deadline = std::chrono::steady_clock::now() + 10s;
-  while (!gateway.engine(0).discovered() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(5ms);
+  while (!gateway.engine(0).discovered() && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(5ms);
   const auto monitor = gateway.wire_monitor(0);
   gateway::MonitorReader reader(monitor);
   {
@@ -104,10 +106,13 @@ int main(int argc, char** argv) {
   }
   spdlog::set_level(spdlog::level::warn);
   const std::string protocol = argv[1];
-  if (protocol == "feetech") return run({"feetech", modbus_map::TableId::Sts, protocol::BusProtocol::Feetech, 1'000'000, 42, 3000}, argv[2]);
-  if (protocol == "d55d") return run({"d55d", modbus_map::TableId::D55d, protocol::BusProtocol::D55d, 115'200, 30, 900}, argv[2]);
+  if (protocol == "feetech")
+    return run({"feetech", modbus_map::TableId::Sts, protocol::BusProtocol::Feetech, 1'000'000, 42, 3000}, argv[2]);
+  if (protocol == "d55d")
+    return run({"d55d", modbus_map::TableId::D55d, protocol::BusProtocol::D55d, 115'200, 30, 900}, argv[2]);
   if (protocol == "modbus-rtu") {
-    return run({"modbus-rtu", modbus_map::TableId::Smsmb, protocol::BusProtocol::ModbusRtu, 115'200, 0x80, 3000}, argv[2]);
+    return run({"modbus-rtu", modbus_map::TableId::Smsmb, protocol::BusProtocol::ModbusRtu, 115'200, 0x80, 3000},
+               argv[2]);
   }
   std::cerr << "monitor_capture: unknown protocol '" << protocol << "'\n";
   return 2;

@@ -63,8 +63,8 @@ TEST(MonitorGateway, AWriteOfGoalPositionShowsAsWriteAndTheServosAnswer) {
   ModbusClient client(gateway.port(), 1);
   ASSERT_TRUE(client.write_register(42, 3000).ok());  // goal_position of servo 1
 
-  const auto frames =
-      read_until(reader, [](const MonitoredFrame& f) { return writes(f, "WRITE", "goal_position", 3000); }, 1);
+  const auto frames = read_until(
+      reader, [](const MonitoredFrame& f) { return writes(f, "WRITE", "goal_position", 3000); }, 1);
   ASSERT_GE(frames.size(), 2u) << "no WRITE of goal_position := 3000 on the monitor";
   EXPECT_EQ(frames[0].frame.servo, 1);
   EXPECT_EQ(frames[0].frame.direction, WireDirection::ToServos);
@@ -76,9 +76,12 @@ TEST(MonitorGateway, AWriteOfGoalPositionShowsAsWriteAndTheServosAnswer) {
   EXPECT_EQ(answer.instruction, "WRITE");
   EXPECT_LE(frames[0].time_ns, frames[1].time_ns);
   // The poll cycle's SYNC READ is there too, its answers with the feedback fields' values.
-  const auto polled = read_until(reader, [](const MonitoredFrame& f) {
-    return f.frame.kind == FrameKind::Answer && f.frame.instruction == "SYNC READ" && !f.frame.fields.empty();
-  }, 0);
+  const auto polled = read_until(
+      reader,
+      [](const MonitoredFrame& f) {
+        return f.frame.kind == FrameKind::Answer && f.frame.instruction == "SYNC READ" && !f.frame.fields.empty();
+      },
+      0);
   ASSERT_FALSE(polled.empty());
   EXPECT_EQ(polled[0].frame.fields.front().name, "present_position");
   // Nobody fell behind.

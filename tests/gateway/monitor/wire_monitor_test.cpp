@@ -17,7 +17,8 @@ using protocol::Bytes;
 
 modbus_map::ServoTables sts_servos() {
   modbus_map::ServoTables tables;
-  for (std::uint8_t id = 1; id <= 4; ++id) tables.set(id, modbus_map::table(modbus_map::TableId::Sts), modbus_map::ByteOrder::LowFirst);
+  for (std::uint8_t id = 1; id <= 4; ++id)
+    tables.set(id, modbus_map::table(modbus_map::TableId::Sts), modbus_map::ByteOrder::LowFirst);
   return tables;
 }
 
@@ -167,7 +168,8 @@ TEST(WireMonitor, FiltersByServoAndKind) {
 
 TEST(WireMonitor, JsonOfABatch) {
   auto wire = std::make_shared<WireMonitor>("arm \"left\"", protocol::BusProtocol::Feetech, sts_servos(), 64);
-  wire->record_at(WireDirection::ToServos, Bytes{0xFF, 0xFF, 0x01, 0x09, 0x03, 0x2A, 0x00, 0x08, 0x00, 0x00, 0xE8, 0x03, 0xD5},
+  wire->record_at(WireDirection::ToServos,
+                  Bytes{0xFF, 0xFF, 0x01, 0x09, 0x03, 0x2A, 0x00, 0x08, 0x00, 0x00, 0xE8, 0x03, 0xD5},
                   1'700'000'000'123'456'789);
   wire->record_at(WireDirection::FromServos, Bytes{0xFF, 0xFF, 0x01, 0x02, 0x20, 0xDC}, 1'700'000'000'124'000'000);
   MonitorReader reader(wire, MonitorReader::Start::Oldest);

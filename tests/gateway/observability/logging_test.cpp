@@ -86,9 +86,8 @@ TEST_F(Logging, JsonEscapesQuotesBackslashesAndControlCharacters) {
   spdlog::info("device \"{}\" at C:\\ports\nline two\ttab\x01{}", "/dev/ttyUSB0", "\x1f");
   const auto lines = sink->lines();
   ASSERT_EQ(lines.size(), 1u);
-  const std::string expected_msg =
-      R"("msg":"device \"/dev/ttyUSB0\" at C:\\ports\nline two\ttab\u0001\u001f"})"
-      "\n";
+  const std::string expected_msg = R"("msg":"device \"/dev/ttyUSB0\" at C:\\ports\nline two\ttab\u0001\u001f"})"
+                                   "\n";
   ASSERT_GE(lines[0].size(), expected_msg.size());
   EXPECT_EQ(lines[0].substr(lines[0].size() - expected_msg.size()), expected_msg) << lines[0];
   // One record is one line: the newline in the message is escaped.
@@ -97,13 +96,15 @@ TEST_F(Logging, JsonEscapesQuotesBackslashesAndControlCharacters) {
 
 TEST_F(Logging, JsonKeepsValidUtf8AndReplacesInvalidBytes) {
   EXPECT_EQ(json_escape("Achse ü 軸 🙂"), "Achse ü 軸 🙂");
-  EXPECT_EQ(json_escape("a\xff" "b"), "a\\ufffdb");
-  EXPECT_EQ(json_escape("\xc3"), "\\ufffd");                      // truncated two-byte sequence
-  EXPECT_EQ(json_escape("\xc0\xaf"), "\\ufffd\\ufffd");           // overlong '/'
-  EXPECT_EQ(json_escape("\xed\xa0\x80"), "\\ufffd\\ufffd\\ufffd");  // UTF-16 surrogate
+  EXPECT_EQ(json_escape("a\xff"
+                        "b"),
+            "a\\ufffdb");
+  EXPECT_EQ(json_escape("\xc3"), "\\ufffd");                                   // truncated two-byte sequence
+  EXPECT_EQ(json_escape("\xc0\xaf"), "\\ufffd\\ufffd");                        // overlong '/'
+  EXPECT_EQ(json_escape("\xed\xa0\x80"), "\\ufffd\\ufffd\\ufffd");             // UTF-16 surrogate
   EXPECT_EQ(json_escape("\xf4\x90\x80\x80"), "\\ufffd\\ufffd\\ufffd\\ufffd");  // above U+10FFFF
-  EXPECT_EQ(json_escape("\xe2\x82"), "\\ufffd\\ufffd");           // truncated at the end
-  EXPECT_EQ(json_escape("\x7f"), "\x7f");                          // DEL needs no escape in JSON
+  EXPECT_EQ(json_escape("\xe2\x82"), "\\ufffd\\ufffd");                        // truncated at the end
+  EXPECT_EQ(json_escape("\x7f"), "\x7f");                                      // DEL needs no escape in JSON
   EXPECT_EQ(json_escape(std::string("a\0b", 3)), "a\\u0000b");
   EXPECT_EQ(json_escape("\b\f\r"), "\\b\\f\\r");
 }

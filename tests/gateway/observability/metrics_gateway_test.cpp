@@ -19,10 +19,10 @@ namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
+using test::eventually;
 using test::http_request;
 using test::parse_exposition;
 using testing::SimulatedGateway;
-using test::eventually;
 
 constexpr const char* kTwoServos = R"(
 modbus_tcp: {listen: "@LISTEN@"}

@@ -190,9 +190,9 @@ TEST_F(MetricsRender, MqttFamiliesOnlyWithMqtt) {
   mqtt.link.connect_failures = 7;
   mqtt.link.disconnects = 2;
   mqtt.link.publish_failures = 4;
-  mqtt.published[0] = 3;   // NBIRTH
-  mqtt.published[2] = 12;  // DBIRTH
-  mqtt.published[5] = 900; // DDATA
+  mqtt.published[0] = 3;    // NBIRTH
+  mqtt.published[2] = 12;   // DBIRTH
+  mqtt.published[5] = 900;  // DDATA
   mqtt.commands_ok = 11;
   mqtt.commands_refused = 5;
   mqtt.bad_messages = 1;
@@ -257,8 +257,10 @@ TEST(MetricsRenderEscaping, LabelValuesEscapeBackslashQuoteAndNewline) {
   bus.servos.push_back(ServoMetrics{.unit_id = 2, .servo_id = 2, .name = "C:\\axis \"2\"\nleft"});
   snapshot.buses.push_back(bus);
   const std::string text = render_prometheus(snapshot);
-  EXPECT_NE(text.find("sms_gateway_servo_online{bus=\"arm\",unit=\"2\",servo=\"2\",name=\"C:\\\\axis \\\"2\\\"\\nleft\"} 0\n"),
-            std::string::npos)
+  EXPECT_NE(
+      text.find(
+          "sms_gateway_servo_online{bus=\"arm\",unit=\"2\",servo=\"2\",name=\"C:\\\\axis \\\"2\\\"\\nleft\"} 0\n"),
+      std::string::npos)
       << text;
   EXPECT_TRUE(parse_exposition(text).errors.empty());
 }

@@ -25,8 +25,8 @@ namespace sms::gateway {
 namespace {
 
 using namespace std::chrono_literals;
-using test::HttpConnection;
 using test::http_request;
+using test::HttpConnection;
 using test::parse_exposition;
 
 // One bus "arm" whose state and frame counter the test sets.
@@ -152,8 +152,9 @@ TEST_F(MetricsServerTest, KeepAliveServesSeveralRequestsOnOneConnection) {
     const auto response = connection.read_response();
     ASSERT_TRUE(response) << "request " << i;
     EXPECT_EQ(response->status, 200);
-    EXPECT_EQ(parse_exposition(response->body).value("sms_gateway_bus_frames_ok_total{bus=\"arm\",protocol=\"feetech\"}"),
-              std::to_string(i));
+    EXPECT_EQ(
+        parse_exposition(response->body).value("sms_gateway_bus_frames_ok_total{bus=\"arm\",protocol=\"feetech\"}"),
+        std::to_string(i));
   }
   // Two pipelined requests in one write: two answers, in order.
   connection.send(std::string(kGetMetrics) + "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n");
@@ -315,8 +316,9 @@ TEST(MetricsServerStart, UnresolvableHostIsReported) {
     server.start();
     ADD_FAILURE() << "start() should have thrown";
   } catch (const std::runtime_error& error) {
-    EXPECT_NE(std::string(error.what()).find("cannot serve metrics on no-such-host.invalid:0: the host does not resolve"),
-              std::string::npos)
+    EXPECT_NE(
+        std::string(error.what()).find("cannot serve metrics on no-such-host.invalid:0: the host does not resolve"),
+        std::string::npos)
         << error.what();
   }
 }

@@ -154,7 +154,8 @@ TEST(Scan, FindsAServoWhoseAnswerComesLateOnASecondLook) {
 
 TEST(Scan, ReportsTwoServosAnsweringOnOneId) {
   simulator::BusOptions options;
-  options.servos = {{1, TableId::Sts, BusProtocol::Feetech, 1'000'000}, {2, TableId::Sts, BusProtocol::Feetech, 1'000'000}};
+  options.servos = {{1, TableId::Sts, BusProtocol::Feetech, 1'000'000},
+                    {2, TableId::Sts, BusProtocol::Feetech, 1'000'000}};
   options.seed = 1;
   simulator::SimulatedBus bus(options);
   bus.start();
@@ -237,7 +238,8 @@ TEST(Scan, WritesAConfigurationTheGatewayLoads) {
 // (5 ms); prints the time it took (the README's figure), without asserting on it.
 TEST(Scan, EveryIdAtOneMegabaudFindsTheSixServos) {
   simulator::BusOptions options;
-  for (std::uint8_t id = 1; id <= 6; ++id) options.servos.push_back({id, TableId::Sts, BusProtocol::Feetech, 1'000'000});
+  for (std::uint8_t id = 1; id <= 6; ++id)
+    options.servos.push_back({id, TableId::Sts, BusProtocol::Feetech, 1'000'000});
   simulator::SimulatedBus bus(options);
   bus.start();
   LinkSettings settings;

@@ -53,8 +53,8 @@ bool answers_soon(ServoLink& link, std::uint8_t id) {
 }
 
 std::string state_file(const std::string& name) {
-  const auto path = std::filesystem::temp_directory_path() /
-                    ("sms-tool-test-" + std::to_string(::getpid()) + "-" + name + ".state");
+  const auto path =
+      std::filesystem::temp_directory_path() / ("sms-tool-test-" + std::to_string(::getpid()) + "-" + name + ".state");
   std::filesystem::remove(path);
   return path.string();
 }
@@ -152,7 +152,8 @@ class ToolRefusals : public ::testing::Test {
  protected:
   void SetUp() override {
     simulator::BusOptions options;
-    options.servos = {{1, TableId::Sts, BusProtocol::Feetech, 1'000'000}, {2, TableId::Sts, BusProtocol::Feetech, 1'000'000}};
+    options.servos = {{1, TableId::Sts, BusProtocol::Feetech, 1'000'000},
+                      {2, TableId::Sts, BusProtocol::Feetech, 1'000'000}};
     bus_ = std::make_unique<simulator::SimulatedBus>(options);
     bus_->start();
     link_ = open_link(bus_->slave_path(), BusProtocol::Feetech, 1'000'000);
@@ -220,12 +221,14 @@ TEST(SetId, BroadcastWithForceRenumbersTheOneServoOnTheLine) {
 void move_to(ServoLink& link, simulator::SimulatedBus& bus, std::uint8_t id, TableId table, std::int32_t position) {
   if (table == TableId::Smsmb) {
     ASSERT_TRUE(link.write(id, 0x81, std::vector<std::uint8_t>{0x00, 0x01}).ok());  // torque on
-    ASSERT_TRUE(link.write(id, 0x80, std::vector<std::uint8_t>{static_cast<std::uint8_t>(position >> 8),
-                                                               static_cast<std::uint8_t>(position)})
+    ASSERT_TRUE(link.write(id, 0x80,
+                           std::vector<std::uint8_t>{static_cast<std::uint8_t>(position >> 8),
+                                                     static_cast<std::uint8_t>(position)})
                     .ok());
   } else {
-    ASSERT_TRUE(link.write(id, 42, std::vector<std::uint8_t>{static_cast<std::uint8_t>(position),
-                                                             static_cast<std::uint8_t>(position >> 8)})
+    ASSERT_TRUE(link.write(id, 42,
+                           std::vector<std::uint8_t>{static_cast<std::uint8_t>(position),
+                                                     static_cast<std::uint8_t>(position >> 8)})
                     .ok());
   }
   ASSERT_TRUE(test::eventually([&] { return bus.read_field(id, "present_position") == position; },

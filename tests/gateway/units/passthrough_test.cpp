@@ -18,8 +18,8 @@
 #include <thread>
 #include <vector>
 
-#include "gateway/units/passthrough.h"
 #include "gateway/bus/rtu_master.h"
+#include "gateway/units/passthrough.h"
 #include "simulator/simulated_bus.h"
 #include "tests/support/bus_test_support.h"
 

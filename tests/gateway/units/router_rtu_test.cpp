@@ -48,7 +48,8 @@ class RouterRtu : public ::testing::Test {
     gateway_.reset();
     arm_.emplace(sts_bus(1));
     arm_->start();
-    gateway_ = std::make_unique<SimulatedGateway>(smsmb_bus(), test::substitute(kRtuAndPacketConfig, "@ARM@", arm_->slave_path()));
+    gateway_ = std::make_unique<SimulatedGateway>(smsmb_bus(),
+                                                  test::substitute(kRtuAndPacketConfig, "@ARM@", arm_->slave_path()));
   }
   simulator::SimulatedBus& sim() { return gateway_->bus(); }
   std::uint16_t port() const { return gateway_->port(); }
@@ -62,7 +63,7 @@ TEST_F(RouterRtu, SmsmbServoRegistersReadAndWriteThroughTheRegisterMap) {
   const auto feedback = client.read_input(0x101, 1);  // from the poll cache (the servo has no FC04)
   ASSERT_TRUE(feedback.ok()) << feedback.error;
   EXPECT_EQ(feedback.values[0], static_cast<std::uint16_t>(*sim().read_field(1, "present_position")));  // at rest
-  ASSERT_TRUE(client.write_register(0x80, 3000).ok());  // goal position
+  ASSERT_TRUE(client.write_register(0x80, 3000).ok());                                                  // goal position
   EXPECT_EQ(*sim().read_field(1, "goal_position"), 3000);
   EXPECT_EQ(client.read_holding(0x80, 1).values, std::vector<std::uint16_t>{3000});
   EXPECT_EQ(client.write_register(512 + 0x80, 1).exception, 0x02);  // no REG WRITE on Modbus servos
@@ -105,7 +106,8 @@ TEST_F(RouterRtu, ActionCoilSkipsModbusBuses) {
   EXPECT_TRUE(eventually([&] { return lift.frames().size() > seen + 1; }, "two more poll reads on bus lift"));
   for (const auto& frame : lift.frames()) {
     EXPECT_NE(frame.id, 0) << "a broadcast reached the modbus-rtu bus (function " << int(frame.code) << ")";
-    EXPECT_EQ(frame.code, 0x03) << "slave " << int(frame.id) << " got function " << int(frame.code) << ", not a poll read";
+    EXPECT_EQ(frame.code, 0x03) << "slave " << int(frame.id) << " got function " << int(frame.code)
+                                << ", not a poll read";
   }
 }
 

@@ -9,8 +9,8 @@
 #include <mutex>
 #include <thread>
 
-#include "tests/support/simulated_gateway.h"
 #include "tests/support/loopback_client.h"
+#include "tests/support/simulated_gateway.h"
 
 namespace sms::gateway::testing {
 namespace {
@@ -20,11 +20,13 @@ using test::ByteVector;
 using test::LoopbackClient;
 
 std::string config_with(const std::string& bus_options, const std::string& servos, const std::string& extra = "") {
-  return "modbus_tcp: {listen: \"@LISTEN@\"" + extra + "}\nbuses:\n  - {name: arm, device: \"@DEVICE@\", protocol: feetech, baud: 1000000" +
-         bus_options + "}\nservos:\n" + servos;
+  return "modbus_tcp: {listen: \"@LISTEN@\"" + extra +
+         "}\nbuses:\n  - {name: arm, device: \"@DEVICE@\", protocol: feetech, baud: 1000000" + bus_options +
+         "}\nservos:\n" + servos;
 }
 
-const std::string kTwoServos = "  - {unit: 1, bus: arm, id: 1, table: sts}\n  - {unit: 2, bus: arm, id: 2, table: sts}\n";
+const std::string kTwoServos =
+    "  - {unit: 1, bus: arm, id: 1, table: sts}\n  - {unit: 2, bus: arm, id: 2, table: sts}\n";
 // One poll cycle after discovery, then none for an hour: bus traffic is the test's alone.
 const std::string kQuietBus = ", poll_period_ms: 3600000, response_timeout_ms: 100, retries: 1";
 
@@ -70,12 +72,12 @@ TEST_F(Router, FactRegistersDescribeTheServo) {
   ModbusClient client(port(), 1);
   const auto facts = client.read_input(1000, 8);
   ASSERT_TRUE(facts.ok()) << facts.error;
-  EXPECT_EQ(facts.values[0], 0);       // status byte
-  EXPECT_EQ(facts.values[1], 1);       // online
-  EXPECT_LT(facts.values[2], 1000);    // cache age ms (polled every 10 ms)
-  EXPECT_EQ(facts.values[3], 10760);   // model word (SM40BL) as read at discovery
+  EXPECT_EQ(facts.values[0], 0);                            // status byte
+  EXPECT_EQ(facts.values[1], 1);                            // online
+  EXPECT_LT(facts.values[2], 1000);                         // cache age ms (polled every 10 ms)
+  EXPECT_EQ(facts.values[3], 10760);                        // model word (SM40BL) as read at discovery
   EXPECT_GT((facts.values[4] << 16) | facts.values[5], 1);  // replies OK
-  EXPECT_EQ(facts.values[6], 0);       // timeouts, high word
+  EXPECT_EQ(facts.values[6], 0);                            // timeouts, high word
   EXPECT_EQ(facts.values[7], 0);
   EXPECT_EQ(client.read_input(1007, 2).exception, 0x02);  // past 1007
 }
@@ -95,7 +97,7 @@ TEST_F(Router, DiscreteInputsShowTheStatusBitsAndOnline) {
 TEST_F(Router, SignMagnitudeFieldsAreTwosComplementOnModbus) {
   start(config_with(kQuietBus, kTwoServos), sts_bus(2));
   ModbusClient client(port(), 1);
-  ASSERT_TRUE(client.write_register(46, 0xFC18).ok());  // goal speed -1000
+  ASSERT_TRUE(client.write_register(46, 0xFC18).ok());           // goal speed -1000
   EXPECT_EQ(*sim().read_memory(1, 46, 2), (Bytes{0xE8, 0x83}));  // 1000 | bit 15, low byte first
   EXPECT_EQ(client.read_holding(46, 1).values, std::vector<std::uint16_t>{0xFC18});
 }
@@ -127,14 +129,15 @@ TEST_F(Router, QuantityOverTheLimitIs02) {
 }
 
 TEST_F(Router, UnknownUnitAndDownBusAre0A) {
-  start("modbus_tcp: {listen: \"@LISTEN@\"}\n"
-        "buses:\n"
-        "  - {name: arm, device: \"@DEVICE@\", protocol: feetech, baud: 1000000}\n"
-        "  - {name: gone, device: /nonexistent/ttyUSB9, protocol: feetech, baud: 1000000}\n"
-        "servos:\n"
-        "  - {unit: 1, bus: arm, id: 1, table: sts}\n"
-        "  - {unit: 7, bus: gone, id: 1, table: sts}\n",
-        sts_bus(1));
+  start(
+      "modbus_tcp: {listen: \"@LISTEN@\"}\n"
+      "buses:\n"
+      "  - {name: arm, device: \"@DEVICE@\", protocol: feetech, baud: 1000000}\n"
+      "  - {name: gone, device: /nonexistent/ttyUSB9, protocol: feetech, baud: 1000000}\n"
+      "servos:\n"
+      "  - {unit: 1, bus: arm, id: 1, table: sts}\n"
+      "  - {unit: 7, bus: gone, id: 1, table: sts}\n",
+      sts_bus(1));
   ModbusClient client(port(), 99);
   EXPECT_EQ(client.read_holding(56, 1).exception, 0x0A);
   client.set_unit(7);
@@ -225,16 +228,18 @@ TEST_F(Router, StagedWriteWaitsForTheActionCoil) {
 }
 
 TEST_F(Router, SyncGroupWriteIsOneBusFrameAndReadsBack) {
-  start(config_with(kQuietBus,
-                    "  - {unit: 1, bus: arm, id: 1, table: sts}\n  - {unit: 2, bus: arm, id: 2, table: sts}\n"
-                    "  - {unit: 3, bus: arm, id: 3, table: sts}\n"
-                    "sync_groups:\n  - {name: speeds, field: goal_speed, members: [1, 2, 3], holding_register_start: 10}\n"),
+  start(config_with(
+            kQuietBus,
+            "  - {unit: 1, bus: arm, id: 1, table: sts}\n  - {unit: 2, bus: arm, id: 2, table: sts}\n"
+            "  - {unit: 3, bus: arm, id: 3, table: sts}\n"
+            "sync_groups:\n  - {name: speeds, field: goal_speed, members: [1, 2, 3], holding_register_start: 10}\n"),
         sts_bus(3));
   gateway_->wait_until_polled(3);
   ModbusClient client(port(), 255);
   const auto before = sim().stats().requests;
   ASSERT_TRUE(client.write_registers(10, {100, 0xFC18, 3000}).ok());
-  EXPECT_TRUE(eventually([&] { return sim().stats().requests == before + 1; }));  // one SYNC WRITE frame for three servos
+  EXPECT_TRUE(
+      eventually([&] { return sim().stats().requests == before + 1; }));  // one SYNC WRITE frame for three servos
   EXPECT_TRUE(eventually([&] { return *sim().read_field(1, "goal_speed") == 100; }));
   EXPECT_TRUE(eventually([&] { return *sim().read_memory(2, 46, 2) == Bytes{0xE8, 0x83}; }));  // -1000 sign-magnitude
   EXPECT_TRUE(eventually([&] { return *sim().read_field(3, "goal_speed") == 3000; }));
@@ -253,14 +258,14 @@ TEST_F(Router, GatewayUnitInputRegisters) {
   EXPECT_EQ(head.values[1], SMS_GATEWAY_VERSION_MINOR);
   EXPECT_EQ(head.values[2], SMS_GATEWAY_VERSION_PATCH);
   EXPECT_LT((head.values[3] << 16) | head.values[4], 60);  // uptime seconds
-  EXPECT_EQ(head.values[5], 1);  // buses
-  EXPECT_EQ(head.values[6], 6);  // servos
+  EXPECT_EQ(head.values[5], 1);                            // buses
+  EXPECT_EQ(head.values[6], 6);                            // servos
   const auto bus = client.read_input(100, 10);
   ASSERT_TRUE(bus.ok()) << bus.error;
-  EXPECT_EQ(bus.values[0], 1);      // up
-  EXPECT_EQ(bus.values[1], 10000);  // 1 000 000 / 100
-  EXPECT_EQ(bus.values[3], 6);      // online
-  EXPECT_GT((bus.values[4] << 16) | bus.values[5], 6);  // frames OK
+  EXPECT_EQ(bus.values[0], 1);                           // up
+  EXPECT_EQ(bus.values[1], 10000);                       // 1 000 000 / 100
+  EXPECT_EQ(bus.values[3], 6);                           // online
+  EXPECT_GT((bus.values[4] << 16) | bus.values[5], 6);   // frames OK
   EXPECT_EQ(client.read_input(119, 2).exception, 0x02);  // only one bus
 }
 
@@ -275,7 +280,7 @@ TEST_F(Router, SmsmbProfileShowsFeetechModbusRegisters) {
   EXPECT_EQ(*sim().read_field(3, "goal_position"), 1500);
   EXPECT_EQ(client.read_holding(0x80, 1).values, std::vector<std::uint16_t>{1500});
   EXPECT_EQ(client.read_holding(0x40, 1).values, std::vector<std::uint16_t>{0});  // no register: reads 0
-  EXPECT_EQ(client.read_holding(0x1F0, 1).exception, 0x02);  // beyond the SMSMB map
+  EXPECT_EQ(client.read_holding(0x1F0, 1).exception, 0x02);                       // beyond the SMSMB map
 }
 
 TEST_F(Router, WriteToAServoThatDoesNotAnswerWritesIsAnsweredOnceSent) {
@@ -339,7 +344,8 @@ TEST_F(Router, APipeliningClientCannotMakeAnotherConnectionWaitForItsBurst) {
   LoopbackClient chatty(port());
   ByteVector burst;
   for (std::uint8_t i = 0; i < 20; ++i) {
-    burst.insert(burst.end(), {0x00, i, 0x00, 0x00, 0x00, 0x06, 0x01, 0x06, 0x00, 0x2A, 0x00, static_cast<std::uint8_t>(100 + i)});
+    burst.insert(burst.end(),
+                 {0x00, i, 0x00, 0x00, 0x00, 0x06, 0x01, 0x06, 0x00, 0x2A, 0x00, static_cast<std::uint8_t>(100 + i)});
   }
   chatty.send(burst);
   ASSERT_TRUE(eventually([&] {
@@ -353,7 +359,8 @@ TEST_F(Router, APipeliningClientCannotMakeAnotherConnectionWaitForItsBurst) {
   sim().set_frame_observer({});
   std::lock_guard lock(mutex);
   const auto position = std::find(ids.begin(), ids.end(), 2) - ids.begin();
-  EXPECT_LE(position, 2) << "the other connection's read went on the wire after " << position << " of the burst's writes";
+  EXPECT_LE(position, 2) << "the other connection's read went on the wire after " << position
+                         << " of the burst's writes";
   EXPECT_EQ(std::count(ids.begin(), ids.end(), 1), 20);
 }
 

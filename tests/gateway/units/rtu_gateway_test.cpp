@@ -62,7 +62,9 @@ std::string config_yaml(const std::string& device) {
   return "modbus_tcp: {listen: \"127.0.0.1:0\"}\n"
          "buses:\n"
          "  - name: lift\n"
-         "    device: \"" + device + "\"\n"
+         "    device: \"" +
+         device +
+         "\"\n"
          "    protocol: modbus-rtu\n"
          "    baud: 128000\n"
          "    response_timeout_ms: 50\n"
@@ -96,8 +98,8 @@ TEST_F(RtuContractTest, HoldingRegistersReadLiveAtTheServosOwnRegisterNumbers) {
   Client client(gateway_->port(), 12);
   std::uint16_t values[2] = {};
   ASSERT_EQ(modbus_read_registers(*client, 0x0A, 2, values), 2) << modbus_strerror(errno);
-  EXPECT_EQ(values[0], 2);  // ID of unit 12's servo
-  EXPECT_EQ(values[1], 1);  // baud code 1 = 128000
+  EXPECT_EQ(values[0], 2);                                                // ID of unit 12's servo
+  EXPECT_EQ(values[1], 1);                                                // baud code 1 = 128000
   ASSERT_TRUE(bus_->write_memory(2, 0x83, protocol::Bytes{0xFF, 0x38}));  // running speed -200
   ASSERT_EQ(modbus_read_registers(*client, 0x83, 1, values), 1) << modbus_strerror(errno);
   EXPECT_EQ(static_cast<std::int16_t>(values[0]), -200);

@@ -123,9 +123,7 @@ TEST_F(SafetyState, WhatAClientReadsNeverDisagreesWithTheGates) {
 
 TEST_F(SafetyState, LatchAndTripsAreRestoredFromTheStateFile) {
   TempState state;
-  {
-    std::ofstream(state.file()) << "estop_latched: true\ntripped_watchdogs: [base, gone]\n";
-  }
+  { std::ofstream(state.file()) << "estop_latched: true\ntripped_watchdogs: [base, gone]\n"; }
   make(state.dir());
   const SafetyFacts facts = safety_->facts();
   EXPECT_TRUE(facts.estop_latched);
@@ -152,9 +150,7 @@ TEST_F(SafetyState, LatchAndTripsAreRestoredFromTheStateFile) {
 
 TEST_F(SafetyState, ADamagedStateFileLatchesTheEStop) {
   TempState state;
-  {
-    std::ofstream(state.file()) << "estop_latched: [unclosed\n";
-  }
+  { std::ofstream(state.file()) << "estop_latched: [unclosed\n"; }
   make(state.dir());
   EXPECT_TRUE(safety_->facts().estop_latched);
   EXPECT_TRUE(gates_[0]->blocked());

@@ -117,7 +117,8 @@ TEST_F(SafetyStateUnderLoad, AClientsReadsNeverDisagreeWhileTheEStopAndTheWatchd
     while (running && estops < 300) {
       auto done = std::make_shared<std::promise<void>>();
       auto finished = done->get_future();
-      safety_->estop(inline_post(), [done](bool) { done->set_value(); }, "the stress test's operator");
+      safety_->estop(
+          inline_post(), [done](bool) { done->set_value(); }, "the stress test's operator");
       if (finished.wait_for(2s) != std::future_status::ready) {
         stop_unanswered = true;
         break;
