@@ -202,7 +202,7 @@ std::string sparkplug_device_id(const ServoConfig& servo) {
 }
 
 std::chrono::milliseconds worst_transaction(const BusConfig& bus) {
-  constexpr std::uint64_t kLongestExchangeBytes = 2 * 256;
+  constexpr std::uint64_t kLongestExchangeBytes = std::uint64_t{2} * 256;
   const std::uint64_t bits_per_byte = 1 + 8 + (bus.parity == Parity::None ? 0 : 1) + bus.stop_bits;
   const std::uint64_t wire_us =
       bus.baud == 0 ? 0 : (kLongestExchangeBytes * bits_per_byte * std::uint64_t{1000000} + bus.baud - 1) / bus.baud;

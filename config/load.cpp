@@ -900,7 +900,7 @@ ConsoleConfig Loader::parse_console(const Value& value, const Config& config) {
     }
   }
   if (const auto v = keys.find("session_timeout_s")) {
-    console.session_timeout = duration<std::chrono::seconds>(*v, 60, 7 * 24 * 3600);
+    console.session_timeout = duration<std::chrono::seconds>(*v, 60, std::int64_t{7} * 24 * 3600);
   }
   if (const auto v = keys.find("users")) {
     std::vector<YAML::Mark> marks;

@@ -166,7 +166,8 @@ class Gateway::Impl {
           *config_.console,
           console::ConsoleBackend{&config_, router_.get(), router_.get(),
                                   [this](std::function<void()> work) { serving_.post(std::move(work)); },
-                                  [this] { return metrics(); }});
+                                  [this] { return metrics(); },
+                                  [this](std::string_view bus) { return wire_monitor_named(bus); }});
       console_->start();
     }
     if (config_.logging.metrics_listen) {
@@ -236,6 +237,12 @@ class Gateway::Impl {
   std::shared_ptr<WireMonitor> wire_monitor(std::size_t index) const {
     return index < monitors_.size() ? monitors_[index] : nullptr;
   }
+  std::shared_ptr<WireMonitor> wire_monitor_named(std::string_view bus_name) const {
+    for (std::size_t i = 0; i < config_.buses.size(); ++i) {
+      if (config_.buses[i].name == bus_name) return wire_monitor(i);
+    }
+    return nullptr;
+  }
   TcpServerStats server_stats() const { return serving_.stats(); }
 
  private:
@@ -278,10 +285,7 @@ std::shared_ptr<WireMonitor> Gateway::wire_monitor(std::size_t bus_index) const 
   return impl_->wire_monitor(bus_index);
 }
 std::shared_ptr<WireMonitor> Gateway::wire_monitor(std::string_view bus_name) const {
-  for (std::size_t i = 0; i < config_.buses.size(); ++i) {
-    if (config_.buses[i].name == bus_name) return impl_->wire_monitor(i);
-  }
-  return nullptr;
+  return impl_->wire_monitor_named(bus_name);
 }
 std::uint16_t Gateway::console_port() const { return impl_->console_port(); }
 std::string Gateway::console_url() const { return impl_->console_url(); }

@@ -138,7 +138,7 @@ void api_servo(const std::shared_ptr<ApiCall>& call) {
   const std::uint8_t unit_id = (*unit)->unit_id;
   call->services.modbus(
       call->who, unit_id, read_registers_pdu(first, count),
-      [call, body = std::move(body), first, unit = *unit](ModbusAnswer answer) mutable {
+      [call, body = std::move(body), first, unit = *unit](const ModbusAnswer& answer) mutable {
         json values = json::object();
         if (answer.ok()) {
           const auto registers = registers_in(answer.pdu);
@@ -249,7 +249,7 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
 void gateway_coil(const std::shared_ptr<ApiCall>& call, std::uint16_t coil, bool on, std::string what) {
   call->services.modbus(
       call->who, call->services.config().modbus_tcp.gateway_unit_id, write_coil_pdu(coil, on),
-      [call, what = std::move(what)](ModbusAnswer answer) {
+      [call, what = std::move(what)](const ModbusAnswer& answer) {
         if (!answer.ok()) {
           return call->answer(HttpAnswer::error(status_for_exception(answer.exception), what + ": " + answer.message));
         }
@@ -389,7 +389,7 @@ class ServoStream final : public Stream {
   void write(std::uint16_t address, std::int64_t value, std::string what, const Send& send) {
     const auto reg = static_cast<std::uint16_t>(static_cast<std::int16_t>(value));
     services_.modbus(who_, unit_.unit_id, write_register_pdu(address, reg),
-                     [send, what = std::move(what), alive = alive_](ModbusAnswer answer) {
+                     [send, what = std::move(what), alive = alive_](const ModbusAnswer& answer) {
                        if (!*alive || !send) return;
                        if (answer.ok()) return send(json{{"type", "done"}, {"message", what}}.dump());
                        send(json{{"type", "error"}, {"message", what + ": " + answer.message}}.dump());
@@ -401,7 +401,7 @@ class ServoStream final : public Stream {
     services_.modbus(
         who_, unit_.unit_id,
         write_register_pdu(entry->address, static_cast<std::uint16_t>(static_cast<std::int16_t>(jog_value_))),
-        [this, alive = alive_](ModbusAnswer answer) {
+        [this, alive = alive_](const ModbusAnswer& answer) {
           if (!*alive || answer.ok() || !jog_) return;
           // Refused (e-stop, watchdog) or lost (a timeout): the move is over, and the
           // goal an earlier write set must not carry it on.
@@ -425,7 +425,7 @@ class ServoStream final : public Stream {
     const std::uint16_t goal = goal_position_->address;
     const std::string present = std::string(present_position_->shown->name);
     services.modbus(who, unit->unit_id, read_registers_pdu(present_position_->address, 1),
-                    [&services, who, unit, goal, present](ModbusAnswer answer) {
+                    [&services, who, unit, goal, present](const ModbusAnswer& answer) {
                       std::optional<std::uint16_t> position;
                       if (answer.ok()) {
                         position = registers_in(answer.pdu).at(0);
@@ -484,6 +484,76 @@ Expected<std::unique_ptr<Stream>> make_servo_stream(Services& services, const Pa
   return std::unique_ptr<Stream>(std::make_unique<ServoStream>(services, **unit, who));
 }
 
+// --- the bus monitor (docs/MONITOR.md) -----------------------------------------------------------
+
+Expected<std::shared_ptr<WireMonitor>, HttpAnswer> monitor_of(const Services& services, const PathParams& params) {
+  const auto name = params.get("name").value_or("");
+  auto monitor = services.monitor(name);
+  if (!monitor) {
+    std::string buses;
+    for (const auto& bus : services.config().buses) buses += (buses.empty() ? "" : ", ") + bus.name;
+    return unexpected(HttpAnswer::error(404, "no bus is named " + printable(name) + " (buses: " + buses + ")"));
+  }
+  return monitor;
+}
+
+// The decoded frames of one bus since the page opened, batched per push period. The page sets
+// its filter with {"servo": 3 | null, "requests": true, "answers": true, "errors": true}; pausing
+// is the page's (it stops drawing; frames the ring overwrote meanwhile come back as `dropped`).
+class MonitorStream final : public Stream {
+ public:
+  explicit MonitorStream(std::shared_ptr<WireMonitor> monitor)
+      : bus_(monitor->bus_name()), reader_(std::move(monitor)) {}
+
+  std::optional<std::string> flush(SteadyClock::time_point) override {
+    const MonitorBatch batch = reader_.poll(kMaxRecordsPerPush, filter_);
+    if (batch.frames.empty() && batch.dropped == 0) return std::nullopt;
+    return to_json(bus_, batch);
+  }
+
+  void on_message(std::string_view text, const Send& send) override {
+    const auto message = nlohmann::json::parse(text, nullptr, false);
+    if (!message.is_object()) return send(nlohmann::json{{"error", "a filter is a JSON object"}}.dump());
+    MonitorFilter filter;
+    if (const auto servo = message.find("servo"); servo != message.end() && !servo->is_null()) {
+      if (!servo->is_number_integer() || servo->get<int>() < 0 || servo->get<int>() > 253) {
+        return send(nlohmann::json{{"error", "servo: an ID 0-253, or null for every servo"}}.dump());
+      }
+      filter.servo = static_cast<std::uint8_t>(servo->get<int>());
+    }
+    filter.requests = message.value("requests", true);
+    filter.answers = message.value("answers", true);
+    filter.errors = message.value("errors", true);
+    filter_ = filter;
+  }
+
+ private:
+  // At most this many wire records per push: a busy bus at 100 ms is far below it; a browser
+  // that falls further behind is told what it missed rather than slowing anything.
+  static constexpr std::size_t kMaxRecordsPerPush = 4096;
+  std::string bus_;
+  MonitorReader reader_;
+  MonitorFilter filter_;
+};
+
+Expected<std::unique_ptr<Stream>> make_monitor_stream(Services& services, const PathParams& params, const Principal&) {
+  auto monitor = monitor_of(services, params);
+  if (!monitor) return unexpected(monitor.error().body);
+  return std::unique_ptr<Stream>(std::make_unique<MonitorStream>(std::move(*monitor)));
+}
+
+// The ring's contents as a pcapng file Wireshark opens (deploy/wireshark/sms_servo.lua names the
+// FF FF / D5 5D fields; Modbus RTU goes to Wireshark's own dissector).
+void api_monitor_pcapng(const std::shared_ptr<ApiCall>& call) {
+  const auto monitor = monitor_of(call->services, call->params);
+  if (!monitor) return call->answer(monitor.error());
+  const protocol::Bytes file = (*monitor)->pcapng();
+  call->answer(HttpAnswer{200,
+                          "application/x-pcapng",
+                          std::string(file.begin(), file.end()),
+                          {{"Content-Disposition", "attachment; filename=\"" + (*monitor)->bus_name() + ".pcapng\""}}});
+}
+
 constexpr Role kAnyone = Role::None;
 
 const Route kRoutes[] = {
@@ -492,6 +562,7 @@ const Route kRoutes[] = {
     {"GET", "/servo/{unit}", Role::Read, RouteKind::Page, "servo.html"},
     {"GET", "/login", kAnyone, RouteKind::Page, "login.html"},
     {"GET", "/commission", Role::Read, RouteKind::Page, "commission.html"},
+    {"GET", "/bus/{name}/monitor", Role::Read, RouteKind::Page, "monitor.html"},
     {"GET", "/static/{file}", kAnyone, RouteKind::Page, ""},
     // JSON.
     {"GET", "/api/session", kAnyone, RouteKind::Api, {}, api_session},
@@ -499,6 +570,7 @@ const Route kRoutes[] = {
     {"POST", "/api/logout", Role::Read, RouteKind::Api, {}, api_logout},
     {"GET", "/api/overview", Role::Read, RouteKind::Api, {}, api_overview},
     {"GET", "/api/servo/{unit}", Role::Read, RouteKind::Api, {}, api_servo},
+    {"GET", "/api/bus/{name}/monitor.pcapng", Role::Read, RouteKind::Api, {}, api_monitor_pcapng},
     {"POST", "/api/servo/{unit}/write", Role::Operate, RouteKind::Api, {}, api_servo_write},
     {"POST", "/api/estop", Role::Operate, RouteKind::Api, {}, api_estop},
     {"POST", "/api/rearm", Role::Operate, RouteKind::Api, {}, api_rearm},
@@ -512,6 +584,7 @@ const Route kRoutes[] = {
     // Live data.
     {"GET", "/ws/overview", Role::Read, RouteKind::Socket, {}, nullptr, make_overview_stream},
     {"GET", "/ws/servo/{unit}", Role::Read, RouteKind::Socket, {}, nullptr, make_servo_stream},
+    {"GET", "/ws/bus/{name}/monitor", Role::Read, RouteKind::Socket, {}, nullptr, make_monitor_stream},
 };
 
 }  // namespace

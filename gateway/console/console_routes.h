@@ -22,6 +22,7 @@
 #include <nlohmann/json.hpp>
 
 #include "config/config.h"
+#include "gateway/bus/wire_monitor.h"
 #include "gateway/console/console_access.h"
 #include "gateway/console/console_request.h"
 #include "gateway/observability/metrics.h"
@@ -64,6 +65,8 @@ class Services {
   virtual SessionStore& sessions() = 0;
   // The commissioning jobs (console_commission.h).
   virtual Commissioning& commissioning() = 0;
+  // The bus monitor of the bus named `bus` (docs/MONITOR.md); nullptr when no bus has that name.
+  virtual std::shared_ptr<WireMonitor> monitor(std::string_view bus) const = 0;
   // Set-Cookie text for a session token (empty: clears the cookie).
   virtual std::string session_cookie(const std::string& token) const = 0;
   // A Modbus request made as `who`: first the role policy of Modbus/TCP Security (refused: an

@@ -200,6 +200,9 @@ class ConsoleServer::Impl final : public Services {
   const config::Config& config() const override { return *backend_.config; }
   const config::ConsoleConfig& settings() const override { return settings_; }
   const UnitRouter& units() const override { return *backend_.units; }
+  std::shared_ptr<WireMonitor> monitor(std::string_view bus) const override {
+    return backend_.monitor ? backend_.monitor(bus) : nullptr;
+  }
   SessionStore& sessions() override { return sessions_; }
   Commissioning& commissioning() override { return commissioning_; }
 
@@ -618,7 +621,7 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
     auto request = parser_->release();
     if (websocket::is_upgrade(request)) {
       auto opened = server_.open_socket(request, peer_);
-      if (!opened) return write(std::move(opened.error()), false, request.version());
+      if (!opened) return write(opened.error(), false, request.version());
       auto session = std::make_shared<WebSocketSession<Transport>>(std::move(transport_), server_,
                                                                    std::move(opened->first), std::move(opened->second));
       session->accept(std::move(request));

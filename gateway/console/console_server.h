@@ -18,6 +18,7 @@
 
 #include "config/config.h"
 #include "gateway/bus/bus_join.h"
+#include "gateway/bus/wire_monitor.h"
 #include "gateway/modbus_tcp/request_handler.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/units/unit_router.h"
@@ -31,6 +32,8 @@ struct ConsoleBackend {
   RequestHandler* router = nullptr;          // called on the gateway's io thread only
   PostFn post_to_router;                     // runs work on that thread
   std::function<MetricsSnapshot()> metrics;  // any thread (as /metrics calls it)
+  // The bus monitor of the bus named so (docs/MONITOR.md), nullptr for no such bus; any thread.
+  std::function<std::shared_ptr<WireMonitor>(std::string_view bus)> monitor;
 };
 
 struct ConsoleLimits {

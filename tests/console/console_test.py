@@ -1,7 +1,11 @@
 """The browser console end to end: real pages in headless Chromium against the real gateway on
 sms-sim (docs/CONSOLE.md). Witnesses are the simulator's own state (its control socket) and an
 independent Modbus client (pymodbus)."""
+import base64
 import json
+import os
+import shutil
+import subprocess
 import time
 import unittest
 
@@ -68,6 +72,64 @@ class ConsoleTest(ConsoleCase):
             return data and abs(data[-1] - goal) < 10 and any(abs(y - start) < 10 for y in data)
         wait_until(plotted_near_goal, timeout=10, what="the plot to show the move from start to goal")
         self.screenshot("servo-plot.png")
+
+    def test_c_2_bus_monitor_shows_the_frames_of_a_write(self):
+        self.login("eng")
+        self.open("/", "#buses-table tr[data-bus='arm'] a")
+        # The overview links the bus to its monitor (read in one go: the table is redrawn on every push).
+        href = self.browser.execute_script("return document.querySelector(\"#buses-table tr[data-bus='arm'] a\").getAttribute('href')")
+        self.assertEqual(href, "/bus/arm/monitor")
+        self.open("/bus/arm/monitor", "#frames tbody tr.frame")  # the poll's frames flow at once
+        # Only servo 3's frames from now on (the gateway filters).
+        servo = self.browser.find_element(By.ID, "servo")
+        servo.send_keys("3")
+        servo.send_keys("\t")
+        client = self.modbus()
+        goal = 1500 if self.sim.field(3, "goal_position") != 1500 else 2500
+        for _ in range(3):  # a servo timeout (0x0B) on a loaded test machine is retried, as a PLC would
+            written = client.write_register(42, goal, slave=3)
+            if not written.isError() or getattr(written, "exception_code", 0) != 0x0B:
+                break
+        self.assertFalse(written.isError(), written)
+        client.close()
+
+        def rows():
+            return self.browser.execute_script(
+                "return [...document.querySelectorAll('#frames tbody tr.frame')].map(r => ({servo: r.dataset.servo, "
+                "kind: r.dataset.kind, instruction: r.querySelector('.instruction').textContent, "
+                "fields: r.querySelector('.fields').textContent}))")
+        write = wait_until(lambda: [r for r in rows() if r["kind"] == "request" and r["instruction"] == "WRITE"
+                                    and f"goal_position={goal}" in r["fields"]],
+                           timeout=10, what="the WRITE of servo 3's goal_position on the monitor")
+        self.assertEqual(write[0]["servo"], "3")
+        wait_until(lambda: [r for r in rows() if r["kind"] == "answer" and "WRITE" in r["instruction"]],
+                   timeout=10, what="servo 3's answer to the WRITE on the monitor")
+        self.screenshot("bus-monitor.png")
+        # The filter holds: after a clear, only servo 3's frames come (254: a SYNC frame it is part of).
+        self.browser.find_element(By.ID, "clear").click()
+        wait_until(lambda: len(rows()) >= 4, timeout=10, what="servo 3's poll frames after the clear")
+        self.assertTrue(all(r["servo"] in ("3", "254") for r in rows()), rows())
+        # The capture download opens in Wireshark's tshark, whose Lua dissector (shipped in the
+        # package) names the instruction and the ID.
+        encoded = self.browser.execute_async_script("""
+            const done = arguments[0];
+            fetch('/api/bus/arm/monitor.pcapng').then(r => r.arrayBuffer()).then(buffer => {
+              let text = ''; const bytes = new Uint8Array(buffer);
+              for (let i = 0; i < bytes.length; i += 8192) text += String.fromCharCode(...bytes.subarray(i, i + 8192));
+              done(btoa(text));
+            });""")
+        capture = os.path.join(self.workdir, "arm.pcapng")
+        with open(capture, "wb") as f:
+            f.write(base64.b64decode(encoded))
+        if shutil.which("tshark") is None:
+            self.skipTest("tshark is not installed (scripts/install-deps.sh installs it)")
+        dissector = os.path.join(os.path.dirname(__file__), "..", "..", "deploy", "wireshark", "sms_servo.lua")
+        fields = subprocess.run(["tshark", "-X", "lua_script:" + dissector, "-r", capture,
+                                 "-Y", 'sms_servo.instruction_name == "WRITE" && sms_servo.id == 3',
+                                 "-T", "fields", "-e", "sms_servo.id", "-e", "sms_servo.instruction_name"],
+                                capture_output=True, text=True, timeout=60)
+        self.assertEqual(fields.returncode, 0, fields.stderr)
+        self.assertIn("3\tWRITE", fields.stdout, fields.stdout + fields.stderr)
 
     def hold(self, seconds, release=True):
         button = self.browser.find_element(By.ID, "hold-position")

@@ -36,15 +36,19 @@ export function say(text, kind) {
   element.className = kind || '';
 }
 
-// A WebSocket on `path` that reconnects; `onMessage` gets each parsed message.
-export function live(path, onMessage) {
+// A WebSocket on `path` that reconnects; `onMessage` gets each parsed message, `onOpen` (if given)
+// runs at each (re)connection, e.g. to send the page's settings again.
+export function live(path, onMessage, onOpen) {
   const state = { socket: null, closed: false };
   const scheme = location.protocol === 'https:' ? 'wss://' : 'ws://';
   const open = () => {
     const socket = new WebSocket(scheme + location.host + path + '?csrf=' + encodeURIComponent(csrf));
     state.socket = socket;
     socket.onmessage = (event) => onMessage(JSON.parse(event.data));
-    socket.onopen = () => setLink(true);
+    socket.onopen = () => {
+      setLink(true);
+      if (onOpen) onOpen();
+    };
     socket.onclose = () => {
       setLink(false);
       if (!state.closed) setTimeout(open, 1000);

@@ -36,7 +36,8 @@ function render(data) {
     const watchdog = !safety ? '—' : safety.watchdog === 'tripped'
       ? `tripped (${safety.last_cause})` : safety.watchdog + (safety.timeout_ms ? ` ${safety.timeout_ms} ms` : '');
     return element('tr', { 'data-bus': bus.name },
-      element('td', {}, bus.name), element('td', {}, bus.device), element('td', {}, bus.protocol),
+      element('td', {}, element('a', { href: '/bus/' + encodeURIComponent(bus.name) + '/monitor', title: 'the bus monitor: every frame on this line' }, bus.name)),
+      element('td', {}, bus.device), element('td', {}, bus.protocol),
       element('td', { class: 'num' }, bus.baud),
       element('td', { class: bus.up ? 'ok' : 'bad' }, bus.up ? 'up' : 'down'),
       element('td', { class: 'num' }, `${bus.servos_online} / ${bus.servos}`),
