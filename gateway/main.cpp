@@ -259,7 +259,10 @@ int run_gateway(const Options& options) {
     gateway.start();
     if (!gateway.console_url().empty()) {
       spdlog::info("browser console: {}", gateway.console_url());
-      if (options.simulate) std::cout << "Browser console: " << gateway.console_url() << std::endl;
+      // The demo says where to click in plain words too; with JSON logs every line stays JSON.
+      if (options.simulate && gateway.config().logging.format == sms::config::LogFormat::Plain) {
+        std::cout << "Browser console: " << gateway.console_url() << std::endl;
+      }
     }
     int signal_number = 0;
     while ((signal_number = stop_signals.wait()) == SIGHUP) {
