@@ -63,7 +63,7 @@ elapsed() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
 # scripts/install-deps.sh, for the target). libcli11-dev and the Boost headers are the same for
 # every architecture but are looked up per architecture all the same.
 target_dev_packages=(libboost-dev libmodbus-dev libspdlog-dev libfmt-dev libyaml-cpp-dev libssl-dev
-                     libmosquitto-dev libprotobuf-dev libgtest-dev libgmock-dev)
+                     libmosquitto-dev libprotobuf-dev libgtest-dev libgmock-dev libsodium-dev nlohmann-json3-dev)
 # Debian 12's libyaml-cpp-dev is not "Multi-Arch: same": the arm64 one would replace the amd64 one
 # the native build needs. Its runtime library is co-installable; the -dev package is unpacked into
 # a prefix of its own instead (SMS_CROSS_PREFIXES).
