@@ -10,6 +10,7 @@
 #include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/modbus_tcp/role_policy.h"
 #include "modbus_map/motion.h"
+#include "protocol/modbus_pdu.h"
 
 namespace sms::gateway::console {
 
@@ -600,19 +601,23 @@ HttpAnswer HttpAnswer::error(unsigned status, std::string message) {
 std::span<const Route> console_routes() { return kRoutes; }
 
 std::string exception_text(std::uint8_t exception) {
+  if (exception == 0) return "";
+  // The name is the protocol's one table (protocol/modbus_pdu.h); the console adds what the
+  // exception means on this gateway, for the operator reading the page.
+  std::string_view meaning;
   switch (exception) {
-    case 0: return "";
-    case 0x01: return "exception 0x01 (illegal function): the role may not make this request";
-    case 0x02: return "exception 0x02 (illegal data address): not writable here, or not with this role";
-    case 0x03: return "exception 0x03 (illegal data value): the value is out of range";
-    case 0x04:
-      return "exception 0x04 (server device failure): motion is blocked (e-stop latched or watchdog tripped), or the "
-             "servo refused";
-    case 0x06: return "exception 0x06 (busy): the bus queue is full, try again";
-    case 0x0A: return "exception 0x0A (gateway path unavailable): the bus is down";
-    case 0x0B: return "exception 0x0B (target failed to respond): the servo did not answer";
-    default: return "exception 0x" + std::to_string(exception);
+    case 0x01: meaning = "the role may not make this request"; break;
+    case 0x02: meaning = "not writable here, or not with this role"; break;
+    case 0x03: meaning = "the value is out of range"; break;
+    case 0x04: meaning = "motion is blocked (e-stop latched or watchdog tripped), or the servo refused"; break;
+    case 0x06: meaning = "the bus queue is full, try again"; break;
+    case 0x0A: meaning = "the bus is down"; break;
+    case 0x0B: meaning = "the servo did not answer"; break;
+    default: break;
   }
+  std::string text = fmt::format("exception 0x{:02X} ({})", exception, protocol::modbus_exception_name(exception));
+  if (!meaning.empty()) text += fmt::format(": {}", meaning);
+  return text;
 }
 
 }  // namespace sms::gateway::console
