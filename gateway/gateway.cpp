@@ -1,7 +1,10 @@
 #include "gateway/gateway.h"
 
+#include <future>
+#include <memory>
 #include <optional>
 #include <stdexcept>
+#include <string>
 
 #include <spdlog/spdlog.h>
 
@@ -164,10 +167,13 @@ class Gateway::Impl {
     if (config_.console) {
       console_ = std::make_unique<console::ConsoleServer>(
           *config_.console,
-          console::ConsoleBackend{&config_, router_.get(), router_.get(),
-                                  [this](std::function<void()> work) { serving_.post(std::move(work)); },
-                                  [this] { return metrics(); },
-                                  [this](std::string_view bus) { return wire_monitor_named(bus); }});
+          console::ConsoleBackend{
+              &config_, router_.get(), router_.get(),
+              [this](std::function<void()> work) { serving_.post(std::move(work)); }, [this] { return metrics(); },
+              [this](std::string_view bus) { return wire_monitor_named(bus); },
+              console::BusLending{[this](std::size_t bus, const std::string& who) { return lend_bus(bus, who); },
+                                  [this](std::size_t bus, const std::string& who) { return take_back_bus(bus, who); },
+                                  [this](std::size_t bus) { return engines_.at(bus)->line_lent(); }}});
       console_->start();
     }
     if (config_.logging.metrics_listen) {
@@ -245,7 +251,48 @@ class Gateway::Impl {
   }
   TcpServerStats server_stats() const { return serving_.stats(); }
 
+  // The console's commissioning borrows a running bus's line (docs/CONSOLE.md "Commissioning a
+  // running bus's line"): first every servo of the bus gets its safe stop and motion on the bus is
+  // refused, then the engine closes the port. Blocks: the console calls it on its worker thread.
+  Expected<std::string> lend_bus(std::size_t index, const std::string& who) {
+    BusEngine& engine = *engines_.at(index);
+    const config::BusConfig& bus = config_.buses.at(index);
+    if (engine.line_lent()) return "bus " + bus.name + " is stopped already; " + bus.device + " is free";
+    auto stop_sent = std::make_shared<std::promise<bool>>();
+    auto sent = stop_sent->get_future();
+    safety_->lend_bus(index, who, [stop_sent](bool ok) { stop_sent->set_value(ok); });
+    if (sent.wait_for(kLendBound) != std::future_status::ready) {
+      spdlog::warn("bus {}: the safe stop before lending the line took longer than {} ms", bus.name,
+                   kLendBound.count());
+    }
+    if (!engine.lend_line("stopped by " + who + " to commission its line (start it again from the console)",
+                          kLendBound)) {
+      return unexpected("bus " + bus.name + " did not close " + bus.device + " within " +
+                        std::to_string(kLendBound.count()) +
+                        " ms; motion on it is refused: look at the overview, then stop it again or start it");
+    }
+    std::string summary = "bus " + bus.name + " stopped: its servos took their safe stop, motion writes to it are " +
+                          "refused and " + bus.device + " is free for commissioning";
+    if (const auto owed = engine.owed_stop_count(); owed > 0) {
+      summary += "; " + std::to_string(owed) +
+                 " servo(s) did not answer: their safe stop is owed and sent first when the bus starts again";
+    }
+    return summary;
+  }
+
+  Expected<std::string> take_back_bus(std::size_t index, const std::string& who) {
+    const config::BusConfig& bus = config_.buses.at(index);
+    if (!engines_.at(index)->take_back_line()) {
+      return unexpected("bus " + bus.name + " is not stopped for commissioning: nothing to start");
+    }
+    safety_->return_bus(index, who);
+    return "bus " + bus.name + " started again: " + bus.device +
+           " reopened, its servos are found again and motion writes are accepted";
+  }
+
  private:
+  // How long lending a bus's line waits for the safe stop's frames, and then for the port to close.
+  static constexpr std::chrono::milliseconds kLendBound{5000};
   const config::Config& config_;
   const SteadyClock::time_point started_at_ = SteadyClock::now();
   ModbusTrafficCounters traffic_;

@@ -90,6 +90,18 @@ class BusEngine {
   // How many servos are owed a stop right now (lock-free: read on every gateway-unit read).
   virtual std::size_t owed_stop_count() const = 0;
 
+  // Lends the bus's serial line to someone else (the console's commissioning, docs/CONSOLE.md):
+  // at the next transaction boundary the engine closes the port and keeps the bus down — client
+  // work is refused (BusDown, saying `why`), the port is not reopened, owed safe stops are kept —
+  // until take_back_line(). Blocks until the port is closed; false when that took longer than
+  // `bound` (the line may still be in use: do not open it). Not from the bus thread.
+  virtual bool lend_line(std::string why, std::chrono::milliseconds bound) = 0;
+  // Ends a lend: the port is opened again at once (owed stops first, then discovery, as after a
+  // port loss). False (and nothing done) when no lend was asked for.
+  virtual bool take_back_line() = 0;
+  // True from the moment a lent line's port is closed until it is taken back.
+  virtual bool line_lent() const = 0;
+
   virtual const BusSettings& settings() const = 0;
   virtual bool bus_up() const = 0;
   virtual BusCountersSnapshot counters() const = 0;

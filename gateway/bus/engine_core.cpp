@@ -151,6 +151,16 @@ void EngineCore<Transactor>::run_thread() {
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::run_loop() {
   for (;;) {
+    if (lend_requested_.load()) {
+      hand_over_line();
+      if (queue_.closing()) return;
+      continue;
+    }
+    if (holding_lent_line_) {  // taken back: open again at once, not after a reopen period
+      holding_lent_line_ = false;
+      try_open();
+      continue;
+    }
     if (!transactor_->is_open()) {
       wake_.wait(SteadyClock::now() + settings_.reopen_period);  // or earlier, for stop()
       if (queue_.closing()) return;
@@ -431,19 +441,80 @@ template <BusTransactor Transactor>
 void EngineCore<Transactor>::port_lost(const std::string& reason) {
   spdlog::error("bus {}: {} — bus down; reopening every {} ms", settings_.name, reason,
                 settings_.reopen_period.count());
-  transactor_->close();
   counters_.bus_down_events.fetch_add(1, std::memory_order_relaxed);
+  close_line(reason, false);
+}
+
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::close_line(const std::string& why, bool lent) {
+  transactor_->close();
   // Before the bus reads down: whoever sees bus_up() false sees the loss logged and counted and
   // every servo offline too.
   cache_.set_all_offline();
   discovered_.store(false);
-  std::vector<Job> failed = queue_.line_down();
+  // New work is refused with the lend's reason; after a loss, with "the port is not open".
+  std::vector<Job> failed = queue_.line_down(lent ? why : std::string{});
   scheduler_.forget_all();
   cycle_ = Cycle{};
   next_cycle_.reset();
   discovery_ = Discovery{};
-  const std::string detail = "bus " + settings_.name + ": " + reason;
+  const std::string detail = "bus " + settings_.name + ": " + why;
   for (auto& job : failed) queue_.complete(job, BusResult{BusStatus::BusDown, 0, {}, detail});
+}
+
+// ==== lending the line ============================================================================
+
+template <BusTransactor Transactor>
+bool EngineCore<Transactor>::lend_line(std::string why, std::chrono::milliseconds bound) {
+  if (std::this_thread::get_id() == thread_.get_id()) {
+    throw std::logic_error("bus " + settings_.name + ": lend_line() called from the bus thread");
+  }
+  std::unique_lock lock(lend_mutex_);
+  lend_wanted_ = std::move(why);
+  lend_requested_.store(true);
+  wake_.notify();
+  return lend_changed_.wait_for(lock, bound, [this] { return lent_; });
+}
+
+template <BusTransactor Transactor>
+bool EngineCore<Transactor>::take_back_line() {
+  {
+    std::lock_guard lock(lend_mutex_);
+    if (!lend_wanted_) return false;
+    lend_wanted_.reset();
+    lend_requested_.store(false);
+    lent_ = false;
+  }
+  wake_.notify();
+  return true;
+}
+
+template <BusTransactor Transactor>
+bool EngineCore<Transactor>::line_lent() const {
+  std::lock_guard lock(lend_mutex_);
+  return lent_;
+}
+
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::hand_over_line() {
+  if (!holding_lent_line_) {
+    std::string why;
+    {
+      std::lock_guard lock(lend_mutex_);
+      if (!lend_wanted_) return;  // taken back before the bus thread got here
+      why = *lend_wanted_;
+    }
+    close_line(why, true);
+    holding_lent_line_ = true;
+    spdlog::warn("bus {}: {}: {} closed; the bus stays down until it is taken back", settings_.name, why,
+                 settings_.serial.device);
+    std::lock_guard lock(lend_mutex_);
+    if (lend_wanted_) {
+      lent_ = true;
+      lend_changed_.notify_all();
+    }
+  }
+  wake_.wait(std::nullopt);  // take_back_line() and stop() wake it
 }
 
 // ==== discovery ===================================================================================

@@ -21,6 +21,7 @@
 #include <atomic>
 #include <bitset>
 #include <chrono>
+#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <map>
@@ -57,6 +58,9 @@ class EngineCore final : public BusEngine {
   void submit(BusOp op, Priority priority, Completion done) override;
   void owe_stop(OwedStop stop) override;
   std::size_t owed_stop_count() const override { return owed_count_.load(std::memory_order_acquire); }
+  bool lend_line(std::string why, std::chrono::milliseconds bound) override;
+  bool take_back_line() override;
+  bool line_lent() const override;
 
   const BusSettings& settings() const override { return settings_; }
   bool bus_up() const override { return queue_.line_is_up(); }
@@ -118,6 +122,11 @@ class EngineCore final : public BusEngine {
   // --- port -------------------------------------------------------------------------------------
   bool try_open();
   void port_lost(const std::string& reason);
+  // The port is closed: every servo offline, queued client work answered BusDown (`why`), the
+  // engine's own work dropped and rebuilt when the line is back. `lent`: by lend_line().
+  void close_line(const std::string& why, bool lent);
+  // lend_line() on the bus thread: closes the port once, then sleeps until taken back or stopped.
+  void hand_over_line();
 
   // --- discovery, presence, polling ----------------------------------------------------------------
   void begin_discovery();
@@ -153,6 +162,12 @@ class EngineCore final : public BusEngine {
   std::atomic<std::size_t> owed_count_{0};  // owed_.size(), set under owed_mutex_, read without it
   std::atomic<bool> discovered_{false};
   std::thread thread_;
+  // lend_line(): asked for by the lender, carried out by the bus thread, which says so in lent_.
+  mutable std::mutex lend_mutex_;
+  std::condition_variable lend_changed_;
+  std::optional<std::string> lend_wanted_;   // guarded by lend_mutex_: why; nullopt: not lent
+  bool lent_ = false;                        // guarded by lend_mutex_: the port is closed for the lend
+  std::atomic<bool> lend_requested_{false};  // lend_wanted_ is set (read by the bus thread without the lock)
 
   // Bus thread only (and start(), before the thread runs).
   struct Cycle {
@@ -173,6 +188,7 @@ class EngineCore final : public BusEngine {
   std::map<std::uint8_t, protocol::Bytes>* sync_collect_ = nullptr;
   std::bitset<256> staged_;  // servos holding a staged write (REG WRITE since the last ACTION)
   bool open_failure_logged_ = false;
+  bool holding_lent_line_ = false;  // the port was closed for a lend that has not been taken back yet
 };
 
 }  // namespace sms::gateway

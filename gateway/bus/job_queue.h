@@ -72,14 +72,16 @@ class JobQueue {
   void line_up() {
     std::lock_guard lock(mutex_);
     line_up_.store(true);
+    down_reason_.clear();
   }
-  // The port was lost or closed: client work is refused (BusDown) from now on. Empties the queue
-  // in the same step: the client jobs come back (they must be answered), the engine's own are
-  // dropped (rebuilt when the bus is back).
-  std::vector<Job> line_down() {
+  // The port was lost or closed: client work is refused (BusDown) from now on, with `why` when
+  // given (else "serial port ... is not open"). Empties the queue in the same step: the client
+  // jobs come back (they must be answered), the engine's own are dropped (rebuilt when the bus is back).
+  std::vector<Job> line_down(std::string why = {}) {
     std::vector<Job> clients;
     std::lock_guard lock(mutex_);
     line_up_.store(false);
+    down_reason_ = std::move(why);
     for (auto& level : levels_) {
       for (auto& job : level) {
         if (job.client) clients.push_back(std::move(job));
@@ -96,12 +98,14 @@ class JobQueue {
   // A client job: queued (true: wake the bus thread), or its refusal answered now (false).
   bool submit(Job job, Priority priority) {
     BusStatus refusal = BusStatus::Ok;
+    std::string down_reason;
     {
       std::lock_guard lock(mutex_);
       if (!accepting_) {
         refusal = BusStatus::Cancelled;
       } else if (!line_up_.load()) {
         refusal = BusStatus::BusDown;
+        down_reason = down_reason_;
       } else if (clients_ >= settings_.queue_depth && priority != Priority::Safety) {
         refusal = BusStatus::QueueFull;
       } else {
@@ -113,7 +117,7 @@ class JobQueue {
       }
     }
     if (refusal == BusStatus::QueueFull) counters_.queue_full.fetch_add(1, std::memory_order_relaxed);
-    complete(job, BusResult{refusal, 0, {}, refusal_detail(refusal)});
+    complete(job, BusResult{refusal, 0, {}, refusal_detail(refusal, down_reason)});
     return false;
   }
 
@@ -167,11 +171,13 @@ class JobQueue {
   }
 
   // A refusal's text for logs and answers: "bus arm: 64 operations already queued".
-  std::string refusal_detail(BusStatus refusal) const {
+  std::string refusal_detail(BusStatus refusal, const std::string& down_reason) const {
     const std::string bus = "bus " + settings_.name + ": ";
     switch (refusal) {
       case BusStatus::Cancelled: return bus + "the bus engine is not running";
-      case BusStatus::BusDown: return bus + "serial port " + settings_.serial.device + " is not open (bus down)";
+      case BusStatus::BusDown:
+        if (!down_reason.empty()) return bus + down_reason;
+        return bus + "serial port " + settings_.serial.device + " is not open (bus down)";
       case BusStatus::QueueFull: return bus + std::to_string(settings_.queue_depth) + " operations already queued";
       default: return bus + std::string(to_string(refusal));
     }
@@ -188,6 +194,7 @@ class JobQueue {
   bool accepting_ = false;
   bool closing_ = false;
   std::atomic<bool> line_up_{false};  // written under mutex_ (with the queue), read without it too
+  std::string down_reason_;           // guarded by mutex_; empty: the port is simply not open
 };
 
 }  // namespace sms::gateway

@@ -114,6 +114,16 @@ PacketTransactor::Request PacketTransactor::ping_request(std::uint8_t servo_id, 
   return finish_request(std::move(request));
 }
 
+PacketTransactor::Request PacketTransactor::instruction_request(std::uint8_t servo_id, std::uint8_t instruction,
+                                                                unsigned attempts) const {
+  Request request;
+  request.packet = protocol::Packet{servo_id, instruction, {}};
+  request.reply = ReplyKind::Ack;
+  request.servo_id = servo_id;
+  request.attempts = attempts;
+  return finish_request(std::move(request));
+}
+
 PacketTransactor::Request PacketTransactor::sync_read_request(AddressBlock block, std::vector<std::uint8_t> ids) const {
   if (!rules_.has_sync_read) throw std::logic_error("SYNC READ on a protocol without it");
   Request request;
@@ -193,6 +203,7 @@ std::string PacketTransactor::describe(const Request& request) const {
     case ReplyKind::Data:
       return fmt::format("{} {}+{} of servo {}", name, params.at(0), params.at(1), request.servo_id);
     case ReplyKind::Ack:
+      if (params.empty()) return fmt::format("{} to servo {}", name, request.servo_id);
       return fmt::format("{} at {} ({} bytes) to servo {}", name, params.at(0), params.size() - 1, request.servo_id);
     case ReplyKind::Ping:
       if (broadcast(request)) return fmt::format("broadcast {}", name);

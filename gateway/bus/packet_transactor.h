@@ -99,6 +99,9 @@ class PacketTransactor {
   Request prepare(BusOp&& op, unsigned attempts) const;
   Request read_request(std::uint8_t servo_id, AddressBlock block, unsigned attempts) const;
   Request ping_request(std::uint8_t servo_id, unsigned attempts) const;
+  // An instruction without parameters to one servo, acknowledged by a status packet (the tools'
+  // factory reset: d55d RESET).
+  Request instruction_request(std::uint8_t servo_id, std::uint8_t instruction, unsigned attempts) const;
   Request sync_read_request(AddressBlock block, std::vector<std::uint8_t> ids) const;
   static std::uint8_t target(const Request& request) { return request.servo_id; }
   static bool broadcast(const Request& request) { return broadcast_id(request.servo_id); }

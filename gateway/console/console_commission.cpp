@@ -85,7 +85,8 @@ using ServoJob = Expected<std::string> (*)(ServoLink&, const ToolTarget&, std::u
 
 }  // namespace
 
-Commissioning::Commissioning(const config::Config& config) : config_(config) {}
+Commissioning::Commissioning(const config::Config& config, BusLending lending)
+    : config_(config), lending_(std::move(lending)) {}
 
 Commissioning::~Commissioning() {
   if (worker_.joinable()) worker_.join();
@@ -93,15 +94,23 @@ Commissioning::~Commissioning() {
 
 std::optional<std::string> Commissioning::owner_of(const std::string& device) const {
   const std::string wanted = canonical(device);
-  for (const auto& bus : config_.buses) {
-    if (canonical(bus.device) == wanted) {
-      return device + " is the line of bus `" + bus.name +
-             "`, which the gateway runs: commission a line no bus owns (or stop the gateway and use `sms-gateway "
-             "scan`)";
-    }
+  for (std::size_t i = 0; i < config_.buses.size(); ++i) {
+    const auto& bus = config_.buses[i];
+    if (canonical(bus.device) != wanted) continue;
+    if (lending_.lent && lending_.lent(i)) return std::nullopt;
+    return device + " is the line of bus `" + bus.name +
+           "`, which the gateway runs: stop the bus on this page first (its servos get their safe stop), or "
+           "commission a line no bus owns";
   }
   for (const auto& port : config_.modbus_rtu_slave) {
     if (canonical(port.device) == wanted) return device + " is an upstream Modbus RTU port of this gateway";
+  }
+  return std::nullopt;
+}
+
+std::optional<std::size_t> Commissioning::bus_index(const std::string& name) const {
+  for (std::size_t i = 0; i < config_.buses.size(); ++i) {
+    if (config_.buses[i].name == name) return i;
   }
   return std::nullopt;
 }
@@ -141,9 +150,20 @@ bool Commissioning::start(std::string kind, std::function<json(const std::functi
 }
 
 json Commissioning::state() const {
+  json buses = json::array();
+  for (std::size_t i = 0; i < config_.buses.size(); ++i) {
+    const auto& bus = config_.buses[i];
+    buses.push_back({{"name", bus.name},
+                     {"device", bus.device},
+                     {"protocol", std::string(protocol::to_string(bus.protocol))},
+                     {"baud", bus.baud},
+                     {"stoppable", static_cast<bool>(lending_.lend)},
+                     {"lent", lending_.lent && lending_.lent(i)}});
+  }
   std::lock_guard lock(mutex_);
   return {{"running", running_}, {"kind", kind_},   {"log", log_},
-          {"result", result_},   {"error", error_}, {"config_ready", !config_yaml_.empty()}};
+          {"result", result_},   {"error", error_}, {"config_ready", !config_yaml_.empty()},
+          {"buses", buses}};
 }
 
 std::string Commissioning::config_yaml() const {
@@ -250,6 +270,67 @@ void api_commission_calibrate(const std::shared_ptr<ApiCall>& call) {
             [](ServoLink& link, const ToolTarget& target, std::uint32_t, const Say& say) {
               return calibrate_middle(link, target, say);
             });
+}
+
+void api_commission_factory_reset(const std::shared_ptr<ApiCall>& call) {
+  servo_job(call, "factory-reset", nullptr,
+            [](ServoLink& link, const ToolTarget& target, std::uint32_t, const Say& say) {
+              return factory_reset(link, target, say);
+            });
+}
+
+namespace {
+
+// The bus a stop-bus / start-bus request names, checked; with its index.
+Expected<std::size_t> named_bus(const ApiCall& call, const std::string& what) {
+  const json body = json::parse(call.body, nullptr, false);
+  const auto name = body.is_object() ? body.find("bus") : body.end();
+  if (!body.is_object() || name == body.end() || !name->is_string()) {
+    return unexpected(what + ": `bus` (the name of a configured bus) is missing");
+  }
+  const auto index = call.services.commissioning().bus_index(name->get<std::string>());
+  if (!index) return unexpected(what + ": no bus " + printable(name->get<std::string>()) + " in the configuration");
+  if (!call.services.commissioning().lending().lend) {
+    return unexpected(what + ": this gateway cannot stop its buses from the console");
+  }
+  if (what == "stop-bus" && !body.value("confirm", false)) {
+    return unexpected(
+        "stop-bus: stopping bus " + call.services.config().buses[*index].name +
+        " stops its servos (their safe stop) and refuses PLC writes to them until it is started again; send "
+        "\"confirm\": true to do it");
+  }
+  return *index;
+}
+
+}  // namespace
+
+void api_commission_stop_bus(const std::shared_ptr<ApiCall>& call) {
+  const auto index = named_bus(*call, "stop-bus");
+  if (!index) return call->answer(HttpAnswer::error(400, index.error()));
+  const std::string bus = call->services.config().buses[*index].name;
+  const std::string who = "the browser console (" + call->who.name + ")";
+  // The worker thread calls the gateway, not Services (console thread only).
+  auto lend = call->services.commissioning().lending().lend;
+  start_job(call, "stop bus " + bus, [lend, index = *index, who, bus](const auto& say) -> json {
+    say("stopping bus " + bus + ": its servos get their safe stop, then its line is closed");
+    auto done = lend(index, who);
+    if (!done) return {{"error", done.error()}};
+    return {{"summary", *done}};
+  });
+}
+
+void api_commission_start_bus(const std::shared_ptr<ApiCall>& call) {
+  const auto index = named_bus(*call, "start-bus");
+  if (!index) return call->answer(HttpAnswer::error(400, index.error()));
+  const std::string bus = call->services.config().buses[*index].name;
+  const std::string who = "the browser console (" + call->who.name + ")";
+  // A job like any other: never while a scan or a set-id still holds the bus's line open.
+  auto take_back = call->services.commissioning().lending().take_back;
+  start_job(call, "start bus " + bus, [take_back, index = *index, who](const auto&) -> json {
+    auto done = take_back(index, who);
+    if (!done) return {{"error", done.error()}};
+    return {{"summary", *done}};
+  });
 }
 
 }  // namespace sms::gateway::console

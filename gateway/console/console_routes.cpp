@@ -299,6 +299,7 @@ class ServoStream final : public Stream {
         goal_position_(entry_for_servo_field(unit.map, spec_.goal_position)),
         goal_speed_(entry_for_servo_field(unit.map, spec_.goal_speed)),
         torque_(entry_for_servo_field(unit.map, spec_.torque)),
+        mode_(spec_.mode.empty() ? nullptr : entry_for_servo_field(unit.map, spec_.mode)),
         present_position_(entry_named(unit.map, spec_.present_position)),
         alive_(std::make_shared<bool>(true)) {}
   ~ServoStream() override { *alive_ = false; }
@@ -350,7 +351,10 @@ class ServoStream final : public Stream {
       last_heartbeat_ = now;
       return;
     }
-    if (message->kind == Kind::Release) return stop_jog("released");
+    if (message->kind == Kind::Release) {
+      ++jog_generation_;  // a speed jog still waiting for its mode check does not start
+      return stop_jog("released");
+    }
     if (!role_allows(who_.role, Role::Operate)) {
       return send(
           json{{"type", "error"},
@@ -369,15 +373,25 @@ class ServoStream final : public Stream {
       return send(error_json(std::string(entry->shown->name) + ": " + std::to_string(message->value) + " is outside " +
                              std::to_string(entry->min) + ".." + std::to_string(entry->max) + "; not moved"));
     }
-    jog_ = true;
-    jog_speed_ = speed;
-    jog_value_ = message->value;
-    jog_reason_ = "held";
-    state_changed_ = true;
-    last_heartbeat_ = now;
-    last_refresh_ = now;
-    send_ = send;
-    write_jog_goal();
+    if (!speed || mode_ == nullptr) return start_jog(speed, message->value, send, now);
+    // A speed goal turns only a servo in a speed mode (in position mode it is the move's speed
+    // limit and nothing turns): read its mode first, and say so rather than do nothing.
+    services_.modbus(
+        who_, unit_.unit_id, read_registers_pdu(mode_->address, 1),
+        [this, alive = alive_, generation = jog_generation_, value = message->value, send](const ModbusAnswer& answer) {
+          if (!*alive || generation != jog_generation_) return;
+          if (!answer.ok()) return send(error_json("reading " + std::string(spec_.mode) + ": " + answer.message));
+          const std::int64_t mode = static_cast<std::int16_t>(registers_in(answer.pdu).at(0));
+          const auto drive = std::find_if(spec_.modes.begin(), spec_.modes.end(),
+                                          [mode](const auto& entry) { return entry.value == mode; });
+          if (drive == spec_.modes.end() || drive->drive != modbus_map::Drive::Velocity) {
+            return send(error_json("servo " + std::to_string(unit_.unit_id) + " is not in a speed mode (" +
+                                   std::string(spec_.mode) + " = " + std::to_string(mode) +
+                                   "): the speed jog turns a servo in wheel mode; set " + std::string(spec_.mode) +
+                                   " in the control table first; not moved"));
+          }
+          start_jog(true, value, send, SteadyClock::now());
+        });
   }
 
   void on_close() override { stop_jog("the page went away"); }
@@ -395,6 +409,18 @@ class ServoStream final : public Stream {
                        if (answer.ok()) return send(json{{"type", "done"}, {"message", what}}.dump());
                        send(json{{"type", "error"}, {"message", what + ": " + answer.message}}.dump());
                      });
+  }
+
+  void start_jog(bool speed, std::int64_t value, const Send& send, SteadyClock::time_point now) {
+    jog_ = true;
+    jog_speed_ = speed;
+    jog_value_ = value;
+    jog_reason_ = "held";
+    state_changed_ = true;
+    last_heartbeat_ = now;
+    last_refresh_ = now;
+    send_ = send;
+    write_jog_goal();
   }
 
   void write_jog_goal() {
@@ -461,6 +487,7 @@ class ServoStream final : public Stream {
   const modbus_map::RegisterEntry* goal_position_;
   const modbus_map::RegisterEntry* goal_speed_;
   const modbus_map::RegisterEntry* torque_;
+  const modbus_map::RegisterEntry* mode_;  // the operating-mode field; nullptr: the table has none
   const modbus_map::RegisterEntry* present_position_;
   std::shared_ptr<bool> alive_;
   std::vector<std::string> names_;
@@ -470,6 +497,7 @@ class ServoStream final : public Stream {
   std::uint8_t status_ = 0;
   bool jog_ = false;
   bool jog_speed_ = false;
+  std::uint64_t jog_generation_ = 0;  // counts releases
   std::int64_t jog_value_ = 0;
   std::string jog_reason_;
   bool state_changed_ = true;
@@ -582,6 +610,9 @@ const Route kRoutes[] = {
     {"POST", "/api/commission/set-id", Role::Engineer, RouteKind::Api, {}, api_commission_set_id},
     {"POST", "/api/commission/set-baud", Role::Engineer, RouteKind::Api, {}, api_commission_set_baud},
     {"POST", "/api/commission/calibrate", Role::Engineer, RouteKind::Api, {}, api_commission_calibrate},
+    {"POST", "/api/commission/factory-reset", Role::Engineer, RouteKind::Api, {}, api_commission_factory_reset},
+    {"POST", "/api/commission/stop-bus", Role::Engineer, RouteKind::Api, {}, api_commission_stop_bus},
+    {"POST", "/api/commission/start-bus", Role::Engineer, RouteKind::Api, {}, api_commission_start_bus},
     // Live data.
     {"GET", "/ws/overview", Role::Read, RouteKind::Socket, {}, nullptr, make_overview_stream},
     {"GET", "/ws/servo/{unit}", Role::Read, RouteKind::Socket, {}, nullptr, make_servo_stream},

@@ -135,7 +135,7 @@ class ConsoleServer::Impl final : public Services {
         rules_(access_rules(settings_)),
         policy_(*backend_.config),
         sessions_(settings_.session_timeout),
-        commissioning_(*backend_.config),
+        commissioning_(*backend_.config, backend_.lending),
         acceptor_(io_),
         timer_(io_),
         mailbox_(std::make_shared<Mailbox>()) {}

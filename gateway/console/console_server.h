@@ -19,6 +19,7 @@
 #include "config/config.h"
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/wire_monitor.h"
+#include "gateway/console/console_commission.h"
 #include "gateway/modbus_tcp/request_handler.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/units/unit_router.h"
@@ -34,6 +35,7 @@ struct ConsoleBackend {
   std::function<MetricsSnapshot()> metrics;  // any thread (as /metrics calls it)
   // The bus monitor of the bus named so (docs/MONITOR.md), nullptr for no such bus; any thread.
   std::function<std::shared_ptr<WireMonitor>(std::string_view bus)> monitor;
+  BusLending lending;  // empty functions: no bus can be stopped from the console (tests)
 };
 
 struct ConsoleLimits {

@@ -184,7 +184,8 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
                 {"last_cause", std::string(to_string(bus.safety->last_cause))},
                 {"trips", bus.safety->trips},
                 {"motion_blocked", bus.safety->motion_blocked},
-                {"owed_stops", bus.safety->owed_stops}};
+                {"owed_stops", bus.safety->owed_stops},
+                {"lent", bus.safety->lent}};
     }
     buses.push_back({{"name", bus.name},
                      {"device", bus_config.device},

@@ -270,18 +270,20 @@ void add_set_baud(CLI::App& app) {
   });
 }
 
-void add_calibrate(CLI::App& app) {
+// A tool that acts on one servo and says what it did: calibrate-middle, factory-reset.
+using ServoAction = Expected<std::string> (*)(ServoLink&, const ToolTarget&, const Say&);
+void add_servo_action(CLI::App& app, const std::string& name, const std::string& description, ServoAction action,
+                      const std::string& force_help) {
   auto args = std::make_shared<LineArgs>();
-  CLI::App* command = app.add_subcommand(
-      "calibrate-middle", "Make a servo's present position its centre (sts: 128 to address 40; smsmb: 0x86 bit 2)");
+  CLI::App* command = app.add_subcommand(name, description);
   add_line_options(*command, *args, true);
   command->add_option("--id", args->id, "The servo's ID")->required();
-  command->add_flag("--force", args->force, "Allow --id to be the broadcast ID: every servo on the line");
-  command->callback([args] {
-    auto link = open_link(link_settings(*args), "calibrate-middle");
-    const ToolTarget target{table_of(*args, "calibrate-middle"), static_cast<std::uint8_t>(args->id), args->force};
-    auto done = calibrate_middle(*link, target, printer());
-    if (!done) fail("calibrate-middle", done.error());
+  if (!force_help.empty()) command->add_flag("--force", args->force, force_help);
+  command->callback([args, name, action] {
+    auto link = open_link(link_settings(*args), name);
+    const ToolTarget target{table_of(*args, name), static_cast<std::uint8_t>(args->id), args->force};
+    auto done = action(*link, target, printer());
+    if (!done) fail(name, done.error());
     std::cout << *done << "\n";
     finish(kExitOk);
   });
@@ -419,7 +421,13 @@ void add_tool_commands(CLI::App& app) {
   add_scan(app);
   add_set_id(app);
   add_set_baud(app);
-  add_calibrate(app);
+  add_servo_action(app, "calibrate-middle",
+                   "Make a servo's present position its centre (sts: 128 to address 40; smsmb: 0x86 bit 2)",
+                   calibrate_middle, "Allow --id to be the broadcast ID: every servo on the line");
+  add_servo_action(app, "factory-reset",
+                   "Put a servo's whole table back to factory values, ID and baud included (d55d RESET; "
+                   "feetech and modbus-rtu servos have no such instruction)",
+                   factory_reset, "");
   add_dump(app);
 }
 

@@ -2,7 +2,7 @@
 // The integrator tools and the transparent forwarder as subcommands of sms-gateway:
 //   forward           Modbus TCP -> RTU gateway without a configuration file (passthrough.h)
 //   scan              find servos on a line: every rate of the protocol's table, every ID (tool_scan.h)
-//   set-id, set-baud, calibrate-middle, dump   one servo (tool_servo.h)
+//   set-id, set-baud, calibrate-middle, factory-reset, dump   one servo (tool_servo.h)
 // `sms-gateway SUBCOMMAND --help` lists each one's options.
 //
 // A subcommand runs inside app.parse() (its callback) and ends the parse with

@@ -11,6 +11,7 @@
 #include "gateway/bus/packet_transactor.h"
 #include "gateway/bus/rtu_transactor.h"
 #include "gateway/bus/serial_port.h"
+#include "protocol/d55d.h"
 
 namespace sms::gateway {
 
@@ -21,9 +22,9 @@ using protocol::BusProtocol;
 namespace {
 
 constexpr std::array<ToolProtocol, 3> kToolProtocols{{
-    {BusProtocol::Feetech, TableId::Sts, 0, 253, protocol::kBroadcastId, 500us, true},
-    {BusProtocol::D55d, TableId::D55d, 0, 253, protocol::kBroadcastId, 8000us, true},
-    {BusProtocol::ModbusRtu, TableId::Smsmb, 1, 247, 0, 500us, false},
+    {BusProtocol::Feetech, TableId::Sts, 0, 253, protocol::kBroadcastId, 500us, true, std::nullopt},
+    {BusProtocol::D55d, TableId::D55d, 0, 253, protocol::kBroadcastId, 8000us, true, protocol::d55d::kReset},
+    {BusProtocol::ModbusRtu, TableId::Smsmb, 1, 247, 0, 500us, false, std::nullopt},
 }};
 
 SerialSettings serial_of(const LinkSettings& settings) {
@@ -104,6 +105,18 @@ class TransactorLink final : public ServoLink {
     return run(id, [&] {
       return transactor_->prepare(WriteOp{id, address, Bytes(data.begin(), data.end())}, settings_.attempts);
     });
+  }
+
+  LinkAnswer instruction(std::uint8_t id, std::uint8_t code) override {
+    if constexpr (requires(const Transactor& t) { t.instruction_request(id, code, 1U); }) {
+      return run(id, [&] { return transactor_->instruction_request(id, code, settings_.attempts); });
+    } else {
+      LinkAnswer answer;
+      answer.status = LinkStatus::PortError;
+      answer.detail = fmt::format("instruction 0x{:02X} does not exist on a {} line", code,
+                                  protocol::to_string(settings_.protocol));
+      return answer;
+    }
   }
 
   std::chrono::nanoseconds wire_time(std::size_t bytes) const override {

@@ -13,6 +13,7 @@
 #include <chrono>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -39,6 +40,10 @@ struct ToolProtocol {
   // servo usually waits before answering, for the scan's per-ID timeout.
   std::chrono::microseconds usual_return_delay;
   bool broadcast_ping_answered;  // PING to the broadcast ID is answered by every servo
+  // The instruction that puts a servo's whole table back to factory values (d55d RESET); none
+  // where the protocol has no such instruction (feetech's RECOVERY restores the servo's own
+  // backup, not factory values).
+  std::optional<std::uint8_t> factory_reset;
 };
 const ToolProtocol& tool_protocol(protocol::BusProtocol protocol);
 
@@ -96,6 +101,9 @@ class ServoLink {
   virtual LinkAnswer read(std::uint8_t id, std::uint16_t address, std::uint16_t count) = 0;
   // To the broadcast ID: sent, nothing awaited (Ok once it left the wire).
   virtual LinkAnswer write(std::uint8_t id, std::uint16_t address, std::span<const std::uint8_t> data) = 0;
+  // An instruction without parameters (packet protocols; ToolProtocol::factory_reset), awaiting
+  // its status packet. modbus-rtu has none: PortError saying so.
+  virtual LinkAnswer instruction(std::uint8_t id, std::uint8_t code) = 0;
 
   // Wire time of `bytes` characters at the current rate.
   virtual std::chrono::nanoseconds wire_time(std::size_t bytes) const = 0;

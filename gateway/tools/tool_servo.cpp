@@ -5,6 +5,7 @@
 #include <optional>
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include "modbus_map/baud_tables.h"
 #include "modbus_map/tables.h"
@@ -339,6 +340,70 @@ Expected<std::string> calibrate_middle(ServoLink& link, const ToolTarget& target
   auto position = read_field(link, table, target.id, require_field(table, "present_position"));
   if (!position) return unexpected(position.error());
   return fmt::format("servo {} calibrated: present position now {}", target.id, *position);
+}
+
+Expected<std::string> factory_reset(ServoLink& link, const ToolTarget& target, const Say& say) {
+  if (auto checked = check_target(link, target, "factory-reset"); !checked) return unexpected(checked.error());
+  const TableSpec& table = modbus_map::table(target.table);
+  const ToolProtocol& rules = tool_protocol(link.settings().protocol);
+  if (!rules.factory_reset) {
+    return unexpected(fmt::format(
+        "{} servos have no factory-reset instruction (feetech's RECOVERY restores the servo's own backup, "
+        "not factory values): write the fields you need on the servo page, or with `sms-gateway set-id` / `set-baud`",
+        protocol::to_string(rules.protocol)));
+  }
+  if (target.id == rules.broadcast_id) {
+    return unexpected(std::string("a factory reset goes to one servo: every servo would come back on the same ID"));
+  }
+  // Where the servo will answer afterwards: the table's factory ID, at the rate its factory baud
+  // code means (d55d code 0: 115200 on base motors, 9600 on the others).
+  const FieldSpec& id_field = require_field(table, "id");
+  const FieldSpec& baud_field = require_field(table, "baud_rate");
+  const auto factory_id = static_cast<std::uint8_t>(id_field.default_value.value_or(1));
+  const auto code = static_cast<std::uint8_t>(baud_field.default_value.value_or(0));
+  std::vector<std::uint32_t> factory_bauds;
+  for (const bool base_motor : {false, true}) {
+    const auto bps = modbus_map::baud_from_code(rules.protocol, code, base_motor);
+    if (bps && std::find(factory_bauds.begin(), factory_bauds.end(), *bps) == factory_bauds.end()) {
+      factory_bauds.push_back(*bps);
+    }
+  }
+  const std::uint32_t baud = link.settings().baud;
+  if (auto present = require_answer(link, target.id, " — is the baud right? `sms-gateway scan` finds servos");
+      !present) {
+    return unexpected(present.error());
+  }
+  if (target.id != factory_id) {
+    const LinkAnswer taken = ask_carefully(link, factory_id);
+    if (taken.status == LinkStatus::PortError) return unexpected(taken.detail);
+    if (taken.ok() || taken.damaged) {
+      return unexpected(fmt::format(
+          "ID {} (the factory ID) is already taken at {} bit/s: after the reset two servos would answer on it. "
+          "Give that servo another ID first, or reset this one alone on the line",
+          factory_id, baud));
+    }
+  }
+  say(fmt::format("sending RESET to servo {}: every field back to its factory value, the ID to {}", target.id,
+                  factory_id));
+  const LinkAnswer reset = link.instruction(target.id, *rules.factory_reset);
+  if (reset.status == LinkStatus::Refused || reset.status == LinkStatus::PortError) {
+    return unexpected(fmt::format("servo {} did not take RESET: {}", target.id, reset.detail));
+  }
+  // It restarts with the factory values: look for it there.
+  for (const std::uint32_t bps : factory_bauds) {
+    if (bps != link.settings().baud) {
+      if (auto switched = link.set_baud(bps); !switched) return unexpected(switched.error());
+    }
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      if (link.ping(factory_id).ok()) {
+        return fmt::format("servo {} reset to factory values: it now answers as ID {} at {} bit/s", target.id,
+                           factory_id, bps);
+      }
+    }
+  }
+  return unexpected(fmt::format(
+      "RESET was sent to servo {}, but nothing answers on ID {} at {} bit/s: power-cycle the servo, then scan the line",
+      target.id, factory_id, fmt::join(factory_bauds, " or ")));
 }
 
 Expected<std::vector<DumpRow>> dump_servo(ServoLink& link, const ToolTarget& target) {

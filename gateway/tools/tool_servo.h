@@ -46,6 +46,12 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
 // no documented calibration and are refused.
 Expected<std::string> calibrate_middle(ServoLink& link, const ToolTarget& target, const Say& say);
 
+// Factory reset, where the protocol has an instruction for it (ToolProtocol::factory_reset:
+// d55d RESET): checks the servo answers and the factory ID is free at this rate, sends it, then
+// finds the servo at its factory ID and baud (the link is left there). Refused elsewhere, saying
+// what to do instead.
+Expected<std::string> factory_reset(ServoLink& link, const ToolTarget& target, const Say& say);
+
 struct DumpRow {
   const modbus_map::FieldSpec* field = nullptr;
   std::uint32_t raw = 0;

@@ -49,7 +49,7 @@ inline constexpr std::uint16_t kOwedStops = 13;
 inline constexpr std::uint16_t kFailedStops = 14;
 // Inside bus n's block (100 + 20·n): 10 watchdog state (0 off, 1 armed, 2 running, 3 tripped),
 // 11 ms since the last feed (65535: never or longer), 12-13 trips, 14 timeout ms, 15 cause of
-// the last safe stop (0 none, 1 watchdog, 2 e-stop, 3 on_start, 4 on_stop), 16-17 its latency µs
+// the last safe stop (0 none, 1 watchdog, 2 e-stop, 3 on_start, 4 on_stop, 5 commissioning), 16-17 its latency µs
 // (last feed or request -> frames on the wire; 0 after a stop that failed), 18 motion blocked,
 // 19 servos of the bus owed a safe stop.
 inline constexpr std::uint16_t kWatchdogState = 10;

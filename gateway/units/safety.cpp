@@ -72,6 +72,9 @@ struct BusSafety {
   std::atomic<std::uint64_t> failed_stops{0};
   std::atomic<StopCause> last_cause{StopCause::None};
   std::atomic<std::int64_t> last_latency_us{-1};
+  // Its line is lent to the console's commissioning (lend_bus): motion refused until returned.
+  // Written under state_mutex_ (it is part of the gate's rule), read without it too.
+  std::atomic<bool> lent{false};
 };
 
 std::string targets_text(const std::vector<std::string>& parts) {
@@ -102,6 +105,7 @@ std::string_view to_string(StopCause cause) {
     case StopCause::EStop: return "e-stop";
     case StopCause::Start: return "on_start";
     case StopCause::Shutdown: return "on_stop";
+    case StopCause::Commissioning: return "commissioning";
   }
   return "?";
 }
@@ -252,6 +256,11 @@ class SafetySupervisor::Impl {
                         std::to_string(bus.watchdog->timeout.count()) +
                         " ms); motion writes are refused until it is re-armed (gateway unit coil 2 := 0)");
     }
+    if (bus.lent.load()) {
+      return unexpected("bus " + bus.name +
+                        ": its line is lent to commissioning (stopped from the browser console); motion writes are "
+                        "refused until the bus is started again there");
+    }
     if (bus.gate->blocked()) {
       return unexpected("bus " + bus.name + ": motion is blocked while the gateway stops");
     }
@@ -302,6 +311,32 @@ class SafetySupervisor::Impl {
     }
   }
 
+  void lend_bus(std::size_t index, std::string_view who, std::function<void(bool)> done) {
+    BusSafety& bus = *buses_.at(index);
+    {
+      std::lock_guard lock(state_mutex_);
+      bus.lent.store(true);
+      apply_gates_locked();
+    }
+    spdlog::warn(
+        "safety: bus {}: stopped by {} to lend its line to commissioning: its servos get their safe stop; "
+        "motion writes are refused until it is started again",
+        bus.name, who);
+    asio::post(io_, [this, index, done = std::move(done)] {
+      run_stop(index, StopCause::Commissioning, std::nullopt, Clock::now(), "commissioning", done);
+    });
+  }
+
+  void return_bus(std::size_t index, std::string_view who) {
+    BusSafety& bus = *buses_.at(index);
+    {
+      std::lock_guard lock(state_mutex_);
+      if (!bus.lent.exchange(false)) return;
+      apply_gates_locked();
+    }
+    spdlog::warn("safety: bus {}: started again by {}; nothing moved{}", bus.name, who, owed_text());
+  }
+
   void reset_estop(std::string_view who) {
     {
       std::lock_guard lock(state_mutex_);
@@ -350,6 +385,7 @@ class SafetySupervisor::Impl {
       f.last_cause = bus->last_cause.load();
       if (const auto us = bus->last_latency_us.load(); us >= 0) f.last_stop_latency = std::chrono::microseconds{us};
       f.motion_blocked = bus->gate->blocked();
+      f.lent = bus->lent.load();
       facts.buses.push_back(f);
     }
     return facts;
@@ -372,7 +408,8 @@ class SafetySupervisor::Impl {
   // The one rule for every gate, from the whole state; call with state_mutex_ held.
   void apply_gates_locked() {
     for (const auto& bus : buses_) {
-      const bool blocked = shutting_down_ || estop_latched_.load() || bus->state.load() == WatchdogState::Tripped;
+      const bool blocked =
+          shutting_down_ || estop_latched_.load() || bus->lent.load() || bus->state.load() == WatchdogState::Tripped;
       if (blocked != bus->gate->blocked()) bus->gate->set_blocked(blocked);
     }
   }
@@ -780,6 +817,10 @@ void SafetySupervisor::estop(const PostFn& post, std::function<void(bool)> done,
   impl_->estop(post, std::move(done), who);
 }
 void SafetySupervisor::reset_estop(std::string_view who) { impl_->reset_estop(who); }
+void SafetySupervisor::lend_bus(std::size_t bus, std::string_view who, std::function<void(bool)> done) {
+  impl_->lend_bus(bus, who, std::move(done));
+}
+void SafetySupervisor::return_bus(std::size_t bus, std::string_view who) { impl_->return_bus(bus, who); }
 void SafetySupervisor::rearm_watchdogs(std::string_view who) { impl_->rearm_watchdogs(who); }
 SafetyFacts SafetySupervisor::facts() const { return impl_->facts(); }
 bool SafetySupervisor::estop_latched() const { return impl_->estop_latched(); }

@@ -60,7 +60,7 @@ enum class WatchdogState : std::uint8_t {
 std::string_view to_string(WatchdogState state);
 
 // What a safe stop was for (logs, unit 255 register, metrics).
-enum class StopCause : std::uint8_t { None = 0, Watchdog = 1, EStop = 2, Start = 3, Shutdown = 4 };
+enum class StopCause : std::uint8_t { None = 0, Watchdog = 1, EStop = 2, Start = 3, Shutdown = 4, Commissioning = 5 };
 std::string_view to_string(StopCause cause);
 
 struct BusSafetyFacts {
@@ -74,6 +74,7 @@ struct BusSafetyFacts {
   bool motion_blocked = false;
   std::uint64_t failed_stops = 0;  // stops that could not reach every servo when performed
   std::size_t owed_stops = 0;      // servos owed their stop right now
+  bool lent = false;               // its line is lent to commissioning (SafetySupervisor::lend_bus)
 };
 
 struct SafetyFacts {
@@ -135,6 +136,14 @@ class SafetySupervisor {
   // `who` names the client in the log ("a Modbus TCP client", "the Sparkplug host (NCMD/DCMD)").
   void estop(const PostFn& post, std::function<void(bool ok)> done, std::string_view who = "a Modbus TCP client");
   void reset_estop(std::string_view who = "a Modbus TCP client");
+  // The browser console stops bus `bus` to lend its line to commissioning (docs/CONSOLE.md): motion
+  // on the bus is refused from now on and every servo of the bus gets its safe stop (one it could
+  // not take stays owed); `done(ok)` runs on the safety thread once the stop frames went out (ok
+  // false: some servo was not reached). Not kept in the state file: a restart runs the bus again.
+  void lend_bus(std::size_t bus, std::string_view who, std::function<void(bool ok)> done);
+  // The bus is back from commissioning: motion is admitted again (unless the latch or a trip
+  // says otherwise). Moves nothing.
+  void return_bus(std::size_t bus, std::string_view who);
   // Gateway unit coil 2 := 0: every tripped watchdog back to armed. Moves nothing.
   void rearm_watchdogs(std::string_view who = "a Modbus TCP client");
 

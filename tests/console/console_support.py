@@ -112,6 +112,10 @@ class ConsoleCase(unittest.TestCase):
                          "--window-size=1400,1000", "--disable-background-timer-throttling"):
             options.add_argument(argument)
         cls.browser = webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
+        # Downloads (the plot's CSV) land in the test's own folder.
+        cls.downloads = os.path.join(cls.workdir, "downloads")
+        os.makedirs(cls.downloads)
+        cls.browser.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": cls.downloads})
         cls.browser.set_page_load_timeout(20)
         cls.browser.set_script_timeout(10)
 
@@ -141,7 +145,10 @@ class ConsoleCase(unittest.TestCase):
         for sim in ("sim", "free_line"):
             if hasattr(cls, sim):
                 getattr(cls, sim).stop()
-        shutil.rmtree(cls.workdir, ignore_errors=True)
+        if os.environ.get("SMS_CONSOLE_KEEP"):  # for a look at gateway.log after a failure
+            sys.stderr.write(f"kept {cls.workdir}\n")
+        else:
+            shutil.rmtree(cls.workdir, ignore_errors=True)
 
     # --- browser helpers ---------------------------------------------------------------------------
 

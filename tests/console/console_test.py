@@ -138,13 +138,13 @@ class ConsoleTest(ConsoleCase):
             actions = actions.release()
         actions.perform()
 
-    def wait_stopped(self, servo):
+    def wait_stopped(self, servo, timeout=3):
         """The servo's position stays put for 300 ms (the simulator's own motion model)."""
         def still():
             first = self.sim.field(servo, "present_position")
             time.sleep(0.3)
             return first == self.sim.field(servo, "present_position")
-        wait_until(still, timeout=3, what=f"servo {servo} to stand still")
+        wait_until(still, timeout=timeout, what=f"servo {servo} to stand still")
 
     def start_far_move(self, servo):
         self.open(f"/servo/{servo}", "#hold-position:not([disabled])")
@@ -325,6 +325,108 @@ class ConsoleTest(ConsoleCase):
         wait_until(lambda: self._alert(), what="the confirmation").accept()
         wait_until(lambda: "10:sts" in self.free_line.command("list"), timeout=15, what="servo 9 to answer as 10")
         self.assertNotIn("9:sts", self.free_line.command("list"))
+
+    def test_k_plot_exports_its_window_as_csv_and_the_wheel_and_torque_buttons_drive_the_servo(self):
+        import csv
+        self.login("op")
+        self.open("/servo/1", "#hold-speed:not([disabled])")
+        wait_until(lambda: int(self.browser.find_element(By.ID, "plot").get_attribute("data-samples") or 0) > 20,
+                   timeout=10, what="20 samples on the plot")
+        # Torque off and on: the simulator's torque_enable follows.
+        self.browser.find_element(By.ID, "torque-off").click()
+        wait_until(lambda: self.sim.field(1, "torque_enable") == 0, what="servo 1's torque to go off")
+        self.browser.find_element(By.ID, "torque-on").click()
+        wait_until(lambda: self.sim.field(1, "torque_enable") == 1, what="servo 1's torque to come on")
+        # Wheel mode, held: the servo turns while the button is held and stops when it is released.
+        # In position mode a speed goal turns nothing: the page says so and nothing moves.
+        speed = self.browser.find_element(By.ID, "jog-speed")
+        speed.clear()
+        speed.send_keys("800")
+        goal_speed = self.sim.field(1, "goal_speed")
+        button = self.browser.find_element(By.ID, "hold-speed")
+        ActionChains(self.browser).click_and_hold(button).pause(0.3).release().perform()
+        wait_until(lambda: "not in a speed mode" in self.text("#message"), what="the refusal in position mode")
+        self.assertEqual(self.sim.field(1, "goal_speed"), goal_speed)
+        self.sim.command("set 1 33 01")  # operating_mode := 1 (wheel) through the simulator's backdoor
+        speed = self.browser.find_element(By.ID, "jog-speed")
+        speed.clear()
+        speed.send_keys("800")
+        start = self.sim.field(1, "present_position")
+        button = self.browser.find_element(By.ID, "hold-speed")
+        ActionChains(self.browser).click_and_hold(button).pause(0.5).release().perform()
+        self.wait_stopped(1)
+        self.assertNotEqual(self.sim.field(1, "present_position"), start, "servo 1 did not turn while held")
+        self.assertEqual(self.sim.field(1, "goal_speed"), 0, "the release did not stop the wheel")
+        # The plotted window as CSV: the samples the plot shows, time rising, the last position the servo's.
+        self.browser.find_element(By.ID, "pause").click()
+        shown = int(self.browser.find_element(By.ID, "plot").get_attribute("data-samples"))
+        self.browser.find_element(By.ID, "csv").click()
+        path = os.path.join(self.downloads, "unit1-plot.csv")
+        wait_until(lambda: os.path.exists(path) and os.path.getsize(path) > 0, what="the CSV download")
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+        self.assertEqual(rows[0][0], "time_s")
+        self.assertIn("present_position", rows[0])
+        self.assertEqual(len(rows) - 1, shown)
+        times = [float(r[0]) for r in rows[1:]]
+        self.assertEqual(times, sorted(times))
+        column = rows[0].index("present_position")
+        last = int(next(r[column] for r in reversed(rows[1:]) if r[column] != ""))
+        self.assertLess(abs(last - self.sim.field(1, "present_position")), 5)
+        self.browser.find_element(By.ID, "pause").click()
+        self.sim.command("set 1 33 00")  # back to position mode for the tests that follow
+
+    def test_l_stopping_a_bus_to_commission_its_line_stops_its_servos_even_a_silent_one(self):
+        """A stop combined with faults: servo 2 moving, servo 3 silent when the bus is stopped from the
+        commissioning page. The simulator is the witness: servo 2 stops short of its goal, servo 3 gets
+        its owed stop the moment the bus runs again; meanwhile PLC writes get 0x04 and the page scans
+        the bus's own line."""
+        self.sim.command("set 2 41 0a")  # slow acceleration: the move outlasts the stop
+        self.sim.command("set 3 40 01")  # servo 3's torque on, to see its owed stop take it off
+        client = self.modbus()
+        start = self.sim.field(2, "present_position")
+        goal = 4000 if start < 2048 else 100
+        for _ in range(3):  # a servo timeout (0x0B) on a loaded test machine is retried, as a PLC would
+            written = client.write_register(42, goal, slave=2)
+            if not written.isError() or getattr(written, "exception_code", 0) != 0x0B:
+                break
+        self.assertFalse(written.isError(), written)
+        self.sim.command("offline 3")  # the fault: servo 3 does not answer its stop
+        self.login("eng")
+        self.open("/commission", "#buses-table tr[data-bus='arm'] button.stop-bus:not([disabled])")
+        self.browser.find_element(By.CSS_SELECTOR, "#buses-table tr[data-bus='arm'] button.stop-bus").click()
+        wait_until(lambda: self._alert(), what="the stop confirmation").accept()
+        wait_until(lambda: "bus arm stopped" in self.text("#message"), timeout=15, what="the bus to stop")
+        self.assertIn("1 servo(s) did not answer", self.text("#message"))
+        self.wait_stopped(2, timeout=8)  # it brakes at its slow acceleration
+        self.assertGreater(abs(goal - self.sim.field(2, "present_position")), 200, "servo 2 ran on to its goal")
+        self.assertEqual(self.sim.field(3, "torque_enable"), 1)
+        # PLC writes are refused while the line is lent: 0x0A, the path to the servo is gone, as for a
+        # bus that is down; the page says why.
+        answer = client.write_register(42, 2048, slave=1)
+        self.assertTrue(answer.isError())
+        self.assertEqual(answer.exception_code, 0x0A)
+        wait_until(lambda: "stopped for commissioning" in self.text("#buses-table tr[data-bus='arm'] td.state"),
+                   what="the page to show the bus stopped")
+        # The bus's own line is free for the page's scan now (its device is filled in).
+        self.assertEqual(self.browser.find_element(By.ID, "device").get_attribute("value"), self.sim.link)
+        self.browser.find_element(By.ID, "bauds").send_keys("1000000")
+        self.browser.find_element(By.ID, "last-id").send_keys("5")
+        self.browser.find_element(By.ID, "scan").click()
+        wait_until(lambda: self.browser.execute_script(
+            "return [...document.querySelectorAll('#found-table tr[data-id]')].map(r => r.dataset.id).join(',')") == "1,2",
+                   timeout=30, what="servos 1 and 2 (3 is silent) in the scan of the bus's line")
+        # Servo 3 answers again; the bus starts and its owed stop reaches it first.
+        self.sim.command("online 3")
+        self.browser.find_element(By.CSS_SELECTOR, "#buses-table tr[data-bus='arm'] button.start-bus").click()
+        wait_until(lambda: "started again" in self.text("#message"), timeout=15, what="the bus to start")
+        wait_until(lambda: self.sim.field(3, "torque_enable") == 0, timeout=10, what="servo 3's owed stop")
+
+        def written_again():
+            answer = client.write_register(42, 2048, slave=1)
+            return not answer.isError()
+        wait_until(written_again, timeout=10, what="a PLC write to be accepted again")
+        client.close()
 
     # --- helpers ----------------------------------------------------------------------------------
 

@@ -10,9 +10,30 @@ function line(extra) {
     protocol: document.getElementById('protocol').value }, extra);
 }
 
+// The gateway's own buses: stop one (with a confirmation) to commission its line, start it again.
+function showBuses(buses, running) {
+  document.querySelector('#buses-table tbody').replaceChildren(...buses.map((bus) => {
+    const action = element('button', { class: bus.lent ? 'start-bus' : 'stop-bus' }, bus.lent ? 'Start the bus again' : 'Stop the bus to commission its line');
+    action.disabled = !engineer || running || !bus.stoppable;
+    action.addEventListener('click', () => {
+      if (bus.lent) return run('/api/commission/start-bus', { bus: bus.name });
+      if (confirm(`Stop bus ${bus.name}? Each of its servos gets its safe stop, and PLC writes to them are refused until you start the bus again.`)) {
+        document.getElementById('device').value = bus.device;
+        document.getElementById('protocol').value = bus.protocol;
+        run('/api/commission/stop-bus', { bus: bus.name, confirm: true });
+      }
+    });
+    return element('tr', { 'data-bus': bus.name }, element('td', {}, bus.name), element('td', {}, bus.device),
+      element('td', {}, bus.protocol), element('td', { class: 'num' }, bus.baud),
+      element('td', { class: bus.lent ? 'bad state' : 'ok state' }, bus.lent ? 'stopped for commissioning' : 'running'),
+      element('td', {}, action));
+  }));
+}
+
 let polling = null;
 async function poll() {
   const state = await api('GET', '/api/commission');
+  showBuses(state.buses, state.running);
   document.getElementById('log').textContent = state.log.join('\n');
   document.getElementById('job-state').textContent = state.running ? `${state.kind}: running…` : (state.kind ? `${state.kind}: done` : '');
   document.getElementById('download').hidden = !state.config_ready;
@@ -49,10 +70,14 @@ function showFound(found) {
     calibrate.addEventListener('click', () => {
       if (confirm(`Make servo ${servo.id}'s present position its centre?`)) run('/api/commission/calibrate', line(target));
     });
-    for (const button of [setId, setBaud, calibrate]) button.disabled = !engineer;
+    const reset = element('button', { class: 'factory-reset' }, 'Factory defaults');
+    reset.addEventListener('click', () => {
+      if (confirm(`Put every field of servo ${servo.id} back to its factory value (its ID and baud too)?`)) run('/api/commission/factory-reset', line(target));
+    });
+    for (const button of [setId, setBaud, calibrate, reset]) button.disabled = !engineer;
     return element('tr', { 'data-id': servo.id }, element('td', { class: 'num' }, servo.baud), element('td', { class: 'num' }, servo.id),
       element('td', {}, servo.table), element('td', { class: servo.conflict ? 'bad' : 'muted' }, servo.note || (servo.conflict ? 'ID conflict' : '')),
-      element('td', {}, newId, ' ', setId), element('td', {}, newBaud, ' ', setBaud), element('td', {}, calibrate));
+      element('td', {}, newId, ' ', setId), element('td', {}, newBaud, ' ', setBaud), element('td', {}, calibrate, ' ', reset));
   }));
 }
 

@@ -66,6 +66,7 @@ const COLOURS = ['#1f5fbf', '#b42318', '#1b7f3b', '#b54708', '#6941c6', '#0e7090
 const history = [];      // [time_s, {field: value}] for every sample, last 60 s
 let fieldNames = [];
 let paused = false;
+let shown = [];          // the rows on the plot now: what the CSV export writes (paused: the frozen window)
 const chart = new Chart(document.getElementById('plot'), {
   type: 'line',
   data: { datasets: [] },
@@ -99,6 +100,7 @@ function plotted() {
 
 function redraw() {
   const rows = plotted();
+  shown = rows;
   chart.data.datasets = selected().map((name, i) => ({
     label: name, borderColor: COLOURS[i % COLOURS.length], borderWidth: 1.5,
     data: rows.filter(([, v]) => name in v).map(([t, v]) => ({ x: t, y: v[name] })) }));
@@ -116,7 +118,7 @@ document.getElementById('window').addEventListener('change', redraw);
 document.getElementById('csv').addEventListener('click', () => {
   const names = selected();
   const lines = ['time_s,' + names.join(',')];
-  for (const [t, v] of plotted()) lines.push([t.toFixed(4), ...names.map((n) => v[n] ?? '')].join(','));
+  for (const [t, v] of shown) lines.push([t.toFixed(4), ...names.map((n) => v[n] ?? '')].join(','));
   const link = element('a', { href: URL.createObjectURL(new Blob([lines.join('\n') + '\n'], { type: 'text/csv' })),
     download: `unit${unit}-plot.csv` });
   document.body.append(link);

@@ -266,6 +266,50 @@ TEST(CalibrateMiddle, D55dHasNoCalibrationAndIsRefused) {
   EXPECT_NE(done.error().find("no documented mid-point calibration"), std::string::npos) << done.error();
 }
 
+// d55d RESET: every field back to its factory value, ID and baud included; the tool finds the
+// servo again at its factory ID and rate. The simulator's own memory is the witness.
+TEST(FactoryReset, D55dServoComesBackWithFactoryValuesAtItsFactoryIdAndRate) {
+  simulator::SimulatedBus bus(one_servo({7, TableId::D55d, BusProtocol::D55d, 256'000}));
+  bus.start();
+  constexpr std::uint16_t kReturnDelay = 5;  // d55d, factory value 16
+  ASSERT_TRUE(bus.write_memory(7, kReturnDelay, protocol::Bytes{3}));
+  auto link = open_link(bus.slave_path(), BusProtocol::D55d, 256'000);
+  std::vector<std::string> said;
+  const auto done =
+      factory_reset(*link, ToolTarget{TableId::D55d, 7}, [&](const std::string& line) { said.push_back(line); });
+  ASSERT_TRUE(done) << done.error();
+  EXPECT_NE(done->find("answers as ID 1"), std::string::npos) << *done;
+  EXPECT_EQ(bus.read_field(1, "return_delay"), 16);
+  EXPECT_FALSE(bus.read_field(7, "return_delay").has_value()) << "servo 7 still answers as 7";
+  EXPECT_TRUE(link->ping(1).ok()) << "the link is left where the servo answers";
+  EXPECT_NE(link->settings().baud, 256'000U);
+  ASSERT_FALSE(said.empty());
+  EXPECT_NE(said.back().find("RESET"), std::string::npos);
+}
+
+TEST(FactoryReset, IsRefusedWhenTheFactoryIdIsTakenAndNothingIsSent) {
+  simulator::BusOptions options;
+  options.servos = {{1, TableId::D55d, BusProtocol::D55d, 115'200}, {7, TableId::D55d, BusProtocol::D55d, 115'200}};
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  ASSERT_TRUE(bus.write_memory(7, 5, protocol::Bytes{3}));
+  auto link = open_link(bus.slave_path(), BusProtocol::D55d, 115'200);
+  const auto done = factory_reset(*link, ToolTarget{TableId::D55d, 7}, quiet);
+  ASSERT_FALSE(done);
+  EXPECT_NE(done.error().find("already taken"), std::string::npos) << done.error();
+  EXPECT_EQ(bus.read_field(7, "return_delay"), 3);
+}
+
+TEST(FactoryReset, ProtocolsWithoutTheInstructionSaySoAndWhatToDo) {
+  simulator::SimulatedBus bus(one_servo({1, TableId::Sts, BusProtocol::Feetech, 1'000'000}));
+  bus.start();
+  auto link = open_link(bus.slave_path(), BusProtocol::Feetech, 1'000'000);
+  const auto done = factory_reset(*link, ToolTarget{TableId::Sts, 1}, quiet);
+  ASSERT_FALSE(done);
+  EXPECT_NE(done.error().find("no factory-reset instruction"), std::string::npos) << done.error();
+  EXPECT_NE(done.error().find("RECOVERY"), std::string::npos) << done.error();
+}
+
 const DumpRow* row(const std::vector<DumpRow>& rows, std::string_view name) {
   for (const auto& row : rows) {
     if (row.field->name == name) return &row;

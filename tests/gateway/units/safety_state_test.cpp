@@ -7,6 +7,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <future>
 #include <thread>
 
 #include "gateway/units/safety.h"
@@ -119,6 +120,44 @@ TEST_F(SafetyState, WhatAClientReadsNeverDisagreesWithTheGates) {
   for (std::size_t bus = 0; bus < facts.buses.size(); ++bus) {
     EXPECT_EQ(gates_[bus]->blocked(), facts.buses[bus].state == WatchdogState::Tripped);
   }
+}
+
+// A bus lent to commissioning refuses motion until it is returned, whatever else happens: an
+// e-stop reset or a re-arm does not release it, the other bus is untouched, and the stop it
+// performed is said in the cause register. A restart does not remember it: the bus runs again.
+TEST_F(SafetyState, ALentBusRefusesMotionUntilReturned) {
+  TempState state;
+  make(state.dir());
+  std::promise<bool> stopped;
+  safety_->lend_bus(0, "the test", [&](bool ok) { stopped.set_value(ok); });
+  auto sent = stopped.get_future();
+  ASSERT_EQ(sent.wait_for(5s), std::future_status::ready) << "the stop's frames were never sent";
+  const auto refused = safety_->admit_motion(0);
+  ASSERT_FALSE(refused);
+  EXPECT_NE(refused.error().find("lent to commissioning"), std::string::npos) << refused.error();
+  EXPECT_TRUE(safety_->admit_motion(1));
+  auto inline_post = [](std::function<void()> work) { work(); };
+  safety_->estop(inline_post, [](bool) {});
+  safety_->reset_estop();
+  safety_->rearm_watchdogs();
+  SafetyFacts facts = safety_->facts();
+  EXPECT_TRUE(facts.buses[0].lent);
+  EXPECT_TRUE(facts.buses[0].motion_blocked);
+  EXPECT_FALSE(facts.buses[1].lent);
+  EXPECT_TRUE(gates_[0]->blocked());
+  EXPECT_FALSE(safety_->admit_motion(0));
+
+  safety_->return_bus(0, "the test");
+  facts = safety_->facts();
+  EXPECT_FALSE(facts.buses[0].lent);
+  EXPECT_FALSE(gates_[0]->blocked());
+  EXPECT_TRUE(safety_->admit_motion(0));
+
+  safety_->lend_bus(0, "the test", [](bool) {});
+  TearDown();
+  make(state.dir());
+  EXPECT_FALSE(safety_->facts().buses[0].lent);
+  EXPECT_TRUE(safety_->admit_motion(0));
 }
 
 TEST_F(SafetyState, LatchAndTripsAreRestoredFromTheStateFile) {
