@@ -4,6 +4,8 @@
 A file that passed before is not checked again while its preprocessed source (with every
 header it includes), its compile flags, .clang-tidy and the clang-tidy version are unchanged:
 the key is a SHA-256 of those. Only passing runs are remembered, so a finding shows every time.
+The checkout's own path is left out of the key (as ccache's base_dir does): another clone of the
+same sources on the same machine — CI's fresh clone — finds the results of this one.
 The cache lives in $SMS_TIDY_CACHE (default ~/.cache/sms-gateway/clang-tidy); deleting it only
 costs time.
 
@@ -39,12 +41,15 @@ def compile_args(entry):
     return out
 
 
-def key_of(entry, config, version):
+def key_of(entry, config, version, root):
     args = compile_args(entry)
     preprocessed = subprocess.run(args + ["-E", "-P", "-o", "-"], cwd=entry["directory"], capture_output=True,
                                   check=True).stdout
+    # The checkout's path (in -I flags, and in __FILE__ where a macro expands it) is not the source.
+    anywhere = str(root).encode()
+    flags = "\0".join(args).encode().replace(anywhere, b"@ROOT@")
     digest = hashlib.sha256()
-    for part in (version, config, "\0".join(args).encode(), preprocessed):
+    for part in (version, config, flags, preprocessed.replace(anywhere, b"@ROOT@")):
         digest.update(part)
         digest.update(b"\0")
     return digest.hexdigest()
@@ -69,7 +74,7 @@ def main():
 
     def check(path):
         try:
-            key = key_of(entries[path], config, version)
+            key = key_of(entries[path], config, version, root)
         except subprocess.CalledProcessError as error:
             return path, False, "preprocessing failed: " + error.stderr.decode(errors="replace")
         stamp = cache / key

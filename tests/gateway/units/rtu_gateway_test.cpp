@@ -87,7 +87,11 @@ class RtuContractTest : public ::testing::Test {
     bus_ = std::make_unique<simulator::SimulatedBus>(options);
     bus_->start();
     gateway_ = std::make_unique<RtuGateway>(config_yaml(bus_->slave_path()));
-    ASSERT_TRUE(eventually([&] { return gateway_->engine().discovered(); }));
+    // Both servos online, not just discovery done: one that missed its discovery READ (a loaded
+    // machine, TSan) is offline until its next probe, and a write to it is answered 0x0B at once.
+    ASSERT_TRUE(eventually([&] {
+      return gateway_->engine().discovered() && gateway_->engine().cache().online_count() == 2;
+    }));
   }
 
   std::unique_ptr<simulator::SimulatedBus> bus_;
