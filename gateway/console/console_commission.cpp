@@ -304,33 +304,30 @@ Expected<std::size_t> named_bus(const ApiCall& call, const std::string& what) {
 
 }  // namespace
 
-void api_commission_stop_bus(const std::shared_ptr<ApiCall>& call) {
-  const auto index = named_bus(*call, "stop-bus");
+namespace {
+
+// stop-bus and start-bus: a job like any other, so never while a scan or a set-id still holds the
+// bus's line open. The worker thread calls the gateway (BusLending), not Services (console thread only).
+void bus_job(const std::shared_ptr<ApiCall>& call, const std::string& what, bool stop) {
+  const auto index = named_bus(*call, what);
   if (!index) return call->answer(HttpAnswer::error(400, index.error()));
   const std::string bus = call->services.config().buses[*index].name;
   const std::string who = "the browser console (" + call->who.name + ")";
-  // The worker thread calls the gateway, not Services (console thread only).
-  auto lend = call->services.commissioning().lending().lend;
-  start_job(call, "stop bus " + bus, [lend, index = *index, who, bus](const auto& say) -> json {
-    say("stopping bus " + bus + ": its servos get their safe stop, then its line is closed");
-    auto done = lend(index, who);
-    if (!done) return {{"error", done.error()}};
-    return {{"summary", *done}};
-  });
+  const BusLending& lending = call->services.commissioning().lending();
+  auto act = stop ? lending.lend : lending.take_back;
+  start_job(call, (stop ? "stop bus " : "start bus ") + bus,
+            [act, index = *index, who, bus, stop](const auto& say) -> json {
+              if (stop) say("stopping bus " + bus + ": its servos get their safe stop, then its line is closed");
+              auto done = act(index, who);
+              if (!done) return {{"error", done.error()}};
+              return {{"summary", *done}};
+            });
 }
 
-void api_commission_start_bus(const std::shared_ptr<ApiCall>& call) {
-  const auto index = named_bus(*call, "start-bus");
-  if (!index) return call->answer(HttpAnswer::error(400, index.error()));
-  const std::string bus = call->services.config().buses[*index].name;
-  const std::string who = "the browser console (" + call->who.name + ")";
-  // A job like any other: never while a scan or a set-id still holds the bus's line open.
-  auto take_back = call->services.commissioning().lending().take_back;
-  start_job(call, "start bus " + bus, [take_back, index = *index, who](const auto&) -> json {
-    auto done = take_back(index, who);
-    if (!done) return {{"error", done.error()}};
-    return {{"summary", *done}};
-  });
-}
+}  // namespace
+
+void api_commission_stop_bus(const std::shared_ptr<ApiCall>& call) { bus_job(call, "stop-bus", true); }
+
+void api_commission_start_bus(const std::shared_ptr<ApiCall>& call) { bus_job(call, "start-bus", false); }
 
 }  // namespace sms::gateway::console

@@ -59,11 +59,7 @@ class ConsoleTest(ConsoleCase):
         client = self.modbus()
         start = self.sim.field(2, "present_position")
         goal = 3500 if start < 2500 else 500
-        for _ in range(3):  # a servo timeout (0x0B) on a loaded test machine is retried, as a PLC would
-            written = client.write_register(42, goal, slave=2)
-            if not written.isError() or getattr(written, "exception_code", 0) != 0x0B:
-                break
-        self.assertFalse(written.isError(), written)
+        self.write_goal(client, 2, goal)
         client.close()
 
         def plotted_near_goal():
@@ -86,11 +82,7 @@ class ConsoleTest(ConsoleCase):
         servo.send_keys("\t")
         client = self.modbus()
         goal = 1500 if self.sim.field(3, "goal_position") != 1500 else 2500
-        for _ in range(3):  # a servo timeout (0x0B) on a loaded test machine is retried, as a PLC would
-            written = client.write_register(42, goal, slave=3)
-            if not written.isError() or getattr(written, "exception_code", 0) != 0x0B:
-                break
-        self.assertFalse(written.isError(), written)
+        self.write_goal(client, 3, goal)
         client.close()
 
         def rows():
@@ -303,12 +295,7 @@ class ConsoleTest(ConsoleCase):
         device = self.browser.find_element(By.ID, "device")
         device.clear()
         device.send_keys(self.free_line.link)
-        self.browser.find_element(By.ID, "bauds").send_keys("1000000, 115200")
-        self.browser.find_element(By.ID, "last-id").send_keys("12")
-        self.browser.find_element(By.ID, "scan").click()
-        wait_until(lambda: self.browser.execute_script(
-            "return [...document.querySelectorAll('#found-table tr[data-id]')].map(r => r.dataset.id).join(',')") == "4,9",
-                   timeout=30, what="servos 4 and 9 in the scan's result")
+        self.scan("1000000, 115200", "12", "4,9")
         # The downloadable configuration is one --check-config accepts.
         yaml = self.browser.execute_async_script(
             "fetch('/api/commission/config.yaml').then(r => r.text()).then(arguments[0])")
@@ -337,23 +324,21 @@ class ConsoleTest(ConsoleCase):
         wait_until(lambda: self.sim.field(1, "torque_enable") == 0, what="servo 1's torque to go off")
         self.browser.find_element(By.ID, "torque-on").click()
         wait_until(lambda: self.sim.field(1, "torque_enable") == 1, what="servo 1's torque to come on")
-        # Wheel mode, held: the servo turns while the button is held and stops when it is released.
-        # In position mode a speed goal turns nothing: the page says so and nothing moves.
-        speed = self.browser.find_element(By.ID, "jog-speed")
-        speed.clear()
-        speed.send_keys("800")
+        def hold_to_turn(seconds):
+            speed = self.browser.find_element(By.ID, "jog-speed")
+            speed.clear()
+            speed.send_keys("800")
+            button = self.browser.find_element(By.ID, "hold-speed")
+            ActionChains(self.browser).click_and_hold(button).pause(seconds).release().perform()
+        # In position mode a speed goal turns nothing: the page says so and nothing is written.
         goal_speed = self.sim.field(1, "goal_speed")
-        button = self.browser.find_element(By.ID, "hold-speed")
-        ActionChains(self.browser).click_and_hold(button).pause(0.3).release().perform()
+        hold_to_turn(0.3)
         wait_until(lambda: "not in a speed mode" in self.text("#message"), what="the refusal in position mode")
         self.assertEqual(self.sim.field(1, "goal_speed"), goal_speed)
+        # Wheel mode: the servo turns while the button is held and stops when it is released.
         self.sim.command("set 1 33 01")  # operating_mode := 1 (wheel) through the simulator's backdoor
-        speed = self.browser.find_element(By.ID, "jog-speed")
-        speed.clear()
-        speed.send_keys("800")
         start = self.sim.field(1, "present_position")
-        button = self.browser.find_element(By.ID, "hold-speed")
-        ActionChains(self.browser).click_and_hold(button).pause(0.5).release().perform()
+        hold_to_turn(0.5)
         self.wait_stopped(1)
         self.assertNotEqual(self.sim.field(1, "present_position"), start, "servo 1 did not turn while held")
         self.assertEqual(self.sim.field(1, "goal_speed"), 0, "the release did not stop the wheel")
@@ -386,11 +371,7 @@ class ConsoleTest(ConsoleCase):
         client = self.modbus()
         start = self.sim.field(2, "present_position")
         goal = 4000 if start < 2048 else 100
-        for _ in range(3):  # a servo timeout (0x0B) on a loaded test machine is retried, as a PLC would
-            written = client.write_register(42, goal, slave=2)
-            if not written.isError() or getattr(written, "exception_code", 0) != 0x0B:
-                break
-        self.assertFalse(written.isError(), written)
+        self.write_goal(client, 2, goal)
         self.sim.command("offline 3")  # the fault: servo 3 does not answer its stop
         self.login("eng")
         self.open("/commission", "#buses-table tr[data-bus='arm'] button.stop-bus:not([disabled])")
@@ -410,12 +391,7 @@ class ConsoleTest(ConsoleCase):
                    what="the page to show the bus stopped")
         # The bus's own line is free for the page's scan now (its device is filled in).
         self.assertEqual(self.browser.find_element(By.ID, "device").get_attribute("value"), self.sim.link)
-        self.browser.find_element(By.ID, "bauds").send_keys("1000000")
-        self.browser.find_element(By.ID, "last-id").send_keys("5")
-        self.browser.find_element(By.ID, "scan").click()
-        wait_until(lambda: self.browser.execute_script(
-            "return [...document.querySelectorAll('#found-table tr[data-id]')].map(r => r.dataset.id).join(',')") == "1,2",
-                   timeout=30, what="servos 1 and 2 (3 is silent) in the scan of the bus's line")
+        self.scan("1000000", "5", "1,2")  # 3 is silent
         # Servo 3 answers again; the bus starts and its owed stop reaches it first.
         self.sim.command("online 3")
         self.browser.find_element(By.CSS_SELECTOR, "#buses-table tr[data-bus='arm'] button.start-bus").click()
@@ -429,6 +405,24 @@ class ConsoleTest(ConsoleCase):
         client.close()
 
     # --- helpers ----------------------------------------------------------------------------------
+
+    def scan(self, bauds, last_id, expected_ids):
+        """Scans the commissioning page's line at `bauds` up to `last_id`; expects those IDs found."""
+        self.browser.find_element(By.ID, "bauds").send_keys(bauds)
+        self.browser.find_element(By.ID, "last-id").send_keys(last_id)
+        self.browser.find_element(By.ID, "scan").click()
+        wait_until(lambda: self.browser.execute_script(
+            "return [...document.querySelectorAll('#found-table tr[data-id]')].map(r => r.dataset.id).join(',')")
+                   == expected_ids, timeout=30, what=f"servos {expected_ids} in the scan's result")
+
+    def write_goal(self, client, servo, goal):
+        """A PLC's goal_position write; a servo timeout (0x0B) on a loaded test machine is retried, as
+        a PLC would."""
+        for _ in range(3):
+            written = client.write_register(42, goal, slave=servo)
+            if not written.isError() or getattr(written, "exception_code", 0) != 0x0B:
+                break
+        self.assertFalse(written.isError(), written)
 
     def text(self, css):
         return self.browser.execute_script("const e = document.querySelector(arguments[0]); return e ? e.textContent : ''", css)
