@@ -89,9 +89,8 @@ class RtuContractTest : public ::testing::Test {
     gateway_ = std::make_unique<RtuGateway>(config_yaml(bus_->slave_path()));
     // Both servos online, not just discovery done: one that missed its discovery READ (a loaded
     // machine, TSan) is offline until its next probe, and a write to it is answered 0x0B at once.
-    ASSERT_TRUE(eventually([&] {
-      return gateway_->engine().discovered() && gateway_->engine().cache().online_count() == 2;
-    }));
+    ASSERT_TRUE(
+        eventually([&] { return gateway_->engine().discovered() && gateway_->engine().cache().online_count() == 2; }));
   }
 
   std::unique_ptr<simulator::SimulatedBus> bus_;
