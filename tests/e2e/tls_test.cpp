@@ -550,12 +550,19 @@ TEST_F(Tls, SighupReloadsTheFilesAndAFailedReloadKeepsTheOldOnes) {
 // How long a certified client takes to be served: connect, handshake, one read answered;
 // nullopt when it was not served. The read is of the gateway unit (bus count, input register
 // 5), answered from memory: what is measured is the listener, not the bus of a loaded machine.
+// A client that loses its connection in the handshake connects once more, as a PLC does: on a
+// loaded machine its ClientHello can be delayed past the moment a flood of newer connections
+// makes it the oldest silent one.
 std::optional<std::chrono::milliseconds> time_to_serve(const std::string& certs, std::uint16_t port) {
   const auto start = std::chrono::steady_clock::now();
-  TlsClient client(certs, "read", port);
-  const auto answer = client.request({0x04, 0x00, 0x05, 0x00, 0x01}, 255);
-  if (answer != Pdu{0x04, 0x02, 0x00, 0x01}) return std::nullopt;
-  return std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - start);
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    TlsClient client(certs, "read", port);
+    const auto answer = client.request({0x04, 0x00, 0x05, 0x00, 0x01}, 255);
+    if (answer == Pdu{0x04, 0x02, 0x00, 0x01}) {
+      return std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - start);
+    }
+  }
+  return std::nullopt;
 }
 
 // Connections that never start their handshake, 32 of them (max_connections) kept open and
