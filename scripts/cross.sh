@@ -198,7 +198,7 @@ fi
 ((deps_only)) && exit 0
 
 # --- configure -----------------------------------------------------------------------------------
-. /work/ccache.env 2>/dev/null || true
+# ccache when it is installed (its settings from the environment, CCACHE_DIR and so on).
 launcher=()
 command -v ccache >/dev/null && launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache)
 cmake -S . -B "$build" -G Ninja -DCMAKE_TOOLCHAIN_FILE="$repo/cmake/toolchains/$triplet.cmake" \

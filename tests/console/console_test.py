@@ -392,6 +392,7 @@ class ConsoleTest(ConsoleCase):
         # The bus's own line is free for the page's scan now (its device is filled in).
         self.assertEqual(self.browser.find_element(By.ID, "device").get_attribute("value"), self.sim.link)
         self.scan("1000000", "5", "1,2")  # 3 is silent
+        self.screenshot("commissioning.png")
         # Servo 3 answers again; the bus starts and its owed stop reaches it first.
         self.sim.command("online 3")
         self.browser.find_element(By.CSS_SELECTOR, "#buses-table tr[data-bus='arm'] button.start-bus").click()
