@@ -4,7 +4,6 @@
 
 #include <deque>
 #include <fstream>
-#include <future>
 #include <set>
 #include <sstream>
 #include <stdexcept>
@@ -177,17 +176,11 @@ class ConsoleServer::Impl final : public Services {
   }
 
   void stop() {
-    if (!thread_.joinable()) return;
-    auto closed = std::make_shared<std::promise<void>>();
-    auto done = closed->get_future();
-    asio::post(io_, [this, closed] {
+    // The mailbox closes once every session is closed: no Modbus answer is posted after that.
+    close_and_join(io_, thread_, [this] {
       close_all();
-      closed->set_value();
+      mailbox_->close();
     });
-    done.wait();
-    mailbox_->close();
-    io_.stop();
-    thread_.join();
   }
 
   std::uint16_t port() const { return port_; }

@@ -1,8 +1,11 @@
 #include "gateway/modbus_tcp/listener.h"
 
+#include <future>
+#include <memory>
 #include <stdexcept>
 
 #include <boost/asio/ip/address.hpp>
+#include <boost/asio/post.hpp>
 
 namespace sms::gateway {
 
@@ -56,6 +59,19 @@ void open_listener(tcp::acceptor& acceptor, const std::string& host, std::uint16
     acceptor.close(ignored);
     throw std::runtime_error(message);
   }
+}
+
+void close_and_join(boost::asio::io_context& io, std::thread& thread, const std::function<void()>& close_all) {
+  if (!thread.joinable()) return;
+  auto closed = std::make_shared<std::promise<void>>();
+  auto done = closed->get_future();
+  boost::asio::post(io, [&close_all, closed] {
+    close_all();
+    closed->set_value();
+  });
+  done.wait();
+  io.stop();
+  thread.join();
 }
 
 }  // namespace sms::gateway

@@ -1,6 +1,5 @@
 #include "gateway/observability/metrics_server.h"
 
-#include <future>
 #include <optional>
 #include <set>
 #include <stdexcept>
@@ -10,7 +9,6 @@
 #include <spdlog/spdlog.h>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/ip/tcp.hpp>
-#include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 #include <boost/beast/core/error.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
@@ -124,17 +122,7 @@ class MetricsServer::Impl {
   }
 
   void stop() {
-    if (!thread_.joinable()) return;
-    // Close everything on the io thread (sessions are its own), then end the loop.
-    auto closed = std::make_shared<std::promise<void>>();
-    auto done = closed->get_future();
-    asio::post(io_, [this, closed] {
-      close_all();
-      closed->set_value();
-    });
-    done.wait();
-    io_.stop();
-    thread_.join();
+    close_and_join(io_, thread_, [this] { close_all(); });
   }
 
   std::uint16_t port() const { return port_; }
