@@ -175,6 +175,20 @@ FrameDescription noise(WireDirection direction, std::span<const std::uint8_t> by
   return description;
 }
 
+// What every RTU frame says first: direction, kind, the slave (its servo) and the function,
+// named by `named_function` (an exception answer by the function it answers).
+FrameDescription rtu_frame(std::span<const std::uint8_t> frame, WireDirection direction, FrameKind kind,
+                           std::uint8_t named_function) {
+  FrameDescription description;
+  description.direction = direction;
+  description.kind = kind;
+  description.servo = frame[0];
+  description.servos = {frame[0]};
+  description.code = frame[1];
+  description.instruction = function_name(named_function);
+  return description;
+}
+
 }  // namespace
 
 std::string_view to_string(WireDirection direction) {
@@ -417,15 +431,9 @@ FrameDescription FrameDescriber::describe_rtu(WireDirection direction, std::span
 
 FrameDescription FrameDescriber::describe_rtu_request(std::span<const std::uint8_t> frame) const {
   namespace fc = protocol::function_code;
-  FrameDescription description;
-  description.direction = WireDirection::ToServos;
-  description.kind = FrameKind::Request;
+  FrameDescription description = rtu_frame(frame, WireDirection::ToServos, FrameKind::Request, frame[1]);
   const std::uint8_t slave = frame[0];
   const std::uint8_t function = frame[1];
-  description.servo = slave;
-  description.servos = {slave};
-  description.code = function;
-  description.instruction = function_name(function);
   const auto pdu = frame.first(frame.size() - 2);  // slave .. last data byte
   switch (function) {
     case fc::kReadHoldingRegisters:
@@ -453,15 +461,10 @@ FrameDescription FrameDescriber::describe_rtu_request(std::span<const std::uint8
 
 FrameDescription FrameDescriber::describe_rtu_answer(std::span<const std::uint8_t> frame) const {
   namespace fc = protocol::function_code;
-  FrameDescription description;
-  description.direction = WireDirection::FromServos;
-  description.kind = FrameKind::Answer;
+  FrameDescription description =
+      rtu_frame(frame, WireDirection::FromServos, FrameKind::Answer, frame[1] & ~fc::kExceptionBit);
   const std::uint8_t slave = frame[0];
   const std::uint8_t function = frame[1];
-  description.servo = slave;
-  description.servos = {slave};
-  description.code = function;
-  description.instruction = function_name(function & ~fc::kExceptionBit);
   const auto pdu = frame.first(frame.size() - 2);
   if (function & fc::kExceptionBit) {
     if (pdu.size() >= 3) {
