@@ -153,7 +153,14 @@ TEST_F(SafetyState, ALentBusRefusesMotionUntilReturned) {
   EXPECT_FALSE(gates_[0]->blocked());
   EXPECT_TRUE(safety_->admit_motion(0));
 
-  safety_->lend_bus(0, "the test", [](bool) {});
+  // Stopping the gateway skips a lent bus's on_stop: its servos were stopped when it was lent.
+  std::promise<bool> lent_again;
+  safety_->lend_bus(0, "the test", [&](bool ok) { lent_again.set_value(ok); });
+  ASSERT_EQ(lent_again.get_future().wait_for(5s), std::future_status::ready);
+  safety_->stop_for_shutdown(2s);
+  facts = safety_->facts();
+  EXPECT_EQ(facts.buses[0].last_cause, StopCause::Commissioning);
+  EXPECT_EQ(facts.buses[1].last_cause, StopCause::Shutdown);
   TearDown();
   make(state.dir());
   EXPECT_FALSE(safety_->facts().buses[0].lent);
