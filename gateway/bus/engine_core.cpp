@@ -497,19 +497,23 @@ bool EngineCore<Transactor>::line_lent() const {
 
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::hand_over_line() {
+  std::string why;
+  {
+    std::lock_guard lock(lend_mutex_);
+    if (!lend_wanted_) return;  // taken back before the bus thread got here
+    why = *lend_wanted_;
+  }
   if (!holding_lent_line_) {
-    std::string why;
-    {
-      std::lock_guard lock(lend_mutex_);
-      if (!lend_wanted_) return;  // taken back before the bus thread got here
-      why = *lend_wanted_;
-    }
     close_line(why, true);
     holding_lent_line_ = true;
     spdlog::warn("bus {}: {}: {} closed; the bus stays down until it is taken back", settings_.name, why,
                  settings_.serial.device);
+  }
+  {
+    // Also for a lend asked for again right after a take-back the bus thread had not acted on:
+    // the port is still closed, and the lender waits to hear so.
     std::lock_guard lock(lend_mutex_);
-    if (lend_wanted_) {
+    if (lend_wanted_ && !lent_) {
       lent_ = true;
       lend_changed_.notify_all();
     }

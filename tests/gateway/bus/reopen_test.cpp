@@ -146,6 +146,11 @@ TEST(BusLend, LentLineIsLeftAloneUntilTakenBackAndOwedStopsComeFirstThen) {
   }
   EXPECT_EQ(simulator->read_field(2, "torque_enable"), 1) << "the owed stop went out while the line was lent";
 
+  // Taken back and lent again at once (the bus thread may not have reopened meanwhile): the
+  // second lend is confirmed too.
+  ASSERT_TRUE(engine->take_back_line());
+  ASSERT_TRUE(engine->lend_line("lent again", 2s));
+  EXPECT_TRUE(engine->line_lent());
   ASSERT_TRUE(engine->take_back_line());
   EXPECT_FALSE(engine->take_back_line());
   ASSERT_TRUE(eventually([&] { return engine->bus_up() && engine->discovered(); }));
