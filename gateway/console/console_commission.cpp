@@ -281,8 +281,9 @@ void api_commission_factory_reset(const std::shared_ptr<ApiCall>& call) {
 
 namespace {
 
-// The bus a stop-bus / start-bus request names, checked; with its index.
-Expected<std::size_t> named_bus(const ApiCall& call, const std::string& what) {
+// The bus a stop-bus / start-bus request names, checked; `needs_confirm`: stopping asks for
+// "confirm": true (the page asks the operator first).
+Expected<std::size_t> named_bus(const ApiCall& call, const std::string& what, bool needs_confirm) {
   const json body = json::parse(call.body, nullptr, false);
   const auto name = body.is_object() ? body.find("bus") : body.end();
   if (!body.is_object() || name == body.end() || !name->is_string()) {
@@ -293,7 +294,7 @@ Expected<std::size_t> named_bus(const ApiCall& call, const std::string& what) {
   if (!call.services.commissioning().lending().lend) {
     return unexpected(what + ": this gateway cannot stop its buses from the console");
   }
-  if (what == "stop-bus" && !body.value("confirm", false)) {
+  if (needs_confirm && !body.value("confirm", false)) {
     return unexpected(
         "stop-bus: stopping bus " + call.services.config().buses[*index].name +
         " stops its servos (their safe stop) and refuses PLC writes to them until it is started again; send "
@@ -309,7 +310,7 @@ namespace {
 // stop-bus and start-bus: a job like any other, so never while a scan or a set-id still holds the
 // bus's line open. The worker thread calls the gateway (BusLending), not Services (console thread only).
 void bus_job(const std::shared_ptr<ApiCall>& call, const std::string& what, bool stop) {
-  const auto index = named_bus(*call, what);
+  const auto index = named_bus(*call, what, stop);
   if (!index) return call->answer(HttpAnswer::error(400, index.error()));
   const std::string bus = call->services.config().buses[*index].name;
   const std::string who = "the browser console (" + call->who.name + ")";

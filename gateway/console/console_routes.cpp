@@ -311,6 +311,9 @@ class ServoStream final : public Stream {
       last_refresh_ = now;
       write_jog_goal();
     }
+    // Every 10 ms, and a poll comes every poll period: the block is decoded only when it is new.
+    const auto state = unit_.engine->cache().state(unit_.servo_id);
+    if (!state || !state->has_data || state->updated == last_sample_) return;
     const auto polled = read_polled(unit_);
     if (!polled || !polled->has_data || polled->updated == last_sample_) return;
     last_sample_ = polled->updated;
