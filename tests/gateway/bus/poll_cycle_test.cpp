@@ -131,7 +131,8 @@ TEST_F(PollCycleTest, SilentServoGoesOfflineLeavesTheSyncReadAndComesBack) {
 
   simulator_->set_offline(3, false);
   ASSERT_TRUE(eventually([&] { return engine_->cache().state(3)->online; }));
-  EXPECT_TRUE(log.contains("bus test: servo 3 answers again: online")) << log.text();
+  // The line is logged just after the cache says so, on the bus thread.
+  EXPECT_TRUE(eventually([&] { return log.contains("bus test: servo 3 answers again: online"); })) << log.text();
   const BusResult again = transact(*engine_, ReadOp{3, 5, 1}, Priority::ClientRead);
   ASSERT_EQ(again.status, BusStatus::Ok) << again.detail;
   EXPECT_EQ(again.data, (Bytes{0x03}));
