@@ -133,7 +133,9 @@ std::string gateway_yaml(const GatewaySetup& setup) {
        << "    protocol: " << (setup.modbus_rtu_baud != 0 ? "modbus-rtu" : "feetech") << "\n"
        << "    baud: " << (setup.modbus_rtu_baud != 0 ? setup.modbus_rtu_baud : kBaud) << "\n"
        << "    poll_period_ms: " << setup.poll_period.count() << "\n"
-       << "    offline_probe_period_ms: " << setup.probe_period.count() << "\n";
+       << "    offline_probe_period_ms: " << setup.probe_period.count() << "\n"
+       << "    response_timeout_ms: " << setup.response_timeout.count() << "\n"
+       << "    retries: " << setup.retries << "\n";
   if (setup.watchdog) yaml << "    watchdog: {timeout_ms: " << setup.watchdog->count() << ", feed: any_write}\n";
   if (setup.modbus_rtu_baud != 0) yaml << "    frame_gap: " << setup.frame_gap << "\n";
   yaml << "servos:\n";

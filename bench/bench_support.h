@@ -84,6 +84,8 @@ struct GatewaySetup {
   std::chrono::milliseconds probe_period{1000};
   std::size_t max_connections = 200;
   std::size_t request_queue_depth = 64;
+  std::chrono::milliseconds response_timeout{20};
+  unsigned retries = 2;
   // The bus's watchdog (docs/PLC_GUIDE.md "Safety", feed any_write); empty: none.
   std::optional<std::chrono::milliseconds> watchdog;
   // A modbus-rtu bus of smsmb servos at this rate instead of feetech/sts at kBaud, with this

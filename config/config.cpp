@@ -207,7 +207,7 @@ std::chrono::milliseconds worst_transaction(const BusConfig& bus) {
   const std::uint64_t wire_us =
       bus.baud == 0 ? 0 : (kLongestExchangeBytes * bits_per_byte * std::uint64_t{1000000} + bus.baud - 1) / bus.baud;
   const auto per_attempt = bus.response_timeout + std::chrono::milliseconds{(wire_us + 999) / 1000};
-  return per_attempt * (kLateAnswerWindowAttempts + 1 + bus.retries);
+  return per_attempt * (2 * (1 + bus.retries));
 }
 
 std::string effective_state_dir(const Config& config) {

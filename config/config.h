@@ -175,13 +175,11 @@ struct WatchdogConfig {
 };
 
 struct BusConfig;
-// A servo that left requests unanswered is asked again only once their late answers came or this
-// many attempts' time passed (docs/DECISIONS.md "Late answers"; gateway/bus/transactor.h).
-inline constexpr unsigned kLateAnswerWindowAttempts = 4;
-// The longest one client transaction can hold the bus: the late-answer window, then every
-// attempt, each its reply allowance plus the wire time of the longest request and answer (256
-// bytes each way) at the bus's rate and framing. A watchdog must be longer (a trip's stop waits
-// for the transaction on the wire).
+// The longest one client transaction can hold the bus: a fence read (sent first when its servo
+// still owes late answers that could look like its answer, docs/DECISIONS.md "Late answers") and
+// the request, each with every attempt, each attempt its reply allowance plus the wire time of
+// the longest request and answer (256 bytes each way) at the bus's rate and framing. A watchdog
+// must be longer (a trip's stop waits for the transaction on the wire).
 std::chrono::milliseconds worst_transaction(const BusConfig& bus);
 
 struct BusConfig {

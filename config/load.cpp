@@ -847,9 +847,9 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
       fail(
           watchdog_keys.require("timeout_ms").mark,
           v->path + ".timeout_ms: " + std::to_string(watchdog.timeout.count()) +
-              " ms is not longer than this bus's worst transaction (a late-answer window of " +
-              std::to_string(kLateAnswerWindowAttempts) + " and " + std::to_string(1 + bus.retries) +
-              " attempts, each response_timeout_ms " + std::to_string(bus.response_timeout.count()) +
+              " ms is not longer than this bus's worst transaction (a fence read and the request, " +
+              std::to_string(1 + bus.retries) + " attempts each, each attempt response_timeout_ms " +
+              std::to_string(bus.response_timeout.count()) +
               " + the longest frames' wire time = " + std::to_string(worst.count()) +
               " ms): a stop could wait behind one transaction longer than the watchdog itself. Give timeout_ms above " +
               std::to_string(worst.count()) + ", or lower response_timeout_ms or retries");

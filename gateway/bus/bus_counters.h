@@ -21,8 +21,11 @@ struct BusCountersSnapshot {
   std::uint64_t poll_cycles = 0;         // finished poll cycles
   std::uint32_t last_poll_cycle_us = 0;  // duration of the last finished poll cycle
   // Bytes that came when no answer was awaited (late answers to requests that gave up, noise
-  // between transactions): read and dropped before a request or during the late-answer guard.
+  // between transactions): read and dropped before a request.
   std::uint64_t stray_bytes = 0;
+  // Fence reads sent before a request because its servo still owed late answers that could look
+  // like the request's answer (transactor.h "Late answers").
+  std::uint64_t fences = 0;
 };
 
 struct BusCounters {
@@ -38,13 +41,15 @@ struct BusCounters {
   std::atomic<std::uint64_t> poll_cycles{0};
   std::atomic<std::uint32_t> last_poll_cycle_us{0};
   std::atomic<std::uint64_t> stray_bytes{0};
+  std::atomic<std::uint64_t> fences{0};
 
   BusCountersSnapshot snapshot() const {
     constexpr auto relaxed = std::memory_order_relaxed;
     return {frames_ok.load(relaxed),    timeouts.load(relaxed),           checksum_errors.load(relaxed),
             stray_frames.load(relaxed), discarded_bytes.load(relaxed),    retries.load(relaxed),
             transactions.load(relaxed), queue_full.load(relaxed),         bus_down_events.load(relaxed),
-            poll_cycles.load(relaxed),  last_poll_cycle_us.load(relaxed), stray_bytes.load(relaxed)};
+            poll_cycles.load(relaxed),  last_poll_cycle_us.load(relaxed), stray_bytes.load(relaxed),
+            fences.load(relaxed)};
   }
 };
 

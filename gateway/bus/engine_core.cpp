@@ -328,13 +328,29 @@ void EngineCore<Transactor>::deliver_owed_stops() {
   }
 }
 
-// One attempt (with the bus's retries, or one try while the servo is offline, like its probe).
+// One attempt (with the bus's retries, or one try while the servo is offline, in place of its
+// probe). To an offline servo the stop is first sent blind, without awaiting an answer (a servo
+// that hears but whose answers are lost stops all the same), then sent as usual: behind a fence
+// read when its answer could be an owed one, so the stop is acknowledged only once the servo
+// answers again.
 template <BusTransactor Transactor>
 bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
   const bool offline = scheduler_.presence(servo_id) == Presence::Offline;
   const unsigned tries = offline ? 1 : attempts();
   const WriteOp& write = owed.stop.write;
-  BusResult result = transactor_->execute(transactor_->prepare(BusOp{write}, tries), events_);
+  const Request request = transactor_->prepare(BusOp{write}, tries);
+  if (offline) {
+    WriteOp blind = write;
+    blind.expect_reply = false;
+    const BusResult sent = transactor_->execute(transactor_->prepare(BusOp{blind}, 1), events_);
+    counters_.transactions.fetch_add(1, std::memory_order_relaxed);
+    if (sent.status == BusStatus::BusDown) {
+      port_lost(sent.detail);
+      return false;
+    }
+    if (write.expect_reply) transactor_->owe_answer(request);
+  }
+  BusResult result = transactor_->execute(request, events_);
   counters_.transactions.fetch_add(1, std::memory_order_relaxed);
   if (result.status == BusStatus::Ok && !write.expect_reply) {
     // Nothing answers the write itself: a read of what it wrote is the acknowledgement.
@@ -618,7 +634,8 @@ template <BusTransactor Transactor>
 void EngineCore<Transactor>::start_poll_cycle_if_due() {
   const auto now = SteadyClock::now();
   if (!poll_due(now)) return;
-  const PollCyclePlan plan = scheduler_.plan_cycle(now);
+  PollCyclePlan plan = scheduler_.plan_cycle(now);
+  skip_probes_of_owed(plan, now);
   if (plan.empty()) {
     // Nobody to poll and no probe due yet: wake up for the next probe.
     const auto due = scheduler_.next_probe_due();
@@ -636,6 +653,20 @@ void EngineCore<Transactor>::start_poll_cycle_if_due() {
   }
   for (const auto id : plan.reads) enqueue_poll_read(id, false);
   for (const auto id : plan.probes) enqueue_poll_read(id, true);
+}
+
+// An offline servo owed a safe stop is not probed: the stop's delivery, once per probe period,
+// is its probe (it brings the servo back when it answers), so a silent servo costs its bus one
+// attempt per probe period, not two.
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::skip_probes_of_owed(PollCyclePlan& plan, SteadyClock::time_point now) {
+  if (owed_stop_count() == 0 || plan.probes.empty()) return;
+  std::lock_guard lock(owed_mutex_);
+  std::erase_if(plan.probes, [&](std::uint8_t id) {
+    if (owed_.count(id) == 0) return false;
+    scheduler_.silent(id, now);  // its next probe one period on, as if this one had gone unanswered
+    return true;
+  });
 }
 
 template <BusTransactor Transactor>

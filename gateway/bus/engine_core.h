@@ -135,6 +135,7 @@ class EngineCore final : public BusEngine {
   void discovery_step_done();
   bool poll_due(SteadyClock::time_point now) const;
   void start_poll_cycle_if_due();
+  void skip_probes_of_owed(PollCyclePlan& plan, SteadyClock::time_point now);
   void enqueue_poll_read(std::uint8_t servo_id, bool probe);
   void on_poll_read(std::uint8_t servo_id, AddressBlock block, bool probe, const BusResult& result);
   void on_sync_read_finished(const std::vector<std::uint8_t>& ids);

@@ -228,54 +228,21 @@ BusResult PacketTransactor::port_lost(const std::string& reason) {
   return BusResult{BusStatus::BusDown, 0, {}, reason};
 }
 
-std::optional<SteadyClock::time_point> PacketTransactor::owed_until(const Request& request,
-                                                                    SteadyClock::time_point now) const {
-  std::optional<SteadyClock::time_point> latest;
-  const auto consider = [&](std::uint8_t id) {
-    if (owed_.owes(id, now) && (!latest || owed_.until(id) > *latest)) latest = owed_.until(id);
-  };
-  if (request.reply == ReplyKind::None) return latest;  // nothing awaited: nothing to mistake
-  if (request.reply == ReplyKind::SyncRead) {
-    for (const auto id : request.sync_ids) consider(id);
-  } else if (broadcast(request)) {
-    for (unsigned id = 0; id < protocol::kBroadcastId; ++id) consider(static_cast<std::uint8_t>(id));
-  } else {
-    consider(request.servo_id);
-  }
-  return latest;
-}
-
-Expected<Ok> PacketTransactor::settle(const Request& request) {
-  auto now = SteadyClock::now();
-  auto until = owed_until(request, now);
-  if (!until) return Ok{};
-  protocol::StreamDecoder watch(*rules_.format);
-  std::size_t dropped = 0;
-  while (until) {
-    const auto readable = port_.wait_readable(*until - now);
-    if (!readable) return unexpected(readable.error());
-    for (;;) {
-      const auto received = port_.read_available(rx_buffer_);
-      if (!received) return unexpected(received.error());
-      if (*received == 0) break;
-      const std::span<const std::uint8_t> bytes(rx_buffer_.data(), *received);
-      if (spdlog::should_log(spdlog::level::trace))
-        spdlog::trace("{}rx (late) {}", timing_.label, spdlog::to_hex(bytes));
-      dropped += bytes.size();
-      watch.feed(bytes);
-      while (const auto event = watch.next()) {
-        if (event->kind != protocol::DecodeEvent::Kind::Frame) continue;
-        owed_.arrived(event->packet.id);
-        counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
-      }
-      if (*received < rx_buffer_.size()) break;
+AnswerShape PacketTransactor::answer_shape(const Request& request) const {
+  switch (request.reply) {
+    case ReplyKind::None: break;
+    case ReplyKind::Ack: return AnswerShape::of(0, {0});
+    case ReplyKind::Data:
+      // A refusal answers a read without its data; a fence takes only its data.
+      return request.fence_units != 0 ? AnswerShape::of(0, {request.count}) : AnswerShape::of(0, {request.count, 0});
+    case ReplyKind::Ping: {
+      AnswerShape shape;
+      for (std::size_t params = 0; params <= rules_.max_ping_params; ++params) shape.lengths.set(params);
+      return shape;
     }
-    now = SteadyClock::now();
-    until = owed_until(request, now);
+    case ReplyKind::SyncRead: return AnswerShape::of(0, {request.count});
   }
-  stray_.count(dropped, timing_.label,
-               [&] { return "while waiting for owed late answers before " + describe(request); });
-  return Ok{};
+  return {};
 }
 
 // An adapter's echo of our own frame, in one place (the header's rule): a frame byte for byte the
@@ -350,10 +317,11 @@ class PacketTransactor::Transaction {
   const std::chrono::nanoseconds reply_time_;    // the answer's wire time plus the reply allowance
   const std::chrono::nanoseconds timeout_;       // one attempt's wait
   const std::chrono::milliseconds write_timeout_;
-  const std::chrono::nanoseconds late_window_;  // how long an unanswered attempt's answer may still come
-  const bool anyone_;                           // a rate scan's PING to the broadcast ID
+  const AnswerShape shape_;  // every answer the request would take
+  const bool anyone_;        // a rate scan's PING to the broadcast ID
   std::bitset<256> sync_expected_;
   std::bitset<256> sync_answered_;
+  std::bitset<256> sync_ambiguous_;  // members owing late answers that look like this SYNC READ's
   AttemptFindings found_;
   unsigned made_ = 0;
   OwedAnswers::Tally tally_;
@@ -381,19 +349,56 @@ PacketTransactor::Transaction::Transaction(PacketTransactor& line, const Request
                   line.timing_.reply_allowance),
       timeout_(request_time_ + reply_time_),
       write_timeout_(std::chrono::ceil<std::chrono::milliseconds>(request_time_ + line.timing_.reply_allowance) + 50ms),
-      late_window_(kLateAnswerWindowAttempts * timeout_),
+      shape_(line.answer_shape(request)),
       anyone_(request.reply == ReplyKind::Ping && broadcast(request)),
       // SYNC READ owes per silent member (run()); a broadcast PING's answers are anyone's.
-      tally_(line.owed_, request.servo_id, late_window_,
-             request.reply != ReplyKind::None && request.reply != ReplyKind::SyncRead && !broadcast(request)),
+      tally_(line.owed_, request.servo_id, shape_,
+             request.reply != ReplyKind::None && request.reply != ReplyKind::SyncRead && !broadcast(request),
+             request.fence_units),
       echo_(line.adapter_echoes_) {
-  for (const auto id : request.sync_ids) sync_expected_.set(id);
+  for (const auto id : request.sync_ids) {
+    sync_expected_.set(id);
+    // Its answer could not be told from a late one: it is read on its own (behind a fence).
+    if (line.owed_.collides(id, shape_)) sync_ambiguous_.set(id);
+  }
   found_.timeout = timeout_;
+}
+
+std::optional<BusResult> PacketTransactor::fence_before(const Request& request, TransactionEvents& events) {
+  if (request.reply == ReplyKind::None || request.reply == ReplyKind::SyncRead || broadcast(request)) {
+    return std::nullopt;
+  }
+  const AnswerShape shape = answer_shape(request);
+  const auto fence_shape = [](unsigned units) { return AnswerShape::of(0, {units}); };
+  // Each fence settles at least what came before the first owed fence of its length; a few are
+  // enough for any list a servo can owe (transactor.h OwedAnswers).
+  for (unsigned round = 0; owed_.collides(request.servo_id, shape); ++round) {
+    const auto units = owed_.fence_length(request.servo_id, fence_shape, shape, kLongestFence);
+    if (!units || round == kLongestFence) {
+      // Not reachable with the fence lengths there are; said rather than looped on.
+      spdlog::warn("{}servo {} owes {} late answers no fence can be told from: they are forgotten before {}",
+                   timing_.label, request.servo_id, owed_.count(request.servo_id), describe(request));
+      owed_.settled(request.servo_id);
+      return std::nullopt;
+    }
+    Request fence = read_request(request.servo_id, {0, static_cast<std::uint16_t>(*units)}, request.attempts);
+    fence.fence_units = *units;
+    counters_.fences.fetch_add(1, std::memory_order_relaxed);
+    BusResult fenced = Transaction(*this, fence, events).run();
+    if (fenced.status == BusStatus::Ok) continue;
+    if (fenced.status != BusStatus::BusDown) {
+      fenced.detail += fmt::format(
+          " (a fence before {}: servo {} still owes late answers that could look like its answer; it was not sent)",
+          describe(request), request.servo_id);
+    }
+    return fenced;
+  }
+  return std::nullopt;
 }
 
 BusResult PacketTransactor::execute(const Request& request, TransactionEvents& events) {
   if (!port_.is_open()) return port_lost(port_.settings().device + " is not open");
-  if (const auto settled = settle(request); !settled) return port_lost(settled.error());
+  if (auto not_sent = fence_before(request, events)) return std::move(*not_sent);
   return Transaction(*this, request, events).run();
 }
 
@@ -418,7 +423,7 @@ BusResult PacketTransactor::Transaction::run() {
     if (request_.reply == ReplyKind::SyncRead) {
       // The silent are the engine's to follow up; their answers may still come.
       for (const auto id : request_.sync_ids) {
-        if (!sync_answered_.test(id)) line_.owed_.add(id, 1, tally_.last_sent() + late_window_);
+        if (!sync_answered_.test(id)) line_.owed_.add(id, shape_, 1);
       }
       return BusResult{};
     }
@@ -441,7 +446,7 @@ Expected<Ok> PacketTransactor::Transaction::send() {
     spdlog::trace("{}tx {}", line_.timing_.label, spdlog::to_hex(request_.frame));
   }
   const auto sent_at = SteadyClock::now();
-  tally_.sent(sent_at);
+  tally_.sent();
   attempt_ = Attempt{};
   attempt_.sent_at = sent_at;
   attempt_.original_deadline = attempt_.deadline = sent_at + timeout_;
@@ -513,9 +518,12 @@ bool PacketTransactor::Transaction::wait_out_bytes_in_flight(SteadyClock::time_p
 // A valid frame: the answer, a refusal, our frame sent back, or somebody else's (not ours).
 void PacketTransactor::Transaction::on_frame(Packet frame) {
   const bool owed =
-      request_.reply != ReplyKind::SyncRead || (sync_expected_.test(frame.id) && !sync_answered_.test(frame.id));
-  const Verdict verdict =
+      request_.reply != ReplyKind::SyncRead ||
+      (sync_expected_.test(frame.id) && !sync_answered_.test(frame.id) && !sync_ambiguous_.test(frame.id));
+  Verdict verdict =
       owed ? judge_reply(line_.rules_, request_.reply, request_.servo_id, request_.count, frame) : Verdict::NotOurs;
+  // A fence is answered by its data alone: a refusal could be an owed answer's.
+  if (request_.fence_units != 0 && verdict != Verdict::Answer) verdict = Verdict::NotOurs;
   const bool first = attempt_.frames++ == 0;
   const bool echo = frame == request_.packet;
   if (echo) {
@@ -524,7 +532,7 @@ void PacketTransactor::Transaction::on_frame(Packet frame) {
     attempt_.heard = true;
     // An answer still owed for an earlier request (to this servo or another) has come.
     if (verdict == Verdict::NotOurs) {
-      line_.owed_.arrived(frame.id);
+      line_.owed_.arrived(frame.id, AnswerShape::frame(0, frame.params.size()));
     } else if (frame.id == request_.servo_id) {
       tally_.heard();
     }
@@ -542,6 +550,7 @@ void PacketTransactor::Transaction::on_frame(Packet frame) {
       if (echo_.answer_came()) line_.counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
       return accept(std::move(frame));
     case Verdict::Refused:
+      line_.owed_.settled(frame.id);  // only this request's answer looks like this
       events_.answered(frame.id, frame.code);
       attempt_.outcome = BusResult{BusStatus::ServoRefused,
                                    frame.code,
@@ -565,7 +574,8 @@ void PacketTransactor::Transaction::on_damaged(std::uint8_t id) {
   attempt_.heard = true;
   events_.damaged();
   if (request_.reply == ReplyKind::SyncRead || id != request_.servo_id) return;
-  tally_.heard();
+  // Not counted as this request's answer (tally_): it may have been an owed one, and this
+  // request's answer may still come.
   if (!attempt_.quiet_wait) {
     // Our servo's answer arrived damaged: no valid one follows. Retry as soon as the line is
     // quiet (transmitting into the tail of a frame would collide).
@@ -577,6 +587,12 @@ void PacketTransactor::Transaction::on_damaged(std::uint8_t id) {
 void PacketTransactor::Transaction::accept(Packet frame) {
   line_.counters_.frames_ok.fetch_add(1, std::memory_order_relaxed);
   events_.answered(frame.id, frame.code);
+  // Only this request's answer looks like this: whatever the servo owed before has come or never will.
+  if (request_.fence_units != 0) {
+    line_.owed_.fence_answered(frame.id, request_.fence_units);
+  } else if (!anyone_) {
+    line_.owed_.settled(frame.id);
+  }
   if (request_.reply != ReplyKind::SyncRead) {
     attempt_.outcome = BusResult{BusStatus::Ok, frame.code, std::move(frame.params), {}};
     return;

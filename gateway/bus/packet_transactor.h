@@ -4,9 +4,9 @@
 // which ERROR bits mean "refused", whether SYNC READ exists). The face is transactor.h's.
 //
 // How a transaction runs (docs/PROTOCOL.md §1.1 "host practice"):
-// - when the addressed servo owes answers to requests that gave up, watch the line until they
-//   came or their window passed (transactor.h "Late answers"); drop and count what the input
-//   holds; transmit, then wait for the answer until a deadline sized from the request's and the
+// - when the addressed servo owes answers to requests that gave up that could look like this
+//   request's answer, a fence read goes first (transactor.h "Late answers"); drop and count what
+//   the input holds; transmit, then wait for the answer until a deadline sized from the request's and the
 //   reply's wire time plus the reply allowance — extended while bytes are still arriving at the
 //   deadline, until the line is quiet (bounded by one more timeout), so a retry never starts
 //   into the tail of a late answer;
@@ -70,10 +70,13 @@ class PacketTransactor {
     std::uint8_t count = 0;  // Data, SyncRead: parameters expected per answer
     std::vector<std::uint8_t> sync_ids;
     unsigned attempts = 1;
+    unsigned fence_units = 0;  // a fence (transactor.h "Late answers"): only its data is its answer
   };
 
   static constexpr std::size_t kBytesPerAddress = 1;  // packet tables address bytes
-  static constexpr bool kAnswersCarryStatus = true;   // every answer's ERROR byte
+  // Fences (transactor.h "Late answers") read 1..16 bytes from address 0: every table's start.
+  static constexpr unsigned kLongestFence = 16;
+  static constexpr bool kAnswersCarryStatus = true;  // every answer's ERROR byte
 
   // Why the bus cannot poll `servo` (its ID or poll block is out of this protocol's reach);
   // empty when it can.
@@ -109,6 +112,11 @@ class PacketTransactor {
   bool has_sync_read() const { return rules_.has_sync_read; }
 
   BusResult execute(const Request& request, TransactionEvents& events);
+  // The answer to `request` may come although it was not awaited (the same write was sent blind):
+  // a later request its answer could be taken for goes behind a fence.
+  void owe_answer(const Request& request) {
+    if (request.reply != ReplyKind::None && !broadcast(request)) owed_.add(request.servo_id, answer_shape(request), 1);
+  }
 
   std::uint8_t refusal_bits() const { return rules_.refusal_bits; }
   // Packet answers carry the status in every frame: nothing to take from the polled block.
@@ -140,12 +148,12 @@ class PacketTransactor {
   BusResult fail(const Request& request, const AttemptFindings& last, unsigned attempts_made) const;
   BusResult port_lost(const std::string& reason);
   void count_discarded();
-  // Latest end of the late-answer windows of the servos that may answer `request` and still
-  // owe answers at `now`; nullopt when none does.
-  std::optional<SteadyClock::time_point> owed_until(const Request& request, SteadyClock::time_point now) const;
-  // Watches the line until those owed answers came or their windows passed, dropping all it reads.
-  Expected<Ok> settle(const Request& request);
-
+  // Every answer `request` would take (transactor.h AnswerShape: parameter counts; a refusal
+  // carries none).
+  AnswerShape answer_shape(const Request& request) const;
+  // When `request`'s servo owes answers that could look like its answer: the fence read first.
+  // nullopt: the request may go; otherwise why it did not (the fence went unanswered).
+  std::optional<BusResult> fence_before(const Request& request, TransactionEvents& events);
   const PacketRules& rules_;
   SerialPort port_;
   TransactionTiming timing_;

@@ -369,47 +369,13 @@ std::size_t RtuMaster::drop_input() {
   return dropped;
 }
 
-Expected<RtuWatch> RtuMaster::watch_line(std::uint8_t slave, unsigned frames, SteadyClock::time_point until) {
-  if (!is_open()) return unexpected(settings_.serial.device + " is not open");
-  const int fd = modbus_get_socket(line_->context);
-  const auto gap = rtu_frame_gap(settings_.serial, settings_.options.frame_gap);
-  RtuWatch watched;
-  Bytes frame;
-  const auto end_frame = [&] {
-    if (frame.size() >= protocol::rtu::kMinAduSize && frame[0] == slave &&
-        protocol::rtu::crc16(std::span(frame).first(frame.size() - 2)) ==
-            static_cast<std::uint16_t>(frame[frame.size() - 2] | frame[frame.size() - 1] << 8)) {
-      ++watched.frames;
-    }
-    frame.clear();
-  };
-  std::array<std::uint8_t, protocol::rtu::kMaxAduSize> buffer{};
-  auto last_byte = SteadyClock::now();
-  while (watched.frames < frames) {
-    // While a frame is coming, its end is the frame gap's silence; else the window's end.
-    const auto deadline = frame.empty() ? until : last_byte + gap;
-    if (frame.empty() && SteadyClock::now() >= until) break;
-    const int ready = detail::poll_input_until(fd, deadline);
-    if (ready < 0 && errno == EINTR) continue;
-    if (ready < 0) return unexpected("poll " + settings_.serial.device + ": " + std::strerror(errno));
-    if (ready == 0) {
-      end_frame();
-      continue;
-    }
-    const ssize_t got = ::read(fd, buffer.data(), buffer.size());
-    if (got < 0 && (errno == EAGAIN || errno == EINTR)) continue;
-    if (got <= 0) {
-      return unexpected("read from " + settings_.serial.device + ": " +
-                        (got == 0 ? std::string("end of file") : std::strerror(errno)));
-    }
-    last_byte = SteadyClock::now();
-    tap(WireDirection::FromServos, std::span(buffer).first(static_cast<std::size_t>(got)));
-    watched.bytes += static_cast<std::size_t>(got);
-    frame.insert(frame.end(), buffer.begin(), buffer.begin() + got);
-    if (frame.size() > protocol::rtu::kMaxAduSize) frame.clear();  // noise, not a frame
-  }
-  if (watched.bytes > 0) line_->quiet_since = last_byte;
-  return watched;
+RtuExchange RtuMaster::receive(std::uint8_t slave, std::uint8_t function, std::chrono::nanoseconds timeout) {
+  if (!is_open()) return {RtuOutcome::PortError, {}, settings_.serial.device + " is not open"};
+  std::uint32_t seconds = 0;
+  std::uint32_t micros = 0;
+  split_timeout(timeout, seconds, micros);
+  modbus_set_response_timeout(line_->context, seconds, micros);
+  return receive_answer(slave, function, timeout);
 }
 
 void RtuMaster::tap(WireDirection direction, std::span<const std::uint8_t> bytes) const {

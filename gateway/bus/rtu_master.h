@@ -69,12 +69,6 @@ struct RtuExchange {
       : outcome(result), pdu(std::move(reply_pdu)), detail(std::move(what)), other_slave(answering_slave) {}
 };
 
-// What RtuMaster::watch_line saw: bytes read and dropped, and valid frames from the watched slave.
-struct RtuWatch {
-  std::size_t bytes = 0;
-  unsigned frames = 0;
-};
-
 // One RTU line: not thread-safe, used by one thread (the bus thread, or a tool's main thread).
 class RtuMaster {
  public:
@@ -110,10 +104,9 @@ class RtuMaster {
   // it) without flushing the input or waiting for a frame gap. An error means the device failed.
   int native_handle() const;
   Expected<Ok> send_frame(std::uint8_t slave, std::span<const std::uint8_t> pdu);
-  // Reads and drops what arrives until `until`, or until `frames` whole frames (each ended by the
-  // frame gap's silence) with a valid CRC have come from `slave`: the line is watched for the
-  // late answers a slave still owes before it is asked again (transactor.h "Late answers").
-  Expected<RtuWatch> watch_line(std::uint8_t slave, unsigned frames, std::chrono::steady_clock::time_point until);
+  // Awaits one more answer after transact() handed back a frame that was not the request's (an
+  // answer the slave owed to an earlier request): its first byte within `timeout`.
+  RtuExchange receive(std::uint8_t slave, std::uint8_t function, std::chrono::nanoseconds timeout);
 
   // The time `bytes` characters take on the line.
   std::chrono::nanoseconds wire_time(std::size_t bytes) const { return gateway::wire_time(settings_.serial, bytes); }

@@ -163,59 +163,123 @@ std::string RtuTransactor::where(const Request& request) const {
   return fmt::format("{}slave {} FC{:02X}", timing_.label, request.slave, request.pdu[0]);
 }
 
+AnswerShape RtuTransactor::answer_shape(const Request& request) {
+  constexpr std::size_t kException = AnswerShape::kExceptionLength;
+  const std::uint8_t function = request.pdu[0];
+  if (request.fence_units != 0) return AnswerShape::of(function, {2 + std::size_t{request.registers} * 2});
+  switch (request.shape) {
+    case ReplyShape::Registers: return AnswerShape::of(function, {2 + std::size_t{request.registers} * 2, kException});
+    case ReplyShape::Echo:
+    case ReplyShape::WriteMultiple: return AnswerShape::of(function, {5, kException});
+    case ReplyShape::AnyOfFunction: break;
+  }
+  AnswerShape any{function, {}};
+  any.lengths.set();
+  return any;
+}
+
+AnswerShape RtuTransactor::frame_shape(std::span<const std::uint8_t> pdu) {
+  if (pdu.empty()) return {};
+  const bool exception = (pdu[0] & fc::kExceptionBit) != 0;
+  return AnswerShape::frame(static_cast<std::uint8_t>(pdu[0] & ~fc::kExceptionBit),
+                            exception ? AnswerShape::kExceptionLength : pdu.size());
+}
+
+std::optional<BusResult> RtuTransactor::fence_before(const Request& request, TransactionEvents& events) {
+  const AnswerShape shape = answer_shape(request);
+  const auto fence_shape = [](unsigned units) {
+    return AnswerShape::of(fc::kReadHoldingRegisters, {2 + std::size_t{units} * 2});
+  };
+  // Each fence settles at least what came before the first owed fence of its length; a few are
+  // enough for any list a slave can owe (transactor.h OwedAnswers).
+  for (unsigned round = 0; owed_.collides(request.slave, shape); ++round) {
+    const auto units = owed_.fence_length(request.slave, fence_shape, shape, kLongestFence);
+    if (!units || round == kLongestFence) {
+      // Not reachable with the fence lengths there are; said rather than looped on.
+      spdlog::warn("{}: slave {} owes {} late answers no fence can be told from: they are forgotten", where(request),
+                   request.slave, owed_.count(request.slave));
+      owed_.settled(request.slave);
+      return std::nullopt;
+    }
+    // SMSMB: registers 0x00-0x03 (firmware, version, date) for the short fences, the feedback block
+    // 0x100-0x107 for the longer ones: both read on every SMSMB servo.
+    const std::uint16_t address = *units <= 4 ? 0x00 : kSmsmbStatusRegister;
+    Request fence = read_request(request.slave, {address, static_cast<std::uint16_t>(*units)}, request.attempts);
+    fence.fence_units = *units;
+    counters_.fences.fetch_add(1, std::memory_order_relaxed);
+    BusResult fenced = transact(fence, events);
+    if (fenced.status == BusStatus::Ok) continue;
+    if (fenced.status != BusStatus::BusDown) {
+      fenced.detail += fmt::format(
+          " (a fence before FC{:02X}: slave {} still owes late answers that could look like its answer; the request "
+          "was not sent)",
+          request.pdu[0], request.slave);
+    }
+    return fenced;
+  }
+  return std::nullopt;
+}
+
 BusResult RtuTransactor::execute(const Request& request, TransactionEvents& events) {
-  // The reply timeout counts from when the request has left the wire (RtuMaster adds that).
-  const auto reply_timeout = master_.wire_time(expected_reply_bytes(request.pdu)) + timing_.reply_allowance;
   if (request.no_reply) {
     const RtuExchange sent = master_.send_only(request.slave, request.pdu, timing_.reply_allowance);
     if (sent.outcome == RtuOutcome::PortError) return BusResult{BusStatus::BusDown, 0, {}, sent.detail};
     stray_.count(sent.dropped, timing_.label, [&] { return what_for(request); });
     return BusResult{};
   }
-  const auto late_window = kLateAnswerWindowAttempts * (master_.wire_time(request.pdu.size() + 3) + reply_timeout);
-  if (const auto now = SteadyClock::now(); owed_.owes(request.slave, now)) {
-    // Late answers this slave still owes would look like this request's answer: let them come.
-    const auto watched = master_.watch_line(request.slave, owed_.count(request.slave), owed_.until(request.slave));
-    if (!watched) return BusResult{BusStatus::BusDown, 0, {}, watched.error()};
-    for (unsigned frame = 0; frame < watched->frames; ++frame) owed_.arrived(request.slave);
-    counters_.stray_frames.fetch_add(watched->frames, std::memory_order_relaxed);
-    stray_.count(watched->bytes, timing_.label, [&] {
-      return fmt::format("while waiting for late answers slave {} owed before FC{:02X}", request.slave, request.pdu[0]);
-    });
-  }
-  OwedAnswers::Tally tally(owed_, request.slave, late_window, true);
+  if (auto not_sent = fence_before(request, events)) return std::move(*not_sent);
+  return transact(request, events);
+}
+
+BusResult RtuTransactor::transact(const Request& request, TransactionEvents& events) {
+  // The reply timeout counts from when the request has left the wire (RtuMaster adds that).
+  const auto reply_timeout = master_.wire_time(expected_reply_bytes(request.pdu)) + timing_.reply_allowance;
+  OwedAnswers::Tally tally(owed_, request.slave, answer_shape(request), true, request.fence_units);
   bool corrupt = false;
   std::string last_problem;
   for (unsigned attempt = 0; attempt < request.attempts; ++attempt) {
     if (attempt > 0) counters_.retries.fetch_add(1, std::memory_order_relaxed);
-    tally.sent(SteadyClock::now());
+    tally.sent();
+    const auto deadline = SteadyClock::now() + master_.wire_time(request.pdu.size() + 3) + reply_timeout;
     RtuExchange exchange = master_.transact(request.slave, request.pdu, reply_timeout);
     stray_.count(exchange.dropped, timing_.label, [&] { return what_for(request); });
-    switch (exchange.outcome) {
-      case RtuOutcome::Reply: {
-        BusResult result = check_reply(request, std::move(exchange.pdu));
-        if (result.status == BusStatus::Corrupt) {
-          // From the addressed slave but not this request's shape: an answer it owed to an
-          // earlier request; this attempt's own may still come.
-          owed_.arrived(request.slave);
-          counters_.checksum_errors.fetch_add(1, std::memory_order_relaxed);
-          events.damaged();
-          corrupt = true;
-          last_problem = result.detail;
-          continue;
-        }
+    // A valid frame from the addressed slave that is not this request's answer is one it owed to
+    // an earlier request: dropped and counted, and this attempt's own answer awaited until its deadline.
+    while (exchange.outcome == RtuOutcome::Reply) {
+      BusResult result = check_reply(request, exchange.pdu);
+      if (result.status != BusStatus::Corrupt) {
         tally.heard();
+        if (request.fence_units != 0) {
+          owed_.fence_answered(request.slave, request.fence_units);
+        } else {
+          owed_.settled(request.slave);  // only this request's answer looks like this
+        }
         counters_.frames_ok.fetch_add(1, std::memory_order_relaxed);
         events.answered(request.slave, std::nullopt);
         return result;
       }
+      owed_.arrived(request.slave, frame_shape(exchange.pdu));
+      counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
+      events.foreign(request.slave);
+      spdlog::debug("{}: dropped a frame that is not its answer ({})", where(request), result.detail);
+      last_problem = result.detail;
+      const auto left = deadline - SteadyClock::now();
+      if (left <= std::chrono::nanoseconds::zero()) {
+        exchange = RtuExchange{RtuOutcome::Timeout, {}, "only answers to earlier requests came: " + last_problem};
+        break;
+      }
+      exchange = master_.receive(request.slave, request.pdu[0], left);
+    }
+    switch (exchange.outcome) {
+      case RtuOutcome::Reply: break;  // handled above
       case RtuOutcome::Timeout:
         counters_.timeouts.fetch_add(1, std::memory_order_relaxed);
         events.unanswered(request.slave);
         last_problem = exchange.detail;
         break;
       case RtuOutcome::Corrupt:
-        tally.heard();  // a damaged answer ends the attempt
+        // A damaged answer ends the attempt. It is not counted as this request's: it may have
+        // been an owed one, and this request's answer may still come.
         counters_.checksum_errors.fetch_add(1, std::memory_order_relaxed);
         events.damaged();
         corrupt = true;
@@ -224,7 +288,6 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
       case RtuOutcome::WrongSlave:
         counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
         if (exchange.other_slave) {
-          owed_.arrived(*exchange.other_slave);
           events.foreign(*exchange.other_slave);
         } else {
           events.damaged();
@@ -252,6 +315,7 @@ BusResult RtuTransactor::check_reply(const Request& request, Bytes reply) const 
   if (reply.empty()) return corrupt("empty answer");
   if (reply[0] == (requested | fc::kExceptionBit)) {
     if (reply.size() != 2) return corrupt("malformed exception answer");
+    if (request.fence_units != 0) return corrupt("an exception answers no fence (it may be an owed answer's)");
     if (request.forward_exceptions || request.shape == ReplyShape::AnyOfFunction) {
       return BusResult{BusStatus::Ok, reply[1], std::move(reply), {}};
     }

@@ -11,9 +11,10 @@
 //
 // Answers are checked against the request: FC03 must carry the registers asked for, FC06 must
 // echo the request, FC16 must repeat address and quantity; anything else from the addressed
-// slave counts as corrupt and is retried. Late answers are guarded against as transactor.h says:
-// the input is read and dropped before each request, and a slave that owes answers to requests
-// that gave up is asked again only once they came or their window passed. An exception answer is a refusal
+// slave is taken for an answer it owed to an earlier request: dropped, counted as stray, and the
+// attempt's own answer awaited. Late answers are guarded against as transactor.h says: the input
+// is read and dropped before each request, and a request whose answer could look like one its
+// slave still owes is preceded by a fence read. An exception answer is a refusal
 // (ServoRefused with the code as servo_error), except for PING and passthrough, where it is the answer.
 #include <cstdint>
 #include <optional>
@@ -47,11 +48,14 @@ class RtuTransactor {
     bool no_reply = false;            // slave 0, or a write the servo does not answer
     bool forward_exceptions = false;  // RawPduOp: an exception PDU is the answer, passed on as it is
     unsigned attempts = 1;
+    unsigned fence_units = 0;  // a fence (transactor.h "Late answers"): only its registers are its answer
   };
 
   static constexpr std::uint8_t kBroadcastSlave = 0;
   static constexpr std::uint8_t kMaxSlave = 247;
   static constexpr std::size_t kBytesPerAddress = 2;  // registers, high byte first as on the wire
+  // Fences (transactor.h "Late answers") read 1..8 registers (fence_before() says where).
+  static constexpr unsigned kLongestFence = 8;
   static constexpr bool kAnswersCarryStatus = false;  // SMSMB's status is register 0x100 (status_in_block)
 
   // Why the bus cannot poll `servo` (its slave address or poll block is out of Modbus's reach);
@@ -85,6 +89,11 @@ class RtuTransactor {
   static constexpr bool has_sync_read() { return false; }
 
   BusResult execute(const Request& request, TransactionEvents& events);
+  // The answer to `request` may come although it was not awaited (the same write was sent blind):
+  // a later request its answer could be taken for goes behind a fence.
+  void owe_answer(const Request& request) {
+    if (!request.no_reply) owed_.add(request.slave, answer_shape(request), 1);
+  }
 
   // Modbus answers carry no status byte: nothing is only about the instruction.
   std::uint8_t refusal_bits() const { return 0; }
@@ -95,6 +104,14 @@ class RtuTransactor {
   void for_each_write(const Request&, Fn&&) const {}
 
  private:
+  // Every answer `request` would take, and the shape of one that came (transactor.h AnswerShape:
+  // function code, PDU length or an exception).
+  static AnswerShape answer_shape(const Request& request);
+  static AnswerShape frame_shape(std::span<const std::uint8_t> pdu);
+  // When the slave owes answers that could look like `request`'s: the fence read first; nullopt
+  // when the request may go, otherwise why it did not.
+  std::optional<BusResult> fence_before(const Request& request, TransactionEvents& events);
+  BusResult transact(const Request& request, TransactionEvents& events);
   BusResult check_reply(const Request& request, protocol::Bytes reply) const;
   std::string where(const Request& request) const;
   static std::string what_for(const Request& request);  // "before FC03 to slave 1", for the stray count

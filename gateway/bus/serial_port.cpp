@@ -116,6 +116,10 @@ Expected<Ok> SerialPort::open() {
 
 void SerialPort::close() {
   if (fd_ < 0) return;
+  // Give up exclusivity first: it outlives our descriptor while anyone else holds the tty (a
+  // pty's other end, a simulator), and the next open, ours after a restart too, would then fail
+  // with EBUSY for a user other than root.
+  (void)::ioctl(fd_, TIOCNXCL);
   ::close(fd_);
   fd_ = -1;
 }

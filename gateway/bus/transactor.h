@@ -20,6 +20,7 @@
 //   static std::uint8_t target(const Request&);            // the addressed servo
 //   static bool broadcast(const Request&);                 // nothing answers by address
 //   BusResult execute(const Request&, TransactionEvents&); // retries inside; BusDown = port lost
+//   void owe_answer(const Request&);             // its answer may come although nobody awaited it
 //   std::uint8_t refusal_bits() const;           // status bits that speak of the instruction only
 //   std::optional<std::uint8_t> status_in_block(const AddressBlock&, span data) const;
 //   void for_each_write(const Request&, fn(servo, address, span data)) const;
@@ -29,13 +30,13 @@
 //   bool has_sync_read() const; static bool broadcast_id(std::uint8_t);
 //
 // Late answers (docs/DECISIONS.md "Late answers"): an answer names no request, so one that
-// comes after its request gave up is indistinguishable from the answer to the next request of
-// the same size to the same servo. Each transactor therefore (1) reads and drops what the input holds before
-// every request (counted as stray bytes), and (2) remembers, per servo, how many of its requests
-// went unanswered (OwedAnswers below): before the next request to that servo it watches the line,
-// dropping everything, until those answers have come or the late-answer window has passed since
-// the last unanswered request. Requests to other servos are not held up: a late answer from
-// another address is never taken for theirs.
+// comes after its request gave up could be taken for the answer to a later request that looks
+// the same. Each transactor therefore (1) reads and drops what the input holds before every
+// request (counted as stray bytes), and (2) remembers, per servo, the shapes of the requests that
+// went unanswered (OwedAnswers below). A request whose answer no owed answer can look like goes
+// at once, and a frame of an owed shape is dropped and counted; one whose answer could look
+// like an owed one is preceded by a fence, a short read no owed answer looks like. Nothing waits
+// for late answers: a silent servo costs the bus its attempts and nothing more.
 //
 // Bus-wide counters (frames, timeouts, checksum errors, stray frames, retries, discarded bytes)
 // are counted by the transactor into the BusCounters it is given; what concerns one servo is
@@ -43,9 +44,11 @@
 // and presence, and a tool learns what it heard.
 #include <algorithm>
 #include <array>
+#include <bitset>
 #include <chrono>
 #include <concepts>
 #include <cstdint>
+#include <initializer_list>
 #include <optional>
 #include <span>
 #include <string>
@@ -85,74 +88,167 @@ struct TransactionTiming {
   std::string label;
 };
 
-// How long after an unanswered request its answer may still come, in attempt timeouts (each the
-// request's and the answer's wire time plus the reply allowance): an answer later than this is
-// not guarded against (it is then a servo or adapter fault far outside its configured timing).
-inline constexpr unsigned kLateAnswerWindowAttempts = config::kLateAnswerWindowAttempts;  // one home: config.h
+// What an answer looks like, as far as one answer can be told from another: its function (the
+// Modbus function code on RTU, without the exception bit; 0 on packet buses, whose answers all
+// look alike) and the lengths it may have (a packet answer's parameter count; an RTU answer's PDU
+// length, kExceptionLength for an exception). A request's shape is every answer it would take.
+struct AnswerShape {
+  static constexpr std::size_t kExceptionLength = 255;  // no RTU PDU is that long
 
-// Answers still owed by servos whose requests went unanswered, and until when they may come.
+  std::uint8_t function = 0;
+  std::bitset<256> lengths;
+
+  static AnswerShape of(std::uint8_t function, std::initializer_list<std::size_t> lengths) {
+    AnswerShape shape{function, {}};
+    for (const auto length : lengths) shape.lengths.set(length);
+    return shape;
+  }
+  // One answer as it came.
+  static AnswerShape frame(std::uint8_t function, std::size_t length) { return of(function, {length}); }
+  // Some answer could be taken for either.
+  bool overlaps(const AnswerShape& other) const {
+    return function == other.function && (lengths & other.lengths).any();
+  }
+  bool operator==(const AnswerShape&) const = default;
+};
+
+// The answers servos still owe to requests that gave up (docs/DECISIONS.md "Late answers"):
+// per servo, the shapes of its unanswered requests and how many of each, in the order asked.
+// Nothing expires: a late answer is known by its shape, however late it comes. A request whose
+// answer could look like an owed one is not sent as it is: a fence goes first (fence_length()),
+// a read whose answer no other owed answer can look like; a servo answers in the order it was
+// asked, so once the fence is answered what was asked before it has come or never will
+// (fence_answered()).
 class OwedAnswers {
  public:
-  using Clock = std::chrono::steady_clock;
-
-  // `count` more requests to `id` went unanswered; their answers may come until `until`.
-  void add(std::uint8_t id, unsigned count, Clock::time_point until) {
+  // `count` requests to `id` that would take an answer of `shape` went unanswered; `fence_units`:
+  // they were fences of that many units (0: not a fence). Kept in the order asked, except that
+  // after the first owed fence the order no longer matters (a fence's answer settles only what
+  // came before the first fence of its length): there an entry of the same kind takes the count,
+  // so a silent servo's list stays a few entries long.
+  void add(std::uint8_t id, const AnswerShape& shape, unsigned count, unsigned fence_units = 0) {
     if (count == 0) return;
-    Entry& entry = entries_[id];
-    if (entry.until <= Clock::now()) entry.count = 0;  // what was owed before has expired
-    entry.count += count;
-    entry.until = std::max(entry.until, until);
+    auto& owed = entries_[id];
+    const auto first_fence =
+        std::find_if(owed.begin(), owed.end(), [](const Entry& entry) { return entry.fence_units != 0; });
+    const auto same = [&](const Entry& entry) { return entry.shape == shape && entry.fence_units == fence_units; };
+    if (const auto found = std::find_if(first_fence, owed.end(), same); found != owed.end()) {
+      found->count += count;
+    } else if (!owed.empty() && same(owed.back())) {
+      owed.back().count += count;
+    } else {
+      owed.push_back({shape, count, fence_units});
+    }
   }
-  // A frame from `id` came that was not taken as an answer: one owed answer fewer.
-  void arrived(std::uint8_t id) {
-    Entry& entry = entries_[id];
-    if (entry.count > 0) --entry.count;
+  // Whether a late answer of `id` could be taken for an answer of `shape`.
+  bool collides(std::uint8_t id, const AnswerShape& shape) const {
+    return std::any_of(entries_[id].begin(), entries_[id].end(),
+                       [&](const Entry& entry) { return entry.shape.overlaps(shape); });
   }
-  // Whether answers of `id` may still come at `now`.
-  bool owes(std::uint8_t id, Clock::time_point now) const {
-    const Entry& entry = entries_[id];
-    return entry.count > 0 && now < entry.until;
+  // A frame of `shape` from `id` came that was not taken as an answer: true when it was one of
+  // the answers `id` owed (the oldest it can be: answers come in the order asked).
+  bool arrived(std::uint8_t id, const AnswerShape& shape) {
+    auto& owed = entries_[id];
+    for (auto entry = owed.begin(); entry != owed.end(); ++entry) {
+      if (!entry->shape.overlaps(shape)) continue;
+      if (--entry->count == 0) owed.erase(entry);
+      return true;
+    }
+    return false;
   }
-  unsigned count(std::uint8_t id) const { return entries_[id].count; }
-  Clock::time_point until(std::uint8_t id) const { return entries_[id].until; }
+  // An answer came that only `id`'s latest request could give: whatever it owed before has come
+  // or never will.
+  void settled(std::uint8_t id) { entries_[id].clear(); }
+  bool owes(std::uint8_t id) const { return !entries_[id].empty(); }
+  unsigned count(std::uint8_t id) const {
+    unsigned total = 0;
+    for (const auto& entry : entries_[id]) total += entry.count;
+    return total;
+  }
+  // The fence read's length (1..`longest` units) before `request` to `id`. Its answer,
+  // `fence_shape(units)`, must look like no answer to `request` and like no owed answer but those
+  // of earlier fences of the same length (whichever of them answers, what was asked before the
+  // first of them has come: fence_answered()). Best is one after whose answer nothing owed can
+  // look like `request`'s answer any more: a length nobody owes, or one whose first owed fence
+  // comes after everything that could; else the one that settles the most, and another fence
+  // follows. nullopt when no length will do.
+  template <typename ShapeOf>
+  std::optional<unsigned> fence_length(std::uint8_t id, ShapeOf&& fence_shape, const AnswerShape& request,
+                                       unsigned longest) const {
+    const auto& owed = entries_[id];
+    std::optional<unsigned> partial;
+    std::size_t partial_first = 0;
+    for (unsigned units = 1; units <= longest; ++units) {
+      const AnswerShape fence = fence_shape(units);
+      if (fence.overlaps(request)) continue;
+      std::optional<std::size_t> first_same;  // the first owed fence of this length
+      bool others = false;                    // an owed answer that is not such a fence looks like it
+      for (std::size_t i = 0; i < owed.size(); ++i) {
+        if (!owed[i].shape.overlaps(fence)) continue;
+        if (owed[i].fence_units == units) {
+          if (!first_same) first_same = i;
+        } else {
+          others = true;
+        }
+      }
+      if (others) continue;
+      if (!first_same) return units;  // nobody owes it: its answer settles everything
+      const bool clears = std::none_of(owed.begin() + static_cast<std::ptrdiff_t>(*first_same), owed.end(),
+                                       [&](const Entry& entry) { return entry.shape.overlaps(request); });
+      if (clears) return units;
+      if (!partial || *first_same > partial_first) {
+        partial = units;
+        partial_first = *first_same;
+      }
+    }
+    return partial;
+  }
+  // A fence of `units` to `id` was answered: what was asked before the first owed fence of that
+  // length has come or never will (all of it, when none is owed); what was asked after it may
+  // still come (the answer taken may have been that earlier fence's).
+  void fence_answered(std::uint8_t id, unsigned units) {
+    auto& owed = entries_[id];
+    const auto first =
+        std::find_if(owed.begin(), owed.end(), [&](const Entry& entry) { return entry.fence_units == units; });
+    owed.erase(owed.begin(), first);
+  }
   // Nothing can still come from anyone (a reopened line).
-  void clear() { entries_ = {}; }
+  void clear() {
+    for (auto& owed : entries_) owed.clear();
+  }
 
-  // The attempts of one transaction to `id`: however it ends, the answers of those not heard are
-  // owed until `window` after the last one was sent. (A late answer to an earlier attempt of the
-  // same request is that request's answer all the same: only later requests need the wait.)
+  // The attempts of one transaction to `id`: however it ends, those not heard owe an answer of
+  // the request's shape. (A late answer to an earlier attempt of the same request is that
+  // request's answer all the same.)
   class Tally {
    public:
-    Tally(OwedAnswers& owed, std::uint8_t id, std::chrono::nanoseconds window, bool awaited)
-        : owed_(owed), id_(id), window_(window), awaited_(awaited) {}
+    Tally(OwedAnswers& owed, std::uint8_t id, AnswerShape shape, bool awaited, unsigned fence_units = 0)
+        : owed_(owed), id_(id), shape_(shape), awaited_(awaited), fence_units_(fence_units) {}
     ~Tally() {
-      if (awaited_ && sent_ > heard_) owed_.add(id_, sent_ - heard_, last_sent_ + window_);
+      if (awaited_ && sent_ > heard_) owed_.add(id_, shape_, sent_ - heard_, fence_units_);
     }
     Tally(const Tally&) = delete;
     Tally& operator=(const Tally&) = delete;
-    void sent(Clock::time_point at) {
-      ++sent_;
-      last_sent_ = at;
-    }
-    void heard() { ++heard_; }  // an answer (valid or damaged) from `id` to one of the attempts
-    Clock::time_point last_sent() const { return last_sent_; }
+    void sent() { ++sent_; }
+    void heard() { ++heard_; }  // a valid answer from `id` to one of the attempts (a damaged one may be anyone's)
 
    private:
     OwedAnswers& owed_;
     std::uint8_t id_;
-    std::chrono::nanoseconds window_;
+    AnswerShape shape_;
     bool awaited_;
+    unsigned fence_units_;
     unsigned sent_ = 0;
     unsigned heard_ = 0;
-    Clock::time_point last_sent_{};
   };
 
  private:
   struct Entry {
+    AnswerShape shape;
     unsigned count = 0;
-    Clock::time_point until{};
+    unsigned fence_units = 0;
   };
-  std::array<Entry, 256> entries_{};
+  std::array<std::vector<Entry>, 256> entries_{};
 };
 
 // Counts bytes dropped unread as stray; the first time on a line it says so at info, then at debug.
@@ -207,6 +303,7 @@ concept BusTransactor = requires(T& transactor, const T& line, BusOp op, const t
   { T::broadcast_id(id) } -> std::convertible_to<bool>;
   { line.has_sync_read() } -> std::convertible_to<bool>;
   { transactor.execute(request, events) } -> std::same_as<BusResult>;
+  transactor.owe_answer(request);
   { line.refusal_bits() } -> std::convertible_to<std::uint8_t>;
   { line.status_in_block(block, data) } -> std::same_as<std::optional<std::uint8_t>>;
   line.for_each_write(request, transactor_contract::WriteVisitor{});

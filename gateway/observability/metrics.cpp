@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <charconv>
+#include <cmath>
+#include <limits>
 #include <variant>
 
 #include "gateway/bus/bus_engine.h"
@@ -45,6 +47,9 @@ void append_value(std::string& out, const Value& value) {
   std::to_chars_result result{};
   if (const auto* integer = std::get_if<std::uint64_t>(&value)) {
     result = std::to_chars(std::begin(text), std::end(text), *integer);
+  } else if (std::isnan(std::get<double>(value))) {
+    out += "NaN";  // the exposition format's spelling (to_chars writes "nan")
+    return;
   } else {
     result = std::to_chars(std::begin(text), std::end(text), std::get<double>(value));
   }
@@ -129,6 +134,9 @@ constexpr Family<BusMetrics> kBusFamilies[] = {
     {"sms_gateway_bus_stray_bytes_total", MetricType::Counter,
      "Bytes that came when no answer was awaited (late answers, noise): dropped, never taken for an answer",
      [](const BusMetrics& b) -> std::optional<Value> { return b.counters.stray_bytes; }},
+    {"sms_gateway_bus_fences_total", MetricType::Counter,
+     "Fence reads sent before a request whose servo still owed late answers that could look like its answer",
+     [](const BusMetrics& b) -> std::optional<Value> { return b.counters.fences; }},
     {"sms_gateway_bus_retries_total", MetricType::Counter, "Attempts after the first one",
      [](const BusMetrics& b) -> std::optional<Value> { return b.counters.retries; }},
     {"sms_gateway_bus_transactions_total", MetricType::Counter, "Bus operations finished, whatever their outcome",
@@ -165,9 +173,12 @@ constexpr Family<BusMetrics> kBusFamilies[] = {
        return std::uint64_t{b.safety->owed_stops};
      }},
     {"sms_gateway_safe_stop_latency_seconds", MetricType::Gauge,
-     "Last safe stop: from the last feed (watchdog) or the request to its frames on the wire",
+     "Last safe stop: from the last feed (watchdog) or the request to its frames on the wire; NaN before the first "
+     "stop and after one that failed",
      [](const BusMetrics& b) -> std::optional<Value> {
-       if (!b.safety || !b.safety->last_stop_latency) return std::nullopt;
+       if (!b.safety) return std::nullopt;
+       // The series stays (an alert on it must not see it vanish): NaN says there is no figure.
+       if (!b.safety->last_stop_latency) return std::numeric_limits<double>::quiet_NaN();
        return seconds(*b.safety->last_stop_latency);
      }},
     {"sms_gateway_motion_blocked", MetricType::Gauge,

@@ -382,8 +382,9 @@ TEST(SafetyConfig, WatchdogShorterThanTheWorstTransactionIsRefused) {
   const auto status = check.wait_exit(10s);
   ASSERT_TRUE(status.has_value());
   EXPECT_EQ(*status, 2) << check.output();
-  EXPECT_NE(check.output().find("is not longer than this bus's worst transaction (a late-answer window of 4 and 3 "
-                                "attempts, each response_timeout_ms 1000 + the longest frames' wire time = 7042 ms)"),
+  EXPECT_NE(check.output().find("is not longer than this bus's worst transaction (a fence read and the request, 3 "
+                                "attempts each, each attempt response_timeout_ms 1000 + the longest frames' wire "
+                                "time = 6036 ms)"),
             std::string::npos)
       << check.output();
 }

@@ -397,6 +397,53 @@ TEST_P(Conformance, AnOfflineServoIsAnsweredAtOnceProbedAtItsPeriodAndComesBack)
   RecordProperty("back_online_us", to_us(came_back));
 }
 
+// A servo known to be silent costs its bus one attempt per probe period and nothing more, also
+// while it is owed a safe stop: the stop's delivery takes its probe's place (sent blind, then
+// acknowledged behind a fence once the servo answers again), nothing waits for its late answers,
+// and a client writing another servo meanwhile is answered every time. Once back, the servo
+// takes its stop.
+TEST_P(Conformance, ASilentServoOwedAStopCostsOneAttemptPerProbePeriod) {
+  start();
+  bus_->set_offline(3, true);
+  ASSERT_TRUE(eventually([&] { return !engine_->cache().state(3)->online; }));
+  constexpr std::uint8_t kStopValue = 7;
+  engine_->owe_stop(OwedStop{pc().write(3, kStopValue), "test stop"});
+  frames_->clear();
+  const auto window_start = Clock::now();
+  int written = 0;
+  while (Clock::now() - window_start < 1200ms) {
+    const BusResult result = transact(*engine_, pc().write(1, static_cast<std::uint8_t>(10 + written % 100)));
+    EXPECT_EQ(result.status, BusStatus::Ok) << result.detail;
+    ++written;
+    std::this_thread::sleep_for(20ms);
+  }
+  const auto window = Clock::now() - window_start;
+  EXPECT_EQ(frames_->writes(pc(), 1).size(), static_cast<std::size_t>(written));
+  // Per probe period one blind stop and one awaited attempt (the fence), no more.
+  std::vector<Clock::time_point> attempts;
+  const auto frames = frames_->frames();
+  for (const auto& frame : frames) {
+    if (frame.id == 3 && !pc().written_value(frame, 3)) attempts.push_back(frame.arrived);
+  }
+  const auto stops = frames_->writes(pc(), 3);
+  const auto most = window / settings_.probe_period + 1;
+  EXPECT_LE(static_cast<long>(attempts.size()), most) << written << " writes in " << to_ms(window) << " ms";
+  EXPECT_LE(static_cast<long>(stops.size()), most);
+  EXPECT_GE(stops.size(), 1U) << "the owed stop was never sent to the silent servo";
+  for (const auto value : stops) EXPECT_EQ(value, kStopValue);
+  for (std::size_t i = 1; i < attempts.size(); ++i) {
+    EXPECT_GE(attempts[i] - attempts[i - 1], settings_.probe_period * 9 / 10) << "attempt " << i;
+  }
+  EXPECT_EQ(engine_->owed_stop_count(), 1U) << "acknowledged by a servo that does not answer";
+
+  bus_->set_offline(3, false);
+  ASSERT_TRUE(eventually([&] { return engine_->owed_stop_count() == 0; }, "the owed stop acknowledged"));
+  ASSERT_TRUE(eventually([&] { return engine_->cache().state(3)->online; }));
+  EXPECT_EQ(bus_->read_memory(3, pc().ram_field, 1), pc().value(kStopValue));
+  RecordProperty("client_writes", written);
+  RecordProperty("attempts_to_the_silent_servo", static_cast<int>(attempts.size()));
+}
+
 // --- 5. port loss -------------------------------------------------------------------------------------
 
 TEST_P(Conformance, ALostPortTakesTheBusDownAndTheEngineReopensItByItself) {
