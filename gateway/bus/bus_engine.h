@@ -14,6 +14,7 @@
 // before submit() returns. Never call submit() while holding a lock the completion takes.
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -89,6 +90,14 @@ class BusEngine {
   virtual void owe_stop(OwedStop stop) = 0;
   // How many servos are owed a stop right now (lock-free: read on every gateway-unit read).
   virtual std::size_t owed_stop_count() const = 0;
+  // The stops owed right now, in servo order: what the safety state file keeps across a restart
+  // (docs/SAFETY.md "What survives a restart"; restored through owe_stop() before start()).
+  virtual std::vector<OwedStop> owed_stops() const = 0;
+  // `changed` runs after every change of the owed stops — a servo becomes owed (owe_stop) or
+  // takes its stop — on the thread that made the change, outside the engine's other locks; it
+  // must be quick and must not call on_owed_stops_changed(). Replaces the previous one (empty:
+  // none); once this returns, the previous one is not running and never runs again.
+  virtual void on_owed_stops_changed(std::function<void()> changed) = 0;
 
   // Lends the bus's serial line to someone else (the console's commissioning, docs/CONSOLE.md):
   // at the next transaction boundary the engine closes the port and keeps the bus down — client

@@ -302,6 +302,27 @@ void EngineCore<Transactor>::owe_stop(OwedStop stop) {
     }
   }
   wake_.notify();
+  owed_stops_changed();
+}
+
+template <BusTransactor Transactor>
+std::vector<OwedStop> EngineCore<Transactor>::owed_stops() const {
+  std::lock_guard lock(owed_mutex_);
+  std::vector<OwedStop> stops;
+  for (const auto& [id, owed] : owed_) stops.push_back(owed.stop);
+  return stops;
+}
+
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::on_owed_stops_changed(std::function<void()> changed) {
+  std::lock_guard lock(owed_listener_mutex_);
+  owed_listener_ = std::move(changed);
+}
+
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::owed_stops_changed() {
+  std::lock_guard lock(owed_listener_mutex_);
+  if (owed_listener_) owed_listener_();
 }
 
 template <BusTransactor Transactor>
@@ -385,6 +406,7 @@ bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
     const auto late = std::chrono::duration_cast<std::chrono::milliseconds>(now - owed.since);
     spdlog::warn("bus {}: servo {} took its owed safe stop ({}: torque off) {} ms after the stop, at attempt {}",
                  settings_.name, servo_id, owed.stop.why, late.count(), owed.attempts + 1);
+    owed_stops_changed();
     if (write.expect_reply || offline) servo_answered(servo_id);
   } else {
     spdlog::debug("bus {}: servo {}: owed safe stop not taken yet ({}); next try in {} ms", settings_.name, servo_id,

@@ -58,6 +58,8 @@ class EngineCore final : public BusEngine {
   void submit(BusOp op, Priority priority, Completion done) override;
   void owe_stop(OwedStop stop) override;
   std::size_t owed_stop_count() const override { return owed_count_.load(std::memory_order_acquire); }
+  std::vector<OwedStop> owed_stops() const override;
+  void on_owed_stops_changed(std::function<void()> changed) override;
   bool lend_line(std::string why, std::chrono::milliseconds bound) override;
   bool take_back_line() override;
   bool line_lent() const override;
@@ -117,6 +119,7 @@ class EngineCore final : public BusEngine {
   bool deliver(std::uint8_t servo_id, const Owed& owed);                // false: the port was lost
   std::optional<BusResult> owed_refusal(const Request& request) const;  // a motion write to an owed servo
   void make_owed_due(std::optional<std::uint8_t> servo_id);             // nullopt: all of them
+  void owed_stops_changed();                                            // tells on_owed_stops_changed's listener
   void neutralise_staged(const Job& job);
 
   // --- port -------------------------------------------------------------------------------------
@@ -161,6 +164,8 @@ class EngineCore final : public BusEngine {
   mutable std::mutex owed_mutex_;
   std::map<std::uint8_t, Owed> owed_;       // guarded by owed_mutex_
   std::atomic<std::size_t> owed_count_{0};  // owed_.size(), set under owed_mutex_, read without it
+  std::mutex owed_listener_mutex_;          // held while the listener runs: replacing it waits for that
+  std::function<void()> owed_listener_;     // guarded by owed_listener_mutex_
   std::atomic<bool> discovered_{false};
   std::thread thread_;
   // lend_line(): asked for by the lender, carried out by the bus thread, which says so in lent_.

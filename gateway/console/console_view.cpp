@@ -166,6 +166,7 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
       {"uptime_s", metrics.uptime.count()},
       {"connections", metrics.tcp.open_connections},
       {"estop", {{"latched", metrics.estop_latched}, {"count", metrics.estops}}},
+      {"safety_state", {{"persisted", !metrics.safety_state_not_persisted}, {"problem", metrics.safety_state_problem}}},
       {"tls", metrics.tls ? json{{"listen", config.modbus_tcp.tls->listen.to_string()}} : json(nullptr)},
       {"mqtt", metrics.mqtt
                    ? json{{"connected", metrics.mqtt->link.connected}, {"broker", config.mqtt->broker.to_string()}}

@@ -325,6 +325,8 @@ MetricsSnapshot collect_metrics(const config::Config& config, std::span<BusEngin
   if (safety != nullptr) {
     snapshot.estop_latched = safety->estop_latched;
     snapshot.estops = safety->estops;
+    snapshot.safety_state_not_persisted = safety->state_not_persisted;
+    snapshot.safety_state_problem = safety->state_problem;
   }
   snapshot.tcp = tcp;
   snapshot.traffic = traffic.snapshot();
@@ -467,6 +469,11 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
   out.sample("sms_gateway_estop_latched", {}, std::uint64_t{snapshot.estop_latched ? 1u : 0u});
   out.family("sms_gateway_estops_total", MetricType::Counter, "Times a client latched the e-stop");
   out.sample("sms_gateway_estops_total", {}, snapshot.estops);
+  out.family("sms_gateway_safety_state_not_persisted", MetricType::Gauge,
+             "1 while the safety state (e-stop latch, tripped watchdogs, owed stops) could not be saved to state_dir: "
+             "a restart now would forget it");
+  out.sample("sms_gateway_safety_state_not_persisted", {},
+             std::uint64_t{snapshot.safety_state_not_persisted ? 1u : 0u});
 
   render_requests(out, snapshot.traffic);
   constexpr std::string_view kResponses = "sms_gateway_modbus_responses_total";
@@ -482,6 +489,10 @@ Health health_of(const MetricsSnapshot& snapshot) {
     if (bus.up) continue;
     if (!health.reason.empty()) health.reason += "; ";
     health.reason += "bus " + bus.name + " is down";
+  }
+  if (snapshot.safety_state_not_persisted) {
+    if (!health.reason.empty()) health.reason += "; ";
+    health.reason += "safety state not persisted: " + snapshot.safety_state_problem;
   }
   health.ok = health.reason.empty();
   if (health.ok) health.reason = "ok";

@@ -63,6 +63,9 @@ struct MetricsSnapshot {
   ModbusTrafficSnapshot traffic;
   bool estop_latched = false;
   std::uint64_t estops = 0;
+  // A save of the safety state to state_dir failed and none has succeeded since (docs/SAFETY.md).
+  bool safety_state_not_persisted = false;
+  std::string safety_state_problem;
   std::vector<RtuSlaveStats> rtu_slaves;  // the upstream Modbus RTU ports, in configuration order
 };
 
@@ -88,7 +91,7 @@ struct Health {
   bool ok = true;
   std::string reason;  // "ok", or what is wrong: "bus arm is down; bus base is down"
 };
-// Healthy when every bus is up.
+// Healthy when every bus is up and the safety state is persisted.
 Health health_of(const MetricsSnapshot& snapshot);
 
 }  // namespace sms::gateway

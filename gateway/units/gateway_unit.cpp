@@ -187,7 +187,7 @@ void GatewayUnit::handle(const Request& request, const Reply& reply) {
                      bits = {facts.estop_latched,
                              any([](const BusSafetyFacts& b) { return b.state == WatchdogState::Tripped; }),
                              any([](const BusSafetyFacts& b) { return b.motion_blocked; }),
-                             any([](const BusSafetyFacts& b) { return b.owed_stops > 0; })};
+                             any([](const BusSafetyFacts& b) { return b.owed_stops > 0; }), facts.state_not_persisted};
                    }
                    reply.send(bits_response(read.function,
                                             std::vector<bool>(bits.begin() + read.address, bits.begin() + end)));

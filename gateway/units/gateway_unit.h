@@ -2,7 +2,7 @@
 // The gateway's own Modbus unit (255 by default; docs/PLC_GUIDE.md "The gateway unit"):
 // - input registers 0-2 version, 3-4 uptime s, 5/6 buses/servos, 100 + 20·n the facts of bus n;
 // - coil 0: writing 1 sends ACTION on every bus (runs every staged REG WRITE at once);
-// - coils 1-2, discrete inputs 0-3, input registers 10-15 and 100 + 20·n + 10..19, holding
+// - coils 1-2, discrete inputs 0-4, input registers 10-15 and 100 + 20·n + 10..19, holding
 //   registers 1000 + n: the safety rules (docs/PLC_GUIDE.md "Safety");
 // - holding registers of the configured sync groups: one register per member; a write of a
 //   group's registers becomes one SYNC WRITE frame per bus, read gives the members' live values.
@@ -38,9 +38,10 @@ inline constexpr std::uint16_t kActionCoil = 0;
 // 1 any watchdog tripped, 2 motion blocked on any bus.
 inline constexpr std::uint16_t kEStopCoil = 1;
 inline constexpr std::uint16_t kWatchdogCoil = 2;
-// 3 a safe stop is owed to some servo (it could not be delivered yet).
+// 3 a safe stop is owed to some servo (it could not be delivered yet), 4 the safety state is
+// not persisted (a save to state_dir failed and none has succeeded since: docs/SAFETY.md).
 inline constexpr std::uint16_t kCoilCount = 3;
-inline constexpr std::uint16_t kDiscreteInputCount = 4;
+inline constexpr std::uint16_t kDiscreteInputCount = 5;
 // Input registers 10 e-stop latched, 11-12 e-stops (32-bit), 13 servos owed a safe stop (every
 // bus), 14-15 safe stops that failed (32-bit, every bus).
 inline constexpr std::uint16_t kEStopLatched = 10;

@@ -14,8 +14,6 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 
-#include <yaml-cpp/yaml.h>
-
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/write_batch.h"
 #include "gateway/modbus_tcp/faults.h"
@@ -161,10 +159,18 @@ class SafetySupervisor::Impl {
       if (const std::string problem = check_state_dir(dir); !problem.empty()) throw std::runtime_error(problem);
       state_path_ = (std::filesystem::path(dir) / "safety.state").string();
       restore();
+      // From now on every change of an engine's owed stops is written (on the safety thread).
+      for (const auto& bus : buses_) bus->engine->on_owed_stops_changed([this] { request_persist(); });
     }
   }
 
-  ~Impl() { stop_thread(); }
+  ~Impl() {
+    // The engines may outlive the supervisor: none may call into it once it is gone.
+    if (!state_path_.empty()) {
+      for (const auto& bus : buses_) bus->engine->on_owed_stops_changed(nullptr);
+    }
+    stop_thread();
+  }
 
   void start() {
     thread_ = std::thread([this] { io_.run(); });
@@ -228,6 +234,9 @@ class SafetySupervisor::Impl {
       spdlog::error("safety: on_stop did not finish within {} ms; stopping the buses anyway", bound.count());
     }
     stop_thread();
+    // What on_stop could not deliver is owed at the next start: written now, the safety thread
+    // that writes it otherwise has ended.
+    persist();
   }
 
   void feed_write(std::size_t index) {
@@ -394,6 +403,11 @@ class SafetySupervisor::Impl {
       f.lent = bus->lent.load();
       facts.buses.push_back(f);
     }
+    if (not_persisted_.load()) {
+      std::lock_guard problem_lock(problem_mutex_);
+      facts.state_not_persisted = true;
+      facts.state_problem = persist_problem_;
+    }
     return facts;
   }
 
@@ -429,6 +443,11 @@ class SafetySupervisor::Impl {
   }
 
   // --- the state file --------------------------------------------------------------------------
+  BusSafety* bus_named(const std::string& name) const {
+    auto found = std::find_if(buses_.begin(), buses_.end(), [&](const auto& b) { return b->name == name; });
+    return found == buses_.end() ? nullptr : found->get();
+  }
+
   void restore() {
     const auto text = read_state_file(state_path_);
     std::string problem;
@@ -436,73 +455,128 @@ class SafetySupervisor::Impl {
       problem = text.error();
     } else if (!text->has_value()) {
       return;  // first start
+    } else if (auto state = parse_safety_state(**text); !state) {
+      problem = state_path_ + " is not a complete safety state: " + state.error();
     } else {
-      try {
-        const YAML::Node root = YAML::Load(**text);
-        const bool latched = root["estop_latched"].as<bool>(false);
-        std::vector<std::string> unknown;
-        for (const auto& name : root["tripped_watchdogs"]) {
-          const std::string bus_name = name.as<std::string>();
-          auto found = std::find_if(buses_.begin(), buses_.end(), [&](const auto& b) { return b->name == bus_name; });
-          if (found == buses_.end() || !(*found)->watchdog) {
-            unknown.push_back(bus_name);
-            continue;
-          }
-          (*found)->state = WatchdogState::Tripped;
-          spdlog::warn(
-              "safety: bus {}: its watchdog was tripped before the restart ({}): it stays tripped until a "
-              "client re-arms it (gateway unit coil 2 := 0)",
-              bus_name, state_path_);
-        }
-        for (const auto& name : unknown) {
-          spdlog::warn("safety: {} names a tripped watchdog on bus `{}`, which has none now: ignored", state_path_,
-                       name);
-        }
-        if (latched) {
-          estop_latched_ = true;
-          spdlog::warn(
-              "safety: the E-STOP was latched before the restart ({}): it stays latched until a client "
-              "resets it (gateway unit coil 1 := 0)",
-              state_path_);
-        }
-      } catch (const YAML::Exception& error) {
-        problem = state_path_ + " is damaged: " + error.what();
-      }
+      restore(*state);
     }
     if (!problem.empty()) {
       estop_latched_ = true;
       spdlog::error(
-          "safety: {}; the e-stop is latched as a precaution: check the cell, then reset it (gateway unit "
-          "coil 1 := 0)",
+          "safety: {}; the e-stop is LATCHED as a precaution (whether the cell was stopped is unknown): check "
+          "the cell, then reset the e-stop (gateway unit coil 1 := 0), which writes a new state file",
           problem);
     }
     std::lock_guard lock(state_mutex_);
     apply_gates_locked();
   }
 
-  // Writes the latch and the tripped watchdogs (any thread; serialised).
+  void restore(const SafetyStateRecord& state) {
+    // A name the configuration no longer has is stale, not damage: said, and left alone.
+    for (const auto& name : state.tripped_watchdogs) {
+      BusSafety* bus = bus_named(name);
+      if (bus == nullptr || !bus->watchdog) {
+        spdlog::warn("safety: {} names a tripped watchdog on bus `{}`, which has none now: ignored", state_path_, name);
+        continue;
+      }
+      bus->state = WatchdogState::Tripped;
+      spdlog::warn(
+          "safety: bus {}: its watchdog was tripped before the restart ({}): it stays tripped until a "
+          "client re-arms it (gateway unit coil 2 := 0)",
+          name, state_path_);
+    }
+    for (const auto& owed : state.owed_stops) {
+      BusSafety* bus = bus_named(owed.bus);
+      const StopTarget* target = nullptr;
+      if (bus != nullptr) {
+        for (const auto& t : bus->targets) {
+          if (t.servo_id == owed.servo) target = &t;
+        }
+      }
+      if (target == nullptr) {
+        spdlog::warn(
+            "safety: {} says servo {} on bus `{}` was owed its safe stop ({}), but the configuration has no such "
+            "servo now: ignored; make sure that servo is stopped",
+            state_path_, owed.servo, owed.bus, owed.why);
+        continue;
+      }
+      OwedStop stop = owed_stop_for(*bus, *target, owed.why);
+      // The servo's answers are not known before discovery: as they were when the stop was owed.
+      if (!target->response_level) stop.write.expect_reply = owed.answers_writes;
+      bus->engine->owe_stop(std::move(stop));
+      spdlog::warn(
+          "safety: bus {}: servo {} was owed its safe stop ({}) before the restart ({}): it is sent before "
+          "anything else on the bus, and motion writes to the servo are refused until it has taken it",
+          bus->name, owed.servo, owed.why, state_path_);
+    }
+    if (state.estop_latched) {
+      estop_latched_ = true;
+      spdlog::warn(
+          "safety: the E-STOP was latched before the restart ({}): it stays latched until a client "
+          "resets it (gateway unit coil 1 := 0)",
+          state_path_);
+    }
+  }
+
+  // A write of the whole state from the safety thread, soon (a change of an engine's owed stops,
+  // on whatever thread made it). Changes close together are written once.
+  void request_persist() {
+    if (state_path_.empty() || persist_queued_.exchange(true)) return;
+    asio::post(io_, [this] {
+      persist_queued_ = false;  // before the snapshot: a change after it queues another write
+      persist();
+    });
+  }
+
+  // Writes the latch, the tripped watchdogs and the owed stops (any thread; serialised). A write
+  // that fails is said once, shown (facts().state_not_persisted) and retried every second.
   void persist() {
     if (state_path_.empty()) return;
     std::lock_guard file_lock(persist_mutex_);
-    YAML::Emitter out;
-    out << YAML::Comment(
-        "sms-gateway safety state: written by the gateway. A latched e-stop or a tripped watchdog "
-        "survives a restart; reset it over Modbus (gateway unit coils 1 and 2), not here.");
-    out << YAML::BeginMap;
+    SafetyStateRecord state;
     {
       std::lock_guard lock(state_mutex_);
-      out << YAML::Key << "estop_latched" << YAML::Value << estop_latched_.load();
-      out << YAML::Key << "tripped_watchdogs" << YAML::Value << YAML::Flow << YAML::BeginSeq;
+      state.estop_latched = estop_latched_.load();
       for (const auto& bus : buses_) {
-        if (bus->state.load() == WatchdogState::Tripped) out << bus->name;
+        if (bus->state.load() == WatchdogState::Tripped) state.tripped_watchdogs.push_back(bus->name);
       }
-      out << YAML::EndSeq;
     }
-    out << YAML::EndMap;
-    const std::string text = std::string(out.c_str()) + "\n";
-    if (const auto written = write_file_atomically(state_path_, text); !written) {
-      spdlog::error("safety: cannot keep the safety state: {}; a restart now would forget it", written.error());
+    for (const auto& bus : buses_) {
+      for (const OwedStop& owed : bus->engine->owed_stops()) {
+        state.owed_stops.push_back(OwedStopRecord{bus->name, owed.write.servo_id, owed.why, owed.write.expect_reply});
+      }
     }
+    const auto written = write_file_atomically(state_path_, render_safety_state(state));
+    if (written) {
+      if (not_persisted_.exchange(false)) {
+        spdlog::warn("safety: the safety state is kept in {} again", state_path_);
+      }
+      return;
+    }
+    {
+      std::lock_guard problem_lock(problem_mutex_);
+      persist_problem_ = written.error();
+    }
+    if (!not_persisted_.exchange(true)) {
+      spdlog::error(
+          "safety: SAFETY STATE NOT PERSISTED: {}; a restart now would forget the e-stop latch, tripped "
+          "watchdogs and owed stops. Retried every {} s; make {} writable (disk full? read-only? permissions?). "
+          "Shown until a save succeeds: gateway unit discrete input 4, sms_gateway_safety_state_not_persisted, "
+          "/healthz",
+          written.error(), kPersistRetry.count(), std::filesystem::path(state_path_).parent_path().string());
+    }
+    asio::post(io_, [this] { arm_persist_retry(); });
+  }
+
+  // Safety thread.
+  void arm_persist_retry() {
+    if (retry_armed_) return;
+    retry_armed_ = true;
+    retry_timer_.expires_after(kPersistRetry);
+    retry_timer_.async_wait([this](const boost::system::error_code& error) {
+      retry_armed_ = false;
+      if (!error && not_persisted_.load()) persist();
+    });
   }
 
   // --- watchdogs -------------------------------------------------------------------------------
@@ -784,7 +858,10 @@ class SafetySupervisor::Impl {
 
   void stop_thread() {
     if (!thread_.joinable()) return;
-    asio::post(io_, [this] { timer_.cancel(); });
+    asio::post(io_, [this] {
+      timer_.cancel();
+      retry_timer_.cancel();
+    });
     work_.reset();
     io_.stop();
     thread_.join();
@@ -804,6 +881,13 @@ class SafetySupervisor::Impl {
   std::atomic<bool> shutdown_done_{false};
   std::string state_path_;  // empty: not kept
   std::mutex persist_mutex_;
+  std::atomic<bool> persist_queued_{false};  // request_persist(): a write is posted and has not begun
+  std::atomic<bool> not_persisted_{false};   // the last write failed
+  mutable std::mutex problem_mutex_;
+  std::string persist_problem_;  // guarded by problem_mutex_: why the last write failed
+  static constexpr std::chrono::seconds kPersistRetry{1};
+  asio::steady_timer retry_timer_{io_};
+  bool retry_armed_ = false;  // safety thread only
 };
 
 SafetySupervisor::SafetySupervisor(const config::Config& config, std::vector<BusEngine*> engines,

@@ -16,9 +16,13 @@
 // - Whether a bus's motion is blocked is computed from the whole state (shutdown, latch, its
 //   watchdog) after every transition, under one lock, so what a client reads never disagrees
 //   with what the gate enforces.
-// - The latch and the tripped watchdogs are kept in `<state_dir>/safety.state`, written before
-//   the request that changed them is answered, and restored at start: a restart or a crash does
-//   not release them, and a restored latch or trip stops its servos again at start.
+// - The latch, the tripped watchdogs and the owed safe stops are kept in `<state_dir>/safety.state`
+//   (the latch and trips written before the request that changed them is answered, the owed
+//   stops on every change of an engine's owed set) and restored at start: a restart or a crash
+//   does not release them, a restored latch or trip stops its servos again at start, and a
+//   restored owed stop is owed again (sent before anything else, whatever on_start says). A
+//   file that is not a complete state of the exact schema latches the e-stop. A save that fails
+//   is retried every second and shows in facts().state_not_persisted until one succeeds.
 // - A safe stop reads each servo's mode, torque, goal block and present position (one SYNC READ
 //   frame for a feetech bus's servos, a servo silent in it read on its own; else one READ per
 //   servo), then writes: on packet buses one SYNC WRITE frame per distinct write shape,
@@ -81,6 +85,11 @@ struct SafetyFacts {
   bool estop_latched = false;
   std::uint64_t estops = 0;
   std::vector<BusSafetyFacts> buses;
+  // The last change of the latch, the trips or the owed stops could not be written to the state
+  // file, and no save has succeeded since: a restart now would forget it (docs/SAFETY.md "When
+  // the state cannot be saved"). Retried every second until a save succeeds.
+  bool state_not_persisted = false;
+  std::string state_problem;  // why, while state_not_persisted
 };
 
 // Refused motion writes, logged as a warning at most once a second (a PLC writing cyclically
@@ -106,7 +115,8 @@ class SafetySupervisor {
   // `engines[i]` runs config.buses[i]; `gates[i]` is the gate its engine checks
   // (BusSettings::motion_gate). Reads the state file (config::effective_state_dir) and throws
   // std::runtime_error when its directory is unusable; an unreadable or damaged state file
-  // latches the e-stop (said in the log) rather than start unprotected.
+  // latches the e-stop (said in the log) rather than start unprotected. Restored owed stops go
+  // into the engines here: construct it before the engines start, so they are sent first.
   SafetySupervisor(const config::Config& config, std::vector<BusEngine*> engines,
                    std::vector<std::shared_ptr<MotionGate>> gates);
   ~SafetySupervisor();  // stops the thread; no stop is performed

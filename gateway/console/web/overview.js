@@ -24,6 +24,7 @@ function render(data) {
   document.getElementById('gateway').replaceChildren(
     fact('version', g.version), fact('uptime', uptime(g.uptime_s)), fact('Modbus connections', g.connections),
     fact('e-stop', g.estop.latched ? 'LATCHED' : 'released', g.estop.latched ? 'bad' : 'ok'),
+    ...(g.safety_state.persisted ? [] : [fact('safety state', 'not persisted: ' + g.safety_state.problem, 'bad')]),
     fact('TLS', g.tls ? 'on ' + g.tls.listen : 'off'),
     fact('MQTT', g.mqtt ? (g.mqtt.connected ? 'connected to ' : 'not connected to ') + g.mqtt.broker : 'off'));
   const now = performance.now();

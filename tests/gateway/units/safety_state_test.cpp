@@ -1,6 +1,8 @@
 // The safety supervisor's state (docs/PLC_GUIDE.md "Safety"): what a client reads never disagrees with what
-// the motion gates enforce, under e-stops, resets, trips and re-arms on three threads; the latch
-// and tripped watchdogs are restored from the state file, and a damaged file latches.
+// the motion gates enforce, under e-stops, resets, trips and re-arms on three threads; the latch,
+// tripped watchdogs and owed stops are restored from the state file (docs/SAFETY.md "What
+// survives a restart"), anything but a complete state of the exact schema latches with the
+// reason, and a state that cannot be saved shows until a save succeeds.
 #include <gtest/gtest.h>
 
 #include <atomic>
@@ -31,11 +33,22 @@ class TempState {
 };
 
 // Two buses whose ports do not exist (the supervisor's rules need no servo), each with a short
-// watchdog; their engines run, down, so stops fail fast and nothing is owed (no servos).
+// watchdog; their engines run, down, so stops fail fast. Without `servo` nothing is owed (no
+// servos); with it, servo 1 (sts) on bus arm is owed every stop.
 class SafetyState : public ::testing::Test {
  protected:
-  void make(const std::string& state_dir) {
+  void make(const std::string& state_dir, bool servo = false) {
     config_.state_dir = state_dir;
+    config_.servos.clear();
+    if (servo) {
+      config::ServoConfig sts;
+      sts.unit_id = 1;
+      sts.bus = "arm";
+      sts.bus_index = 0;
+      sts.servo_id = 1;
+      sts.table = modbus_map::TableId::Sts;
+      config_.servos.push_back(sts);
+    }
     config_.buses.clear();
     for (const char* name : {"arm", "base"}) {
       config::BusConfig bus;
@@ -68,6 +81,7 @@ class SafetyState : public ::testing::Test {
     for (auto& engine : engines_) engine->stop();
   }
 
+  testing::LogCapture log_;  // first: it outlives every thread that logs
   config::Config config_;
   std::vector<std::shared_ptr<MotionGate>> gates_;
   std::vector<std::unique_ptr<BusEngine>> engines_;
@@ -152,6 +166,10 @@ TEST_F(SafetyState, ALentBusRefusesMotionUntilReturned) {
   EXPECT_FALSE(facts.buses[0].lent);
   EXPECT_FALSE(gates_[0]->blocked());
   EXPECT_TRUE(safety_->admit_motion(0));
+  // That motion write started bus 0's 10 ms watchdog: let it trip and re-arm it, so no trip can
+  // come between the lend below and the end (the cause register would say watchdog).
+  ASSERT_TRUE(test::eventually([&] { return safety_->facts().buses[0].state == WatchdogState::Tripped; }));
+  safety_->rearm_watchdogs();
 
   // Stopping the gateway skips a lent bus's on_stop: its servos were stopped when it was lent.
   std::promise<bool> lent_again;
@@ -194,12 +212,233 @@ TEST_F(SafetyState, LatchAndTripsAreRestoredFromTheStateFile) {
   EXPECT_NE((*text)->find("tripped_watchdogs: []"), std::string::npos) << **text;
 }
 
-TEST_F(SafetyState, ADamagedStateFileLatchesTheEStop) {
+// Every way a state file can be damaged that a tester found, and a few more: each latches, and
+// the log says what is wrong, with which file, and what to do.
+struct DamagedState {
+  std::string name;
+  std::string text;
+  std::string reason;  // in the parser's error and the log line
+};
+void PrintTo(const DamagedState& damaged, std::ostream* out) { *out << damaged.name; }
+
+const std::vector<DamagedState> kDamagedStates{
+    {"Empty", "", "it is empty"},
+    {"OnlyAComment", "# nothing else\n", "it is empty"},
+    {"CutMidValue", "estop_latched: tr", "it misses the key `tripped_watchdogs`"},
+    {"CutMidValueVersion2", "version: 2\nestop_latched: tr", "it misses the key `tripped_watchdogs`"},
+    {"CutAfterALine", "version: 2\nestop_latched: false\ntripped_watchdogs: []\n", "it misses the key `owed_stops`"},
+    {"CutKey", "estop_la", "it is `estop_la`, not a map of its keys"},
+    {"UnknownKeysOnly", "colour: blue\nsize: 3\n", "it has an unknown key `colour`"},
+    {"MisspeltKey", "estop_latch: true\n", "it has an unknown key `estop_latch`"},
+    {"ExtraKey", "version: 2\nestop_latched: false\ntripped_watchdogs: []\nowed_stops: []\nnote: hi\n",
+     "it has an unknown key `note`"},
+    {"RepeatedKey", "estop_latched: false\nestop_latched: true\ntripped_watchdogs: []\n",
+     "it has the key `estop_latched` twice"},
+    {"NotABoolean", "estop_latched: maybe\ntripped_watchdogs: []\n", "estop_latched is `maybe`, not true or false"},
+    {"YesIsNotABoolean", "estop_latched: yes\ntripped_watchdogs: []\n", "estop_latched is `yes`, not true or false"},
+    {"QuotedBoolean", "estop_latched: \"false\"\ntripped_watchdogs: []\n",
+     "estop_latched is `false` (quoted or tagged), not true or false"},
+    {"AList", "- estop_latched\n- false\n", "it is a list, not a map of its keys"},
+    {"TrippedNotAList", "estop_latched: false\ntripped_watchdogs: arm\n",
+     "tripped_watchdogs is `arm`, not a list of bus names"},
+    {"Unbalanced", "estop_latched: [unclosed\n", "it is not YAML"},
+    {"RandomBytes", std::string("\x9c\x01\xfe\x7f{[:\x03", 8), "it is"},
+    {"NulBytes", std::string(16, '\0'), "it is"},
+    {"TwoDocuments", "estop_latched: false\ntripped_watchdogs: []\n---\nestop_latched: true\n",
+     "it holds 2 YAML documents, not one"},
+    {"NewerVersion", "version: 3\nestop_latched: false\ntripped_watchdogs: []\nowed_stops: []\n",
+     "its version is `3`; this gateway reads version 2"},
+    {"OwedServoOutOfRange",
+     "version: 2\nestop_latched: false\ntripped_watchdogs: []\nowed_stops: [{bus: arm, servo: 300, why: e-stop, "
+     "answers_writes: true}]\n",
+     "owed_stops[0].servo is `300`, not a whole number from 0 to 253"},
+    {"OwedStopMissesAKey",
+     "version: 2\nestop_latched: false\ntripped_watchdogs: []\nowed_stops: [{bus: arm, servo: 1}]\n",
+     "owed_stops[0] misses the key `why`"},
+};
+
+class DamagedStateFile : public SafetyState, public ::testing::WithParamInterface<DamagedState> {};
+
+TEST_P(DamagedStateFile, IsRefusedWithItsReason) {
+  const auto parsed = parse_safety_state(GetParam().text);
+  ASSERT_FALSE(parsed) << "accepted as a state";
+  EXPECT_NE(parsed.error().find(GetParam().reason), std::string::npos) << parsed.error();
+}
+
+TEST_P(DamagedStateFile, LatchesTheEStopAndSaysWhyWhereAndWhatToDo) {
   TempState state;
-  { std::ofstream(state.file()) << "estop_latched: [unclosed\n"; }
+  { std::ofstream(state.file(), std::ios::binary) << GetParam().text; }
   make(state.dir());
   EXPECT_TRUE(safety_->facts().estop_latched);
   EXPECT_TRUE(gates_[0]->blocked());
+  EXPECT_TRUE(gates_[1]->blocked());
+  EXPECT_TRUE(log_.contains(state.file() + " is not a complete safety state: " + GetParam().reason)) << log_.text();
+  EXPECT_TRUE(log_.contains("the e-stop is LATCHED as a precaution")) << log_.text();
+  EXPECT_TRUE(log_.contains("then reset the e-stop (gateway unit coil 1 := 0)")) << log_.text();
+  // The reset writes a complete state in place of the damaged one.
+  safety_->reset_estop();
+  const auto text = read_state_file(state.file());
+  ASSERT_TRUE(text && text->has_value());
+  const auto written = parse_safety_state(**text);
+  ASSERT_TRUE(written) << written.error();
+  EXPECT_FALSE(written->estop_latched);
+}
+
+INSTANTIATE_TEST_SUITE_P(EveryDamage, DamagedStateFile, ::testing::ValuesIn(kDamagedStates),
+                         [](const ::testing::TestParamInfo<DamagedState>& info) { return info.param.name; });
+
+// A directory where the file should be cannot be read as a state: latched, and the log says to
+// remove it.
+TEST_F(SafetyState, AStateFileThatIsADirectoryLatches) {
+  TempState state;
+  std::filesystem::create_directory(state.file());
+  make(state.dir());
+  EXPECT_TRUE(safety_->facts().estop_latched);
+  EXPECT_TRUE(log_.contains(state.file() + " is not a regular file (a directory); remove it")) << log_.text();
+  EXPECT_TRUE(log_.contains("the e-stop is LATCHED as a precaution")) << log_.text();
+}
+
+// No file at all is a first start: nothing latched, nothing said about damage.
+TEST_F(SafetyState, AMissingStateFileIsAFirstStart) {
+  TempState state;
+  make(state.dir());
+  EXPECT_FALSE(safety_->facts().estop_latched);
+  EXPECT_FALSE(gates_[0]->blocked());
+  EXPECT_FALSE(log_.contains("LATCHED")) << log_.text();
+}
+
+// Names the configuration no longer has are stale, not damage: a warning each, nothing latched.
+TEST_F(SafetyState, StaleBusAndServoNamesAreWarningsNotDamage) {
+  TempState state;
+  {
+    std::ofstream(state.file()) << "version: 2\nestop_latched: false\ntripped_watchdogs: [gone]\n"
+                                   "owed_stops: [{bus: gone, servo: 1, why: e-stop, answers_writes: true}, "
+                                   "{bus: arm, servo: 9, why: watchdog, answers_writes: true}]\n";
+  }
+  make(state.dir(), true);
+  const SafetyFacts facts = safety_->facts();
+  EXPECT_FALSE(facts.estop_latched);
+  EXPECT_EQ(facts.buses[0].owed_stops, 0u);
+  EXPECT_FALSE(gates_[0]->blocked());
+  EXPECT_TRUE(log_.contains("names a tripped watchdog on bus `gone`, which has none now: ignored")) << log_.text();
+  EXPECT_TRUE(
+      log_.contains("servo 1 on bus `gone` was owed its safe stop (e-stop), but the configuration has no such "
+                    "servo now: ignored"))
+      << log_.text();
+  EXPECT_TRUE(log_.contains("servo 9 on bus `arm`")) << log_.text();
+}
+
+TEST(SafetyStateFile, RoundTripsEveryKey) {
+  const SafetyStateRecord state{
+      true,
+      {"arm", "base"},
+      {OwedStopRecord{"arm", 1, "e-stop", true}, OwedStopRecord{"arm", 253, "the gateway is stopping", false},
+       OwedStopRecord{"yes", 0, "watchdog", true}}};
+  const std::string text = render_safety_state(state);
+  const auto parsed = parse_safety_state(text);
+  ASSERT_TRUE(parsed) << parsed.error() << "\n" << text;
+  EXPECT_EQ(*parsed, state) << text;
+  EXPECT_NE(text.find("version: 2\n"), std::string::npos) << text;
+  const auto empty = parse_safety_state(render_safety_state({}));
+  ASSERT_TRUE(empty) << empty.error();
+  EXPECT_EQ(*empty, SafetyStateRecord{});
+}
+
+// Files written before owed stops were kept (no version key, exactly two keys) are still read.
+TEST(SafetyStateFile, Version1IsStillRead) {
+  const auto parsed = parse_safety_state("# old\nestop_latched: true\ntripped_watchdogs: [arm]\n");
+  ASSERT_TRUE(parsed) << parsed.error();
+  EXPECT_TRUE(parsed->estop_latched);
+  EXPECT_EQ(parsed->tripped_watchdogs, std::vector<std::string>{"arm"});
+  EXPECT_TRUE(parsed->owed_stops.empty());
+}
+
+// An owed stop read back goes into the engine as owed again (servo 1's torque off, refusing its
+// motion), and stays in the file until the servo takes it.
+TEST_F(SafetyState, OwedStopsAreRestoredIntoTheEngineAndKept) {
+  TempState state;
+  {
+    std::ofstream(state.file()) << "version: 2\nestop_latched: false\ntripped_watchdogs: []\n"
+                                   "owed_stops: [{bus: arm, servo: 1, why: e-stop, answers_writes: false}]\n";
+  }
+  make(state.dir(), true);
+  EXPECT_FALSE(safety_->facts().estop_latched);
+  EXPECT_EQ(safety_->facts().buses[0].owed_stops, 1u);
+  const auto owed = engines_[0]->owed_stops();
+  ASSERT_EQ(owed.size(), 1u);
+  EXPECT_EQ(owed[0].write.servo_id, 1);
+  EXPECT_EQ(owed[0].write.address, 40);  // sts torque_enable := 0
+  EXPECT_EQ(owed[0].write.data, protocol::Bytes{0});
+  EXPECT_FALSE(owed[0].write.expect_reply);
+  EXPECT_EQ(owed[0].why, "e-stop");
+  EXPECT_TRUE(log_.contains("servo 1 was owed its safe stop (e-stop) before the restart")) << log_.text();
+
+  safety_->rearm_watchdogs();  // nothing tripped: writes nothing
+  auto inline_post = [](std::function<void()> work) { work(); };
+  std::promise<bool> latched;
+  safety_->estop(inline_post, [&](bool ok) { latched.set_value(ok); });
+  ASSERT_EQ(latched.get_future().wait_for(5s), std::future_status::ready) << "the e-stop was never answered";
+  safety_->reset_estop();
+  const auto text = read_state_file(state.file());
+  ASSERT_TRUE(text && text->has_value());
+  const auto kept = parse_safety_state(**text);
+  ASSERT_TRUE(kept) << kept.error();
+  ASSERT_EQ(kept->owed_stops.size(), 1u) << **text;
+  EXPECT_EQ(kept->owed_stops[0].servo, 1);
+}
+
+// A stop that becomes owed is written at once, without any other change to the state.
+TEST_F(SafetyState, AStopThatBecomesOwedIsWritten) {
+  TempState state;
+  make(state.dir(), true);
+  std::promise<bool> stopped;
+  safety_->lend_bus(0, "the test", [&](bool ok) { stopped.set_value(ok); });  // not itself kept
+  auto sent = stopped.get_future();
+  ASSERT_EQ(sent.wait_for(5s), std::future_status::ready);
+  EXPECT_FALSE(sent.get()) << "the bus is down: the stop cannot have reached servo 1";
+  EXPECT_TRUE(test::eventually(
+      [&] {
+        const auto text = read_state_file(state.file());
+        if (!text || !text->has_value()) return false;
+        const auto kept = parse_safety_state(**text);
+        return kept && kept->owed_stops == std::vector<OwedStopRecord>{{"arm", 1, "commissioning", true}};
+      },
+      "servo 1's owed stop in " + state.file()));
+}
+
+// state_dir stops being writable while the gateway runs (its path is a regular file now: even
+// root cannot create a file under it): the e-stop still works, the state shows as not persisted
+// with the reason, and the next retry after the directory is back saves it and clears that.
+TEST_F(SafetyState, AStateThatCannotBeSavedShowsUntilASaveSucceeds) {
+  TempState state;
+  const std::string dir = state.dir() + "/state";
+  std::filesystem::create_directory(dir);
+  make(dir);
+  EXPECT_FALSE(safety_->facts().state_not_persisted);
+  std::filesystem::rename(dir, dir + ".away");
+  { std::ofstream(dir) << "not a directory\n"; }
+
+  auto inline_post = [](std::function<void()> work) { work(); };
+  std::promise<bool> latched;
+  safety_->estop(inline_post, [&](bool ok) { latched.set_value(ok); });
+  auto answered = latched.get_future();
+  ASSERT_EQ(answered.wait_for(5s), std::future_status::ready) << "the e-stop was never answered";
+  SafetyFacts facts = safety_->facts();
+  EXPECT_TRUE(facts.estop_latched);
+  EXPECT_TRUE(gates_[0]->blocked());
+  EXPECT_TRUE(facts.state_not_persisted);
+  EXPECT_NE(facts.state_problem.find("Not a directory"), std::string::npos) << facts.state_problem;
+  EXPECT_TRUE(log_.contains("SAFETY STATE NOT PERSISTED")) << log_.text();
+
+  std::filesystem::remove(dir);
+  std::filesystem::rename(dir + ".away", dir);
+  EXPECT_TRUE(test::eventually([&] { return !safety_->facts().state_not_persisted; }, "a retried save"));
+  EXPECT_TRUE(log_.contains("the safety state is kept in " + dir + "/safety.state again")) << log_.text();
+  const auto text = read_state_file(dir + "/safety.state");
+  ASSERT_TRUE(text && text->has_value());
+  const auto kept = parse_safety_state(**text);
+  ASSERT_TRUE(kept) << kept.error();
+  EXPECT_TRUE(kept->estop_latched);
 }
 
 TEST_F(SafetyState, AStateDirThatDoesNotExistIsRefusedWithWhatToDo) {
