@@ -191,6 +191,7 @@ std::string_view to_string(modbus_map::ByteOrder order) { return detail::name_of
 std::string_view to_string(WatchdogFeed feed) { return detail::name_of(detail::kWatchdogFeedNames, feed); }
 std::string_view to_string(StartAction action) { return detail::name_of(detail::kStartActionNames, action); }
 std::string_view to_string(Role role) { return detail::name_of(detail::kRoleNames, role); }
+std::string_view to_string(RtuEcho echo) { return detail::name_of(detail::kRtuEchoNames, echo); }
 std::optional<Role> role_from_name(std::string_view name) { return detail::value_of(detail::kRoleNames, name); }
 
 }  // namespace sms::config

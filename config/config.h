@@ -319,6 +319,15 @@ std::string sparkplug_device_id(const ServoConfig& servo);
 inline constexpr std::uint32_t kMinRtuSlaveBaud = 300;
 inline constexpr std::uint32_t kMaxRtuSlaveBaud = 4000000;
 
+// Whether the port's adapter hands back what the port sends (an RS-485 adapter that does not
+// switch its receiver off while sending): which frame is taken for the echo of an answer
+// (docs/RTU_PANELS.md "Echoing adapters").
+enum class RtuEcho : std::uint8_t {
+  Auto,  // an identical frame that comes before a master could have sent one (t3.5 + wire time)
+  On,    // the adapter echoes: an identical frame up to 50 ms late (its latency timer) too
+  Off,   // it does not: no frame is an echo
+};
+
 struct RtuSlaveConfig {
   std::string device;            // a tty (the panel's RS-485 adapter), never a bus's device
   std::uint32_t baud = 19200;    // the Modbus serial line spec's default rate
@@ -330,6 +339,7 @@ struct RtuSlaveConfig {
   std::vector<std::uint8_t> units;  // the units the port answers; empty: every configured unit and the gateway unit
   Role role = Role::Operate;        // the rights of its requests, as Modbus/TCP Security roles
   std::chrono::milliseconds reopen_period{1000};  // a missing or lost device is retried this often
+  RtuEcho echo = RtuEcho::Auto;
 
   bool operator==(const RtuSlaveConfig&) const = default;
 };
@@ -400,7 +410,8 @@ std::string_view to_string(LogFormat format);
 std::string_view to_string(modbus_map::ByteOrder order);  // "low-first", "high-first"
 std::string_view to_string(WatchdogFeed feed);
 std::string_view to_string(StartAction action);
-std::string_view to_string(Role role);  // "none", "read", "operate", "engineer"
+std::string_view to_string(Role role);     // "none", "read", "operate", "engineer"
+std::string_view to_string(RtuEcho echo);  // "auto", "on", "off"
 std::optional<Role> role_from_name(std::string_view name);
 // The safe stop a servo gets: its own, else its table's default; None for passthrough units.
 modbus_map::StopAction effective_safe_stop(const ServoConfig& servo);

@@ -300,6 +300,8 @@ void emit_rtu_slave(YAML::Emitter& out, const RtuSlaveConfig& port) {
   out << std::string(to_string(port.role));
   key(out, "reopen_period_ms");
   out << port.reopen_period.count();
+  key(out, "echo");
+  out << std::string(to_string(port.echo));
   out << YAML::EndMap;
 }
 

@@ -87,9 +87,9 @@ constexpr std::array<std::string_view, 16> kMqttKeys{"broker",
                                                      "enabled",
                                                      "primary_host_id"};
 constexpr std::array<std::string_view, 3> kMqttTlsKeys{"ca", "certificate", "private_key"};
-constexpr std::array<std::string_view, 11> kRtuSlaveKeys{
-    "device", "baud",         "parity", "stop_bits", "frame_gap",       "rs485",
-    "rts",    "rts_delay_us", "units",  "role",      "reopen_period_ms"};
+constexpr std::array<std::string_view, 12> kRtuSlaveKeys{
+    "device", "baud",         "parity", "stop_bits", "frame_gap",        "rs485",
+    "rts",    "rts_delay_us", "units",  "role",      "reopen_period_ms", "echo"};
 
 constexpr std::array<std::string_view, 4> kConsoleKeys{"listen", "tls", "users", "session_timeout_s"};
 constexpr std::array<std::string_view, 3> kConsoleUserKeys{"name", "role", "password_hash"};
@@ -1010,6 +1010,19 @@ RtuSlaveConfig Loader::parse_rtu_slave(const Value& value, const Config& config)
   }
   if (const auto v = keys.find("reopen_period_ms")) {
     port.reopen_period = duration<std::chrono::milliseconds>(*v, 1, 3600000);
+  }
+  if (const auto v = keys.find("echo")) {
+    // auto, or whether the adapter echoes as a boolean (true/yes/on, false/no/off).
+    if (v->node.IsScalar() && v->node.Scalar() == "auto") {
+      port.echo = RtuEcho::Auto;
+    } else if (const auto echoes = v->node.IsScalar() ? parse_bool(v->node.Scalar()) : std::nullopt) {
+      port.echo = *echoes ? RtuEcho::On : RtuEcho::Off;
+    } else {
+      fail(v->mark, v->path +
+                        ": expected auto, on (the adapter hands back what the port sends) or off (it does "
+                        "not), got " +
+                        describe(v->node));
+    }
   }
   return port;
 }

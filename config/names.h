@@ -28,6 +28,13 @@ inline constexpr std::array<Named<RtsMode>, 3> kRtsNames{{
     {"down", RtsMode::Down},
 }};
 
+// modbus_rtu_slave's echo: auto, or a boolean (on/true/yes: the adapter echoes).
+inline constexpr std::array<Named<RtuEcho>, 3> kRtuEchoNames{{
+    {"auto", RtuEcho::Auto},
+    {"on", RtuEcho::On},
+    {"off", RtuEcho::Off},
+}};
+
 inline constexpr std::array<Named<Profile>, 2> kProfileNames{{
     {"native", Profile::Native},
     {"smsmb", Profile::Smsmb},

@@ -433,7 +433,7 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
       std::string_view help;
       std::uint64_t RtuSlaveStats::*value;
     };
-    static constexpr std::array<RtuSlaveFamily, 8> kRtuSlaveFamilies{{
+    static constexpr std::array<RtuSlaveFamily, 9> kRtuSlaveFamilies{{
         {"sms_gateway_rtu_slave_requests_total", MetricType::Counter,
          "Requests received on an upstream RTU port for a unit it serves (broadcasts included)",
          &RtuSlaveStats::requests},
@@ -446,6 +446,9 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
         {"sms_gateway_rtu_slave_dropped_frames_total", MetricType::Counter,
          "Frames dropped: a silence over t1.5 inside, under 4 or over 256 bytes, a broadcast read, a queue overrun",
          &RtuSlaveStats::dropped_frames},
+        {"sms_gateway_rtu_slave_echoes_total", MetricType::Counter,
+         "Frames dropped as the adapter's echo of an answer (identical to it, within the port's echo window)",
+         &RtuSlaveStats::echoes},
         {"sms_gateway_rtu_slave_silent_units_total", MetricType::Counter,
          "Valid frames for a unit the port does not serve, left unanswered", &RtuSlaveStats::silent_units},
         {"sms_gateway_rtu_slave_role_refusals_total", MetricType::Counter,

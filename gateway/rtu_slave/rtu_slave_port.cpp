@@ -9,6 +9,7 @@
 #include <array>
 #include <cerrno>
 #include <cstring>
+#include <utility>
 
 #include <spdlog/spdlog.h>
 
@@ -46,6 +47,16 @@ std::string units_text(const std::vector<std::uint8_t>& units) {
 RtuSlaveTiming rtu_slave_timing(const SerialSettings& serial, const config::FrameGap& gap) {
   const auto t35 = rtu_frame_gap(serial, gap);
   return RtuSlaveTiming{t35 * 3 / 7, t35};
+}
+
+std::optional<std::chrono::nanoseconds> rtu_echo_window(config::RtuEcho echo, const RtuSlaveTiming& timing,
+                                                        std::chrono::nanoseconds answer_wire_time) {
+  switch (echo) {
+    case config::RtuEcho::Auto: return timing.t35 + answer_wire_time + kEchoLatency;
+    case config::RtuEcho::On: return timing.t35 + answer_wire_time + kLateEchoLatency;
+    case config::RtuEcho::Off: return std::nullopt;
+  }
+  return std::nullopt;
 }
 
 std::vector<std::uint8_t> served_units(const config::Config& config, const config::RtuSlaveConfig& port) {
@@ -117,6 +128,7 @@ RtuSlaveStats RtuSlavePort::stats() const {
   stats.broadcasts = counters_.broadcasts.load();
   stats.crc_errors = counters_.crc_errors.load();
   stats.dropped_frames = counters_.dropped_frames.load();
+  stats.echoes = counters_.echoes.load();
   stats.silent_units = counters_.silent_units.load();
   stats.role_refusals = counters_.role_refusals.load();
   stats.port_lost = counters_.port_lost.load();
@@ -211,6 +223,7 @@ bool RtuSlavePort::try_open() {
   received_.clear();
   receiving_ = false;
   frame_broken_ = false;
+  last_sent_.clear();
   last_byte_ = SteadyClock::now();
   return true;
 }
@@ -224,6 +237,7 @@ void RtuSlavePort::lost(const std::string& reason) {
   received_.clear();
   receiving_ = false;
   frame_broken_ = false;
+  last_sent_.clear();
   // As for a TCP client that goes away: the request on its way still completes (a write is
   // never dropped half-way) and its answer, having no line to go to, is discarded; the requests
   // waiting behind it are not started (a stale move must not run when the adapter comes back).
@@ -267,9 +281,11 @@ void RtuSlavePort::end_of_frame() {
   const bool broken = frame_broken_;
   frame_broken_ = false;
   const auto ended = last_byte_;
-  const bool echo = !last_sent_.empty() && frame == last_sent_;
-  last_sent_.clear();
-  if (echo) return;  // our own answer read back (an adapter that echoes): not a request
+  if (echo_of_last_answer(frame, ended)) {  // before `broken`: an adapter may hand its echo over in bursts
+    counters_.echoes.fetch_add(1, std::memory_order_relaxed);
+    spdlog::trace("{}: the adapter's echo of the answer ({} bytes) dropped", what(), frame.size());
+    return;
+  }
   if (broken) {
     counters_.dropped_frames.fetch_add(1, std::memory_order_relaxed);
     spdlog::debug("{}: frame of {} bytes dropped: a silence longer than t1.5 inside it, or longer than {} bytes",
@@ -290,6 +306,36 @@ void RtuSlavePort::end_of_frame() {
     return;
   }
   accept(std::move(event->adu), ended);
+}
+
+bool RtuSlavePort::echo_of_last_answer(const Bytes& frame, SteadyClock::time_point ended) {
+  if (last_sent_.empty()) return false;
+  // Only the first frame after an answer can be its echo: the adapter hands it back before
+  // anything a master sends after hearing the answer.
+  const Bytes answer = std::exchange(last_sent_, Bytes{});
+  const bool identical = frame == answer;
+  if (identical && ended <= echo_until_) return true;
+  const auto after_ms =
+      std::chrono::duration_cast<std::chrono::milliseconds>(ended - line_busy_until_).count();  // after the answer
+  if (port_.echo == config::RtuEcho::Auto && identical && !late_echo_logged_ &&
+      ended - line_busy_until_ <= kLateEchoLatency) {
+    // A master repeating the frame this soon, or an adapter echoing late (answered as a request
+    // each time, so the late echo of the new answer comes back too): said once per port.
+    late_echo_logged_ = true;
+    spdlog::warn(
+        "{}: a frame identical to the answer just sent ended {} ms after it, too late to be the adapter's echo "
+        "with `echo: auto`; answered as a request. If this adapter hands back what the port sends and is slow "
+        "to (an FTDI latency timer, 16 ms by default), set `echo: on` on this port or the timer to 1 ms",
+        what(), after_ms);
+  }
+  if (port_.echo == config::RtuEcho::On && !missing_echo_logged_) {
+    missing_echo_logged_ = true;
+    spdlog::warn(
+        "{}: `echo: on`, but the frame after an answer was not its echo ({} bytes, {}, ending {} ms after the "
+        "answer); if this adapter does not hand back what the port sends, set `echo: auto` or `echo: off`",
+        what(), frame.size(), identical ? "identical but late" : "a different frame", after_ms);
+  }
+  return false;
 }
 
 void RtuSlavePort::accept(protocol::rtu::Adu adu, SteadyClock::time_point ended) {
@@ -395,8 +441,13 @@ void RtuSlavePort::send_answer_if_due(SteadyClock::time_point now) {
     return;
   }
   counters_.answers.fetch_add(1, std::memory_order_relaxed);
-  last_sent_ = protocol::rtu::frame(unit, pdu);
-  line_busy_until_ = SteadyClock::now() + wire_time(line_.settings().serial, last_sent_.size());
+  Bytes sent = protocol::rtu::frame(unit, pdu);
+  const auto on_wire = wire_time(line_.settings().serial, sent.size());
+  line_busy_until_ = SteadyClock::now() + on_wire;
+  if (const auto window = rtu_echo_window(port_.echo, timing_, on_wire)) {
+    last_sent_ = std::move(sent);
+    echo_until_ = line_busy_until_ + *window;
+  }
   in_flight_.reset();
 }
 

@@ -12,7 +12,11 @@
 //   every unit the port serves;
 // - one request at a time, in arrival order: the next is handed to the router only once the
 //   previous one is answered (a frame that arrives meanwhile waits, at most kMaxWaiting);
-// - an answer starts no earlier than t3.5 after the last byte on the line.
+// - an answer starts no earlier than t3.5 after the last byte on the line;
+// - the first frame after an answer, identical to it, is the adapter's echo (dropped, counted)
+//   only if it ends within the port's echo window (rtu_echo_window): an FC05/FC06 answer is its
+//   request byte for byte, so a master writing an unchanged value every cycle sends the same
+//   frame again later, and is answered.
 //
 // Threading: the port has its own thread for the line (frame timing needs microseconds, which
 // the io thread's other work would not give); requests are posted to the io thread, where the
@@ -54,6 +58,18 @@ struct RtuSlaveTiming {
 };
 RtuSlaveTiming rtu_slave_timing(const SerialSettings& serial, const config::FrameGap& gap);
 
+// How long after an answer has left the wire a frame identical to it may end and still be the
+// adapter's echo (docs/RTU_PANELS.md "Echoing adapters"); nullopt with `echo: off`.
+// auto: t3.5 + the answer's wire time + 1 ms. A master hears the answer's last byte, keeps t3.5
+// and sends its request: the same frame again cannot end sooner, so no master's request is taken
+// for an echo; an adapter hands what it heard over within a USB frame (1 ms, an FTDI with its
+// latency timer at 1 ms). on: t3.5 + wire time + 50 ms, for adapters that hold short frames up
+// to their latency timer (FTDI: 16 ms by default), on a loaded host.
+inline constexpr std::chrono::milliseconds kEchoLatency{1};
+inline constexpr std::chrono::milliseconds kLateEchoLatency{50};
+std::optional<std::chrono::nanoseconds> rtu_echo_window(config::RtuEcho echo, const RtuSlaveTiming& timing,
+                                                        std::chrono::nanoseconds answer_wire_time);
+
 // The units `port` answers: its `units`, else every configured unit and the gateway unit.
 std::vector<std::uint8_t> served_units(const config::Config& config, const config::RtuSlaveConfig& port);
 
@@ -84,7 +100,7 @@ class RtuSlavePort {
   struct Mailbox;
   struct Counters {
     std::atomic<bool> open{false};
-    std::atomic<std::uint64_t> requests{0}, answers{0}, broadcasts{0}, crc_errors{0}, dropped_frames{0},
+    std::atomic<std::uint64_t> requests{0}, answers{0}, broadcasts{0}, crc_errors{0}, dropped_frames{0}, echoes{0},
         silent_units{0}, role_refusals{0}, port_lost{0};
   };
   struct Request {
@@ -107,6 +123,8 @@ class RtuSlavePort {
   void lost(const std::string& reason);
   void read_input(SteadyClock::time_point now);
   void end_of_frame();
+  // Whether `frame`, the first after an answer, is its echo; forgets the answer either way.
+  bool echo_of_last_answer(const protocol::Bytes& frame, SteadyClock::time_point ended);
   void accept(protocol::rtu::Adu adu, SteadyClock::time_point ended);
   void start_next();
   void collect_answers();
@@ -137,7 +155,10 @@ class RtuSlavePort {
   bool frame_broken_ = false;                  // a t1.5 silence inside it, or past 256 bytes
   SteadyClock::time_point last_byte_{};        // the last byte received
   SteadyClock::time_point line_busy_until_{};  // the last byte of our own answer on the wire
-  protocol::Bytes last_sent_;                  // our last answer, to recognise its echo
+  protocol::Bytes last_sent_;                  // our last answer, until the frame after it (its echo?)
+  SteadyClock::time_point echo_until_{};       // an echo of it ends no later than this
+  bool late_echo_logged_ = false;              // auto: an identical frame just too late was reported
+  bool missing_echo_logged_ = false;           // on: a frame after an answer that was not its echo, reported
   std::deque<Request> waiting_;
   std::optional<InFlight> in_flight_;
   std::uint64_t next_serial_ = 1;

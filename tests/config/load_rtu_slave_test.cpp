@@ -24,13 +24,14 @@ TEST(LoadRtuSlave, DefaultsAreTheSerialLineSpecsAndEveryUnitWithRoleOperate) {
   EXPECT_TRUE(port.units.empty());
   EXPECT_EQ(port.role, Role::Operate);
   EXPECT_EQ(port.reopen_period, std::chrono::milliseconds{1000});
+  EXPECT_EQ(port.echo, RtuEcho::Auto);
 }
 
 TEST(LoadRtuSlave, EveryKeyIsReadAndSurvivesADump) {
   const auto config = load_config_string(kBusAndServo + R"(modbus_rtu_slave:
   - {device: /dev/ttyUSB1, baud: 115200, parity: none, stop_bits: 2, frame_gap: 3.5chars, rs485: true, rts: up,
-     rts_delay_us: 50, units: [1, 255], role: read, reopen_period_ms: 250}
-  - {device: /dev/ttyUSB2, baud: 1000000, frame_gap: 800us, role: engineer}
+     rts_delay_us: 50, units: [1, 255], role: read, reopen_period_ms: 250, echo: on}
+  - {device: /dev/ttyUSB2, baud: 1000000, frame_gap: 800us, role: engineer, echo: off}
 )",
                                          "p.yaml");
   ASSERT_TRUE(config) << config.error().to_string();
@@ -47,9 +48,23 @@ TEST(LoadRtuSlave, EveryKeyIsReadAndSurvivesADump) {
   EXPECT_EQ(port.role, Role::Read);
   EXPECT_EQ(port.reopen_period, std::chrono::milliseconds{250});
   EXPECT_EQ(config->modbus_rtu_slave[1].line.frame_gap.fixed, std::chrono::microseconds{800});
+  EXPECT_EQ(port.echo, RtuEcho::On);
+  EXPECT_EQ(config->modbus_rtu_slave[1].echo, RtuEcho::Off);
   const auto again = load_config_string(dump_config(*config), "dumped");
   ASSERT_TRUE(again) << again.error().to_string() << "\n" << dump_config(*config);
   EXPECT_EQ(*again, *config);
+}
+
+TEST(LoadRtuSlave, EchoIsAutoOrABoolean) {
+  const auto echo = [](const std::string& value) {
+    const auto config = load_config_string(
+        kBusAndServo + "modbus_rtu_slave:\n  - {device: /dev/ttyUSB1, echo: " + value + "}\n", "p.yaml");
+    if (!config) throw std::runtime_error(config.error().to_string());
+    return config->modbus_rtu_slave[0].echo;
+  };
+  EXPECT_EQ(echo("auto"), RtuEcho::Auto);
+  for (const char* yes : {"on", "true", "yes"}) EXPECT_EQ(echo(yes), RtuEcho::On) << yes;
+  for (const char* no : {"off", "false", "no"}) EXPECT_EQ(echo(no), RtuEcho::Off) << no;
 }
 
 TEST(LoadRtuSlave, MistakesAreNamedWithTheirPlace) {
@@ -71,6 +86,9 @@ TEST(LoadRtuSlave, MistakesAreNamedWithTheirPlace) {
             "engineer, or remove the port");
   EXPECT_EQ(with("{device: /dev/ttyUSB1, baud: 5000000}"),
             "plant.yaml:6:34: modbus_rtu_slave[0].baud: 5000000 is outside 300..4000000");
+  EXPECT_EQ(with("{device: /dev/ttyUSB1, echo: sometimes}"),
+            "plant.yaml:6:34: modbus_rtu_slave[0].echo: expected auto, on (the adapter hands back what the port sends) "
+            "or off (it does not), got `sometimes`");
   EXPECT_EQ(with("{device: /dev/ttyUSB1, byte_timeout_ms: 5}").substr(0, 70),
             "plant.yaml:6:28: unknown key `byte_timeout_ms` in modbus_rtu_slave[0];");
   EXPECT_EQ(error_text(kBusAndServo + "modbus_rtu_slave:\n  - {device: /dev/ttyUSB1}\n  - {device: /dev/ttyUSB1}\n"),
