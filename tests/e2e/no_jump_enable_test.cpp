@@ -20,8 +20,7 @@ namespace {
 using namespace ::sms::test;  // the toolkit: tests/support
 
 enum class Path { Fc06, Fc05, Fc15, Fc16, StagedAction, SyncGroup };
-const std::vector<Path> kEveryPath{Path::Fc06,         Path::Fc05,     Path::Fc15, Path::Fc16,
-                                   Path::StagedAction, Path::SyncGroup};
+const std::vector<Path> kEveryPath{Path::Fc06, Path::Fc05, Path::Fc15, Path::Fc16, Path::StagedAction, Path::SyncGroup};
 std::string name_of(Path path) {
   switch (path) {
     case Path::Fc06: return "FC06";
@@ -88,7 +87,9 @@ class D55dCell {
       case Path::Fc06: answer = plc_.write_register(target.address, value ? 1 : 0); break;
       case Path::Fc05: answer = plc_.write_coil(target.address, value); break;
       case Path::Fc15: answer = plc_.write_coils(target.address, {static_cast<std::uint8_t>(value ? 1 : 0)}); break;
-      case Path::Fc16: answer = plc_.write_registers(target.address, {static_cast<std::uint16_t>(value ? 1 : 0)}); break;
+      case Path::Fc16:
+        answer = plc_.write_registers(target.address, {static_cast<std::uint16_t>(value ? 1 : 0)});
+        break;
       case Path::StagedAction:
         answer = plc_.write_register(512 + target.address, value ? 1 : 0);
         if (answer.ok()) answer = gateway_unit_.write_coil(kActionCoil, true);
@@ -145,9 +146,9 @@ TEST_P(NoJumpEnable, D55dInWheelModeDoesNotTurnAgainWhenWokenOrReleased) {
     cell.set(path, target, false);
     EXPECT_EQ(cell.field("run_speed"), 0) << "the hold (speed := 0) goes before the enabling write\n" << cell.log();
     cell.expect_still("after " + target.field + " := 0");
-    EXPECT_TRUE(cell.log().find(target.field == "sleep" ? "wake: hold (speed mode: speed := 0) first"
-                                                        : "brake release: hold (speed mode: speed := 0) first") !=
-                std::string::npos);
+    EXPECT_TRUE(cell.log().find(target.field == "sleep"
+                                    ? "wake: hold (speed mode: speed := 0) first"
+                                    : "brake release: hold (speed mode: speed := 0) first") != std::string::npos);
   }
   // The PLC's own command after the enable still turns it.
   cell.write(kRunSpeed, 90);

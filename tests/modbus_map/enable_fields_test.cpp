@@ -99,10 +99,9 @@ TEST(EnableFields, AreWritableMotionFieldsWhoseEnablingValueIsNoStop) {
       EXPECT_FALSE(enable.what.empty()) << t->name << " " << enable.field;
       // Enabling is a motion write (refused while the e-stop is latched), never a stop.
       EXPECT_TRUE(is_motion_field(spec, enable.field)) << t->name << " " << enable.field;
-      EXPECT_FALSE(std::any_of(spec.stopping_writes.begin(), spec.stopping_writes.end(),
-                               [&](const StoppingWrite& stop) {
-                                 return stop.field == enable.field && stop.value == enable.on;
-                               }))
+      EXPECT_FALSE(
+          std::any_of(spec.stopping_writes.begin(), spec.stopping_writes.end(),
+                      [&](const StoppingWrite& stop) { return stop.field == enable.field && stop.value == enable.on; }))
           << t->name << " " << enable.field;
       // The gateway reads it before an enabling write.
       const auto reads = enable_context_reads(spec);
