@@ -38,6 +38,16 @@ constexpr StoppingWrite kD55dStops[] = {{"run_speed", 0}, {"brake", 1}, {"sleep"
 constexpr StoppingWrite kSmsmbStops[] = {{"torque_switch", 0}};
 constexpr StoppingWrite kScsStops[] = {{"torque_enable", 0}};
 
+// What lets each motor drive ("no jump on enable"). d55d has no torque switch: asleep (47 = 1) it
+// is free, braked (43 = 1) it stands; woken or released it would resume the goal or speed it
+// holds (docs/PROTOCOL.md §2.3). Its run speed 0 ("stop without torque") is a command, not a
+// switch: in speed mode it is the speed asked for.
+constexpr EnableField kStsEnables[] = {{"torque_enable", 1, "torque on"}};
+constexpr EnableField kSms1Enables[] = {{"torque_switch", 1, "torque on"}};
+constexpr EnableField kD55dEnables[] = {{"sleep", 0, "wake"}, {"brake", 0, "brake release"}};
+constexpr EnableField kSmsmbEnables[] = {{"torque_switch", 1, "torque on"}};
+constexpr EnableField kScsEnables[] = {{"torque_enable", 1, "torque on"}};
+
 constexpr std::array kMotionSpecs{
     MotionSpec{TableId::Sts,
                "operating_mode",
@@ -52,7 +62,8 @@ constexpr std::array kMotionSpecs{
                {"torque_enable", 0},
                kStsMotionFields,
                kStsStops,
-               StopAction::Hold},
+               StopAction::Hold,
+               kStsEnables},
     MotionSpec{TableId::Sms1,
                "operating_mode",
                kSms1Modes,
@@ -66,7 +77,8 @@ constexpr std::array kMotionSpecs{
                {"torque_switch", 0},
                kSms1MotionFields,
                kSms1Stops,
-               StopAction::Hold},
+               StopAction::Hold,
+               kSms1Enables},
     // d55d has no torque switch: run speed 0 is its own "stop without torque" (docs/PROTOCOL.md §2.3).
     MotionSpec{TableId::D55d,
                "",
@@ -81,7 +93,8 @@ constexpr std::array kMotionSpecs{
                {"run_speed", 0},
                kD55dMotionFields,
                kD55dStops,
-               StopAction::Hold},
+               StopAction::Hold,
+               kD55dEnables},
     MotionSpec{TableId::Smsmb,
                "mode",
                kSmsmbModes,
@@ -95,7 +108,8 @@ constexpr std::array kMotionSpecs{
                {"torque_switch", 0},
                kSmsmbMotionFields,
                kSmsmbStops,
-               StopAction::Hold},
+               StopAction::Hold,
+               kSmsmbEnables},
     MotionSpec{TableId::Scs,
                "",
                kScsLimitsZeroDrive,
@@ -109,7 +123,8 @@ constexpr std::array kMotionSpecs{
                {"torque_enable", 0},
                kScsMotionFields,
                kScsStops,
-               StopAction::Hold},
+               StopAction::Hold,
+               kScsEnables},
 };
 
 const FieldSpec& field_named(const MotionSpec& spec, std::string_view name) {
@@ -202,22 +217,35 @@ BusRange goal_block(const MotionSpec& spec) {
   return BusRange{first.addr, static_cast<std::uint16_t>(end - first.addr)};
 }
 
-std::vector<BusRange> stop_context_reads(const MotionSpec& spec) {
+namespace {
+
+// The goal block's bytes in `context`; empty when it was not read whole.
+protocol::Bytes goal_block_as_read(const MotionSpec& spec, const StopContext& context) {
+  const BusRange block = goal_block(spec);
+  const std::size_t per = bytes_per_address(table(spec.table).addressing);
+  for (std::size_t i = 0; i < context.ranges.size() && i < context.data.size(); ++i) {
+    if (!context.ranges[i].contains(block)) continue;
+    const std::size_t offset = std::size_t{static_cast<std::size_t>(block.address - context.ranges[i].address)} * per;
+    if (offset + block.count * per > context.data[i].size()) return {};
+    return protocol::Bytes(context.data[i].begin() + static_cast<std::ptrdiff_t>(offset),
+                           context.data[i].begin() + static_cast<std::ptrdiff_t>(offset + block.count * per));
+  }
+  return {};
+}
+
+// The ranges holding the stop context's fields and `extra` fields, merged where they lie close.
+std::vector<BusRange> context_reads(const MotionSpec& spec, std::span<const EnableField> extra) {
   std::vector<BusRange> needed;
   const auto add_field = [&](std::string_view name) {
     if (name.empty()) return;
     const FieldSpec& field = field_named(spec, name);
     needed.push_back(BusRange{field.addr, span_of(spec, field)});
   };
-  if (spec.mode.empty()) {
-    add_field(spec.min_limit);
-    add_field(spec.max_limit);
-  } else {
-    add_field(spec.mode);
-  }
+  for (const std::string_view name : drive_fields(spec)) add_field(name);
   add_field(spec.torque);
   needed.push_back(goal_block(spec));
   add_field(spec.present_position);
+  for (const EnableField& enable : extra) add_field(enable.field);
   std::sort(needed.begin(), needed.end(), [](const BusRange& a, const BusRange& b) { return a.address < b.address; });
 
   // Merge ranges whose gap is small: one longer READ costs less than another transaction
@@ -234,6 +262,10 @@ std::vector<BusRange> stop_context_reads(const MotionSpec& spec) {
   }
   return merged;
 }
+
+}  // namespace
+
+std::vector<BusRange> stop_context_reads(const MotionSpec& spec) { return context_reads(spec, {}); }
 
 Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action, ByteOrder order,
                                       const StopContext& context, bool torque_known_on) {
@@ -264,16 +296,7 @@ Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action,
 
   // Hold: the goal block as read, with the one field that stops this drive changed.
   const BusRange block = goal_block(spec);
-  protocol::Bytes data;
-  for (std::size_t i = 0; i < context.ranges.size() && i < context.data.size(); ++i) {
-    if (!context.ranges[i].contains(block)) continue;
-    const std::size_t per = bytes_per_address(table(spec.table).addressing);
-    const std::size_t offset = std::size_t{static_cast<std::size_t>(block.address - context.ranges[i].address)} * per;
-    if (offset + block.count * per > context.data[i].size()) break;
-    data.assign(context.data[i].begin() + static_cast<std::ptrdiff_t>(offset),
-                context.data[i].begin() + static_cast<std::ptrdiff_t>(offset + block.count * per));
-    break;
-  }
+  protocol::Bytes data = goal_block_as_read(spec, context);
   if (data.empty()) return unexpected(std::string("the goal block was not read"));
   const auto set_field = [&](std::string_view name, std::span<const std::uint8_t> bytes) {
     const FieldSpec& field = field_named(spec, name);
@@ -353,20 +376,155 @@ std::optional<std::string> motion_in_plan(const MotionSpec& spec, ByteOrder orde
   return std::nullopt;
 }
 
-bool switches_torque_on(const MotionSpec& spec, ByteOrder order, const WritePlan& plan) {
-  if (spec.torque.empty()) return false;
-  const FieldSpec& torque = field_named(spec, spec.torque);
-  return std::any_of(plan.writes.begin(), plan.writes.end(), [&](const BusWrite& write) {
-    const auto raw = written_raw(spec, order, write, torque);
-    return raw && *raw == 1;
+std::string_view to_string(Drive drive) {
+  switch (drive) {
+    case Drive::Position: return "position mode";
+    case Drive::Velocity: return "speed mode";
+    case Drive::Pwm: return "PWM mode";
+    case Drive::Step: return "step mode";
+  }
+  return "?";
+}
+
+std::vector<std::string_view> drive_fields(const MotionSpec& spec) {
+  if (!spec.mode.empty()) return {spec.mode};
+  return {spec.min_limit, spec.max_limit};
+}
+
+namespace {
+
+// Whether `writes` put an enable field's `on` value.
+bool writes_enabling_value(const MotionSpec& spec, ByteOrder order, std::span<const BusWrite> writes) {
+  return std::any_of(writes.begin(), writes.end(), [&](const BusWrite& write) {
+    return std::any_of(spec.enables.begin(), spec.enables.end(), [&](const EnableField& enable) {
+      const FieldSpec& field = field_named(spec, enable.field);
+      const auto raw = written_raw(spec, order, write, field);
+      return raw && raw == encode_value(field, enable.on);
+    });
   });
 }
 
-std::optional<bool> torque_on(const MotionSpec& spec, ByteOrder order, const StopContext& context) {
-  if (spec.torque.empty()) return std::nullopt;
-  const auto raw = read_raw(spec, order, context, spec.torque);
-  if (!raw) return std::nullopt;
-  return *raw != 0;
+}  // namespace
+
+bool may_enable_motion(const MotionSpec& spec, ByteOrder order, std::span<const BusWrite> writes) {
+  const auto drive = drive_fields(spec);
+  return writes_enabling_value(spec, order, writes) ||
+         std::any_of(writes.begin(), writes.end(), [&](const BusWrite& write) {
+           return std::any_of(drive.begin(), drive.end(),
+                              [&](std::string_view name) { return overlaps(spec, write, field_named(spec, name)); });
+         });
+}
+
+std::vector<BusRange> enable_context_reads(const MotionSpec& spec) { return context_reads(spec, spec.enables); }
+
+std::optional<bool> motion_enabled(const MotionSpec& spec, ByteOrder order, const StopContext& context) {
+  bool enabled = true;
+  for (const EnableField& enable : spec.enables) {
+    const FieldSpec& field = field_named(spec, enable.field);
+    const auto raw = read_raw(spec, order, context, enable.field);
+    if (!raw) return std::nullopt;
+    enabled = enabled && raw == encode_value(field, enable.on);
+  }
+  return enabled;
+}
+
+namespace {
+
+// The context as it will be once `writes` are carried out: their bytes laid over the bytes read.
+std::vector<protocol::Bytes> after_writes(const MotionSpec& spec, const StopContext& context,
+                                          std::span<const BusWrite> writes) {
+  const std::size_t per = bytes_per_address(table(spec.table).addressing);
+  std::vector<protocol::Bytes> data(context.data.begin(), context.data.end());
+  for (std::size_t i = 0; i < context.ranges.size() && i < data.size(); ++i) {
+    const BusRange& range = context.ranges[i];
+    for (const BusWrite& write : writes) {
+      for (std::size_t byte = 0; byte < write.data.size(); ++byte) {
+        const std::uint32_t address = write.address + static_cast<std::uint32_t>(byte / per);
+        if (address < range.address || address >= range.end()) continue;
+        const std::size_t offset = std::size_t{address - range.address} * per + byte % per;
+        if (offset < data[i].size()) data[i][offset] = write.data[byte];
+      }
+    }
+  }
+  return data;
+}
+
+// Before a drive change: the goal block as read with goal := present position and the speed and
+// duty fields 0, so that it holds in the old drive and leaves nothing stale for the new one.
+Expected<SafeStopPlan> neutral_block(const MotionSpec& spec, ByteOrder order, const StopContext& context) {
+  const BusRange block = goal_block(spec);
+  const std::size_t per = bytes_per_address(table(spec.table).addressing);
+  protocol::Bytes data = goal_block_as_read(spec, context);
+  const auto present = read_raw(spec, order, context, spec.present_position);
+  if (data.empty() || !present) return unexpected(std::string("the goal block or the present position was not read"));
+  const auto set_raw = [&](std::string_view name, std::uint32_t raw) {
+    const FieldSpec& field = field_named(spec, name);
+    const std::size_t offset = std::size_t{static_cast<std::size_t>(field.addr - block.address)} * per;
+    store_raw(std::span(data).subspan(offset, field.size), field.size, field_order(spec, order), raw);
+  };
+  set_raw(spec.goal_position, *present);
+  set_raw(spec.goal_speed, 0);
+  if (!spec.goal_time.empty()) set_raw(spec.goal_time, 0);
+  SafeStopPlan plan;
+  plan.what = "goal := present position " +
+              std::to_string(decode_value(field_named(spec, spec.present_position), *present)) + ", " +
+              std::string(spec.goal_speed) + " := 0" +
+              (spec.goal_time.empty() ? std::string() : ", " + std::string(spec.goal_time) + " := 0");
+  plan.writes.push_back(BusWrite{block.address, std::move(data)});
+  return plan;
+}
+
+}  // namespace
+
+Expected<std::optional<SafeStopPlan>> plan_enable_hold(const MotionSpec& spec, ByteOrder order,
+                                                       const StopContext& context, std::span<const BusWrite> writes) {
+  const std::vector<protocol::Bytes> after_data = after_writes(spec, context, writes);
+  const StopContext after{context.ranges, after_data};
+  const auto enabled_before = motion_enabled(spec, order, context);
+  const auto enabled_after = motion_enabled(spec, order, after);
+  if (!enabled_before || !enabled_after) return unexpected(std::string("the enable fields were not read"));
+  if (!*enabled_after) return std::optional<SafeStopPlan>();  // nothing can move
+  const auto drive_before = drive_of(spec, order, context);
+  if (!drive_before) return unexpected(drive_before.error());
+  const auto drive_after = drive_of(spec, order, after);
+  if (!drive_after) return unexpected(drive_after.error());
+
+  if (*drive_before == *drive_after) {
+    // Enabled in its drive: a hold would cancel the move under way. In step mode every goal is
+    // relative to the running target: none is stale.
+    if (*enabled_before || *drive_after == Drive::Step) return std::optional<SafeStopPlan>();
+    auto hold = plan_safe_stop(spec, StopAction::Hold, order, context, true);
+    if (!hold) return unexpected(hold.error());
+    std::string enabled;  // what the writes switch on: "torque on", "wake, brake release"
+    for (const EnableField& enable : spec.enables) {
+      const FieldSpec& field = field_named(spec, enable.field);
+      if (read_raw(spec, order, context, enable.field) == encode_value(field, enable.on)) continue;
+      enabled += (enabled.empty() ? "" : ", ") + std::string(enable.what);
+    }
+    hold->what = enabled + ": " + hold->what;
+    return std::optional<SafeStopPlan>(std::move(*hold));
+  }
+  const std::string change = std::string(to_string(*drive_before)) + " -> " + std::string(to_string(*drive_after));
+  if (*drive_before == Drive::Step) {
+    // A goal written in step mode is a move; the torque off that stops it there would be undone
+    // by a request that enables the motor itself.
+    if (writes_enabling_value(spec, order, writes)) {
+      return unexpected("the write leaves step mode and enables the motor at once (" + change +
+                        "): no hold is safe in both drives; write the mode first, then enable");
+    }
+    SafeStopPlan off;
+    off.drive = *drive_before;
+    off.writes.push_back(torque_off_write(spec, order));
+    off.what = "drive change (" + change + "): torque off first (no goal holds in step mode)";
+    return std::optional<SafeStopPlan>(std::move(off));
+  }
+  // Enabled into step mode: no goal is stale there, as above.
+  if (!*enabled_before && *drive_after == Drive::Step) return std::optional<SafeStopPlan>();
+  auto neutral = neutral_block(spec, order, context);
+  if (!neutral) return unexpected(neutral.error());
+  neutral->drive = *drive_before;
+  neutral->what = "drive change (" + change + "): " + neutral->what;
+  return std::optional<SafeStopPlan>(std::move(*neutral));
 }
 
 }  // namespace sms::modbus_map

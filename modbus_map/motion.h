@@ -33,6 +33,7 @@ std::string_view to_string(StopAction action);
 
 // How the servo drives its motor, as far as stopping it goes.
 enum class Drive : std::uint8_t { Position, Velocity, Pwm, Step };
+std::string_view to_string(Drive drive);  // "position mode", "speed mode", "PWM mode", "step mode"
 struct DriveMode {
   std::int32_t value;  // the operating-mode field's value
   Drive drive;
@@ -42,6 +43,15 @@ struct DriveMode {
 struct StoppingWrite {
   std::string_view field;
   std::int32_t value;
+};
+
+// A field that lets the motor drive ("no jump on enable", docs/PLC_GUIDE.md "Safety"): the motor
+// drives only while every enable field of its table holds its `on` value (the torque switch 1;
+// d55d sleep 0 and brake 0). Any other value stops or frees it (0 off, 2 damping, 128 calibrate).
+struct EnableField {
+  std::string_view field;
+  std::int32_t on;
+  std::string_view what;  // the enabling write, for the log and docs: "torque on", "wake"
 };
 
 struct MotionSpec {
@@ -66,6 +76,9 @@ struct MotionSpec {
   // Writes of these values are stops, allowed while motion is blocked.
   std::span<const StoppingWrite> stopping_writes;
   StopAction default_stop;  // a servo's `safe_stop` when the configuration names none
+  // Fields without which the motor does not drive; writing their `on` value enables motion. The
+  // fields that choose the drive (`mode`, or both angle limits) are the other way to start one.
+  std::span<const EnableField> enables;
 };
 
 const MotionSpec& motion_spec(TableId id);
@@ -103,12 +116,32 @@ std::optional<std::string> motion_in_plan(const MotionSpec& spec, ByteOrder orde
 // Whether writing `field` is a motion write (sync groups name their field).
 bool is_motion_field(const MotionSpec& spec, std::string_view field);
 
-// Whether the plan switches the torque on (writes 1 to the torque field), staged or not, whatever
-// else it writes: then the gateway holds the goal block first where the torque is off ("no jump
-// on enable", docs/PLC_GUIDE.md "Safety"); the request's own goal, written after the hold, still moves it.
-bool switches_torque_on(const MotionSpec& spec, ByteOrder order, const WritePlan& plan);
-// Whether the servo's torque is on in `context` (stop_context_reads); nullopt when the table has
-// no torque switch or it was not read.
-std::optional<bool> torque_on(const MotionSpec& spec, ByteOrder order, const StopContext& context);
+// --- "No jump on enable" (docs/PLC_GUIDE.md "Safety") -------------------------------------------
+// A write that enables motion — an enable field's `on` value where the servo held another, or a
+// drive change of an enabled servo — gets the hold first, so a stale goal, speed or duty left in
+// the servo cannot make it move the moment it may. The request's own goal, written after the
+// hold, still moves it. The gateway asks may_enable_motion (no I/O), reads the servo
+// (enable_context_reads) and writes what plan_enable_hold says, then the request.
+
+// The fields that choose how the motor drives: the mode field, or both angle limits where the
+// table has none (d55d wheel mode, scs PWM).
+std::vector<std::string_view> drive_fields(const MotionSpec& spec);
+// Whether `writes` (staged or not, whatever else they write) put an enable field's `on` value or
+// touch a drive field: then the servo's state decides (plan_enable_hold).
+bool may_enable_motion(const MotionSpec& spec, ByteOrder order, std::span<const BusWrite> writes);
+// What plan_enable_hold needs read: stop_context_reads and every enable field, merged the same way.
+std::vector<BusRange> enable_context_reads(const MotionSpec& spec);
+// Whether every enable field holds its `on` value in `context`; nullopt when one was not read.
+std::optional<bool> motion_enabled(const MotionSpec& spec, ByteOrder order, const StopContext& context);
+// The hold to write before `writes`, the servo read as `context` (enable_context_reads):
+// - nullopt: none — the writes leave the motor disabled; or it is enabled and keeps its drive (a
+//   hold would cancel the move under way); or it is enabled into step mode (every goal is relative);
+// - the drive's hold (safe stop `hold`) when the writes enable a disabled motor in its drive;
+// - on a drive change: goal := present position, speed and duty := 0 (a hold in the old drive and
+//   nothing stale in the new), or torque off when the drive was step mode (no goal holds there);
+// - an error when the state was not read whole or is undocumented, or when the writes leave step
+//   mode and enable the motor at once (no hold is safe in both drives: write the mode first).
+Expected<std::optional<SafeStopPlan>> plan_enable_hold(const MotionSpec& spec, ByteOrder order,
+                                                       const StopContext& context, std::span<const BusWrite> writes);
 
 }  // namespace sms::modbus_map

@@ -69,6 +69,24 @@ std::string code(std::string_view name) {
   return text;
 }
 
+}  // namespace
+
+std::string enabling_writes_text(TableId id) {
+  const MotionSpec& motion = motion_spec(id);
+  std::string text;
+  for (const EnableField& enable : motion.enables) {
+    text += (text.empty() ? "" : ", ") + code(enable.field) + " := " + std::to_string(enable.on) + " (" +
+            std::string(enable.what) + ")";
+  }
+  const auto drive = drive_fields(motion);
+  text += (text.empty() ? "a write of " : "; a write of ");
+  for (std::size_t i = 0; i < drive.size(); ++i) text += (i == 0 ? "" : " or ") + code(drive[i]);
+  text += " that changes the drive";
+  return text;
+}
+
+namespace {
+
 // docs/PLC_GUIDE.md "Safety": what the watchdog and the e-stop treat as motion, and how they stop a servo.
 void safety_text(std::string& out, const TableSpec& spec) {
   const MotionSpec& motion = motion_spec(spec.id);
@@ -93,7 +111,10 @@ void safety_text(std::string& out, const TableSpec& spec) {
          (motion.goal_time.empty() ? std::string() : "; PWM mode: `" + std::string(motion.goal_time) + "` := 0") +
          (motion.mode.empty() ? "; speed mode = both angle limits 0" : "; step mode: torque off") +
          "), `torque_off` writes `" + std::string(motion.torque_off.field) +
-         "` = " + std::to_string(motion.torque_off.value) + ".\n\n";
+         "` = " + std::to_string(motion.torque_off.value) +
+         ". No jump on enable (docs/SAFETY.md): the hold goes first when a write enables a disabled motor "
+         "or changes the drive of an enabled one: " +
+         enabling_writes_text(spec.id) + ".\n\n";
 }
 
 void native_table(std::string& out, const TableSpec& spec) {

@@ -341,21 +341,25 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
         },
         frame.op);
   }
-  // A member switched on by the write gets the hold of its goal block first ("no jump on enable").
+  // A member the write may enable (torque on, d55d wake or brake release, a drive change) gets the
+  // hold of its goal block first where it needs one ("no jump on enable", no_jump.h).
   std::vector<HoldTarget> switched_on;
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
     const auto& spec = modbus_map::motion_spec(member->map.servo_table().id);
-    if (spec.torque.empty() || member->field->name != spec.torque || request.values[i] != 1) continue;
+    auto bytes = member->map.field_bytes(*member->field, request.values[i]);
+    if (!bytes) continue;  // checked above
+    std::vector<modbus_map::BusWrite> writes{{member->field->addr, std::move(*bytes)}};
+    if (!modbus_map::may_enable_motion(spec, member->map.byte_order(), writes)) continue;
     switched_on.push_back(HoldTarget{
         engines_[member->bus], member->servo_id, &spec, member->map.byte_order(),
         answers_writes(member->map.servo_table().id, member->response_level, *engines_[member->bus], member->servo_id),
-        epochs[member->bus], "unit " + std::to_string(member->unit_id)});
+        epochs[member->bus], "unit " + std::to_string(member->unit_id), std::move(writes)});
   }
   auto send_frames = [this, frames = std::move(frames), buses, function = request.function, reply,
                       after = std::move(after)](std::optional<BusResult> hold_failure) mutable {
     if (hold_failure) {
-      spdlog::warn("gateway unit: sync group torque on not done: {}", hold_failure->detail);
+      spdlog::warn("gateway unit: sync group enabling write not done: {}", hold_failure->detail);
       reply.send(exception_response(function, fault_from(hold_failure->status)));
       return;
     }
@@ -378,7 +382,7 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     send_frames(std::nullopt);
     return;
   }
-  hold_before_torque_on(std::move(switched_on), post_, std::move(send_frames));
+  hold_before_enable(std::move(switched_on), post_, std::move(send_frames));
 }
 
 std::vector<bool> GatewayUnit::coils() const {

@@ -6,8 +6,8 @@
 
 namespace sms::gateway {
 
-void hold_before_torque_on(std::vector<HoldTarget> targets, const PostFn& post,
-                           const std::function<void(std::optional<BusResult>)>& done) {
+void hold_before_enable(std::vector<HoldTarget> targets, const PostFn& post,
+                        const std::function<void(std::optional<BusResult>)>& done) {
   struct Read {
     std::size_t target;
     modbus_map::BusRange range;
@@ -16,7 +16,7 @@ void hold_before_torque_on(std::vector<HoldTarget> targets, const PostFn& post,
   auto reads = std::make_shared<std::vector<Read>>();
   auto ranges = std::make_shared<std::vector<std::vector<modbus_map::BusRange>>>();
   for (std::size_t t = 0; t < shared->size(); ++t) {
-    ranges->push_back(modbus_map::stop_context_reads(*(*shared)[t].spec));
+    ranges->push_back(modbus_map::enable_context_reads(*(*shared)[t].spec));
     for (const auto& range : ranges->back()) reads->push_back(Read{t, range});
   }
   if (reads->empty()) {
@@ -39,19 +39,18 @@ void hold_before_torque_on(std::vector<HoldTarget> targets, const PostFn& post,
       std::vector<protocol::Bytes> data;
       for (std::size_t r = 0; r < (*ranges)[t].size(); ++r) data.push_back(std::move(results[next++].data));
       const modbus_map::StopContext context{(*ranges)[t], data};
-      if (modbus_map::torque_on(*target.spec, target.order, context).value_or(false)) {
-        spdlog::debug("safety: {}: torque already on: no hold (it would cancel the move under way)", target.label);
-        continue;
-      }
-      const auto hold =
-          modbus_map::plan_safe_stop(*target.spec, modbus_map::StopAction::Hold, target.order, context, true);
+      const auto hold = modbus_map::plan_enable_hold(*target.spec, target.order, context, target.writes);
       if (!hold) {
-        done(BusResult{BusStatus::ServoRefused, 0, {}, target.label + ": torque on refused: " + hold.error()});
+        done(BusResult{BusStatus::ServoRefused, 0, {}, target.label + ": enabling write refused: " + hold.error()});
         return;
       }
-      if (hold->drive == modbus_map::Drive::Step) continue;  // every goal is relative: none is stale
-      spdlog::debug("safety: {}: torque on: {} first", target.label, hold->what);
-      for (const auto& write : hold->writes) holds.push_back(Hold{t, write});
+      if (!*hold) {
+        spdlog::debug("safety: {}: no hold before the write (it enables nothing, or the servo already drives)",
+                      target.label);
+        continue;
+      }
+      spdlog::debug("safety: {}: {} first", target.label, (*hold)->what);
+      for (const auto& write : (*hold)->writes) holds.push_back(Hold{t, write});
     }
     if (holds.empty()) {
       done(std::nullopt);

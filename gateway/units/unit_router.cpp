@@ -440,8 +440,8 @@ void UnitRouter::run_writes(const ServoUnit& unit, std::uint8_t function, modbus
     if (!admitted) return;
     epoch = *admitted;
   }
-  if (modbus_map::switches_torque_on(spec, order, plan)) {
-    hold_then_switch_torque_on(unit, function, std::move(plan), epoch, reply, std::move(after));
+  if (modbus_map::may_enable_motion(spec, order, plan.writes)) {
+    hold_then_enable(unit, function, std::move(plan), epoch, reply, std::move(after));
     return;
   }
   run_admitted_writes(unit, function, std::move(plan), epoch, reply, std::move(after));
@@ -453,27 +453,27 @@ void UnitRouter::run_admitted_writes(const ServoUnit& unit, std::uint8_t functio
   chain->step();
 }
 
-void UnitRouter::hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
-                                            MotionEpoch epoch, const Reply& reply,
-                                            std::function<void(const Reply&)> after) {
+void UnitRouter::hold_then_enable(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
+                                  MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after) {
   HoldTarget target{unit.engine,
                     unit.servo_id,
                     &modbus_map::motion_spec(unit.map.servo_table().id),
                     unit.map.byte_order(),
                     expects_write_reply(unit),
                     epoch,
-                    unit.label};
-  hold_before_torque_on({std::move(target)}, post_,
-                        [this, &unit, function, plan = std::move(plan), epoch, reply,
-                         after = std::move(after)](std::optional<BusResult> failure) mutable {
-                          if (failure) {
-                            spdlog::warn("modbus: {} FC{:02X}: torque on not done: {}", unit.label, function,
-                                         failure->detail);
-                            reply.send(exception_response(function, fault_from(failure->status)));
-                            return;
-                          }
-                          run_admitted_writes(unit, function, std::move(plan), epoch, reply, std::move(after));
-                        });
+                    unit.label,
+                    plan.writes};
+  hold_before_enable({std::move(target)}, post_,
+                     [this, &unit, function, plan = std::move(plan), epoch, reply,
+                      after = std::move(after)](std::optional<BusResult> failure) mutable {
+                       if (failure) {
+                         spdlog::warn("modbus: {} FC{:02X}: enabling write not done: {}", unit.label, function,
+                                      failure->detail);
+                         reply.send(exception_response(function, fault_from(failure->status)));
+                         return;
+                       }
+                       run_admitted_writes(unit, function, std::move(plan), epoch, reply, std::move(after));
+                     });
 }
 
 bool answers_writes(TableId table, std::optional<std::uint8_t> configured_level, const BusEngine& engine,

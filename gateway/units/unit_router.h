@@ -126,15 +126,16 @@ class UnitRouter : public RequestHandler {
   void read_coils(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply);
   void read_discrete(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply);
   // The safety rules, then the plan's frames one after another (a refusal stops the rest), then
-  // `after`: a motion write is refused while motion is blocked; a write switching the torque on
-  // gets the hold of the goal block first ("no jump on enable", gateway/units/no_jump.h).
+  // `after`: a motion write is refused while motion is blocked; a write that may enable motion
+  // (torque on, d55d wake or brake release, a drive change) gets the hold of the goal block first
+  // where it needs one ("no jump on enable", gateway/units/no_jump.h).
   void run_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan, const Reply& reply,
                   std::function<void(const Reply&)> after);
   void run_admitted_writes(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan, MotionEpoch epoch,
                            const Reply& reply, std::function<void(const Reply&)> after);
-  // Holds the servo's goal block where its torque is off (gateway/units/no_jump.h), then runs `plan`.
-  void hold_then_switch_torque_on(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan,
-                                  MotionEpoch epoch, const Reply& reply, std::function<void(const Reply&)> after);
+  // Holds the servo's goal block where `plan` enables it (gateway/units/no_jump.h), then runs `plan`.
+  void hold_then_enable(const ServoUnit& unit, std::uint8_t function, modbus_map::WritePlan plan, MotionEpoch epoch,
+                        const Reply& reply, std::function<void(const Reply&)> after);
   // Live reads of plan.reads, in order; `then` gets the replies' bytes.
   void run_reads(const ServoUnit& unit, std::uint8_t function, const modbus_map::ReadPlan& plan, const Reply& reply,
                  std::function<void(std::vector<protocol::Bytes>)> then);

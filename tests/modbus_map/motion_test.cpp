@@ -184,28 +184,34 @@ TEST(Motion, MotionWritesAreGoalsModeTorqueOnBrakeReleaseAndHoming) {
   EXPECT_TRUE(motion_in_plan(smsmb, ByteOrder::HighFirst, plan_of(0x81, {0, 1})));
 }
 
-TEST(Motion, EveryTorqueOnIsTheNoJumpCaseWhateverElseTheRequestWrites) {
+TEST(Motion, EveryTorqueOnIsAnEnablingWriteWhateverElseTheRequestWrites) {
   const MotionSpec& sts = motion_spec(TableId::Sts);
-  EXPECT_TRUE(switches_torque_on(sts, ByteOrder::LowFirst, plan_of(40, {1})));
+  EXPECT_TRUE(may_enable_motion(sts, ByteOrder::LowFirst, plan_of(40, {1}).writes));
   // torque 1 with a goal position in the same request: a servo in speed mode would run its stale
   // goal speed, so this is a torque-on too.
-  EXPECT_TRUE(switches_torque_on(sts, ByteOrder::LowFirst, plan_of(40, {1, 0, 0x10, 0x00})));
-  EXPECT_FALSE(switches_torque_on(sts, ByteOrder::LowFirst, plan_of(40, {0})));
-  EXPECT_FALSE(switches_torque_on(sts, ByteOrder::LowFirst, plan_of(42, {0x10, 0x00})));
-  EXPECT_FALSE(switches_torque_on(motion_spec(TableId::D55d), ByteOrder::LowFirst, plan_of(43, {0})));
+  EXPECT_TRUE(may_enable_motion(sts, ByteOrder::LowFirst, plan_of(40, {1, 0, 0x10, 0x00}).writes));
+  EXPECT_FALSE(may_enable_motion(sts, ByteOrder::LowFirst, plan_of(40, {0}).writes));
+  EXPECT_FALSE(may_enable_motion(sts, ByteOrder::LowFirst, plan_of(42, {0x10, 0x00}).writes));
+  // d55d has no torque switch: releasing the brake enables it (enable_fields_test.cpp).
+  EXPECT_TRUE(may_enable_motion(motion_spec(TableId::D55d), ByteOrder::LowFirst, plan_of(43, {0}).writes));
 }
 
-TEST(Motion, TorqueOnReadsTheSwitchFromTheStopContext) {
+TEST(Motion, MotionEnabledReadsTheEnableFieldsFromTheContext) {
   const MotionSpec& sts = motion_spec(TableId::Sts);
-  const auto ranges = stop_context_reads(sts);
+  const auto ranges = enable_context_reads(sts);
   ASSERT_EQ(ranges.size(), 1u);
   protocol::Bytes data(ranges[0].count, 0);
   const std::vector<protocol::Bytes> context{data};
-  EXPECT_EQ(torque_on(sts, ByteOrder::LowFirst, StopContext{ranges, context}), false);
+  EXPECT_EQ(motion_enabled(sts, ByteOrder::LowFirst, StopContext{ranges, context}), false);
   data[40 - ranges[0].address] = 1;
   const std::vector<protocol::Bytes> on{data};
-  EXPECT_EQ(torque_on(sts, ByteOrder::LowFirst, StopContext{ranges, on}), true);
-  EXPECT_EQ(torque_on(motion_spec(TableId::D55d), ByteOrder::LowFirst, StopContext{ranges, on}), std::nullopt);
+  EXPECT_EQ(motion_enabled(sts, ByteOrder::LowFirst, StopContext{ranges, on}), true);
+  // The stop context of d55d does not hold its sleep and brake.
+  const MotionSpec& d55d = motion_spec(TableId::D55d);
+  const auto stop_ranges = stop_context_reads(d55d);
+  std::vector<protocol::Bytes> stop_data;
+  for (const auto& range : stop_ranges) stop_data.emplace_back(range.count, 0);
+  EXPECT_EQ(motion_enabled(d55d, ByteOrder::LowFirst, StopContext{stop_ranges, stop_data}), std::nullopt);
 }
 
 }  // namespace

@@ -176,6 +176,48 @@ TEST_F(D55dSim, BrakeStopsAtOnceAndHolds) {
   EXPECT_EQ(read(1, 42, 1), Bytes{0}) << "braked: speed commands wait for the brake to be released";
 }
 
+// What the gateway's "no jump on enable" guards against (doc 002: brake and sleep only pause the
+// motor): released or woken, it takes up the speed or the goal it holds.
+TEST_F(D55dSim, ReleasingTheBrakeResumesTheTurnAndTheMoveItHolds) {
+  start({d55d(1)});
+  wheel_mode(1);
+  write(1, 32, {0x5A, 0x00});  // 90 °/s
+  EXPECT_TRUE(reaches(1, 38, {0x5A, 0x00}));
+  write(1, 43, {1});
+  EXPECT_EQ(read(1, 38, 2), (Bytes{0x00, 0x00}));
+  write(1, 43, {0});
+  EXPECT_TRUE(reaches(1, 38, {0x5A, 0x00})) << "released, it turns at the speed it holds";
+
+  write(1, 6, {0x00, 0x00, 0x68, 0x01});  // position mode, 0..360°
+  write(1, 32, {0x3C, 0x00});             // 60 °/s
+  write(1, 30, {0x00, 0x00});
+  EXPECT_TRUE(reaches(1, 42, {0}));
+  write(1, 30, {0x2C, 0x01});  // 300°
+  EXPECT_TRUE(eventually([&] {
+    const Bytes present = read(1, 36, 2);
+    return present.size() == 2 && (present[0] | present[1] << 8) >= 20;
+  }));
+  write(1, 43, {1});
+  EXPECT_EQ(read(1, 42, 1), Bytes{0});
+  write(1, 43, {0});
+  EXPECT_EQ(read(1, 42, 1), Bytes{1}) << "released, it resumes its move";
+  EXPECT_TRUE(reaches(1, 36, {0x2C, 0x01}));
+}
+
+TEST_F(D55dSim, SleepFreesTheMotorAndWakingResumesTheRunSpeed) {
+  start({d55d(1)});
+  wheel_mode(1);
+  write(1, 32, {0x5A, 0x00});
+  EXPECT_TRUE(reaches(1, 38, {0x5A, 0x00}));
+  write(1, 47, {1});
+  EXPECT_EQ(read(1, 38, 2), (Bytes{0x00, 0x00}));
+  EXPECT_EQ(read(1, 42, 1), Bytes{0});
+  write(1, 32, {0x5A, 0x00});
+  EXPECT_EQ(read(1, 42, 1), Bytes{0}) << "asleep: speed commands wait for the wake";
+  write(1, 47, {0});
+  EXPECT_TRUE(reaches(1, 38, {0x5A, 0x00})) << "woken, it turns at the speed it holds";
+}
+
 TEST_F(D55dSim, PhotoSwitchHomingFindsZeroThenTheEndAndRecordsTheTravel) {
   start({d55d(1)});
   write(1, 19, {1});  // zero on the clockwise side
