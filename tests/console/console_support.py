@@ -76,6 +76,7 @@ class GatewayCase(unittest.TestCase):
     (no browser: tests that speak the console's HTTP and WebSocket API themselves)."""
 
     servo_ids = "1-3"
+    sim_options = ()  # more sms-sim options, e.g. ("--no-timing",)
     bus_yaml = ""    # more keys of bus `arm`, e.g. ", watchdog: {timeout_ms: 300, feed: heartbeat_register}"
     extra_yaml = ""
 
@@ -83,7 +84,7 @@ class GatewayCase(unittest.TestCase):
     def setUpClass(cls):
         cls.bin_dir = os.environ["SMS_BIN_DIR"]
         cls.workdir = tempfile.mkdtemp(prefix="sms-console-")
-        cls.sim = Simulator(cls.bin_dir, cls.workdir, cls.servo_ids)
+        cls.sim = Simulator(cls.bin_dir, cls.workdir, cls.servo_ids, extra=cls.sim_options)
         # A second line no bus owns, for the commissioning page: servos 4 and 9 at 115200 bit/s.
         cls.free_line = Simulator(cls.bin_dir, cls.workdir, "4,9", "free", ("--baud", "115200"))
         cls.modbus_port = free_port()

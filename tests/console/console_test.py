@@ -24,8 +24,9 @@ class ConsoleTest(ConsoleCase):
         units = self.browser.execute_script(
             "return [...document.querySelectorAll('#servos-table tr[data-unit]')].map(r => r.dataset.unit)")
         self.assertEqual(units, ["1", "2", "3"])
-        bus = self.text("#buses-table tr[data-bus='arm']")
-        self.assertIn("3 / 3", bus)
+        # Discovery may still be going on a loaded machine: the row comes before servo 3 is found.
+        wait_until(lambda: "3 / 3" in self.text("#buses-table tr[data-bus='arm']"),
+                   what="bus arm to show its 3 servos found")
         # Live: a position changed on the wire shows without a reload.
         self.sim.command("set 1 42 00 04")  # servo 1's goal := 1024 through the simulator's backdoor
         wait_until(lambda: abs(int(self.text("#servos-table tr[data-unit='1'] td.position") or 0) - 1024) < 5,
