@@ -173,7 +173,8 @@ class Gateway::Impl {
               [this](std::string_view bus) { return wire_monitor_named(bus); },
               console::BusLending{[this](std::size_t bus, const std::string& who) { return lend_bus(bus, who); },
                                   [this](std::size_t bus, const std::string& who) { return take_back_bus(bus, who); },
-                                  [this](std::size_t bus) { return engines_.at(bus)->line_lent(); }}});
+                                  [this](std::size_t bus) { return engines_.at(bus)->line_lent(); }},
+              safety_.get()});
       console_->start();
     }
     if (config_.logging.metrics_listen) {

@@ -288,7 +288,8 @@ Expected<std::unique_ptr<Stream>> make_overview_stream(Services& services, const
 }
 
 // A servo page: every new poll of the servo (its whole poll block, at the poll rate) batched
-// per push period, and the jog panel's hold-to-run moves.
+// per push period, and the jog panel's hold-to-run moves (position and speed), each a JogSession
+// from its press to its end (console_jog.h).
 class ServoStream final : public Stream {
  public:
   ServoStream(Services& services, const ServoUnit& unit, Principal who)
@@ -301,12 +302,14 @@ class ServoStream final : public Stream {
         torque_(entry_for_servo_field(unit.map, spec_.torque)),
         mode_(spec_.mode.empty() ? nullptr : entry_for_servo_field(unit.map, spec_.mode)),
         present_position_(entry_named(unit.map, spec_.present_position)),
+        bus_name_(services.config().buses.at(unit.bus_index).name),
         alive_(std::make_shared<bool>(true)) {}
   ~ServoStream() override { *alive_ = false; }
 
   void sample(SteadyClock::time_point now) override {
+    end_jog_if_stopped();
     if (jog_ && now - last_heartbeat_ > kJogHeartbeatTimeout)
-      stop_jog("no heartbeat from the page for " + std::to_string(kJogHeartbeatTimeout.count()) + " ms");
+      end_jog("no heartbeat from the page for " + std::to_string(kJogHeartbeatTimeout.count()) + " ms");
     if (jog_ && now - last_refresh_ >= kJogRefreshPeriod) {
       last_refresh_ = now;
       write_jog_goal();
@@ -376,25 +379,32 @@ class ServoStream final : public Stream {
       return send(error_json(std::string(entry->shown->name) + ": " + std::to_string(message->value) + " is outside " +
                              std::to_string(entry->min) + ".." + std::to_string(entry->max) + "; not moved"));
     }
-    if (!speed || mode_ == nullptr) return start_jog(speed, message->value, send, now);
+    // A press: a new session, with the bus's motion stops as they are now; a move still running
+    // from an earlier press ends first if a stop came since (it would end at the next sample).
+    ++jog_generation_;  // a speed jog of an earlier press still waiting for its mode check does not start
+    end_jog_if_stopped();
+    auto session = JogSession::press(unit_.bus_index, bus_name_, services_.motion_stops(unit_.bus_index));
+    if (!session) return send(error_json(session.error()));
+    if (!speed || mode_ == nullptr) return start_jog(speed, message->value, std::move(*session), send, now);
     // A speed goal turns only a servo in a speed mode (in position mode it is the move's speed
     // limit and nothing turns): read its mode first, and say so rather than do nothing.
-    services_.modbus(
-        who_, unit_.unit_id, read_registers_pdu(mode_->address, 1),
-        [this, alive = alive_, generation = jog_generation_, value = message->value, send](const ModbusAnswer& answer) {
-          if (!*alive || generation != jog_generation_) return;
-          if (!answer.ok()) return send(error_json("reading " + std::string(spec_.mode) + ": " + answer.message));
-          const std::int64_t mode = static_cast<std::int16_t>(registers_in(answer.pdu).at(0));
-          const auto drive = std::find_if(spec_.modes.begin(), spec_.modes.end(),
-                                          [mode](const auto& entry) { return entry.value == mode; });
-          if (drive == spec_.modes.end() || drive->drive != modbus_map::Drive::Velocity) {
-            return send(error_json("servo " + std::to_string(unit_.unit_id) + " is not in a speed mode (" +
-                                   std::string(spec_.mode) + " = " + std::to_string(mode) +
-                                   "): the speed jog turns a servo in wheel mode; set " + std::string(spec_.mode) +
-                                   " in the control table first; not moved"));
-          }
-          start_jog(true, value, send, SteadyClock::now());
-        });
+    services_.modbus(who_, unit_.unit_id, read_registers_pdu(mode_->address, 1),
+                     [this, alive = alive_, generation = jog_generation_, value = message->value,
+                      session = std::move(*session), send](const ModbusAnswer& answer) {
+                       if (!*alive || generation != jog_generation_) return;
+                       if (!answer.ok())
+                         return send(error_json("reading " + std::string(spec_.mode) + ": " + answer.message));
+                       const std::int64_t mode = static_cast<std::int16_t>(registers_in(answer.pdu).at(0));
+                       const auto drive = std::find_if(spec_.modes.begin(), spec_.modes.end(),
+                                                       [mode](const auto& entry) { return entry.value == mode; });
+                       if (drive == spec_.modes.end() || drive->drive != modbus_map::Drive::Velocity) {
+                         return send(error_json("servo " + std::to_string(unit_.unit_id) + " is not in a speed mode (" +
+                                                std::string(spec_.mode) + " = " + std::to_string(mode) +
+                                                "): the speed jog turns a servo in wheel mode; set " +
+                                                std::string(spec_.mode) + " in the control table first; not moved"));
+                       }
+                       start_jog(true, value, session, send, SteadyClock::now());
+                     });
   }
 
   void on_close() override { stop_jog("the page went away"); }
@@ -414,7 +424,10 @@ class ServoStream final : public Stream {
                      });
   }
 
-  void start_jog(bool speed, std::int64_t value, const Send& send, SteadyClock::time_point now) {
+  void start_jog(bool speed, std::int64_t value, JogSession session, const Send& send, SteadyClock::time_point now) {
+    // A stop during the speed jog's mode check ends the session before it moved.
+    if (const auto why = session.ended(services_.motion_stops(unit_.bus_index))) return send(error_json(*why));
+    session_ = std::move(session);
     jog_ = true;
     jog_speed_ = speed;
     jog_value_ = value;
@@ -426,17 +439,36 @@ class ServoStream final : public Stream {
     write_jog_goal();
   }
 
+  // The goal of the session's move, checked against its press once more on the io thread.
   void write_jog_goal() {
     const auto* entry = jog_speed_ ? goal_speed_ : goal_position_;
-    services_.modbus(
+    services_.jog_modbus(
         who_, unit_.unit_id,
         write_register_pdu(entry->address, static_cast<std::uint16_t>(static_cast<std::int16_t>(jog_value_))),
-        [this, alive = alive_](const ModbusAnswer& answer) {
-          if (!*alive || answer.ok() || !jog_) return;
-          // Refused (e-stop, watchdog) or lost (a timeout): the move is over, and the
-          // goal an earlier write set must not carry it on.
-          stop_jog("the goal write failed: " + answer.message);
+        *session_, [this, alive = alive_, generation = jog_generation_](const ModbusAnswer& answer) {
+          if (!*alive || answer.ok() || !jog_ || generation != jog_generation_) return;
+          // Refused (a stop since the press, e-stop, watchdog) or lost (a timeout): the move is
+          // over, and the goal an earlier write set must not carry it on.
+          if (!end_jog_if_stopped()) end_jog("the goal write failed: " + answer.message);
         });
+  }
+
+  // The safety rule of the running move (console_jog.h): true when a stop since its press ended it.
+  bool end_jog_if_stopped() {
+    if (!jog_) return false;
+    const auto why = session_->ended(services_.motion_stops(unit_.bus_index));
+    if (!why) return false;
+    end_jog(*why);
+    return true;
+  }
+
+  // The gateway ends the move (not the page): stopped as on a release, and the page is told why
+  // and lets go of its hold, so moving again takes a new press.
+  void end_jog(std::string reason) {
+    if (!jog_) return;
+    ++jog_generation_;
+    stop_jog(reason);
+    if (send_) send_(json{{"type", "jog_ended"}, {"message", std::move(reason)}}.dump());
   }
 
   // The servo's safe stop `hold` (units/safety, modbus_map/motion.h): speed moves get speed 0,
@@ -492,6 +524,7 @@ class ServoStream final : public Stream {
   const modbus_map::RegisterEntry* torque_;
   const modbus_map::RegisterEntry* mode_;  // the operating-mode field; nullptr: the table has none
   const modbus_map::RegisterEntry* present_position_;
+  const std::string bus_name_;
   std::shared_ptr<bool> alive_;
   std::vector<std::string> names_;
   json samples_ = json::array();
@@ -499,8 +532,9 @@ class ServoStream final : public Stream {
   bool online_ = false;
   std::uint8_t status_ = 0;
   bool jog_ = false;
+  std::optional<JogSession> session_;  // the running move's (jog_), else the last one's
   bool jog_speed_ = false;
-  std::uint64_t jog_generation_ = 0;  // counts releases
+  std::uint64_t jog_generation_ = 0;  // counts presses, releases and the gateway's ends
   std::int64_t jog_value_ = 0;
   std::string jog_reason_;
   bool state_changed_ = true;

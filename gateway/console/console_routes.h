@@ -24,6 +24,7 @@
 #include "config/config.h"
 #include "gateway/bus/wire_monitor.h"
 #include "gateway/console/console_access.h"
+#include "gateway/console/console_jog.h"
 #include "gateway/console/console_request.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/units/unit_router.h"
@@ -74,6 +75,13 @@ class Services {
   // thread, like any Modbus client. `done` runs on the console thread.
   virtual void modbus(const Principal& who, std::uint8_t unit, protocol::Bytes pdu,
                       std::function<void(ModbusAnswer)> done) = 0;
+  // Bus `bus`'s motion stops now (SafetySupervisor::motion_stops): what a hold-to-run move checks.
+  virtual MotionStops motion_stops(std::size_t bus) const = 0;
+  // A write of the hold-to-run move `session`: as modbus(), and on the io thread, right before the
+  // router admits it, the session is checked again; one a stop has ended gets 0x04 and nothing is
+  // written (a latch and its reset between two looks of the console thread cannot let it through).
+  virtual void jog_modbus(const Principal& who, std::uint8_t unit, protocol::Bytes pdu, const JogSession& session,
+                          std::function<void(ModbusAnswer)> done) = 0;
 };
 
 // One HTTP request a JSON handler answers. `answer` may be called later (after Modbus answers),

@@ -27,6 +27,7 @@
 #include "gateway/console/web_assets.h"
 #include "gateway/modbus_tcp/faults.h"
 #include "gateway/modbus_tcp/listener.h"
+#include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tls.h"
 
@@ -137,7 +138,9 @@ class ConsoleServer::Impl final : public Services {
         commissioning_(*backend_.config, backend_.lending),
         acceptor_(io_),
         timer_(io_),
-        mailbox_(std::make_shared<Mailbox>()) {}
+        mailbox_(std::make_shared<Mailbox>()) {
+    if (backend_.safety == nullptr) throw std::invalid_argument("console: no safety rules for the jog panel");
+  }
 
   ~Impl() override { stop(); }
 
@@ -216,6 +219,19 @@ class ConsoleServer::Impl final : public Services {
   }
 
   void modbus(const Principal& who, std::uint8_t unit, Bytes pdu, std::function<void(ModbusAnswer)> done) override {
+    submit(who, unit, std::move(pdu), std::move(done), std::nullopt);
+  }
+
+  MotionStops motion_stops(std::size_t bus) const override { return backend_.safety->motion_stops(bus); }
+
+  void jog_modbus(const Principal& who, std::uint8_t unit, Bytes pdu, const JogSession& session,
+                  std::function<void(ModbusAnswer)> done) override {
+    submit(who, unit, std::move(pdu), std::move(done), session);
+  }
+
+  // A request for the router as `who`; with `jog`, a write of that hold-to-run move (jog_modbus).
+  void submit(const Principal& who, std::uint8_t unit, Bytes pdu, std::function<void(ModbusAnswer)> done,
+              std::optional<JogSession> jog) {
     if (const auto refusal = policy_.refusal(who.role, unit, pdu)) {
       const std::uint8_t code = exception_code(refusal->fault);
       spdlog::info("console: {} ({}) refused: {}", who.name, config::to_string(who.role), refusal->reason);
@@ -227,8 +243,15 @@ class ConsoleServer::Impl final : public Services {
     }
     auto target = std::make_shared<ConsoleReply>(mailbox_, std::move(done));
     auto origin = std::make_shared<const std::string>("the browser console (" + who.name + ")");
-    backend_.post_to_router([router = backend_.router, unit, pdu = std::move(pdu), target, origin] {
-      router->handle(unit, pdu, Reply(target, 0, origin));
+    backend_.post_to_router([router = backend_.router, safety = backend_.safety, unit, pdu = std::move(pdu), target,
+                             origin, jog = std::move(jog)] {
+      const Reply reply(target, 0, origin);
+      // The e-stop is latched and reset, and watchdogs re-armed, on this thread, and the router
+      // admits the write on it right after this look: no latch and reset can come between them.
+      if (jog && jog->ended(safety->motion_stops(jog->bus()))) {
+        return reply.send(exception_response(pdu.empty() ? 0 : pdu[0], Fault::MotionBlocked));
+      }
+      router->handle(unit, pdu, reply);
     });
   }
 

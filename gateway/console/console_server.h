@@ -22,6 +22,7 @@
 #include "gateway/console/console_commission.h"
 #include "gateway/modbus_tcp/request_handler.h"
 #include "gateway/observability/metrics.h"
+#include "gateway/units/safety.h"
 #include "gateway/units/unit_router.h"
 
 namespace sms::gateway::console {
@@ -36,6 +37,8 @@ struct ConsoleBackend {
   // The bus monitor of the bus named so (docs/MONITOR.md), nullptr for no such bus; any thread.
   std::function<std::shared_ptr<WireMonitor>(std::string_view bus)> monitor;
   BusLending lending;  // empty functions: no bus can be stopped from the console (tests)
+  // The safety rules every hold-to-run move checks (console_jog.h); required.
+  const SafetySupervisor* safety = nullptr;
 };
 
 struct ConsoleLimits {

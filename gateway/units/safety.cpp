@@ -411,6 +411,21 @@ class SafetySupervisor::Impl {
     return facts;
   }
 
+  MotionStops motion_stops(std::size_t index) const {
+    const BusSafety& bus = *buses_.at(index);
+    MotionStops stops;
+    // The epoch before `blocked`: a block sets `blocked`, then grows the epoch, so when `blocked`
+    // reads false, a block under way as the epoch was read has grown it past that by now.
+    stops.epoch = bus.gate->epoch();
+    stops.blocked = bus.gate->blocked();
+    stops.estop_latched = estop_latched_.load();
+    stops.tripped = bus.state.load() == WatchdogState::Tripped;
+    stops.lent = bus.lent.load();
+    stops.estops = estops_.load();
+    stops.trips = bus.trips.load();
+    return stops;
+  }
+
   bool estop_latched() const { return estop_latched_.load(); }
   const std::string& state_file() const { return state_path_; }
   bool any_tripped() const {
@@ -913,6 +928,7 @@ void SafetySupervisor::lend_bus(std::size_t bus, std::string_view who, std::func
 void SafetySupervisor::return_bus(std::size_t bus, std::string_view who) { impl_->return_bus(bus, who); }
 void SafetySupervisor::rearm_watchdogs(std::string_view who) { impl_->rearm_watchdogs(who); }
 SafetyFacts SafetySupervisor::facts() const { return impl_->facts(); }
+MotionStops SafetySupervisor::motion_stops(std::size_t bus) const { return impl_->motion_stops(bus); }
 bool SafetySupervisor::estop_latched() const { return impl_->estop_latched(); }
 const std::string& SafetySupervisor::state_file() const { return impl_->state_file(); }
 bool SafetySupervisor::any_tripped() const { return impl_->any_tripped(); }

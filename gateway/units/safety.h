@@ -92,6 +92,18 @@ struct SafetyFacts {
   std::string state_problem;  // why, while state_not_persisted
 };
 
+// One bus's motion stops as an operator's hold-to-run move checks them (the browser console's jog,
+// docs/CONSOLE.md "Jog panel"): a move pressed in one epoch may not move in another. Atomics only.
+struct MotionStops {
+  MotionEpoch epoch = 0;  // the bus's motion gate epoch: grows whenever its motion is blocked
+  bool blocked = false;   // motion writes on the bus are refused now, because of:
+  bool estop_latched = false;
+  bool tripped = false;      // its watchdog
+  bool lent = false;         // its line is lent to commissioning
+  std::uint64_t estops = 0;  // e-stop latches since start
+  std::uint64_t trips = 0;   // trips of its watchdog since start
+};
+
 // Refused motion writes, logged as a warning at most once a second (a PLC writing cyclically
 // into a latched gateway would otherwise fill the log). io thread only.
 class MotionRefusalLog {
@@ -158,6 +170,8 @@ class SafetySupervisor {
   void rearm_watchdogs(std::string_view who = "a Modbus TCP client");
 
   SafetyFacts facts() const;
+  // Bus `bus`'s motion stops now; any thread, no lock (read at every step of a hold-to-run move).
+  MotionStops motion_stops(std::size_t bus) const;
   bool estop_latched() const;
   // Where the latch and the tripped watchdogs are kept; empty: not kept.
   const std::string& state_file() const;

@@ -2,8 +2,13 @@
 sms-gateway on it with the console on a free loopback port, users made with
 `sms-gateway hash-password`, and a headless Chromium driven by Selenium (Debian chromium,
 chromium-driver, python3-selenium). One gateway and one browser per test module."""
+import base64
+import http.client
+import json
 import os
 import shutil
+import struct
+import threading
 import socket
 import subprocess
 import sys
@@ -66,22 +71,20 @@ class Simulator:
         self.process.wait(10)
 
 
-class ConsoleCase(unittest.TestCase):
-    """setUpClass starts the simulator, the gateway and Chromium once for the module's tests."""
+class GatewayCase(unittest.TestCase):
+    """setUpClass starts the simulator and the gateway with its console once for the module's tests
+    (no browser: tests that speak the console's HTTP and WebSocket API themselves)."""
 
     servo_ids = "1-3"
+    sim_options = ()  # more sms-sim options, e.g. ("--no-timing",)
+    bus_yaml = ""    # more keys of bus `arm`, e.g. ", watchdog: {timeout_ms: 300, feed: heartbeat_register}"
     extra_yaml = ""
 
     @classmethod
     def setUpClass(cls):
-        if shutil.which("chromedriver") is None or not os.path.exists("/usr/bin/chromium"):
-            raise unittest.SkipTest("chromium and chromium-driver are not installed (scripts/install-deps.sh installs them)")
-        from selenium import webdriver
-        from selenium.webdriver.chrome.service import Service
-
         cls.bin_dir = os.environ["SMS_BIN_DIR"]
         cls.workdir = tempfile.mkdtemp(prefix="sms-console-")
-        cls.sim = Simulator(cls.bin_dir, cls.workdir, cls.servo_ids)
+        cls.sim = Simulator(cls.bin_dir, cls.workdir, cls.servo_ids, extra=cls.sim_options)
         # A second line no bus owns, for the commissioning page: servos 4 and 9 at 115200 bit/s.
         cls.free_line = Simulator(cls.bin_dir, cls.workdir, "4,9", "free", ("--baud", "115200"))
         cls.modbus_port = free_port()
@@ -94,7 +97,7 @@ class ConsoleCase(unittest.TestCase):
         servos = "".join(f"  - {{bus: arm, id: {i}, table: sts}}\n" for i in range(ids[0], ids[-1] + 1))
         users = "".join(f"    - {{name: {u}, role: {r}, password_hash: \"{hashes[u]}\"}}\n" for u, r in USERS.items())
         config = (f"modbus_tcp: {{listen: \"127.0.0.1:{cls.modbus_port}\"}}\n"
-                  f"buses:\n  - {{name: arm, device: \"{cls.sim.link}\", protocol: feetech, baud: 1000000}}\n"
+                  f"buses:\n  - {{name: arm, device: \"{cls.sim.link}\", protocol: feetech, baud: 1000000{cls.bus_yaml}}}\n"
                   f"servos:\n{servos}"
                   f"state_dir: \"{cls.workdir}\"\n"
                   f"console:\n  listen: \"127.0.0.1:{cls.console_port}\"\n  users:\n{users}" + cls.extra_yaml)
@@ -106,18 +109,6 @@ class ConsoleCase(unittest.TestCase):
                                        stdout=cls.log, stderr=subprocess.STDOUT)
         cls.base = f"http://127.0.0.1:{cls.console_port}"
         wait_until(cls._console_up, timeout=15, what="the console to listen")
-        options = webdriver.ChromeOptions()
-        options.binary_location = "/usr/bin/chromium"
-        for argument in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
-                         "--window-size=1400,1000", "--disable-background-timer-throttling"):
-            options.add_argument(argument)
-        cls.browser = webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
-        # Downloads (the plot's CSV) land in the test's own folder.
-        cls.downloads = os.path.join(cls.workdir, "downloads")
-        os.makedirs(cls.downloads)
-        cls.browser.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": cls.downloads})
-        cls.browser.set_page_load_timeout(20)
-        cls.browser.set_script_timeout(10)
 
     @classmethod
     def _console_up(cls):
@@ -131,8 +122,6 @@ class ConsoleCase(unittest.TestCase):
 
     @classmethod
     def tearDownClass(cls):
-        if hasattr(cls, "browser"):
-            cls.browser.quit()
         if hasattr(cls, "gateway"):
             cls.gateway.terminate()
             try:
@@ -149,6 +138,55 @@ class ConsoleCase(unittest.TestCase):
             sys.stderr.write(f"kept {cls.workdir}\n")
         else:
             shutil.rmtree(cls.workdir, ignore_errors=True)
+
+    def modbus(self):
+        from pymodbus.client import ModbusTcpClient
+        client = ModbusTcpClient("127.0.0.1", port=self.modbus_port, timeout=3)
+        self.assertTrue(client.connect(), "cannot connect to the gateway's Modbus TCP port")
+        return client
+
+    def api_login(self, user):
+        """Logs `user` in over the JSON API: (the session cookie, its CSRF token)."""
+        connection = http.client.HTTPConnection("127.0.0.1", self.console_port, timeout=5)
+        connection.request("POST", "/api/login", json.dumps({"user": user, "password": PASSWORD}),
+                           {"Content-Type": "application/json"})
+        answer = connection.getresponse()
+        body = json.loads(answer.read())
+        self.assertEqual(answer.status, 200, body)
+        cookie = answer.getheader("Set-Cookie").split(";")[0]
+        connection.close()
+        return cookie, body["csrf"]
+
+
+class ConsoleCase(GatewayCase):
+    """setUpClass starts the simulator, the gateway and Chromium once for the module's tests."""
+
+    @classmethod
+    def setUpClass(cls):
+        if shutil.which("chromedriver") is None or not os.path.exists("/usr/bin/chromium"):
+            raise unittest.SkipTest("chromium and chromium-driver are not installed (scripts/install-deps.sh installs them)")
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+
+        super().setUpClass()
+        options = webdriver.ChromeOptions()
+        options.binary_location = "/usr/bin/chromium"
+        for argument in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                         "--window-size=1400,1000", "--disable-background-timer-throttling"):
+            options.add_argument(argument)
+        cls.browser = webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
+        # Downloads (the plot's CSV) land in the test's own folder.
+        cls.downloads = os.path.join(cls.workdir, "downloads")
+        os.makedirs(cls.downloads)
+        cls.browser.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": cls.downloads})
+        cls.browser.set_page_load_timeout(20)
+        cls.browser.set_script_timeout(10)
+
+    @classmethod
+    def tearDownClass(cls):
+        if hasattr(cls, "browser"):
+            cls.browser.quit()
+        super().tearDownClass()
 
     # --- browser helpers ---------------------------------------------------------------------------
 
@@ -173,8 +211,86 @@ class ConsoleCase(unittest.TestCase):
             os.makedirs(folder, exist_ok=True)
             self.browser.save_screenshot(os.path.join(folder, name))
 
-    def modbus(self):
-        from pymodbus.client import ModbusTcpClient
-        client = ModbusTcpClient("127.0.0.1", port=self.modbus_port, timeout=3)
-        self.assertTrue(client.connect(), "cannot connect to the gateway's Modbus TCP port")
-        return client
+
+class ConsoleSocket:
+    """A page's WebSocket to the console (RFC 6455, text frames; Python's standard library has no
+    client): every JSON message the gateway pushes is kept, in order; send() is thread-safe."""
+
+    def __init__(self, port, path, cookie, csrf):
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+        key = base64.b64encode(os.urandom(16)).decode()
+        self.sock.sendall((f"GET {path}?csrf={csrf} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                           f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+                           f"Cookie: {cookie}\r\n\r\n").encode())
+        head = b""
+        while b"\r\n\r\n" not in head:
+            chunk = self.sock.recv(1)
+            if not chunk:
+                raise AssertionError(f"the console closed the WebSocket {path} during the handshake: {head!r}")
+            head += chunk
+        if not head.startswith(b"HTTP/1.1 101"):
+            raise AssertionError(f"WebSocket {path} refused: {head!r}")
+        self.sock.settimeout(None)
+        self.messages = []
+        self.closed = False
+        self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _exactly(self, count):
+        data = b""
+        while len(data) < count:
+            chunk = self.sock.recv(count - len(data))
+            if not chunk:
+                raise EOFError
+            data += chunk
+        return data
+
+    def _read(self):
+        try:
+            while True:
+                first, second = self._exactly(2)
+                length = second & 0x7F
+                if length == 126:
+                    length = struct.unpack("!H", self._exactly(2))[0]
+                elif length == 127:
+                    length = struct.unpack("!Q", self._exactly(8))[0]
+                payload = self._exactly(length)
+                opcode = first & 0x0F
+                if opcode == 0x8:
+                    break
+                if opcode == 0x9:
+                    self._frame(0xA, payload)
+                elif opcode == 0x1:
+                    with self._lock:
+                        self.messages.append(json.loads(payload))
+        except (EOFError, OSError):
+            pass
+        self.closed = True
+
+    def _frame(self, opcode, payload):
+        mask = os.urandom(4)
+        header = bytes([0x80 | opcode])
+        if len(payload) < 126:
+            header += bytes([0x80 | len(payload)])
+        else:
+            header += bytes([0x80 | 126]) + struct.pack("!H", len(payload))
+        masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+        with self._send_lock:
+            self.sock.sendall(header + mask + masked)
+
+    def send(self, message):
+        self._frame(0x1, json.dumps(message).encode())
+
+    def received(self):
+        with self._lock:
+            return list(self.messages)
+
+    def close(self):
+        try:
+            self._frame(0x8, b"")
+        except OSError:
+            pass
+        self.sock.close()
+        self._reader.join(5)

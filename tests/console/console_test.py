@@ -24,8 +24,9 @@ class ConsoleTest(ConsoleCase):
         units = self.browser.execute_script(
             "return [...document.querySelectorAll('#servos-table tr[data-unit]')].map(r => r.dataset.unit)")
         self.assertEqual(units, ["1", "2", "3"])
-        bus = self.text("#buses-table tr[data-bus='arm']")
-        self.assertIn("3 / 3", bus)
+        # Discovery may still be going on a loaded machine: the row comes before servo 3 is found.
+        wait_until(lambda: "3 / 3" in self.text("#buses-table tr[data-bus='arm']"),
+                   what="bus arm to show its 3 servos found")
         # Live: a position changed on the wire shows without a reload.
         self.sim.command("set 1 42 00 04")  # servo 1's goal := 1024 through the simulator's backdoor
         wait_until(lambda: abs(int(self.text("#servos-table tr[data-unit='1'] td.position") or 0) - 1024) < 5,
@@ -177,6 +178,37 @@ class ConsoleTest(ConsoleCase):
         stopped = self.sim.field(1, "present_position")
         self.assertNotEqual(stopped, start, "the servo did not move while the button was held")
         self.assertGreater(abs(goal - stopped), 200, "the servo ran on to its goal after the tab closed")
+
+    def test_e_2_an_estop_reset_soon_ends_the_held_jog_and_the_page_lets_go(self):
+        self.login("op")
+        self.sim.command("set 2 41 00")     # no ramp: it stops where it is held
+        self.sim.command("set 2 46 2c 01")  # 300 steps/s: the move outlasts the test
+        start, goal = self.start_far_move(2)
+        button = self.browser.find_element(By.ID, "hold-position")
+        ActionChains(self.browser).click_and_hold(button).perform()  # held until released below
+        try:
+            wait_until(lambda: abs(self.sim.field(2, "present_position") - start) > 20, what="the held jog to move servo 2")
+            client = self.modbus()
+            self.assertFalse(client.write_coil(1, True, slave=255).isError())
+            time.sleep(0.05)  # the scenario: the e-stop reset 50 ms after the latch, the button still held
+            self.assertFalse(client.write_coil(1, False, slave=255).isError())
+            client.close()
+            state = wait_until(lambda: "ended by the e-stop" in self.browser.find_element(By.ID, "jog-state").text and
+                               self.browser.find_element(By.ID, "jog-state").text, what="the page to say why the jog ended")
+            self.assertIn("ended by the e-stop", self.browser.find_element(By.ID, "message").text)
+            self.assertNotIn("active", button.get_attribute("class"), "the page still holds the ended jog: " + state)
+            # Still held: the servo stays at the e-stop's hold, never goes on to the goal.
+            held = self.sim.field(2, "goal_position")
+            self.assertNotEqual(held, goal)
+            self.wait_stopped(2)
+            self.assertEqual(self.sim.field(2, "goal_position"), held)
+        finally:
+            ActionChains(self.browser).release().perform()
+        # A new press moves again.
+        before = self.sim.field(2, "present_position")
+        self.hold(0.3)
+        self.assertGreater(abs(self.sim.field(2, "present_position") - before), 20, "a new press did not move servo 2")
+        self.wait_stopped(2)
 
     def test_f_a_read_user_cannot_write_or_jog(self):
         self.login("viewer")

@@ -130,6 +130,12 @@ let t0 = null;
 function onSamples(message) {
   if (message.type === 'error') return say(message.message, 'error');
   if (message.type === 'done') return say(message.message, 'done');
+  // The gateway ended the held move (e-stop, watchdog, no heartbeat): let go of the hold, so
+  // moving again takes a new press.
+  if (message.type === 'jog_ended') {
+    stopHold();
+    return say(message.message, 'error');
+  }
   if (message.type !== 'samples') return;
   fieldNames = message.fields;
   for (const row of message.samples) {
@@ -154,7 +160,8 @@ const stream = live(`/ws/servo/${unit}`, onSamples);
 
 // --- jog panel: hold-to-run -------------------------------------------------------------------------
 // While a hold button is down the page sends a heartbeat every 50 ms; the gateway stops the servo
-// when they stop coming (released, tab closed, connection lost).
+// when they stop coming (released, tab closed, connection lost), and ends the move for good on an
+// e-stop or a watchdog trip (docs/CONSOLE.md "Jog panel").
 let heartbeat = null;
 function startHold(button, message) {
   if (heartbeat) return;
