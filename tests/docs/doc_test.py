@@ -13,6 +13,8 @@ Usage: doc_test.py BIN_DIR SOURCE_DIR
    #anchor, to a heading of it), and no file refers to anything outside the repository
    (a specs folder beside the checkout, or specs other than the project's own docs/PROTOCOL.md and
    docs/PLC_GUIDE.md).
+4. Every metric family the gateway's sources name (`"sms_gateway_..."` in gateway/) has its row
+   in docs/OPERATIONS.md.
 """
 import os
 import re
@@ -93,6 +95,19 @@ def check_outside_references(source):
     return errors
 
 
+def check_metrics_documented(source):
+    served = set()
+    for root, _, names in os.walk(os.path.join(source, "gateway")):
+        for name in names:
+            if name.endswith((".cpp", ".h")):
+                text = open(os.path.join(root, name), encoding="utf-8").read()
+                served.update(re.findall(r'"(sms_gateway_[a-z0-9_]+)"', text))
+    operations = open(os.path.join(source, "docs/OPERATIONS.md"), encoding="utf-8").read()
+    documented = set(re.findall(r"^\| `(sms_gateway_[a-z0-9_]+)`", operations, re.MULTILINE))
+    return [f"docs/OPERATIONS.md: no row for the metric family {family} (the gateway serves it)"
+            for family in sorted(served - documented)]
+
+
 def start_gateway(bin_dir, scratch):
     log = open(os.path.join(scratch, "gateway.log"), "w+")
     gateway = subprocess.Popen([os.path.join(bin_dir, "sms-gateway"), "--simulate", "--listen", "127.0.0.1:0"],
@@ -132,6 +147,7 @@ def main():
             runnable.append((doc, line, lang, text))
     errors += check_links(source)
     errors += check_outside_references(source)
+    errors += check_metrics_documented(source)
 
     with tempfile.TemporaryDirectory() as scratch:
         gateway, port = start_gateway(bin_dir, scratch)
