@@ -57,7 +57,7 @@ struct Phase {
 };
 
 // CPU and poll cycle over `duration`, then the cached-read rate over another `duration`.
-Phase measure(GatewayProcess& gateway, std::chrono::milliseconds duration) {
+Phase measure(BenchGateway& gateway, std::chrono::milliseconds duration) {
   ModbusClient facts(gateway.port(), kGatewayUnit);
   std::vector<double> cycles;
   // CPU and poll cycle first, with no other Modbus client than this sampler (20 reads/s); then
@@ -158,7 +158,7 @@ int main(int argc, char** argv) {
     setup.servos = kServos;
     setup.poll_period = 20ms;
     setup.extra_yaml = "console: {listen: \"127.0.0.1:" + std::to_string(console_port) + "\"}\n";
-    GatewayProcess gateway(setup);
+    BenchGateway gateway(setup);
     gateway.wait_ready(kServos);
     std::this_thread::sleep_for(500ms);
     const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));

@@ -38,8 +38,9 @@ using namespace std::chrono_literals;
 constexpr unsigned kServos = 3;
 constexpr std::uint8_t kSilent = 3;
 constexpr std::uint8_t kLive = 1;
-constexpr int kGoalPosition = 42;  // sts goal_position
-constexpr int kWatchdogCoil = 2;   // unit 255: 0 re-arms every tripped watchdog
+constexpr int kGoalPosition = 42;     // sts goal_position
+constexpr int kWatchdogCoil = 2;      // unit 255: 0 re-arms every tripped watchdog
+constexpr int kBusSafetyBlock = 110;  // unit 255, bus 0: state, ..., trips (112-113), latency (116-117)
 constexpr int kWrites = 8;
 constexpr auto kWritePeriod = 200ms;
 constexpr auto kProbePeriod = 1000ms;
@@ -86,6 +87,18 @@ class Wire {
   std::vector<Clock::time_point> to_silent_;
 };
 
+// p50, p99 and max of `samples` (ms).
+void print_ms(const std::string& name, std::vector<double> samples) {
+  if (samples.empty()) return;
+  std::sort(samples.begin(), samples.end());
+  const auto at = [&](double quantile) {
+    return samples[static_cast<std::size_t>(quantile * static_cast<double>(samples.size() - 1))];
+  };
+  print_figure(name + ".p50", at(0.5), "ms");
+  print_figure(name + ".p99", at(0.99), "ms");
+  print_figure(name + ".max", samples.back(), "ms");
+}
+
 std::chrono::milliseconds worst_transaction(std::chrono::milliseconds response_timeout, unsigned retries) {
   sms::config::BusConfig bus;
   bus.baud = kBaud;
@@ -117,8 +130,11 @@ void measure(std::chrono::milliseconds response_timeout, unsigned trials) {
   gateway.wait_ready(kServos - 1);
   ModbusClient plc(gateway.port(), kLive, std::chrono::seconds{30});
 
-  std::vector<std::uint32_t> write_ns;
-  std::vector<std::uint32_t> stop_ns;
+  // Milliseconds: a stop comes seconds after the last feed, beyond what 32-bit nanoseconds hold.
+  std::vector<double> write_ms;
+  std::vector<double> stop_ms;
+  std::vector<double> reported_ms;
+  std::uint32_t trips_seen = 0;
   unsigned inside = 0;
   unsigned missed = 0;
   unsigned write_errors = 0;
@@ -136,21 +152,36 @@ void measure(std::chrono::milliseconds response_timeout, unsigned trials) {
       const auto value = static_cast<std::uint16_t>(1000 + (i % 2) * 1000);
       if (modbus_write_register(plc.context(), kGoalPosition, value) == 1) {
         last_feed = sent;
-        write_ns.push_back(to_ns(Clock::now() - sent));
+        write_ms.push_back(std::chrono::duration<double, std::milli>(Clock::now() - sent).count());
       } else {
         ++write_errors;
         if (first_error.empty()) first_error = modbus_error_text();
       }
       std::this_thread::sleep_until(sent + kWritePeriod);
     }
-    const auto stop = wire.wait_stop(last_feed, last_feed + bound + 10s);
+    // No stop of this trial can come before the watchdog expires: a SYNC WRITE before that is an
+    // earlier stop's (the start-up stop's, or the previous trial's) landing late.
+    const auto stop = wire.wait_stop(last_feed + watchdog - 1ms, last_feed + bound + 10s);
     if (!stop) {
       ++missed;
       continue;
     }
     const auto took = *stop - last_feed;
-    stop_ns.push_back(to_ns(took));
+    stop_ms.push_back(std::chrono::duration<double, std::milli>(took).count());
     if (took <= bound) ++inside;
+    // The gateway's own figure (unit 255, bus 0: input registers 116-117, µs from the last feed
+    // to the stop's frames): read once it shows this trial's trip.
+    ModbusClient facts(gateway.port(), kGatewayUnit);
+    const auto deadline = Clock::now() + 2s;
+    while (Clock::now() < deadline) {
+      const auto registers = facts.read_input(kBusSafetyBlock, 8);
+      if (registers.ok() && u32(registers.values[2], registers.values[3]) > trips_seen) {
+        trips_seen = u32(registers.values[2], registers.values[3]);
+        reported_ms.push_back(u32(registers.values[6], registers.values[7]) / 1000.0);
+        break;
+      }
+      std::this_thread::sleep_for(5ms);
+    }
   }
   const auto elapsed = Clock::now() - started;
   const double probe_periods = std::chrono::duration<double>(elapsed) / kProbePeriod;
@@ -161,13 +192,12 @@ void measure(std::chrono::milliseconds response_timeout, unsigned trials) {
   const std::string name = "silent_servo_stop.timeout_" + std::to_string(response_timeout.count()) + "ms";
   print_figure(name + ".watchdog", static_cast<double>(watchdog.count()), "ms");
   print_figure(name + ".bound", static_cast<double>(bound.count()), "ms");
-  print_figure(name + ".trials", static_cast<double>(stop_ns.size()), "");
+  print_figure(name + ".trials", static_cast<double>(stop_ms.size()), "");
   print_figure(name + ".inside_bound", inside, "");
   print_figure(name + ".missed", missed, "");
-  auto stops = summarize(stop_ns);
-  print_latency(name + ".last_feed_to_stop", stops, LatencyUnit::Ms);
-  auto writes = summarize(write_ns);
-  print_latency(name + ".live_write", writes, LatencyUnit::Ms);
+  print_ms(name + ".last_feed_to_stop", stop_ms);
+  print_ms(name + ".gateway_reported", reported_ms);
+  print_ms(name + ".live_write", write_ms);
   print_figure(name + ".live_write_errors", write_errors, "");
   if (!first_error.empty()) print_note("first write error: " + first_error);
   print_figure(name + ".frames_to_silent_servo_per_probe_period", static_cast<double>(to_silent) / probe_periods, "");

@@ -1,7 +1,7 @@
 // trip_latency: watchdog trip latency — last feed (a client's last Modbus write) to the safe stop's SYNC WRITE on the
 // simulated wire, 6 and 60 sts servos at 1 Mbaud, timed by the simulator's frame observer.
 //
-//   trip_latency [--rounds 30] [--timeout-ms 100] [--servos N] [--quick]
+//   trip_latency [--rounds 30] [--timeout-ms 200] [--servos N] [--quick]
 //
 // docs/PLC_GUIDE.md "Safety". The real sms-gateway runs as a child process (bench_support) on a
 // simulated bus in this process (sts servos, 1 000 000 baud, wire timing on, return delay 100 us: the sts floor), its
@@ -332,7 +332,7 @@ void print_table(const std::vector<SizeResult>& results) {
 
 int main(int argc, char** argv) {
   double rounds = 30;
-  double timeout_ms = 100;
+  double timeout_ms = 200;  // longer than the bus's worst transaction (156 ms here), as --check-config demands
   double only_servos = 0;
   // --quick (no value) is taken out before the `--name value` options are parsed.
   bool quick = false;

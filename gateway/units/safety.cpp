@@ -671,13 +671,18 @@ class SafetySupervisor::Impl {
       send_stop_frames(index, cause, override, since, reason, done, by_target);
     };
     // Targets whose whole state is one range of a table with SYNC READ are read in one frame per
-    // range (a 60-servo arm: one frame instead of 60 READs); the rest, one READ per range.
+    // range (a 60-servo arm: one frame instead of 60 READs); the rest, one READ per range. A servo
+    // known to be offline is left out of the SYNC READ: the frame would wait a whole response
+    // timeout for it; its own READ is answered at once (offline) and it is owed its stop.
     std::map<std::pair<std::uint16_t, std::uint16_t>, std::vector<std::size_t>> by_range;
     std::vector<std::size_t> singly;
     for (std::size_t t = 0; t < bus.targets.size(); ++t) {
       const StopTarget& target = bus.targets[t];
       if (override.value_or(target.action) != StopAction::Hold) continue;
-      if (bus.sync_read && target.context.size() == 1 && modbus_map::table(target.spec->table).has_sync_read) {
+      const auto cached = bus.engine->cache().state(target.servo_id);
+      const bool known_offline = bus.engine->discovered() && cached && !cached->online;
+      if (bus.sync_read && !known_offline && target.context.size() == 1 &&
+          modbus_map::table(target.spec->table).has_sync_read) {
         by_range[{target.context[0].address, target.context[0].count}].push_back(t);
       } else {
         singly.push_back(t);

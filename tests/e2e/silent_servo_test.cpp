@@ -70,8 +70,9 @@ void silent_servo_never_stalls_the_bus(const Protocol& p, int response_timeout_m
   EXPECT_EQ(trips.values, (std::vector<std::uint16_t>{0, 0})) << "the watchdog tripped while the PLC was alive";
 
   // The PLC goes silent: the watchdog stops servo 1 and owes servo 3 its stop.
-  ASSERT_TRUE(eventually([&] { return hmi.read_input(kBus0WatchdogState, 1).values == std::vector<std::uint16_t>{kTripped}; },
-                         "the watchdog's trip", std::chrono::milliseconds{timeout + 10'000}))
+  ASSERT_TRUE(
+      eventually([&] { return hmi.read_input(kBus0WatchdogState, 1).values == std::vector<std::uint16_t>{kTripped}; },
+                 "the watchdog's trip", std::chrono::milliseconds{timeout + 10'000}))
       << log();
   if (!p.torque_field.empty()) {
     EXPECT_TRUE(eventually([&] { return sim.field(1, "present_speed") == 0; }, "servo 1 stopped")) << log();
@@ -100,8 +101,7 @@ void silent_servo_never_stalls_the_bus(const Protocol& p, int response_timeout_m
     // The documented bound (docs/SAFETY.md): timeout_ms + one worst transaction + the stop's frames.
     const auto bound_us = static_cast<std::uint32_t>((timeout + worst) * 1000);
     EXPECT_NE(latency_us, 0U);
-    EXPECT_LE(latency_us, bound_us) << "watchdog " << timeout << " ms, worst transaction " << worst << " ms\n"
-                                    << log();
+    EXPECT_LE(latency_us, bound_us) << "watchdog " << timeout << " ms, worst transaction " << worst << " ms\n" << log();
   } else {
     EXPECT_GE(failed, 1U) << log();
   }
@@ -113,8 +113,7 @@ class SilentServo : public testing::TestWithParam<Protocol> {};
 TEST_P(SilentServo, NeverStallsItsBusAt200MsResponseTimeout) { silent_servo_never_stalls_the_bus(GetParam(), 200); }
 
 INSTANTIATE_TEST_SUITE_P(EveryProtocol, SilentServo,
-                         testing::Values(kSafetyProtocols[0], kSafetyProtocols[2], kSafetyProtocols[3]),
-                         protocol_name);
+                         testing::Values(kSafetyProtocols[0], kSafetyProtocols[2], kSafetyProtocols[3]), protocol_name);
 
 TEST(SilentServoSlowLine, NeverStallsItsBusAt1000MsResponseTimeout) {
   silent_servo_never_stalls_the_bus(kSafetyProtocols[0], 1000);
