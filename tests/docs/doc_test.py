@@ -12,8 +12,9 @@ Usage: doc_test.py BIN_DIR SOURCE_DIR
 3. Every relative Markdown link in the project's documents resolves to a file (and, with
    #anchor, to a heading of it), and no file refers to anything outside the repository
    (a specs folder beside the checkout, or specs other than the project's own docs/PROTOCOL.md and
-   docs/PLC_GUIDE.md).
-4. Every metric family the gateway's sources name (`"sms_gateway_..."` in gateway/) has its row
+   docs/PLC_GUIDE.md), nor cites a tracker number.
+4. Each Dockerfile copies every folder the build needs.
+5. Every metric family the gateway's sources name (`"sms_gateway_..."` in gateway/) has its row
    in docs/OPERATIONS.md.
 """
 import os
@@ -92,6 +93,9 @@ def check_outside_references(source):
                 continue
             if re.search(r"\.\./shared/|\bSPEC\.md\b|\bSPEC §|(?<![/\w])MODBUS_MAP\.md", line):
                 errors.append(f"{f}:{n}: refers to a document outside the repository: {line.strip()[:100]}")
+            # The tracker is not part of the product: a reader of the repository cannot look it up.
+            if re.search(r"\bissues? \d+\b", line, re.IGNORECASE):
+                errors.append(f"{f}:{n}: cites a tracker number: {line.strip()[:100]}")
     return errors
 
 
@@ -106,6 +110,25 @@ def check_metrics_documented(source):
     documented = set(re.findall(r"^\| `(sms_gateway_[a-z0-9_]+)`", operations, re.MULTILINE))
     return [f"docs/OPERATIONS.md: no row for the metric family {family} (the gateway serves it)"
             for family in sorted(served - documented)]
+
+
+def check_dockerfiles(source):
+    """Each Dockerfile copies every folder the top-level CMakeLists.txt builds or includes from
+    (tests and benchmarks are off in the images): a missing one fails only at image build time."""
+    cmake = open(os.path.join(source, "CMakeLists.txt"), encoding="utf-8").read()
+    folders = set()
+    for path in re.findall(r"^\s*add_subdirectory\((\S+?)\)", cmake, re.MULTILINE):
+        top = path.split("/")[0]
+        if top not in ("tests", "bench"):
+            folders.add(top)
+    folders.update(path.split("/")[0] for path in re.findall(r"^\s*include\((\S+?)\)", cmake, re.MULTILINE))
+    errors = []
+    for dockerfile in ("docker/Dockerfile", "docker/Dockerfile.cross"):
+        text = open(os.path.join(source, dockerfile), encoding="utf-8").read()
+        copied = {path.split("/")[0] for path in re.findall(r"^COPY (?!--from)(\S+)", text, re.MULTILINE)}
+        for folder in sorted(folders - copied):
+            errors.append(f"{dockerfile}: does not COPY {folder}/, which CMakeLists.txt builds or includes from")
+    return errors
 
 
 def start_gateway(bin_dir, scratch):
@@ -148,6 +171,7 @@ def main():
     errors += check_links(source)
     errors += check_outside_references(source)
     errors += check_metrics_documented(source)
+    errors += check_dockerfiles(source)
 
     with tempfile.TemporaryDirectory() as scratch:
         gateway, port = start_gateway(bin_dir, scratch)
