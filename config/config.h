@@ -91,8 +91,15 @@ struct ModbusTcpConfig {
   HostPort listen{"127.0.0.1", 5020};
   // false: no plain (unauthenticated) Modbus TCP listener; then `tls` is required.
   bool plain = true;
-  std::optional<TlsConfig> tls;  // the Modbus/TCP Security listener; empty: none
-  std::size_t max_connections = 32;
+  std::optional<TlsConfig> tls;      // the Modbus/TCP Security listener; empty: none
+  std::size_t max_connections = 32;  // served: past the first complete request
+  // Connections still waiting for their first complete request, apart from max_connections: at
+  // most `max_waiting`, `max_waiting_per_address` from one client address; past either the
+  // oldest such connection is closed for the new one; one without a complete request within
+  // `first_request_timeout` is closed (gateway/net/door.h).
+  std::size_t max_waiting = 16;
+  std::size_t max_waiting_per_address = 8;
+  std::chrono::milliseconds first_request_timeout{10000};
   std::chrono::seconds idle_timeout{60};  // 0: never close an idle client
   std::uint8_t gateway_unit_id = 255;     // the gateway's own unit (docs/PLC_GUIDE.md)
   // Client requests one bus may have waiting; past it a request is answered 0x06 (busy).

@@ -25,6 +25,12 @@ void emit_modbus_tcp(YAML::Emitter& out, const ModbusTcpConfig& tcp) {
   out << tcp.listen.to_string();
   key(out, "max_connections");
   out << tcp.max_connections;
+  key(out, "max_waiting");
+  out << tcp.max_waiting;
+  key(out, "max_waiting_per_address");
+  out << tcp.max_waiting_per_address;
+  key(out, "first_request_timeout_ms");
+  out << tcp.first_request_timeout.count();
   key(out, "idle_timeout_s");
   out << tcp.idle_timeout.count();
   key(out, "gateway_unit_id");

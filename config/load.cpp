@@ -33,8 +33,17 @@ using protocol::BusProtocol;
 
 constexpr std::array<std::string_view, 9> kTopKeys{
     "modbus_tcp", "buses", "servos", "sync_groups", "logging", "mqtt", "state_dir", "modbus_rtu_slave", "console"};
-constexpr std::array<std::string_view, 8> kModbusTcpKeys{
-    "listen", "max_connections", "idle_timeout_s", "gateway_unit_id", "request_queue_depth", "allow", "plain", "tls"};
+constexpr std::array<std::string_view, 11> kModbusTcpKeys{"listen",
+                                                          "max_connections",
+                                                          "max_waiting",
+                                                          "max_waiting_per_address",
+                                                          "first_request_timeout_ms",
+                                                          "idle_timeout_s",
+                                                          "gateway_unit_id",
+                                                          "request_queue_depth",
+                                                          "allow",
+                                                          "plain",
+                                                          "tls"};
 constexpr std::array<std::string_view, 10> kTlsKeys{"listen",         "certificate",
                                                     "private_key",    "ca",
                                                     "roles",          "default_role",
@@ -534,6 +543,23 @@ ModbusTcpConfig Loader::parse_modbus_tcp(const Value& value) {
   if (const auto v = keys.find("listen")) tcp.listen = host_port(*v);
   if (const auto v = keys.find("max_connections")) {
     tcp.max_connections = static_cast<std::size_t>(integer(*v, 1, static_cast<std::int64_t>(kMaxConnectionsLimit)));
+  }
+  if (const auto v = keys.find("max_waiting")) {
+    tcp.max_waiting = static_cast<std::size_t>(integer(*v, 1, static_cast<std::int64_t>(kMaxConnectionsLimit)));
+  }
+  if (const auto v = keys.find("max_waiting_per_address")) {
+    tcp.max_waiting_per_address =
+        static_cast<std::size_t>(integer(*v, 1, static_cast<std::int64_t>(kMaxConnectionsLimit)));
+  } else {
+    tcp.max_waiting_per_address = std::min(tcp.max_waiting_per_address, tcp.max_waiting);
+  }
+  if (tcp.max_waiting_per_address > tcp.max_waiting) {
+    fail(keys.key_mark("max_waiting_per_address"),
+         value.path + ".max_waiting_per_address: " + std::to_string(tcp.max_waiting_per_address) +
+             " is more than max_waiting (" + std::to_string(tcp.max_waiting) + "); lower it or raise max_waiting");
+  }
+  if (const auto v = keys.find("first_request_timeout_ms")) {
+    tcp.first_request_timeout = duration<std::chrono::milliseconds>(*v, 100, 600000);
   }
   if (const auto v = keys.find("idle_timeout_s")) {
     tcp.idle_timeout = duration<std::chrono::seconds>(*v, 0, kMaxIdleTimeoutSeconds);

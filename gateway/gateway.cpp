@@ -126,6 +126,9 @@ class Gateway::Impl {
     options.host = config_.modbus_tcp.listen.host;
     options.port = config_.modbus_tcp.listen.port;
     options.max_connections = config_.modbus_tcp.max_connections;
+    options.max_waiting = config_.modbus_tcp.max_waiting;
+    options.max_waiting_per_address = config_.modbus_tcp.max_waiting_per_address;
+    options.first_request_timeout = config_.modbus_tcp.first_request_timeout;
     options.idle_timeout = config_.modbus_tcp.idle_timeout;
     options.allow = config_.modbus_tcp.allow;
     options.traffic = &traffic_;
@@ -201,6 +204,8 @@ class Gateway::Impl {
     if (tls_) snapshot.tls = tls_->stats();
     if (sparkplug_) snapshot.mqtt = sparkplug_->stats();
     for (const auto& port : rtu_slaves_) snapshot.rtu_slaves.push_back(port->stats());
+    for (auto& [listener, door] : serving_.doors()) snapshot.listeners.push_back({listener, door});
+    if (console_) snapshot.listeners.push_back({"console", console_->door_stats()});
     for (std::size_t i = 0; i < snapshot.buses.size() && i < monitors_.size(); ++i) {
       snapshot.buses[i].monitor_dropped = monitors_[i]->dropped_total();
     }

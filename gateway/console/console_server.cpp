@@ -26,10 +26,11 @@
 #include "gateway/console/console_view.h"
 #include "gateway/console/web_assets.h"
 #include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/listener.h"
 #include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tls.h"
+#include "gateway/net/door.h"
+#include "gateway/net/listener.h"
 
 namespace sms::gateway::console {
 
@@ -110,7 +111,26 @@ struct Peer {
   bool loopback = false;
   std::string address;
   std::optional<Principal> certificate;  // HTTPS with a client certificate that has a role
+  Door::Ticket ticket = 0;               // the connection's, at the console's door
+  bool over_budget = false;              // it could not be trusted: answered 503, then closed
 };
+
+DoorSettings door_settings(const ConsoleLimits& limits) {
+  DoorSettings door;
+  door.listener = "console";
+  door.log_name = "console";
+  door.max_served = limits.max_connections;
+  door.max_waiting = limits.max_waiting;
+  door.max_waiting_per_address = limits.max_waiting_per_address;
+  door.first_request_timeout = limits.first_request_timeout;
+  door.first_request = "complete HTTP request";
+  // Fixed limits (ConsoleLimits): the log names them for what they are.
+  door.max_served_setting = "the console's limit of signed-in connections";
+  door.max_waiting_setting = "the console's limit of connections not signed in";
+  door.max_waiting_per_address_setting = "the console's limit of those per client address";
+  door.first_request_timeout_setting = "the console's first-request deadline";
+  return door;
+}
 
 }  // namespace
 
@@ -138,7 +158,8 @@ class ConsoleServer::Impl final : public Services {
         commissioning_(*backend_.config, backend_.lending),
         acceptor_(io_),
         timer_(io_),
-        mailbox_(std::make_shared<Mailbox>()) {
+        mailbox_(std::make_shared<Mailbox>()),
+        door_(io_, door_settings(limits_)) {
     if (backend_.safety == nullptr) throw std::invalid_argument("console: no safety rules for the jog panel");
   }
 
@@ -172,7 +193,7 @@ class ConsoleServer::Impl final : public Services {
                    kChartJsPath);
     }
     mailbox_->io = &io_;
-    spdlog::info("console: serving the browser console on {} ({})", url(), access_summary());
+    spdlog::info("console: serving the browser console on {} ({}; {})", url(), access_summary(), door_.describe());
     accept();
     schedule_tick();
     thread_ = std::thread([this] { io_.run(); });
@@ -261,6 +282,8 @@ class ConsoleServer::Impl final : public Services {
   void add(Connection* connection) { connections_.insert(connection); }
   void remove(Connection* connection) { connections_.erase(connection); }
   void add_socket(Socket* socket) { sockets_.insert(socket); }
+  Door& door() { return door_; }
+  DoorStats door_stats() const { return door_.stats(); }
   void remove_socket(Socket* socket) { sockets_.erase(socket); }
 
   // The principal of a request, its session, and a Set-Cookie for a session made now.
@@ -357,14 +380,24 @@ class ConsoleServer::Impl final : public Services {
         200, std::string(asset->content_type), std::string(asset->bytes), {{"Cache-Control", "no-cache"}}};
   }
 
-  void handle_http(const http::request<http::string_body>& request, const Peer& peer,
-                   std::function<void(HttpAnswer)> done) {
+  // A request with a role makes its connection one the console serves (until then it may make
+  // room for others, gateway/net/door.h); nullopt, or the answer when the served budget is full.
+  std::optional<HttpAnswer> trust(const Identity& identity, Peer& peer) {
+    if (identity.who.role == config::Role::None || door_.trust(peer.ticket)) return std::nullopt;
+    peer.over_budget = true;
+    return HttpAnswer::error(503, "the console serves " + std::to_string(limits_.max_connections) +
+                                      " signed-in connections already (its limit): close a tab or another browser "
+                                      "and try again");
+  }
+
+  void handle_http(const http::request<http::string_body>& request, Peer& peer, std::function<void(HttpAnswer)> done) {
     const std::string_view target = view(request.target());
     Match found = match(view(request.method_string()), target);
     if (!found.route) return done(std::move(*found.refusal));
     const Route& route = *found.route;
     if (route.kind == RouteKind::Socket) return done(HttpAnswer::error(400, "this URL is a WebSocket; open it as one"));
     Identity identity = identify(request, peer);
+    if (auto busy = trust(identity, peer)) return done(std::move(*busy));
     auto with_cookie = [cookie = identity.set_cookie, done = std::move(done)](HttpAnswer answer) {
       if (!cookie.empty()) answer.headers.emplace_back("Set-Cookie", cookie);
       done(std::move(answer));
@@ -383,12 +416,13 @@ class ConsoleServer::Impl final : public Services {
 
   // A WebSocket upgrade: the stream to run, or the answer refusing it.
   Expected<std::pair<std::unique_ptr<Stream>, std::string>, HttpAnswer> open_socket(
-      const http::request<http::string_body>& request, const Peer& peer) {
+      const http::request<http::string_body>& request, Peer& peer) {
     const std::string_view target = view(request.target());
     Match found = match("GET", target);
     if (!found.route) return unexpected(std::move(*found.refusal));
     if (found.route->kind != RouteKind::Socket) return unexpected(HttpAnswer::error(400, "not a WebSocket URL"));
     Identity identity = identify(request, peer);
+    if (auto busy = trust(identity, peer)) return unexpected(std::move(*busy));
     if (auto refused = refusal(*found.route, identity, request, path_of(target)))
       return unexpected(std::move(*refused));
     // Another site's page may open a WebSocket here with the user's cookie: the origin must be
@@ -449,6 +483,7 @@ class ConsoleServer::Impl final : public Services {
     beast::error_code ignored;
     acceptor_.close(ignored);
     timer_.cancel();
+    door_.close();
     const auto connections = connections_;
     for (auto* connection : connections) {
       if (connections_.contains(connection)) connection->close();
@@ -474,6 +509,9 @@ class ConsoleServer::Impl final : public Services {
   tcp::acceptor acceptor_;
   asio::steady_timer timer_;
   std::shared_ptr<Mailbox> mailbox_;
+  // After io_: destroyed first, once stop() has closed every connection (connections leave the
+  // door when they close, never in a destructor, which may run when io_ is destroyed).
+  Door door_;
   std::thread thread_;
 };
 
@@ -490,8 +528,10 @@ tcp::socket& socket_of(Stream& stream) {
 template <typename Transport>
 class WebSocketSession final : public Socket, public std::enable_shared_from_this<WebSocketSession<Transport>> {
  public:
-  WebSocketSession(Transport transport, Impl& server, std::unique_ptr<Stream> stream, std::string who)
-      : ws_(std::move(transport)), server_(server), stream_(std::move(stream)), who_(std::move(who)) {
+  // `ticket`: the connection's at the door, handed over by the HttpSession it came from.
+  WebSocketSession(Transport transport, Impl& server, std::unique_ptr<Stream> stream, std::string who,
+                   Door::Ticket ticket)
+      : ws_(std::move(transport)), server_(server), stream_(std::move(stream)), who_(std::move(who)), ticket_(ticket) {
     server_.add(this);
   }
   ~WebSocketSession() override {
@@ -571,6 +611,7 @@ class WebSocketSession final : public Socket, public std::enable_shared_from_thi
   void finish() {
     if (finished_) return;
     finished_ = true;
+    server_.door().leave(ticket_);
     server_.remove_socket(this);
     stream_->on_close();
   }
@@ -581,21 +622,59 @@ class WebSocketSession final : public Socket, public std::enable_shared_from_thi
   std::string who_;
   beast::flat_buffer buffer_;
   std::deque<std::string> queue_;
+  Door::Ticket ticket_;
   bool finished_ = false;
 };
 
 // One HTTP connection: requests answered one at a time; a WebSocket upgrade hands the
 // connection over to a WebSocketSession.
 template <typename Transport>
-class HttpSession final : public Connection, public std::enable_shared_from_this<HttpSession<Transport>> {
+class HttpSession final : public Connection,
+                          public DoorGuest,
+                          public std::enable_shared_from_this<HttpSession<Transport>> {
  public:
   HttpSession(Transport transport, Impl& server, Peer peer)
       : transport_(std::move(transport)), server_(server), peer_(std::move(peer)) {
+    beast::error_code error;
+    const auto endpoint = socket_of(transport_).remote_endpoint(error);
+    peer_text_ = error ? peer_.address : peer_.address + ":" + std::to_string(endpoint.port());
     server_.add(this);
   }
   ~HttpSession() override { server_.remove(this); }
 
-  void start() {
+  // Through the door first (false: refused, closed); then, once the client's first bytes are
+  // there, the TLS handshake or the first read: until then the connection is silent() without
+  // doubt (nothing sits unseen in a TLS or HTTP parser's buffer).
+  bool start() {
+    const auto ticket = server_.door().admit(peer_.address, this->weak_from_this());
+    if (!ticket) {
+      close();
+      return false;
+    }
+    peer_.ticket = *ticket;
+    socket_of(transport_)
+        .async_wait(tcp::socket::wait_read, [self = this->shared_from_this()](const beast::error_code& error) {
+          if (self->closed_) return;
+          self->spoke_ = true;
+          if (error) return self->close();
+          self->begin();
+        });
+    return true;
+  }
+
+  // DoorGuest
+  void close_by_door() override { close(); }
+  bool silent() const override {
+    if (spoke_ || closed_) return false;
+    // Bytes the kernel holds that the session has not read yet: the client did speak.
+    beast::error_code error;
+    const std::size_t unread = socket_of(const_cast<Transport&>(transport_)).available(error);
+    return error || unread == 0;
+  }
+  const std::string& peer() const override { return peer_text_; }
+
+ private:
+  void begin() {
     if constexpr (std::is_same_v<Transport, beast::ssl_stream<beast::tcp_stream>>) {
       beast::get_lowest_layer(transport_).expires_after(server_.limits().request_timeout);
       transport_.async_handshake(
@@ -612,7 +691,11 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
     }
   }
 
+ public:
   void close() override {
+    if (closed_) return;
+    closed_ = true;
+    if (!handed_over_) server_.door().leave(peer_.ticket);
     beast::error_code ignored;
     socket_of(transport_).shutdown(tcp::socket::shutdown_both, ignored);
     socket_of(transport_).close(ignored);
@@ -634,12 +717,15 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
       if (auto answer = answer_for_read_error(error)) return write(std::move(*answer), false, 11);
       return close();
     }
+    server_.door().heard(peer_.ticket);
     auto request = parser_->release();
     if (websocket::is_upgrade(request)) {
       auto opened = server_.open_socket(request, peer_);
       if (!opened) return write(opened.error(), false, request.version());
-      auto session = std::make_shared<WebSocketSession<Transport>>(std::move(transport_), server_,
-                                                                   std::move(opened->first), std::move(opened->second));
+      handed_over_ = true;
+      closed_ = true;  // this object's part is over: the socket and the ticket are the WebSocket's
+      auto session = std::make_shared<WebSocketSession<Transport>>(
+          std::move(transport_), server_, std::move(opened->first), std::move(opened->second), peer_.ticket);
       session->accept(std::move(request));
       return;  // this connection now belongs to the WebSocket session
     }
@@ -650,7 +736,7 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
     server_.handle_http(request, peer_,
                         [self = this->shared_from_this(), keep_alive, version, head](HttpAnswer answer) {
                           if (head) answer.body.clear();
-                          self->write(std::move(answer), keep_alive, version);
+                          self->write(std::move(answer), keep_alive && !self->peer_.over_budget, version);
                         });
   }
 
@@ -682,6 +768,10 @@ class HttpSession final : public Connection, public std::enable_shared_from_this
   Transport transport_;
   Impl& server_;
   Peer peer_;
+  std::string peer_text_;
+  bool spoke_ = false;  // the client's first bytes came (or its connection failed)
+  bool closed_ = false;
+  bool handed_over_ = false;  // to a WebSocketSession, with the door's ticket
   beast::flat_buffer buffer_;
   std::optional<http::request_parser<http::string_body>> parser_;
   std::optional<http::response<http::string_body>> response_;
@@ -697,15 +787,9 @@ void ConsoleServer::Impl::accept() {
       spdlog::warn("console: accepting a connection failed: {}", error.message());
       return accept();
     }
-    if (connections_.size() >= limits_.max_connections) {
-      spdlog::debug("console: {} connections open (the limit); closing a new one", connections_.size());
-      beast::error_code ignored;
-      socket.close(ignored);
-      return accept();
-    }
     beast::error_code ignored;
     const auto remote = socket.remote_endpoint(ignored);
-    Peer peer{remote.address().is_loopback(), remote.address().to_string(), std::nullopt};
+    Peer peer{remote.address().is_loopback(), remote.address().to_string(), std::nullopt, 0, false};
     if (ssl_) {
       std::make_shared<HttpSession<beast::ssl_stream<beast::tcp_stream>>>(
           beast::ssl_stream<beast::tcp_stream>(beast::tcp_stream(std::move(socket)), *ssl_), *this, std::move(peer))
@@ -725,5 +809,6 @@ void ConsoleServer::start() { impl_->start(); }
 void ConsoleServer::stop() { impl_->stop(); }
 std::uint16_t ConsoleServer::port() const { return impl_->port(); }
 std::string ConsoleServer::url() const { return impl_->url(); }
+DoorStats ConsoleServer::door_stats() const { return impl_->door_stats(); }
 
 }  // namespace sms::gateway::console

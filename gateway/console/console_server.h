@@ -21,6 +21,7 @@
 #include "gateway/bus/wire_monitor.h"
 #include "gateway/console/console_commission.h"
 #include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/net/door.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/units/safety.h"
 #include "gateway/units/unit_router.h"
@@ -41,8 +42,15 @@ struct ConsoleBackend {
   const SafetySupervisor* safety = nullptr;
 };
 
+// The console's door (gateway/net/door.h) and its requests' bounds.
 struct ConsoleLimits {
+  // Connections served: signed in (a login, a certificate with a role, the loopback user). Those
+  // not signed in yet have a budget apart, per client address too, and must send a complete
+  // request within the deadline: they can never keep an operator (and the e-stop) out.
   std::size_t max_connections = 32;
+  std::size_t max_waiting = 16;
+  std::size_t max_waiting_per_address = 4;
+  std::chrono::milliseconds first_request_timeout{std::chrono::seconds{5}};
   std::size_t max_header_bytes = 8192;
   std::size_t max_body_bytes = 16384;
   std::size_t max_message_bytes = 4096;  // one WebSocket message from a page
@@ -63,6 +71,8 @@ class ConsoleServer {
   std::uint16_t port() const;
   // "http://127.0.0.1:8080/" (https with tls).
   std::string url() const;
+  // The listener's door (sms_gateway_listener_* in /metrics); any thread.
+  DoorStats door_stats() const;
 
   class Impl;
 

@@ -34,7 +34,6 @@ void MbapSession<Stream>::start() {
   socket().set_option(boost::asio::ip::tcp::no_delay(true), ignored);
   if constexpr (kTls) {
     handshaking_ = true;
-    arm_idle_timer(std::chrono::steady_clock::now() + host_->tls()->settings().handshake_timeout);
     // The handshake starts once the client's first bytes are there: until then the connection
     // is silent() without doubt (no bytes sitting unseen in a read buffer of the TLS stream).
     socket().async_wait(
@@ -67,10 +66,12 @@ void MbapSession<Stream>::on_handshake(const boost::system::error_code& error) {
       close();
       return;
     }
-    if (!host_->handshake_done(this->shared_from_this())) {
+    tls_up_ = true;  // from here on a close is said with close_notify
+    if (!host_->trust(this->shared_from_this())) {
       close();
       return;
     }
+    trusted_ = true;
     own_handler_ = host_->tls()->admit(stream_.native_handle(), peer_);
     if (!own_handler_) {
       close();
@@ -85,7 +86,7 @@ void MbapSession<Stream>::on_handshake(const boost::system::error_code& error) {
 
 template <typename Stream>
 bool MbapSession<Stream>::silent() const {
-  if (!handshaking_ || closed_ || client_spoke_) return false;
+  if (closed_ || client_spoke_) return false;
   boost::system::error_code error;
   // Bytes the kernel holds that the gateway has not read yet: the client did speak. A socket
   // in error is as good as silent.
@@ -118,8 +119,14 @@ void MbapSession<Stream>::read_some() {
 template <typename Stream>
 void MbapSession<Stream>::on_read(const boost::system::error_code& error, std::size_t size) {
   reading_ = false;
-  if (closed_) return;
+  if (closed_) {
+    end_transport();
+    return;
+  }
   if (error) {
+    // After the peer's close_notify (eof) the close_notify is answered; a transport that failed
+    // or was cut without one (stream_truncated) takes no more bytes.
+    if (error != boost::asio::error::eof) transport_failed_ = true;
     if (error != boost::asio::error::eof && error != boost::asio::error::connection_reset &&
         error != boost::asio::error::operation_aborted && error != boost::asio::ssl::error::stream_truncated) {
       spdlog::warn("modbus tcp: connection {}: read failed: {}", peer_, error.message());
@@ -130,11 +137,20 @@ void MbapSession<Stream>::on_read(const boost::system::error_code& error, std::s
     return;
   }
   last_activity_ = std::chrono::steady_clock::now();
+  client_spoke_ = true;
   if (draining_) return;  // shutting down: requests arriving now are not started
 
   decoder_.feed(std::span<const std::uint8_t>(read_buffer_.data(), size));
   while (auto event = decoder_.next()) {
     if (auto* frame = std::get_if<protocol::tcp::Frame>(&*event)) {
+      // Plain: the first complete request is what lets a connection be served.
+      if (!trusted_) {
+        if (!host_->trust(this->shared_from_this())) {
+          close();
+          return;
+        }
+        trusted_ = true;
+      }
       pending_.push_back(std::move(*frame));
       continue;
     }
@@ -206,8 +222,12 @@ template <typename Stream>
 void MbapSession<Stream>::on_written(const boost::system::error_code& error) {
   writing_ = false;
   write_buffer_.clear();
-  if (closed_) return;
+  if (closed_) {
+    end_transport();
+    return;
+  }
   if (error) {
+    transport_failed_ = true;
     if (error != boost::asio::error::broken_pipe && error != boost::asio::error::connection_reset) {
       spdlog::warn("modbus tcp: connection {}: write failed: {}", peer_, error.message());
     }
@@ -237,13 +257,46 @@ void MbapSession<Stream>::close() {
   if (closed_) return;
   closed_ = true;
   pending_.clear();
-  boost::system::error_code ignored;
-  // TLS: no close_notify exchange; a Modbus client learns of the close from the TCP FIN.
-  socket().shutdown(boost::asio::ip::tcp::socket::shutdown_both, ignored);
-  socket().close(ignored);
   idle_timer_.cancel();
+  end_transport();
   if (admitted_) host_->tls()->connection_closed();
   host_->on_session_closed(this->shared_from_this());
+}
+
+template <typename Stream>
+void MbapSession<Stream>::end_transport() {
+  if (transport_ended_) return;
+  if constexpr (kTls) {
+    // A TLS peer is told the close with close_notify (RFC 8446 6.1), so it can tell the end from
+    // a cut connection: once no read or write is in progress (those are cancelled and come back
+    // here), the alert is sent and the peer's answered, bounded by kCloseNotifyWait.
+    if (tls_up_ && !transport_failed_) {
+      if (reading_ || writing_) {
+        boost::system::error_code ignored;
+        socket().cancel(ignored);
+        return;
+      }
+      transport_ended_ = true;
+      idle_timer_.expires_after(kCloseNotifyWait);
+      idle_timer_.async_wait([self = this->shared_from_this()](const boost::system::error_code& error) {
+        if (!error) self->close_socket();
+      });
+      stream_.async_shutdown([self = this->shared_from_this()](const boost::system::error_code&) {
+        self->idle_timer_.cancel();
+        self->close_socket();
+      });
+      return;
+    }
+  }
+  transport_ended_ = true;
+  close_socket();
+}
+
+template <typename Stream>
+void MbapSession<Stream>::close_socket() {
+  boost::system::error_code ignored;
+  socket().shutdown(boost::asio::ip::tcp::socket::shutdown_both, ignored);
+  socket().close(ignored);
 }
 
 template <typename Stream>
@@ -255,12 +308,7 @@ void MbapSession<Stream>::arm_idle_timer(std::chrono::steady_clock::time_point d
 
 template <typename Stream>
 void MbapSession<Stream>::on_idle_timer(const boost::system::error_code& error) {
-  if (error || closed_) return;
-  if (handshaking_) {
-    if constexpr (kTls) host_->tls()->handshake_timed_out(peer_);
-    close();
-    return;
-  }
+  if (error || closed_ || handshaking_) return;  // the handshake's deadline is the door's
   const auto idle = host_->options().idle_timeout;
   const auto now = std::chrono::steady_clock::now();
   if (writing_ && now - write_started_ >= idle) {

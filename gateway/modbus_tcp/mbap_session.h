@@ -1,10 +1,11 @@
 #pragma once
 // One Modbus TCP connection (internal to the TCP server; tests drive it through TcpServer).
 // Plain connections are MbapSession<tcp::socket>; Modbus/TCP Security connections are
-// MbapSession<ssl::stream<tcp::socket>>, which first completes the TLS handshake (within
-// modbus_tcp.tls.handshake_timeout_ms) and asks the server's TlsService for the connection's handler (a RoleGate in
-// front of the router), then runs exactly as a plain one. The session owns its socket, read buffer and MBAP decoder and
-// keeps itself alive with shared_from_this() in every pending handler, as the classic Asio server examples do.
+// MbapSession<ssl::stream<tcp::socket>>, which first completes the TLS handshake (the door's
+// deadline: modbus_tcp.tls.handshake_timeout_ms) and asks the server's TlsService for the connection's handler (a
+// RoleGate in front of the router), then runs exactly as a plain one. The session owns its socket, read buffer and MBAP
+// decoder and keeps itself alive with shared_from_this() in every pending handler, as the classic Asio server examples
+// do.
 //
 //   read -> MbapDecoder -> pending requests -> handler (one at a time) -> outbox -> write
 //
@@ -26,14 +27,16 @@
 #include <boost/asio/steady_timer.hpp>
 
 #include "gateway/modbus_tcp/tcp_server.h"
+#include "gateway/net/door.h"
 #include "protocol/modbus_tcp.h"
 
 namespace sms::gateway {
 
 class TlsService;
 
-// What the server holds of a session, whatever its stream.
-class Session {
+// What the server holds of a session, whatever its stream. The listener's door
+// (gateway/net/door.h) sees it as a guest: it may close it to make room or for its deadline.
+class Session : public DoorGuest {
  public:
   virtual ~Session() = default;
   virtual void start() = 0;
@@ -41,10 +44,13 @@ class Session {
   virtual void drain() = 0;
   // Close now; an answer still to come is dropped.
   virtual void close() = 0;
-  virtual const std::string& peer() const = 0;
-  // TLS: still waiting for the client's first handshake message (a connection that was opened
-  // and left silent); such connections are the first to make room for new handshakes.
-  virtual bool silent() const { return false; }
+  const std::string& peer() const override = 0;
+  // Nothing came from the client yet (a connection opened and left silent); such connections
+  // are the first to make room for new ones.
+  bool silent() const override = 0;
+  void close_by_door() override { close(); }
+  // The door's ticket of this connection (set by the server on accept).
+  Door::Ticket ticket = 0;
 };
 
 // What a session needs from its server.
@@ -54,9 +60,10 @@ class SessionHost {
   virtual const TcpServerOptions& options() const = 0;
   virtual TlsService* tls() = 0;  // nullptr on a plain listener
   virtual void on_session_closed(const std::shared_ptr<Session>& session) = 0;
-  // TLS: the handshake succeeded; false when the connection may not be served (the limit of
-  // served connections is reached; the host has counted and logged it).
-  virtual bool handshake_done(const std::shared_ptr<Session>& session) = 0;
+  // The TLS handshake succeeded, or (plain) the first complete request came: false when the
+  // connection may not be served (the limit of served connections is reached; the host has
+  // counted and logged it) and must close.
+  virtual bool trust(const std::shared_ptr<Session>& session) = 0;
   virtual void count_request(std::span<const std::uint8_t> pdu) = 0;
   virtual void count_response(std::span<const std::uint8_t> pdu) = 0;
   virtual void count_bad_header() = 0;
@@ -101,6 +108,8 @@ class MbapSession final : public Session,
   void flush();
   void on_written(const boost::system::error_code& error);
   void close_when_done();
+  void end_transport();  // after close(): close_notify (TLS), then the socket
+  void close_socket();
   void arm_idle_timer(std::chrono::steady_clock::time_point deadline);
   void on_idle_timer(const boost::system::error_code& error);
   bool busy() const { return in_flight_.has_value() || !pending_.empty() || writing_; }
@@ -114,8 +123,13 @@ class MbapSession final : public Session,
   RequestHandler* handler_ = nullptr;  // the host's, or own_handler_ (TLS)
   std::unique_ptr<RequestHandler> own_handler_;
   bool handshaking_ = false;
-  bool client_spoke_ = false;  // TLS: the client's first bytes came (or its connection failed)
-  bool admitted_ = false;      // TLS: counted open by the TlsService
+  bool client_spoke_ = false;      // the client's first bytes came (TLS: or its connection failed)
+  bool trusted_ = false;           // the host counts it served (TLS: handshake done; plain: a request came)
+  bool admitted_ = false;          // TLS: counted open by the TlsService
+  bool tls_up_ = false;            // TLS: the handshake succeeded
+  bool transport_failed_ = false;  // a read or write failed: no close_notify
+  bool transport_ended_ = false;
+  static constexpr std::chrono::seconds kCloseNotifyWait{1};
 
   std::array<std::uint8_t, 4096> read_buffer_{};
   protocol::tcp::MbapDecoder decoder_;

@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <atomic>
-#include <list>
 #include <mutex>
 #include <optional>
 #include <set>
@@ -15,15 +14,50 @@
 #include <boost/asio/steady_timer.hpp>
 
 #include "gateway/modbus_tcp/access_policy.h"
-#include "gateway/modbus_tcp/listener.h"
 #include "gateway/modbus_tcp/mbap_session.h"
 #include "gateway/modbus_tcp/tls.h"
 #include "gateway/modbus_tcp/traffic_counters.h"
+#include "gateway/net/listener.h"
 
 namespace sms::gateway {
 
 namespace asio = boost::asio;
 using asio::ip::tcp;
+
+namespace {
+
+// The door of a listener, from the server's options (plain) or the TLS settings.
+DoorSettings door_settings(const TcpServerOptions& options) {
+  DoorSettings door;
+  door.max_served = options.max_connections;
+  door.max_served_setting = "modbus_tcp.max_connections";
+  if (options.tls != nullptr) {
+    const config::TlsConfig& tls = options.tls->settings();
+    door.listener = std::string(kListenerNames[1]);
+    door.log_name = "modbus tcp security";
+    door.max_waiting = tls.max_handshakes;
+    door.max_waiting_per_address = tls.max_handshakes_per_address;
+    door.first_request_timeout = tls.handshake_timeout;
+    door.first_request = "complete TLS handshake";
+    door.max_waiting_setting = "modbus_tcp.tls.max_handshakes";
+    door.max_waiting_per_address_setting = "modbus_tcp.tls.max_handshakes_per_address";
+    door.first_request_timeout_setting = "modbus_tcp.tls.handshake_timeout_ms";
+    door.on_close = [service = options.tls](DoorClose why) { service->handshake_closed_by_door(why); };
+  } else {
+    door.listener = std::string(kListenerNames[0]);
+    door.log_name = "modbus tcp";
+    door.max_waiting = options.max_waiting;
+    door.max_waiting_per_address = options.max_waiting_per_address;
+    door.first_request_timeout = options.first_request_timeout;
+    door.first_request = "complete Modbus request";
+    door.max_waiting_setting = "modbus_tcp.max_waiting";
+    door.max_waiting_per_address_setting = "modbus_tcp.max_waiting_per_address";
+    door.first_request_timeout_setting = "modbus_tcp.first_request_timeout_ms";
+  }
+  return door;
+}
+
+}  // namespace
 
 class TcpServer::Impl final : public SessionHost, public std::enable_shared_from_this<TcpServer::Impl> {
  public:
@@ -32,32 +66,28 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
         options_(std::move(options)),
         handler_(handler),
         access_(options_.allow),
+        door_(io, door_settings(options_)),
         acceptor_(io),
         retry_timer_(io) {}
 
   void start() {
+    const std::string idle =
+        options_.idle_timeout.count() > 0 ? duration_text(options_.idle_timeout) : std::string("off");
     if (options_.tls != nullptr) {
       open_listener(acceptor_, options_.host, options_.port,
                     {"listen for Modbus/TCP Security", "modbus_tcp.tls.listen in the configuration", 8020});
       port_ = acceptor_.local_endpoint().port();
-      const config::TlsConfig& tls = options_.tls->settings();
       spdlog::info(
-          "modbus tcp security: listening on {}:{} (TLS 1.2/1.3, client certificates of CA {} required; at "
-          "most {} connections served, idle timeout {}; at most {} handshakes at once, {} per client "
-          "address, each within {}; clients allowed: {})",
-          options_.host, port_, tls.ca, options_.max_connections,
-          options_.idle_timeout.count() > 0 ? duration_text(options_.idle_timeout) : std::string("off"),
-          tls.max_handshakes, tls.max_handshakes_per_address, duration_text(tls.handshake_timeout), access_.describe());
-      accept();
-      return;
+          "modbus tcp security: listening on {}:{} (TLS 1.2/1.3, client certificates of CA {} required; {}; idle "
+          "timeout {}; clients allowed: {})",
+          options_.host, port_, options_.tls->settings().ca, door_.describe(), idle, access_.describe());
+    } else {
+      open_listener(acceptor_, options_.host, options_.port,
+                    {"listen for Modbus TCP", "--listen HOST:PORT or modbus_tcp.listen in the configuration", 5020});
+      port_ = acceptor_.local_endpoint().port();
+      spdlog::info("modbus tcp: listening on {}:{} ({}; idle timeout {}; clients allowed: {})", options_.host, port_,
+                   door_.describe(), idle, access_.describe());
     }
-    open_listener(acceptor_, options_.host, options_.port,
-                  {"listen for Modbus TCP", "--listen HOST:PORT or modbus_tcp.listen in the configuration", 5020});
-    port_ = acceptor_.local_endpoint().port();
-    spdlog::info("modbus tcp: listening on {}:{} (at most {} connections, idle timeout {}, clients allowed: {})",
-                 options_.host, port_, options_.max_connections,
-                 options_.idle_timeout.count() > 0 ? duration_text(options_.idle_timeout) : std::string("off"),
-                 access_.describe());
     accept();
   }
 
@@ -81,27 +111,25 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
     std::lock_guard lock(stats_mutex_);
     return stats_;
   }
+  DoorStats door_stats() const { return door_.stats(); }
 
   // SessionHost
   RequestHandler& handler() override { return handler_; }
   const TcpServerOptions& options() const override { return options_; }
   TlsService* tls() override { return options_.tls; }
   void on_session_closed(const std::shared_ptr<Session>& session) override {
-    forget_handshake(session);
+    door_.leave(session->ticket);
     if (sessions_.erase(session) == 0) return;
-    spdlog::debug("modbus tcp: {} disconnected ({} open)", session->peer(), sessions_.size());
+    spdlog::debug("{}: {} disconnected ({} open)", log_prefix(), session->peer(), sessions_.size());
     {
       std::lock_guard lock(stats_mutex_);
       stats_.open_connections = sessions_.size();
     }
-    if (served_count() < options_.max_connections) refusal_logged_ = false;
     notify_if_all_closed();
   }
-  bool handshake_done(const std::shared_ptr<Session>& session) override {
-    forget_handshake(session);
-    if (served_count() <= options_.max_connections) return true;
-    // Handshakes that began while slots were free finished after the last one was taken.
-    count_refusal(session->peer());
+  bool trust(const std::shared_ptr<Session>& session) override {
+    if (door_.trust(session->ticket)) return true;
+    count_full();
     return false;
   }
   void count_request(std::span<const std::uint8_t> pdu) override {
@@ -133,7 +161,7 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
     if (error) {
       if (error == asio::error::operation_aborted) return;
       // Out of descriptors and the like: wait a moment instead of spinning on the error.
-      spdlog::warn("modbus tcp: accepting a connection failed: {}; retrying in 100 ms", error.message());
+      spdlog::warn("{}: accepting a connection failed: {}; retrying in 100 ms", log_prefix(), error.message());
       retry_timer_.expires_after(std::chrono::milliseconds{100});
       retry_timer_.async_wait([self = shared_from_this()](const boost::system::error_code& wait_error) {
         if (!wait_error) self->accept();
@@ -142,107 +170,41 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
     }
     if (!allowed(socket)) {
       deny(std::move(socket));
-    } else if (served_count() >= options_.max_connections) {
-      refuse(std::move(socket));
+      accept();
+      return;
+    }
+    const std::string address = address_of(socket);
+    std::shared_ptr<Session> session;
+    if (options_.tls != nullptr) {
+      auto context = options_.tls->context();  // the one loaded last (SIGHUP reloads it)
+      session = std::make_shared<TlsSession>(asio::ssl::stream<tcp::socket>(std::move(socket), *context),
+                                             shared_from_this(), context);
     } else {
-      std::shared_ptr<Session> session;
-      if (options_.tls != nullptr) {
-        const std::string address = address_of(socket);
-        make_room_for_handshake(address);
-        auto context = options_.tls->context();  // the one loaded last (SIGHUP reloads it)
-        session = std::make_shared<TlsSession>(asio::ssl::stream<tcp::socket>(std::move(socket), *context),
-                                               shared_from_this(), context);
-        handshaking_.push_back(Handshake{session, address});
-      } else {
-        session = std::make_shared<PlainSession>(std::move(socket), shared_from_this());
-      }
+      session = std::make_shared<PlainSession>(std::move(socket), shared_from_this());
+    }
+    const auto ticket = door_.admit(address, session);
+    if (!ticket) {
+      count_full();
+      session->close_by_door();  // never started: the socket closes, nothing is answered
+    } else {
+      session->ticket = *ticket;
       sessions_.insert(session);
       {
         std::lock_guard lock(stats_mutex_);
         ++stats_.accepted;
         stats_.open_connections = sessions_.size();
       }
-      spdlog::debug("modbus tcp: {} connected ({} open)", session->peer(), sessions_.size());
+      spdlog::debug("{}: {} connected ({} open)", log_prefix(), session->peer(), sessions_.size());
       session->start();
     }
     accept();
   }
 
-  void refuse(tcp::socket socket) {
-    count_refusal(address_of(socket));
-    boost::system::error_code ignored;
-    socket.shutdown(tcp::socket::shutdown_both, ignored);
-    socket.close(ignored);
-  }
-
-  void count_refusal(const std::string& client) {
-    {
-      std::lock_guard lock(stats_mutex_);
-      ++stats_.refused;
-      ++stats_.refusals[listener_index()].max_connections;
-    }
-    // Logged once per episode: a client retrying in a loop must not flood the log.
-    if (!refusal_logged_) {
-      spdlog::warn(
-          "{}: refusing connection from {}: {} connections {}, the limit (modbus_tcp.max_connections); "
-          "further refusals are counted, not logged",
-          log_prefix(), client, options_.max_connections, options_.tls != nullptr ? "served" : "open");
-      refusal_logged_ = true;
-    }
-  }
-
-  // Connections served: on the TLS listener those past the handshake (an unauthenticated client
-  // cannot take a slot of an authenticated one).
-  std::size_t served_count() const { return sessions_.size() - handshaking_.size(); }
-
-  // Before a new handshake starts: when its client address, or the listener, has the most
-  // handshakes it may have, the oldest of them is closed (a silent one first, one that sent
-  // nothing yet). Evicting rather than refusing means connections that sit in the handshake
-  // cannot keep a newer client, one with a certificate, from being served: the newcomer's
-  // handshake only has to finish before `max_handshakes` (or per address) newer ones arrive.
-  void make_room_for_handshake(const std::string& address) {
-    const config::TlsConfig& tls = options_.tls->settings();
-    const auto from_address = static_cast<std::size_t>(std::count_if(
-        handshaking_.begin(), handshaking_.end(), [&](const Handshake& h) { return h.address == address; }));
-    std::optional<std::string> only;
-    std::string_view limit;
-    if (from_address >= tls.max_handshakes_per_address) {
-      only = address;
-      limit = "modbus_tcp.tls.max_handshakes_per_address";
-    } else if (handshaking_.size() >= tls.max_handshakes) {
-      limit = "modbus_tcp.tls.max_handshakes";
-    } else {
-      return;
-    }
-    const Handshake* oldest = nullptr;
-    const Handshake* oldest_silent = nullptr;
-    for (const auto& handshake : handshaking_) {
-      if (only && handshake.address != *only) continue;
-      if (oldest == nullptr) oldest = &handshake;
-      if (oldest_silent == nullptr && handshake.session->silent()) oldest_silent = &handshake;
-    }
-    const Handshake* victim = oldest_silent != nullptr ? oldest_silent : oldest;
-    if (victim == nullptr) return;
-    const std::shared_ptr<Session> session = victim->session;  // close() erases the entry
-    options_.tls->handshake_evicted();
-    ++evictions_unlogged_;
-    const auto now = std::chrono::steady_clock::now();
-    // Once per 10 s at most: this is what a flood of connections looks like.
-    if (now - eviction_logged_at_ >= kEvictionLogInterval) {
-      spdlog::warn(
-          "modbus tcp security: closing {} in the TLS handshake{} to make room for a new connection from {} "
-          "({} reached) [evicted]; {} such closing(s) since the last line",
-          session->peer(), oldest_silent != nullptr ? " (silent so far)" : "", address, limit, evictions_unlogged_);
-      eviction_logged_at_ = now;
-      evictions_unlogged_ = 0;
-    }
-    session->close();
-  }
-
-  void forget_handshake(const std::shared_ptr<Session>& session) {
-    const auto found = std::find_if(handshaking_.begin(), handshaking_.end(),
-                                    [&](const Handshake& h) { return h.session == session; });
-    if (found != handshaking_.end()) handshaking_.erase(found);
+  // Over modbus_tcp.max_connections: the door has logged it once per episode.
+  void count_full() {
+    std::lock_guard lock(stats_mutex_);
+    ++stats_.refused;
+    ++stats_.refusals[listener_index()].max_connections;
   }
 
   std::size_t listener_index() const { return options_.tls != nullptr ? 1 : 0; }
@@ -269,6 +231,7 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
 
   // Not in modbus_tcp.allow: closed without a Modbus answer, as if nothing listened.
   void deny(tcp::socket socket) {
+    door_.count_denied();
     {
       std::lock_guard lock(stats_mutex_);
       ++stats_.denied;
@@ -293,6 +256,7 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
     boost::system::error_code ignored;
     acceptor_.close(ignored);
     retry_timer_.cancel();
+    door_.close();
   }
 
   void notify_if_all_closed() {
@@ -304,32 +268,18 @@ class TcpServer::Impl final : public SessionHost, public std::enable_shared_from
   const TcpServerOptions options_;
   RequestHandler& handler_;
   const AccessPolicy access_;
+  Door door_;
   static constexpr std::size_t kMaxDenialsLogged = 256;
   std::set<std::string> denial_logged_;
   tcp::acceptor acceptor_;
   asio::steady_timer retry_timer_;
   std::uint16_t port_ = 0;
   std::set<std::shared_ptr<Session>> sessions_;
-  // TLS: the sessions of sessions_ still in the handshake, oldest first, with their client address.
-  struct Handshake {
-    std::shared_ptr<Session> session;
-    std::string address;
-  };
-  std::list<Handshake> handshaking_;
-  static constexpr std::chrono::seconds kEvictionLogInterval{10};
-  std::chrono::steady_clock::time_point eviction_logged_at_{};
-  std::uint64_t evictions_unlogged_ = 0;
-  bool refusal_logged_ = false;
   std::function<void()> on_all_closed_;
 
   mutable std::mutex stats_mutex_;  // stats() is read from other threads (gateway unit, tests)
   TcpServerStats stats_;
 };
-
-std::string duration_text(std::chrono::milliseconds duration) {
-  if (duration.count() % 1000 == 0) return std::to_string(duration.count() / 1000) + " s";
-  return std::to_string(duration.count()) + " ms";
-}
 
 TcpServer::TcpServer(asio::io_context& io, TcpServerOptions options, RequestHandler& handler)
     : impl_(std::make_shared<Impl>(io, std::move(options), handler)) {}
@@ -348,5 +298,9 @@ std::uint16_t TcpServer::port() const { return impl_->port(); }
 void TcpServer::shutdown(std::function<void()> done) { impl_->shutdown(std::move(done)); }
 void TcpServer::close_all() { impl_->close_all(); }
 TcpServerStats TcpServer::stats() const { return impl_->stats(); }
+DoorStats TcpServer::door_stats() const { return impl_->door_stats(); }
+std::string_view TcpServer::listener_name() const {
+  return impl_->options().tls != nullptr ? kListenerNames[1] : kListenerNames[0];
+}
 
 }  // namespace sms::gateway

@@ -1,11 +1,11 @@
 #pragma once
-// The Modbus TCP server: listens, accepts up to a limit of connections (extra ones are
-// accepted and closed at once), and runs one MbapSession per connection. Each session decodes
+// The Modbus TCP server: listens, lets connections in through the listener's door
+// (gateway/net/door.h: a budget of served connections, one for those still waiting for their
+// first request or TLS handshake, per client address too, their deadline), and runs one
+// MbapSession per connection. Each session decodes
 // MBAP frames, hands their PDUs to a RequestHandler one at a time and writes the answers back
 // in request order with the transaction ids echoed, so pipelined requests are answered in
-// order and a connection's writes reach the buses in the order they arrived. On a TLS listener
-// the limit counts connections served; those still in the handshake have their own budget
-// (TlsConfig::max_handshakes, per address too), and the oldest of them makes room for a new one.
+// order and a connection's writes reach the buses in the order they arrived.
 //
 // Threading: everything here runs on the io_context passed in, which must be run by a single
 // thread (the sessions rely on it instead of strands). Asio stays out of this header.
@@ -21,6 +21,7 @@
 
 #include "config/config.h"
 #include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/net/door.h"
 #include "protocol/packet.h"
 
 namespace boost::asio {
@@ -36,9 +37,13 @@ class TlsService;
 struct TcpServerOptions {
   std::string host = "127.0.0.1";
   std::uint16_t port = 502;  // 0: any free port (tests); port() says which
-  // Plain: connections open at once. TLS: connections served (handshake done); connections
-  // still in the handshake have the budget of TlsConfig (max_handshakes, ...) apart.
+  // Connections served: past their first complete request (TLS: past the handshake). Those
+  // still waiting for it have a budget apart (the door's), so they never take a served one's
+  // place: plain from the three settings below, TLS from TlsConfig (max_handshakes, ...).
   std::size_t max_connections = 32;
+  std::size_t max_waiting = 16;
+  std::size_t max_waiting_per_address = 8;
+  std::chrono::milliseconds first_request_timeout{std::chrono::seconds{10}};
   std::chrono::milliseconds idle_timeout{std::chrono::seconds{60}};  // 0: never close idle clients
   // Decoded requests a connection may have waiting behind the one being answered; past it the
   // session stops reading from the socket (TCP flow control pushes back on the client).
@@ -70,7 +75,7 @@ struct ConnectionRefusals {
 };
 
 struct TcpServerStats {
-  std::size_t open_connections = 0;  // TLS: handshakes in progress included
+  std::size_t open_connections = 0;  // waiting ones (TLS: handshakes in progress) included
   std::uint64_t accepted = 0;
   std::uint64_t refused = 0;  // over the connection limit
   std::uint64_t denied = 0;   // not in the allow-list
@@ -80,9 +85,6 @@ struct TcpServerStats {
   // `refused` and `denied` by listener (kListenerNames index).
   std::array<ConnectionRefusals, kListenerNames.size()> refusals{};
 };
-
-// "60 s", "150 ms": for log lines.
-std::string duration_text(std::chrono::milliseconds duration);
 
 class TcpServer {
  public:
@@ -103,8 +105,10 @@ class TcpServer {
   // Closes every connection now, answered or not (the bus work in flight still completes).
   void close_all();
 
-  // Thread-safe snapshot.
+  // Thread-safe snapshots.
   TcpServerStats stats() const;
+  DoorStats door_stats() const;            // the listener's door (sms_gateway_listener_* in /metrics)
+  std::string_view listener_name() const;  // kListenerNames: "plain" or "tls"
 
   class Impl;
 

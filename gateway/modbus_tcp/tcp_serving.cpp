@@ -62,6 +62,11 @@ class TcpServing::Impl {
   }
 
   std::uint16_t port(std::size_t index) const { return index < servers_.size() ? servers_[index]->port() : 0; }
+  std::vector<std::pair<std::string, DoorStats>> doors() const {
+    std::vector<std::pair<std::string, DoorStats>> doors;
+    for (const auto& server : servers_) doors.emplace_back(std::string(server->listener_name()), server->door_stats());
+    return doors;
+  }
   TcpServerStats stats() const {
     TcpServerStats total;
     for (const auto& server : servers_) {
@@ -100,5 +105,6 @@ void TcpServing::drain(std::chrono::milliseconds grace) { impl_->drain(grace); }
 void TcpServing::stop() { impl_->stop(); }
 std::uint16_t TcpServing::port(std::size_t index) const { return impl_->port(index); }
 TcpServerStats TcpServing::stats() const { return impl_->stats(); }
+std::vector<std::pair<std::string, DoorStats>> TcpServing::doors() const { return impl_->doors(); }
 
 }  // namespace sms::gateway

@@ -15,6 +15,9 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include "gateway/modbus_tcp/tcp_server.h"
 
@@ -50,6 +53,8 @@ class TcpServing {
 
   std::uint16_t port(std::size_t index = 0) const;  // 0 when there is no such listener
   TcpServerStats stats() const;                     // summed over the listeners
+  // Each listener's door, named as /metrics labels it ("plain", "tls").
+  std::vector<std::pair<std::string, DoorStats>> doors() const;
 
  private:
   class Impl;

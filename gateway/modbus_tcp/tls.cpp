@@ -422,18 +422,14 @@ void TlsService::handshake_failed(const boost::system::error_code& error, SSL* s
     reason = "closed by the client during the handshake";
   }
   count(result);
-  spdlog::warn("modbus tcp security: refused handshake from {}: {} [{}]", peer, reason, result);
+  refusal_logs_.try_emplace(std::string(result))
+      .first->second.warn(fmt::format("modbus tcp security: refused handshake from {}: {} [{}]", peer, reason, result));
 }
 
-void TlsService::handshake_timed_out(const std::string& peer) {
-  count("timeout");
-  spdlog::warn(
-      "modbus tcp security: refused handshake from {}: no complete TLS handshake within {} "
-      "(modbus_tcp.tls.handshake_timeout_ms) [timeout]",
-      peer, duration_text(settings_.handshake_timeout));
+void TlsService::handshake_closed_by_door(DoorClose why) {
+  if (why == DoorClose::Evicted) count("evicted");
+  if (why == DoorClose::Deadline) count("timeout");
 }
-
-void TlsService::handshake_evicted() { count("evicted"); }
 
 void TlsService::connection_closed() {
   std::lock_guard lock(mutex_);

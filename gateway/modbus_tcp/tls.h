@@ -11,6 +11,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -22,9 +23,11 @@
 #include <boost/asio/ssl/context.hpp>
 
 #include "config/config.h"
+#include "gateway/modbus_tcp/rate_limited_log.h"
 #include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tcp_server.h"
 #include "gateway/modbus_tcp/tls_stats.h"
+#include "gateway/net/door.h"
 
 namespace sms::gateway {
 
@@ -73,9 +76,9 @@ class TlsService {
   std::unique_ptr<RequestHandler> admit(SSL* ssl, const std::string& peer);
   // A handshake that failed: one log line with the reason and the peer, counted.
   void handshake_failed(const boost::system::error_code& error, SSL* ssl, const std::string& peer);
-  void handshake_timed_out(const std::string& peer);
-  // Closed in the handshake to make room for a newer connection (the server logs it).
-  void handshake_evicted();
+  // Closed in the handshake by the listener's door (gateway/net/door.h: evicted to make room,
+  // or no complete handshake in time; the door logs it): counted as a handshake result.
+  void handshake_closed_by_door(DoorClose why);
   void connection_closed();
 
   void count_refusal(config::Role role);
@@ -92,6 +95,9 @@ class TlsService {
   std::shared_ptr<boost::asio::ssl::context> context_;
   std::string certificate_expiry_;  // "2034-05-01 12:00:00 GMT", for the log
   TlsStats stats_;                  // under mutex_
+  // Refused handshakes, one log per outcome at most once a second (a flood of connections that
+  // close in the handshake must not flood the log); io thread only.
+  std::map<std::string, RateLimitedLog, std::less<>> refusal_logs_;
 };
 
 }  // namespace sms::gateway

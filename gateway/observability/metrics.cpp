@@ -335,6 +335,37 @@ MetricsSnapshot collect_metrics(const config::Config& config, std::span<BusEngin
 
 // ---- rendering ----
 
+namespace {
+
+// Every TCP listener's door: the same three families whichever way in it is.
+void render_listener_doors(Exposition& out, const std::vector<ListenerDoor>& listeners) {
+  constexpr std::string_view kOpen = "sms_gateway_listener_connections";
+  out.family(kOpen, MetricType::Gauge,
+             "Connections open now by listener (plain, tls, console, metrics) and state: waiting for their first "
+             "complete request, handshake or login, or served");
+  for (const auto& listener : listeners) {
+    out.sample(kOpen, {{"listener", listener.listener}, {"state", "waiting"}}, std::uint64_t{listener.door.waiting});
+    out.sample(kOpen, {{"listener", listener.listener}, {"state", "served"}}, std::uint64_t{listener.door.served});
+  }
+  constexpr std::string_view kAccepted = "sms_gateway_listener_accepted_total";
+  out.family(kAccepted, MetricType::Counter, "Connections let in by listener");
+  for (const auto& listener : listeners)
+    out.sample(kAccepted, {{"listener", listener.listener}}, listener.door.accepted);
+  constexpr std::string_view kClosed = "sms_gateway_listener_closed_total";
+  out.family(kClosed, MetricType::Counter,
+             "Connections the listener's door closed, by reason: full (the served budget), evicted (to make room "
+             "for a newer one), deadline (no complete first request or handshake in time), allow (not in the "
+             "allow-list)");
+  for (const auto& listener : listeners) {
+    for (std::size_t i = 0; i < kDoorCloseNames.size(); ++i) {
+      out.sample(kClosed, {{"listener", listener.listener}, {"reason", std::string(kDoorCloseNames[i])}},
+                 listener.door.closed[i]);
+    }
+  }
+}
+
+}  // namespace
+
 std::string render_prometheus(const MetricsSnapshot& snapshot) {
   Exposition out;
   out.family("sms_gateway_build_info", MetricType::Gauge, "Always 1; the version is in the label");
@@ -372,6 +403,8 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
                snapshot.tcp.refusals[i].max_connections);
     out.sample(kRefused, {{"listener", listener}, {"reason", "allow"}}, snapshot.tcp.refusals[i].allow);
   }
+
+  render_listener_doors(out, snapshot.listeners);
 
   if (snapshot.tls) {
     const TlsStats& tls = *snapshot.tls;

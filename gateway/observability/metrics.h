@@ -53,6 +53,12 @@ struct BusMetrics {
   std::optional<std::uint64_t> monitor_dropped;
 };
 
+// One TCP listener's front door (gateway/net/door.h), as sms_gateway_listener_* show it.
+struct ListenerDoor {
+  std::string listener;  // "plain", "tls", "console", "metrics"
+  DoorStats door;
+};
+
 struct MetricsSnapshot {
   std::string version;  // SMS_GATEWAY_VERSION
   std::chrono::seconds uptime{0};
@@ -67,6 +73,7 @@ struct MetricsSnapshot {
   bool safety_state_not_persisted = false;
   std::string safety_state_problem;
   std::vector<RtuSlaveStats> rtu_slaves;  // the upstream Modbus RTU ports, in configuration order
+  std::vector<ListenerDoor> listeners;    // every TCP listener's door
 };
 
 // One bus of `config` as its cache and counters show it at `now`. Servos of the bus that the

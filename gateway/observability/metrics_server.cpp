@@ -20,7 +20,8 @@
 #include <boost/beast/http/string_body.hpp>
 #include <boost/beast/http/write.hpp>
 
-#include "gateway/modbus_tcp/listener.h"
+#include "gateway/net/door.h"
+#include "gateway/net/listener.h"
 
 namespace sms::gateway {
 
@@ -102,10 +103,31 @@ std::optional<Answer> answer_for_read_error(const beast::error_code& error) {
 
 class MetricsSession;
 
+static DoorSettings door_settings(const MetricsServerOptions& options) {
+  DoorSettings door;
+  door.listener = "metrics";
+  door.log_name = "metrics";
+  door.max_served = options.max_connections;
+  door.max_waiting = options.max_waiting;
+  door.max_waiting_per_address = options.max_waiting_per_address;
+  door.first_request_timeout = options.first_request_timeout;
+  door.first_request = "complete HTTP request";
+  // Fixed limits (MetricsServerOptions): the log names them for what they are.
+  door.max_served_setting = "the metrics endpoint's connection limit";
+  door.max_waiting_setting = "the metrics endpoint's limit of waiting connections";
+  door.max_waiting_per_address_setting = "the metrics endpoint's limit per client address";
+  door.first_request_timeout_setting = "the metrics endpoint's first-request deadline";
+  return door;
+}
+
 class MetricsServer::Impl {
  public:
   Impl(MetricsServerOptions options, SnapshotFn snapshot)
-      : options_(std::move(options)), snapshot_(std::move(snapshot)), acceptor_(io_), retry_timer_(io_) {}
+      : options_(std::move(options)),
+        snapshot_(std::move(snapshot)),
+        acceptor_(io_),
+        retry_timer_(io_),
+        door_(io_, door_settings(options_)) {}
 
   ~Impl() { stop(); }
 
@@ -115,8 +137,8 @@ class MetricsServer::Impl {
     open_listener(acceptor_, options_.listen.host, options_.listen.port,
                   {"serve metrics", "--metrics HOST:PORT or logging.metrics_listen", 9102});
     port_ = acceptor_.local_endpoint().port();
-    spdlog::info("metrics: serving /metrics and /healthz on http://{}",
-                 config::HostPort{options_.listen.host, port_}.to_string());
+    spdlog::info("metrics: serving /metrics and /healthz on http://{} ({})",
+                 config::HostPort{options_.listen.host, port_}.to_string(), door_.describe());
     accept();
     thread_ = std::thread([this] { io_.run(); });
   }
@@ -129,7 +151,13 @@ class MetricsServer::Impl {
 
   // For sessions (io thread only).
   const MetricsServerOptions& options() const { return options_; }
-  const SnapshotFn& snapshot() const { return snapshot_; }
+  // The gateway's figures, with this listener's own door.
+  MetricsSnapshot snapshot_with_door() const {
+    MetricsSnapshot snapshot = snapshot_();
+    snapshot.listeners.push_back({"metrics", door_.stats()});
+    return snapshot;
+  }
+  Door& door() { return door_; }
   void add(MetricsSession* session) { sessions_.insert(session); }
   void remove(MetricsSession* session) { sessions_.erase(session); }
 
@@ -146,25 +174,54 @@ class MetricsServer::Impl {
   asio::io_context io_;
   tcp::acceptor acceptor_;
   asio::steady_timer retry_timer_;
+  // After io_: destroyed first, once stop() has closed every session (a session leaves the door in
+  // close(), never in its destructor, which may run when io_ is destroyed).
+  Door door_;
   std::thread thread_;
 };
 
 // One HTTP connection: read a request, answer it, and again while the client keeps it alive.
-class MetricsSession : public std::enable_shared_from_this<MetricsSession> {
+class MetricsSession final : public std::enable_shared_from_this<MetricsSession>, public DoorGuest {
  public:
   MetricsSession(tcp::socket socket, MetricsServer::Impl& server)
       : stream_(std::move(socket)), server_(server), buffer_(server.options().max_request_bytes) {
+    beast::error_code error;
+    const auto endpoint = stream_.socket().remote_endpoint(error);
+    address_ = error ? std::string("(unknown peer)") : endpoint.address().to_string();
+    peer_ = error ? address_ : address_ + ":" + std::to_string(endpoint.port());
     server_.add(this);
   }
   ~MetricsSession() { server_.remove(this); }
 
-  void start() { read(); }
+  // false: the door refused it (the served budget is full); it is closed.
+  bool start() {
+    const auto ticket = server_.door().admit(address_, weak_from_this());
+    if (!ticket) {
+      close();
+      return false;
+    }
+    ticket_ = *ticket;
+    read();
+    return true;
+  }
 
   void close() {
+    if (closed_) return;
+    closed_ = true;
+    server_.door().leave(ticket_);
     beast::error_code ignored;
     stream_.socket().shutdown(tcp::socket::shutdown_both, ignored);
     stream_.close();
   }
+
+  // DoorGuest
+  void close_by_door() override { close(); }
+  bool silent() const override {
+    if (buffer_.size() > 0) return false;
+    beast::error_code error;
+    return const_cast<beast::tcp_stream&>(stream_).socket().available(error) == 0 || error;
+  }
+  const std::string& peer() const override { return peer_; }
 
  private:
   void read() {
@@ -188,10 +245,16 @@ class MetricsSession : public std::enable_shared_from_this<MetricsSession> {
       }
       return;
     }
+    // A complete request: the client is served from now on (nothing here needs a login).
+    if (!server_.door().trust(ticket_)) {
+      close();
+      return;
+    }
     const auto& request = parser_->get();
     const bool head = request.method() == http::verb::head;
     const std::string_view target(request.target().data(), request.target().size());
-    write(answer_for(request.method(), target, server_.snapshot()), request.keep_alive(), request.version(), head);
+    const MetricsServer::SnapshotFn snapshot = [&server = server_] { return server.snapshot_with_door(); };
+    write(answer_for(request.method(), target, snapshot), request.keep_alive(), request.version(), head);
   }
 
   void write(Answer answer, bool keep_alive, unsigned version, bool head) {
@@ -221,6 +284,10 @@ class MetricsSession : public std::enable_shared_from_this<MetricsSession> {
 
   beast::tcp_stream stream_;
   MetricsServer::Impl& server_;
+  std::string address_;
+  std::string peer_;
+  Door::Ticket ticket_ = 0;
+  bool closed_ = false;
   beast::flat_buffer buffer_;
   std::optional<http::request_parser<http::empty_body>> parser_;
   std::optional<http::response<http::string_body>> response_;
@@ -230,13 +297,7 @@ void MetricsServer::Impl::accept() {
   acceptor_.async_accept([this](const beast::error_code& error, tcp::socket socket) {
     if (!acceptor_.is_open()) return;
     if (!error) {
-      if (sessions_.size() >= options_.max_connections) {
-        spdlog::debug("metrics: {} connections open (the limit); closing a new one", sessions_.size());
-        beast::error_code ignored;
-        socket.close(ignored);
-      } else {
-        std::make_shared<MetricsSession>(std::move(socket), *this)->start();
-      }
+      std::make_shared<MetricsSession>(std::move(socket), *this)->start();
     } else if (error == asio::error::operation_aborted) {
       return;
     } else {
@@ -256,6 +317,7 @@ void MetricsServer::Impl::close_all() {
   beast::error_code ignored;
   acceptor_.close(ignored);
   retry_timer_.cancel();
+  door_.close();
   const auto sessions = sessions_;
   for (auto* session : sessions) session->close();
 }

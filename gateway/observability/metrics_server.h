@@ -10,9 +10,9 @@
 // or hostile HTTP client can never delay a Modbus answer; it reads the gateway only through
 // the snapshot function, which takes no lock a bus holds while it waits for a servo. Each
 // connection must send a whole request within `request_timeout` (also the keep-alive idle
-// limit), requests are bounded in size, and at most `max_connections` are served at once
-// (more are closed on accept). There is no authentication: bind it to a local or management
-// address. Asio and Beast stay out of this header.
+// limit), requests are bounded in size, and the listener's door (gateway/net/door.h) keeps
+// connections that never finish a request from taking a scraper's place. There is no authentication: bind it to a local
+// or management address. Asio and Beast stay out of this header.
 //
 //   MetricsServer server({.listen = *config.logging.metrics_listen},
 //                        [&] { return collect_metrics(...); });
@@ -32,8 +32,13 @@ namespace sms::gateway {
 
 struct MetricsServerOptions {
   config::HostPort listen{"127.0.0.1", 9102};  // port 0: any free port (tests); port() says which
+  // The listener's door (gateway/net/door.h): connections served (past a complete request), and
+  // those still waiting for one, apart, per client address too, each within the deadline.
   std::size_t max_connections = 8;
-  std::chrono::milliseconds request_timeout{std::chrono::seconds{10}};
+  std::size_t max_waiting = 8;
+  std::size_t max_waiting_per_address = 4;
+  std::chrono::milliseconds first_request_timeout{std::chrono::seconds{5}};
+  std::chrono::milliseconds request_timeout{std::chrono::seconds{10}};  // keep-alive idle limit
   std::size_t max_request_bytes = 8192;  // request line and headers; a request body is refused
 };
 

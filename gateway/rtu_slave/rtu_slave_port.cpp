@@ -375,7 +375,6 @@ void RtuSlavePort::start_next() {
   flight.count = units.size();
   flight.waiting_for = units.size();
   next_serial_ += units.size();
-  if (broadcast) counters_.broadcasts.fetch_add(1, std::memory_order_relaxed);
   in_flight_ = std::move(flight);
   if (units.empty()) {  // a broadcast on a port that serves only the gateway unit
     in_flight_.reset();
@@ -416,11 +415,18 @@ void RtuSlavePort::collect_answers() {
     if (in_flight_->request.unit != 0) {
       if (in_flight_->answer) continue;
       in_flight_->answer = std::move(pdu);
+    } else if (!pdu.empty() && (pdu[0] & 0x80) == 0) {
+      in_flight_->carried_out = true;
     }
     if (in_flight_->waiting_for > 0) --in_flight_->waiting_for;
   }
-  // A broadcast is never answered; an orphaned request's answer has nowhere to go.
+  // A broadcast is never answered; an orphaned request's answer has nowhere to go. It is counted
+  // once its units have all said: carried out when one of them took it (a tripped watchdog or the
+  // e-stop refuses it on every unit: not counted; the log says why).
   if (in_flight_ && in_flight_->waiting_for == 0 && (in_flight_->request.unit == 0 || in_flight_->orphaned)) {
+    if (in_flight_->request.unit == 0 && in_flight_->carried_out) {
+      counters_.broadcasts.fetch_add(1, std::memory_order_relaxed);
+    }
     in_flight_.reset();
   }
 }

@@ -114,7 +114,8 @@ class RtuSlavePort {
     std::optional<protocol::Bytes> answer;  // a unicast's answer, once it came
     std::uint64_t first_serial = 0;         // serials first_serial .. first_serial + count - 1
     std::size_t count = 0;
-    bool orphaned = false;  // the port was lost meanwhile: no answer will be sent
+    bool orphaned = false;     // the port was lost meanwhile: no answer will be sent
+    bool carried_out = false;  // a broadcast: some unit took it (a normal answer, not an exception)
   };
 
   void run_thread();

@@ -247,6 +247,9 @@ TEST(ConfigLoad, DumpWritesTheDefaultsOut) {
   EXPECT_EQ(dumped, R"(modbus_tcp:
   listen: 127.0.0.1:5020
   max_connections: 32
+  max_waiting: 16
+  max_waiting_per_address: 8
+  first_request_timeout_ms: 10000
   idle_timeout_s: 60
   gateway_unit_id: 255
   request_queue_depth: 64

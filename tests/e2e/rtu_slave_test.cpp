@@ -395,6 +395,25 @@ TEST_F(RtuSlave, TheEStopLatchedOverTcpRefusesRtuMotionWritesWith0x04) {
   EXPECT_EQ(arm_.field(1, "goal_position"), 2500);
 }
 
+// The counter's help says "carried out": a broadcast the e-stop refuses on every unit is not.
+TEST_F(RtuSlave, ABroadcastTheEStopRefusesIsNotCountedAsCarriedOut) {
+  ModbusClient gateway_unit(gateway_->port(), 247);
+  RtuClient master(p115200_.master_end(), 115200, 'E', 1);
+  ASSERT_TRUE(master.write_register(42, 1700).ok());
+  const long broadcasts = counter(p115200_, "broadcasts_total");
+  ASSERT_TRUE(gateway_unit.write_coils(1, {1}).ok());                                                 // e-stop
+  master.send_raw(protocol::rtu::frame(0, std::vector<std::uint8_t>{0x06, 0x00, 0x2A, 0x0B, 0xB8}));  // goal := 3000
+  EXPECT_TRUE(master.read_raw(100ms).empty());  // never answered (and the line is quiet before the next)
+  // The port takes one request at a time: once this read is answered, the broadcast is done.
+  ASSERT_TRUE(master.read_holding(42, 1).ok());
+  EXPECT_EQ(arm_.field(1, "goal_position"), 1700);
+  EXPECT_EQ(counter(p115200_, "broadcasts_total"), broadcasts);
+  ASSERT_TRUE(gateway_unit.write_coils(1, {0}).ok());
+  master.send_raw(protocol::rtu::frame(0, std::vector<std::uint8_t>{0x06, 0x00, 0x2A, 0x0B, 0xB8}));
+  EXPECT_TRUE(eventually([&] { return arm_.field(1, "goal_position") == 3000; }));
+  EXPECT_TRUE(eventually([&] { return counter(p115200_, "broadcasts_total") == broadcasts + 1; }));
+}
+
 TEST_F(RtuSlave, AServoThatStopsAnsweringIs0x0BNotSilence) {
   // The unit exists and the gateway is alive: the panel learns at once that the servo is gone.
   RtuClient master(p115200_.master_end(), 115200, 'E', 2);

@@ -1,4 +1,4 @@
-#include "gateway/modbus_tcp/listener.h"
+#include "gateway/net/listener.h"
 
 #include <future>
 #include <memory>
