@@ -72,7 +72,7 @@ constexpr std::uint16_t address_span(Addressing addressing, const FieldSpec& fie
   return addressing == Addressing::Register ? 1 : field.size;
 }
 
-// The compile-time checks every table gets (STYLE.md): fields sorted by address, no two
+// The compile-time checks every table gets: fields sorted by address, no two
 // fields sharing an address, sizes 1 or 2 (a register is 2), min <= max, a default inside
 // the range, and names unique.
 constexpr bool fields_sorted_and_disjoint(std::span<const FieldSpec> fields, Addressing addressing) {

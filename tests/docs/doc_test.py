@@ -91,7 +91,7 @@ def check_outside_references(source):
         for n, line in enumerate(text.split("\n"), 1):
             if f == "tests/docs/doc_test.py":
                 continue
-            if re.search(r"\.\./shared/|\bSPEC\.md\b|\bSPEC §|(?<![/\w])MODBUS_MAP\.md", line):
+            if re.search(r"\.\./shared/|\bSPEC\.md\b|\bSPEC §|(?<![/\w])MODBUS_MAP\.md|\bSTYLE\.md\b|\bCONTAINERS\.md\b", line):
                 errors.append(f"{f}:{n}: refers to a document outside the repository: {line.strip()[:100]}")
             # The tracker is not part of the product: a reader of the repository cannot look it up.
             if re.search(r"\bissues? \d+\b", line, re.IGNORECASE):
