@@ -103,7 +103,8 @@ buses: []
 servos: []
 )"),
             "plant.yaml:2:3: unknown key `port` in modbus_tcp; allowed keys here: listen, max_connections, "
-            "idle_timeout_s, gateway_unit_id, request_queue_depth, allow, plain, tls");
+            "max_waiting, max_waiting_per_address, first_request_timeout_ms, idle_timeout_s, gateway_unit_id, "
+            "request_queue_depth, allow, plain, tls");
   EXPECT_EQ(error_text(R"(buses:
   - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
 servos: []
@@ -222,7 +223,8 @@ TEST(ConfigErrors, ListWhereAMapBelongs) {
 buses: []
 servos: []
 )"),
-            "plant.yaml:1:13: modbus_tcp: expected a map of keys (listen, max_connections, idle_timeout_s, "
+            "plant.yaml:1:13: modbus_tcp: expected a map of keys (listen, max_connections, max_waiting, "
+            "max_waiting_per_address, first_request_timeout_ms, idle_timeout_s, "
             "gateway_unit_id, request_queue_depth, allow, plain, tls), got a list");
 }
 

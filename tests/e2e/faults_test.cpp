@@ -45,7 +45,8 @@ using Registers = std::vector<std::uint16_t>;
 // rule names an adapter) so the simulator can be unplugged and plugged in again. Bus `base`:
 // d55d motors 1 and 2 as units 101 and 102.
 constexpr const char* kCellConfig = R"(
-modbus_tcp: {listen: "127.0.0.1:5020", max_connections: @MAX_CONNECTIONS@, idle_timeout_s: @IDLE@,
+modbus_tcp: {listen: "127.0.0.1:5020", max_connections: @MAX_CONNECTIONS@, max_waiting: @MAX_WAITING@,
+             max_waiting_per_address: @MAX_WAITING@, idle_timeout_s: @IDLE@,
              request_queue_depth: 1000}
 buses:
   - {name: arm, device: "@ARM@", protocol: feetech, baud: 1000000, poll_period_ms: 20,
@@ -67,6 +68,8 @@ constexpr int kD55dGoalPosition = 30;  // d55d holding register (docs/PROTOCOL.m
 struct CellOptions {
   int arm_servos = 3;
   int max_connections = 16;
+  // Connections that have not sent a request yet, from 127.0.0.1 (gateway/net/door.h).
+  int max_waiting = 16;
   int idle_timeout_s = 60;
   // Generous: a loaded machine (2 cores, sanitizers, other test processes) can delay the
   // simulator's answers by hundreds of milliseconds, and a timeout marks a healthy servo offline
@@ -90,6 +93,7 @@ class Cell {
     yaml = substitute(yaml, "@ARM@", arm_link_);
     yaml = substitute(yaml, "@BASE@", base_.pty());
     yaml = substitute(yaml, "@MAX_CONNECTIONS@", std::to_string(options_.max_connections));
+    yaml = substitute(yaml, "@MAX_WAITING@", std::to_string(options_.max_waiting));
     yaml = substitute(yaml, "@IDLE@", std::to_string(options_.idle_timeout_s));
     yaml = substitute(yaml, "@TIMEOUT@", std::to_string(options_.response_timeout_ms));
     yaml = substitute(yaml, "@ARM_EXTRA@", options_.arm_bus_extra);
@@ -666,7 +670,9 @@ TEST(Faults, TwoHundredConcurrentClientsAreAllAnsweredAndOneOverTheLimitIsRefuse
                                           {41, "acceleration"}}};
   static_assert(kServos * kFields.size() == kClients);
   // 200 clients + the witness + the setup client below = 202: the next connection is one too many.
-  Cell cell(CellOptions{.arm_servos = kServos, .max_connections = kClients + 2});
+  // The clients all connect before any speaks: they wait at the door at once, so its budget of
+  // waiting connections (from this one address) is as large.
+  Cell cell(CellOptions{.arm_servos = kServos, .max_connections = kClients + 2, .max_waiting = kClients + 2});
   ModbusClient setup(cell.port(), 1, kPatient);  // stays open: counted for the whole test
   for (int unit = 1; unit <= kServos; ++unit) {
     setup.set_unit(unit);
