@@ -10,12 +10,12 @@
 
 #include "config/load.h"
 #include "gateway/console/console_server.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tcp_serving.h"
 #include "gateway/modbus_tcp/tls.h"
 #include "gateway/mqtt/sparkplug_node.h"
 #include "gateway/observability/metrics_server.h"
 #include "gateway/rtu_slave/rtu_slave_port.h"
+#include "gateway/service/role_policy.h"
 #include "gateway/units/safety.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/register_map.h"

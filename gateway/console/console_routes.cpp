@@ -7,8 +7,8 @@
 
 #include "gateway/console/console_commission.h"
 #include "gateway/console/console_view.h"
-#include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/service/modbus_request.h"
+#include "gateway/service/role_policy.h"
 #include "modbus_map/motion.h"
 #include "protocol/modbus_pdu.h"
 

@@ -25,11 +25,11 @@
 #include "gateway/console/console_routes.h"
 #include "gateway/console/console_view.h"
 #include "gateway/console/web_assets.h"
-#include "gateway/modbus_tcp/faults.h"
 #include "gateway/modbus_tcp/listener.h"
-#include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tls.h"
+#include "gateway/service/faults.h"
+#include "gateway/service/modbus_request.h"
+#include "gateway/service/role_policy.h"
 
 namespace sms::gateway::console {
 

@@ -20,8 +20,8 @@
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/wire_monitor.h"
 #include "gateway/console/console_commission.h"
-#include "gateway/modbus_tcp/request_handler.h"
 #include "gateway/observability/metrics.h"
+#include "gateway/service/request_handler.h"
 #include "gateway/units/safety.h"
 #include "gateway/units/unit_router.h"
 

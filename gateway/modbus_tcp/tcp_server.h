@@ -20,7 +20,7 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/service/request_handler.h"
 #include "protocol/packet.h"
 
 namespace boost::asio {

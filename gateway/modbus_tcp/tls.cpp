@@ -1,6 +1,6 @@
 #include "gateway/modbus_tcp/tls.h"
 
-#include "gateway/modbus_tcp/rate_limited_log.h"
+#include "gateway/service/rate_limited_log.h"
 
 #include <arpa/inet.h>
 #include <openssl/asn1.h>
@@ -21,7 +21,7 @@
 #include <boost/asio/error.hpp>
 #include <boost/asio/ssl/error.hpp>
 
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 
 namespace sms::gateway {
 namespace {

@@ -22,9 +22,9 @@
 #include <boost/asio/ssl/context.hpp>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tcp_server.h"
 #include "gateway/modbus_tcp/tls_stats.h"
+#include "gateway/service/role_policy.h"
 
 namespace sms::gateway {
 

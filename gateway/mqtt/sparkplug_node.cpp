@@ -15,7 +15,7 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 #include "gateway/units/gateway_unit.h"
 #include "gateway/units/state_file.h"
 #include "gateway/units/unit_router.h"

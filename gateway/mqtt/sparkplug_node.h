@@ -21,9 +21,9 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/request_handler.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/mqtt/mqtt_link.h"
+#include "gateway/service/request_handler.h"
+#include "gateway/service/role_policy.h"
 #include "modbus_map/register_map.h"
 #include "protocol/sparkplug/sparkplug.h"
 

@@ -14,7 +14,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/wakeup.h"
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 #include "protocol/modbus_pdu.h"
 
 namespace sms::gateway {

@@ -41,10 +41,10 @@
 #include "config/config.h"
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/rtu_master.h"
-#include "gateway/modbus_tcp/rate_limited_log.h"
-#include "gateway/modbus_tcp/request_handler.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/rtu_slave/rtu_slave_stats.h"
+#include "gateway/service/rate_limited_log.h"
+#include "gateway/service/request_handler.h"
+#include "gateway/service/role_policy.h"
 #include "protocol/modbus_rtu.h"
 
 namespace sms::gateway {

@@ -3,7 +3,7 @@
 // codes; this is the bus side of the table, kept with the units that run bus operations so the
 // Modbus TCP side does not depend on the buses).
 #include "gateway/bus/bus_operations.h"
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/faults.h"
 
 namespace sms::gateway {
 

@@ -8,7 +8,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/write_batch.h"
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/faults.h"
 #include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
 #include "gateway/units/unit_router.h"

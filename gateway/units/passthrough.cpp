@@ -7,9 +7,9 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/bus_engine.h"
-#include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/modbus_tcp/tcp_serving.h"
+#include "gateway/service/faults.h"
+#include "gateway/service/modbus_request.h"
 #include "gateway/units/bus_faults.h"
 
 namespace sms::gateway {

@@ -27,7 +27,7 @@
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/bus_join.h"
-#include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/service/request_handler.h"
 
 namespace sms::gateway {
 

@@ -16,9 +16,9 @@
 
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/write_batch.h"
-#include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/service/faults.h"
+#include "gateway/service/modbus_request.h"
+#include "gateway/service/request_handler.h"
 #include "gateway/units/state_file.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/motion.h"

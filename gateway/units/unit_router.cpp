@@ -5,19 +5,22 @@
 
 #include <spdlog/spdlog.h>
 
-#include "gateway/modbus_tcp/access_policy.h"
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/faults.h"
+#include "gateway/service/role_policy.h"
 #include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
 #include "gateway/units/passthrough.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
+#include "protocol/modbus_pdu.h"
 #include "protocol/overloaded.h"
 
 namespace sms::gateway {
 namespace {
 
 namespace fc = function_code;
+using protocol::function_effect;
+using protocol::FunctionEffect;
 namespace facts_layout = servo_facts_layout;
 using modbus_map::TableId;
 

@@ -1,5 +1,5 @@
 // libFuzzer target: gateway::parse_request, the Modbus TCP request PDU parser every client PDU
-// goes through (gateway/modbus_tcp/modbus_request.h), and the response builders its answers use. The
+// goes through (gateway/service/modbus_request.h), and the response builders its answers use. The
 // whole input is one PDU, function code first.
 //
 // Invariants:
@@ -20,8 +20,8 @@
 #include <vector>
 
 #include "fuzz_support.h"
-#include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/faults.h"
+#include "gateway/service/modbus_request.h"
 #include "protocol/modbus_tcp.h"
 
 namespace {

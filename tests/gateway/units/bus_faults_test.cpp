@@ -3,7 +3,7 @@
 
 #include <stdexcept>
 
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/faults.h"
 #include "gateway/units/bus_faults.h"
 
 namespace sms::gateway {

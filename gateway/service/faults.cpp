@@ -1,4 +1,4 @@
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/faults.h"
 
 #include <array>
 #include <stdexcept>

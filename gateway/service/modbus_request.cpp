@@ -1,4 +1,4 @@
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 
 #include <stdexcept>
 #include <type_traits>

@@ -2,8 +2,8 @@
 // written out by hand from the Modbus application protocol v1.1b3 §6.
 #include <gtest/gtest.h>
 
-#include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/faults.h"
+#include "gateway/service/modbus_request.h"
 
 namespace sms::gateway {
 namespace {

@@ -7,7 +7,7 @@
 #include <variant>
 #include <vector>
 
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/faults.h"
 #include "protocol/expected.h"
 #include "protocol/modbus_pdu.h"
 #include "protocol/packet.h"

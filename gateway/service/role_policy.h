@@ -28,7 +28,7 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/faults.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {
@@ -69,6 +69,13 @@ class RolePolicy {
   std::uint8_t gateway_unit_id_ = 255;
   std::vector<GroupBlock> groups_;
 };
+
+// Whether a read-only unit answers `function` itself: nullopt when it may be served (reads),
+// BadAddress (0x02) for writes, as a write to a read-only field is answered (docs/PLC_GUIDE.md),
+// UnsupportedFunction (0x01) for functions whose effect the gateway cannot know (passthrough
+// units forward any code; a read-only one forwards reads only). docs/DECISIONS.md "Operations
+// and security". The unit router asks it for servo and passthrough units alike.
+std::optional<Fault> read_only_refusal(std::uint8_t function);
 
 // Whether writing `field` of a servo's table needs the engineer role whatever the value: EEPROM
 // fields and the `lock` field (it only decides whether EEPROM writes persist).

@@ -1,16 +1,18 @@
-#include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/service/role_policy.h"
 
 #include <set>
 #include <variant>
 
-#include "gateway/modbus_tcp/access_policy.h"
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 #include "modbus_map/tables.h"
+#include "protocol/modbus_pdu.h"
 
 namespace sms::gateway {
 namespace {
 
 using config::Role;
+using protocol::function_effect;
+using protocol::FunctionEffect;
 
 modbus_map::Profile map_profile(config::Profile profile) {
   return profile == config::Profile::Smsmb ? modbus_map::Profile::Smsmb : modbus_map::Profile::Native;
@@ -39,6 +41,15 @@ std::string field_text(const modbus_map::FieldSpec& field) {
 }
 
 }  // namespace
+
+std::optional<Fault> read_only_refusal(std::uint8_t function) {
+  switch (function_effect(function)) {
+    case FunctionEffect::Reads: return std::nullopt;
+    case FunctionEffect::Writes: return Fault::BadAddress;
+    case FunctionEffect::Unknown: break;
+  }
+  return Fault::UnsupportedFunction;
+}
 
 bool engineer_only_field(const modbus_map::FieldSpec& field) {
   return field.area == modbus_map::Area::Eeprom || field.name == "lock";
