@@ -27,7 +27,6 @@
 #include "gateway/console/web_assets.h"
 #include "gateway/modbus_tcp/listener.h"
 #include "gateway/modbus_tcp/tls.h"
-#include "gateway/service/faults.h"
 #include "gateway/service/modbus_request.h"
 #include "gateway/service/role_policy.h"
 
@@ -233,7 +232,7 @@ class ConsoleServer::Impl final : public Services {
   void submit(const Principal& who, std::uint8_t unit, Bytes pdu, std::function<void(ModbusAnswer)> done,
               std::optional<JogSession> jog) {
     if (const auto refusal = policy_.refusal(who.role, unit, pdu)) {
-      const std::uint8_t code = exception_code(refusal->fault);
+      const std::uint8_t code = static_cast<std::uint8_t>(refusal->exception);
       spdlog::info("console: {} ({}) refused: {}", who.name, config::to_string(who.role), refusal->reason);
       ModbusAnswer answer;
       answer.exception = code;
@@ -249,7 +248,8 @@ class ConsoleServer::Impl final : public Services {
       // The e-stop is latched and reset, and watchdogs re-armed, on this thread, and the router
       // admits the write on it right after this look: no latch and reset can come between them.
       if (jog && jog->ended(safety->motion_stops(jog->bus()))) {
-        return reply.send(exception_response(pdu.empty() ? 0 : pdu[0], Fault::MotionBlocked));
+        return reply.send(  // 0x04: motion blocked, as the router answers it
+            exception_response(pdu.empty() ? 0 : pdu[0], ModbusException::ServerDeviceFailure));
       }
       router->handle(unit, pdu, reply);
     });

@@ -22,6 +22,7 @@
 #include "gateway/console/console_commission.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/service/request_handler.h"
+#include "gateway/service/role_policy.h"
 #include "gateway/units/safety.h"
 #include "gateway/units/unit_router.h"
 

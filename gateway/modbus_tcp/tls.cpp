@@ -195,8 +195,8 @@ class RoleGate final : public RequestHandler {
     const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
     service_.count_refusal(role_);
     refusal_log_.warn(fmt::format("modbus tcp security: {}: unit {} FC{:02X} refused (0x{:02X}): {}", client_, unit_id,
-                                  function, exception_code(refusal->fault), refusal->reason));
-    reply.send(exception_response(function, refusal->fault));
+                                  function, static_cast<std::uint8_t>(refusal->exception), refusal->reason));
+    reply.send(exception_response(function, refusal->exception));
   }
 
  private:

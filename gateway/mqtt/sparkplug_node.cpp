@@ -438,7 +438,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     const bool command =
         !std::holds_alternative<ReadBitsRequest>(request) && !std::holds_alternative<ReadRegistersRequest>(request);
     if (const auto refusal = command ? policy_.refusal(settings_.role, unit_id, pdu) : std::nullopt) {
-      return done(Answer{exception_response(function_of(request), refusal->fault),
+      return done(Answer{exception_response(function_of(request), refusal->exception),
                          "role " + std::string(config::to_string(settings_.role)) + " may not: " + refusal->reason});
     }
     const std::uint64_t serial = next_serial_++;

@@ -399,8 +399,9 @@ void RtuSlavePort::handle_on_io_thread(std::uint8_t unit, const Bytes& pdu, cons
   counters_.role_refusals.fetch_add(1, std::memory_order_relaxed);
   const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
   refusal_log_.warn(fmt::format("{}: unit {} FC{:02X} refused (0x{:02X}) for role {}: {}", what(), unit, function,
-                                exception_code(refusal->fault), config::to_string(port_.role), refusal->reason));
-  reply.send(exception_response(function, refusal->fault));
+                                static_cast<std::uint8_t>(refusal->exception), config::to_string(port_.role),
+                                refusal->reason));
+  reply.send(exception_response(function, refusal->exception));
 }
 
 void RtuSlavePort::collect_answers() {

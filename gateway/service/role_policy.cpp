@@ -42,13 +42,13 @@ std::string field_text(const modbus_map::FieldSpec& field) {
 
 }  // namespace
 
-std::optional<Fault> read_only_refusal(std::uint8_t function) {
+std::optional<ModbusException> read_only_refusal(std::uint8_t function) {
   switch (function_effect(function)) {
     case FunctionEffect::Reads: return std::nullopt;
-    case FunctionEffect::Writes: return Fault::BadAddress;
+    case FunctionEffect::Writes: return ModbusException::IllegalDataAddress;
     case FunctionEffect::Unknown: break;
   }
-  return Fault::UnsupportedFunction;
+  return ModbusException::IllegalFunction;
 }
 
 bool engineer_only_field(const modbus_map::FieldSpec& field) {
@@ -83,19 +83,20 @@ std::optional<RoleRefusal> RolePolicy::refusal(Role role, std::uint8_t unit_id,
   const FunctionEffect effect = function_effect(function);
   switch (role) {
     case Role::Engineer: return std::nullopt;
-    case Role::None: return RoleRefusal{Fault::UnsupportedFunction, "the connection has no role"};
+    case Role::None: return RoleRefusal{ModbusException::IllegalFunction, "the connection has no role"};
     case Role::Read:
       if (effect == FunctionEffect::Reads) return std::nullopt;
-      return RoleRefusal{Fault::UnsupportedFunction, "role read may only read"};
+      return RoleRefusal{ModbusException::IllegalFunction, "role read may only read"};
     case Role::Operate: break;
   }
   if (effect == FunctionEffect::Reads) return std::nullopt;
   if (effect == FunctionEffect::Unknown) {
-    return RoleRefusal{Fault::UnsupportedFunction, "functions of unknown effect need role engineer"};
+    return RoleRefusal{ModbusException::IllegalFunction, "functions of unknown effect need role engineer"};
   }
   if (passthrough_[unit_id]) {
     if (standard_write(function)) return std::nullopt;
-    return RoleRefusal{Fault::UnsupportedFunction, "this write function needs role engineer on a passthrough unit"};
+    return RoleRefusal{ModbusException::IllegalFunction,
+                       "this write function needs role engineer on a passthrough unit"};
   }
   if (const Unit* unit = units_[unit_id].get()) return servo_write_refusal(*unit, pdu);
   if (unit_id == gateway_unit_id_) return gateway_write_refusal(pdu);
@@ -126,7 +127,7 @@ std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const Unit& unit, std
       const auto* field = modbus_map::field_covering(table, static_cast<std::uint16_t>(write.address + i));
       if (field == nullptr || !seen.insert(field).second) continue;
       if (engineer_only_field(*field)) {
-        return RoleRefusal{Fault::BadAddress,
+        return RoleRefusal{ModbusException::IllegalDataAddress,
                            "writes " + std::string(field->area == modbus_map::Area::Eeprom ? "EEPROM " : "") +
                                "field " + field_text(*field) + ", which needs role engineer"};
       }
@@ -136,7 +137,7 @@ std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const Unit& unit, std
       const auto raw =
           modbus_map::load_raw(std::span<const std::uint8_t>(write.data).subspan(offset), field->size, order);
       if (raw == static_cast<std::uint32_t>(modbus_map::kCalibrateTorqueValue)) {
-        return RoleRefusal{Fault::BadAddress,
+        return RoleRefusal{ModbusException::IllegalDataAddress,
                            "mid-point calibration (" + field_text(*field) + " := 128) needs role engineer"};
       }
     }
@@ -155,8 +156,8 @@ std::optional<RoleRefusal> RolePolicy::gateway_write_refusal(std::span<const std
   for (const auto& group : groups_) {
     if (!group.engineer_only) continue;
     if (first < std::uint32_t{group.start} + group.count && group.start < end) {
-      return RoleRefusal{Fault::BadAddress, "sync group " + group.name + " writes EEPROM field " + group.field +
-                                                ", which needs role engineer"};
+      return RoleRefusal{ModbusException::IllegalDataAddress, "sync group " + group.name + " writes EEPROM field " +
+                                                                  group.field + ", which needs role engineer"};
     }
   }
   return std::nullopt;

@@ -5,7 +5,7 @@
 // through the safety rules; a refused request never reaches the router.
 //
 //   RolePolicy policy(config);
-//   if (const auto refusal = policy.refusal(Role::Operate, unit_id, pdu)) reply exception_code(refusal->fault);
+//   if (const auto refusal = policy.refusal(Role::Operate, unit_id, pdu)) reply refusal->exception;
 //
 // Rights:
 //   read      functions that only read (01 02 03 04, and 07 11 12 17 20 24 on passthrough units)
@@ -28,14 +28,14 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/service/faults.h"
+#include "gateway/service/modbus_request.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {
 
 struct RoleRefusal {
-  Fault fault = Fault::UnsupportedFunction;  // 0x01 or 0x02
-  std::string reason;                        // for the log: "writes EEPROM field id (5)"
+  ModbusException exception = ModbusException::IllegalFunction;  // 0x01 or 0x02
+  std::string reason;                                            // for the log: "writes EEPROM field id (5)"
 };
 
 class RolePolicy {
@@ -71,11 +71,11 @@ class RolePolicy {
 };
 
 // Whether a read-only unit answers `function` itself: nullopt when it may be served (reads),
-// BadAddress (0x02) for writes, as a write to a read-only field is answered (docs/PLC_GUIDE.md),
-// UnsupportedFunction (0x01) for functions whose effect the gateway cannot know (passthrough
-// units forward any code; a read-only one forwards reads only). docs/DECISIONS.md "Operations
-// and security". The unit router asks it for servo and passthrough units alike.
-std::optional<Fault> read_only_refusal(std::uint8_t function);
+// 0x02 for writes, as a write to a read-only field is answered (docs/PLC_GUIDE.md), 0x01 for
+// functions whose effect the gateway cannot know (passthrough units forward any code; a
+// read-only one forwards reads only). docs/DECISIONS.md "Operations and security". The unit
+// router asks it for servo and passthrough units alike.
+std::optional<ModbusException> read_only_refusal(std::uint8_t function);
 
 // Whether writing `field` of a servo's table needs the engineer role whatever the value: EEPROM
 // fields and the `lock` field (it only decides whether EEPROM writes persist).

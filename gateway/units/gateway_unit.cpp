@@ -8,7 +8,6 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/write_batch.h"
-#include "gateway/service/faults.h"
 #include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
 #include "gateway/units/unit_router.h"
@@ -161,7 +160,7 @@ void GatewayUnit::handle(const Request& request, const Reply& reply) {
                    if (read.function == fc::kReadInputRegisters) {
                      const auto values = input_registers(read.address, read.count);
                      reply.send(values ? registers_response(read.function, *values)
-                                       : exception_response(read.function, Fault::BadAddress));
+                                       : exception_response(read.function, ModbusException::IllegalDataAddress));
                    } else if (heartbeat_range(read.address, read.count)) {
                      read_heartbeats(read.function, read.address, read.count, reply);
                    } else {
@@ -172,7 +171,7 @@ void GatewayUnit::handle(const Request& request, const Reply& reply) {
                    const bool coils_read = read.function == fc::kReadCoils;
                    const std::uint32_t end = std::uint32_t{read.address} + read.count;
                    if (end > (coils_read ? layout::kCoilCount : layout::kDiscreteInputCount)) {
-                     reply.send(exception_response(read.function, Fault::BadAddress));
+                     reply.send(exception_response(read.function, ModbusException::IllegalDataAddress));
                      return;
                    }
                    std::vector<bool> bits;
@@ -239,7 +238,7 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
   for (std::uint32_t a = address; a < std::uint32_t{address} + count; ++a) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(a));
     if (member == nullptr) {
-      reply.send(exception_response(function, Fault::BadAddress));
+      reply.send(exception_response(function, ModbusException::IllegalDataAddress));
       return;
     }
     members.push_back(member);
@@ -249,7 +248,7 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
   for (const SyncMember* member : members) {
     auto plan = member->map.plan_holding_read(member->field->addr, 1);
     if (!plan || plan->reads.size() != 1) {
-      reply.send(exception_response(function, Fault::BadAddress));
+      reply.send(exception_response(function, ModbusException::IllegalDataAddress));
       return;
     }
     plans.push_back(std::move(*plan));
@@ -264,7 +263,7 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
       const protocol::Bytes replies[] = {results[i].data};
       const auto value = members[i]->map.registers_from(plans[i], replies);
       if (!value) {
-        reply.send(exception_response(function, fault_from(value.error().code)));
+        reply.send(exception_response(function, value.error().code));
         return;
       }
       values.push_back(value->at(0));
@@ -303,13 +302,13 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
     if (member == nullptr || member->read_only) {
-      reply.send(exception_response(request.function, Fault::BadAddress));
+      reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
       return;
     }
     auto bytes = member->map.field_bytes(*member->field, request.values[i]);
     if (!bytes) {
       spdlog::debug("gateway unit: sync group register {}: {}", request.address + i, bytes.error().message);
-      reply.send(exception_response(request.function, fault_from(bytes.error().code)));
+      reply.send(exception_response(request.function, bytes.error().code));
       return;
     }
     batches[member->bus].add(member->servo_id, member->field->addr, std::move(*bytes));
@@ -412,7 +411,7 @@ void GatewayUnit::write_heartbeats(const WriteRegistersRequest& request) {
 
 void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply) {
   if (request.values.size() != 1) {  // each coil is a command of its own: one per request
-    reply.send(exception_response(request.function, Fault::BadAddress));
+    reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
     return;
   }
   switch (request.address) {
@@ -420,13 +419,13 @@ void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply
     case layout::kEStopCoil: write_estop_coil(request, reply); return;
     case layout::kWatchdogCoil:
       if (request.values[0]) {  // a trip comes from silence, not from a write
-        reply.send(exception_response(request.function, Fault::BadValue));
+        reply.send(exception_response(request.function, ModbusException::IllegalDataValue));
         return;
       }
       safety_.rearm_watchdogs(reply.origin());
       reply.send(write_response(request));
       return;
-    default: reply.send(exception_response(request.function, Fault::BadAddress));
+    default: reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
   }
 }
 
@@ -442,7 +441,7 @@ void GatewayUnit::write_estop_coil(const WriteBitsRequest& request, const Reply&
       [request, reply](bool ok) {
         if (!ok) {
           spdlog::error("gateway unit: e-stop latched, but a bus could not take its stop frames (see above)");
-          reply.send(exception_response(request.function, Fault::ServoRefused));
+          reply.send(exception_response(request.function, ModbusException::ServerDeviceFailure));
           return;
         }
         reply.send(write_response(request));

@@ -16,7 +16,6 @@
 
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/write_batch.h"
-#include "gateway/service/faults.h"
 #include "gateway/service/modbus_request.h"
 #include "gateway/service/request_handler.h"
 #include "gateway/units/state_file.h"
@@ -113,7 +112,7 @@ std::optional<MotionEpoch> admit_or_refuse(SafetySupervisor& safety, MotionRefus
   auto admitted = safety.admit_motion(bus);
   if (admitted) return *admitted;
   log.refused(what, function, admitted.error());
-  reply.send(exception_response(function, Fault::MotionBlocked));
+  reply.send(exception_response(function, ModbusException::ServerDeviceFailure));  // 0x04: motion blocked
   return std::nullopt;
 }
 

@@ -5,7 +5,6 @@
 
 #include <spdlog/spdlog.h>
 
-#include "gateway/service/faults.h"
 #include "gateway/service/role_policy.h"
 #include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
@@ -142,7 +141,7 @@ void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu,
     // io thread (and every other connection) down with it.
     spdlog::error("modbus: unit {}: request {:02X} failed inside the gateway: {}", unit_id, pdu.empty() ? 0 : pdu[0],
                   error.what());
-    reply.send(exception_response(pdu.empty() ? 0 : pdu[0], Fault::InternalError));
+    reply.send(exception_response(pdu.empty() ? 0 : pdu[0], ModbusException::ServerDeviceFailure));
   }
 }
 
@@ -158,7 +157,7 @@ void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pd
   const ServoUnit* unit = units_[unit_id].get();
   if (unit == nullptr && unit_id != gateway_unit_id_) {
     spdlog::debug("modbus: request for unit {}, which is not configured", unit_id);
-    reply.send(exception_response(function, Fault::UnknownUnit));
+    reply.send(exception_response(function, ModbusException::GatewayPathUnavailable));
     return;
   }
   const auto request = parse_request(pdu);
@@ -177,7 +176,7 @@ void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8
   const std::uint8_t function = pdu[0];
   if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
   if (!unit.engine->bus_up()) {
-    reply.send(exception_response(function, Fault::BusDown));
+    reply.send(exception_response(function, ModbusException::GatewayPathUnavailable));
     return;
   }
   MotionEpoch epoch = 0;
@@ -209,7 +208,7 @@ bool UnitRouter::refused_as_read_only(bool read_only, const std::string& label, 
 void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply) {
   const std::uint8_t function = function_of(request);
   if (!unit.engine->bus_up()) {
-    reply.send(exception_response(function, Fault::BusDown));
+    reply.send(exception_response(function, ModbusException::GatewayPathUnavailable));
     return;
   }
   if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
@@ -260,7 +259,7 @@ void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, con
 void UnitRouter::refuse(const ServoUnit& unit, std::uint8_t function, const modbus_map::MapError& error,
                         const Reply& reply) const {
   spdlog::debug("modbus: {} FC{:02X}: {}", unit.label, function, error.message);
-  reply.send(exception_response(function, fault_from(error.code)));
+  reply.send(exception_response(function, error.code));
 }
 
 void UnitRouter::read_holding(const ServoUnit& unit, std::uint8_t function, std::uint16_t start, std::uint16_t count,
@@ -278,7 +277,7 @@ void UnitRouter::read_holding(const ServoUnit& unit, std::uint8_t function, std:
 void UnitRouter::read_input(const ServoUnit& unit, const ReadRegistersRequest& request, const Reply& reply) {
   if (request.address >= facts_layout::kFirstRegister) {
     if (std::uint32_t{request.address} + request.count > facts_layout::kFirstRegister + facts_layout::kRegisterCount) {
-      reply.send(exception_response(request.function, Fault::BadAddress));
+      reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
       return;
     }
     const auto registers = servo_fact_registers(facts_of(unit));
@@ -310,7 +309,7 @@ void UnitRouter::read_coils(const ServoUnit& unit, const ReadBitsRequest& reques
 void UnitRouter::read_discrete(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply) {
   if (request.address >= facts_layout::kFirstBit) {
     if (std::uint32_t{request.address} + request.count > facts_layout::kOnlineBit + 1u) {
-      reply.send(exception_response(request.function, Fault::BadAddress));
+      reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
       return;
     }
     const ServoFacts facts = facts_of(unit);
@@ -347,13 +346,13 @@ std::optional<std::vector<protocol::Bytes>> UnitRouter::copy_from_cache(const Se
       case CacheRead::Ok: break;
       case CacheRead::NoData:
         // Never answered a poll since the gateway started: nothing to serve, as a live read would fail.
-        reply.send(exception_response(function, Fault::ServoTimeout));
+        reply.send(exception_response(function, ModbusException::GatewayTargetFailedToRespond));
         return std::nullopt;
       case CacheRead::UnknownServo:
       case CacheRead::OutsideBlock:
         spdlog::warn("modbus: {}: bus addresses {}+{} are not in the poll cache", unit.label, range.address,
                      range.count);
-        reply.send(exception_response(function, Fault::BadAddress));
+        reply.send(exception_response(function, ModbusException::IllegalDataAddress));
         return std::nullopt;
     }
     replies.push_back(std::move(bytes));

@@ -38,7 +38,7 @@ Pdu write_register(std::uint16_t address, std::uint16_t value) {
 std::optional<std::uint8_t> refused(const RolePolicy& policy, Role role, std::uint8_t unit, const Pdu& pdu) {
   const auto refusal = policy.refusal(role, unit, pdu);
   if (!refusal) return std::nullopt;
-  return exception_code(refusal->fault);
+  return static_cast<std::uint8_t>(refusal->exception);
 }
 
 TEST(RolePolicy, ReadRoleReadsOnlyAndGetsIllegalFunctionForEveryWrite) {
@@ -97,7 +97,7 @@ TEST(RolePolicy, EngineerMayDoEverything) {
 std::string verdict(std::uint8_t function) {
   const auto refusal = read_only_refusal(function);
   if (!refusal) return "served";
-  return "exception " + std::to_string(exception_code(*refusal));
+  return "exception " + std::to_string(static_cast<int>(*refusal));
 }
 
 TEST(ReadOnlyUnit, ReadsAreServed) {
