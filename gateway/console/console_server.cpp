@@ -132,7 +132,7 @@ class ConsoleServer::Impl final : public Services {
         backend_(std::move(backend)),
         limits_(limits),
         rules_(access_rules(settings_)),
-        policy_(*backend_.config),
+        policy_(backend_.policy != nullptr ? *backend_.policy : throw std::invalid_argument("console: no role policy")),
         sessions_(settings_.session_timeout),
         commissioning_(*backend_.config, backend_.lending),
         acceptor_(io_),
@@ -459,7 +459,7 @@ class ConsoleServer::Impl final : public Services {
   const ConsoleBackend backend_;
   const ConsoleLimits limits_;
   const AccessRules rules_;
-  const RolePolicy policy_;
+  const RolePolicy& policy_;
   SessionStore sessions_;
   Commissioning commissioning_;
   std::shared_ptr<ssl::context> ssl_;

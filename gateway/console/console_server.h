@@ -40,6 +40,8 @@ struct ConsoleBackend {
   BusLending lending;  // empty functions: no bus can be stopped from the console (tests)
   // The safety rules every hold-to-run move checks (console_jog.h); required.
   const SafetySupervisor* safety = nullptr;
+  // The role rights every request passes before the router (the gateway's one RolePolicy); required.
+  const RolePolicy* policy = nullptr;
 };
 
 struct ConsoleLimits {

@@ -344,8 +344,8 @@ std::shared_ptr<ssl::context> make_tls_context(const config::TlsConfig& settings
   return context;
 }
 
-TlsService::TlsService(const config::TlsConfig& settings, const config::Config& config, RequestHandler& router)
-    : settings_(settings), router_(router), policy_(config), context_(make_tls_context(settings)) {
+TlsService::TlsService(const config::TlsConfig& settings, const RolePolicy& policy, RequestHandler& router)
+    : settings_(settings), router_(router), policy_(policy), context_(make_tls_context(settings)) {
   certificate_expiry_ = describe_context();
 }
 

@@ -4,7 +4,7 @@
 // a client certificate gets, and the RoleGate put in front of the unit router for each secure
 // connection. Internal to gateway/ (Asio and OpenSSL in the header are fine here).
 //
-//   TlsService tls(config.modbus_tcp.tls, config, router);  // throws std::runtime_error: bad file
+//   TlsService tls(config.modbus_tcp.tls, policy, router);  // throws std::runtime_error: bad file
 //   options.tls = &tls;                                      // TcpServer does the handshakes
 //   tls.reload();                                            // SIGHUP: new handshakes use the new files
 #include <array>
@@ -58,8 +58,8 @@ std::shared_ptr<boost::asio::ssl::context> make_tls_context(const config::TlsCon
 class TlsService {
  public:
   // Loads the files (throws std::runtime_error when it cannot). `router` answers the requests
-  // the role rights let through; it must outlive the service.
-  TlsService(const config::TlsConfig& settings, const config::Config& config, RequestHandler& router);
+  // the role rights (`policy`) let through; both must outlive the service.
+  TlsService(const config::TlsConfig& settings, const RolePolicy& policy, RequestHandler& router);
 
   const config::TlsConfig& settings() const { return settings_; }
   // The context for the next handshake (thread-safe).
@@ -87,7 +87,7 @@ class TlsService {
 
   const config::TlsConfig settings_;
   RequestHandler& router_;
-  const RolePolicy policy_;
+  const RolePolicy& policy_;
   mutable std::mutex mutex_;
   std::shared_ptr<boost::asio::ssl::context> context_;
   std::string certificate_expiry_;  // "2034-05-01 12:00:00 GMT", for the log

@@ -172,8 +172,8 @@ std::string read_mqtt_files(const config::MqttConfig& mqtt) {
 
 class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugNode::Impl> {
  public:
-  Impl(const config::Config& config, asio::io_context& io, UnitRouter& router)
-      : config_(config), settings_(*config.mqtt), io_(io), router_(router), policy_(config), timer_(io) {
+  Impl(const config::Config& config, asio::io_context& io, UnitRouter& router, const RolePolicy& policy)
+      : config_(config), settings_(*config.mqtt), io_(io), router_(router), policy_(policy), timer_(io) {
     for (const auto& servo : config.servos) {
       if (servo.passthrough() || servo.view_of) continue;  // a servo is one device, however many units show it
       const ServoUnit* unit = router.servo_unit(servo.unit_id);
@@ -937,7 +937,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   const config::MqttConfig& settings_;
   asio::io_context& io_;
   UnitRouter& router_;
-  RolePolicy policy_;
+  const RolePolicy& policy_;
   asio::steady_timer timer_;
   std::unique_ptr<MqttLink> link_;
   std::shared_ptr<Replies> replies_;
@@ -966,8 +966,9 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   SparkplugStats stats_;
 };
 
-SparkplugNode::SparkplugNode(const config::Config& config, asio::io_context& io, UnitRouter& router)
-    : impl_(std::make_shared<Impl>(config, io, router)) {}
+SparkplugNode::SparkplugNode(const config::Config& config, asio::io_context& io, UnitRouter& router,
+                             const RolePolicy& policy)
+    : impl_(std::make_shared<Impl>(config, io, router, policy)) {}
 SparkplugNode::~SparkplugNode() { impl_->stop(); }
 void SparkplugNode::start() { impl_->start(); }
 void SparkplugNode::stop() { impl_->stop(); }

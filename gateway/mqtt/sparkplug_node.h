@@ -56,8 +56,10 @@ std::string read_mqtt_files(const config::MqttConfig& mqtt);
 
 class SparkplugNode {
  public:
-  // `router` answers the node's requests on `io`'s thread; both outlive the node.
-  SparkplugNode(const config::Config& config, boost::asio::io_context& io, UnitRouter& router);
+  // `router` answers the node's requests on `io`'s thread, `policy` holds the rights of
+  // mqtt.role; all three outlive the node.
+  SparkplugNode(const config::Config& config, boost::asio::io_context& io, UnitRouter& router,
+                const RolePolicy& policy);
   ~SparkplugNode();
   SparkplugNode(const SparkplugNode&) = delete;
   SparkplugNode& operator=(const SparkplugNode&) = delete;

@@ -14,10 +14,6 @@ using config::Role;
 using protocol::function_effect;
 using protocol::FunctionEffect;
 
-modbus_map::Profile map_profile(config::Profile profile) {
-  return profile == config::Profile::Smsmb ? modbus_map::Profile::Smsmb : modbus_map::Profile::Native;
-}
-
 // The torque switch of each table; 128 written to it is the mid-point calibration (docs/PROTOCOL.md §1.1).
 bool is_torque_switch(const modbus_map::FieldSpec& field) {
   return field.name == "torque_enable" || field.name == "torque_switch";
@@ -55,16 +51,7 @@ bool engineer_only_field(const modbus_map::FieldSpec& field) {
   return field.area == modbus_map::Area::Eeprom || field.name == "lock";
 }
 
-RolePolicy::RolePolicy(const config::Config& config) : gateway_unit_id_(config.modbus_tcp.gateway_unit_id) {
-  for (const auto& servo : config.servos) {
-    if (servo.passthrough()) {
-      passthrough_[servo.unit_id] = true;
-      continue;
-    }
-    auto map = modbus_map::RegisterMap::create(*servo.table, map_profile(servo.profile), servo.byte_order);
-    if (!map) continue;  // the router refuses to start on it
-    units_[servo.unit_id] = std::make_unique<Unit>(Unit{std::move(*map)});
-  }
+RolePolicy::RolePolicy(const config::Config& config, const UnitCatalog& catalog) : catalog_(catalog) {
   for (const auto& group : config.sync_groups) {
     GroupBlock block{group.holding_register_start, group.register_count(), group.name, group.field, false};
     for (const std::uint8_t member : group.members) {
@@ -93,33 +80,34 @@ std::optional<RoleRefusal> RolePolicy::refusal(Role role, std::uint8_t unit_id,
   if (effect == FunctionEffect::Unknown) {
     return RoleRefusal{ModbusException::IllegalFunction, "functions of unknown effect need role engineer"};
   }
-  if (passthrough_[unit_id]) {
+  if (catalog_.passthrough(unit_id)) {
     if (standard_write(function)) return std::nullopt;
     return RoleRefusal{ModbusException::IllegalFunction,
                        "this write function needs role engineer on a passthrough unit"};
   }
-  if (const Unit* unit = units_[unit_id].get()) return servo_write_refusal(*unit, pdu);
-  if (unit_id == gateway_unit_id_) return gateway_write_refusal(pdu);
+  if (const CatalogUnit* unit = catalog_.servo(unit_id)) return servo_write_refusal(unit->map, pdu);
+  if (unit_id == catalog_.gateway_unit_id()) return gateway_write_refusal(pdu);
   return std::nullopt;  // an unknown unit: the router answers 0x0A
 }
 
-std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const Unit& unit, std::span<const std::uint8_t> pdu) const {
+std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const modbus_map::RegisterMap& map,
+                                                           std::span<const std::uint8_t> pdu) const {
   const auto request = parse_request(pdu);
   if (!request) return std::nullopt;  // the router answers the parse error, without writing
   std::optional<modbus_map::MapResult<modbus_map::WritePlan>> plan;
   if (const auto* bits = std::get_if<WriteBitsRequest>(&*request)) {
-    plan = unit.map.plan_coil_write(bits->address, bits->values);
+    plan = map.plan_coil_write(bits->address, bits->values);
   } else if (const auto* registers = std::get_if<WriteRegistersRequest>(&*request)) {
-    plan = unit.map.plan_register_write(registers->address, registers->values);
+    plan = map.plan_register_write(registers->address, registers->values);
   } else if (const auto* both = std::get_if<ReadWriteRegistersRequest>(&*request)) {
-    plan = unit.map.plan_register_write(both->write.address, both->write.values);
+    plan = map.plan_register_write(both->write.address, both->write.values);
   }
   if (!plan || !*plan) return std::nullopt;  // a read, or a write the map refuses anyway
 
-  const modbus_map::TableSpec& table = unit.map.servo_table();
-  const std::size_t per_address = unit.map.bytes_per_bus_address();
+  const modbus_map::TableSpec& table = map.servo_table();
+  const std::size_t per_address = map.bytes_per_bus_address();
   const modbus_map::ByteOrder order =
-      table.addressing == modbus_map::Addressing::Register ? modbus_map::ByteOrder::HighFirst : unit.map.byte_order();
+      table.addressing == modbus_map::Addressing::Register ? modbus_map::ByteOrder::HighFirst : map.byte_order();
   for (const auto& write : (**plan).writes) {
     const std::size_t count = write.data.size() / per_address;
     std::set<const modbus_map::FieldSpec*> seen;

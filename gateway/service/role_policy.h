@@ -4,7 +4,7 @@
 // front of the same UnitRouter the plain listener uses, so every request that passes still goes
 // through the safety rules; a refused request never reaches the router.
 //
-//   RolePolicy policy(config);
+//   RolePolicy policy(config, catalog);  // one for the whole gateway, shared by every way in
 //   if (const auto refusal = policy.refusal(Role::Operate, unit_id, pdu)) reply refusal->exception;
 //
 // Rights:
@@ -29,6 +29,7 @@
 
 #include "config/config.h"
 #include "gateway/service/modbus_request.h"
+#include "gateway/service/unit_catalog.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {
@@ -40,8 +41,8 @@ struct RoleRefusal {
 
 class RolePolicy {
  public:
-  // Builds the register maps of the configuration's servo units (as the router does).
-  explicit RolePolicy(const config::Config& config);
+  // The servo units' register maps come from `catalog`, which must outlive the policy.
+  RolePolicy(const config::Config& config, const UnitCatalog& catalog);
 
   // nullopt: `role` may make the request (the router still decides everything else: unknown
   // units, malformed PDUs, read-only units and fields, the safety rules). A request the policy
@@ -50,9 +51,6 @@ class RolePolicy {
   std::optional<RoleRefusal> refusal(config::Role role, std::uint8_t unit_id, std::span<const std::uint8_t> pdu) const;
 
  private:
-  struct Unit {
-    modbus_map::RegisterMap map;
-  };
   struct GroupBlock {
     std::uint16_t start = 0;
     std::uint16_t count = 0;
@@ -61,12 +59,11 @@ class RolePolicy {
     bool engineer_only = false;
   };
 
-  std::optional<RoleRefusal> servo_write_refusal(const Unit& unit, std::span<const std::uint8_t> pdu) const;
+  std::optional<RoleRefusal> servo_write_refusal(const modbus_map::RegisterMap& map,
+                                                 std::span<const std::uint8_t> pdu) const;
   std::optional<RoleRefusal> gateway_write_refusal(std::span<const std::uint8_t> pdu) const;
 
-  std::array<std::unique_ptr<Unit>, 256> units_{};
-  std::array<bool, 256> passthrough_{};
-  std::uint8_t gateway_unit_id_ = 255;
+  const UnitCatalog& catalog_;
   std::vector<GroupBlock> groups_;
 };
 

@@ -66,8 +66,8 @@ BusFacts bus_facts(const BusEngine& engine) {
   return facts;
 }
 
-GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> engines, PostFn post,
-                         SafetySupervisor& safety, std::chrono::steady_clock::time_point started)
+GatewayUnit::GatewayUnit(const config::Config& config, const UnitCatalog& catalog, std::vector<BusEngine*> engines,
+                         PostFn post, SafetySupervisor& safety, std::chrono::steady_clock::time_point started)
     : engines_(std::move(engines)),
       servo_count_(config.servos.size()),
       post_(std::move(post)),
@@ -77,7 +77,8 @@ GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> e
     SyncGroup group{group_config.name, group_config.holding_register_start, {}};
     for (const std::uint8_t unit : group_config.members) {
       const config::ServoConfig* servo = config::find_unit(config, unit);
-      if (servo == nullptr || servo->passthrough()) {
+      const CatalogUnit* entry = catalog.servo(unit);
+      if (servo == nullptr || servo->passthrough() || entry == nullptr) {
         throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) +
                                     " is not a configured servo with a control table");
       }
@@ -92,12 +93,7 @@ GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> e
         throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) +
                                     " is on a bus without an engine");
       }
-      auto map = modbus_map::RegisterMap::create(*servo->table, modbus_map::Profile::Native,
-                                                 config::effective_byte_order(*servo));
-      if (!map)
-        throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) + ": " +
-                                    map.error());
-      group.members.push_back(SyncMember{unit, servo->bus_index, servo->servo_id, field, std::move(*map),
+      group.members.push_back(SyncMember{unit, servo->bus_index, servo->servo_id, field, &entry->native_map(),
                                          servo->read_only, servo->response_level});
     }
     groups_.push_back(std::move(group));
@@ -246,7 +242,7 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
   // Each member's value is read and converted by its own native register map.
   std::vector<modbus_map::ReadPlan> plans;
   for (const SyncMember* member : members) {
-    auto plan = member->map.plan_holding_read(member->field->addr, 1);
+    auto plan = member->map->plan_holding_read(member->field->addr, 1);
     if (!plan || plan->reads.size() != 1) {
       reply.send(exception_response(function, ModbusException::IllegalDataAddress));
       return;
@@ -261,7 +257,7 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
     std::vector<std::uint16_t> values;
     for (std::size_t i = 0; i < members.size(); ++i) {
       const protocol::Bytes replies[] = {results[i].data};
-      const auto value = members[i]->map.registers_from(plans[i], replies);
+      const auto value = members[i]->map->registers_from(plans[i], replies);
       if (!value) {
         reply.send(exception_response(function, value.error().code));
         return;
@@ -305,7 +301,7 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
       reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
       return;
     }
-    auto bytes = member->map.field_bytes(*member->field, request.values[i]);
+    auto bytes = member->map->field_bytes(*member->field, request.values[i]);
     if (!bytes) {
       spdlog::debug("gateway unit: sync group register {}: {}", request.address + i, bytes.error().message);
       reply.send(exception_response(request.function, bytes.error().code));
@@ -321,7 +317,7 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   std::vector<const SyncMember*> motion_member(engines_.size(), nullptr);
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
-    if (modbus_map::is_motion_field(modbus_map::motion_spec(member->map.servo_table().id), member->field->name)) {
+    if (modbus_map::is_motion_field(modbus_map::motion_spec(member->map->servo_table().id), member->field->name)) {
       motion_member[member->bus] = member;
     }
   }
@@ -345,14 +341,14 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   std::vector<HoldTarget> switched_on;
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
-    const auto& spec = modbus_map::motion_spec(member->map.servo_table().id);
-    auto bytes = member->map.field_bytes(*member->field, request.values[i]);
+    const auto& spec = modbus_map::motion_spec(member->map->servo_table().id);
+    auto bytes = member->map->field_bytes(*member->field, request.values[i]);
     if (!bytes) continue;  // checked above
     std::vector<modbus_map::BusWrite> writes{{member->field->addr, std::move(*bytes)}};
-    if (!modbus_map::may_enable_motion(spec, member->map.byte_order(), writes)) continue;
+    if (!modbus_map::may_enable_motion(spec, member->map->byte_order(), writes)) continue;
     switched_on.push_back(HoldTarget{
-        engines_[member->bus], member->servo_id, &spec, member->map.byte_order(),
-        answers_writes(member->map.servo_table().id, member->response_level, *engines_[member->bus], member->servo_id),
+        engines_[member->bus], member->servo_id, &spec, member->map->byte_order(),
+        answers_writes(member->map->servo_table().id, member->response_level, *engines_[member->bus], member->servo_id),
         epochs[member->bus], "unit " + std::to_string(member->unit_id), std::move(writes)});
   }
   auto send_frames = [this, frames = std::move(frames), buses, function = request.function, reply,

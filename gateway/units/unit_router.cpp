@@ -37,10 +37,6 @@ constexpr WriteReplyLevel kWriteReplyLevels[] = {
     {TableId::Smsmb, 0},
 };
 
-modbus_map::Profile map_profile(config::Profile profile) {
-  return profile == config::Profile::Smsmb ? modbus_map::Profile::Smsmb : modbus_map::Profile::Native;
-}
-
 std::uint16_t saturate16(std::uint64_t value) {
   return static_cast<std::uint16_t>(std::min<std::uint64_t>(value, 0xFFFF));
 }
@@ -96,8 +92,8 @@ std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registe
   };
 }
 
-UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post,
-                       SafetySupervisor& safety)
+UnitRouter::UnitRouter(const config::Config& config, const UnitCatalog& catalog, std::vector<BusEngine*> engines,
+                       PostFn post, SafetySupervisor& safety)
     : gateway_unit_id_(config.modbus_tcp.gateway_unit_id), post_(post), safety_(safety) {
   for (const auto& servo : config.servos) {
     if (servo.bus_index >= engines.size() || engines[servo.bus_index] == nullptr) {
@@ -111,9 +107,10 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
                               std::to_string(servo.servo_id) + ", passthrough)"});
       continue;
     }
-    auto map = modbus_map::RegisterMap::create(*servo.table, map_profile(servo.profile), servo.byte_order);
-    if (!map) throw std::invalid_argument("unit " + std::to_string(servo.unit_id) + ": " + map.error());
-
+    const CatalogUnit* entry = catalog.servo(servo.unit_id);
+    if (entry == nullptr) {
+      throw std::invalid_argument("unit " + std::to_string(servo.unit_id) + " is not in the unit catalog");
+    }
     const auto& servos = engine->settings().servos;
     const auto settings = std::find_if(servos.begin(), servos.end(),
                                        [&](const ServoSettings& s) { return s.servo_id == servo.servo_id; });
@@ -125,10 +122,10 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
     std::string label = "unit " + std::to_string(servo.unit_id) + " (bus " + servo.bus + ", servo " +
                         std::to_string(servo.servo_id) + ")";
     units_[servo.unit_id] =
-        std::make_unique<ServoUnit>(ServoUnit{servo.unit_id, servo.bus_index, engine, servo.servo_id, std::move(*map),
+        std::make_unique<ServoUnit>(ServoUnit{servo.unit_id, servo.bus_index, engine, servo.servo_id, entry->map,
                                               poll_block, servo.response_level, servo.read_only, std::move(label)});
   }
-  gateway_unit_ = std::make_unique<GatewayUnit>(config, std::move(engines), std::move(post), safety);
+  gateway_unit_ = std::make_unique<GatewayUnit>(config, catalog, std::move(engines), std::move(post), safety);
 }
 
 const ServoUnit* UnitRouter::servo_unit(std::uint8_t unit_id) const { return units_[unit_id].get(); }

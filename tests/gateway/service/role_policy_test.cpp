@@ -30,6 +30,13 @@ sync_groups:
   return *config;
 }
 
+// A plant's configuration with its catalog and the policy over them (each keeps references).
+struct Plant {
+  config::Config config = plant();
+  UnitCatalog catalog{config};
+  RolePolicy policy{config, catalog};
+};
+
 Pdu write_register(std::uint16_t address, std::uint16_t value) {
   return {0x06, static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address),
           static_cast<std::uint8_t>(value >> 8), static_cast<std::uint8_t>(value)};
@@ -42,7 +49,8 @@ std::optional<std::uint8_t> refused(const RolePolicy& policy, Role role, std::ui
 }
 
 TEST(RolePolicy, ReadRoleReadsOnlyAndGetsIllegalFunctionForEveryWrite) {
-  const RolePolicy policy(plant());
+  const Plant plant_;
+  const RolePolicy& policy = plant_.policy;
   EXPECT_EQ(refused(policy, Role::Read, 1, {0x03, 0x00, 0x2A, 0x00, 0x01}), std::nullopt);
   EXPECT_EQ(refused(policy, Role::Read, 1, {0x04, 0x00, 0x38, 0x00, 0x01}), std::nullopt);
   EXPECT_EQ(refused(policy, Role::Read, 1, write_register(42, 2048)), 0x01);
@@ -54,7 +62,8 @@ TEST(RolePolicy, ReadRoleReadsOnlyAndGetsIllegalFunctionForEveryWrite) {
 }
 
 TEST(RolePolicy, OperateWritesRamButNotEepromLockOrCalibration) {
-  const RolePolicy policy(plant());
+  const Plant plant_;
+  const RolePolicy& policy = plant_.policy;
   EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(42, 2048)), std::nullopt);        // goal
   EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(40, 1)), std::nullopt);           // torque on
   EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(512 + 42, 2048)), std::nullopt);  // staged goal
@@ -86,7 +95,8 @@ TEST(RolePolicy, OperateWritesRamButNotEepromLockOrCalibration) {
 }
 
 TEST(RolePolicy, EngineerMayDoEverything) {
-  const RolePolicy policy(plant());
+  const Plant plant_;
+  const RolePolicy& policy = plant_.policy;
   EXPECT_EQ(refused(policy, Role::Engineer, 1, write_register(5, 7)), std::nullopt);
   EXPECT_EQ(refused(policy, Role::Engineer, 1, write_register(40, 128)), std::nullopt);
   EXPECT_EQ(refused(policy, Role::Engineer, 10, {0x08, 0x00, 0x01, 0x00, 0x00}), std::nullopt);
