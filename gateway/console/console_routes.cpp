@@ -41,10 +41,11 @@ std::vector<std::uint16_t> registers_in(const Bytes& pdu) {
   return values;
 }
 
-// HTTP status for a Modbus exception the router answered.
-unsigned status_for_exception(std::uint8_t exception) {
-  switch (exception) {
-    case 0x01: return 403;  // the role policy refuses the function
+// HTTP status for a Modbus exception: the role gate's refusals 403, the router's by their code.
+unsigned status_for(const ModbusAnswer& answer) {
+  if (answer.role_refused) return 403;
+  switch (answer.exception) {
+    case 0x01: return 403;  // a function the console may not use
     case 0x02:
     case 0x03: return 400;
     case 0x04: return 409;  // motion blocked, or the servo refused
@@ -226,7 +227,7 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   const bool eeprom = entry->counterpart != nullptr && entry->counterpart->area == modbus_map::Area::Eeprom;
   auto finish = [call, name, value](std::optional<ModbusAnswer> failed, const std::string& step) {
     if (failed) {
-      return call->answer(HttpAnswer::error(status_for_exception(failed->exception), step + ": " + failed->message));
+      return call->answer(HttpAnswer::error(status_for(*failed), step + ": " + failed->message));
     }
     call->answer(HttpAnswer::json(200, {{"ok", true}, {"field", name}, {"value", value}}));
   };
@@ -248,14 +249,13 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
 }
 
 void gateway_coil(const std::shared_ptr<ApiCall>& call, std::uint16_t coil, bool on, std::string what) {
-  call->services.modbus(
-      call->who, call->services.config().modbus_tcp.gateway_unit_id, write_coil_pdu(coil, on),
-      [call, what = std::move(what)](const ModbusAnswer& answer) {
-        if (!answer.ok()) {
-          return call->answer(HttpAnswer::error(status_for_exception(answer.exception), what + ": " + answer.message));
-        }
-        call->answer(HttpAnswer::json(200, {{"ok", true}, {"done", what}}));
-      });
+  call->services.modbus(call->who, call->services.config().modbus_tcp.gateway_unit_id, write_coil_pdu(coil, on),
+                        [call, what = std::move(what)](const ModbusAnswer& answer) {
+                          if (!answer.ok()) {
+                            return call->answer(HttpAnswer::error(status_for(answer), what + ": " + answer.message));
+                          }
+                          call->answer(HttpAnswer::json(200, {{"ok", true}, {"done", what}}));
+                        });
 }
 
 void api_estop(const std::shared_ptr<ApiCall>& call) {

@@ -49,6 +49,7 @@ struct ModbusAnswer {
   protocol::Bytes pdu;         // the response PDU
   std::uint8_t exception = 0;  // 0: no exception
   std::string message;         // "0x04 server device failure: motion blocked ..." for the page
+  bool role_refused = false;   // the role gate refused it (it never reached the router): HTTP 403
   bool ok() const { return exception == 0 && !pdu.empty(); }
 };
 
@@ -70,7 +71,7 @@ class Services {
   virtual std::shared_ptr<WireMonitor> monitor(std::string_view bus) const = 0;
   // Set-Cookie text for a session token (empty: clears the cookie).
   virtual std::string session_cookie(const std::string& token) const = 0;
-  // A Modbus request made as `who`: first the role policy of Modbus/TCP Security (refused: an
+  // A Modbus request made as `who`: first the role gate every way in passes (refused: an
   // exception answer without reaching the router), then the unit router on the gateway's io
   // thread, like any Modbus client. `done` runs on the console thread.
   virtual void modbus(const Principal& who, std::uint8_t unit, protocol::Bytes pdu,

@@ -27,8 +27,8 @@
 #include "gateway/console/web_assets.h"
 #include "gateway/modbus_tcp/listener.h"
 #include "gateway/modbus_tcp/tls.h"
+#include "gateway/service/access_gate.h"
 #include "gateway/service/modbus_request.h"
-#include "gateway/service/role_policy.h"
 
 namespace sms::gateway::console {
 
@@ -132,7 +132,8 @@ class ConsoleServer::Impl final : public Services {
         backend_(std::move(backend)),
         limits_(limits),
         rules_(access_rules(settings_)),
-        policy_(backend_.policy != nullptr ? *backend_.policy : throw std::invalid_argument("console: no role policy")),
+        gate_(backend_.policy != nullptr ? *backend_.policy : throw std::invalid_argument("console: no role policy"),
+              "console"),
         sessions_(settings_.session_timeout),
         commissioning_(*backend_.config, backend_.lending),
         acceptor_(io_),
@@ -231,13 +232,12 @@ class ConsoleServer::Impl final : public Services {
   // A request for the router as `who`; with `jog`, a write of that hold-to-run move (jog_modbus).
   void submit(const Principal& who, std::uint8_t unit, Bytes pdu, std::function<void(ModbusAnswer)> done,
               std::optional<JogSession> jog) {
-    if (const auto refusal = policy_.refusal(who.role, unit, pdu)) {
-      const std::uint8_t code = static_cast<std::uint8_t>(refusal->exception);
-      spdlog::info("console: {} ({}) refused: {}", who.name, config::to_string(who.role), refusal->reason);
+    if (const auto refusal = gate_.check(who.role, unit, pdu, who.name)) {
       ModbusAnswer answer;
-      answer.exception = code;
-      answer.pdu = {static_cast<std::uint8_t>(pdu.empty() ? 0x80 : pdu[0] | 0x80), code};
-      answer.message = "refused for role " + std::string(config::to_string(who.role)) + ": " + refusal->reason;
+      answer.exception = static_cast<std::uint8_t>(refusal->exception);
+      answer.pdu = refusal->answer(pdu);
+      answer.message = refusal->text();
+      answer.role_refused = true;
       return done(std::move(answer));
     }
     auto target = std::make_shared<ConsoleReply>(mailbox_, std::move(done));
@@ -459,7 +459,7 @@ class ConsoleServer::Impl final : public Services {
   const ConsoleBackend backend_;
   const ConsoleLimits limits_;
   const AccessRules rules_;
-  const RolePolicy& policy_;
+  AccessGate gate_;  // console thread: every request's role, before the router
   SessionStore sessions_;
   Commissioning commissioning_;
   std::shared_ptr<ssl::context> ssl_;

@@ -1,8 +1,9 @@
 #pragma once
 // Modbus/TCP Security (docs/SECURITY.md): the TLS context of the secure listener
 // (TLS 1.2/1.3, client certificate required and verified against the configured CA), the role
-// a client certificate gets, and the RoleGate put in front of the unit router for each secure
-// connection. Internal to gateway/ (Asio and OpenSSL in the header are fine here).
+// a client certificate gets, and the role's gate (gateway/service/access_gate.h) put in front of
+// the unit router for each secure connection. Internal to gateway/ (Asio and OpenSSL in the
+// header are fine here).
 //
 //   TlsService tls(config.modbus_tcp.tls, policy, router);  // throws std::runtime_error: bad file
 //   options.tls = &tls;                                      // TcpServer does the handshakes
@@ -24,6 +25,7 @@
 #include "config/config.h"
 #include "gateway/modbus_tcp/tcp_server.h"
 #include "gateway/modbus_tcp/tls_stats.h"
+#include "gateway/service/access_gate.h"
 #include "gateway/service/role_policy.h"
 
 namespace sms::gateway {
@@ -78,7 +80,6 @@ class TlsService {
   void handshake_evicted();
   void connection_closed();
 
-  void count_refusal(config::Role role);
   TlsStats stats() const;
 
  private:
@@ -92,6 +93,7 @@ class TlsService {
   std::shared_ptr<boost::asio::ssl::context> context_;
   std::string certificate_expiry_;  // "2034-05-01 12:00:00 GMT", for the log
   TlsStats stats_;                  // under mutex_
+  RefusalCounter refusals_;         // requests the connections' role gates refused
 };
 
 }  // namespace sms::gateway

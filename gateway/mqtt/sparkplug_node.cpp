@@ -15,6 +15,7 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 
+#include "gateway/service/access_gate.h"
 #include "gateway/service/modbus_request.h"
 #include "gateway/units/gateway_unit.h"
 #include "gateway/units/state_file.h"
@@ -51,7 +52,7 @@ std::ifstream open_mqtt_file(const std::string& key, const std::string& path) {
 // A Modbus answer: registers or bits, or the exception code and why.
 struct Answer {
   Bytes pdu;
-  std::string refusal;  // the role's reason when RolePolicy refused it (never reached the router)
+  std::string refusal;  // the role gate's words when it refused it (it never reached the router)
 
   bool ok() const { return pdu.size() >= 2 && (pdu[0] & fc::kExceptionBit) == 0; }
   std::string error_text() const {
@@ -173,7 +174,12 @@ std::string read_mqtt_files(const config::MqttConfig& mqtt) {
 class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugNode::Impl> {
  public:
   Impl(const config::Config& config, asio::io_context& io, UnitRouter& router, const RolePolicy& policy)
-      : config_(config), settings_(*config.mqtt), io_(io), router_(router), policy_(policy), timer_(io) {
+      : config_(config),
+        settings_(*config.mqtt),
+        io_(io),
+        router_(router),
+        gate_(policy, "mqtt: the Sparkplug host"),
+        timer_(io) {
     for (const auto& servo : config.servos) {
       if (servo.passthrough() || servo.view_of) continue;  // a servo is one device, however many units show it
       const ServoUnit* unit = router.servo_unit(servo.unit_id);
@@ -431,15 +437,14 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
 
   // ---- requests to the router, as a Modbus client ----
 
-  // Commands pass the role's rights first; the node's own reads (what it publishes) do not: the
+  // Commands pass the role gate first; the node's own reads (what it publishes) do not: the
   // role says what the hosts may change, not what the node reports.
   void ask(std::uint8_t unit_id, const Request& request, std::function<void(const Answer&)> done) {
     const Bytes pdu = request_pdu(request);
     const bool command =
         !std::holds_alternative<ReadBitsRequest>(request) && !std::holds_alternative<ReadRegistersRequest>(request);
-    if (const auto refusal = command ? policy_.refusal(settings_.role, unit_id, pdu) : std::nullopt) {
-      return done(Answer{exception_response(function_of(request), refusal->exception),
-                         "role " + std::string(config::to_string(settings_.role)) + " may not: " + refusal->reason});
+    if (const auto refusal = command ? gate_.check(settings_.role, unit_id, pdu) : std::nullopt) {
+      return done(Answer{refusal->answer(pdu), refusal->text()});
     }
     const std::uint64_t serial = next_serial_++;
     pending_.emplace(serial, std::move(done));
@@ -937,7 +942,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   const config::MqttConfig& settings_;
   asio::io_context& io_;
   UnitRouter& router_;
-  const RolePolicy& policy_;
+  AccessGate gate_;  // the hosts' commands, as mqtt.role; counted among the refused commands
   asio::steady_timer timer_;
   std::unique_ptr<MqttLink> link_;
   std::shared_ptr<Replies> replies_;

@@ -4,11 +4,11 @@
 // the poll cache on change (per-field deadband) and every report_period, and NCMD/DCMD writes.
 //
 // It is a Modbus client of the gateway's own UnitRouter: every read is the FC04/FC03/FC01 a PLC
-// would send, every command the FC06/FC05 a PLC would send, checked by the role's rights
-// (RolePolicy) first. So commands take the same path as Modbus writes: the bus queue and its
-// order, the watchdog (they feed it), the e-stop latch, read-only units and fields, exceptions.
-// Commands run one at a time in arrival order; a command the broker delivered is carried out
-// even when the broker goes away meanwhile (its result shows in the next DBIRTH).
+// would send, every command the FC06/FC05 a PLC would send, through the role gate first
+// (gateway/service/access_gate.h, with mqtt.role). So commands take the same path as Modbus writes: the bus queue and
+// its order, the watchdog (they feed it), the e-stop latch, read-only units and fields, exceptions. Commands run one at
+// a time in arrival order; a command the broker delivered is carried out even when the broker goes away meanwhile (its
+// result shows in the next DBIRTH).
 //
 // Threading: everything runs on the io thread (the router's); the MQTT link's events are posted
 // there.
