@@ -8,7 +8,6 @@
 #include "gateway/console/console_commission.h"
 #include "gateway/console/console_view.h"
 #include "gateway/service/modbus_request.h"
-#include "gateway/service/role_policy.h"
 #include "modbus_map/motion.h"
 #include "protocol/modbus_pdu.h"
 
@@ -180,48 +179,49 @@ void run_steps(Services& services, const Principal& who, std::uint8_t unit, std:
       });
 }
 
+}  // namespace
+
+Expected<CheckedFieldWrite, HttpAnswer> check_field_write(const ServoUnit& unit, std::string_view field,
+                                                          std::int64_t value) {
+  const auto* entry = entry_named(unit.map, field);
+  if (entry == nullptr) {
+    return unexpected(HttpAnswer::error(
+        400, "no field `" + printable(field) + "` in " + unit.map.description() + "; nothing written"));
+  }
+  const std::string name(entry->shown->name);
+  if (unit.read_only) {
+    return unexpected(HttpAnswer::error(400, name + " cannot be written (the unit is read_only); nothing written"));
+  }
+  if (commissioning_only(name)) {
+    return unexpected(HttpAnswer::error(400, name + " takes the servo off this bus: change it with `sms-gateway " +
+                                                 (name == "id" ? "set-id" : "set-baud") +
+                                                 "` on a line no bus owns (docs/HARDWARE.md); nothing written"));
+  }
+  const auto checked = unit.map.check_write(*entry, value);
+  if (!checked) {
+    return unexpected(HttpAnswer::error(400, modbus_map::to_string(checked.error()) + "; nothing written"));
+  }
+  return CheckedFieldWrite{entry, *checked};
+}
+
+namespace {
+
 void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   const auto unit = servo_of(call->services, call->params);
   if (!unit) return call->answer(unit.error());
   const auto request = parse_field_write(call->body);
   if (!request) return call->answer(HttpAnswer::error(400, request.error() + "; nothing written"));
   const ServoUnit& servo = **unit;
-  const auto* entry = entry_named(servo.map, request->field);
-  if (entry == nullptr) {
-    return call->answer(HttpAnswer::error(
-        400, "no field `" + printable(request->field) + "` in " + servo.map.description() + "; nothing written"));
-  }
+  const auto checked = check_field_write(servo, request->field, request->value);
+  if (!checked) return call->answer(checked.error());
+  const auto* entry = checked->entry;
   const std::string name(entry->shown->name);
-  if (!entry->writable || servo.read_only) {
-    return call->answer(HttpAnswer::error(
-        400, name + " cannot be written" + (servo.read_only ? " (the unit is read_only)" : " (read-only field)") +
-                 "; nothing written"));
-  }
-  if (commissioning_only(name)) {
-    return call->answer(HttpAnswer::error(400, name + " takes the servo off this bus: change it with `sms-gateway " +
-                                                   (name == "id" ? "set-id" : "set-baud") +
-                                                   "` on a line no bus owns (docs/HARDWARE.md); nothing written"));
-  }
   const std::int64_t value = request->value;
-  if (value < entry->min || value > entry->max) {
-    return call->answer(HttpAnswer::error(400, name + ": " + std::to_string(value) + " is outside " +
-                                                   std::to_string(entry->min) + ".." + std::to_string(entry->max) +
-                                                   "; nothing written"));
+  const std::uint16_t reg = checked->value.register_value;
+  // The role before anything is sent: an EEPROM write's unlock would otherwise be what is refused.
+  if (const auto refused = call->services.refusal(call->who, servo.unit_id, write_register_pdu(entry->address, reg))) {
+    return call->answer(HttpAnswer::error(403, name + ": " + refused->text() + "; nothing written"));
   }
-  const auto allowed = entry->shown->allowed_values;
-  if (!allowed.empty() && std::find(allowed.begin(), allowed.end(), value) == allowed.end()) {
-    std::string list;
-    for (const auto v : allowed) list += (list.empty() ? "" : ", ") + std::to_string(v);
-    return call->answer(
-        HttpAnswer::error(400, name + ": " + std::to_string(value) + " is not one of " + list + "; nothing written"));
-  }
-  const bool engineer = entry->counterpart != nullptr && engineer_only_field(*entry->counterpart);
-  if (engineer && !role_allows(call->who.role, Role::Engineer)) {
-    return call->answer(HttpAnswer::error(403, "writing " + name + " (EEPROM) needs the engineer role; " +
-                                                   call->who.name + " has " + role_text(call->who.role) +
-                                                   "; nothing written"));
-  }
-  const auto reg = static_cast<std::uint16_t>(static_cast<std::int16_t>(value));
   std::vector<WriteStep> steps{{entry->address, reg, name + " := " + std::to_string(value)}};
   const auto* lock = eeprom_lock(servo);
   const bool eeprom = entry->counterpart != nullptr && entry->counterpart->area == modbus_map::Area::Eeprom;
@@ -375,9 +375,8 @@ class ServoStream final : public Stream {
     const auto* entry = speed ? goal_speed_ : goal_position_;
     if (entry == nullptr)
       return send(error_json(std::string("this table has no ") + (speed ? "goal speed" : "goal position")));
-    if (message->value < entry->min || message->value > entry->max) {
-      return send(error_json(std::string(entry->shown->name) + ": " + std::to_string(message->value) + " is outside " +
-                             std::to_string(entry->min) + ".." + std::to_string(entry->max) + "; not moved"));
+    if (const auto checked = unit_.map.check_write(*entry, message->value); !checked) {
+      return send(error_json(modbus_map::to_string(checked.error()) + "; not moved"));
     }
     // A press: a new session, with the bus's motion stops as they are now; a move still running
     // from an earlier press ends first if a stop came since (it would end at the next sample).

@@ -222,6 +222,11 @@ class ConsoleServer::Impl final : public Services {
     submit(who, unit, std::move(pdu), std::move(done), std::nullopt);
   }
 
+  std::optional<GateRefusal> refusal(const Principal& who, std::uint8_t unit,
+                                     std::span<const std::uint8_t> pdu) override {
+    return gate_.check(who.role, unit, pdu, who.name);
+  }
+
   MotionStops motion_stops(std::size_t bus) const override { return backend_.safety->motion_stops(bus); }
 
   void jog_modbus(const Principal& who, std::uint8_t unit, Bytes pdu, const JogSession& session,
@@ -232,7 +237,7 @@ class ConsoleServer::Impl final : public Services {
   // A request for the router as `who`; with `jog`, a write of that hold-to-run move (jog_modbus).
   void submit(const Principal& who, std::uint8_t unit, Bytes pdu, std::function<void(ModbusAnswer)> done,
               std::optional<JogSession> jog) {
-    if (const auto refusal = gate_.check(who.role, unit, pdu, who.name)) {
+    if (const auto refusal = this->refusal(who, unit, pdu)) {
       ModbusAnswer answer;
       answer.exception = static_cast<std::uint8_t>(refusal->exception);
       answer.pdu = refusal->answer(pdu);

@@ -98,11 +98,6 @@ sp::Metric field_metric(const std::string& name, const RegisterEntry& entry, std
   return metric;
 }
 
-// A command's value checked before anything is written (docs/MQTT.md, commands):
-// of the kind the metric was born with (an integer type for an integer metric: a Boolean,
-// Float or String is no position), within that datatype's range (UInt16 40000 does not fit an
-// Int16 metric; it is not taken as -25536), and within [min, max] (the register map's range).
-// The error says what was sent and what the metric takes.
 // What a command metric carried, for refusals: `Boolean true`, `Float 2.5`, `String "fast"`.
 std::string sent(const sp::Metric& metric) {
   const std::string type(sp::to_string(metric.type));
@@ -122,8 +117,9 @@ std::string sent(const sp::Metric& metric) {
       metric.value);
 }
 
-Expected<std::int64_t> command_value(const sp::Metric& metric, sp::DataType born_as, std::int64_t min,
-                                     std::int64_t max) {
+}  // namespace
+
+Expected<std::int64_t> command_value(const sp::Metric& metric, sp::DataType born_as) {
   const std::string born = std::string(sp::to_string(born_as));
   if (born_as == sp::DataType::Boolean) {
     if (const auto* flag = std::get_if<bool>(&metric.value); flag && metric.type == sp::DataType::Boolean) {
@@ -143,14 +139,17 @@ Expected<std::int64_t> command_value(const sp::Metric& metric, sp::DataType born
     return unexpected(std::to_string(*value) + " does not fit " + born + " (" + std::to_string(range->min) + ".." +
                       std::to_string(range->max) + "), the metric's datatype in its birth");
   }
-  if (*value < min || *value > max) {
-    return unexpected(std::to_string(*value) + " is outside " + std::to_string(min) + ".." + std::to_string(max) +
-                      ", the range the register map allows");
-  }
   return *value;
 }
 
-}  // namespace
+Expected<std::uint16_t> device_command_value(const sp::Metric& metric, const modbus_map::RegisterMap& map,
+                                             const RegisterEntry& entry) {
+  const auto value = command_value(metric, field_type(entry));
+  if (!value) return unexpected(value.error());
+  const auto checked = map.check_write(entry, *value);
+  if (!checked) return unexpected(modbus_map::to_string(checked.error()));
+  return checked->register_value;
+}
 
 std::string read_mqtt_files(const config::MqttConfig& mqtt) {
   if (mqtt.tls) {
@@ -823,15 +822,14 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     const auto slot = std::find_if(device.metrics.begin(), device.metrics.end(),
                                    [&](const MetricSlot& s) { return s.name == metric.name; });
     if (slot == device.metrics.end()) return finish_command(index, metric.name, "no such metric on this device");
-    if (!slot->entry->writable) return finish_command(index, metric.name, "read-only");
     const RegisterEntry& entry = *slot->entry;
-    const auto value = command_value(metric, field_type(entry), entry.min, entry.max);
-    if (!value) return finish_command(index, metric.name, value.error() + "; nothing written");
-    const auto reg = static_cast<std::uint16_t>(*value);
-    const std::string what = metric.name + " := " + std::to_string(*value);
+    const auto reg = device_command_value(metric, device.unit->map, entry);
+    if (!reg) return finish_command(index, metric.name, reg.error() + "; nothing written");
+    const std::int64_t written = field_value(entry, *reg);
+    const std::string what = metric.name + " := " + std::to_string(written);
     const std::size_t slot_index = static_cast<std::size_t>(slot - device.metrics.begin());
-    ask(device.unit_id, WriteRegistersRequest{fc::kWriteSingleRegister, entry.address, {reg}},
-        [this, index, slot_index, what, written = *value](const Answer& answer) {
+    ask(device.unit_id, WriteRegistersRequest{fc::kWriteSingleRegister, entry.address, {*reg}},
+        [this, index, slot_index, what, written](const Answer& answer) {
           auto& slot = devices_[index].metrics[slot_index];
           if (!answer.ok()) return finish_command(index, slot.name, what + ": " + answer.error_text());
           if (!slot.entry->readable) return finish_command(index, slot.name, "", what);
@@ -898,7 +896,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
     if (born_as == sp::DataType::Unknown || !writable) {
       return finish_node_command(metric.name, born_as == sp::DataType::Unknown ? "no such node metric" : "read-only");
     }
-    const auto value = command_value(metric, born_as, 0, born_as == sp::DataType::Boolean ? 1 : 65535);
+    const auto value = command_value(metric, born_as);  // Boolean 0/1, UInt16 0..65535: the registers' range
     if (!value) return finish_node_command(metric.name, value.error() + "; nothing written");
     if (metric.name == sp::kRebirthMetric) {
       if (*value != 0 && session_) node_birth();  // NBIRTH again, then every DBIRTH

@@ -49,6 +49,17 @@ inline constexpr std::string_view kHeartbeatPrefix = "Gateway/Heartbeat/";      
 inline constexpr std::string_view kVersion = "Gateway/Version";
 }  // namespace sparkplug_metric
 
+// A command's value, checked before anything is written (docs/MQTT.md, commands): of the kind
+// the metric was born with (an integer type for an integer metric: a Boolean, Float or String is
+// no position) and within that datatype's range (UInt16 40000 does not fit an Int16 metric; it is
+// not taken as -25536). The error says what was sent and what the metric takes.
+Expected<std::int64_t> command_value(const sparkplug::Metric& metric, sparkplug::DataType born_as);
+// A DCMD's value for the control-table field `entry` of a device's `map`: command_value(), then
+// the value check every way in shares (RegisterMap::check_write: access, range, allowed values),
+// worded as the console words it. The register value to write, or why not.
+Expected<std::uint16_t> device_command_value(const sparkplug::Metric& metric, const modbus_map::RegisterMap& map,
+                                             const modbus_map::RegisterEntry& entry);
+
 // The files `mqtt` names, read as the node will read them: the password (first line of
 // password_file; empty without one) and the TLS files. Throws std::runtime_error naming the key,
 // the file and what to do. sms-gateway --check-config runs it too.
