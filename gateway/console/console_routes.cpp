@@ -8,6 +8,7 @@
 #include "gateway/console/console_commission.h"
 #include "gateway/console/console_view.h"
 #include "gateway/service/modbus_request.h"
+#include "modbus_map/eeprom_lock.h"
 #include "modbus_map/motion.h"
 #include "protocol/modbus_pdu.h"
 
@@ -156,27 +157,36 @@ void api_servo(const std::shared_ptr<ApiCall>& call) {
       });
 }
 
-// The EEPROM lock of a table (docs/PROTOCOL.md): unlocked to write EEPROM, locked again after,
-// as `sms-gateway set-id` and the other tools do.
-const modbus_map::RegisterEntry* eeprom_lock(const ServoUnit& unit) { return entry_named(unit.map, "lock"); }
+// The register that shows the table's EEPROM lock (modbus_map/eeprom_lock.h), or nullptr.
+const modbus_map::RegisterEntry* eeprom_lock(const ServoUnit& unit) {
+  const auto* lock = modbus_map::eeprom_lock(unit.map.servo_table());
+  return lock == nullptr ? nullptr : entry_for_servo_field(unit.map, lock->name);
+}
 
-// Writes `steps` one after another; stops at the first exception.
+// Writes `steps` one after another. After a refusal the rest are skipped, but for those that
+// run whatever came before (the lock put back); `done` gets the first failure and its step.
 struct WriteStep {
   std::uint16_t address;
   std::uint16_t value;
   std::string what;
+  bool even_after_a_failure = false;
+};
+struct FailedStep {
+  ModbusAnswer answer;
+  std::string what;
 };
 void run_steps(Services& services, const Principal& who, std::uint8_t unit, std::vector<WriteStep> steps,
-               std::size_t index,
-               std::function<void(std::optional<ModbusAnswer> failed, std::string failed_step)> done) {
-  if (index == steps.size()) return done(std::nullopt, "");
+               std::size_t index, std::optional<FailedStep> failed,
+               std::function<void(std::optional<FailedStep>)> done) {
+  while (failed && index < steps.size() && !steps[index].even_after_a_failure) ++index;
+  if (index == steps.size()) return done(std::move(failed));
   const Bytes pdu = write_register_pdu(steps[index].address, steps[index].value);
-  services.modbus(
-      who, unit, pdu,
-      [&services, who, unit, steps = std::move(steps), index, done = std::move(done)](ModbusAnswer answer) mutable {
-        if (!answer.ok()) return done(std::move(answer), steps[index].what);
-        run_steps(services, who, unit, std::move(steps), index + 1, std::move(done));
-      });
+  services.modbus(who, unit, pdu,
+                  [&services, who, unit, steps = std::move(steps), index, failed = std::move(failed),
+                   done = std::move(done)](ModbusAnswer answer) mutable {
+                    if (!answer.ok() && !failed) failed = FailedStep{std::move(answer), steps[index].what};
+                    run_steps(services, who, unit, std::move(steps), index + 1, std::move(failed), std::move(done));
+                  });
 }
 
 }  // namespace
@@ -224,27 +234,30 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   }
   std::vector<WriteStep> steps{{entry->address, reg, name + " := " + std::to_string(value)}};
   const auto* lock = eeprom_lock(servo);
-  const bool eeprom = entry->counterpart != nullptr && entry->counterpart->area == modbus_map::Area::Eeprom;
-  auto finish = [call, name, value](std::optional<ModbusAnswer> failed, const std::string& step) {
+  const bool eeprom = checked->value.servo_field->area == modbus_map::Area::Eeprom;
+  auto finish = [call, name, value](std::optional<FailedStep> failed) {
     if (failed) {
-      return call->answer(HttpAnswer::error(status_for(*failed), step + ": " + failed->message));
+      return call->answer(HttpAnswer::error(status_for(failed->answer), failed->what + ": " + failed->answer.message));
     }
     call->answer(HttpAnswer::json(200, {{"ok", true}, {"field", name}, {"value", value}}));
   };
   if (!eeprom || lock == nullptr || entry == lock) {
-    return run_steps(call->services, call->who, servo.unit_id, std::move(steps), 0, std::move(finish));
+    return run_steps(call->services, call->who, servo.unit_id, std::move(steps), 0, std::nullopt, std::move(finish));
   }
-  // EEPROM with a lock: read it; when locked, unlock, write, lock again (the write persists).
+  // EEPROM with a lock, as the tools write it (modbus_map/eeprom_lock.h): read it; closed, open it
+  // for the write and put it back after, also when the write failed.
   call->services.modbus(
       call->who, servo.unit_id, read_registers_pdu(lock->address, 1),
       [call, steps = std::move(steps), lock, unit_id = servo.unit_id, finish](ModbusAnswer answer) mutable {
-        if (!answer.ok()) return finish(std::move(answer), "reading the EEPROM lock");
-        const std::uint16_t previous = registers_in(answer.pdu).at(0);
-        if (previous != 0) {
-          steps.insert(steps.begin(), WriteStep{lock->address, 0, "unlocking the EEPROM (lock := 0)"});
-          steps.push_back(WriteStep{lock->address, previous, "locking the EEPROM again"});
+        if (!answer.ok()) return finish(FailedStep{std::move(answer), "reading the EEPROM lock"});
+        const modbus_map::EepromUnlock unlock{lock->counterpart, registers_in(answer.pdu).at(0)};
+        if (unlock.needed()) {
+          steps.insert(steps.begin(), WriteStep{lock->address, static_cast<std::uint16_t>(modbus_map::kEepromUnlocked),
+                                                unlock.unlock_text()});
+          steps.push_back(
+              WriteStep{lock->address, static_cast<std::uint16_t>(unlock.read), unlock.relock_text(), true});
         }
-        run_steps(call->services, call->who, unit_id, std::move(steps), 0, finish);
+        run_steps(call->services, call->who, unit_id, std::move(steps), 0, std::nullopt, finish);
       });
 }
 
