@@ -8,8 +8,8 @@
 #include <memory>
 #include <vector>
 
-#include "config/load.h"
 #include "gateway/service/access_gate.h"
+#include "tests/gateway/service/service_plant.h"
 #include "tests/support/bus_test_support.h"
 
 namespace sms::gateway {
@@ -18,24 +18,7 @@ namespace {
 using config::Role;
 using Pdu = std::vector<std::uint8_t>;
 using testing::LogCapture;
-
-config::Config plant() {
-  auto config = config::load_config_string(R"(buses:
-  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
-  - {name: line, device: /dev/ttyUSB1, protocol: modbus-rtu, baud: 115200}
-servos:
-  - {bus: arm, id: 1, table: sts}
-  - {bus: line, id: 10, table: passthrough}
-)",
-                                           "plant.yaml");
-  if (!config) throw std::runtime_error(config.error().to_string());
-  return *config;
-}
-
-Pdu write_register(std::uint16_t address, std::uint16_t value) {
-  return {0x06, static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address),
-          static_cast<std::uint8_t>(value >> 8), static_cast<std::uint8_t>(value)};
-}
+using testing::write_register;
 
 // What reached the router behind a gate, and what the client was answered.
 struct Router final : RequestHandler {
@@ -60,9 +43,8 @@ class Gate : public ::testing::Test {
     return answers->got.empty() ? Bytes{} : answers->got.front();
   }
 
-  const config::Config config_ = plant();
-  const UnitCatalog catalog_{config_};
-  const RolePolicy policy_{config_, catalog_};
+  testing::ServicePlant plant_;
+  const RolePolicy& policy_ = plant_.policy;
   RefusalCounter refusals_;
   Router router_;
   LogCapture log_;

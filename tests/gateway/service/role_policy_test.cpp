@@ -3,44 +3,15 @@
 // a refusal is (0x01 for a function class the role lacks, 0x02 for an address it may not write).
 #include <gtest/gtest.h>
 
-#include "config/load.h"
 #include "gateway/service/role_policy.h"
+#include "tests/gateway/service/service_plant.h"
 
 namespace sms::gateway {
 namespace {
 
 using config::Role;
 using Pdu = std::vector<std::uint8_t>;
-
-config::Config plant() {
-  auto config = config::load_config_string(R"(buses:
-  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
-  - {name: line, device: /dev/ttyUSB1, protocol: modbus-rtu, baud: 115200}
-servos:
-  - {bus: arm, id: 1, table: sts}
-  - {bus: arm, id: 2, table: sts, profile: smsmb}
-  - {bus: line, id: 10, table: passthrough}
-  - {bus: line, id: 11, table: smsmb}
-sync_groups:
-  - {name: goals, field: goal_position, members: [1], holding_register_start: 0}
-  - {name: temperatures, field: max_temperature, members: [1], holding_register_start: 10}
-)",
-                                           "plant.yaml");
-  if (!config) throw std::runtime_error(config.error().to_string());
-  return *config;
-}
-
-// A plant's configuration with its catalog and the policy over them (each keeps references).
-struct Plant {
-  config::Config config = plant();
-  UnitCatalog catalog{config};
-  RolePolicy policy{config, catalog};
-};
-
-Pdu write_register(std::uint16_t address, std::uint16_t value) {
-  return {0x06, static_cast<std::uint8_t>(address >> 8), static_cast<std::uint8_t>(address),
-          static_cast<std::uint8_t>(value >> 8), static_cast<std::uint8_t>(value)};
-}
+using testing::write_register;
 
 std::optional<std::uint8_t> refused(const RolePolicy& policy, Role role, std::uint8_t unit, const Pdu& pdu) {
   const auto refusal = policy.refusal(role, unit, pdu);
@@ -49,7 +20,7 @@ std::optional<std::uint8_t> refused(const RolePolicy& policy, Role role, std::ui
 }
 
 TEST(RolePolicy, ReadRoleReadsOnlyAndGetsIllegalFunctionForEveryWrite) {
-  const Plant plant_;
+  const testing::ServicePlant plant_;
   const RolePolicy& policy = plant_.policy;
   EXPECT_EQ(refused(policy, Role::Read, 1, {0x03, 0x00, 0x2A, 0x00, 0x01}), std::nullopt);
   EXPECT_EQ(refused(policy, Role::Read, 1, {0x04, 0x00, 0x38, 0x00, 0x01}), std::nullopt);
@@ -62,7 +33,7 @@ TEST(RolePolicy, ReadRoleReadsOnlyAndGetsIllegalFunctionForEveryWrite) {
 }
 
 TEST(RolePolicy, OperateWritesRamButNotEepromLockOrCalibration) {
-  const Plant plant_;
+  const testing::ServicePlant plant_;
   const RolePolicy& policy = plant_.policy;
   EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(42, 2048)), std::nullopt);        // goal
   EXPECT_EQ(refused(policy, Role::Operate, 1, write_register(40, 1)), std::nullopt);           // torque on
@@ -95,7 +66,7 @@ TEST(RolePolicy, OperateWritesRamButNotEepromLockOrCalibration) {
 }
 
 TEST(RolePolicy, EngineerMayDoEverything) {
-  const Plant plant_;
+  const testing::ServicePlant plant_;
   const RolePolicy& policy = plant_.policy;
   EXPECT_EQ(refused(policy, Role::Engineer, 1, write_register(5, 7)), std::nullopt);
   EXPECT_EQ(refused(policy, Role::Engineer, 1, write_register(40, 128)), std::nullopt);

@@ -5,31 +5,17 @@
 
 #include <stdexcept>
 
-#include "config/load.h"
 #include "gateway/service/unit_catalog.h"
+#include "tests/gateway/service/service_plant.h"
 
 namespace sms::gateway {
 namespace {
 
 using modbus_map::Profile;
-
-config::Config plant() {
-  auto config = config::load_config_string(R"(buses:
-  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
-  - {name: line, device: /dev/ttyUSB1, protocol: modbus-rtu, baud: 115200}
-servos:
-  - {bus: arm, id: 1, table: sts}
-  - {bus: arm, id: 2, table: sts, profile: smsmb}
-  - {bus: arm, id: 3, table: sms1, byte_order: high-first}
-  - {bus: line, id: 10, table: passthrough}
-)",
-                                           "plant.yaml");
-  if (!config) throw std::runtime_error(config.error().to_string());
-  return *config;
-}
+using testing::service_plant;
 
 TEST(UnitCatalog, EachServoUnitHasTheMapOfItsTableProfileAndByteOrder) {
-  const config::Config config = plant();
+  const config::Config config = service_plant();
   const UnitCatalog catalog(config);
   const CatalogUnit* native = catalog.servo(1);
   ASSERT_NE(native, nullptr);
@@ -49,7 +35,7 @@ TEST(UnitCatalog, EachServoUnitHasTheMapOfItsTableProfileAndByteOrder) {
 }
 
 TEST(UnitCatalog, PassthroughGatewayAndUnknownUnitsHaveNoMap) {
-  const config::Config config = plant();
+  const config::Config config = service_plant();
   const UnitCatalog catalog(config);
   EXPECT_EQ(catalog.servo(10), nullptr);
   EXPECT_TRUE(catalog.passthrough(10));
@@ -60,7 +46,7 @@ TEST(UnitCatalog, PassthroughGatewayAndUnknownUnitsHaveNoMap) {
 }
 
 TEST(UnitCatalog, AUnitWithoutARegisterMapIsRefusedByName) {
-  config::Config config = plant();
+  config::Config config = service_plant();
   config.servos[0].table = modbus_map::TableId::D55d;  // d55d has the native profile only
   config.servos[0].profile = config::Profile::Smsmb;
   try {
