@@ -10,12 +10,13 @@
 
 #include "config/load.h"
 #include "gateway/console/console_server.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tcp_serving.h"
 #include "gateway/modbus_tcp/tls.h"
 #include "gateway/mqtt/sparkplug_node.h"
 #include "gateway/observability/metrics_server.h"
 #include "gateway/rtu_slave/rtu_slave_port.h"
+#include "gateway/service/role_policy.h"
+#include "gateway/service/unit_catalog.h"
 #include "gateway/units/safety.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/register_map.h"
@@ -119,8 +120,11 @@ class Gateway::Impl {
     std::vector<BusEngine*> engines;
     for (const auto& engine : engines_) engines.push_back(engine.get());
     safety_ = std::make_unique<SafetySupervisor>(config_, engines, gates_);
+    // Every unit's register map, built once; the one role policy every way in checks.
+    catalog_ = std::make_unique<UnitCatalog>(config_);
+    policy_ = std::make_unique<RolePolicy>(config_, *catalog_);
     router_ = std::make_unique<UnitRouter>(
-        config_, engines, [this](std::function<void()> work) { serving_.post(std::move(work)); }, *safety_);
+        config_, *catalog_, engines, [this](std::function<void()> work) { serving_.post(std::move(work)); }, *safety_);
 
     TcpServerOptions options;
     options.host = config_.modbus_tcp.listen.host;
@@ -141,7 +145,7 @@ class Gateway::Impl {
     }
     if (const auto& tls = config_.modbus_tcp.tls) {
       try {
-        tls_ = std::make_unique<TlsService>(*tls, config_, *router_);
+        tls_ = std::make_unique<TlsService>(*tls, *policy_, *router_);
       } catch (const std::exception& error) {
         throw std::runtime_error(std::string("cannot set up Modbus/TCP Security: ") + error.what());
       }
@@ -153,18 +157,14 @@ class Gateway::Impl {
     }
     // Before the metrics endpoint, whose thread reads the node's counters.
     if (config_.mqtt) {
-      sparkplug_ = std::make_unique<SparkplugNode>(config_, serving_.io(), *router_);
+      sparkplug_ = std::make_unique<SparkplugNode>(config_, serving_.io(), *router_, *policy_);
       sparkplug_->start();  // throws for an unreadable password or TLS file; the broker may be down
     }
     // Upstream Modbus RTU ports: the same router behind each port's role (docs/RTU_PANELS.md).
     // Made before the metrics endpoint, whose thread reads their counters; started with the buses.
-    if (!config_.modbus_rtu_slave.empty()) {
-      rtu_policy_ = std::make_unique<RolePolicy>(config_);
-      for (const auto& port : config_.modbus_rtu_slave) {
-        rtu_slaves_.push_back(
-            std::make_unique<RtuSlavePort>(port, config_, *router_, *rtu_policy_,
-                                           [this](std::function<void()> work) { serving_.post(std::move(work)); }));
-      }
+    for (const auto& port : config_.modbus_rtu_slave) {
+      rtu_slaves_.push_back(std::make_unique<RtuSlavePort>(
+          port, config_, *router_, *policy_, [this](std::function<void()> work) { serving_.post(std::move(work)); }));
     }
     // The browser console (docs/CONSOLE.md): its own thread, a Modbus client of the router.
     if (config_.console) {
@@ -177,7 +177,7 @@ class Gateway::Impl {
               console::BusLending{[this](std::size_t bus, const std::string& who) { return lend_bus(bus, who); },
                                   [this](std::size_t bus, const std::string& who) { return take_back_bus(bus, who); },
                                   [this](std::size_t bus) { return engines_.at(bus)->line_lent(); }},
-              safety_.get()});
+              safety_.get(), policy_.get()});
       console_->start();
     }
     if (config_.logging.metrics_listen) {
@@ -309,11 +309,12 @@ class Gateway::Impl {
   std::vector<std::shared_ptr<WireMonitor>> monitors_;  // one per bus, in configuration order
   std::vector<std::unique_ptr<BusEngine>> engines_;
   std::unique_ptr<SafetySupervisor> safety_;  // before the router, which holds a reference
+  std::unique_ptr<UnitCatalog> catalog_;      // before the router and the policy, which hold references
+  std::unique_ptr<RolePolicy> policy_;        // before every way in that checks it
   std::unique_ptr<UnitRouter> router_;
   std::unique_ptr<TlsService> tls_;                  // after the router it holds, before the sessions that use it
   std::unique_ptr<console::ConsoleServer> console_;  // after the router it asks; stopped first
   std::unique_ptr<SparkplugNode> sparkplug_;         // after the router it asks; its callbacks end with the io thread
-  std::unique_ptr<RolePolicy> rtu_policy_;           // the RTU ports' role gate
   std::vector<std::unique_ptr<RtuSlavePort>> rtu_slaves_;  // after the router and policy they use
   std::optional<std::size_t> plain_index_;
   std::optional<std::size_t> tls_index_;

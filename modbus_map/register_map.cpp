@@ -109,6 +109,11 @@ std::string_view to_string(ModbusException code) {
   return protocol::modbus_exception_name(static_cast<std::uint8_t>(code));
 }
 
+std::string to_string(const MapError& error) {
+  const auto code = static_cast<std::uint8_t>(error.code);
+  return "exception " + hex(code) + " (" + std::string(protocol::modbus_exception_name(code)) + "): " + error.message;
+}
+
 std::string_view to_string(Profile profile) {
   for (const auto& entry : kProfileNames) {
     if (entry.profile == profile) return entry.name;
@@ -496,14 +501,44 @@ MapResult<WritePlan> RegisterMap::plan_coil_write(std::uint16_t start, const std
   return plan_write(RequestSpace::Coils, start, registers);
 }
 
+std::optional<MapError> RegisterMap::unwritable(const RegisterEntry& entry) const {
+  if (entry.counterpart == nullptr) {
+    return MapError{ModbusException::IllegalDataAddress, field_label(*entry.shown) + " has no counterpart in table " +
+                                                             std::string(servo_table_->name) + " (" + description_ +
+                                                             ")"};
+  }
+  if (!entry.writable) {
+    return MapError{ModbusException::IllegalDataAddress,
+                    field_label(*entry.shown) + " of " + description_ + " is read-only" +
+                        (entry.counterpart != entry.shown ? " (table " + std::string(servo_table_->name) + " field " +
+                                                                std::string(entry.counterpart->name) + ")"
+                                                          : "")};
+  }
+  return std::nullopt;
+}
+
+std::optional<MapError> RegisterMap::outside_range(const RegisterEntry& entry, std::int64_t value) const {
+  if (value >= entry.min && value <= entry.max) return std::nullopt;
+  return MapError{ModbusException::IllegalDataValue, "value " + std::to_string(value) + " for " +
+                                                         field_label(*entry.shown) + " of " + description_ +
+                                                         " is outside " + range_text(entry.min, entry.max)};
+}
+
+MapResult<CheckedWrite> RegisterMap::check_write(const RegisterEntry& entry, std::int64_t value) const {
+  if (auto refused = unwritable(entry)) return unexpected(std::move(*refused));
+  if (auto refused = outside_range(entry, value)) return unexpected(std::move(*refused));
+  // In range, so it fits the register (entry ranges are int16 or uint16): its two's complement.
+  const auto register_value = static_cast<std::uint16_t>(value);
+  const auto converted = convert_write(entry, register_value);
+  if (!converted) return unexpected(converted.error());
+  return CheckedWrite{register_value, entry.counterpart};
+}
+
 MapResult<std::optional<RegisterMap::FieldWrite>> RegisterMap::convert_write(const RegisterEntry& entry,
                                                                              std::uint16_t register_value) const {
   const std::int32_t value = entry.min < 0 ? static_cast<std::int16_t>(register_value) : register_value;
   const std::string label = field_label(*entry.shown);
-  if (value < entry.min || value > entry.max) {
-    return bad_value("value " + std::to_string(value) + " for " + label + " of " + description_ + " is outside " +
-                     range_text(entry.min, entry.max));
-  }
+  if (auto refused = outside_range(entry, value)) return unexpected(std::move(*refused));
   const FieldSpec& field = *entry.counterpart;
   const std::string servo_label = "table " + std::string(servo_table_->name) + " field " + std::string(field.name) +
                                   " (" + address_text(*servo_table_, field.addr) + ")";
@@ -615,17 +650,7 @@ MapResult<WritePlan> RegisterMap::plan_write(RequestSpace space, std::uint16_t s
       return bad_address("address " + address_label(address) + " is the second byte of " + field_label(*entry->shown) +
                          " of " + description_ + "; write the field at its first address");
     }
-    if (entry->counterpart == nullptr) {
-      return bad_address(field_label(*entry->shown) + " has no counterpart in table " +
-                         std::string(servo_table_->name) + " (" + description_ + ")");
-    }
-    if (!entry->writable) {
-      return bad_address(
-          field_label(*entry->shown) + " of " + description_ + " is read-only" +
-          (entry->counterpart != entry->shown
-               ? " (table " + std::string(servo_table_->name) + " field " + std::string(entry->counterpart->name) + ")"
-               : ""));
-    }
+    if (auto refused = unwritable(*entry)) return unexpected(std::move(*refused));
     selected.push_back(Selected{entry, values[i]});
   }
   if (selected.empty()) {
@@ -672,15 +697,17 @@ MapResult<WritePlan> RegisterMap::plan_write(RequestSpace space, std::uint16_t s
 }
 
 MapResult<Bytes> RegisterMap::field_bytes(const FieldSpec& servo_field, std::uint16_t register_value) const {
-  const std::int32_t value = servo_field.min < 0 ? static_cast<std::int16_t>(register_value) : register_value;
-  const auto raw = encode_value(servo_field, value);
-  if (!raw) {
-    return bad_value("value " + std::to_string(value) + " for table " + std::string(servo_table_->name) + " field " +
-                     std::string(servo_field.name) + " is outside " + range_text(servo_field.min, servo_field.max) +
-                     (servo_field.allowed_values.empty() ? "" : " or not an accepted value"));
+  // The field as this map shows it, so a sync group's value is checked as a write of it is.
+  const RegisterEntry* entry = entry_at(servo_field.addr);
+  if (entry == nullptr || entry->shown != &servo_field || entry->counterpart != &servo_field) {
+    return bad_address("table " + std::string(servo_table_->name) + " field " + std::string(servo_field.name) +
+                       " is not a register of " + description_ + " (sync groups use the native map)");
   }
+  if (auto refused = unwritable(*entry)) return unexpected(std::move(*refused));
+  const auto write = convert_write(*entry, register_value);
+  if (!write) return unexpected(write.error());
   Bytes bytes(servo_field.size);
-  store_raw(bytes, servo_field.size, byte_order_, *raw);
+  store_raw(bytes, servo_field.size, byte_order_, (*write)->raw);  // a native field always has a value to write
   return bytes;
 }
 

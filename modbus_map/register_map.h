@@ -45,6 +45,10 @@ struct MapError {
 };
 template <typename T>
 using MapResult = Expected<T, MapError>;
+// "exception 0x03 (illegal data value): value 5 for torque_enable (40) of table sts, ...": a
+// refusal in the words a way in that checks before the router (the console, the Sparkplug node)
+// answers with.
+std::string to_string(const MapError& error);
 
 // docs/PLC_GUIDE.md "Two register profiles".
 enum class Profile : std::uint8_t { Native, Smsmb };
@@ -158,6 +162,12 @@ struct RegisterEntry {
   std::int32_t max = 0;
 };
 
+// A client's value for one field, as the value check took it (RegisterMap::check_write).
+struct CheckedWrite {
+  std::uint16_t register_value = 0;        // what a request carries for it (two's complement if signed)
+  const FieldSpec* servo_field = nullptr;  // the servo's field it lands in (EEPROM or RAM: its area)
+};
+
 class RegisterMap {
  public:
   // `profile` Smsmb needs a feetech table (sts, sms1). `byte_order` overrides the table's
@@ -202,8 +212,17 @@ class RegisterMap {
   // FC05 (one value), FC15.
   MapResult<WritePlan> plan_coil_write(std::uint16_t start, const std::vector<bool>& values) const;
 
-  // The bus bytes of one servo field carrying `register_value` as a client wrote it (native
-  // value rules: range, encoding, byte order). For sync groups (one SYNC WRITE per bus).
+  // The one value check of a client's write (docs/PLC_GUIDE.md "Exceptions"): `value`, as the
+  // client means it (signed where the field is), for the field `entry` shows — its access (0x02:
+  // read-only, no counterpart), its range, its allowed values and whatever its link to the
+  // servo's field accepts (0x03). plan_register_write() and plan_coil_write() run it for every
+  // field they write; the console and the Sparkplug node call it before they build a request, so
+  // a refusal reads the same whichever way the value came.
+  MapResult<CheckedWrite> check_write(const RegisterEntry& entry, std::int64_t value) const;
+
+  // The bus bytes of one servo field carrying `register_value` as a client wrote it, checked as
+  // check_write() checks it, in this map's byte order. For sync groups (one SYNC WRITE per bus),
+  // on the table's native map (a field the map does not show as itself is 0x02).
   MapResult<protocol::Bytes> field_bytes(const FieldSpec& servo_field, std::uint16_t register_value) const;
 
  private:
@@ -219,6 +238,10 @@ class RegisterMap {
   MapResult<WritePlan> plan_write(RequestSpace space, std::uint16_t start, std::span<const std::uint16_t> values) const;
   const RegisterEntry* entry_covering(std::uint16_t address) const;
   bool in_space(const RegisterEntry& entry, RequestSpace space) const;
+  // 0x02 when a client may not write the field `entry` shows at all.
+  std::optional<MapError> unwritable(const RegisterEntry& entry) const;
+  // 0x03 when `value` (as the client means it) is outside the field's range.
+  std::optional<MapError> outside_range(const RegisterEntry& entry, std::int64_t value) const;
   MapResult<std::optional<FieldWrite>> convert_write(const RegisterEntry& entry, std::uint16_t register_value) const;
   std::string field_label(const FieldSpec& field) const;
   std::string address_label(std::uint16_t address) const;

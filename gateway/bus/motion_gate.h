@@ -22,7 +22,7 @@ class MotionGate {
   bool admits(MotionEpoch admitted) const { return !blocked() && admitted == epoch(); }
 
   // The safety supervisor computes `blocked` from its whole state after every transition, under
-  // its lock (gateway/units/safety.cpp), so what a client reads never disagrees with the gate.
+  // its lock (gateway/units/safety_latch.cpp), so what a client reads never disagrees with the gate.
   // Blocking starts a new epoch (a motion write admitted before it is refused at the wire).
   void set_blocked(bool blocked) {
     if (blocked) {

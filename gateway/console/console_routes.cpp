@@ -7,8 +7,8 @@
 
 #include "gateway/console/console_commission.h"
 #include "gateway/console/console_view.h"
-#include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/service/modbus_request.h"
+#include "modbus_map/eeprom_lock.h"
 #include "modbus_map/motion.h"
 #include "protocol/modbus_pdu.h"
 
@@ -41,10 +41,11 @@ std::vector<std::uint16_t> registers_in(const Bytes& pdu) {
   return values;
 }
 
-// HTTP status for a Modbus exception the router answered.
-unsigned status_for_exception(std::uint8_t exception) {
-  switch (exception) {
-    case 0x01: return 403;  // the role policy refuses the function
+// HTTP status for a Modbus exception: the role gate's refusals 403, the router's by their code.
+unsigned status_for(const ModbusAnswer& answer) {
+  if (answer.role_refused) return 403;
+  switch (answer.exception) {
+    case 0x01: return 403;  // a function the console may not use
     case 0x02:
     case 0x03: return 400;
     case 0x04: return 409;  // motion blocked, or the servo refused
@@ -156,28 +157,64 @@ void api_servo(const std::shared_ptr<ApiCall>& call) {
       });
 }
 
-// The EEPROM lock of a table (docs/PROTOCOL.md): unlocked to write EEPROM, locked again after,
-// as `sms-gateway set-id` and the other tools do.
-const modbus_map::RegisterEntry* eeprom_lock(const ServoUnit& unit) { return entry_named(unit.map, "lock"); }
+// The register that shows the table's EEPROM lock (modbus_map/eeprom_lock.h), or nullptr.
+const modbus_map::RegisterEntry* eeprom_lock(const ServoUnit& unit) {
+  const auto* lock = modbus_map::eeprom_lock(unit.map.servo_table());
+  return lock == nullptr ? nullptr : entry_for_servo_field(unit.map, lock->name);
+}
 
-// Writes `steps` one after another; stops at the first exception.
+// Writes `steps` one after another. After a refusal the rest are skipped, but for those that
+// run whatever came before (the lock put back); `done` gets the first failure and its step.
 struct WriteStep {
   std::uint16_t address;
   std::uint16_t value;
   std::string what;
+  bool even_after_a_failure = false;
+};
+struct FailedStep {
+  ModbusAnswer answer;
+  std::string what;
 };
 void run_steps(Services& services, const Principal& who, std::uint8_t unit, std::vector<WriteStep> steps,
-               std::size_t index,
-               std::function<void(std::optional<ModbusAnswer> failed, std::string failed_step)> done) {
-  if (index == steps.size()) return done(std::nullopt, "");
+               std::size_t index, std::optional<FailedStep> failed,
+               std::function<void(std::optional<FailedStep>)> done) {
+  while (failed && index < steps.size() && !steps[index].even_after_a_failure) ++index;
+  if (index == steps.size()) return done(std::move(failed));
   const Bytes pdu = write_register_pdu(steps[index].address, steps[index].value);
-  services.modbus(
-      who, unit, pdu,
-      [&services, who, unit, steps = std::move(steps), index, done = std::move(done)](ModbusAnswer answer) mutable {
-        if (!answer.ok()) return done(std::move(answer), steps[index].what);
-        run_steps(services, who, unit, std::move(steps), index + 1, std::move(done));
-      });
+  services.modbus(who, unit, pdu,
+                  [&services, who, unit, steps = std::move(steps), index, failed = std::move(failed),
+                   done = std::move(done)](ModbusAnswer answer) mutable {
+                    if (!answer.ok() && !failed) failed = FailedStep{std::move(answer), steps[index].what};
+                    run_steps(services, who, unit, std::move(steps), index + 1, std::move(failed), std::move(done));
+                  });
 }
+
+}  // namespace
+
+Expected<CheckedFieldWrite, HttpAnswer> check_field_write(const ServoUnit& unit, std::string_view field,
+                                                          std::int64_t value) {
+  const auto* entry = entry_named(unit.map, field);
+  if (entry == nullptr) {
+    return unexpected(HttpAnswer::error(
+        400, "no field `" + printable(field) + "` in " + unit.map.description() + "; nothing written"));
+  }
+  const std::string name(entry->shown->name);
+  if (unit.read_only) {
+    return unexpected(HttpAnswer::error(400, name + " cannot be written (the unit is read_only); nothing written"));
+  }
+  if (commissioning_only(name)) {
+    return unexpected(HttpAnswer::error(400, name + " takes the servo off this bus: change it with `sms-gateway " +
+                                                 (name == "id" ? "set-id" : "set-baud") +
+                                                 "` on a line no bus owns (docs/HARDWARE.md); nothing written"));
+  }
+  const auto checked = unit.map.check_write(*entry, value);
+  if (!checked) {
+    return unexpected(HttpAnswer::error(400, modbus_map::to_string(checked.error()) + "; nothing written"));
+  }
+  return CheckedFieldWrite{entry, *checked};
+}
+
+namespace {
 
 void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   const auto unit = servo_of(call->services, call->params);
@@ -185,77 +222,53 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   const auto request = parse_field_write(call->body);
   if (!request) return call->answer(HttpAnswer::error(400, request.error() + "; nothing written"));
   const ServoUnit& servo = **unit;
-  const auto* entry = entry_named(servo.map, request->field);
-  if (entry == nullptr) {
-    return call->answer(HttpAnswer::error(
-        400, "no field `" + printable(request->field) + "` in " + servo.map.description() + "; nothing written"));
-  }
+  const auto checked = check_field_write(servo, request->field, request->value);
+  if (!checked) return call->answer(checked.error());
+  const auto* entry = checked->entry;
   const std::string name(entry->shown->name);
-  if (!entry->writable || servo.read_only) {
-    return call->answer(HttpAnswer::error(
-        400, name + " cannot be written" + (servo.read_only ? " (the unit is read_only)" : " (read-only field)") +
-                 "; nothing written"));
-  }
-  if (commissioning_only(name)) {
-    return call->answer(HttpAnswer::error(400, name + " takes the servo off this bus: change it with `sms-gateway " +
-                                                   (name == "id" ? "set-id" : "set-baud") +
-                                                   "` on a line no bus owns (docs/HARDWARE.md); nothing written"));
-  }
   const std::int64_t value = request->value;
-  if (value < entry->min || value > entry->max) {
-    return call->answer(HttpAnswer::error(400, name + ": " + std::to_string(value) + " is outside " +
-                                                   std::to_string(entry->min) + ".." + std::to_string(entry->max) +
-                                                   "; nothing written"));
+  const std::uint16_t reg = checked->value.register_value;
+  // The role before anything is sent: an EEPROM write's unlock would otherwise be what is refused.
+  if (const auto refused = call->services.refusal(call->who, servo.unit_id, write_register_pdu(entry->address, reg))) {
+    return call->answer(HttpAnswer::error(403, name + ": " + refused->text() + "; nothing written"));
   }
-  const auto allowed = entry->shown->allowed_values;
-  if (!allowed.empty() && std::find(allowed.begin(), allowed.end(), value) == allowed.end()) {
-    std::string list;
-    for (const auto v : allowed) list += (list.empty() ? "" : ", ") + std::to_string(v);
-    return call->answer(
-        HttpAnswer::error(400, name + ": " + std::to_string(value) + " is not one of " + list + "; nothing written"));
-  }
-  const bool engineer = entry->counterpart != nullptr && engineer_only_field(*entry->counterpart);
-  if (engineer && !role_allows(call->who.role, Role::Engineer)) {
-    return call->answer(HttpAnswer::error(403, "writing " + name + " (EEPROM) needs the engineer role; " +
-                                                   call->who.name + " has " + role_text(call->who.role) +
-                                                   "; nothing written"));
-  }
-  const auto reg = static_cast<std::uint16_t>(static_cast<std::int16_t>(value));
   std::vector<WriteStep> steps{{entry->address, reg, name + " := " + std::to_string(value)}};
   const auto* lock = eeprom_lock(servo);
-  const bool eeprom = entry->counterpart != nullptr && entry->counterpart->area == modbus_map::Area::Eeprom;
-  auto finish = [call, name, value](std::optional<ModbusAnswer> failed, const std::string& step) {
+  const bool eeprom = checked->value.servo_field->area == modbus_map::Area::Eeprom;
+  auto finish = [call, name, value](std::optional<FailedStep> failed) {
     if (failed) {
-      return call->answer(HttpAnswer::error(status_for_exception(failed->exception), step + ": " + failed->message));
+      return call->answer(HttpAnswer::error(status_for(failed->answer), failed->what + ": " + failed->answer.message));
     }
     call->answer(HttpAnswer::json(200, {{"ok", true}, {"field", name}, {"value", value}}));
   };
   if (!eeprom || lock == nullptr || entry == lock) {
-    return run_steps(call->services, call->who, servo.unit_id, std::move(steps), 0, std::move(finish));
+    return run_steps(call->services, call->who, servo.unit_id, std::move(steps), 0, std::nullopt, std::move(finish));
   }
-  // EEPROM with a lock: read it; when locked, unlock, write, lock again (the write persists).
+  // EEPROM with a lock, as the tools write it (modbus_map/eeprom_lock.h): read it; closed, open it
+  // for the write and put it back after, also when the write failed.
   call->services.modbus(
       call->who, servo.unit_id, read_registers_pdu(lock->address, 1),
       [call, steps = std::move(steps), lock, unit_id = servo.unit_id, finish](ModbusAnswer answer) mutable {
-        if (!answer.ok()) return finish(std::move(answer), "reading the EEPROM lock");
-        const std::uint16_t previous = registers_in(answer.pdu).at(0);
-        if (previous != 0) {
-          steps.insert(steps.begin(), WriteStep{lock->address, 0, "unlocking the EEPROM (lock := 0)"});
-          steps.push_back(WriteStep{lock->address, previous, "locking the EEPROM again"});
+        if (!answer.ok()) return finish(FailedStep{std::move(answer), "reading the EEPROM lock"});
+        const modbus_map::EepromUnlock unlock{lock->counterpart, registers_in(answer.pdu).at(0)};
+        if (unlock.needed()) {
+          steps.insert(steps.begin(), WriteStep{lock->address, static_cast<std::uint16_t>(modbus_map::kEepromUnlocked),
+                                                unlock.unlock_text()});
+          steps.push_back(
+              WriteStep{lock->address, static_cast<std::uint16_t>(unlock.read), unlock.relock_text(), true});
         }
-        run_steps(call->services, call->who, unit_id, std::move(steps), 0, finish);
+        run_steps(call->services, call->who, unit_id, std::move(steps), 0, std::nullopt, finish);
       });
 }
 
 void gateway_coil(const std::shared_ptr<ApiCall>& call, std::uint16_t coil, bool on, std::string what) {
-  call->services.modbus(
-      call->who, call->services.config().modbus_tcp.gateway_unit_id, write_coil_pdu(coil, on),
-      [call, what = std::move(what)](const ModbusAnswer& answer) {
-        if (!answer.ok()) {
-          return call->answer(HttpAnswer::error(status_for_exception(answer.exception), what + ": " + answer.message));
-        }
-        call->answer(HttpAnswer::json(200, {{"ok", true}, {"done", what}}));
-      });
+  call->services.modbus(call->who, call->services.config().modbus_tcp.gateway_unit_id, write_coil_pdu(coil, on),
+                        [call, what = std::move(what)](const ModbusAnswer& answer) {
+                          if (!answer.ok()) {
+                            return call->answer(HttpAnswer::error(status_for(answer), what + ": " + answer.message));
+                          }
+                          call->answer(HttpAnswer::json(200, {{"ok", true}, {"done", what}}));
+                        });
 }
 
 void api_estop(const std::shared_ptr<ApiCall>& call) {
@@ -375,9 +388,8 @@ class ServoStream final : public Stream {
     const auto* entry = speed ? goal_speed_ : goal_position_;
     if (entry == nullptr)
       return send(error_json(std::string("this table has no ") + (speed ? "goal speed" : "goal position")));
-    if (message->value < entry->min || message->value > entry->max) {
-      return send(error_json(std::string(entry->shown->name) + ": " + std::to_string(message->value) + " is outside " +
-                             std::to_string(entry->min) + ".." + std::to_string(entry->max) + "; not moved"));
+    if (const auto checked = unit_.map.check_write(*entry, message->value); !checked) {
+      return send(error_json(modbus_map::to_string(checked.error()) + "; not moved"));
     }
     // A press: a new session, with the bus's motion stops as they are now; a move still running
     // from an earlier press ends first if a stop came since (it would end at the next sample).

@@ -27,6 +27,7 @@
 #include "gateway/console/console_jog.h"
 #include "gateway/console/console_request.h"
 #include "gateway/observability/metrics.h"
+#include "gateway/service/access_gate.h"
 #include "gateway/units/unit_router.h"
 #include "protocol/expected.h"
 #include "protocol/packet.h"
@@ -49,6 +50,7 @@ struct ModbusAnswer {
   protocol::Bytes pdu;         // the response PDU
   std::uint8_t exception = 0;  // 0: no exception
   std::string message;         // "0x04 server device failure: motion blocked ..." for the page
+  bool role_refused = false;   // the role gate refused it (it never reached the router): HTTP 403
   bool ok() const { return exception == 0 && !pdu.empty(); }
 };
 
@@ -70,11 +72,16 @@ class Services {
   virtual std::shared_ptr<WireMonitor> monitor(std::string_view bus) const = 0;
   // Set-Cookie text for a session token (empty: clears the cookie).
   virtual std::string session_cookie(const std::string& token) const = 0;
-  // A Modbus request made as `who`: first the role policy of Modbus/TCP Security (refused: an
+  // A Modbus request made as `who`: first the role gate every way in passes (refused: an
   // exception answer without reaching the router), then the unit router on the gateway's io
   // thread, like any Modbus client. `done` runs on the console thread.
   virtual void modbus(const Principal& who, std::uint8_t unit, protocol::Bytes pdu,
                       std::function<void(ModbusAnswer)> done) = 0;
+  // Whether that gate refuses `pdu` from `who` (a refusal is logged and counted as one): asked
+  // before a sequence of requests whose first would not be the one refused (an EEPROM write's
+  // unlock), so the refusal names the write the user asked for.
+  virtual std::optional<GateRefusal> refusal(const Principal& who, std::uint8_t unit,
+                                             std::span<const std::uint8_t> pdu) = 0;
   // Bus `bus`'s motion stops now (SafetySupervisor::motion_stops): what a hold-to-run move checks.
   virtual MotionStops motion_stops(std::size_t bus) const = 0;
   // A write of the hold-to-run move `session`: as modbus(), and on the io thread, right before the
@@ -141,6 +148,17 @@ inline constexpr std::chrono::milliseconds kJogHeartbeatTimeout{150};
 // While held, the move's goal is written again this often (it is the operator's presence: it
 // feeds the bus watchdog like any carried-out write).
 inline constexpr std::chrono::milliseconds kJogRefreshPeriod{250};
+
+// A field write from the servo page, checked before anything is sent: the field by its name, the
+// unit's `read_only`, the fields only commissioning changes, then the value check every way in
+// shares (RegisterMap::check_write), worded as the Sparkplug node words it. The entry and the
+// checked value, or the page's 400 answer ("...; nothing written").
+struct CheckedFieldWrite {
+  const modbus_map::RegisterEntry* entry = nullptr;
+  modbus_map::CheckedWrite value;
+};
+Expected<CheckedFieldWrite, HttpAnswer> check_field_write(const ServoUnit& unit, std::string_view field,
+                                                          std::int64_t value);
 
 // The Modbus exception in a response PDU as text for a page, e.g. "exception 0x04 (server device
 // failure): motion is blocked — the e-stop is latched or the watchdog tripped"; empty for none.

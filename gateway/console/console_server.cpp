@@ -25,12 +25,11 @@
 #include "gateway/console/console_routes.h"
 #include "gateway/console/console_view.h"
 #include "gateway/console/web_assets.h"
-#include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tls.h"
 #include "gateway/net/door.h"
 #include "gateway/net/listener.h"
+#include "gateway/service/access_gate.h"
+#include "gateway/service/modbus_request.h"
 
 namespace sms::gateway::console {
 
@@ -153,7 +152,8 @@ class ConsoleServer::Impl final : public Services {
         backend_(std::move(backend)),
         limits_(limits),
         rules_(access_rules(settings_)),
-        policy_(*backend_.config),
+        gate_(backend_.policy != nullptr ? *backend_.policy : throw std::invalid_argument("console: no role policy"),
+              "console"),
         sessions_(settings_.session_timeout),
         commissioning_(*backend_.config, backend_.lending),
         acceptor_(io_),
@@ -243,6 +243,11 @@ class ConsoleServer::Impl final : public Services {
     submit(who, unit, std::move(pdu), std::move(done), std::nullopt);
   }
 
+  std::optional<GateRefusal> refusal(const Principal& who, std::uint8_t unit,
+                                     std::span<const std::uint8_t> pdu) override {
+    return gate_.check(who.role, unit, pdu, who.name);
+  }
+
   MotionStops motion_stops(std::size_t bus) const override { return backend_.safety->motion_stops(bus); }
 
   void jog_modbus(const Principal& who, std::uint8_t unit, Bytes pdu, const JogSession& session,
@@ -253,13 +258,12 @@ class ConsoleServer::Impl final : public Services {
   // A request for the router as `who`; with `jog`, a write of that hold-to-run move (jog_modbus).
   void submit(const Principal& who, std::uint8_t unit, Bytes pdu, std::function<void(ModbusAnswer)> done,
               std::optional<JogSession> jog) {
-    if (const auto refusal = policy_.refusal(who.role, unit, pdu)) {
-      const std::uint8_t code = exception_code(refusal->fault);
-      spdlog::info("console: {} ({}) refused: {}", who.name, config::to_string(who.role), refusal->reason);
+    if (const auto refusal = this->refusal(who, unit, pdu)) {
       ModbusAnswer answer;
-      answer.exception = code;
-      answer.pdu = {static_cast<std::uint8_t>(pdu.empty() ? 0x80 : pdu[0] | 0x80), code};
-      answer.message = "refused for role " + std::string(config::to_string(who.role)) + ": " + refusal->reason;
+      answer.exception = static_cast<std::uint8_t>(refusal->exception);
+      answer.pdu = refusal->answer(pdu);
+      answer.message = refusal->text();
+      answer.role_refused = true;
       return done(std::move(answer));
     }
     auto target = std::make_shared<ConsoleReply>(mailbox_, std::move(done));
@@ -270,7 +274,8 @@ class ConsoleServer::Impl final : public Services {
       // The e-stop is latched and reset, and watchdogs re-armed, on this thread, and the router
       // admits the write on it right after this look: no latch and reset can come between them.
       if (jog && jog->ended(safety->motion_stops(jog->bus()))) {
-        return reply.send(exception_response(pdu.empty() ? 0 : pdu[0], Fault::MotionBlocked));
+        return reply.send(  // 0x04: motion blocked, as the router answers it
+            exception_response(pdu.empty() ? 0 : pdu[0], ModbusException::ServerDeviceFailure));
       }
       router->handle(unit, pdu, reply);
     });
@@ -494,7 +499,7 @@ class ConsoleServer::Impl final : public Services {
   const ConsoleBackend backend_;
   const ConsoleLimits limits_;
   const AccessRules rules_;
-  const RolePolicy policy_;
+  AccessGate gate_;  // console thread: every request's role, before the router
   SessionStore sessions_;
   Commissioning commissioning_;
   std::shared_ptr<ssl::context> ssl_;

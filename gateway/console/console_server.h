@@ -20,9 +20,10 @@
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/wire_monitor.h"
 #include "gateway/console/console_commission.h"
-#include "gateway/modbus_tcp/request_handler.h"
 #include "gateway/net/door.h"
 #include "gateway/observability/metrics.h"
+#include "gateway/service/request_handler.h"
+#include "gateway/service/role_policy.h"
 #include "gateway/units/safety.h"
 #include "gateway/units/unit_router.h"
 
@@ -40,6 +41,8 @@ struct ConsoleBackend {
   BusLending lending;  // empty functions: no bus can be stopped from the console (tests)
   // The safety rules every hold-to-run move checks (console_jog.h); required.
   const SafetySupervisor* safety = nullptr;
+  // The role rights every request passes before the router (the gateway's one RolePolicy); required.
+  const RolePolicy* policy = nullptr;
 };
 
 // The console's door (gateway/net/door.h) and its requests' bounds.

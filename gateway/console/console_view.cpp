@@ -4,7 +4,7 @@
 #include <array>
 
 #include "gateway/bus/discovery.h"
-#include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/service/role_policy.h"
 #include "modbus_map/tables.h"
 #include "protocol/feetech.h"
 

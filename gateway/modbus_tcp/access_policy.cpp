@@ -82,13 +82,4 @@ std::string AccessPolicy::describe() const {
   return text;
 }
 
-std::optional<Fault> read_only_refusal(std::uint8_t function) {
-  switch (function_effect(function)) {
-    case FunctionEffect::Reads: return std::nullopt;
-    case FunctionEffect::Writes: return Fault::BadAddress;
-    case FunctionEffect::Unknown: break;
-  }
-  return Fault::UnsupportedFunction;
-}
-
 }  // namespace sms::gateway

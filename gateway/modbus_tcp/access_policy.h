@@ -1,12 +1,11 @@
 #pragma once
-// Who may talk to the gateway, and what a read-only unit may be asked. Modbus has no
-// authentication, so the gateway's access control is the bind address, this client allow-list
-// (modbus_tcp.allow) and read-only units (servos[].read_only). Pure: no sockets, no Asio.
+// Who may talk to the gateway over Modbus TCP. Modbus has no authentication, so the gateway's
+// access control is the bind address, this client allow-list (modbus_tcp.allow), read-only units
+// (servos[].read_only: read_only_refusal() in gateway/service/role_policy.h) and, with Modbus/TCP
+// Security, the certificate's role. Pure: no sockets, no Asio.
 //
 //   AccessPolicy policy(config.modbus_tcp.allow);
 //   if (!policy.allows(client_address)) { close the connection; }
-//
-//   if (const auto refusal = read_only_refusal(function)) reply with exception_code(*refusal);
 #include <array>
 #include <cstdint>
 #include <optional>
@@ -16,7 +15,6 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/faults.h"
 #include "protocol/modbus_pdu.h"
 
 namespace sms::gateway {
@@ -60,12 +58,5 @@ using protocol::find_modbus_function;
 using protocol::function_effect;
 using protocol::FunctionEffect;
 using protocol::ModbusFunction;
-
-// Whether a read-only unit answers `function` itself: nullopt when it may be served (reads),
-// BadAddress (0x02) for writes, as a write to a read-only field is answered (docs/PLC_GUIDE.md),
-// UnsupportedFunction (0x01) for functions whose effect the gateway cannot know (passthrough
-// units forward any code; a read-only one forwards reads only). docs/DECISIONS.md "Operations
-// and security".
-std::optional<Fault> read_only_refusal(std::uint8_t function);
 
 }  // namespace sms::gateway

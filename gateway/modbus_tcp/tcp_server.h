@@ -20,8 +20,8 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/request_handler.h"
 #include "gateway/net/door.h"
+#include "gateway/service/request_handler.h"
 #include "protocol/packet.h"
 
 namespace boost::asio {

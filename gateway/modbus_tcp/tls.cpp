@@ -1,7 +1,5 @@
 #include "gateway/modbus_tcp/tls.h"
 
-#include "gateway/modbus_tcp/rate_limited_log.h"
-
 #include <arpa/inet.h>
 #include <openssl/asn1.h>
 #include <openssl/bio.h>
@@ -21,7 +19,7 @@
 #include <boost/asio/error.hpp>
 #include <boost/asio/ssl/error.hpp>
 
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 
 namespace sms::gateway {
 namespace {
@@ -180,34 +178,6 @@ std::size_t result_index(std::string_view result) {
   return static_cast<std::size_t>(found - kHandshakeResults.begin());
 }
 
-// The RoleGate of one secure connection: the role's rights, then the router.
-class RoleGate final : public RequestHandler {
- public:
-  RoleGate(RequestHandler& router, const RolePolicy& policy, Role role, TlsService& service, std::string client)
-      : router_(router), policy_(policy), role_(role), service_(service), client_(std::move(client)) {}
-
-  void handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) override {
-    const auto refusal = policy_.refusal(role_, unit_id, pdu);
-    if (!refusal) {
-      router_.handle(unit_id, pdu, std::move(reply));
-      return;
-    }
-    const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
-    service_.count_refusal(role_);
-    refusal_log_.warn(fmt::format("modbus tcp security: {}: unit {} FC{:02X} refused (0x{:02X}): {}", client_, unit_id,
-                                  function, exception_code(refusal->fault), refusal->reason));
-    reply.send(exception_response(function, refusal->fault));
-  }
-
- private:
-  RequestHandler& router_;
-  const RolePolicy& policy_;
-  const Role role_;
-  TlsService& service_;
-  const std::string client_;
-  RateLimitedLog refusal_log_;  // a client writing cyclically what its role may not
-};
-
 }  // namespace
 
 PeerCertificate read_certificate(X509* certificate) {
@@ -344,8 +314,8 @@ std::shared_ptr<ssl::context> make_tls_context(const config::TlsConfig& settings
   return context;
 }
 
-TlsService::TlsService(const config::TlsConfig& settings, const config::Config& config, RequestHandler& router)
-    : settings_(settings), router_(router), policy_(config), context_(make_tls_context(settings)) {
+TlsService::TlsService(const config::TlsConfig& settings, const RolePolicy& policy, RequestHandler& router)
+    : settings_(settings), router_(router), policy_(policy), context_(make_tls_context(settings)) {
   certificate_expiry_ = describe_context();
 }
 
@@ -400,8 +370,9 @@ std::unique_ptr<RequestHandler> TlsService::admit(SSL* ssl, const std::string& p
   const std::string role(config::to_string(decision.role));
   spdlog::info("modbus tcp security: {} connected as {} ({}; role {} from {}; {})", peer, client.subject,
                SSL_get_version(ssl), role, decision.source, SSL_get_cipher_name(ssl));
-  return std::make_unique<RoleGate>(router_, policy_, decision.role, *this,
-                                    peer + " (" + client.subject + ", role " + role + ")");
+  return std::make_unique<RoleGate>(policy_, decision.role,
+                                    "modbus tcp security: " + peer + " (" + client.subject + ", role " + role + ")",
+                                    &refusals_, router_);
 }
 
 void TlsService::handshake_failed(const boost::system::error_code& error, SSL* ssl, const std::string& peer) {
@@ -436,12 +407,6 @@ void TlsService::connection_closed() {
   if (stats_.open_connections > 0) --stats_.open_connections;
 }
 
-void TlsService::count_refusal(Role role) {
-  std::lock_guard lock(mutex_);
-  if (role == Role::Read) ++stats_.requests_refused_read;
-  if (role == Role::Operate) ++stats_.requests_refused_operate;
-}
-
 void TlsService::count(std::string_view result) {
   std::lock_guard lock(mutex_);
   const std::size_t index = result_index(result);
@@ -450,7 +415,10 @@ void TlsService::count(std::string_view result) {
 
 TlsStats TlsService::stats() const {
   std::lock_guard lock(mutex_);
-  return stats_;
+  TlsStats stats = stats_;
+  stats.requests_refused_read = refusals_.of(Role::Read);
+  stats.requests_refused_operate = refusals_.of(Role::Operate);
+  return stats;
 }
 
 }  // namespace sms::gateway

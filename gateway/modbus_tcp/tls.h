@@ -1,10 +1,11 @@
 #pragma once
 // Modbus/TCP Security (docs/SECURITY.md): the TLS context of the secure listener
 // (TLS 1.2/1.3, client certificate required and verified against the configured CA), the role
-// a client certificate gets, and the RoleGate put in front of the unit router for each secure
-// connection. Internal to gateway/ (Asio and OpenSSL in the header are fine here).
+// a client certificate gets, and the role's gate (gateway/service/access_gate.h) put in front of
+// the unit router for each secure connection. Internal to gateway/ (Asio and OpenSSL in the
+// header are fine here).
 //
-//   TlsService tls(config.modbus_tcp.tls, config, router);  // throws std::runtime_error: bad file
+//   TlsService tls(config.modbus_tcp.tls, policy, router);  // throws std::runtime_error: bad file
 //   options.tls = &tls;                                      // TcpServer does the handshakes
 //   tls.reload();                                            // SIGHUP: new handshakes use the new files
 #include <array>
@@ -23,11 +24,12 @@
 #include <boost/asio/ssl/context.hpp>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/rate_limited_log.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/modbus_tcp/tcp_server.h"
 #include "gateway/modbus_tcp/tls_stats.h"
 #include "gateway/net/door.h"
+#include "gateway/service/access_gate.h"
+#include "gateway/service/rate_limited_log.h"
+#include "gateway/service/role_policy.h"
 
 namespace sms::gateway {
 
@@ -61,8 +63,8 @@ std::shared_ptr<boost::asio::ssl::context> make_tls_context(const config::TlsCon
 class TlsService {
  public:
   // Loads the files (throws std::runtime_error when it cannot). `router` answers the requests
-  // the role rights let through; it must outlive the service.
-  TlsService(const config::TlsConfig& settings, const config::Config& config, RequestHandler& router);
+  // the role rights (`policy`) let through; both must outlive the service.
+  TlsService(const config::TlsConfig& settings, const RolePolicy& policy, RequestHandler& router);
 
   const config::TlsConfig& settings() const { return settings_; }
   // The context for the next handshake (thread-safe).
@@ -81,7 +83,6 @@ class TlsService {
   void handshake_closed_by_door(DoorClose why);
   void connection_closed();
 
-  void count_refusal(config::Role role);
   TlsStats stats() const;
 
  private:
@@ -90,7 +91,7 @@ class TlsService {
 
   const config::TlsConfig settings_;
   RequestHandler& router_;
-  const RolePolicy policy_;
+  const RolePolicy& policy_;
   mutable std::mutex mutex_;
   std::shared_ptr<boost::asio::ssl::context> context_;
   std::string certificate_expiry_;  // "2034-05-01 12:00:00 GMT", for the log
@@ -98,6 +99,7 @@ class TlsService {
   // Refused handshakes, one log per outcome at most once a second (a flood of connections that
   // close in the handshake must not flood the log); io thread only.
   std::map<std::string, RateLimitedLog, std::less<>> refusal_logs_;
+  RefusalCounter refusals_;         // requests the connections' role gates refused
 };
 
 }  // namespace sms::gateway

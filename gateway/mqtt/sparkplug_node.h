@@ -4,11 +4,11 @@
 // the poll cache on change (per-field deadband) and every report_period, and NCMD/DCMD writes.
 //
 // It is a Modbus client of the gateway's own UnitRouter: every read is the FC04/FC03/FC01 a PLC
-// would send, every command the FC06/FC05 a PLC would send, checked by the role's rights
-// (RolePolicy) first. So commands take the same path as Modbus writes: the bus queue and its
-// order, the watchdog (they feed it), the e-stop latch, read-only units and fields, exceptions.
-// Commands run one at a time in arrival order; a command the broker delivered is carried out
-// even when the broker goes away meanwhile (its result shows in the next DBIRTH).
+// would send, every command the FC06/FC05 a PLC would send, through the role gate first
+// (gateway/service/access_gate.h, with mqtt.role). So commands take the same path as Modbus writes: the bus queue and
+// its order, the watchdog (they feed it), the e-stop latch, read-only units and fields, exceptions. Commands run one at
+// a time in arrival order; a command the broker delivered is carried out even when the broker goes away meanwhile (its
+// result shows in the next DBIRTH).
 //
 // Threading: everything runs on the io thread (the router's); the MQTT link's events are posted
 // there.
@@ -21,9 +21,9 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/request_handler.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/mqtt/mqtt_link.h"
+#include "gateway/service/request_handler.h"
+#include "gateway/service/role_policy.h"
 #include "modbus_map/register_map.h"
 #include "protocol/sparkplug/sparkplug.h"
 
@@ -49,6 +49,17 @@ inline constexpr std::string_view kHeartbeatPrefix = "Gateway/Heartbeat/";      
 inline constexpr std::string_view kVersion = "Gateway/Version";
 }  // namespace sparkplug_metric
 
+// A command's value, checked before anything is written (docs/MQTT.md, commands): of the kind
+// the metric was born with (an integer type for an integer metric: a Boolean, Float or String is
+// no position) and within that datatype's range (UInt16 40000 does not fit an Int16 metric; it is
+// not taken as -25536). The error says what was sent and what the metric takes.
+Expected<std::int64_t> command_value(const sparkplug::Metric& metric, sparkplug::DataType born_as);
+// A DCMD's value for the control-table field `entry` of a device's `map`: command_value(), then
+// the value check every way in shares (RegisterMap::check_write: access, range, allowed values),
+// worded as the console words it. The register value to write, or why not.
+Expected<std::uint16_t> device_command_value(const sparkplug::Metric& metric, const modbus_map::RegisterMap& map,
+                                             const modbus_map::RegisterEntry& entry);
+
 // The files `mqtt` names, read as the node will read them: the password (first line of
 // password_file; empty without one) and the TLS files. Throws std::runtime_error naming the key,
 // the file and what to do. sms-gateway --check-config runs it too.
@@ -56,8 +67,10 @@ std::string read_mqtt_files(const config::MqttConfig& mqtt);
 
 class SparkplugNode {
  public:
-  // `router` answers the node's requests on `io`'s thread; both outlive the node.
-  SparkplugNode(const config::Config& config, boost::asio::io_context& io, UnitRouter& router);
+  // `router` answers the node's requests on `io`'s thread, `policy` holds the rights of
+  // mqtt.role; all three outlive the node.
+  SparkplugNode(const config::Config& config, boost::asio::io_context& io, UnitRouter& router,
+                const RolePolicy& policy);
   ~SparkplugNode();
   SparkplugNode(const SparkplugNode&) = delete;
   SparkplugNode& operator=(const SparkplugNode&) = delete;

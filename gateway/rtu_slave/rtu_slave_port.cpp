@@ -14,7 +14,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/wakeup.h"
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 #include "protocol/modbus_pdu.h"
 
 namespace sms::gateway {
@@ -88,8 +88,7 @@ RtuSlavePort::RtuSlavePort(const config::RtuSlaveConfig& port, const config::Con
     : port_(port),
       timing_(
           rtu_slave_timing(SerialSettings{port.device, port.baud, port.parity, port.stop_bits}, port.line.frame_gap)),
-      router_(router),
-      policy_(policy),
+      gate_(policy, port.role, what(), &role_refusals_, router),
       post_(std::move(post)),
       mailbox_(std::make_shared<Mailbox>()),
       line_(RtuLineSettings{SerialSettings{port.device, port.baud, port.parity, port.stop_bits}, port.line}) {
@@ -130,7 +129,7 @@ RtuSlaveStats RtuSlavePort::stats() const {
   stats.dropped_frames = counters_.dropped_frames.load();
   stats.echoes = counters_.echoes.load();
   stats.silent_units = counters_.silent_units.load();
-  stats.role_refusals = counters_.role_refusals.load();
+  stats.role_refusals = role_refusals_.total();
   stats.port_lost = counters_.port_lost.load();
   return stats;
 }
@@ -385,21 +384,8 @@ void RtuSlavePort::start_next() {
   auto pdu = std::make_shared<const Bytes>(in_flight_->request.pdu);
   for (std::size_t i = 0; i < units.size(); ++i) {
     Reply reply(mailbox_, in_flight_->first_serial + i, origin_);
-    post_([this, unit = units[i], pdu, reply] { handle_on_io_thread(unit, *pdu, reply); });
+    post_([this, unit = units[i], pdu, reply] { gate_.handle(unit, *pdu, reply); });
   }
-}
-
-void RtuSlavePort::handle_on_io_thread(std::uint8_t unit, const Bytes& pdu, const Reply& reply) {
-  const auto refusal = policy_.refusal(port_.role, unit, pdu);
-  if (!refusal) {
-    router_.handle(unit, pdu, reply);
-    return;
-  }
-  counters_.role_refusals.fetch_add(1, std::memory_order_relaxed);
-  const std::uint8_t function = pdu.empty() ? 0 : pdu[0];
-  refusal_log_.warn(fmt::format("{}: unit {} FC{:02X} refused (0x{:02X}) for role {}: {}", what(), unit, function,
-                                exception_code(refusal->fault), config::to_string(port_.role), refusal->reason));
-  reply.send(exception_response(function, refusal->fault));
 }
 
 void RtuSlavePort::collect_answers() {

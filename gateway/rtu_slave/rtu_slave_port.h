@@ -1,9 +1,10 @@
 #pragma once
 // An upstream Modbus RTU port (docs/RTU_PANELS.md): the gateway as a Modbus RTU slave on a
 // serial line whose master is a PLC or an HMI panel. Requests go to the same RequestHandler
-// (the UnitRouter) the Modbus TCP listeners use, behind the port's role (RolePolicy, as a
-// Modbus/TCP Security certificate's), so every safety rule, exception and register profile is
-// the same; what differs is the line discipline of Modbus over serial line v1.02 §2.5.1:
+// (the UnitRouter) the Modbus TCP listeners use, behind the port's role (the role gate of
+// gateway/service/access_gate.h, as a Modbus/TCP Security certificate's), so every safety rule,
+// exception and register profile is the same; what differs is the line discipline of Modbus over
+// serial line v1.02 §2.5.1:
 //
 // - a frame ends at t3.5 of silence; a frame with a silence longer than t1.5 inside, a wrong
 //   CRC, fewer than 4 or more than 256 bytes is dropped without an answer (and counted);
@@ -41,10 +42,10 @@
 #include "config/config.h"
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/rtu_master.h"
-#include "gateway/modbus_tcp/rate_limited_log.h"
-#include "gateway/modbus_tcp/request_handler.h"
-#include "gateway/modbus_tcp/role_policy.h"
 #include "gateway/rtu_slave/rtu_slave_stats.h"
+#include "gateway/service/access_gate.h"
+#include "gateway/service/request_handler.h"
+#include "gateway/service/role_policy.h"
 #include "protocol/modbus_rtu.h"
 
 namespace sms::gateway {
@@ -101,7 +102,7 @@ class RtuSlavePort {
   struct Counters {
     std::atomic<bool> open{false};
     std::atomic<std::uint64_t> requests{0}, answers{0}, broadcasts{0}, crc_errors{0}, dropped_frames{0}, echoes{0},
-        silent_units{0}, role_refusals{0}, port_lost{0};
+        silent_units{0}, port_lost{0};
   };
   struct Request {
     std::uint8_t unit = 0;
@@ -130,8 +131,6 @@ class RtuSlavePort {
   void start_next();
   void collect_answers();
   void send_answer_if_due(SteadyClock::time_point now);
-  // On the io thread: the role's rights, then the router.
-  void handle_on_io_thread(std::uint8_t unit, const protocol::Bytes& pdu, const Reply& reply);
   std::string what() const;  // "rtu slave /dev/ttyUSB1" for logs
 
   const config::RtuSlaveConfig port_;
@@ -139,8 +138,9 @@ class RtuSlavePort {
   const std::shared_ptr<const std::string> origin_ =
       std::make_shared<const std::string>("an RTU master on " + port_.device);
   const RtuSlaveTiming timing_;
-  RequestHandler& router_;
-  const RolePolicy& policy_;
+  RefusalCounter role_refusals_;  // before the gate that counts into it
+  // On the io thread: the port's role, then the router.
+  RoleGate gate_;
   const PostFn post_;
   std::vector<std::uint8_t> served_list_;
   std::array<bool, 256> served_{};
@@ -172,9 +172,6 @@ class RtuSlavePort {
   bool stopping_ = false;
   SteadyClock::time_point stop_deadline_{};
   std::thread thread_;
-
-  // The io thread's: refusal log limit.
-  RateLimitedLog refusal_log_;  // a panel writing cyclically what its role may not
 };
 
 }  // namespace sms::gateway

@@ -8,6 +8,7 @@
 #include <fmt/ranges.h>
 
 #include "modbus_map/baud_tables.h"
+#include "modbus_map/eeprom_lock.h"
 #include "modbus_map/tables.h"
 #include "protocol/modbus_pdu.h"
 
@@ -15,24 +16,12 @@ namespace sms::gateway {
 
 using modbus_map::Access;
 using modbus_map::Addressing;
+using modbus_map::EepromUnlock;
 using modbus_map::FieldSpec;
 using modbus_map::TableId;
 using modbus_map::TableSpec;
 
 namespace {
-
-// The EEPROM lock of each table that has one (docs/PROTOCOL.md §2.1 address 55, §2.2 address 48, §2.4
-// 0x85): 0 lets EEPROM writes persist.
-struct EepromLock {
-  TableId table;
-  std::string_view field;
-  std::int32_t unlocked;
-};
-constexpr std::array<EepromLock, 3> kEepromLocks{{
-    {TableId::Sts, "lock", 0},
-    {TableId::Sms1, "lock", 0},
-    {TableId::Smsmb, "lock", 0},
-}};
 
 // How each table calibrates its mid-point (docs/PROTOCOL.md §2.1 address 40, §2.4 fault reset bit 2).
 struct MidpointCalibration {
@@ -143,42 +132,40 @@ Expected<Ok> require_answer(ServoLink& link, std::uint8_t id, std::string_view h
       fmt::format("no servo answers on ID {} at {} bit/s ({}){}", id, link.settings().baud, answer.detail, hint));
 }
 
-// Unlocks the EEPROM when the table has a lock; returns the lock's previous value to restore.
-Expected<std::optional<std::int32_t>> unlock(ServoLink& link, const TableSpec& table, std::uint8_t id, bool broadcast,
-                                             const Say& say) {
-  const auto lock = std::find_if(kEepromLocks.begin(), kEepromLocks.end(),
-                                 [&](const EepromLock& entry) { return entry.table == table.id; });
-  if (lock == kEepromLocks.end()) {
+// Opens the EEPROM lock when the table has one and it is closed (modbus_map/eeprom_lock.h); the
+// lock as read, for relock(). A broadcast cannot read it: the table's default is assumed.
+Expected<EepromUnlock> unlock(ServoLink& link, const TableSpec& table, std::uint8_t id, bool broadcast,
+                              const Say& say) {
+  EepromUnlock lock{modbus_map::eeprom_lock(table)};
+  if (lock.field == nullptr) {
     say(fmt::format("table {} has no EEPROM lock: its EEPROM writes persist", table.name));
-    return std::optional<std::int32_t>{};
+    return lock;
   }
-  const FieldSpec& field = require_field(table, lock->field);
-  std::int32_t previous = field.default_value.value_or(1);
+  lock.read = lock.field->default_value.value_or(1);
   if (!broadcast) {
-    auto current = read_field(link, table, id, field);
+    auto current = read_field(link, table, id, *lock.field);
     if (!current) return unexpected(current.error());
-    previous = *current;
+    lock.read = *current;
   }
-  if (previous == lock->unlocked) {
-    say(fmt::format("EEPROM lock ({} at {}) is already {}: writes persist", field.name, field.addr, previous));
-    return std::optional<std::int32_t>{previous};
+  if (!lock.needed()) {
+    say(fmt::format("EEPROM lock ({} at {}) is already {}: writes persist", lock.field->name, lock.field->addr,
+                    lock.read));
+    return lock;
   }
-  say(fmt::format("unlocking the EEPROM ({} {} -> {}) so the change survives power-off", field.name, previous,
-                  lock->unlocked));
-  if (auto written = write_field(link, table, id, field, static_cast<std::uint32_t>(lock->unlocked)); !written) {
+  say(lock.unlock_text());
+  if (auto written = write_field(link, table, id, *lock.field, static_cast<std::uint32_t>(modbus_map::kEepromUnlocked));
+      !written) {
     return unexpected(written.error());
   }
-  return std::optional<std::int32_t>{previous};
+  return lock;
 }
 
-Expected<Ok> relock(ServoLink& link, const TableSpec& table, std::uint8_t id, std::optional<std::int32_t> previous,
+// Puts the lock back as unlock() found it.
+Expected<Ok> relock(ServoLink& link, const TableSpec& table, std::uint8_t id, const EepromUnlock& lock,
                     const Say& say) {
-  const auto lock = std::find_if(kEepromLocks.begin(), kEepromLocks.end(),
-                                 [&](const EepromLock& entry) { return entry.table == table.id; });
-  if (lock == kEepromLocks.end() || !previous || *previous == lock->unlocked) return Ok{};
-  const FieldSpec& field = require_field(table, lock->field);
-  say(fmt::format("locking the EEPROM again ({} -> {})", field.name, *previous));
-  return write_field(link, table, id, field, static_cast<std::uint32_t>(*previous));
+  if (!lock.needed()) return Ok{};
+  say(lock.relock_text());
+  return write_field(link, table, id, *lock.field, static_cast<std::uint32_t>(lock.read));
 }
 
 }  // namespace
@@ -214,11 +201,11 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
   }
   say(fmt::format("{} answers at {} bit/s; ID {} is free", who(target, rules), baud, new_id));
 
-  auto previous_lock = unlock(link, table, target.id, broadcast, say);
-  if (!previous_lock) return unexpected(previous_lock.error());
+  auto lock = unlock(link, table, target.id, broadcast, say);
+  if (!lock) return unexpected(lock.error());
   say(fmt::format("writing {} = {} (address {})", id_field.name, new_id, id_field.addr));
   if (auto written = write_field(link, table, target.id, id_field, new_id, true); !written) {
-    (void)relock(link, table, target.id, *previous_lock, say);
+    (void)relock(link, table, target.id, *lock, say);
     return unexpected(written.error());
   }
   if (auto present = require_answer(link, new_id,
@@ -227,7 +214,7 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
       !present) {
     return unexpected(present.error());
   }
-  if (auto locked = relock(link, table, new_id, *previous_lock, say); !locked) return unexpected(locked.error());
+  if (auto locked = relock(link, table, new_id, *lock, say); !locked) return unexpected(locked.error());
   auto stored = read_field(link, table, new_id, id_field);
   if (!stored) return unexpected(stored.error());
   if (*stored != new_id) {
@@ -238,9 +225,9 @@ Expected<std::string> set_servo_id(ServoLink& link, const ToolTarget& target, st
     return unexpected(fmt::format("ID {} answers as well as ID {}: two servos were on ID {}; one of them moved",
                                   target.id, new_id, target.id));
   }
-  const bool persists = previous_lock->has_value() || table.id == TableId::D55d;
+  // Without a lock (d55d) EEPROM writes always persist; with one, it was open for the write.
   return fmt::format("{} now answers on ID {} at {} bit/s{}", who(target, rules), new_id, baud,
-                     persists ? " (written with the EEPROM unlocked: kept over power-off)" : "");
+                     " (written with the EEPROM unlocked: kept over power-off)");
 }
 
 Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, std::uint32_t new_baud,
@@ -281,16 +268,16 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
                     new_baud));
   }
 
-  auto previous_lock = unlock(link, table, target.id, broadcast, say);
-  if (!previous_lock) return unexpected(previous_lock.error());
+  auto lock = unlock(link, table, target.id, broadcast, say);
+  if (!lock) return unexpected(lock.error());
   say(fmt::format("writing {} = {} ({} bit/s, address {})", baud_field.name, *code, new_baud, baud_field.addr));
   if (auto written = write_field(link, table, target.id, baud_field, *code, true); !written) {
-    (void)relock(link, table, target.id, *previous_lock, say);
+    (void)relock(link, table, target.id, *lock, say);
     return unexpected(written.error());
   }
   if (auto switched = link.set_baud(new_baud); !switched) return unexpected(switched.error());
   if (broadcast) {
-    if (auto locked = relock(link, table, target.id, *previous_lock, say); !locked) return unexpected(locked.error());
+    if (auto locked = relock(link, table, target.id, *lock, say); !locked) return unexpected(locked.error());
     return fmt::format("sent to every servo: baud code {} ({} bit/s); check with `sms-gateway scan --baud {}`", *code,
                        new_baud, new_baud);
   }
@@ -300,18 +287,17 @@ Expected<std::string> set_servo_baud(ServoLink& link, const ToolTarget& target, 
       !present) {
     return unexpected(present.error());
   }
-  if (auto locked = relock(link, table, target.id, *previous_lock, say); !locked) return unexpected(locked.error());
+  if (auto locked = relock(link, table, target.id, *lock, say); !locked) return unexpected(locked.error());
   auto stored = read_field(link, table, target.id, baud_field);
   if (!stored) return unexpected(stored.error());
   if (*stored != *code) {
     return unexpected(fmt::format("servo {} answers at {} bit/s but reports {} = {}, not {}", target.id, new_baud,
                                   baud_field.name, *stored, *code));
   }
-  const bool persists = previous_lock->has_value() || table.id == TableId::D55d;
   return fmt::format(
-      "servo {} now answers at {} bit/s (code {}){}; set `baud: {}` on its bus in the gateway "
+      "servo {} now answers at {} bit/s (code {}), kept over power-off; set `baud: {}` on its bus in the gateway "
       "configuration",
-      target.id, new_baud, *code, persists ? ", kept over power-off" : "", new_baud);
+      target.id, new_baud, *code, new_baud);
 }
 
 Expected<std::string> calibrate_middle(ServoLink& link, const ToolTarget& target, const Say& say) {

@@ -6,10 +6,11 @@
 // what to do instead: a target ID already answering, a baud outside the protocol's table (or
 // outside what the table's baud field accepts), the broadcast ID without `force`.
 //
-// EEPROM (docs/PROTOCOL.md §4): on tables with a lock field (sts 55, sms1 48, smsmb 0x85) an EEPROM write
-// is lost at power-off unless the lock is 0 while it is written. set-id and set-baud read the
-// lock, write 0, make the change, then write the lock's previous value back — so the change
-// persists and the servo is left as protected as it was. d55d has no lock: its EEPROM writes
+// EEPROM (docs/PROTOCOL.md §4): on tables with a lock field (sts 55, sms1 48, scs 48, smsmb 0x85)
+// an EEPROM write is lost at power-off unless the lock is 0 while it is written. set-id and
+// set-baud read the lock, write 0, make the change, then write the lock's previous value back —
+// so the change persists and the servo is left as protected as it was; the console's EEPROM
+// writes follow the same rule (modbus_map/eeprom_lock.h). d55d has no lock: its EEPROM writes
 // always persist.
 #include <cstdint>
 #include <functional>

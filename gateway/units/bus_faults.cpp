@@ -6,26 +6,29 @@
 namespace sms::gateway {
 namespace {
 
-struct BusStatusFault {
+using modbus_map::ModbusException;
+
+struct BusStatusException {
   BusStatus status;
-  Fault fault;
+  ModbusException exception;
 };
-constexpr std::array kBusStatusFaults{
-    BusStatusFault{BusStatus::Timeout, Fault::ServoTimeout},
-    BusStatusFault{BusStatus::Corrupt, Fault::ServoCorrupt},
-    BusStatusFault{BusStatus::ServoRefused, Fault::ServoRefused},
-    BusStatusFault{BusStatus::BusDown, Fault::BusDown},
-    BusStatusFault{BusStatus::QueueFull, Fault::QueueFull},
-    BusStatusFault{BusStatus::Cancelled, Fault::GatewayStopping},
-    BusStatusFault{BusStatus::Dropped, Fault::InternalError},
-    BusStatusFault{BusStatus::MotionBlocked, Fault::MotionBlocked},
+constexpr std::array kBusStatusExceptions{
+    BusStatusException{BusStatus::Timeout,
+                       ModbusException::GatewayTargetFailedToRespond},                  // no answer after the retries
+    BusStatusException{BusStatus::Corrupt, ModbusException::ServerDeviceFailure},       // replies stayed corrupt
+    BusStatusException{BusStatus::ServoRefused, ModbusException::ServerDeviceFailure},  // its ERROR byte refused it
+    BusStatusException{BusStatus::BusDown, ModbusException::GatewayPathUnavailable},
+    BusStatusException{BusStatus::QueueFull, ModbusException::ServerDeviceBusy},
+    BusStatusException{BusStatus::Cancelled, ModbusException::GatewayPathUnavailable},  // the gateway is stopping
+    BusStatusException{BusStatus::Dropped, ModbusException::ServerDeviceFailure},  // failed inside; nothing was done
+    BusStatusException{BusStatus::MotionBlocked, ModbusException::ServerDeviceFailure},  // the safety rules at the wire
 };
 
 }  // namespace
 
-Fault fault_from(BusStatus status) {
-  for (const auto& entry : kBusStatusFaults) {
-    if (entry.status == status) return entry.fault;
+ModbusException fault_from(BusStatus status) {
+  for (const auto& entry : kBusStatusExceptions) {
+    if (entry.status == status) return entry.exception;
   }
   throw std::logic_error("fault_from(BusStatus::Ok): a successful bus operation is not a fault");
 }

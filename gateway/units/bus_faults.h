@@ -1,13 +1,14 @@
 #pragma once
-// The Fault a failed bus operation stands for (faults.h has the Faults and their exception
-// codes; this is the bus side of the table, kept with the units that run bus operations so the
-// Modbus TCP side does not depend on the buses).
+// The Modbus exception a failed bus operation is answered with (docs/PLC_GUIDE.md "Exceptions"):
+// the one translation into the gateway's exception vocabulary (ModbusException) that is not the
+// register map's or the request parser's own, kept with the units that run bus operations so
+// gateway/service/ and the TCP side do not depend on the buses.
 #include "gateway/bus/bus_operations.h"
-#include "gateway/modbus_tcp/faults.h"
+#include "modbus_map/register_map.h"
 
 namespace sms::gateway {
 
 // `status` must not be BusStatus::Ok.
-Fault fault_from(BusStatus status);
+modbus_map::ModbusException fault_from(BusStatus status);
 
 }  // namespace sms::gateway

@@ -8,7 +8,6 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/write_batch.h"
-#include "gateway/modbus_tcp/faults.h"
 #include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
 #include "gateway/units/unit_router.h"
@@ -67,8 +66,8 @@ BusFacts bus_facts(const BusEngine& engine) {
   return facts;
 }
 
-GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> engines, PostFn post,
-                         SafetySupervisor& safety, std::chrono::steady_clock::time_point started)
+GatewayUnit::GatewayUnit(const config::Config& config, const UnitCatalog& catalog, std::vector<BusEngine*> engines,
+                         PostFn post, SafetySupervisor& safety, std::chrono::steady_clock::time_point started)
     : engines_(std::move(engines)),
       servo_count_(config.servos.size()),
       post_(std::move(post)),
@@ -78,7 +77,8 @@ GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> e
     SyncGroup group{group_config.name, group_config.holding_register_start, {}};
     for (const std::uint8_t unit : group_config.members) {
       const config::ServoConfig* servo = config::find_unit(config, unit);
-      if (servo == nullptr || servo->passthrough()) {
+      const CatalogUnit* entry = catalog.servo(unit);
+      if (servo == nullptr || servo->passthrough() || entry == nullptr) {
         throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) +
                                     " is not a configured servo with a control table");
       }
@@ -93,12 +93,7 @@ GatewayUnit::GatewayUnit(const config::Config& config, std::vector<BusEngine*> e
         throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) +
                                     " is on a bus without an engine");
       }
-      auto map = modbus_map::RegisterMap::create(*servo->table, modbus_map::Profile::Native,
-                                                 config::effective_byte_order(*servo));
-      if (!map)
-        throw std::invalid_argument("sync group '" + group_config.name + "': unit " + std::to_string(unit) + ": " +
-                                    map.error());
-      group.members.push_back(SyncMember{unit, servo->bus_index, servo->servo_id, field, std::move(*map),
+      group.members.push_back(SyncMember{unit, servo->bus_index, servo->servo_id, field, &entry->native_map(),
                                          servo->read_only, servo->response_level});
     }
     groups_.push_back(std::move(group));
@@ -161,7 +156,7 @@ void GatewayUnit::handle(const Request& request, const Reply& reply) {
                    if (read.function == fc::kReadInputRegisters) {
                      const auto values = input_registers(read.address, read.count);
                      reply.send(values ? registers_response(read.function, *values)
-                                       : exception_response(read.function, Fault::BadAddress));
+                                       : exception_response(read.function, ModbusException::IllegalDataAddress));
                    } else if (heartbeat_range(read.address, read.count)) {
                      read_heartbeats(read.function, read.address, read.count, reply);
                    } else {
@@ -172,7 +167,7 @@ void GatewayUnit::handle(const Request& request, const Reply& reply) {
                    const bool coils_read = read.function == fc::kReadCoils;
                    const std::uint32_t end = std::uint32_t{read.address} + read.count;
                    if (end > (coils_read ? layout::kCoilCount : layout::kDiscreteInputCount)) {
-                     reply.send(exception_response(read.function, Fault::BadAddress));
+                     reply.send(exception_response(read.function, ModbusException::IllegalDataAddress));
                      return;
                    }
                    std::vector<bool> bits;
@@ -239,7 +234,7 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
   for (std::uint32_t a = address; a < std::uint32_t{address} + count; ++a) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(a));
     if (member == nullptr) {
-      reply.send(exception_response(function, Fault::BadAddress));
+      reply.send(exception_response(function, ModbusException::IllegalDataAddress));
       return;
     }
     members.push_back(member);
@@ -247,9 +242,9 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
   // Each member's value is read and converted by its own native register map.
   std::vector<modbus_map::ReadPlan> plans;
   for (const SyncMember* member : members) {
-    auto plan = member->map.plan_holding_read(member->field->addr, 1);
+    auto plan = member->map->plan_holding_read(member->field->addr, 1);
     if (!plan || plan->reads.size() != 1) {
-      reply.send(exception_response(function, Fault::BadAddress));
+      reply.send(exception_response(function, ModbusException::IllegalDataAddress));
       return;
     }
     plans.push_back(std::move(*plan));
@@ -262,9 +257,9 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
     std::vector<std::uint16_t> values;
     for (std::size_t i = 0; i < members.size(); ++i) {
       const protocol::Bytes replies[] = {results[i].data};
-      const auto value = members[i]->map.registers_from(plans[i], replies);
+      const auto value = members[i]->map->registers_from(plans[i], replies);
       if (!value) {
-        reply.send(exception_response(function, fault_from(value.error().code)));
+        reply.send(exception_response(function, value.error().code));
         return;
       }
       values.push_back(value->at(0));
@@ -303,13 +298,13 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
     if (member == nullptr || member->read_only) {
-      reply.send(exception_response(request.function, Fault::BadAddress));
+      reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
       return;
     }
-    auto bytes = member->map.field_bytes(*member->field, request.values[i]);
+    auto bytes = member->map->field_bytes(*member->field, request.values[i]);
     if (!bytes) {
       spdlog::debug("gateway unit: sync group register {}: {}", request.address + i, bytes.error().message);
-      reply.send(exception_response(request.function, fault_from(bytes.error().code)));
+      reply.send(exception_response(request.function, bytes.error().code));
       return;
     }
     batches[member->bus].add(member->servo_id, member->field->addr, std::move(*bytes));
@@ -322,7 +317,7 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   std::vector<const SyncMember*> motion_member(engines_.size(), nullptr);
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
-    if (modbus_map::is_motion_field(modbus_map::motion_spec(member->map.servo_table().id), member->field->name)) {
+    if (modbus_map::is_motion_field(modbus_map::motion_spec(member->map->servo_table().id), member->field->name)) {
       motion_member[member->bus] = member;
     }
   }
@@ -346,14 +341,14 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   std::vector<HoldTarget> switched_on;
   for (std::size_t i = 0; i < request.values.size(); ++i) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
-    const auto& spec = modbus_map::motion_spec(member->map.servo_table().id);
-    auto bytes = member->map.field_bytes(*member->field, request.values[i]);
+    const auto& spec = modbus_map::motion_spec(member->map->servo_table().id);
+    auto bytes = member->map->field_bytes(*member->field, request.values[i]);
     if (!bytes) continue;  // checked above
     std::vector<modbus_map::BusWrite> writes{{member->field->addr, std::move(*bytes)}};
-    if (!modbus_map::may_enable_motion(spec, member->map.byte_order(), writes)) continue;
+    if (!modbus_map::may_enable_motion(spec, member->map->byte_order(), writes)) continue;
     switched_on.push_back(HoldTarget{
-        engines_[member->bus], member->servo_id, &spec, member->map.byte_order(),
-        answers_writes(member->map.servo_table().id, member->response_level, *engines_[member->bus], member->servo_id),
+        engines_[member->bus], member->servo_id, &spec, member->map->byte_order(),
+        answers_writes(member->map->servo_table().id, member->response_level, *engines_[member->bus], member->servo_id),
         epochs[member->bus], "unit " + std::to_string(member->unit_id), std::move(writes)});
   }
   auto send_frames = [this, frames = std::move(frames), buses, function = request.function, reply,
@@ -412,7 +407,7 @@ void GatewayUnit::write_heartbeats(const WriteRegistersRequest& request) {
 
 void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply) {
   if (request.values.size() != 1) {  // each coil is a command of its own: one per request
-    reply.send(exception_response(request.function, Fault::BadAddress));
+    reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
     return;
   }
   switch (request.address) {
@@ -420,13 +415,13 @@ void GatewayUnit::write_coil(const WriteBitsRequest& request, const Reply& reply
     case layout::kEStopCoil: write_estop_coil(request, reply); return;
     case layout::kWatchdogCoil:
       if (request.values[0]) {  // a trip comes from silence, not from a write
-        reply.send(exception_response(request.function, Fault::BadValue));
+        reply.send(exception_response(request.function, ModbusException::IllegalDataValue));
         return;
       }
       safety_.rearm_watchdogs(reply.origin());
       reply.send(write_response(request));
       return;
-    default: reply.send(exception_response(request.function, Fault::BadAddress));
+    default: reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
   }
 }
 
@@ -442,7 +437,7 @@ void GatewayUnit::write_estop_coil(const WriteBitsRequest& request, const Reply&
       [request, reply](bool ok) {
         if (!ok) {
           spdlog::error("gateway unit: e-stop latched, but a bus could not take its stop frames (see above)");
-          reply.send(exception_response(request.function, Fault::ServoRefused));
+          reply.send(exception_response(request.function, ModbusException::ServerDeviceFailure));
           return;
         }
         reply.send(write_response(request));

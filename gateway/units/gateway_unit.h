@@ -16,8 +16,9 @@
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/bus_join.h"
-#include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/service/modbus_request.h"
+#include "gateway/service/request_handler.h"
+#include "gateway/service/unit_catalog.h"
 #include "gateway/units/safety.h"
 #include "modbus_map/control_table.h"
 #include "modbus_map/register_map.h"
@@ -70,9 +71,11 @@ BusFacts bus_facts(const BusEngine& engine);
 
 class GatewayUnit {
  public:
-  // `engines[i]` runs config.buses[i]. Throws std::invalid_argument when a sync group names a
-  // unit or field the configuration does not have (the config loader rejects those first).
-  GatewayUnit(const config::Config& config, std::vector<BusEngine*> engines, PostFn post, SafetySupervisor& safety,
+  // `engines[i]` runs config.buses[i]; the sync groups' members' maps come from `catalog`, which
+  // must outlive the unit. Throws std::invalid_argument when a sync group names a unit or field
+  // the configuration does not have (the config loader rejects those first).
+  GatewayUnit(const config::Config& config, const UnitCatalog& catalog, std::vector<BusEngine*> engines, PostFn post,
+              SafetySupervisor& safety,
               std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now());
 
   void handle(const Request& request, const Reply& reply);
@@ -86,7 +89,7 @@ class GatewayUnit {
     std::size_t bus = 0;
     std::uint8_t servo_id = 0;
     const modbus_map::FieldSpec* field = nullptr;
-    modbus_map::RegisterMap map;  // native map of the member's table and byte order: value rules
+    const modbus_map::RegisterMap* map = nullptr;  // native map of the member's table and byte order: value rules
     bool read_only = false;
     std::optional<std::uint8_t> response_level;  // as configured; empty: as read from the servo
   };

@@ -7,9 +7,8 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/bus_engine.h"
-#include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/modbus_request.h"
 #include "gateway/modbus_tcp/tcp_serving.h"
+#include "gateway/service/modbus_request.h"
 #include "gateway/units/bus_faults.h"
 
 namespace sms::gateway {
@@ -67,7 +66,7 @@ void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uin
     broadcast = broadcast_answer(pdu);
     if (!broadcast) {
       spdlog::debug("passthrough: {}: FC{:02X} cannot be broadcast (nobody answers a read)", label, function);
-      reply.send(exception_response(function, Fault::UnknownUnit));
+      reply.send(exception_response(function, ModbusException::GatewayPathUnavailable));
       return;
     }
   }
@@ -93,7 +92,7 @@ void forward_pdu(BusEngine& engine, std::uint8_t slave, std::span<const std::uin
   } catch (const std::invalid_argument& error) {
     // A PDU the line cannot carry (over 253 bytes cannot come from MBAP; kept for safety).
     spdlog::warn("passthrough: {}: {}", label, error.what());
-    reply.send(exception_response(function, Fault::MalformedRequest));
+    reply.send(exception_response(function, ModbusException::IllegalDataValue));
   }
 }
 
@@ -103,7 +102,7 @@ ForwardHandler::ForwardHandler(BusEngine& engine, PostFn post, BroadcastReply br
 void ForwardHandler::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) {
   if (pdu.empty()) return;
   if (unit_id > kMaxSlave) {
-    reply.send(exception_response(pdu[0], Fault::UnknownUnit));
+    reply.send(exception_response(pdu[0], ModbusException::GatewayPathUnavailable));
     return;
   }
   forward_pdu(engine_, unit_id, pdu, post_, reply,

@@ -6,7 +6,7 @@
 //
 // - Requests from every TCP connection are serialised on the bus by its engine's queue
 //   (the bus engine with RtuTransactor: one exchange at a time, retries on CRC mismatch and timeouts).
-// - The gateway's own exceptions (exception_code(), faults.h): 0x0B the slave did not
+// - The gateway's own exceptions (fault_from(), bus_faults.h): 0x0B the slave did not
 //   answer through every retry, 0x0A its bus is down, 0x04 its answers stayed corrupt, 0x06 the
 //   bus queue is full.
 // - Slave 0 is an RTU broadcast: sent, no answer awaited. As mbusd (the reference gateway) does
@@ -27,7 +27,7 @@
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/bus_join.h"
-#include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/service/request_handler.h"
 
 namespace sms::gateway {
 

@@ -50,7 +50,7 @@
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/motion_gate.h"
-#include "gateway/modbus_tcp/rate_limited_log.h"
+#include "gateway/service/rate_limited_log.h"
 #include "protocol/expected.h"
 
 namespace sms::gateway {

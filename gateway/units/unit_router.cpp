@@ -5,19 +5,21 @@
 
 #include <spdlog/spdlog.h>
 
-#include "gateway/modbus_tcp/access_policy.h"
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/role_policy.h"
 #include "gateway/units/bus_faults.h"
 #include "gateway/units/no_jump.h"
 #include "gateway/units/passthrough.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
+#include "protocol/modbus_pdu.h"
 #include "protocol/overloaded.h"
 
 namespace sms::gateway {
 namespace {
 
 namespace fc = function_code;
+using protocol::function_effect;
+using protocol::FunctionEffect;
 namespace facts_layout = servo_facts_layout;
 using modbus_map::TableId;
 
@@ -34,10 +36,6 @@ constexpr WriteReplyLevel kWriteReplyLevels[] = {
     {TableId::D55d, 2},  // 0 never, 1 READ only, 2 all except broadcast
     {TableId::Smsmb, 0},
 };
-
-modbus_map::Profile map_profile(config::Profile profile) {
-  return profile == config::Profile::Smsmb ? modbus_map::Profile::Smsmb : modbus_map::Profile::Native;
-}
 
 std::uint16_t saturate16(std::uint64_t value) {
   return static_cast<std::uint16_t>(std::min<std::uint64_t>(value, 0xFFFF));
@@ -94,8 +92,8 @@ std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registe
   };
 }
 
-UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post,
-                       SafetySupervisor& safety)
+UnitRouter::UnitRouter(const config::Config& config, const UnitCatalog& catalog, std::vector<BusEngine*> engines,
+                       PostFn post, SafetySupervisor& safety)
     : gateway_unit_id_(config.modbus_tcp.gateway_unit_id), post_(post), safety_(safety) {
   for (const auto& servo : config.servos) {
     if (servo.bus_index >= engines.size() || engines[servo.bus_index] == nullptr) {
@@ -109,9 +107,10 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
                               std::to_string(servo.servo_id) + ", passthrough)"});
       continue;
     }
-    auto map = modbus_map::RegisterMap::create(*servo.table, map_profile(servo.profile), servo.byte_order);
-    if (!map) throw std::invalid_argument("unit " + std::to_string(servo.unit_id) + ": " + map.error());
-
+    const CatalogUnit* entry = catalog.servo(servo.unit_id);
+    if (entry == nullptr) {
+      throw std::invalid_argument("unit " + std::to_string(servo.unit_id) + " is not in the unit catalog");
+    }
     const auto& servos = engine->settings().servos;
     const auto settings = std::find_if(servos.begin(), servos.end(),
                                        [&](const ServoSettings& s) { return s.servo_id == servo.servo_id; });
@@ -123,10 +122,10 @@ UnitRouter::UnitRouter(const config::Config& config, std::vector<BusEngine*> eng
     std::string label = "unit " + std::to_string(servo.unit_id) + " (bus " + servo.bus + ", servo " +
                         std::to_string(servo.servo_id) + ")";
     units_[servo.unit_id] =
-        std::make_unique<ServoUnit>(ServoUnit{servo.unit_id, servo.bus_index, engine, servo.servo_id, std::move(*map),
+        std::make_unique<ServoUnit>(ServoUnit{servo.unit_id, servo.bus_index, engine, servo.servo_id, entry->map,
                                               poll_block, servo.response_level, servo.read_only, std::move(label)});
   }
-  gateway_unit_ = std::make_unique<GatewayUnit>(config, std::move(engines), std::move(post), safety);
+  gateway_unit_ = std::make_unique<GatewayUnit>(config, catalog, std::move(engines), std::move(post), safety);
 }
 
 const ServoUnit* UnitRouter::servo_unit(std::uint8_t unit_id) const { return units_[unit_id].get(); }
@@ -139,7 +138,7 @@ void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu,
     // io thread (and every other connection) down with it.
     spdlog::error("modbus: unit {}: request {:02X} failed inside the gateway: {}", unit_id, pdu.empty() ? 0 : pdu[0],
                   error.what());
-    reply.send(exception_response(pdu.empty() ? 0 : pdu[0], Fault::InternalError));
+    reply.send(exception_response(pdu.empty() ? 0 : pdu[0], ModbusException::ServerDeviceFailure));
   }
 }
 
@@ -155,7 +154,7 @@ void UnitRouter::dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pd
   const ServoUnit* unit = units_[unit_id].get();
   if (unit == nullptr && unit_id != gateway_unit_id_) {
     spdlog::debug("modbus: request for unit {}, which is not configured", unit_id);
-    reply.send(exception_response(function, Fault::UnknownUnit));
+    reply.send(exception_response(function, ModbusException::GatewayPathUnavailable));
     return;
   }
   const auto request = parse_request(pdu);
@@ -174,7 +173,7 @@ void UnitRouter::forward(const PassthroughUnit& unit, std::span<const std::uint8
   const std::uint8_t function = pdu[0];
   if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
   if (!unit.engine->bus_up()) {
-    reply.send(exception_response(function, Fault::BusDown));
+    reply.send(exception_response(function, ModbusException::GatewayPathUnavailable));
     return;
   }
   MotionEpoch epoch = 0;
@@ -206,7 +205,7 @@ bool UnitRouter::refused_as_read_only(bool read_only, const std::string& label, 
 void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply) {
   const std::uint8_t function = function_of(request);
   if (!unit.engine->bus_up()) {
-    reply.send(exception_response(function, Fault::BusDown));
+    reply.send(exception_response(function, ModbusException::GatewayPathUnavailable));
     return;
   }
   if (refused_as_read_only(unit.read_only, unit.label, function, reply)) return;
@@ -257,7 +256,7 @@ void UnitRouter::handle_servo(const ServoUnit& unit, const Request& request, con
 void UnitRouter::refuse(const ServoUnit& unit, std::uint8_t function, const modbus_map::MapError& error,
                         const Reply& reply) const {
   spdlog::debug("modbus: {} FC{:02X}: {}", unit.label, function, error.message);
-  reply.send(exception_response(function, fault_from(error.code)));
+  reply.send(exception_response(function, error.code));
 }
 
 void UnitRouter::read_holding(const ServoUnit& unit, std::uint8_t function, std::uint16_t start, std::uint16_t count,
@@ -275,7 +274,7 @@ void UnitRouter::read_holding(const ServoUnit& unit, std::uint8_t function, std:
 void UnitRouter::read_input(const ServoUnit& unit, const ReadRegistersRequest& request, const Reply& reply) {
   if (request.address >= facts_layout::kFirstRegister) {
     if (std::uint32_t{request.address} + request.count > facts_layout::kFirstRegister + facts_layout::kRegisterCount) {
-      reply.send(exception_response(request.function, Fault::BadAddress));
+      reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
       return;
     }
     const auto registers = servo_fact_registers(facts_of(unit));
@@ -307,7 +306,7 @@ void UnitRouter::read_coils(const ServoUnit& unit, const ReadBitsRequest& reques
 void UnitRouter::read_discrete(const ServoUnit& unit, const ReadBitsRequest& request, const Reply& reply) {
   if (request.address >= facts_layout::kFirstBit) {
     if (std::uint32_t{request.address} + request.count > facts_layout::kOnlineBit + 1u) {
-      reply.send(exception_response(request.function, Fault::BadAddress));
+      reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
       return;
     }
     const ServoFacts facts = facts_of(unit);
@@ -344,13 +343,13 @@ std::optional<std::vector<protocol::Bytes>> UnitRouter::copy_from_cache(const Se
       case CacheRead::Ok: break;
       case CacheRead::NoData:
         // Never answered a poll since the gateway started: nothing to serve, as a live read would fail.
-        reply.send(exception_response(function, Fault::ServoTimeout));
+        reply.send(exception_response(function, ModbusException::GatewayTargetFailedToRespond));
         return std::nullopt;
       case CacheRead::UnknownServo:
       case CacheRead::OutsideBlock:
         spdlog::warn("modbus: {}: bus addresses {}+{} are not in the poll cache", unit.label, range.address,
                      range.count);
-        reply.send(exception_response(function, Fault::BadAddress));
+        reply.send(exception_response(function, ModbusException::IllegalDataAddress));
         return std::nullopt;
     }
     replies.push_back(std::move(bytes));

@@ -20,8 +20,9 @@
 #include "config/config.h"
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/bus_join.h"
-#include "gateway/modbus_tcp/modbus_request.h"
-#include "gateway/modbus_tcp/request_handler.h"
+#include "gateway/service/modbus_request.h"
+#include "gateway/service/request_handler.h"
+#include "gateway/service/unit_catalog.h"
 #include "gateway/units/gateway_unit.h"
 #include "gateway/units/safety.h"
 #include "modbus_map/register_map.h"
@@ -66,8 +67,8 @@ struct ServoUnit {
   std::size_t bus_index = 0;
   BusEngine* engine = nullptr;
   std::uint8_t servo_id = 0;
-  modbus_map::RegisterMap map;
-  modbus_map::BusRange poll_block;  // what the engine polls into the cache for this servo
+  const modbus_map::RegisterMap& map;  // the unit's, from the UnitCatalog
+  modbus_map::BusRange poll_block;     // what the engine polls into the cache for this servo
   // The response level from the configuration; without one, the level discovery read from
   // the servo (poll cache), else the table's factory behaviour (writes answered).
   std::optional<std::uint8_t> configured_response_level;
@@ -97,12 +98,13 @@ struct PassthroughUnit {
 
 class UnitRouter : public RequestHandler {
  public:
-  // `engines[i]` runs config.buses[i] (the engine's settings give each servo's poll block).
-  // Throws std::invalid_argument for a servo whose table/profile has no register map.
+  // `engines[i]` runs config.buses[i] (the engine's settings give each servo's poll block);
+  // the servo units' register maps come from `catalog`, which must outlive the router.
   // Every write passes `safety` (docs/PLC_GUIDE.md "Safety"): a motion write is refused (0x04) while the
   // e-stop is latched or the watchdog tripped, and a write the gateway carried out (answered
   // without an exception) feeds the bus's watchdog — one rule for servo and passthrough units.
-  UnitRouter(const config::Config& config, std::vector<BusEngine*> engines, PostFn post, SafetySupervisor& safety);
+  UnitRouter(const config::Config& config, const UnitCatalog& catalog, std::vector<BusEngine*> engines, PostFn post,
+             SafetySupervisor& safety);
 
   void handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) override;
 

@@ -169,7 +169,9 @@ TEST(Sparkplug, DcmdMovesTheServoAndDdataFollows) {
     EXPECT_NE(result.find(expected), std::string::npos) << metric.name << ": " << result;
   };
   const long max_temperature = plant.sim.field(1, "max_temperature");
-  refused(sp::Metric::int16("present_position", 5), "refused: present_position: read-only");
+  refused(sp::Metric::int16("present_position", 5),
+          "refused: present_position: exception 0x02 (illegal data address): present_position (56) of table sts "
+          "is read-only");
   refused(sp::Metric::uint16("max_temperature", 60), "exception 0x02");
   refused(sp::Metric::uint16("torque_enable", 5), "exception 0x03");  // 0, 1 or 128
   refused(sp::Metric::string("goal_position", "fast"), "got String \"fast\", the metric is Int16");
@@ -483,9 +485,10 @@ TEST(Sparkplug, ProtocReadsTimestampsAndTypesOnEveryBirthAndDataMetric) {
   EXPECT_EQ(estop.count("boolean_value") ? estop.at("boolean_value") : "", "true");
 }
 
-// Safety: a DCMD value that does not fit the metric's birth datatype or the register map's range,
-// or is of another kind (Boolean, Float, String for a position), is refused with a log line and
-// nothing is written; the simulator's goal is the witness. An empty DCMD is logged too.
+// Safety: a DCMD value that does not fit the metric's birth datatype or the register map's value
+// check (the console's, in the same words), or is of another kind (Boolean, Float, String for a
+// position), is refused with a log line and nothing is written; the simulator's goal is the witness. An empty DCMD is
+// logged too.
 TEST(Sparkplug, DcmdValuesAreCheckedAgainstTheBirthTypeAndTheMapRangeBeforeAnyWrite) {
   Plant plant;
   auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
@@ -503,10 +506,11 @@ TEST(Sparkplug, DcmdValuesAreCheckedAgainstTheBirthTypeAndTheMapRangeBeforeAnyWr
   };
   // UInt16 40000 is no Int16: not taken as -25536 (a full-travel move to the limit).
   refused(sp::Metric::uint16("goal_position", 40000), "40000 does not fit Int16 (-32768..32767)");
-  refused(sp::Metric::int16("goal_position", 31000), "31000 is outside -30719..30719");
+  refused(sp::Metric::int16("goal_position", 31000),
+          "value 31000 for goal_position (42) of table sts is outside -30719..30719");
   refused(sp::Metric::boolean("goal_position", true), "got Boolean true, the metric is Int16");
   refused(sp::Metric::of("goal_position", sp::DataType::Double, 1500.0), "got Double 1500, the metric is Int16");
-  refused(sp::Metric::uint16("torque_enable", 300), "300 is outside 0..128");
+  refused(sp::Metric::uint16("torque_enable", 300), "value 300 for torque_enable (40) of table sts is outside 0..128");
 
   // A command as the spec says to send it, without a datatype: read as the DBIRTH's Int16.
   auto untyped = sp::Metric::int16("goal_position", -7);

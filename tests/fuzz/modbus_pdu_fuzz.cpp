@@ -1,5 +1,5 @@
 // libFuzzer target: gateway::parse_request, the Modbus TCP request PDU parser every client PDU
-// goes through (gateway/modbus_tcp/modbus_request.h), and the response builders its answers use. The
+// goes through (gateway/service/modbus_request.h), and the response builders its answers use. The
 // whole input is one PDU, function code first.
 //
 // Invariants:
@@ -20,8 +20,7 @@
 #include <vector>
 
 #include "fuzz_support.h"
-#include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 #include "protocol/modbus_tcp.h"
 
 namespace {
@@ -143,20 +142,20 @@ void check_accepted(std::span<const std::uint8_t> pdu, const gw::Request& reques
       request);
 }
 
-void check_refused(std::span<const std::uint8_t> pdu, gw::Fault fault) {
+void check_refused(std::span<const std::uint8_t> pdu, gw::ModbusException fault) {
   const bool served =
       !pdu.empty() && std::find(kServedFunctions.begin(), kServedFunctions.end(), pdu[0]) != kServedFunctions.end();
   if (pdu.empty()) {
-    SMS_FUZZ_CHECK(fault == gw::Fault::MalformedRequest, "empty PDU not refused as malformed");
+    SMS_FUZZ_CHECK(fault == gw::ModbusException::IllegalDataValue, "empty PDU not refused as malformed");
     return;
   }
-  SMS_FUZZ_CHECK((fault == gw::Fault::UnsupportedFunction) == !served,
-                 "UnsupportedFunction must mean exactly an unserved code: " + hex(pdu));
-  SMS_FUZZ_CHECK(fault == gw::Fault::UnsupportedFunction || fault == gw::Fault::QuantityOverLimit ||
-                     fault == gw::Fault::MalformedRequest,
+  SMS_FUZZ_CHECK((fault == gw::ModbusException::IllegalFunction) == !served,
+                 "0x01 (illegal function) must mean exactly an unserved code: " + hex(pdu));
+  SMS_FUZZ_CHECK(fault == gw::ModbusException::IllegalFunction || fault == gw::ModbusException::IllegalDataAddress ||
+                     fault == gw::ModbusException::IllegalDataValue,
                  "parse_request refused " + hex(pdu) + " with a fault no PDU can cause");
   const Bytes answer = gw::exception_response(pdu[0], fault);
-  SMS_FUZZ_CHECK(answer.size() == 2 && answer[0] == (pdu[0] | 0x80) && answer[1] == gw::exception_code(fault) &&
+  SMS_FUZZ_CHECK(answer.size() == 2 && answer[0] == (pdu[0] | 0x80) && answer[1] == static_cast<std::uint8_t>(fault) &&
                      tcp::exception_code_of(answer) == answer[1],
                  "exception response " + hex(answer) + " for " + hex(pdu));
 }

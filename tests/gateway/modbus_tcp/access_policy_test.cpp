@@ -1,5 +1,4 @@
-// The client allow-list (IPv4/IPv6 CIDR matching, IPv4-mapped clients) and what a read-only
-// unit refuses, function by function.
+// The client allow-list (IPv4/IPv6 CIDR matching, IPv4-mapped clients) and the Modbus function table.
 #include <gtest/gtest.h>
 
 #include <string>
@@ -119,40 +118,6 @@ TEST(AccessPolicy, Ipv6EntriesDoNotMatchIpv4Clients) {
   EXPECT_TRUE(policy.allows(address("2001:db8::1")));
   EXPECT_FALSE(policy.allows(address("10.0.0.1")));
   EXPECT_FALSE(policy.allows(address("::ffff:10.0.0.1")));
-}
-
-// ---- read-only units ----
-
-std::string verdict(std::uint8_t function) {
-  const auto refusal = read_only_refusal(function);
-  if (!refusal) return "served";
-  return "exception " + std::to_string(exception_code(*refusal));
-}
-
-TEST(ReadOnlyUnit, ReadsAreServed) {
-  EXPECT_EQ(verdict(0x01), "served");  // read coils
-  EXPECT_EQ(verdict(0x02), "served");  // read discrete inputs
-  EXPECT_EQ(verdict(0x03), "served");  // read holding registers
-  EXPECT_EQ(verdict(0x04), "served");  // read input registers
-  EXPECT_EQ(verdict(0x11), "served");  // report server ID (passthrough units)
-}
-
-TEST(ReadOnlyUnit, WritesAreRefusedWith02LikeAReadOnlyField) {
-  EXPECT_EQ(verdict(0x05), "exception 2");  // write single coil
-  EXPECT_EQ(verdict(0x06), "exception 2");  // write single register
-  EXPECT_EQ(verdict(0x0F), "exception 2");  // write multiple coils
-  EXPECT_EQ(verdict(0x10), "exception 2");  // write multiple registers
-  EXPECT_EQ(verdict(0x16), "exception 2");  // mask write register
-  EXPECT_EQ(verdict(0x17), "exception 2");  // read/write multiple registers: it writes
-  EXPECT_EQ(verdict(0x15), "exception 2");  // write file record
-}
-
-TEST(ReadOnlyUnit, FunctionsOfUnknownEffectAreRefusedWith01) {
-  EXPECT_EQ(verdict(0x08), "exception 1");  // diagnostics (sub-function 01 restarts)
-  EXPECT_EQ(verdict(0x2B), "exception 1");  // encapsulated interface transport
-  EXPECT_EQ(verdict(0x41), "exception 1");  // user-defined (Feetech's restart on SMSMB)
-  EXPECT_EQ(verdict(0x64), "exception 1");
-  EXPECT_EQ(verdict(0x00), "exception 1");
 }
 
 TEST(ModbusFunctions, TableIsAscendingAndFindsByCode) {

@@ -1,7 +1,8 @@
 // The upstream RTU port's pure parts: its silences (t1.5, t3.5) per rate and frame_gap, its echo
 // window, the units it serves, and its counters as Prometheus text. In-process on a pty, with the
-// whole gateway over a simulated bus: a PLC writing an unchanged value every cycle, and an adapter
-// that echoes. The port against outside masters is tested end to end in tests/e2e/rtu_slave_test.cpp.
+// whole gateway over a simulated bus: a PLC writing an unchanged value every cycle, an adapter
+// that echoes, and a panel whose port's role may only read (the role gate every way in passes). The port against
+// outside masters is tested end to end in tests/e2e/rtu_slave_test.cpp.
 #include <fcntl.h>
 #include <gtest/gtest.h>
 #include <poll.h>
@@ -17,6 +18,7 @@
 #include "gateway/rtu_slave/rtu_slave_port.h"
 #include "protocol/instructions.h"
 #include "protocol/modbus_rtu.h"
+#include "tests/support/bus_test_support.h"
 #include "tests/support/echoing_adapter.h"
 #include "tests/support/metrics_http_client.h"
 #include "tests/support/simulated_gateway.h"
@@ -240,6 +242,24 @@ TEST_F(CyclicWrites, APlcWritingTheSameGoalEveryCycleIsAnsweredEveryTime) {
   EXPECT_EQ(counted.answers, static_cast<std::uint64_t>(kWrites));
   EXPECT_EQ(counted.echoes, 0u);
   EXPECT_EQ(counted.dropped_frames + counted.crc_errors + counted.silent_units, 0u);
+}
+
+// The port's role is checked by the gate every way in passes (gateway/service/access_gate.h): a
+// write its role may not make is answered 0x01 without reaching the servo, logged with the port's
+// name, and counted in the port's role_refusals; a read passes.
+TEST_F(CyclicWrites, AWriteThePortsRoleMayNotMakeIsRefusedByTheGateLoggedAndCounted) {
+  testing::LogCapture log;
+  start("{device: \"@PLC@\", baud: 115200, role: read}");
+  const auto write = protocol::rtu::frame(1, std::vector<std::uint8_t>{0x06, 0x00, 42, 0x07, 0x08});
+  EXPECT_EQ(plc_.ask(write, 5), protocol::rtu::frame(1, std::vector<std::uint8_t>{0x86, 0x01}));
+  EXPECT_EQ(goal_writes_.load(), 0);
+  EXPECT_EQ(stats().role_refusals, 1u);
+  EXPECT_TRUE(
+      log.contains("rtu slave " + plc_.path() + ": unit 1 FC06 refused (0x01) for role read: role read may only read"))
+      << log.text();
+  const auto read = protocol::rtu::frame(1, std::vector<std::uint8_t>{0x03, 0x00, 42, 0x00, 0x01});
+  EXPECT_EQ(plc_.ask(read, 7).size(), 7u);  // address, FC03, byte count, one register, CRC
+  EXPECT_EQ(stats().role_refusals, 1u);
 }
 
 // The adapter hands every answer back to the port at once; the PLC's next write comes 100 ms after

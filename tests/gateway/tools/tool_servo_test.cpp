@@ -124,6 +124,8 @@ INSTANTIATE_TEST_SUITE_P(
     EachProtocol, PowerCycle,
     ::testing::Values(PowerCycleCase{"sts", TableId::Sts, BusProtocol::Feetech, 1'000'000, 9, 500'000},
                       PowerCycleCase{"sms1", TableId::Sms1, BusProtocol::Feetech, 1'000'000, 12, 128'000},
+                      // scs has its lock at 48 too (modbus_map/eeprom_lock.h); the tools once left it closed.
+                      PowerCycleCase{"scs", TableId::Scs, BusProtocol::Feetech, 1'000'000, 7, 250'000},
                       PowerCycleCase{"d55d", TableId::D55d, BusProtocol::D55d, 115'200, 4, 256'000},
                       PowerCycleCase{"smsmb", TableId::Smsmb, BusProtocol::ModbusRtu, 115'200, 30, 56'000}),
     [](const ::testing::TestParamInfo<PowerCycleCase>& info) { return std::string(info.param.name); });

@@ -3,21 +3,22 @@
 
 #include <stdexcept>
 
-#include "gateway/modbus_tcp/faults.h"
 #include "gateway/units/bus_faults.h"
 
 namespace sms::gateway {
 namespace {
 
-TEST(ModbusException, BusStatusesMapToTheirFaults) {
-  EXPECT_EQ(exception_code(fault_from(BusStatus::Timeout)), 0x0B);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::Corrupt)), 0x04);
-  EXPECT_EQ(fault_from(BusStatus::Dropped), Fault::InternalError);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::Dropped)), 0x04);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::ServoRefused)), 0x04);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::BusDown)), 0x0A);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::QueueFull)), 0x06);
-  EXPECT_EQ(exception_code(fault_from(BusStatus::Cancelled)), 0x0A);
+using modbus_map::ModbusException;
+
+TEST(ModbusException, BusStatusesMapToTheirExceptions) {
+  EXPECT_EQ(fault_from(BusStatus::Timeout), ModbusException::GatewayTargetFailedToRespond);  // 0x0B
+  EXPECT_EQ(fault_from(BusStatus::Corrupt), ModbusException::ServerDeviceFailure);           // 0x04
+  EXPECT_EQ(fault_from(BusStatus::Dropped), ModbusException::ServerDeviceFailure);
+  EXPECT_EQ(fault_from(BusStatus::ServoRefused), ModbusException::ServerDeviceFailure);
+  EXPECT_EQ(fault_from(BusStatus::MotionBlocked), ModbusException::ServerDeviceFailure);
+  EXPECT_EQ(fault_from(BusStatus::BusDown), ModbusException::GatewayPathUnavailable);  // 0x0A
+  EXPECT_EQ(fault_from(BusStatus::QueueFull), ModbusException::ServerDeviceBusy);      // 0x06
+  EXPECT_EQ(fault_from(BusStatus::Cancelled), ModbusException::GatewayPathUnavailable);
   EXPECT_THROW(fault_from(BusStatus::Ok), std::logic_error);
 }
 

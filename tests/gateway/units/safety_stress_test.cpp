@@ -59,7 +59,8 @@ class SafetyStateUnderLoad : public ::testing::Test {
     }
     safety_ = std::make_unique<SafetySupervisor>(config_, engines, gates_);
     safety_->start();
-    router_ = std::make_unique<UnitRouter>(config_, engines, inline_post(), *safety_);
+    catalog_ = std::make_unique<UnitCatalog>(config_);
+    router_ = std::make_unique<UnitRouter>(config_, *catalog_, engines, inline_post(), *safety_);
   }
   void TearDown() override {
     router_.reset();
@@ -103,6 +104,7 @@ class SafetyStateUnderLoad : public ::testing::Test {
   std::vector<std::shared_ptr<MotionGate>> gates_;
   std::vector<std::unique_ptr<BusEngine>> engines_;
   std::unique_ptr<SafetySupervisor> safety_;
+  std::unique_ptr<UnitCatalog> catalog_;
   std::unique_ptr<UnitRouter> router_;
   std::uint64_t serial_ = 0;
 };

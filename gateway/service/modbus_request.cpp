@@ -1,4 +1,4 @@
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 
 #include <stdexcept>
 #include <type_traits>
@@ -9,6 +9,24 @@ namespace sms::gateway {
 namespace {
 
 namespace fc = function_code;
+namespace wire = protocol::tcp::exception_code;
+
+// The exception's value is its byte on the wire (application protocol §7).
+static_assert(static_cast<std::uint8_t>(ModbusException::IllegalFunction) == wire::kIllegalFunction);
+static_assert(static_cast<std::uint8_t>(ModbusException::IllegalDataAddress) == wire::kIllegalDataAddress);
+static_assert(static_cast<std::uint8_t>(ModbusException::IllegalDataValue) == wire::kIllegalDataValue);
+static_assert(static_cast<std::uint8_t>(ModbusException::ServerDeviceFailure) == wire::kServerDeviceFailure);
+static_assert(static_cast<std::uint8_t>(ModbusException::ServerDeviceBusy) == wire::kServerDeviceBusy);
+static_assert(static_cast<std::uint8_t>(ModbusException::GatewayPathUnavailable) == wire::kGatewayPathUnavailable);
+static_assert(static_cast<std::uint8_t>(ModbusException::GatewayTargetFailedToRespond) ==
+              wire::kGatewayTargetFailedToRespond);
+
+using Parsed = Expected<Request, ModbusException>;
+
+// A PDU whose length or byte count does not fit its function: 0x03 (illegal data value).
+Unexpected<ModbusException> malformed() { return unexpected(ModbusException::IllegalDataValue); }
+// A quantity of 0, over the function's limit, or running past address 65535: 0x02.
+Unexpected<ModbusException> over_limit() { return unexpected(ModbusException::IllegalDataAddress); }
 
 std::uint16_t u16_at(std::span<const std::uint8_t> bytes, std::size_t offset) {
   return static_cast<std::uint16_t>((bytes[offset] << 8) | bytes[offset + 1]);
@@ -30,68 +48,67 @@ std::vector<std::uint16_t> registers_from(std::span<const std::uint8_t> bytes, s
   return values;
 }
 
-Expected<Request, Fault> parse_read_bits(std::uint8_t function, std::span<const std::uint8_t> body) {
-  if (body.size() != 4) return unexpected(Fault::MalformedRequest);
+Parsed parse_read_bits(std::uint8_t function, std::span<const std::uint8_t> body) {
+  if (body.size() != 4) return malformed();
   ReadBitsRequest request{function, u16_at(body, 0), u16_at(body, 2)};
-  if (!quantity_ok(request.address, request.count, limits::kReadBits)) return unexpected(Fault::QuantityOverLimit);
+  if (!quantity_ok(request.address, request.count, limits::kReadBits)) return over_limit();
   return Request{request};
 }
 
-Expected<Request, Fault> parse_read_registers(std::uint8_t function, std::span<const std::uint8_t> body) {
-  if (body.size() != 4) return unexpected(Fault::MalformedRequest);
+Parsed parse_read_registers(std::uint8_t function, std::span<const std::uint8_t> body) {
+  if (body.size() != 4) return malformed();
   ReadRegistersRequest request{function, u16_at(body, 0), u16_at(body, 2)};
   if (!quantity_ok(request.address, request.count, limits::kReadRegisters)) {
-    return unexpected(Fault::QuantityOverLimit);
+    return over_limit();
   }
   return Request{request};
 }
 
-Expected<Request, Fault> parse_write_single_coil(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
-  if (body.size() != 4) return unexpected(Fault::MalformedRequest);
+Parsed parse_write_single_coil(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
+  if (body.size() != 4) return malformed();
   const std::uint16_t value = u16_at(body, 2);
-  if (value != 0x0000 && value != 0xFF00) return unexpected(Fault::MalformedRequest);
+  if (value != 0x0000 && value != 0xFF00) return malformed();
   return Request{WriteBitsRequest{fc::kWriteSingleCoil, u16_at(body, 0), {value == 0xFF00}}};
 }
 
-Expected<Request, Fault> parse_write_single_register(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
-  if (body.size() != 4) return unexpected(Fault::MalformedRequest);
+Parsed parse_write_single_register(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
+  if (body.size() != 4) return malformed();
   return Request{WriteRegistersRequest{fc::kWriteSingleRegister, u16_at(body, 0), {u16_at(body, 2)}}};
 }
 
-Expected<Request, Fault> parse_write_multiple_coils(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
-  if (body.size() < 5) return unexpected(Fault::MalformedRequest);
+Parsed parse_write_multiple_coils(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
+  if (body.size() < 5) return malformed();
   const std::uint16_t address = u16_at(body, 0);
   const std::uint16_t count = u16_at(body, 2);
-  if (!quantity_ok(address, count, limits::kWriteBits)) return unexpected(Fault::QuantityOverLimit);
+  if (!quantity_ok(address, count, limits::kWriteBits)) return over_limit();
   const std::size_t byte_count = body[4];
-  if (byte_count != (count + 7u) / 8u || body.size() != 5 + byte_count) return unexpected(Fault::MalformedRequest);
+  if (byte_count != (count + 7u) / 8u || body.size() != 5 + byte_count) return malformed();
   WriteBitsRequest request{fc::kWriteMultipleCoils, address, std::vector<bool>(count)};
   for (std::uint16_t i = 0; i < count; ++i) request.values[i] = ((body[5 + i / 8] >> (i % 8)) & 1) != 0;
   return Request{std::move(request)};
 }
 
-Expected<Request, Fault> parse_write_multiple_registers(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
-  if (body.size() < 5) return unexpected(Fault::MalformedRequest);
+Parsed parse_write_multiple_registers(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
+  if (body.size() < 5) return malformed();
   const std::uint16_t address = u16_at(body, 0);
   const std::uint16_t count = u16_at(body, 2);
-  if (!quantity_ok(address, count, limits::kWriteRegisters)) return unexpected(Fault::QuantityOverLimit);
+  if (!quantity_ok(address, count, limits::kWriteRegisters)) return over_limit();
   const std::size_t byte_count = body[4];
-  if (byte_count != std::size_t{2} * count || body.size() != 5 + byte_count) return unexpected(Fault::MalformedRequest);
+  if (byte_count != std::size_t{2} * count || body.size() != 5 + byte_count) return malformed();
   return Request{WriteRegistersRequest{fc::kWriteMultipleRegisters, address, registers_from(body.subspan(5), count)}};
 }
 
-Expected<Request, Fault> parse_read_write_registers(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
-  if (body.size() < 9) return unexpected(Fault::MalformedRequest);
+Parsed parse_read_write_registers(std::uint8_t /*function*/, std::span<const std::uint8_t> body) {
+  if (body.size() < 9) return malformed();
   ReadRegistersRequest read{fc::kReadWriteMultipleRegisters, u16_at(body, 0), u16_at(body, 2)};
   const std::uint16_t write_address = u16_at(body, 4);
   const std::uint16_t write_count = u16_at(body, 6);
   if (!quantity_ok(read.address, read.count, limits::kReadWriteRead) ||
       !quantity_ok(write_address, write_count, limits::kReadWriteWrite)) {
-    return unexpected(Fault::QuantityOverLimit);
+    return over_limit();
   }
   const std::size_t byte_count = body[8];
-  if (byte_count != std::size_t{2} * write_count || body.size() != 9 + byte_count)
-    return unexpected(Fault::MalformedRequest);
+  if (byte_count != std::size_t{2} * write_count || body.size() != 9 + byte_count) return malformed();
   WriteRegistersRequest write{fc::kReadWriteMultipleRegisters, write_address,
                               registers_from(body.subspan(9), write_count)};
   return Request{ReadWriteRegistersRequest{read, std::move(write)}};
@@ -99,7 +116,7 @@ Expected<Request, Fault> parse_read_write_registers(std::uint8_t /*function*/, s
 
 struct FunctionParser {
   std::uint8_t function;
-  Expected<Request, Fault> (*parse)(std::uint8_t function, std::span<const std::uint8_t> body);
+  Parsed (*parse)(std::uint8_t function, std::span<const std::uint8_t> body);
 };
 // The function codes the gateway serves; anything else is answered 0x01.
 constexpr FunctionParser kParsers[] = {
@@ -116,12 +133,12 @@ constexpr FunctionParser kParsers[] = {
 
 }  // namespace
 
-Expected<Request, Fault> parse_request(std::span<const std::uint8_t> pdu) {
-  if (pdu.empty()) return unexpected(Fault::MalformedRequest);
+Expected<Request, ModbusException> parse_request(std::span<const std::uint8_t> pdu) {
+  if (pdu.empty()) return malformed();
   for (const auto& entry : kParsers) {
     if (entry.function == pdu[0]) return entry.parse(pdu[0], pdu.subspan(1));
   }
-  return unexpected(Fault::UnsupportedFunction);
+  return unexpected(ModbusException::IllegalFunction);
 }
 
 std::uint8_t function_of(const Request& request) {
@@ -224,8 +241,8 @@ Bytes request_pdu(const Request& request) {
   return out;
 }
 
-Bytes exception_response(std::uint8_t function, Fault fault) {
-  return protocol::tcp::exception_pdu(function, exception_code(fault));
+Bytes exception_response(std::uint8_t function, ModbusException code) {
+  return protocol::tcp::exception_pdu(function, static_cast<std::uint8_t>(code));
 }
 
 }  // namespace sms::gateway

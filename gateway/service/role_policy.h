@@ -4,8 +4,8 @@
 // front of the same UnitRouter the plain listener uses, so every request that passes still goes
 // through the safety rules; a refused request never reaches the router.
 //
-//   RolePolicy policy(config);
-//   if (const auto refusal = policy.refusal(Role::Operate, unit_id, pdu)) reply exception_code(refusal->fault);
+//   RolePolicy policy(config, catalog);  // one for the whole gateway, shared by every way in
+//   if (const auto refusal = policy.refusal(Role::Operate, unit_id, pdu)) reply refusal->exception;
 //
 // Rights:
 //   read      functions that only read (01 02 03 04, and 07 11 12 17 20 24 on passthrough units)
@@ -28,20 +28,21 @@
 #include <vector>
 
 #include "config/config.h"
-#include "gateway/modbus_tcp/faults.h"
+#include "gateway/service/modbus_request.h"
+#include "gateway/service/unit_catalog.h"
 #include "modbus_map/register_map.h"
 
 namespace sms::gateway {
 
 struct RoleRefusal {
-  Fault fault = Fault::UnsupportedFunction;  // 0x01 or 0x02
-  std::string reason;                        // for the log: "writes EEPROM field id (5)"
+  ModbusException exception = ModbusException::IllegalFunction;  // 0x01 or 0x02
+  std::string reason;                                            // for the log: "writes EEPROM field id (5)"
 };
 
 class RolePolicy {
  public:
-  // Builds the register maps of the configuration's servo units (as the router does).
-  explicit RolePolicy(const config::Config& config);
+  // The servo units' register maps come from `catalog`, which must outlive the policy.
+  RolePolicy(const config::Config& config, const UnitCatalog& catalog);
 
   // nullopt: `role` may make the request (the router still decides everything else: unknown
   // units, malformed PDUs, read-only units and fields, the safety rules). A request the policy
@@ -50,9 +51,6 @@ class RolePolicy {
   std::optional<RoleRefusal> refusal(config::Role role, std::uint8_t unit_id, std::span<const std::uint8_t> pdu) const;
 
  private:
-  struct Unit {
-    modbus_map::RegisterMap map;
-  };
   struct GroupBlock {
     std::uint16_t start = 0;
     std::uint16_t count = 0;
@@ -61,14 +59,20 @@ class RolePolicy {
     bool engineer_only = false;
   };
 
-  std::optional<RoleRefusal> servo_write_refusal(const Unit& unit, std::span<const std::uint8_t> pdu) const;
+  std::optional<RoleRefusal> servo_write_refusal(const modbus_map::RegisterMap& map,
+                                                 std::span<const std::uint8_t> pdu) const;
   std::optional<RoleRefusal> gateway_write_refusal(std::span<const std::uint8_t> pdu) const;
 
-  std::array<std::unique_ptr<Unit>, 256> units_{};
-  std::array<bool, 256> passthrough_{};
-  std::uint8_t gateway_unit_id_ = 255;
+  const UnitCatalog& catalog_;
   std::vector<GroupBlock> groups_;
 };
+
+// Whether a read-only unit answers `function` itself: nullopt when it may be served (reads),
+// 0x02 for writes, as a write to a read-only field is answered (docs/PLC_GUIDE.md), 0x01 for
+// functions whose effect the gateway cannot know (passthrough units forward any code; a
+// read-only one forwards reads only). docs/DECISIONS.md "Operations and security". The unit
+// router asks it for servo and passthrough units alike.
+std::optional<ModbusException> read_only_refusal(std::uint8_t function);
 
 // Whether writing `field` of a servo's table needs the engineer role whatever the value: EEPROM
 // fields and the `lock` field (it only decides whether EEPROM writes persist).

@@ -7,7 +7,7 @@
 #include <variant>
 #include <vector>
 
-#include "gateway/modbus_tcp/faults.h"
+#include "modbus_map/register_map.h"
 #include "protocol/expected.h"
 #include "protocol/modbus_pdu.h"
 #include "protocol/packet.h"
@@ -15,6 +15,10 @@
 namespace sms::gateway {
 
 using protocol::Bytes;
+// The one exception vocabulary inside the gateway: every refusal, whichever part decides it (the
+// request parser, the role policy, the register map, the bus, the safety rules), is a
+// ModbusException; its byte is written only in the exception response (exception_response()).
+using modbus_map::ModbusException;
 
 namespace function_code = protocol::function_code;
 
@@ -50,11 +54,11 @@ struct ReadWriteRegistersRequest {
 using Request = std::variant<ReadBitsRequest, ReadRegistersRequest, WriteBitsRequest, WriteRegistersRequest,
                              ReadWriteRegistersRequest>;
 
-// Fault::UnsupportedFunction for function codes not listed above; QuantityOverLimit for a
-// count of 0, over the function's limit, or running past address 65535; MalformedRequest for
-// a PDU whose length or byte count does not match its function, or an FC05 value other than
+// IllegalFunction (0x01) for function codes not listed above; IllegalDataAddress (0x02) for a
+// count of 0, over the function's limit, or running past address 65535; IllegalDataValue (0x03)
+// for a PDU whose length or byte count does not match its function, or an FC05 value other than
 // 0x0000 / 0xFF00.
-Expected<Request, Fault> parse_request(std::span<const std::uint8_t> pdu);
+Expected<Request, ModbusException> parse_request(std::span<const std::uint8_t> pdu);
 
 std::uint8_t function_of(const Request& request);
 
@@ -68,6 +72,6 @@ Bytes registers_response(std::uint8_t function, std::span<const std::uint16_t> v
 // 05 06 echo the request; 15 16 answer address and quantity.
 Bytes write_response(const WriteBitsRequest& request);
 Bytes write_response(const WriteRegistersRequest& request);
-Bytes exception_response(std::uint8_t function, Fault fault);
+Bytes exception_response(std::uint8_t function, ModbusException code);
 
 }  // namespace sms::gateway

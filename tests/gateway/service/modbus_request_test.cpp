@@ -2,13 +2,12 @@
 // written out by hand from the Modbus application protocol v1.1b3 §6.
 #include <gtest/gtest.h>
 
-#include "gateway/modbus_tcp/faults.h"
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 
 namespace sms::gateway {
 namespace {
 
-Expected<Request, Fault> parse(std::initializer_list<std::uint8_t> pdu) {
+Expected<Request, ModbusException> parse(std::initializer_list<std::uint8_t> pdu) {
   const Bytes bytes(pdu);
   return parse_request(bytes);
 }
@@ -36,8 +35,8 @@ TEST(ModbusRequest, ReadInputRegistersAndBitSpaces) {
 TEST(ModbusRequest, WriteSingleCoilAcceptsOnlyFF00AndZero) {
   EXPECT_EQ(std::get<WriteBitsRequest>(*parse({0x05, 0x00, 0x28, 0xFF, 0x00})).values, std::vector<bool>{true});
   EXPECT_EQ(std::get<WriteBitsRequest>(*parse({0x05, 0x00, 0x28, 0x00, 0x00})).values, std::vector<bool>{false});
-  EXPECT_EQ(parse({0x05, 0x00, 0x28, 0x00, 0x01}).error(), Fault::MalformedRequest);
-  EXPECT_EQ(parse({0x05, 0x00, 0x28, 0xFF, 0xFF}).error(), Fault::MalformedRequest);
+  EXPECT_EQ(parse({0x05, 0x00, 0x28, 0x00, 0x01}).error(), ModbusException::IllegalDataValue);
+  EXPECT_EQ(parse({0x05, 0x00, 0x28, 0xFF, 0xFF}).error(), ModbusException::IllegalDataValue);
 }
 
 TEST(ModbusRequest, WriteSingleRegister) {
@@ -75,45 +74,48 @@ TEST(ModbusRequest, UnsupportedFunctionCodes) {
   for (const std::uint8_t function : {0x00, 0x07, 0x08, 0x11, 0x14, 0x16, 0x2B, 0x41, 0x80, 0xFF}) {
     const auto request = parse({function, 0x00, 0x00, 0x00, 0x01});
     ASSERT_FALSE(request) << int(function);
-    EXPECT_EQ(request.error(), Fault::UnsupportedFunction) << int(function);
+    EXPECT_EQ(request.error(), ModbusException::IllegalFunction) << int(function);
   }
 }
 
 TEST(ModbusRequest, QuantityLimitsOfEveryFunction) {
   EXPECT_TRUE(parse({0x01, 0x00, 0x00, 0x07, 0xD0}));  // 2000 bits
-  EXPECT_EQ(parse({0x01, 0x00, 0x00, 0x07, 0xD1}).error(), Fault::QuantityOverLimit);
-  EXPECT_EQ(parse({0x02, 0x00, 0x00, 0x00, 0x00}).error(), Fault::QuantityOverLimit);
+  EXPECT_EQ(parse({0x01, 0x00, 0x00, 0x07, 0xD1}).error(), ModbusException::IllegalDataAddress);
+  EXPECT_EQ(parse({0x02, 0x00, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataAddress);
   EXPECT_TRUE(parse({0x03, 0x00, 0x00, 0x00, 0x7D}));  // 125 registers
-  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00, 0x7E}).error(), Fault::QuantityOverLimit);
-  EXPECT_EQ(parse({0x04, 0x00, 0x00, 0x00, 0x00}).error(), Fault::QuantityOverLimit);
+  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00, 0x7E}).error(), ModbusException::IllegalDataAddress);
+  EXPECT_EQ(parse({0x04, 0x00, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataAddress);
   // 124 registers (248 bytes) cannot be written in one FC16: limit 123.
   Bytes fc16{0x10, 0x00, 0x00, 0x00, 0x7C, 0xF8};
   fc16.resize(fc16.size() + 248, 0);
-  EXPECT_EQ(parse_request(fc16).error(), Fault::QuantityOverLimit);
+  EXPECT_EQ(parse_request(fc16).error(), ModbusException::IllegalDataAddress);
   Bytes fc15{0x0F, 0x00, 0x00, 0x07, 0xB1, 0xF7};  // 1969 coils > 1968
   fc15.resize(fc15.size() + 247, 0);
-  EXPECT_EQ(parse_request(fc15).error(), Fault::QuantityOverLimit);
+  EXPECT_EQ(parse_request(fc15).error(), ModbusException::IllegalDataAddress);
   // FC23: write part at most 121 registers.
   Bytes fc23{0x17, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x7A, 0xF4};
   fc23.resize(fc23.size() + 244, 0);
-  EXPECT_EQ(parse_request(fc23).error(), Fault::QuantityOverLimit);
+  EXPECT_EQ(parse_request(fc23).error(), ModbusException::IllegalDataAddress);
 }
 
 TEST(ModbusRequest, RangePastAddress65535IsOverTheLimit) {
   EXPECT_TRUE(parse({0x03, 0xFF, 0xFF, 0x00, 0x01}));
-  EXPECT_EQ(parse({0x03, 0xFF, 0xFF, 0x00, 0x02}).error(), Fault::QuantityOverLimit);
-  EXPECT_EQ(parse({0x01, 0xFF, 0xF0, 0x00, 0x11}).error(), Fault::QuantityOverLimit);
+  EXPECT_EQ(parse({0x03, 0xFF, 0xFF, 0x00, 0x02}).error(), ModbusException::IllegalDataAddress);
+  EXPECT_EQ(parse({0x01, 0xFF, 0xF0, 0x00, 0x11}).error(), ModbusException::IllegalDataAddress);
 }
 
 TEST(ModbusRequest, MalformedPdus) {
-  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00}).error(), Fault::MalformedRequest);              // short
-  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00, 0x01, 0x00}).error(), Fault::MalformedRequest);  // long
-  EXPECT_EQ(parse({0x06, 0x00, 0x00, 0x00}).error(), Fault::MalformedRequest);
+  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataValue);              // short
+  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00, 0x01, 0x00}).error(), ModbusException::IllegalDataValue);  // long
+  EXPECT_EQ(parse({0x06, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataValue);
   EXPECT_EQ(parse({0x10, 0x00, 0x00, 0x00, 0x02, 0x02, 0x00, 0x01}).error(),
-            Fault::MalformedRequest);                                                             // 2 regs, 2 bytes
-  EXPECT_EQ(parse({0x10, 0x00, 0x00, 0x00, 0x01, 0x02, 0x00}).error(), Fault::MalformedRequest);  // bytes missing
-  EXPECT_EQ(parse({0x0F, 0x00, 0x00, 0x00, 0x09, 0x01, 0xFF}).error(), Fault::MalformedRequest);  // 9 coils in 1 byte
-  EXPECT_EQ(parse({0x17, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x01, 0x02, 0x00}).error(), Fault::MalformedRequest);
+            ModbusException::IllegalDataValue);  // 2 regs, 2 bytes
+  EXPECT_EQ(parse({0x10, 0x00, 0x00, 0x00, 0x01, 0x02, 0x00}).error(),
+            ModbusException::IllegalDataValue);  // bytes missing
+  EXPECT_EQ(parse({0x0F, 0x00, 0x00, 0x00, 0x09, 0x01, 0xFF}).error(),
+            ModbusException::IllegalDataValue);  // 9 coils in 1 byte
+  EXPECT_EQ(parse({0x17, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x01, 0x02, 0x00}).error(),
+            ModbusException::IllegalDataValue);
 }
 
 // request_pdu is parse_request's inverse for every kind the parser takes.
@@ -160,21 +162,15 @@ TEST(ModbusResponse, WritesEchoOrCount) {
   EXPECT_EQ(write_response(WriteRegistersRequest{0x10, 42, {1, 2, 3}}), (Bytes{0x10, 0x00, 0x2A, 0x00, 0x03}));
 }
 
-TEST(ModbusException, CodesFollowTheContract) {
-  EXPECT_EQ(exception_response(0x03, Fault::UnsupportedFunction), (Bytes{0x83, 0x01}));
-  EXPECT_EQ(exception_code(Fault::BadAddress), 0x02);
-  EXPECT_EQ(exception_code(Fault::QuantityOverLimit), 0x02);
-  EXPECT_EQ(exception_code(Fault::BadValue), 0x03);
-  EXPECT_EQ(exception_code(Fault::MalformedRequest), 0x03);
-  EXPECT_EQ(exception_code(Fault::ServoRefused), 0x04);
-  EXPECT_EQ(exception_code(Fault::ServoCorrupt), 0x04);
-  EXPECT_EQ(exception_code(Fault::MotionBlocked), 0x04);
-  EXPECT_EQ(exception_code(Fault::InternalError), 0x04);
-  EXPECT_EQ(exception_code(Fault::QueueFull), 0x06);
-  EXPECT_EQ(exception_code(Fault::UnknownUnit), 0x0A);
-  EXPECT_EQ(exception_code(Fault::BusDown), 0x0A);
-  EXPECT_EQ(exception_code(Fault::ServoTimeout), 0x0B);
-  EXPECT_EQ(exception_response(0x10, Fault::ServoTimeout), (Bytes{0x90, 0x0B}));
+// The exception's value is the byte the client gets (docs/PLC_GUIDE.md "Exceptions").
+TEST(ModbusException, ResponsesCarryTheContractsCodes) {
+  EXPECT_EQ(exception_response(0x03, ModbusException::IllegalFunction), (Bytes{0x83, 0x01}));
+  EXPECT_EQ(exception_response(0x06, ModbusException::IllegalDataAddress), (Bytes{0x86, 0x02}));
+  EXPECT_EQ(exception_response(0x06, ModbusException::IllegalDataValue), (Bytes{0x86, 0x03}));
+  EXPECT_EQ(exception_response(0x10, ModbusException::ServerDeviceFailure), (Bytes{0x90, 0x04}));
+  EXPECT_EQ(exception_response(0x10, ModbusException::ServerDeviceBusy), (Bytes{0x90, 0x06}));
+  EXPECT_EQ(exception_response(0x03, ModbusException::GatewayPathUnavailable), (Bytes{0x83, 0x0A}));
+  EXPECT_EQ(exception_response(0x10, ModbusException::GatewayTargetFailedToRespond), (Bytes{0x90, 0x0B}));
 }
 
 }  // namespace

@@ -1,20 +1,18 @@
-#include "gateway/modbus_tcp/role_policy.h"
+#include "gateway/service/role_policy.h"
 
 #include <set>
 #include <variant>
 
-#include "gateway/modbus_tcp/access_policy.h"
-#include "gateway/modbus_tcp/modbus_request.h"
+#include "gateway/service/modbus_request.h"
 #include "modbus_map/tables.h"
+#include "protocol/modbus_pdu.h"
 
 namespace sms::gateway {
 namespace {
 
 using config::Role;
-
-modbus_map::Profile map_profile(config::Profile profile) {
-  return profile == config::Profile::Smsmb ? modbus_map::Profile::Smsmb : modbus_map::Profile::Native;
-}
+using protocol::function_effect;
+using protocol::FunctionEffect;
 
 // The torque switch of each table; 128 written to it is the mid-point calibration (docs/PROTOCOL.md §1.1).
 bool is_torque_switch(const modbus_map::FieldSpec& field) {
@@ -40,20 +38,20 @@ std::string field_text(const modbus_map::FieldSpec& field) {
 
 }  // namespace
 
+std::optional<ModbusException> read_only_refusal(std::uint8_t function) {
+  switch (function_effect(function)) {
+    case FunctionEffect::Reads: return std::nullopt;
+    case FunctionEffect::Writes: return ModbusException::IllegalDataAddress;
+    case FunctionEffect::Unknown: break;
+  }
+  return ModbusException::IllegalFunction;
+}
+
 bool engineer_only_field(const modbus_map::FieldSpec& field) {
   return field.area == modbus_map::Area::Eeprom || field.name == "lock";
 }
 
-RolePolicy::RolePolicy(const config::Config& config) : gateway_unit_id_(config.modbus_tcp.gateway_unit_id) {
-  for (const auto& servo : config.servos) {
-    if (servo.passthrough()) {
-      passthrough_[servo.unit_id] = true;
-      continue;
-    }
-    auto map = modbus_map::RegisterMap::create(*servo.table, map_profile(servo.profile), servo.byte_order);
-    if (!map) continue;  // the router refuses to start on it
-    units_[servo.unit_id] = std::make_unique<Unit>(Unit{std::move(*map)});
-  }
+RolePolicy::RolePolicy(const config::Config& config, const UnitCatalog& catalog) : catalog_(catalog) {
   for (const auto& group : config.sync_groups) {
     GroupBlock block{group.holding_register_start, group.register_count(), group.name, group.field, false};
     for (const std::uint8_t member : group.members) {
@@ -72,42 +70,44 @@ std::optional<RoleRefusal> RolePolicy::refusal(Role role, std::uint8_t unit_id,
   const FunctionEffect effect = function_effect(function);
   switch (role) {
     case Role::Engineer: return std::nullopt;
-    case Role::None: return RoleRefusal{Fault::UnsupportedFunction, "the connection has no role"};
+    case Role::None: return RoleRefusal{ModbusException::IllegalFunction, "the connection has no role"};
     case Role::Read:
       if (effect == FunctionEffect::Reads) return std::nullopt;
-      return RoleRefusal{Fault::UnsupportedFunction, "role read may only read"};
+      return RoleRefusal{ModbusException::IllegalFunction, "role read may only read"};
     case Role::Operate: break;
   }
   if (effect == FunctionEffect::Reads) return std::nullopt;
   if (effect == FunctionEffect::Unknown) {
-    return RoleRefusal{Fault::UnsupportedFunction, "functions of unknown effect need role engineer"};
+    return RoleRefusal{ModbusException::IllegalFunction, "functions of unknown effect need role engineer"};
   }
-  if (passthrough_[unit_id]) {
+  if (catalog_.passthrough(unit_id)) {
     if (standard_write(function)) return std::nullopt;
-    return RoleRefusal{Fault::UnsupportedFunction, "this write function needs role engineer on a passthrough unit"};
+    return RoleRefusal{ModbusException::IllegalFunction,
+                       "this write function needs role engineer on a passthrough unit"};
   }
-  if (const Unit* unit = units_[unit_id].get()) return servo_write_refusal(*unit, pdu);
-  if (unit_id == gateway_unit_id_) return gateway_write_refusal(pdu);
+  if (const CatalogUnit* unit = catalog_.servo(unit_id)) return servo_write_refusal(unit->map, pdu);
+  if (unit_id == catalog_.gateway_unit_id()) return gateway_write_refusal(pdu);
   return std::nullopt;  // an unknown unit: the router answers 0x0A
 }
 
-std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const Unit& unit, std::span<const std::uint8_t> pdu) const {
+std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const modbus_map::RegisterMap& map,
+                                                           std::span<const std::uint8_t> pdu) const {
   const auto request = parse_request(pdu);
   if (!request) return std::nullopt;  // the router answers the parse error, without writing
   std::optional<modbus_map::MapResult<modbus_map::WritePlan>> plan;
   if (const auto* bits = std::get_if<WriteBitsRequest>(&*request)) {
-    plan = unit.map.plan_coil_write(bits->address, bits->values);
+    plan = map.plan_coil_write(bits->address, bits->values);
   } else if (const auto* registers = std::get_if<WriteRegistersRequest>(&*request)) {
-    plan = unit.map.plan_register_write(registers->address, registers->values);
+    plan = map.plan_register_write(registers->address, registers->values);
   } else if (const auto* both = std::get_if<ReadWriteRegistersRequest>(&*request)) {
-    plan = unit.map.plan_register_write(both->write.address, both->write.values);
+    plan = map.plan_register_write(both->write.address, both->write.values);
   }
   if (!plan || !*plan) return std::nullopt;  // a read, or a write the map refuses anyway
 
-  const modbus_map::TableSpec& table = unit.map.servo_table();
-  const std::size_t per_address = unit.map.bytes_per_bus_address();
+  const modbus_map::TableSpec& table = map.servo_table();
+  const std::size_t per_address = map.bytes_per_bus_address();
   const modbus_map::ByteOrder order =
-      table.addressing == modbus_map::Addressing::Register ? modbus_map::ByteOrder::HighFirst : unit.map.byte_order();
+      table.addressing == modbus_map::Addressing::Register ? modbus_map::ByteOrder::HighFirst : map.byte_order();
   for (const auto& write : (**plan).writes) {
     const std::size_t count = write.data.size() / per_address;
     std::set<const modbus_map::FieldSpec*> seen;
@@ -115,7 +115,7 @@ std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const Unit& unit, std
       const auto* field = modbus_map::field_covering(table, static_cast<std::uint16_t>(write.address + i));
       if (field == nullptr || !seen.insert(field).second) continue;
       if (engineer_only_field(*field)) {
-        return RoleRefusal{Fault::BadAddress,
+        return RoleRefusal{ModbusException::IllegalDataAddress,
                            "writes " + std::string(field->area == modbus_map::Area::Eeprom ? "EEPROM " : "") +
                                "field " + field_text(*field) + ", which needs role engineer"};
       }
@@ -125,7 +125,7 @@ std::optional<RoleRefusal> RolePolicy::servo_write_refusal(const Unit& unit, std
       const auto raw =
           modbus_map::load_raw(std::span<const std::uint8_t>(write.data).subspan(offset), field->size, order);
       if (raw == static_cast<std::uint32_t>(modbus_map::kCalibrateTorqueValue)) {
-        return RoleRefusal{Fault::BadAddress,
+        return RoleRefusal{ModbusException::IllegalDataAddress,
                            "mid-point calibration (" + field_text(*field) + " := 128) needs role engineer"};
       }
     }
@@ -144,8 +144,8 @@ std::optional<RoleRefusal> RolePolicy::gateway_write_refusal(std::span<const std
   for (const auto& group : groups_) {
     if (!group.engineer_only) continue;
     if (first < std::uint32_t{group.start} + group.count && group.start < end) {
-      return RoleRefusal{Fault::BadAddress, "sync group " + group.name + " writes EEPROM field " + group.field +
-                                                ", which needs role engineer"};
+      return RoleRefusal{ModbusException::IllegalDataAddress, "sync group " + group.name + " writes EEPROM field " +
+                                                                  group.field + ", which needs role engineer"};
     }
   }
   return std::nullopt;
