@@ -115,20 +115,13 @@ struct Peer {
 };
 
 DoorSettings door_settings(const ConsoleLimits& limits) {
-  DoorSettings door;
-  door.listener = "console";
-  door.log_name = "console";
-  door.max_served = limits.max_connections;
-  door.max_waiting = limits.max_waiting;
-  door.max_waiting_per_address = limits.max_waiting_per_address;
-  door.first_request_timeout = limits.first_request_timeout;
-  door.first_request = "complete HTTP request";
-  // Fixed limits (ConsoleLimits): the log names them for what they are.
-  door.max_served_setting = "the console's limit of signed-in connections";
-  door.max_waiting_setting = "the console's limit of connections not signed in";
-  door.max_waiting_per_address_setting = "the console's limit of those per client address";
-  door.first_request_timeout_setting = "the console's first-request deadline";
-  return door;
+  return {"console",
+          "console",
+          "complete HTTP request",
+          DoorLimits{limits.max_connections, limits.max_waiting, limits.max_waiting_per_address,
+                     limits.first_request_timeout},
+          fixed_limit_names("the console"),
+          nullptr};
 }
 
 }  // namespace

@@ -28,33 +28,25 @@ namespace {
 
 // The door of a listener, from the server's options (plain) or the TLS settings.
 DoorSettings door_settings(const TcpServerOptions& options) {
-  DoorSettings door;
-  door.max_served = options.max_connections;
-  door.max_served_setting = "modbus_tcp.max_connections";
-  if (options.tls != nullptr) {
-    const config::TlsConfig& tls = options.tls->settings();
-    door.listener = std::string(kListenerNames[1]);
-    door.log_name = "modbus tcp security";
-    door.max_waiting = tls.max_handshakes;
-    door.max_waiting_per_address = tls.max_handshakes_per_address;
-    door.first_request_timeout = tls.handshake_timeout;
-    door.first_request = "complete TLS handshake";
-    door.max_waiting_setting = "modbus_tcp.tls.max_handshakes";
-    door.max_waiting_per_address_setting = "modbus_tcp.tls.max_handshakes_per_address";
-    door.first_request_timeout_setting = "modbus_tcp.tls.handshake_timeout_ms";
-    door.on_close = [service = options.tls](DoorClose why) { service->handshake_closed_by_door(why); };
-  } else {
-    door.listener = std::string(kListenerNames[0]);
-    door.log_name = "modbus tcp";
-    door.max_waiting = options.max_waiting;
-    door.max_waiting_per_address = options.max_waiting_per_address;
-    door.first_request_timeout = options.first_request_timeout;
-    door.first_request = "complete Modbus request";
-    door.max_waiting_setting = "modbus_tcp.max_waiting";
-    door.max_waiting_per_address_setting = "modbus_tcp.max_waiting_per_address";
-    door.first_request_timeout_setting = "modbus_tcp.first_request_timeout_ms";
+  if (options.tls == nullptr) {
+    return {std::string(kListenerNames[0]),
+            "modbus tcp",
+            "complete Modbus request",
+            DoorLimits{options.max_connections, options.max_waiting, options.max_waiting_per_address,
+                       options.first_request_timeout},
+            DoorLimitNames{"modbus_tcp.max_connections", "modbus_tcp.max_waiting", "modbus_tcp.max_waiting_per_address",
+                           "modbus_tcp.first_request_timeout_ms"},
+            nullptr};
   }
-  return door;
+  const config::TlsConfig& tls = options.tls->settings();
+  return {
+      std::string(kListenerNames[1]),
+      "modbus tcp security",
+      "complete TLS handshake",
+      DoorLimits{options.max_connections, tls.max_handshakes, tls.max_handshakes_per_address, tls.handshake_timeout},
+      DoorLimitNames{"modbus_tcp.max_connections", "modbus_tcp.tls.max_handshakes",
+                     "modbus_tcp.tls.max_handshakes_per_address", "modbus_tcp.tls.handshake_timeout_ms"},
+      [service = options.tls](DoorClose why) { service->handshake_closed_by_door(why); }};
 }
 
 }  // namespace

@@ -99,7 +99,7 @@ class TlsService {
   // Refused handshakes, one log per outcome at most once a second (a flood of connections that
   // close in the handshake must not flood the log); io thread only.
   std::map<std::string, RateLimitedLog, std::less<>> refusal_logs_;
-  RefusalCounter refusals_;         // requests the connections' role gates refused
+  RefusalCounter refusals_;  // requests the connections' role gates refused
 };
 
 }  // namespace sms::gateway

@@ -14,6 +14,12 @@ namespace sms::gateway {
 namespace asio = boost::asio;
 using Clock = std::chrono::steady_clock;
 
+DoorLimitNames fixed_limit_names(std::string_view whose) {
+  const std::string owner = std::string(whose) + "'s ";
+  return {owner + "connection limit", owner + "limit of waiting connections", owner + "limit per client address",
+          owner + "first-request deadline"};
+}
+
 std::string duration_text(std::chrono::milliseconds duration) {
   if (duration.count() % 1000 == 0) return std::to_string(duration.count() / 1000) + " s";
   return std::to_string(duration.count()) + " ms";
@@ -105,7 +111,7 @@ struct Door::State : std::enable_shared_from_this<Door::State> {
     spdlog::warn(
         "{}: refusing connection from {}: {} connections served, the limit ({}); further refusals are counted, not "
         "logged",
-        settings.log_name, peer, settings.max_served, settings.max_served_setting);
+        settings.log_name, peer, settings.limits.max_served, settings.limit_names.max_served);
   }
 
   // Closes a waiting connection to make room: from `only` when given (its address's budget is
@@ -141,7 +147,7 @@ struct Door::State : std::enable_shared_from_this<Door::State> {
     const auto guest = victim->guest.lock();
     count(DoorClose::Evicted);
     eviction_log.warn(
-        "{}: closing {} ({}waiting for {}) to make room for a new connection from {} ({} reached) [evicted]",
+        "{}: closing {} ({}waiting for a {}) to make room for a new connection from {} ({} reached) [evicted]",
         settings.log_name, guest ? guest->peer() : victim->address, oldest_silent != nullptr ? "silent so far, " : "",
         settings.first_request, newcomer, limit);
     forget(ticket);
@@ -153,16 +159,16 @@ struct Door::State : std::enable_shared_from_this<Door::State> {
     const auto found = find(ticket);
     if (found == entries.end()) return;
     entries.erase(found);
-    if (served_count() < settings.max_served) full_logged = false;
+    if (served_count() < settings.limits.max_served) full_logged = false;
     publish_sizes();
   }
 
   // The deadline of the oldest connection still without its first request.
   void arm() {
-    if (closed || settings.first_request_timeout.count() <= 0) return;
+    if (closed || settings.limits.first_request_timeout.count() <= 0) return;
     const auto oldest = std::find_if(entries.begin(), entries.end(), [](const Entry& e) { return !e.heard; });
     if (oldest == entries.end()) return;
-    const auto deadline = oldest->admitted_at + settings.first_request_timeout;
+    const auto deadline = oldest->admitted_at + settings.limits.first_request_timeout;
     if (deadline == armed_for) return;
     armed_for = deadline;
     timer.expires_at(deadline);
@@ -178,7 +184,7 @@ struct Door::State : std::enable_shared_from_this<Door::State> {
     const auto now = Clock::now();
     std::vector<std::shared_ptr<DoorGuest>> late;
     for (auto it = entries.begin(); it != entries.end();) {
-      if (it->heard || now - it->admitted_at < settings.first_request_timeout) {
+      if (it->heard || now - it->admitted_at < settings.limits.first_request_timeout) {
         ++it;
         continue;
       }
@@ -186,7 +192,8 @@ struct Door::State : std::enable_shared_from_this<Door::State> {
       count(DoorClose::Deadline);
       deadline_log.warn("{}: closing {}: no {} within {} ({}) [timeout]", settings.log_name,
                         guest ? guest->peer() : it->address, settings.first_request,
-                        duration_text(settings.first_request_timeout), settings.first_request_timeout_setting);
+                        duration_text(settings.limits.first_request_timeout),
+                        settings.limit_names.first_request_timeout);
       it = entries.erase(it);
       if (settings.on_close) settings.on_close(DoorClose::Deadline);
       if (guest) late.push_back(std::move(guest));
@@ -212,18 +219,18 @@ std::optional<Door::Ticket> Door::admit(const std::string& address, std::weak_pt
   State& s = *state_;
   const auto guest_now = guest.lock();
   const std::string peer = guest_now ? guest_now->peer() : address;
-  if (s.served_count() >= s.settings.max_served) {
+  if (s.served_count() >= s.settings.limits.max_served) {
     s.count(DoorClose::Full);
     s.log_full(peer);
     return std::nullopt;
   }
   const auto from_address = static_cast<std::size_t>(std::count_if(
       s.entries.begin(), s.entries.end(), [&](const State::Entry& e) { return !e.trusted && e.address == address; }));
-  if (from_address >= s.settings.max_waiting_per_address) {
-    s.evict_for(peer, &address, s.settings.max_waiting_per_address_setting);
+  if (from_address >= s.settings.limits.max_waiting_per_address) {
+    s.evict_for(peer, &address, s.settings.limit_names.max_waiting_per_address);
   }
   const std::size_t waiting = s.entries.size() - s.served_count();
-  if (waiting >= s.settings.max_waiting) s.evict_for(peer, nullptr, s.settings.max_waiting_setting);
+  if (waiting >= s.settings.limits.max_waiting) s.evict_for(peer, nullptr, s.settings.limit_names.max_waiting);
   const Ticket ticket = s.next_ticket++;
   s.entries.push_back(State::Entry{ticket, address, std::move(guest), Clock::now(), false, false});
   {
@@ -246,7 +253,7 @@ bool Door::trust(Ticket ticket) {
   if (found == s.entries.end()) return false;
   found->heard = true;
   if (found->trusted) return true;
-  if (s.served_count() >= s.settings.max_served) {
+  if (s.served_count() >= s.settings.limits.max_served) {
     // Waiting connections that began while slots were free finished after the last was taken.
     const auto guest = found->guest.lock();
     s.count(DoorClose::Full);
@@ -276,9 +283,10 @@ const DoorSettings& Door::settings() const { return state_->settings; }
 
 std::string Door::describe() const {
   const DoorSettings& s = state_->settings;
-  return fmt::format("at most {} connections served; at most {} waiting for {}, {} per client address, each within {}",
-                     s.max_served, s.max_waiting, s.first_request, s.max_waiting_per_address,
-                     s.first_request_timeout.count() > 0 ? duration_text(s.first_request_timeout) : "any time");
+  return fmt::format(
+      "at most {} connections served; at most {} waiting for a {}, {} per client address, each within {}",
+      s.limits.max_served, s.limits.max_waiting, s.first_request, s.limits.max_waiting_per_address,
+      s.limits.first_request_timeout.count() > 0 ? duration_text(s.limits.first_request_timeout) : "any time");
 }
 
 DoorStats Door::stats() const {

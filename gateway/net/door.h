@@ -65,19 +65,31 @@ class DoorGuest {
 enum class DoorClose : std::uint8_t { Full, Evicted, Deadline, Allow };
 inline constexpr std::array<std::string_view, 4> kDoorCloseNames{"full", "evicted", "deadline", "allow"};
 
-struct DoorSettings {
-  std::string listener;  // the /metrics label: "plain", "tls", "console", "metrics"
-  std::string log_name;  // the log lines' prefix: "modbus tcp", "console"
+// The numbers of a door.
+struct DoorLimits {
   std::size_t max_served = 32;
   std::size_t max_waiting = 16;
   std::size_t max_waiting_per_address = 4;
   std::chrono::milliseconds first_request_timeout{std::chrono::seconds{10}};  // 0: no deadline
-  // What a connection must complete to stop waiting, and where each limit is set (log lines).
-  std::string first_request = "a complete first request";
-  std::string max_served_setting;
-  std::string max_waiting_setting;
-  std::string max_waiting_per_address_setting;
-  std::string first_request_timeout_setting;
+};
+
+// Where each of DoorLimits is set, for the log lines that name a limit reached.
+struct DoorLimitNames {
+  std::string max_served;
+  std::string max_waiting;
+  std::string max_waiting_per_address;
+  std::string first_request_timeout;
+};
+// The names of limits fixed in code, e.g. "the console's connection limit".
+DoorLimitNames fixed_limit_names(std::string_view whose);
+
+struct DoorSettings {
+  std::string listener;  // the /metrics label: "plain", "tls", "console", "metrics"
+  std::string log_name;  // the log lines' prefix: "modbus tcp", "console"
+  // What a connection must complete to stop waiting: "complete HTTP request".
+  std::string first_request = "complete first request";
+  DoorLimits limits;
+  DoorLimitNames limit_names;
   // Told of each connection the door itself closes (Evicted, Deadline), after the count and the
   // log line: the TLS listener counts them as handshake results too. May be empty.
   std::function<void(DoorClose)> on_close;
@@ -120,7 +132,8 @@ class Door {
   void close();
 
   const DoorSettings& settings() const;
-  // "at most 32 connections served; at most 16 waiting, 4 per client address, each within 10 s"
+  // "at most 32 connections served; at most 16 waiting for a complete HTTP request, 4 per client
+  // address, each within 5 s"
   std::string describe() const;
   // Any thread.
   DoorStats stats() const;

@@ -104,20 +104,13 @@ std::optional<Answer> answer_for_read_error(const beast::error_code& error) {
 class MetricsSession;
 
 static DoorSettings door_settings(const MetricsServerOptions& options) {
-  DoorSettings door;
-  door.listener = "metrics";
-  door.log_name = "metrics";
-  door.max_served = options.max_connections;
-  door.max_waiting = options.max_waiting;
-  door.max_waiting_per_address = options.max_waiting_per_address;
-  door.first_request_timeout = options.first_request_timeout;
-  door.first_request = "complete HTTP request";
-  // Fixed limits (MetricsServerOptions): the log names them for what they are.
-  door.max_served_setting = "the metrics endpoint's connection limit";
-  door.max_waiting_setting = "the metrics endpoint's limit of waiting connections";
-  door.max_waiting_per_address_setting = "the metrics endpoint's limit per client address";
-  door.first_request_timeout_setting = "the metrics endpoint's first-request deadline";
-  return door;
+  return {"metrics",
+          "metrics",
+          "complete HTTP request",
+          DoorLimits{options.max_connections, options.max_waiting, options.max_waiting_per_address,
+                     options.first_request_timeout},
+          fixed_limit_names("the metrics endpoint"),
+          nullptr};
 }
 
 class MetricsServer::Impl {

@@ -209,22 +209,11 @@ class FourDoors {
         "  listen: \"127.0.0.1:" +
         std::to_string(free_port()) +
         "\"\n"
-        "  first_request_timeout_ms: 1000\n"
-        "  tls:\n"
-        "    listen: \"127.0.0.1:0\"\n"
-        "    certificate: \"" +
-        certs + "/server.crt\"\n    private_key: \"" + certs + "/server.key\"\n    ca: \"" + certs +
-        "/ca.crt\"\n"
-        "    roles: {hmi-2.plant: read, plc-3: operate}\n"
-        "    handshake_timeout_ms: 1000\n"
+        "  first_request_timeout_ms: 1000\n" +
+        tls_listener_yaml(certs, "    handshake_timeout_ms: 1000\n") +
         "console:\n"
-        "  listen: \"127.0.0.1:0\"\n"
-        "buses:\n"
-        "  - {name: line, device: \"" +
-        pty +
-        "\", protocol: feetech, baud: 1000000}\n"
-        "servos:\n"
-        "  - {bus: line, id: 1, table: sts}\n";
+        "  listen: \"127.0.0.1:0\"\n" +
+        one_servo_yaml(pty);
     const std::string path = dir.file("four_doors.yaml");
     std::ofstream(path) << yaml;
     process_ = std::make_unique<ChildProcess>(

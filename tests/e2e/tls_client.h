@@ -88,4 +88,21 @@ class TlsClient {
   std::uint16_t transaction_ = 0;
 };
 
+// The configuration lines the TLS tests share: modbus_tcp.tls with the test CA's server
+// certificate on a port of the gateway's choosing and the roles the certificates map to (`extra`:
+// more lines of it, indented by 4), and one bus `line` on `pty` with one sts servo.
+inline std::string tls_listener_yaml(const std::string& certs, const std::string& extra = "") {
+  return "  tls:\n"
+         "    listen: \"127.0.0.1:0\"\n"
+         "    certificate: \"" +
+         certs + "/server.crt\"\n    private_key: \"" + certs + "/server.key\"\n    ca: \"" + certs +
+         "/ca.crt\"\n"
+         "    roles: {hmi-2.plant: read, plc-3: operate}\n" +
+         extra;
+}
+inline std::string one_servo_yaml(const std::string& pty) {
+  return "buses:\n  - {name: line, device: \"" + pty +
+         "\", protocol: feetech, baud: 1000000}\nservos:\n  - {bus: line, id: 1, table: sts}\n";
+}
+
 }  // namespace sms::e2e

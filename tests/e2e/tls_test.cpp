@@ -80,27 +80,8 @@ struct SecureGateway {
         std::to_string(plain_port) +
         "\"\n"
         "  plain: false\n" +
-        extra_tcp +
-        "  tls:\n"
-        "    listen: \"127.0.0.1:0\"\n"
-        "    certificate: \"" +
-        certs +
-        "/server.crt\"\n"
-        "    private_key: \"" +
-        certs +
-        "/server.key\"\n"
-        "    ca: \"" +
-        certs +
-        "/ca.crt\"\n"
-        "    roles: {hmi-2.plant: read, plc-3: operate}\n"
-        "    role_names: {Engineer: engineer}\n" +
-        extra_tls +
-        "buses:\n"
-        "  - {name: line, device: \"" +
-        pty +
-        "\", protocol: feetech, baud: 1000000}\n"
-        "servos:\n"
-        "  - {bus: line, id: 1, table: sts}\n";
+        extra_tcp + tls_listener_yaml(certs, "    role_names: {Engineer: engineer}\n" + extra_tls) +
+        one_servo_yaml(pty);
     const std::string path = dir.file("secure.yaml");
     std::ofstream(path) << yaml;
     process = std::make_unique<ChildProcess>(

@@ -40,14 +40,12 @@ class DoorTest : public ::testing::Test {
  protected:
   DoorSettings settings(std::size_t served, std::size_t waiting, std::size_t per_address,
                         std::chrono::milliseconds deadline = 0ms) {
-    DoorSettings s;
-    s.listener = "test";
-    s.log_name = "test";
-    s.max_served = served;
-    s.max_waiting = waiting;
-    s.max_waiting_per_address = per_address;
-    s.first_request_timeout = deadline;
-    return s;
+    return {"test",
+            "test",
+            "complete first request",
+            DoorLimits{served, waiting, per_address, deadline},
+            fixed_limit_names("the test"),
+            nullptr};
   }
 
   // A guest let in (the test fails when the door refuses it).
