@@ -115,13 +115,7 @@ struct Peer {
 };
 
 DoorSettings door_settings(const ConsoleLimits& limits) {
-  return {"console",
-          "console",
-          "complete HTTP request",
-          DoorLimits{limits.max_connections, limits.max_waiting, limits.max_waiting_per_address,
-                     limits.first_request_timeout},
-          fixed_limit_names("the console"),
-          nullptr};
+  return {"console", "console", "complete HTTP request", limits.door, fixed_limit_names("the console"), nullptr};
 }
 
 }  // namespace
@@ -383,7 +377,7 @@ class ConsoleServer::Impl final : public Services {
   std::optional<HttpAnswer> trust(const Identity& identity, Peer& peer) {
     if (identity.who.role == config::Role::None || door_.trust(peer.ticket)) return std::nullopt;
     peer.over_budget = true;
-    return HttpAnswer::error(503, "the console serves " + std::to_string(limits_.max_connections) +
+    return HttpAnswer::error(503, "the console serves " + std::to_string(limits_.door.max_served) +
                                       " signed-in connections already (its limit): close a tab or another browser "
                                       "and try again");
   }

@@ -50,10 +50,10 @@ struct ConsoleLimits {
   // Connections served: signed in (a login, a certificate with a role, the loopback user). Those
   // not signed in yet have a budget apart, per client address too, and must send a complete
   // request within the deadline: they can never keep an operator (and the e-stop) out.
-  std::size_t max_connections = 32;
-  std::size_t max_waiting = 16;
-  std::size_t max_waiting_per_address = 4;
-  std::chrono::milliseconds first_request_timeout{std::chrono::seconds{5}};
+  DoorLimits door{.max_served = 32,
+                  .max_waiting = 16,
+                  .max_waiting_per_address = 4,
+                  .first_request_timeout = std::chrono::seconds{5}};
   std::size_t max_header_bytes = 8192;
   std::size_t max_body_bytes = 16384;
   std::size_t max_message_bytes = 4096;  // one WebSocket message from a page

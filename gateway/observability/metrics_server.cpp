@@ -104,12 +104,7 @@ std::optional<Answer> answer_for_read_error(const beast::error_code& error) {
 class MetricsSession;
 
 static DoorSettings door_settings(const MetricsServerOptions& options) {
-  return {"metrics",
-          "metrics",
-          "complete HTTP request",
-          DoorLimits{options.max_connections, options.max_waiting, options.max_waiting_per_address,
-                     options.first_request_timeout},
-          fixed_limit_names("the metrics endpoint"),
+  return {"metrics", "metrics", "complete HTTP request", options.door, fixed_limit_names("the metrics endpoint"),
           nullptr};
 }
 

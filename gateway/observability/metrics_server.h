@@ -26,6 +26,7 @@
 #include <memory>
 
 #include "config/config.h"
+#include "gateway/net/door.h"
 #include "gateway/observability/metrics.h"
 
 namespace sms::gateway {
@@ -34,10 +35,10 @@ struct MetricsServerOptions {
   config::HostPort listen{"127.0.0.1", 9102};  // port 0: any free port (tests); port() says which
   // The listener's door (gateway/net/door.h): connections served (past a complete request), and
   // those still waiting for one, apart, per client address too, each within the deadline.
-  std::size_t max_connections = 8;
-  std::size_t max_waiting = 8;
-  std::size_t max_waiting_per_address = 4;
-  std::chrono::milliseconds first_request_timeout{std::chrono::seconds{5}};
+  DoorLimits door{.max_served = 8,
+                  .max_waiting = 8,
+                  .max_waiting_per_address = 4,
+                  .first_request_timeout = std::chrono::seconds{5}};
   std::chrono::milliseconds request_timeout{std::chrono::seconds{10}};  // keep-alive idle limit
   std::size_t max_request_bytes = 8192;  // request line and headers; a request body is refused
 };

@@ -247,7 +247,7 @@ TEST_F(MetricsServerTest, IdleKeepAliveConnectionIsClosedAtTheTimeout) {
 
 TEST_F(MetricsServerTest, ConnectionsOverTheLimitAreClosedAtOnce) {
   MetricsServerOptions options;
-  options.max_connections = 2;
+  options.door.max_served = 2;
   start(options);
   auto first = std::make_unique<HttpConnection>(port());
   HttpConnection second(port());
