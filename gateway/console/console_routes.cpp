@@ -77,6 +77,13 @@ Expected<const ServoUnit*, HttpAnswer> servo_of(Services& services, const PathPa
   return unit;
 }
 
+// The servo page of a unit that is no servo unit: the API's 404.
+std::optional<HttpAnswer> servo_page_missing(Services& services, const PathParams& params) {
+  auto unit = servo_of(services, params);
+  if (unit) return std::nullopt;
+  return std::move(unit.error());
+}
+
 // --- pages' JSON ------------------------------------------------------------------------------
 
 void api_session(const std::shared_ptr<ApiCall>& call) {
@@ -602,6 +609,12 @@ class MonitorStream final : public Stream {
   MonitorFilter filter_;
 };
 
+std::optional<HttpAnswer> monitor_page_missing(Services& services, const PathParams& params) {
+  auto monitor = monitor_of(services, params);
+  if (monitor) return std::nullopt;
+  return std::move(monitor.error());
+}
+
 Expected<std::unique_ptr<Stream>> make_monitor_stream(Services& services, const PathParams& params, const Principal&) {
   auto monitor = monitor_of(services, params);
   if (!monitor) return unexpected(monitor.error().body);
@@ -625,10 +638,11 @@ constexpr Role kAnyone = Role::None;
 const Route kRoutes[] = {
     // Pages (stable URLs: README "Commission a cell in the browser").
     {"GET", "/", Role::Read, RouteKind::Page, "overview.html"},
-    {"GET", "/servo/{unit}", Role::Read, RouteKind::Page, "servo.html"},
+    {"GET", "/servo/{unit}", Role::Read, RouteKind::Page, "servo.html", nullptr, nullptr, true, servo_page_missing},
     {"GET", "/login", kAnyone, RouteKind::Page, "login.html"},
     {"GET", "/commission", Role::Read, RouteKind::Page, "commission.html"},
-    {"GET", "/bus/{name}/monitor", Role::Read, RouteKind::Page, "monitor.html"},
+    {"GET", "/bus/{name}/monitor", Role::Read, RouteKind::Page, "monitor.html", nullptr, nullptr, true,
+     monitor_page_missing},
     {"GET", "/static/{file}", kAnyone, RouteKind::Page, ""},
     // JSON.
     {"GET", "/api/session", kAnyone, RouteKind::Api, {}, api_session},
@@ -664,6 +678,22 @@ HttpAnswer HttpAnswer::json(unsigned status, const nlohmann::json& body) {
 
 HttpAnswer HttpAnswer::error(unsigned status, std::string message) {
   return json(status, nlohmann::json{{"error", std::move(message)}});
+}
+
+HttpAnswer error_page(const HttpAnswer& refusal) {
+  const auto body = nlohmann::json::parse(refusal.body, nullptr, false);
+  const std::string message = body.is_object() && body.contains("error") && body["error"].is_string()
+                                  ? body["error"].get<std::string>()
+                                  : "HTTP " + std::to_string(refusal.status);
+  // Styles from console.css only: the Content-Security-Policy allows nothing inline.
+  std::string page = "<!doctype html>\n<html lang=\"en\">\n<head><meta charset=\"utf-8\"><title>sms-gateway — " +
+                     std::to_string(refusal.status) +
+                     "</title><link rel=\"stylesheet\" href=\"/static/console.css\"></head>\n<body>\n"
+                     "<header><span class=\"brand\">sms-gateway</span><nav><a href=\"/\">Overview</a></nav></header>\n"
+                     "<main>\n  <h1>Not here</h1>\n  <p id=\"message\" class=\"error\">" +
+                     html_escape(message) +
+                     "</p>\n  <p><a href=\"/\">Back to the overview</a></p>\n</main>\n</body>\n</html>\n";
+  return HttpAnswer{refusal.status, "text/html; charset=utf-8", std::move(page), {}};
 }
 
 std::span<const Route> console_routes() { return kRoutes; }

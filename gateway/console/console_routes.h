@@ -114,6 +114,10 @@ class Stream {
 using StreamFactory = Expected<std::unique_ptr<Stream>> (*)(Services& services, const PathParams& params,
                                                             const Principal& who);
 
+// For a page whose URL names a thing (a unit, a bus): the API's refusal when there is no such
+// thing (404 naming what exists), shown as a page (error_page) instead of an empty one.
+using PageCheck = std::optional<HttpAnswer> (*)(Services& services, const PathParams& params);
+
 enum class RouteKind : std::uint8_t {
   Page,    // an embedded file (`page`; empty: the {file} parameter, for /static/{file})
   Api,     // `api`, JSON
@@ -128,8 +132,12 @@ struct Route {
   std::string_view page = {};
   ApiHandler api = nullptr;
   StreamFactory socket = nullptr;
-  bool csrf = true;  // POST only: needs the session's X-CSRF-Token (false: the login itself)
+  bool csrf = true;             // POST only: needs the session's X-CSRF-Token (false: the login itself)
+  PageCheck missing = nullptr;  // Page only: the refusal when the URL names nothing that exists
 };
+
+// An HTML page with the message of a JSON refusal ({"error": ...}) and its status, escaped.
+HttpAnswer error_page(const HttpAnswer& refusal);
 
 std::span<const Route> console_routes();
 

@@ -370,7 +370,12 @@ class ConsoleServer::Impl final : public Services {
       done(std::move(answer));
     };
     if (auto refused = refusal(route, identity, request, path_of(target))) return with_cookie(std::move(*refused));
-    if (route.kind == RouteKind::Page) return with_cookie(page(route, found.params));
+    if (route.kind == RouteKind::Page) {
+      if (route.missing != nullptr) {
+        if (auto missing = route.missing(*this, found.params)) return with_cookie(error_page(*missing));
+      }
+      return with_cookie(page(route, found.params));
+    }
     auto call = std::make_shared<ApiCall>(ApiCall{*this, std::move(found.params), request.body(), identity.who,
                                                   identity.session, peer.loopback, std::move(with_cookie)});
     try {
