@@ -26,6 +26,7 @@
 #include "gateway/console/console_access.h"
 #include "gateway/console/console_jog.h"
 #include "gateway/console/console_request.h"
+#include "gateway/console/login_guard.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/units/unit_router.h"
 #include "protocol/expected.h"
@@ -82,6 +83,10 @@ class Services {
   // written (a latch and its reset between two looks of the console thread cannot let it through).
   virtual void jog_modbus(const Principal& who, std::uint8_t unit, protocol::Bytes pdu, const JogSession& session,
                           std::function<void(ModbusAnswer)> done) = 0;
+  // A password login from `address` (login_guard.h): the backoff first, then the check on the
+  // login worker, never on this thread. `done` runs on the console thread.
+  virtual void login(std::string_view address, std::string user, std::string password,
+                     std::function<void(LoginOutcome)> done) = 0;
 };
 
 // One HTTP request a JSON handler answers. `answer` may be called later (after Modbus answers),
@@ -94,6 +99,7 @@ struct ApiCall {
   std::optional<Session> session;
   bool peer_loopback = false;
   std::function<void(HttpAnswer)> answer;
+  std::string peer_address;  // "192.168.10.7": logins are counted per address
 };
 using ApiHandler = void (*)(const std::shared_ptr<ApiCall>& call);
 

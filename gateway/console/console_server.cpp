@@ -138,7 +138,8 @@ class ConsoleServer::Impl final : public Services {
         commissioning_(*backend_.config, backend_.lending),
         acceptor_(io_),
         timer_(io_),
-        mailbox_(std::make_shared<Mailbox>()) {
+        mailbox_(std::make_shared<Mailbox>()),
+        logins_(settings_, [mailbox = mailbox_](std::function<void()> work) { mailbox->post(std::move(work)); }) {
     if (backend_.safety == nullptr) throw std::invalid_argument("console: no safety rules for the jog panel");
   }
 
@@ -184,9 +185,12 @@ class ConsoleServer::Impl final : public Services {
       close_all();
       mailbox_->close();
     });
+    // After the console thread: a check finishing now posts into the closed mailbox.
+    logins_.stop();
   }
 
   std::uint16_t port() const { return port_; }
+  LoginStats login_stats() const { return logins_.stats(); }
   std::string url() const {
     return std::string(settings_.tls ? "https" : "http") + "://" +
            config::HostPort{settings_.listen.host, port_}.to_string() + "/";
@@ -223,6 +227,11 @@ class ConsoleServer::Impl final : public Services {
   }
 
   MotionStops motion_stops(std::size_t bus) const override { return backend_.safety->motion_stops(bus); }
+
+  void login(std::string_view address, std::string user, std::string password,
+             std::function<void(LoginOutcome)> done) override {
+    logins_.login(address, std::move(user), std::move(password), std::move(done));
+  }
 
   void jog_modbus(const Principal& who, std::uint8_t unit, Bytes pdu, const JogSession& session,
                   std::function<void(ModbusAnswer)> done) override {
@@ -376,8 +385,9 @@ class ConsoleServer::Impl final : public Services {
       }
       return with_cookie(page(route, found.params));
     }
-    auto call = std::make_shared<ApiCall>(ApiCall{*this, std::move(found.params), request.body(), identity.who,
-                                                  identity.session, peer.loopback, std::move(with_cookie)});
+    auto call =
+        std::make_shared<ApiCall>(ApiCall{*this, std::move(found.params), request.body(), identity.who,
+                                          identity.session, peer.loopback, std::move(with_cookie), peer.address});
     try {
       route.api(call);
     } catch (const std::exception& error) {
@@ -479,6 +489,7 @@ class ConsoleServer::Impl final : public Services {
   tcp::acceptor acceptor_;
   asio::steady_timer timer_;
   std::shared_ptr<Mailbox> mailbox_;
+  LoginGuard logins_;  // its worker posts answers through mailbox_
   std::thread thread_;
 };
 
@@ -729,6 +740,7 @@ ConsoleServer::~ConsoleServer() = default;
 void ConsoleServer::start() { impl_->start(); }
 void ConsoleServer::stop() { impl_->stop(); }
 std::uint16_t ConsoleServer::port() const { return impl_->port(); }
+LoginStats ConsoleServer::login_stats() const { return impl_->login_stats(); }
 std::string ConsoleServer::url() const { return impl_->url(); }
 
 }  // namespace sms::gateway::console

@@ -4,14 +4,21 @@ afterwards (headless Chromium), the pages of things that do not exist, the Conte
 Policy of the embedded pages, and the error texts."""
 import http.client
 import json
+import re
 import urllib.parse
+import urllib.request
 
 from selenium.webdriver.common.by import By
 
-from console_support import ConsoleCase, PASSWORD, wait_until
+from console_support import ConsoleCase, PASSWORD, USERS, free_port, wait_until
+
+METRICS_PORT = free_port()
 
 
 class ConsoleSecurityTest(ConsoleCase):
+    # `spare` is failed on purpose (the per-user backoff); the browser logs in as the others.
+    users = {**USERS, "spare": "read"}
+    extra_yaml = f"logging: {{metrics_listen: \"127.0.0.1:{METRICS_PORT}\"}}\n"
 
     # --- after the login: this console's pages only ------------------------------------------------
 
@@ -143,6 +150,72 @@ class ConsoleSecurityTest(ConsoleCase):
         self.assertEqual(json.loads(body)["error"], "no page /static/nosuch/deeper.js here; the overview is at /")
         answer, body = self.get("/static/nosuch.js")
         self.assertEqual(json.loads(body)["error"], "no file nosuch.js here")
+
+    # --- failed logins: the backoff per source address and per user --------------------------------
+    # From other loopback addresses than the browser's 127.0.0.1, which must not be held up.
+
+    def login_from(self, source, user, password):
+        connection = http.client.HTTPConnection("127.0.0.1", self.console_port, timeout=10, source_address=(source, 0))
+        connection.request("POST", "/api/login", json.dumps({"user": user, "password": password}),
+                           {"Content-Type": "application/json"})
+        answer = connection.getresponse()
+        body = json.loads(answer.read())
+        connection.close()
+        return answer, body
+
+    def assert_waits(self, answer, body, why):
+        self.assertEqual(answer.status, 429, body)
+        retry = int(answer.getheader("Retry-After"))
+        self.assertGreaterEqual(retry, 1)
+        self.assertEqual(body["retry_after_s"], retry)
+        self.assertEqual(body["error"], f"{why}: try again in {retry} s")
+        return retry
+
+    def metric(self, sample):
+        text = urllib.request.urlopen(f"http://127.0.0.1:{METRICS_PORT}/metrics", timeout=5).read().decode()
+        found = re.search("^" + re.escape(sample) + r" (\d+)$", text, re.MULTILINE)
+        self.assertIsNotNone(found, f"{sample} is not in /metrics")
+        return int(found.group(1))
+
+    def test_throttle_per_address(self):
+        failed_before = self.metric('sms_gateway_console_logins_total{result="failed"}')
+        throttled_before = self.metric('sms_gateway_console_logins_total{result="throttled"}')
+        for attempt in range(1, 6):  # five failures cost nothing but the answer
+            answer, body = self.login_from("127.0.0.2", f"nobody{attempt}", "wrong")
+            self.assertEqual(answer.status, 401, f"attempt {attempt}: {body}")
+            self.assertEqual(body["error"], "unknown user or wrong password")
+        # Then the address waits, even with a right password, and is told how long.
+        answer, body = self.login_from("127.0.0.2", "viewer", PASSWORD)
+        retry = self.assert_waits(answer, body, "too many failed logins from 127.0.0.2")
+        self.assertGreaterEqual(self.metric('sms_gateway_console_login_waits{scope="address"}'), 1)
+        # Another address is not held up.
+        answer, body = self.login_from("127.0.0.3", "viewer", PASSWORD)
+        self.assertEqual(answer.status, 200, body)
+        # Once the wait is over, the right password logs in from there.
+        wait_until(lambda: self.login_from("127.0.0.2", "viewer", PASSWORD)[0].status == 200, timeout=retry + 10,
+                   step=0.25, what="the address's wait to end")
+        self.assertGreaterEqual(self.metric('sms_gateway_console_logins_total{result="failed"}'), failed_before + 5)
+        self.assertGreaterEqual(self.metric('sms_gateway_console_logins_total{result="throttled"}'),
+                                throttled_before + 1)
+
+    def test_throttle_per_user(self):
+        for i in range(1, 6):  # five failures in spare's name, each from another address
+            answer, body = self.login_from(f"127.0.1.{i}", "spare", "wrong")
+            self.assertEqual(answer.status, 401, body)
+        answer, body = self.login_from("127.0.1.9", "spare", PASSWORD)
+        retry = self.assert_waits(answer, body, "too many failed logins for user `spare`")
+        # The other users are not held up, from the same address either.
+        answer, body = self.login_from("127.0.1.9", "viewer", PASSWORD)
+        self.assertEqual(answer.status, 200, body)
+        # After the wait the right password logs in, which clears spare's count: four failures
+        # later a login is still checked at once.
+        wait_until(lambda: self.login_from("127.0.1.10", "spare", PASSWORD)[0].status == 200, timeout=retry + 10,
+                   step=0.25, what="spare's wait to end")
+        for i in range(1, 5):
+            answer, body = self.login_from(f"127.0.2.{i}", "spare", "wrong")
+            self.assertEqual(answer.status, 401, body)
+        answer, body = self.login_from("127.0.2.9", "spare", PASSWORD)
+        self.assertEqual(answer.status, 200, body)
 
 
 if __name__ == "__main__":
