@@ -230,10 +230,8 @@ int run_gateway(const Options& options) {
   } else if (console) {
     if (!config.console) config.console.emplace();
     config.console->listen = *console;
-    if (!sms::config::is_loopback_host(console->host) && config.console->users.empty() && !config.console->tls) {
-      std::cerr << "sms-gateway: --console " << console->to_string()
-                << ": without console.users or console.tls the console is read-only and serves a loopback address "
-                   "only (docs/CONSOLE.md \"Access\")\n";
+    if (const auto problem = sms::config::console_listen_problem(*config.console)) {
+      std::cerr << "sms-gateway: --console " << *problem << " (docs/CONSOLE.md \"Access\")\n";
       return kExitConfigError;
     }
   }

@@ -23,6 +23,7 @@
 
 #include "gateway/console/console_commission.h"
 #include "gateway/console/console_routes.h"
+#include "gateway/console/console_tls.h"
 #include "gateway/console/console_view.h"
 #include "gateway/console/web_assets.h"
 #include "gateway/modbus_tcp/faults.h"
@@ -151,6 +152,8 @@ class ConsoleServer::Impl final : public Services {
       ssl_ = make_tls_context(*backend_.config->modbus_tcp.tls);
       // With users a browser without a certificate may still log in with a password.
       if (rules_.users) ssl_->set_verify_mode(ssl::verify_peer);
+    } else if (!settings_.certificate.empty()) {
+      ssl_ = console_tls_context(settings_.certificate, settings_.key);
     }
     try {
       open_listener(acceptor_, settings_.listen.host, settings_.listen.port,
@@ -174,6 +177,13 @@ class ConsoleServer::Impl final : public Services {
     }
     mailbox_->io = &io_;
     spdlog::info("console: serving the browser console on {} ({})", url(), access_summary());
+    if (settings_.insecure_http && rules_.users && !config::is_loopback_host(settings_.listen.host)) {
+      spdlog::warn(
+          "console: passwords of console.users cross the network in clear: {} is plain HTTP on a non-loopback "
+          "address (console.insecure_http: true); give the console a certificate and key (console.certificate, "
+          "console.key) and remove insecure_http",
+          url());
+    }
     accept();
     schedule_tick();
     thread_ = std::thread([this] { io_.run(); });
@@ -192,7 +202,7 @@ class ConsoleServer::Impl final : public Services {
   std::uint16_t port() const { return port_; }
   LoginStats login_stats() const { return logins_.stats(); }
   std::string url() const {
-    return std::string(settings_.tls ? "https" : "http") + "://" +
+    return std::string(settings_.https() ? "https" : "http") + "://" +
            config::HostPort{settings_.listen.host, port_}.to_string() + "/";
   }
 
@@ -217,7 +227,7 @@ class ConsoleServer::Impl final : public Services {
 
   std::string session_cookie(const std::string& token) const override {
     std::string cookie = std::string(kCookieName) + "=" + token + "; Path=/; HttpOnly; SameSite=Strict";
-    if (settings_.tls) cookie += "; Secure";
+    if (settings_.https()) cookie += "; Secure";
     if (token.empty()) cookie += "; Max-Age=0";
     return cookie;
   }
@@ -427,6 +437,7 @@ class ConsoleServer::Impl final : public Services {
   }
 
   std::optional<Principal> certificate_principal(SSL* ssl) const {
+    if (!settings_.tls) return std::nullopt;  // the console's own certificate: no client certificates
     X509* certificate = SSL_get1_peer_certificate(ssl);
     if (certificate == nullptr) return std::nullopt;
     const PeerCertificate peer = read_certificate(certificate);
