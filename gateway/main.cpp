@@ -21,6 +21,7 @@
 
 #include "config/env.h"
 #include "config/load.h"
+#include "config/secret_files.h"
 #include "gateway/console/console_access.h"
 #include "gateway/gateway.h"
 #include "gateway/modbus_tcp/tls.h"
@@ -243,6 +244,10 @@ int run_gateway(const Options& options) {
                  simulated_bus->slave_path());
   } else {
     spdlog::info("configuration {}: {}", options.config_file, summary(config));
+  }
+  // Password hashes and private keys readable by every user of the machine: said at every start.
+  for (const auto& warning : sms::config::secret_file_warnings(config, options.simulate ? "" : options.config_file)) {
+    spdlog::warn("{}", warning);
   }
 
   // The e-stop latch is kept there: a gateway that could not keep it does not start.

@@ -49,16 +49,16 @@ class ConsoleHttpsTest(unittest.TestCase):
         wait_until(lambda: cls.listening(cls.gateway, cls.log_path, cls.port), timeout=15, what="the console to listen")
 
     @classmethod
-    def start(cls, console_yaml, name, *options):
+    def start(cls, console_yaml, name, *options, mode=0o640, device=None):
         config = (f"modbus_tcp: {{listen: \"127.0.0.1:{free_port()}\"}}\n"
-                  f"buses:\n  - {{name: arm, device: \"{cls.sim.link}\", protocol: feetech, baud: 1000000}}\n"
+                  f"buses:\n  - {{name: arm, device: \"{device or cls.sim.link}\", protocol: feetech, baud: 1000000}}\n"
                   "servos:\n  - {bus: arm, id: 1, table: sts}\n"
                   f"state_dir: \"{cls.workdir}\"\n" + console_yaml +
                   f"  users:\n    - {{name: op, role: operate, password_hash: \"{cls.hash}\"}}\n")
         path = os.path.join(cls.workdir, name + ".yaml")
         with open(path, "w") as f:
             f.write(config)
-        os.chmod(path, 0o640)
+        os.chmod(path, mode)
         log_path = os.path.join(cls.workdir, name + ".log")
         with open(log_path, "w") as log:
             process = subprocess.Popen([os.path.join(cls.bin_dir, "sms-gateway"), "--config", path, *options],
@@ -137,25 +137,40 @@ class ConsoleHttpsTest(unittest.TestCase):
         self.assertEqual(process.wait(30), 2, read(log_path))
         self.assertIn("which plain HTTP would carry in clear", read(log_path))
 
-    def test_insecure_http_starts_with_a_warning_every_time(self):
-        sim = Simulator(self.bin_dir, self.workdir, "1", "insecure-sim")
+    def start_and_stop(self, console_yaml, name, port, mode=0o640):
+        """Runs a second gateway (on a simulator of its own) until its console listens; its log."""
+        sim = Simulator(self.bin_dir, self.workdir, "1", name + "-sim")
         self.addCleanup(sim.stop)
-        saved, type(self).sim = type(self).sim, sim
+        process, log_path = self.start(console_yaml, name, mode=mode, device=sim.link)
         try:
-            for start in (1, 2):
-                port = free_port()
-                process, log_path = self.start(f"console:\n  listen: \"0.0.0.0:{port}\"\n  insecure_http: true\n",
-                                               f"insecure-{start}")
-                try:
-                    wait_until(lambda: self.listening(process, log_path, port), timeout=15,
-                               what="the insecure console to listen")
-                finally:
-                    self.stop(process)
-                self.assertIn("console: passwords of console.users cross the network in clear: "
-                              f"http://0.0.0.0:{port}/ is plain HTTP on a non-loopback address "
-                              "(console.insecure_http: true)", read(log_path), f"start {start}")
+            wait_until(lambda: self.listening(process, log_path, port), timeout=15, what=f"the console of {name}")
         finally:
-            type(self).sim = saved
+            self.stop(process)
+        return read(log_path)
+
+    def test_insecure_http_starts_with_a_warning_every_time(self):
+        for start in (1, 2):
+            port = free_port()
+            log = self.start_and_stop(f"console:\n  listen: \"0.0.0.0:{port}\"\n  insecure_http: true\n",
+                                      f"insecure-{start}", port)
+            self.assertIn("console: passwords of console.users cross the network in clear: "
+                          f"http://0.0.0.0:{port}/ is plain HTTP on a non-loopback address "
+                          "(console.insecure_http: true)", log, f"start {start}")
+
+    def test_secret_files_readable_by_others_are_named_at_start(self):
+        # The running gateway's files are 0640: no such warning (it was logged before the console listened).
+        self.assertNotIn("by every user of this machine", read(self.log_path))
+        key = os.path.join(self.workdir, "open.key")
+        shutil.copy(self.key, key)
+        os.chmod(key, 0o644)
+        port = free_port()
+        log = self.start_and_stop(f"console:\n  listen: \"127.0.0.1:{port}\"\n  certificate: {self.certificate}\n"
+                                  f"  key: {key}\n", "open", port, mode=0o644)
+        config = os.path.join(self.workdir, "open.yaml")
+        self.assertIn(f"configuration file {config} holds console password hashes (console.users) and is readable by "
+                      f"every user of this machine (mode 0644): chmod 0640 {config} && chown root:", log)
+        self.assertIn(f"console.key {key} is a private key and is readable by every user of this machine (mode 0644): "
+                      f"chmod 0640 {key} && chown root:", log)
 
     def test_a_key_of_another_certificate_does_not_start(self):
         process, log_path = self.start(f"console:\n  listen: \"127.0.0.1:{free_port()}\"\n  certificate: "
