@@ -1,13 +1,17 @@
 // console_login_flood: a logged-in operator's e-stop while the browser console is flooded with
-// wrong passwords (docs/CONSOLE.md "Logins", docs/PERFORMANCE.md "Browser console"). The real
-// sms-gateway on 3 simulated sts servos, its console on 127.0.0.1 with one operate user; the
-// operator's browser is one keep-alive connection that latches the e-stop (POST /api/estop) and
-// resets it, again and again, first with nothing else going on, then while 16 threads send logins
-// with wrong passwords back to back. Each flood request comes from a new loopback address
-// (127.T.x.y, T the thread) with a new user name, so neither the per-address nor the per-user
-// backoff holds it up: every one costs the gateway a password check (Argon2id), the worst case.
-// Printed: the e-stop POST's latency (send to whole answer) in both phases, and the flood's
-// answers per second by status.
+// wrong passwords (docs/CONSOLE.md "Logins", docs/PERFORMANCE.md "Browser console logins"). The
+// real sms-gateway on 3 simulated sts servos, its console on 127.0.0.1 with one operate user; the
+// operator's browser is one keep-alive connection that latches the e-stop (POST /api/estop),
+// resets it and asks for its session (GET /api/session), again and again, first with nothing else
+// going on, then while 16 threads send logins with wrong passwords back to back. Each flood
+// request comes from a new loopback address (127.T.x.y, T the thread) with a new user name, so
+// neither the per-address nor the per-user backoff holds it up: every one asks the gateway for a
+// password check (Argon2id), the worst case. The flooding threads run at nice 19: an attacker's
+// CPU is another machine's. Printed for both phases: the e-stop POST's latency (send to whole
+// answer; it answers once the stop frames are on the wire), GET /api/session's (the console
+// thread alone), the same e-stop latched by a Modbus client (no console in its way: what the bus
+// path itself takes on this machine meanwhile), the gateway's CPU, and the flood's answers per
+// second by status.
 //
 //   console_login_flood [--seconds 10] [--flooders 16] [--quick]
 #include <sys/resource.h>
@@ -17,9 +21,11 @@
 #include <array>
 #include <atomic>
 #include <cstring>
+#include <fstream>
 #include <iostream>
 #include <map>
 #include <mutex>
+#include <sstream>
 #include <thread>
 
 #include <boost/asio/ip/tcp.hpp>
@@ -44,6 +50,19 @@ constexpr std::string_view kPassword = "operator's own password";
 constexpr double kQuickSeconds = 3;
 // Latch, then reset, once per period: an operator pressing far more often than any real one.
 constexpr auto kPressPeriod = 50ms;
+constexpr int kEstopCoil = 1;  // of the gateway unit (docs/PLC_GUIDE.md "Safety")
+
+// CPU time of a process so far (utime + stime from /proc), s.
+double cpu_seconds(pid_t pid) {
+  std::ifstream stat("/proc/" + std::to_string(pid) + "/stat");
+  std::string text((std::istreambuf_iterator<char>(stat)), std::istreambuf_iterator<char>());
+  std::istringstream fields(text.substr(text.rfind(')') + 2));
+  std::string skip;
+  for (int i = 0; i < 11; ++i) fields >> skip;  // state .. cmajflt: fields 3-13
+  double utime = 0, stime = 0;
+  fields >> utime >> stime;
+  return (utime + stime) / static_cast<double>(sysconf(_SC_CLK_TCK));
+}
 
 // One HTTP/1.1 exchange on an open stream; the answer's status and body.
 http::response<http::string_body> exchange(beast::tcp_stream& stream, http::request<http::string_body>& request) {
@@ -94,6 +113,20 @@ class Operator {
     return took;
   }
 
+  // GET /api/session: the console thread's own answer, no bus and no other thread behind it.
+  Clock::duration look() {
+    http::request<http::string_body> request(http::verb::get, "/api/session", 11);
+    request.set(http::field::host, "127.0.0.1");
+    request.set(http::field::cookie, cookie_);
+    const auto start = Clock::now();
+    const auto answer = exchange(stream_, request);
+    const auto took = Clock::now() - start;
+    if (answer.result_int() != 200) {
+      throw std::runtime_error("GET /api/session was answered HTTP " + std::to_string(answer.result_int()));
+    }
+    return took;
+  }
+
  private:
   asio::io_context io_;
   beast::tcp_stream stream_;
@@ -101,18 +134,30 @@ class Operator {
   std::string csrf_;
 };
 
-// Latches and resets the e-stop every kPressPeriod for `duration`; the latches' latencies.
-std::vector<std::uint32_t> press_for(Operator& person, std::chrono::milliseconds duration) {
-  std::vector<std::uint32_t> latches;
+struct Presses {
+  std::vector<std::uint32_t> latches;  // the e-stop latch POSTs' latencies
+  std::vector<std::uint32_t> looks;    // GET /api/session's
+  std::vector<std::uint32_t> modbus;   // the same e-stop latched by a Modbus client (coil 1 of unit 255)
+};
+
+// Latches the e-stop from the console and resets it, asks for the session, and latches and resets
+// it over Modbus, every kPressPeriod for `duration`.
+Presses press_for(Operator& person, ModbusClient& plc, std::chrono::milliseconds duration) {
+  Presses presses;
   const auto end = Clock::now() + duration;
   auto next = Clock::now();
   while (Clock::now() < end) {
-    latches.push_back(to_ns(person.press(true)));
+    presses.latches.push_back(to_ns(person.press(true)));
     (void)person.press(false);
+    presses.looks.push_back(to_ns(person.look()));
+    const auto start = Clock::now();
+    plc.write_coil(kEstopCoil, true).or_throw("the Modbus e-stop (coil 1 := 1)");
+    presses.modbus.push_back(to_ns(Clock::now() - start));
+    plc.write_coil(kEstopCoil, false).or_throw("the Modbus e-stop reset (coil 1 := 0)");
     next += kPressPeriod;
     std::this_thread::sleep_until(next);
   }
-  return latches;
+  return presses;
 }
 
 struct FloodTotals {
@@ -126,7 +171,7 @@ struct FloodTotals {
 // wrong password, for each login, until `stop`.
 void flood(unsigned thread, std::uint16_t port, const std::atomic<bool>& stop, FloodTotals& totals) {
   // Below the gateway and the simulated servos: on a real network the attacker is another machine.
-  setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), 10);
+  setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), 19);
   asio::io_context io;
   std::map<unsigned, std::uint64_t> statuses;
   std::uint64_t failures = 0;
@@ -202,14 +247,21 @@ int main(int argc, char** argv) {
     BenchGateway gateway(setup);
     gateway.wait_ready(kServos);
     const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
-    print_note("sms-gateway child, 3 sts servos at 1 Mbaud; an operate user's e-stop POST (latch, then reset, every " +
-               std::to_string(kPressPeriod.count()) +
-               " ms) on one keep-alive connection; flood: " + std::to_string(static_cast<int>(flooders)) +
-               " threads (nice 10), each login a new connection from a new 127.T.x.y address with a new user "
-               "name and a wrong password");
+    print_note(
+        "sms-gateway child, 3 sts servos at 1 Mbaud; an operate user's e-stop POST (latch, then reset, then GET "
+        "/api/session, every " +
+        std::to_string(kPressPeriod.count()) +
+        " ms) on one keep-alive connection; flood: " + std::to_string(static_cast<int>(flooders)) +
+        " threads (nice 10), each login a new connection from a new 127.T.x.y address with a new user "
+        "name and a wrong password");
 
     Operator person(console_port);
-    auto idle = press_for(person, duration);
+    ModbusClient plc(gateway.port(), kGatewayUnit);
+    double cpu_from = cpu_seconds(gateway.pid());
+    auto begin = Clock::now();
+    auto idle = press_for(person, plc, duration);
+    const double idle_cpu =
+        100.0 * (cpu_seconds(gateway.pid()) - cpu_from) / std::chrono::duration<double>(Clock::now() - begin).count();
 
     std::atomic<bool> stop{false};
     FloodTotals totals;
@@ -218,23 +270,31 @@ int main(int argc, char** argv) {
     for (unsigned t = 0; t < static_cast<unsigned>(flooders); ++t)
       threads.emplace_back([&, t] { flood(t, console_port, stop, totals); });
     std::this_thread::sleep_for(500ms);  // the flood under way
-    std::vector<std::uint32_t> flooded;
+    Presses flooded;
     std::string operator_failure;
+    cpu_from = cpu_seconds(gateway.pid());
+    begin = Clock::now();
     try {
-      flooded = press_for(person, duration);
+      flooded = press_for(person, plc, duration);
     } catch (const std::exception& error) {
       operator_failure = error.what();
     }
+    const double flood_cpu =
+        100.0 * (cpu_seconds(gateway.pid()) - cpu_from) / std::chrono::duration<double>(Clock::now() - begin).count();
     stop = true;
     for (auto& thread : threads) thread.join();
     const double flood_seconds = std::chrono::duration<double>(Clock::now() - flood_begin).count();
 
-    print_latency("console_login_flood.idle.estop", summarize(idle), LatencyUnit::Ms);
+    print_latency("console_login_flood.idle.estop", summarize(idle.latches), LatencyUnit::Ms);
+    print_latency("console_login_flood.idle.session_get", summarize(idle.looks), LatencyUnit::Ms);
+    print_latency("console_login_flood.idle.modbus_estop", summarize(idle.modbus), LatencyUnit::Ms);
     if (!operator_failure.empty()) {
       print_note("the operator's e-stop failed during the flood: " + operator_failure);
       print_figure("console_login_flood.flood.estop_failed", 1, "");
     } else {
-      print_latency("console_login_flood.flood.estop", summarize(flooded), LatencyUnit::Ms);
+      print_latency("console_login_flood.flood.estop", summarize(flooded.latches), LatencyUnit::Ms);
+      print_latency("console_login_flood.flood.session_get", summarize(flooded.looks), LatencyUnit::Ms);
+      print_latency("console_login_flood.flood.modbus_estop", summarize(flooded.modbus), LatencyUnit::Ms);
     }
     std::uint64_t answered = 0;
     for (const auto& [status, count] : totals.statuses) {
@@ -242,6 +302,8 @@ int main(int argc, char** argv) {
       print_figure("console_login_flood.flood.http_" + std::to_string(status), count / flood_seconds, "req/s");
     }
     print_figure("console_login_flood.flood.logins", answered / flood_seconds, "req/s");
+    print_figure("console_login_flood.idle.gateway_cpu", idle_cpu, "%");
+    print_figure("console_login_flood.flood.gateway_cpu", flood_cpu, "%");
     print_figure("console_login_flood.flood.unanswered", totals.failures / flood_seconds, "req/s");
     if (!totals.first_failure.empty()) print_note("first unanswered login: " + totals.first_failure);
     gateway.stop();
