@@ -81,7 +81,7 @@ Expected<const ServoUnit*, HttpAnswer> servo_of(Services& services, const PathPa
 std::optional<HttpAnswer> servo_page_missing(Services& services, const PathParams& params) {
   auto unit = servo_of(services, params);
   if (unit) return std::nullopt;
-  return std::move(unit.error());
+  return unit.error();
 }
 
 // --- pages' JSON ------------------------------------------------------------------------------
@@ -106,29 +106,28 @@ void api_login(const std::shared_ptr<ApiCall>& call) {
   }
   // The password check takes ~100 ms of CPU: it runs on the login worker, and the answer comes
   // back to this thread (login_guard.h); failed logins are logged there, at most once a second.
-  call->services.login(
-      call->peer_address, std::move(request->user), std::move(request->password), [call](LoginOutcome outcome) {
-        using Result = LoginOutcome::Result;
-        if (outcome.result == Result::Throttled || outcome.result == Result::Busy) {
-          HttpAnswer answer =
-              HttpAnswer::json(outcome.result == Result::Throttled ? 429 : 503,
-                               {{"error", outcome.message}, {"retry_after_s", outcome.retry_after.count()}});
-          answer.headers.emplace_back("Retry-After", std::to_string(outcome.retry_after.count()));
-          return call->answer(std::move(answer));
-        }
-        if (outcome.result != Result::Ok || !outcome.who) {
-          return call->answer(HttpAnswer::error(401, outcome.message));
-        }
-        const Principal& who = *outcome.who;
-        // The old session's CSRF token goes stale with it.
-        if (call->session) call->services.sessions().remove(call->session->token);
-        const Session session = call->services.sessions().create(who);
-        spdlog::info("console: user `{}` logged in ({})", who.name, role_text(who.role));
-        HttpAnswer answer =
-            HttpAnswer::json(200, {{"user", who.name}, {"role", role_text(who.role)}, {"csrf", session.csrf}});
-        answer.headers.emplace_back("Set-Cookie", call->services.session_cookie(session.token));
-        call->answer(std::move(answer));
-      });
+  call->services.login(call->peer_address, request->user, request->password, [call](LoginOutcome outcome) {
+    using Result = LoginOutcome::Result;
+    if (outcome.result == Result::Throttled || outcome.result == Result::Busy) {
+      HttpAnswer answer =
+          HttpAnswer::json(outcome.result == Result::Throttled ? 429 : 503,
+                           {{"error", outcome.message}, {"retry_after_s", outcome.retry_after.count()}});
+      answer.headers.emplace_back("Retry-After", std::to_string(outcome.retry_after.count()));
+      return call->answer(std::move(answer));
+    }
+    if (outcome.result != Result::Ok || !outcome.who) {
+      return call->answer(HttpAnswer::error(401, outcome.message));
+    }
+    const Principal& who = *outcome.who;
+    // The old session's CSRF token goes stale with it.
+    if (call->session) call->services.sessions().remove(call->session->token);
+    const Session session = call->services.sessions().create(who);
+    spdlog::info("console: user `{}` logged in ({})", who.name, role_text(who.role));
+    HttpAnswer answer =
+        HttpAnswer::json(200, {{"user", who.name}, {"role", role_text(who.role)}, {"csrf", session.csrf}});
+    answer.headers.emplace_back("Set-Cookie", call->services.session_cookie(session.token));
+    call->answer(std::move(answer));
+  });
 }
 
 void api_logout(const std::shared_ptr<ApiCall>& call) {
@@ -625,7 +624,7 @@ class MonitorStream final : public Stream {
 std::optional<HttpAnswer> monitor_page_missing(Services& services, const PathParams& params) {
   auto monitor = monitor_of(services, params);
   if (monitor) return std::nullopt;
-  return std::move(monitor.error());
+  return monitor.error();
 }
 
 Expected<std::unique_ptr<Stream>> make_monitor_stream(Services& services, const PathParams& params, const Principal&) {

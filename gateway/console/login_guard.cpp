@@ -35,7 +35,7 @@ LoginBackoff::LoginBackoff(std::vector<std::string> known_users, BackoffLimits l
     : limits_(limits), known_users_(std::move(known_users)) {}
 
 std::string LoginBackoff::address_key(std::string_view address) {
-  const std::string text(address);
+  std::string text(address);
   in6_addr v6{};
   if (inet_pton(AF_INET6, text.c_str(), &v6) == 1) {
     static constexpr unsigned char kMapped[12] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0xFF, 0xFF};
