@@ -287,4 +287,24 @@ bool is_loopback_host(std::string_view host) {
   return host == "localhost" || host == "::1" || host == "[::1]" || host.starts_with("127.");
 }
 
+std::optional<std::string> console_listen_problem(const ConsoleConfig& console) {
+  if (is_loopback_host(console.listen.host)) return std::nullopt;
+  const std::string where = console.listen.to_string();
+  if (console.users.empty() && !console.tls) {
+    return where +
+           " is reachable from other machines, but with neither users nor tls the console has no way to know "
+           "who asks; it serves read-only on a loopback address only. Add users (password_hash from "
+           "`sms-gateway hash-password`) or tls: true, or listen on 127.0.0.1";
+  }
+  if (!console.users.empty() && !console.https() && !console.insecure_http) {
+    return where +
+           " is reachable from other machines and the console's users log in with passwords, which plain "
+           "HTTP would carry in clear across the network: give the console a certificate and key "
+           "(console.certificate and console.key; the Debian package makes a self-signed pair in "
+           "/etc/sms-gateway/console/), or tls: true with modbus_tcp.tls, or listen on 127.0.0.1. "
+           "insecure_http: true serves plain HTTP anyway (a warning at every start)";
+  }
+  return std::nullopt;
+}
+
 }  // namespace sms::config

@@ -365,6 +365,13 @@ struct ConsoleUser {
 struct ConsoleConfig {
   HostPort listen{"127.0.0.1", 8080};
   bool tls = false;  // HTTPS with modbus_tcp.tls's certificate, key and CA (client certificates give roles)
+  // HTTPS with the console's own certificate (chain) and unencrypted key, PEM, for password
+  // logins across the network; independent of modbus_tcp.tls. Both empty: none; never with `tls`.
+  std::string certificate;
+  std::string key;
+  // Password users on a non-loopback address over plain HTTP anyway (passwords in clear on the
+  // network): accepted only when said so, with a warning at every start.
+  bool insecure_http = false;
   std::vector<ConsoleUser> users;                  // in file order; names unique
   std::chrono::seconds session_timeout{8 * 3600};  // a login lasts this long without use
   // `--simulate` only (never from a file): the local (loopback) user has every right, and when
@@ -372,11 +379,16 @@ struct ConsoleConfig {
   bool local_user_has_every_right = false;
   bool any_port_if_taken = false;
 
+  bool https() const { return tls || !certificate.empty(); }
   bool operator==(const ConsoleConfig&) const = default;
 };
 
 // Whether `host` names this machine only (127.0.0.0/8, ::1, localhost).
 bool is_loopback_host(std::string_view host);
+// Why the console cannot serve on its `listen` address as configured, or nullopt: a non-loopback
+// address needs a way to know who asks (users or tls), and password users there need HTTPS
+// (certificate and key, or tls) unless insecure_http says otherwise. The text says what to do.
+std::optional<std::string> console_listen_problem(const ConsoleConfig& console);
 
 struct Config {
   ModbusTcpConfig modbus_tcp;

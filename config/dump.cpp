@@ -320,6 +320,16 @@ void emit_console(YAML::Emitter& out, const ConsoleConfig& console) {
   out << console.listen.to_string();
   key(out, "tls");
   out << console.tls;
+  if (!console.certificate.empty()) {
+    key(out, "certificate");
+    quoted(out, console.certificate);
+    key(out, "key");
+    quoted(out, console.key);
+  }
+  if (console.insecure_http) {
+    key(out, "insecure_http");
+    out << true;
+  }
   key(out, "session_timeout_s");
   out << console.session_timeout.count();
   key(out, "users");

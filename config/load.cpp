@@ -100,7 +100,8 @@ constexpr std::array<std::string_view, 12> kRtuSlaveKeys{
     "device", "baud",         "parity", "stop_bits", "frame_gap",        "rs485",
     "rts",    "rts_delay_us", "units",  "role",      "reopen_period_ms", "echo"};
 
-constexpr std::array<std::string_view, 4> kConsoleKeys{"listen", "tls", "users", "session_timeout_s"};
+constexpr std::array<std::string_view, 7> kConsoleKeys{"listen",        "tls",   "certificate",      "key",
+                                                       "insecure_http", "users", "session_timeout_s"};
 constexpr std::array<std::string_view, 3> kConsoleUserKeys{"name", "role", "password_hash"};
 
 constexpr std::string_view kPassthroughTable = "passthrough";
@@ -925,6 +926,31 @@ ConsoleConfig Loader::parse_console(const Value& value, const Config& config) {
                         "CA); configure Modbus/TCP Security first, or set tls: false");
     }
   }
+  const auto certificate = keys.find("certificate");
+  const auto key = keys.find("key");
+  if (certificate) console.certificate = string(*certificate);
+  if (key) console.key = string(*key);
+  if (certificate && !key) {
+    fail(certificate->mark,
+         certificate->path + ": needs " + value.path + ".key too (the certificate's private key, PEM, unencrypted)");
+  }
+  if (key && !certificate) {
+    fail(key->mark, key->path + ": needs " + value.path + ".certificate too (the certificate of this key, PEM)");
+  }
+  if (certificate && console.tls) {
+    fail(certificate->mark, certificate->path +
+                                ": tls: true already serves HTTPS, with modbus_tcp.tls's certificate and client "
+                                "certificates; give either tls: true or certificate and key (the console's own, "
+                                "for password users), not both");
+  }
+  if (const auto v = keys.find("insecure_http")) {
+    console.insecure_http = boolean(*v);
+    if (console.insecure_http && console.https()) {
+      fail(v->mark, v->path + ": true, but the console serves HTTPS (" +
+                        (console.tls ? std::string("tls: true") : std::string("certificate and key")) +
+                        "); remove insecure_http");
+    }
+  }
   if (const auto v = keys.find("session_timeout_s")) {
     console.session_timeout = duration<std::chrono::seconds>(*v, 60, std::int64_t{7} * 24 * 3600);
   }
@@ -964,12 +990,8 @@ ConsoleConfig Loader::parse_console(const Value& value, const Config& config) {
       marks.push_back(name.mark);
     }
   }
-  if (!is_loopback_host(console.listen.host) && console.users.empty() && !console.tls) {
-    fail(keys.key_mark("listen"), value.path + ".listen: " + console.listen.to_string() +
-                                      " is reachable from other machines, but with neither users nor tls the "
-                                      "console has no way to know who asks; it serves read-only on a loopback "
-                                      "address only. Add users (password_hash from `sms-gateway hash-password`) "
-                                      "or tls: true, or listen on 127.0.0.1");
+  if (const auto problem = console_listen_problem(console)) {
+    fail(keys.key_mark("listen"), value.path + ".listen: " + *problem);
   }
   return console;
 }

@@ -209,6 +209,11 @@ class Gateway::Impl {
     for (std::size_t i = 0; i < snapshot.buses.size() && i < monitors_.size(); ++i) {
       snapshot.buses[i].monitor_dropped = monitors_[i]->dropped_total();
     }
+    if (console_) {
+      const console::LoginStats logins = console_->login_stats();
+      snapshot.console_logins = ConsoleLoginMetrics{
+          logins.ok, logins.failed, logins.throttled, logins.busy, logins.addresses_waiting, logins.users_waiting};
+    }
     return snapshot;
   }
 

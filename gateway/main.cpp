@@ -21,6 +21,7 @@
 
 #include "config/env.h"
 #include "config/load.h"
+#include "config/secret_files.h"
 #include "gateway/console/console_access.h"
 #include "gateway/gateway.h"
 #include "gateway/modbus_tcp/tls.h"
@@ -230,10 +231,8 @@ int run_gateway(const Options& options) {
   } else if (console) {
     if (!config.console) config.console.emplace();
     config.console->listen = *console;
-    if (!sms::config::is_loopback_host(console->host) && config.console->users.empty() && !config.console->tls) {
-      std::cerr << "sms-gateway: --console " << console->to_string()
-                << ": without console.users or console.tls the console is read-only and serves a loopback address "
-                   "only (docs/CONSOLE.md \"Access\")\n";
+    if (const auto problem = sms::config::console_listen_problem(*config.console)) {
+      std::cerr << "sms-gateway: --console " << *problem << " (docs/CONSOLE.md \"Access\")\n";
       return kExitConfigError;
     }
   }
@@ -245,6 +244,10 @@ int run_gateway(const Options& options) {
                  simulated_bus->slave_path());
   } else {
     spdlog::info("configuration {}: {}", options.config_file, summary(config));
+  }
+  // Password hashes and private keys readable by every user of the machine: said at every start.
+  for (const auto& warning : sms::config::secret_file_warnings(config, options.simulate ? "" : options.config_file)) {
+    spdlog::warn("{}", warning);
   }
 
   // The e-stop latch is kept there: a gateway that could not keep it does not start.

@@ -5,7 +5,7 @@
 #
 #   scripts/bench.sh            # everything, the soak for 60 s (about 3 minutes in all)
 #   scripts/bench.sh --quick    # shorter runs, the soak for 10 s (about 1 minute)
-#   scripts/bench.sh soak       # only the named programs (cached_reads poll_cycle write_latency soak trip_latency forward_overhead read_under_flood mqtt_latency rtu_slave_latency monitor_overhead console_stream silent_servo_stop)
+#   scripts/bench.sh soak       # only the named programs (cached_reads poll_cycle write_latency soak trip_latency forward_overhead read_under_flood mqtt_latency rtu_slave_latency monitor_overhead console_stream silent_servo_stop console_login_flood)
 #   SMS_BUILD_DIR=build-bench scripts/bench.sh   # another build directory (default build)
 #
 # Figures depend on the machine and on what else runs on it: compare a run with itself, not
@@ -14,7 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 programs=(cached_reads poll_cycle write_latency soak trip_latency forward_overhead read_under_flood mqtt_latency rtu_slave_latency
-          monitor_overhead console_stream silent_servo_stop)
+          monitor_overhead console_stream silent_servo_stop console_login_flood)
 quick=0
 selected=()
 for argument in "$@"; do
@@ -22,7 +22,7 @@ for argument in "$@"; do
     --quick) quick=1 ;;
     -h|--help) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     cached_reads|poll_cycle|write_latency|soak|trip_latency|forward_overhead|read_under_flood|mqtt_latency|rtu_slave_latency|\
-    monitor_overhead|console_stream|silent_servo_stop) selected+=("$argument") ;;
+    monitor_overhead|console_stream|silent_servo_stop|console_login_flood) selected+=("$argument") ;;
     *) echo "bench.sh: unknown argument '$argument' (try --help)" >&2; exit 2 ;;
   esac
 done
@@ -46,6 +46,7 @@ declare -A quick_options=(
   [mqtt_latency]="--seconds 2"
   [monitor_overhead]="--records 500000 --seconds 1 --rounds 1"
   [silent_servo_stop]="--quick"
+  [console_login_flood]="--quick"
 )
 
 echo "# $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores, $(uname -m), load average $(cut -d' ' -f1-3 /proc/loadavg)"

@@ -76,7 +76,7 @@ check "no config: the journal says which file" bash -c 'journalctl -u sms-gatewa
 
 # README "Install and deploy": an example copied into place passes --check-config.
 check "the README's example path: examples/mixed.yaml passes --check-config" \
-  bash -c 'cp /usr/share/doc/sms-gateway/examples/mixed.yaml /etc/sms-gateway/config.yaml &&
+  bash -c 'install -m 0640 -o root -g sms /usr/share/doc/sms-gateway/examples/mixed.yaml /etc/sms-gateway/config.yaml &&
            sms-gateway --check-config /etc/sms-gateway/config.yaml'
 # A bad configuration: the message with file:line:column.
 systemctl reset-failed sms-gateway.service

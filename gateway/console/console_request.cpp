@@ -200,11 +200,28 @@ Expected<JogMessage> parse_jog_message(std::string_view text) {
 std::string printable(std::string_view text, std::size_t max) {
   std::string out;
   for (const char c : text.substr(0, max)) {
-    const bool plain = (c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || c == '_' ||
-                       c == '-' || c == '.' || c == ' ';
+    // Printable ASCII as it is ('/' in a path, quotes in a name); control characters (a forged
+    // line in the log) and bytes past ASCII become '?'.
+    const bool plain = c >= 0x20 && c <= 0x7E;
     out.push_back(plain ? c : '?');
   }
   if (text.size() > max) out += "...";
+  return out;
+}
+
+std::string html_escape(std::string_view text) {
+  std::string out;
+  out.reserve(text.size());
+  for (const char c : text) {
+    switch (c) {
+      case '&': out += "&amp;"; break;
+      case '<': out += "&lt;"; break;
+      case '>': out += "&gt;"; break;
+      case '"': out += "&quot;"; break;
+      case '\'': out += "&#39;"; break;
+      default: out.push_back(c);
+    }
+  }
   return out;
 }
 

@@ -74,7 +74,11 @@ struct JogMessage {
 };
 Expected<JogMessage> parse_jog_message(std::string_view text);
 
-// Text safe inside JSON and HTML (for error messages that quote input).
+// Untrusted text for an error message or a log line: at most `max` bytes (then "..."), printable
+// ASCII kept, control characters and other bytes as '?'. Not HTML-escaped: JSON encoding or
+// html_escape() is the caller's.
 std::string printable(std::string_view text, std::size_t max = 80);
+// `text` with & < > " ' as character references, for text inside an HTML page.
+std::string html_escape(std::string_view text);
 
 }  // namespace sms::gateway::console

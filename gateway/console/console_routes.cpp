@@ -78,6 +78,13 @@ Expected<const ServoUnit*, HttpAnswer> servo_of(Services& services, const PathPa
   return unit;
 }
 
+// The servo page of a unit that is no servo unit: the API's 404.
+std::optional<HttpAnswer> servo_page_missing(Services& services, const PathParams& params) {
+  auto unit = servo_of(services, params);
+  if (unit) return std::nullopt;
+  return unit.error();
+}
+
 // --- pages' JSON ------------------------------------------------------------------------------
 
 void api_session(const std::shared_ptr<ApiCall>& call) {
@@ -98,18 +105,30 @@ void api_login(const std::shared_ptr<ApiCall>& call) {
   if (call->services.settings().users.empty()) {
     return call->answer(HttpAnswer::error(404, "this console has no users (console.users); nothing to log in to"));
   }
-  const auto who = check_login(call->services.settings(), request->user, request->password);
-  if (!who) {
-    spdlog::warn("console: failed login for user `{}`", printable(request->user));
-    return call->answer(HttpAnswer::error(401, "unknown user or wrong password"));
-  }
-  if (call->session) call->services.sessions().remove(call->session->token);  // its CSRF token goes stale
-  const Session session = call->services.sessions().create(*who);
-  spdlog::info("console: user `{}` logged in ({})", who->name, role_text(who->role));
-  HttpAnswer answer =
-      HttpAnswer::json(200, {{"user", who->name}, {"role", role_text(who->role)}, {"csrf", session.csrf}});
-  answer.headers.emplace_back("Set-Cookie", call->services.session_cookie(session.token));
-  call->answer(std::move(answer));
+  // The password check takes ~100 ms of CPU: it runs on the login worker, and the answer comes
+  // back to this thread (login_guard.h); failed logins are logged there, at most once a second.
+  call->services.login(call->peer_address, request->user, request->password, [call](LoginOutcome outcome) {
+    using Result = LoginOutcome::Result;
+    if (outcome.result == Result::Throttled || outcome.result == Result::Busy) {
+      HttpAnswer answer =
+          HttpAnswer::json(outcome.result == Result::Throttled ? 429 : 503,
+                           {{"error", outcome.message}, {"retry_after_s", outcome.retry_after.count()}});
+      answer.headers.emplace_back("Retry-After", std::to_string(outcome.retry_after.count()));
+      return call->answer(std::move(answer));
+    }
+    if (outcome.result != Result::Ok || !outcome.who) {
+      return call->answer(HttpAnswer::error(401, outcome.message));
+    }
+    const Principal& who = *outcome.who;
+    // The old session's CSRF token goes stale with it.
+    if (call->session) call->services.sessions().remove(call->session->token);
+    const Session session = call->services.sessions().create(who);
+    spdlog::info("console: user `{}` logged in ({})", who.name, role_text(who.role));
+    HttpAnswer answer =
+        HttpAnswer::json(200, {{"user", who.name}, {"role", role_text(who.role)}, {"csrf", session.csrf}});
+    answer.headers.emplace_back("Set-Cookie", call->services.session_cookie(session.token));
+    call->answer(std::move(answer));
+  });
 }
 
 void api_logout(const std::shared_ptr<ApiCall>& call) {
@@ -614,6 +633,12 @@ class MonitorStream final : public Stream {
   MonitorFilter filter_;
 };
 
+std::optional<HttpAnswer> monitor_page_missing(Services& services, const PathParams& params) {
+  auto monitor = monitor_of(services, params);
+  if (monitor) return std::nullopt;
+  return monitor.error();
+}
+
 Expected<std::unique_ptr<Stream>> make_monitor_stream(Services& services, const PathParams& params, const Principal&) {
   auto monitor = monitor_of(services, params);
   if (!monitor) return unexpected(monitor.error().body);
@@ -637,10 +662,11 @@ constexpr Role kAnyone = Role::None;
 const Route kRoutes[] = {
     // Pages (stable URLs: README "Commission a cell in the browser").
     {"GET", "/", Role::Read, RouteKind::Page, "overview.html"},
-    {"GET", "/servo/{unit}", Role::Read, RouteKind::Page, "servo.html"},
+    {"GET", "/servo/{unit}", Role::Read, RouteKind::Page, "servo.html", nullptr, nullptr, true, servo_page_missing},
     {"GET", "/login", kAnyone, RouteKind::Page, "login.html"},
     {"GET", "/commission", Role::Read, RouteKind::Page, "commission.html"},
-    {"GET", "/bus/{name}/monitor", Role::Read, RouteKind::Page, "monitor.html"},
+    {"GET", "/bus/{name}/monitor", Role::Read, RouteKind::Page, "monitor.html", nullptr, nullptr, true,
+     monitor_page_missing},
     {"GET", "/static/{file}", kAnyone, RouteKind::Page, ""},
     // JSON.
     {"GET", "/api/session", kAnyone, RouteKind::Api, {}, api_session},
@@ -676,6 +702,22 @@ HttpAnswer HttpAnswer::json(unsigned status, const nlohmann::json& body) {
 
 HttpAnswer HttpAnswer::error(unsigned status, std::string message) {
   return json(status, nlohmann::json{{"error", std::move(message)}});
+}
+
+HttpAnswer error_page(const HttpAnswer& refusal) {
+  const auto body = nlohmann::json::parse(refusal.body, nullptr, false);
+  const std::string message = body.is_object() && body.contains("error") && body["error"].is_string()
+                                  ? body["error"].get<std::string>()
+                                  : "HTTP " + std::to_string(refusal.status);
+  // Styles from console.css only: the Content-Security-Policy allows nothing inline.
+  std::string page = "<!doctype html>\n<html lang=\"en\">\n<head><meta charset=\"utf-8\"><title>sms-gateway — " +
+                     std::to_string(refusal.status) +
+                     "</title><link rel=\"stylesheet\" href=\"/static/console.css\"></head>\n<body>\n"
+                     "<header><span class=\"brand\">sms-gateway</span><nav><a href=\"/\">Overview</a></nav></header>\n"
+                     "<main>\n  <h1>Not here</h1>\n  <p id=\"message\" class=\"error\">" +
+                     html_escape(message) +
+                     "</p>\n  <p><a href=\"/\">Back to the overview</a></p>\n</main>\n</body>\n</html>\n";
+  return HttpAnswer{refusal.status, "text/html; charset=utf-8", std::move(page), {}};
 }
 
 std::span<const Route> console_routes() { return kRoutes; }

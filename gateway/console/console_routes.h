@@ -26,6 +26,7 @@
 #include "gateway/console/console_access.h"
 #include "gateway/console/console_jog.h"
 #include "gateway/console/console_request.h"
+#include "gateway/console/login_guard.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/service/access_gate.h"
 #include "gateway/units/unit_router.h"
@@ -89,6 +90,10 @@ class Services {
   // written (a latch and its reset between two looks of the console thread cannot let it through).
   virtual void jog_modbus(const Principal& who, std::uint8_t unit, protocol::Bytes pdu, const JogSession& session,
                           std::function<void(ModbusAnswer)> done) = 0;
+  // A password login from `address` (login_guard.h): the backoff first, then the check on the
+  // login worker, never on this thread. `done` runs on the console thread.
+  virtual void login(std::string_view address, std::string user, std::string password,
+                     std::function<void(LoginOutcome)> done) = 0;
 };
 
 // One HTTP request a JSON handler answers. `answer` may be called later (after Modbus answers),
@@ -101,6 +106,7 @@ struct ApiCall {
   std::optional<Session> session;
   bool peer_loopback = false;
   std::function<void(HttpAnswer)> answer;
+  std::string peer_address;  // "192.168.10.7": logins are counted per address
 };
 using ApiHandler = void (*)(const std::shared_ptr<ApiCall>& call);
 
@@ -121,6 +127,10 @@ class Stream {
 using StreamFactory = Expected<std::unique_ptr<Stream>> (*)(Services& services, const PathParams& params,
                                                             const Principal& who);
 
+// For a page whose URL names a thing (a unit, a bus): the API's refusal when there is no such
+// thing (404 naming what exists), shown as a page (error_page) instead of an empty one.
+using PageCheck = std::optional<HttpAnswer> (*)(Services& services, const PathParams& params);
+
 enum class RouteKind : std::uint8_t {
   Page,    // an embedded file (`page`; empty: the {file} parameter, for /static/{file})
   Api,     // `api`, JSON
@@ -135,8 +145,12 @@ struct Route {
   std::string_view page = {};
   ApiHandler api = nullptr;
   StreamFactory socket = nullptr;
-  bool csrf = true;  // POST only: needs the session's X-CSRF-Token (false: the login itself)
+  bool csrf = true;             // POST only: needs the session's X-CSRF-Token (false: the login itself)
+  PageCheck missing = nullptr;  // Page only: the refusal when the URL names nothing that exists
 };
+
+// An HTML page with the message of a JSON refusal ({"error": ...}) and its status, escaped.
+HttpAnswer error_page(const HttpAnswer& refusal);
 
 std::span<const Route> console_routes();
 

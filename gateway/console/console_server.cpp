@@ -23,6 +23,7 @@
 
 #include "gateway/console/console_commission.h"
 #include "gateway/console/console_routes.h"
+#include "gateway/console/console_tls.h"
 #include "gateway/console/console_view.h"
 #include "gateway/console/web_assets.h"
 #include "gateway/modbus_tcp/tls.h"
@@ -146,6 +147,7 @@ class ConsoleServer::Impl final : public Services {
         acceptor_(io_),
         timer_(io_),
         mailbox_(std::make_shared<Mailbox>()),
+        logins_(settings_, [mailbox = mailbox_](std::function<void()> work) { mailbox->post(std::move(work)); }),
         door_(io_, door_settings(limits_)) {
     if (backend_.safety == nullptr) throw std::invalid_argument("console: no safety rules for the jog panel");
   }
@@ -158,6 +160,8 @@ class ConsoleServer::Impl final : public Services {
       ssl_ = make_tls_context(*backend_.config->modbus_tcp.tls);
       // With users a browser without a certificate may still log in with a password.
       if (rules_.users) ssl_->set_verify_mode(ssl::verify_peer);
+    } else if (!settings_.certificate.empty()) {
+      ssl_ = console_tls_context(settings_.certificate, settings_.key);
     }
     try {
       open_listener(acceptor_, settings_.listen.host, settings_.listen.port,
@@ -181,6 +185,13 @@ class ConsoleServer::Impl final : public Services {
     }
     mailbox_->io = &io_;
     spdlog::info("console: serving the browser console on {} ({}; {})", url(), access_summary(), door_.describe());
+    if (settings_.insecure_http && rules_.users && !config::is_loopback_host(settings_.listen.host)) {
+      spdlog::warn(
+          "console: passwords of console.users cross the network in clear: {} is plain HTTP on a non-loopback "
+          "address (console.insecure_http: true); give the console a certificate and key (console.certificate, "
+          "console.key) and remove insecure_http",
+          url());
+    }
     accept();
     schedule_tick();
     thread_ = std::thread([this] { io_.run(); });
@@ -192,11 +203,14 @@ class ConsoleServer::Impl final : public Services {
       close_all();
       mailbox_->close();
     });
+    // After the console thread: a check finishing now posts into the closed mailbox.
+    logins_.stop();
   }
 
   std::uint16_t port() const { return port_; }
+  LoginStats login_stats() const { return logins_.stats(); }
   std::string url() const {
-    return std::string(settings_.tls ? "https" : "http") + "://" +
+    return std::string(settings_.https() ? "https" : "http") + "://" +
            config::HostPort{settings_.listen.host, port_}.to_string() + "/";
   }
 
@@ -221,7 +235,7 @@ class ConsoleServer::Impl final : public Services {
 
   std::string session_cookie(const std::string& token) const override {
     std::string cookie = std::string(kCookieName) + "=" + token + "; Path=/; HttpOnly; SameSite=Strict";
-    if (settings_.tls) cookie += "; Secure";
+    if (settings_.https()) cookie += "; Secure";
     if (token.empty()) cookie += "; Max-Age=0";
     return cookie;
   }
@@ -236,6 +250,11 @@ class ConsoleServer::Impl final : public Services {
   }
 
   MotionStops motion_stops(std::size_t bus) const override { return backend_.safety->motion_stops(bus); }
+
+  void login(std::string_view address, std::string user, std::string password,
+             std::function<void(LoginOutcome)> done) override {
+    logins_.login(address, std::move(user), std::move(password), std::move(done));
+  }
 
   void jog_modbus(const Principal& who, std::uint8_t unit, Bytes pdu, const JogSession& session,
                   std::function<void(ModbusAnswer)> done) override {
@@ -395,9 +414,15 @@ class ConsoleServer::Impl final : public Services {
       done(std::move(answer));
     };
     if (auto refused = refusal(route, identity, request, path_of(target))) return with_cookie(std::move(*refused));
-    if (route.kind == RouteKind::Page) return with_cookie(page(route, found.params));
-    auto call = std::make_shared<ApiCall>(ApiCall{*this, std::move(found.params), request.body(), identity.who,
-                                                  identity.session, peer.loopback, std::move(with_cookie)});
+    if (route.kind == RouteKind::Page) {
+      if (route.missing != nullptr) {
+        if (auto missing = route.missing(*this, found.params)) return with_cookie(error_page(*missing));
+      }
+      return with_cookie(page(route, found.params));
+    }
+    auto call =
+        std::make_shared<ApiCall>(ApiCall{*this, std::move(found.params), request.body(), identity.who,
+                                          identity.session, peer.loopback, std::move(with_cookie), peer.address});
     try {
       route.api(call);
     } catch (const std::exception& error) {
@@ -438,6 +463,7 @@ class ConsoleServer::Impl final : public Services {
   }
 
   std::optional<Principal> certificate_principal(SSL* ssl) const {
+    if (!settings_.tls) return std::nullopt;  // the console's own certificate: no client certificates
     X509* certificate = SSL_get1_peer_certificate(ssl);
     if (certificate == nullptr) return std::nullopt;
     const PeerCertificate peer = read_certificate(certificate);
@@ -501,6 +527,7 @@ class ConsoleServer::Impl final : public Services {
   tcp::acceptor acceptor_;
   asio::steady_timer timer_;
   std::shared_ptr<Mailbox> mailbox_;
+  LoginGuard logins_;  // its worker posts answers through mailbox_
   // After io_: destroyed first, once stop() has closed every connection (connections leave the
   // door when they close, never in a destructor, which may run when io_ is destroyed).
   Door door_;
@@ -800,6 +827,7 @@ ConsoleServer::~ConsoleServer() = default;
 void ConsoleServer::start() { impl_->start(); }
 void ConsoleServer::stop() { impl_->stop(); }
 std::uint16_t ConsoleServer::port() const { return impl_->port(); }
+LoginStats ConsoleServer::login_stats() const { return impl_->login_stats(); }
 std::string ConsoleServer::url() const { return impl_->url(); }
 DoorStats ConsoleServer::door_stats() const { return impl_->door_stats(); }
 

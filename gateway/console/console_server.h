@@ -20,6 +20,7 @@
 #include "gateway/bus/bus_join.h"
 #include "gateway/bus/wire_monitor.h"
 #include "gateway/console/console_commission.h"
+#include "gateway/console/login_guard.h"
 #include "gateway/net/door.h"
 #include "gateway/observability/metrics.h"
 #include "gateway/service/request_handler.h"
@@ -72,6 +73,8 @@ class ConsoleServer {
   // Closes every connection; a hold-to-run move still running is stopped first. Idempotent.
   void stop();
   std::uint16_t port() const;
+  // Password logins so far (login_guard.h); any thread.
+  LoginStats login_stats() const;
   // "http://127.0.0.1:8080/" (https with tls).
   std::string url() const;
   // The listener's door (sms_gateway_listener_* in /metrics); any thread.

@@ -500,6 +500,24 @@ std::string render_prometheus(const MetricsSnapshot& snapshot) {
     }
   }
 
+  if (snapshot.console_logins) {
+    const ConsoleLoginMetrics& logins = *snapshot.console_logins;
+    constexpr std::string_view kLogins = "sms_gateway_console_logins_total";
+    out.family(kLogins, MetricType::Counter,
+               "Password logins of the browser console by result: ok, failed (wrong password or unknown user), "
+               "throttled (refused at once: the address or user waits after failed logins), busy (refused at "
+               "once: the queue of password checks was full)");
+    out.sample(kLogins, {{"result", "ok"}}, logins.ok);
+    out.sample(kLogins, {{"result", "failed"}}, logins.failed);
+    out.sample(kLogins, {{"result", "throttled"}}, logins.throttled);
+    out.sample(kLogins, {{"result", "busy"}}, logins.busy);
+    constexpr std::string_view kWaiting = "sms_gateway_console_login_waits";
+    out.family(kWaiting, MetricType::Gauge,
+               "Source addresses and user names whose browser console logins wait now after failed logins");
+    out.sample(kWaiting, {{"scope", "address"}}, logins.addresses_waiting);
+    out.sample(kWaiting, {{"scope", "user"}}, logins.users_waiting);
+  }
+
   out.family("sms_gateway_estop_latched", MetricType::Gauge,
              "1 while the e-stop (gateway unit coil 1) is latched: motion writes refused on every bus");
   out.sample("sms_gateway_estop_latched", {}, std::uint64_t{snapshot.estop_latched ? 1u : 0u});

@@ -59,6 +59,16 @@ struct ListenerDoor {
   DoorStats door;
 };
 
+// The browser console's password logins (docs/CONSOLE.md "Logins").
+struct ConsoleLoginMetrics {
+  std::uint64_t ok = 0;
+  std::uint64_t failed = 0;     // wrong password or unknown user
+  std::uint64_t throttled = 0;  // refused at once: the address or the user waits after failures
+  std::uint64_t busy = 0;       // refused at once: the queue of password checks was full
+  std::uint64_t addresses_waiting = 0;
+  std::uint64_t users_waiting = 0;
+};
+
 struct MetricsSnapshot {
   std::string version;  // SMS_GATEWAY_VERSION
   std::chrono::seconds uptime{0};
@@ -72,8 +82,9 @@ struct MetricsSnapshot {
   // A save of the safety state to state_dir failed and none has succeeded since (docs/SAFETY.md).
   bool safety_state_not_persisted = false;
   std::string safety_state_problem;
-  std::vector<RtuSlaveStats> rtu_slaves;  // the upstream Modbus RTU ports, in configuration order
-  std::vector<ListenerDoor> listeners;    // every TCP listener's door
+  std::vector<RtuSlaveStats> rtu_slaves;              // the upstream Modbus RTU ports, in configuration order
+  std::optional<ConsoleLoginMetrics> console_logins;  // empty without the browser console
+  std::vector<ListenerDoor> listeners;                // every TCP listener's door
 };
 
 // One bus of `config` as its cache and counters show it at `now`. Servos of the bus that the

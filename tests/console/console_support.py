@@ -79,6 +79,7 @@ class GatewayCase(unittest.TestCase):
     sim_options = ()  # more sms-sim options, e.g. ("--no-timing",)
     bus_yaml = ""    # more keys of bus `arm`, e.g. ", watchdog: {timeout_ms: 300, feed: heartbeat_register}"
     extra_yaml = ""
+    users = USERS    # console.users: name -> role, each with the password PASSWORD
 
     @classmethod
     def setUpClass(cls):
@@ -90,12 +91,12 @@ class GatewayCase(unittest.TestCase):
         cls.modbus_port = free_port()
         cls.console_port = free_port()
         hashes = {}
-        for user in USERS:
+        for user in cls.users:
             hashes[user] = subprocess.run([os.path.join(cls.bin_dir, "sms-gateway"), "hash-password"], input=PASSWORD + "\n",
                                           capture_output=True, text=True, check=True).stdout.strip()
         ids = [int(i) for i in cls.servo_ids.split("-")]
         servos = "".join(f"  - {{bus: arm, id: {i}, table: sts}}\n" for i in range(ids[0], ids[-1] + 1))
-        users = "".join(f"    - {{name: {u}, role: {r}, password_hash: \"{hashes[u]}\"}}\n" for u, r in USERS.items())
+        users = "".join(f"    - {{name: {u}, role: {r}, password_hash: \"{hashes[u]}\"}}\n" for u, r in cls.users.items())
         config = (f"modbus_tcp: {{listen: \"127.0.0.1:{cls.modbus_port}\"}}\n"
                   f"buses:\n  - {{name: arm, device: \"{cls.sim.link}\", protocol: feetech, baud: 1000000{cls.bus_yaml}}}\n"
                   f"servos:\n{servos}"

@@ -93,10 +93,11 @@ done) >"$scratch/links"
 [ ! -s "$scratch/links" ] || fail "installed documents link to files that are not installed: $(cat "$scratch/links")"
 
 # postinst configure on a machine without the user: it creates group and user, puts the user in
-# dialout, makes /etc/sms-gateway; the unit is registered but not enabled or started.
+# dialout, makes /etc/sms-gateway and the console's self-signed certificate and key (the key
+# 0640 root:sms); the unit is registered but not enabled or started.
 stand_ins="$scratch/bin"
 mkdir -p "$stand_ins"
-for tool in addgroup adduser systemctl install deb-systemd-helper deb-systemd-invoke; do
+for tool in addgroup adduser systemctl install deb-systemd-helper deb-systemd-invoke openssl chown chmod; do
   printf '#!/bin/sh\necho "%s $*" >>"%s"\n' "$tool" "$scratch/calls" >"$stand_ins/$tool"
 done
 # A first installation: no user yet, the unit never installed or enabled before.
@@ -110,6 +111,16 @@ grep -q '^addgroup --system --quiet sms$' <<<"$calls" || fail "postinst did not 
 grep -q '^adduser --system --quiet --ingroup sms .* sms$' <<<"$calls" || fail "postinst did not create the user: $calls"
 grep -q '^adduser --quiet sms dialout$' <<<"$calls" || fail "postinst did not add sms to dialout: $calls"
 grep -q '^install -d -m 0755 /etc/sms-gateway$' <<<"$calls" || fail "postinst did not make /etc/sms-gateway: $calls"
+if [ ! -e /etc/sms-gateway/console/console.key ] && [ ! -e /etc/sms-gateway/console/console.crt ]; then
+  grep -q '^install -d -m 0750 -o root -g sms /etc/sms-gateway/console$' <<<"$calls" ||
+    fail "postinst did not make /etc/sms-gateway/console for the service group: $calls"
+  grep -q '^openssl req -x509 .*-keyout /etc/sms-gateway/console/console.key -out /etc/sms-gateway/console/console.crt$' \
+    <<<"$calls" || fail "postinst did not make the console's certificate: $calls"
+  grep -q '^chown root:sms /etc/sms-gateway/console/console.key /etc/sms-gateway/console/console.crt$' <<<"$calls" ||
+    fail "postinst did not give the console's key to the service group: $calls"
+  grep -q '^chmod 0640 /etc/sms-gateway/console/console.key$' <<<"$calls" ||
+    fail "postinst left the console's key readable beyond the service group: $calls"
+fi
 grep -q '^deb-systemd-helper enable' <<<"$calls" && fail "postinst enabled the service: $calls"
 
 # apt on this Debian 12 machine resolves every Depends; a simulation changes nothing.

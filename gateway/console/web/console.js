@@ -7,7 +7,8 @@ export function allows(role, need) { return ROLES.indexOf(role) >= ROLES.indexOf
 export async function session() {
   const response = await fetch('/api/session', { credentials: 'same-origin' });
   if (response.status === 401) {
-    location.href = '/login?next=' + encodeURIComponent(location.pathname);
+    // The page to come back to, as a path of this console (login.js follows nothing else).
+    location.href = '/login?next=' + encodeURIComponent(location.pathname + location.search);
     throw new Error('log in first');
   }
   return response.json();

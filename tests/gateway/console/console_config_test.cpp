@@ -13,7 +13,9 @@ constexpr const char* kHash = "\"$argon2id$v=19$m=65536,t=2,p=1$c29tZXNhbHQ$aGFz
 
 TEST(ConsoleConfig, LoadsUsersAndRoundTrips) {
   const auto config = load_config_string(std::string(kBase) +
-                                             "console:\n  listen: 0.0.0.0:8443\n  users:\n"
+                                             "console:\n  listen: 0.0.0.0:8443\n"
+                                             "  certificate: /etc/sms-gateway/console/console.crt\n"
+                                             "  key: /etc/sms-gateway/console/console.key\n  users:\n"
                                              "    - {name: alice, role: engineer, password_hash: " +
                                              kHash + "}\n",
                                          "c.yaml");

@@ -72,5 +72,22 @@ TEST(ConsoleRequest, JogMessages) {
             "unknown message type dance (heartbeat, jog, release, torque)");
 }
 
+TEST(ConsoleRequest, PrintableKeepsPrintableAsciiAndHidesControlCharacters) {
+  // A path reads as it was asked for (it used to come out as "?static?...").
+  EXPECT_EQ(printable("/static/nosuch.js"), "/static/nosuch.js");
+  EXPECT_EQ(printable("a\"b'c <x> & {y} ~ `z` | 100%"), "a\"b'c <x> & {y} ~ `z` | 100%");
+  // A forged log line, a NUL, DEL and bytes past ASCII (UTF-8 é) do not get through.
+  EXPECT_EQ(printable("alice\nconsole: user `root` logged in"), "alice?console: user `root` logged in");
+  EXPECT_EQ(printable(std::string_view("a\0b\r\t\x7f", 6)), "a?b???");
+  EXPECT_EQ(printable("caf\xc3\xa9"), "caf??");
+  EXPECT_EQ(printable(std::string(100, '/'), 4), "////...");
+}
+
+TEST(ConsoleRequest, HtmlEscapeEscapesMarkup) {
+  EXPECT_EQ(html_escape("<script>alert('x') & \"y\"</script>"),
+            "&lt;script&gt;alert(&#39;x&#39;) &amp; &quot;y&quot;&lt;/script&gt;");
+  EXPECT_EQ(html_escape("unit 99 is not a servo unit"), "unit 99 is not a servo unit");
+}
+
 }  // namespace
 }  // namespace sms::gateway::console

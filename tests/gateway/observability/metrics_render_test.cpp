@@ -181,6 +181,21 @@ TEST_F(MetricsRender, TcpConnectionCounters) {
   EXPECT_EQ(e.types.at("sms_gateway_tcp_connections"), "gauge");
 }
 
+TEST_F(MetricsRender, ConsoleLoginFamiliesOnlyWithTheConsole) {
+  auto with = snapshot();
+  EXPECT_EQ(render_prometheus(with).find("sms_gateway_console_"), std::string::npos);
+  with.console_logins = ConsoleLoginMetrics{2, 40, 300, 7, 3, 1};
+  const auto e = parse_exposition(render_prometheus(with));
+  EXPECT_EQ(e.value("sms_gateway_console_logins_total{result=\"ok\"}"), "2");
+  EXPECT_EQ(e.value("sms_gateway_console_logins_total{result=\"failed\"}"), "40");
+  EXPECT_EQ(e.value("sms_gateway_console_logins_total{result=\"throttled\"}"), "300");
+  EXPECT_EQ(e.value("sms_gateway_console_logins_total{result=\"busy\"}"), "7");
+  EXPECT_EQ(e.value("sms_gateway_console_login_waits{scope=\"address\"}"), "3");
+  EXPECT_EQ(e.value("sms_gateway_console_login_waits{scope=\"user\"}"), "1");
+  EXPECT_EQ(e.types.at("sms_gateway_console_logins_total"), "counter");
+  EXPECT_EQ(e.types.at("sms_gateway_console_login_waits"), "gauge");
+}
+
 TEST_F(MetricsRender, MqttFamiliesOnlyWithMqtt) {
   auto with = snapshot();
   EXPECT_EQ(render_prometheus(with).find("sms_gateway_mqtt_"), std::string::npos);
