@@ -1,5 +1,7 @@
 #include "gateway/console/console_tls.h"
 
+#include "gateway/modbus_tcp/tls.h"
+
 #include <openssl/err.h>
 #include <openssl/pem.h>
 #include <openssl/ssl.h>
@@ -13,17 +15,6 @@
 namespace sms::gateway::console {
 
 namespace {
-
-std::string openssl_error_text() {
-  std::string text;
-  while (const unsigned long code = ERR_get_error()) {
-    char buffer[256];
-    ERR_error_string_n(code, buffer, sizeof buffer);
-    if (!text.empty()) text += "; ";
-    text += buffer;
-  }
-  return text.empty() ? "unknown OpenSSL error" : text;
-}
 
 constexpr const char* kMakeOne =
     "make a pair with `openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 3650 "

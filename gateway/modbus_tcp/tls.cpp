@@ -22,10 +22,6 @@
 #include "gateway/service/modbus_request.h"
 
 namespace sms::gateway {
-namespace {
-
-namespace ssl = boost::asio::ssl;
-using config::Role;
 
 std::string openssl_error_text() {
   std::string text;
@@ -37,6 +33,11 @@ std::string openssl_error_text() {
   }
   return text.empty() ? "unknown OpenSSL error" : text;
 }
+
+namespace {
+
+namespace ssl = boost::asio::ssl;
+using config::Role;
 
 std::string bio_text(BIO* bio) {
   char* data = nullptr;

@@ -60,6 +60,10 @@ RoleDecision role_for(const config::TlsConfig& settings, const PeerCertificate& 
 // every new connection). Throws std::runtime_error naming the file and what is wrong.
 std::shared_ptr<boost::asio::ssl::context> make_tls_context(const config::TlsConfig& settings);
 
+// OpenSSL's error queue as one line (emptied): for errors that say why a file or handshake failed.
+// Shared by every TLS listener (Modbus/TCP Security, the console's own certificate).
+std::string openssl_error_text();
+
 class TlsService {
  public:
   // Loads the files (throws std::runtime_error when it cannot). `router` answers the requests
