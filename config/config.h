@@ -99,7 +99,7 @@ struct ModbusTcpConfig {
   // `first_request_timeout` is closed (gateway/net/door.h).
   std::size_t max_waiting = 16;
   std::size_t max_waiting_per_address = 8;
-  std::chrono::milliseconds first_request_timeout{10000};
+  std::chrono::milliseconds first_request_timeout{60000};
   std::chrono::seconds idle_timeout{60};  // 0: never close an idle client
   std::uint8_t gateway_unit_id = 255;     // the gateway's own unit (docs/PLC_GUIDE.md)
   // Client requests one bus may have waiting; past it a request is answered 0x06 (busy).

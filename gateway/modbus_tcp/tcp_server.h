@@ -43,7 +43,7 @@ struct TcpServerOptions {
   std::size_t max_connections = 32;
   std::size_t max_waiting = 16;
   std::size_t max_waiting_per_address = 8;
-  std::chrono::milliseconds first_request_timeout{std::chrono::seconds{10}};
+  std::chrono::milliseconds first_request_timeout{std::chrono::seconds{60}};
   std::chrono::milliseconds idle_timeout{std::chrono::seconds{60}};  // 0: never close idle clients
   // Decoded requests a connection may have waiting behind the one being answered; past it the
   // session stops reading from the socket (TCP flow control pushes back on the client).

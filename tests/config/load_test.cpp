@@ -249,7 +249,7 @@ TEST(ConfigLoad, DumpWritesTheDefaultsOut) {
   max_connections: 32
   max_waiting: 16
   max_waiting_per_address: 8
-  first_request_timeout_ms: 10000
+  first_request_timeout_ms: 60000
   idle_timeout_s: 60
   gateway_unit_id: 255
   request_queue_depth: 64
