@@ -59,9 +59,12 @@ double cpu_ns(clockid_t clock) {
 
 // The wall clock each record reads, alone: part of record()'s cost.
 double clock_ns(std::size_t reads) {
-  std::int64_t sink = 0;
+  // Unsigned: the sum of nanosecond clock readings wraps, as it may (a signed sum overflows).
+  std::uint64_t sink = 0;
   const double start = cpu_ns(CLOCK_THREAD_CPUTIME_ID);
-  for (std::size_t i = 0; i < reads; ++i) sink += std::chrono::system_clock::now().time_since_epoch().count();
+  for (std::size_t i = 0; i < reads; ++i) {
+    sink += static_cast<std::uint64_t>(std::chrono::system_clock::now().time_since_epoch().count());
+  }
   const double elapsed = cpu_ns(CLOCK_THREAD_CPUTIME_ID) - start;
   if (sink == 42) std::cerr << "";  // keeps the loop
   return elapsed / static_cast<double>(reads);

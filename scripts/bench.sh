@@ -5,7 +5,7 @@
 #
 #   scripts/bench.sh            # everything, the soak for 60 s (about 3 minutes in all)
 #   scripts/bench.sh --quick    # shorter runs, the soak for 10 s (about 1 minute)
-#   scripts/bench.sh soak       # only the named programs (cached_reads poll_cycle write_latency soak trip_latency forward_overhead read_under_flood mqtt_latency rtu_slave_latency monitor_overhead console_stream silent_servo_stop console_login_flood)
+#   scripts/bench.sh soak       # only the named programs (bench/programs.txt lists them)
 #   SMS_BUILD_DIR=build-bench scripts/bench.sh   # another build directory (default build)
 #
 # Figures depend on the machine and on what else runs on it: compare a run with itself, not
@@ -13,17 +13,21 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-programs=(cached_reads poll_cycle write_latency soak trip_latency forward_overhead read_under_flood mqtt_latency rtu_slave_latency
-          monitor_overhead console_stream silent_servo_stop console_login_flood)
+# The programs and the options of their shortest runs: bench/programs.txt.
+programs=()
+declare -A quick_options=()
+while read -r program options; do
+  programs+=("$program")
+  quick_options[$program]=$options
+done < <(grep -E '^[a-z_]+' bench/programs.txt)
 quick=0
 selected=()
 for argument in "$@"; do
   case "$argument" in
     --quick) quick=1 ;;
     -h|--help) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
-    cached_reads|poll_cycle|write_latency|soak|trip_latency|forward_overhead|read_under_flood|mqtt_latency|rtu_slave_latency|\
-    monitor_overhead|console_stream|silent_servo_stop|console_login_flood) selected+=("$argument") ;;
-    *) echo "bench.sh: unknown argument '$argument' (try --help)" >&2; exit 2 ;;
+    *) if [ -n "${quick_options[$argument]+set}" ]; then selected+=("$argument"); else
+         echo "bench.sh: unknown argument '$argument' (try --help; programs: ${programs[*]})" >&2; exit 2; fi ;;
   esac
 done
 if ((${#selected[@]} > 0)); then programs=("${selected[@]}"); fi
@@ -32,22 +36,6 @@ build_dir="${SMS_BUILD_DIR:-build}"
 cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSMS_BUILD_TESTS=OFF -DSMS_BUILD_BENCH=ON -DSMS_WERROR=ON \
   -DSMS_SANITIZE=OFF >/dev/null
 cmake --build "$build_dir" --target sms-gateway "${programs[@]}" -j "$(nproc)"
-
-declare -A quick_options=(
-  [cached_reads]="--seconds 1 --flood-seconds 1"
-  [poll_cycle]="--seconds 1 --silent-seconds 3 --rtu-seconds 1"
-  [write_latency]="--seconds 1"
-  [soak]="--seconds 10"
-  [trip_latency]="--quick"
-  [forward_overhead]="--seconds 1"
-  [console_stream]="--seconds 2"
-  [rtu_slave_latency]="--seconds 1 --hmi-seconds 5"
-  [read_under_flood]="--seconds 2"
-  [mqtt_latency]="--seconds 2"
-  [monitor_overhead]="--records 500000 --seconds 1 --rounds 1"
-  [silent_servo_stop]="--quick"
-  [console_login_flood]="--quick"
-)
 
 echo "# $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores, $(uname -m), load average $(cut -d' ' -f1-3 /proc/loadavg)"
 status=0
