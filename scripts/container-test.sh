@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Container check, separate from scripts/test.sh (it needs root and about a minute):
+# Container check (root; a few minutes, most of it the image's compile). The test command runs it
+# with --head where podman is installed:
 # builds docker/Dockerfile with podman (daemonless, no registry needed) and runs the image the
 # way the README says, checking each claim the README makes about it. Prints what it checked.
 #
@@ -21,6 +22,13 @@ repo=$PWD
 if ! command -v podman >/dev/null 2>&1; then
   echo "container-test: skipped: podman not available (apt-get install podman buildah debootstrap runc)"
   exit 0
+fi
+# The runtime podman is configured with below (crun fails on hybrid cgroups); podman alone does
+# not pull it in.
+if ! command -v runc >/dev/null 2>&1; then
+  echo "container-test: installing runc (podman's runtime here)" >&2
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends runc >/dev/null \
+    || { echo "container-test: runc is missing and could not be installed (apt-get install runc)" >&2; exit 1; }
 fi
 if ! command -v mbpoll >/dev/null 2>&1; then
   echo "container-test: mbpoll is needed for the Modbus reads from the host: run scripts/install-deps.sh" >&2
@@ -48,11 +56,24 @@ run_id=sms-ctr-test-$$
 containers=()
 sim_pid=
 tmp=$(mktemp -d)
+work=${SMS_CONTAINER_DIR:-/tmp/ctr}
+# debootstrap mounts /proc and more inside the root it makes, and leaves them mounted when it
+# fails or is interrupted; a later run would then fail inside debootstrap with a confusing message.
+unmount_under() {
+  local dir=$1 target
+  [ -d "$dir" ] || return 0
+  dir=$(cd "$dir" && pwd -P)
+  findmnt -rn -o TARGET | awk -v d="$dir" 'index($0, d "/") == 1 || $0 == d' | sort -r |
+    while read -r target; do umount -l "$target" 2>/dev/null || true; done
+}
 cleanup() {
   local c
   for c in "${containers[@]}"; do podman rm -f -t 0 "$c" >/dev/null 2>&1 || true; done
   if [ -n "$sim_pid" ]; then kill "$sim_pid" 2>/dev/null || true; fi
-  rm -rf "$tmp"
+  unmount_under "$work/rootfs"
+  unmount_under "$work/rootfs-arm64"
+  # --one-file-system: never into a mount that could not be undone.
+  rm -rf --one-file-system "$tmp" "$work/rootfs" "$work/rootfs-arm64"
 }
 trap cleanup EXIT
 
@@ -100,7 +121,6 @@ stop_and_check() {
 podman() { command podman "$@" 2> >(grep -v 'unable to get systemd connection' >&2); }
 
 # --- podman environment: its own storage and configuration under $work -------------------------
-work=${SMS_CONTAINER_DIR:-/tmp/ctr}
 if [ -z "${CONTAINERS_CONF:-}" ]; then
   mkdir -p "$work/conf"
   if [ ! -f "$work/conf/containers.conf" ]; then
@@ -120,15 +140,17 @@ if ! podman image exists docker.io/library/debian:bookworm; then
   t0=$(now)
   mirror=$(awk '/^URIs:/ { print $2; exit }' /etc/apt/sources.list.d/debian.sources 2>/dev/null || true)
   rootfs=$work/rootfs
-  rm -rf "$rootfs"
+  unmount_under "$rootfs"
+  rm -rf --one-file-system "$rootfs"
   debootstrap --variant=minbase bookworm "$rootfs" "${mirror:-http://deb.debian.org/debian}" >"$tmp/debootstrap.log" 2>&1 \
     || { tail -20 "$tmp/debootstrap.log" >&2; fail "debootstrap of the base image"; }
+  unmount_under "$rootfs"
   chroot "$rootfs" apt-get clean
   if [ -f /etc/apt/sources.list.d/debian.sources ]; then
     cp /etc/apt/sources.list.d/debian.sources "$rootfs/etc/apt/sources.list.d/" && rm -f "$rootfs/etc/apt/sources.list"
   fi
   tar -C "$rootfs" -c . | podman import --change 'CMD ["bash"]' - docker.io/library/debian:bookworm >/dev/null
-  rm -rf "$rootfs"
+  rm -rf --one-file-system "$rootfs"
   check "base image debian:bookworm made with debootstrap in $(elapsed "$t0") s"
 fi
 podman image exists docker.io/library/debian:bookworm-slim \
@@ -157,15 +179,17 @@ if [ "$platform" = arm64 ]; then
     t0=$(now)
     mirror=$(awk '/^URIs:/ { print $2; exit }' /etc/apt/sources.list.d/debian.sources 2>/dev/null || true)
     rootfs=$work/rootfs-arm64
-    rm -rf "$rootfs"
+    unmount_under "$rootfs"
+    rm -rf --one-file-system "$rootfs"
     debootstrap --arch=arm64 --variant=minbase bookworm "$rootfs" "${mirror:-http://deb.debian.org/debian}" >"$tmp/debootstrap.log" 2>&1 \
       || { tail -20 "$tmp/debootstrap.log" >&2; fail "debootstrap --arch=arm64 of the base image"; }
-    chroot "$rootfs" apt-get clean
+    unmount_under "$rootfs"
+  chroot "$rootfs" apt-get clean
     if [ -f /etc/apt/sources.list.d/debian.sources ]; then
       cp /etc/apt/sources.list.d/debian.sources "$rootfs/etc/apt/sources.list.d/" && rm -f "$rootfs/etc/apt/sources.list"
     fi
     tar -C "$rootfs" -c . | podman import --arch arm64 --change 'CMD ["bash"]' - "$arm_base" >/dev/null
-    rm -rf "$rootfs"
+    rm -rf --one-file-system "$rootfs"
     check "arm64 base image $arm_base made with debootstrap under qemu in $(elapsed "$t0") s"
   fi
   if [ "$context_mode" = head ]; then
@@ -422,7 +446,9 @@ unit=$context/deploy/sms-gateway.service
 if command -v systemd-analyze >/dev/null 2>&1 && [ -f "$unit" ]; then
   # verify insists that ExecStart exists: point it at the image's binary.
   sed "s#/usr/bin/sms-gateway#$tmp/sms-gateway#g" "$unit" >"$tmp/sms-gateway.service"
-  systemd-analyze verify "$tmp/sms-gateway.service" >"$tmp/verify.log" 2>&1 \
+  # --man=no: the unit's Documentation= names the package's man pages, which are not installed on
+  # the machine that builds the image.
+  systemd-analyze verify --man=no "$tmp/sms-gateway.service" >"$tmp/verify.log" 2>&1 \
     || { cat "$tmp/verify.log" >&2; fail "systemd-analyze verify deploy/sms-gateway.service"; }
   [ ! -s "$tmp/verify.log" ] || { cat "$tmp/verify.log" >&2; fail "systemd-analyze verify: warnings"; }
   exposure=$(systemd-analyze security --offline=yes --no-pager "$tmp/sms-gateway.service" 2>&1 \
