@@ -62,8 +62,8 @@ inline std::string config_for(const Protocol& p, const std::string& pty, const s
          "}\n";
 }
 
-inline std::string watchdog(const std::string& feed) {
-  return ", watchdog: {timeout_ms: " + std::to_string(kWatchdogTimeoutMs) + ", feed: " + feed + "}";
+inline std::string watchdog(const std::string& feed, int timeout_ms = kWatchdogTimeoutMs) {
+  return ", watchdog: {timeout_ms: " + std::to_string(timeout_ms) + ", feed: " + feed + "}";
 }
 
 // Every protocol, a table of each.

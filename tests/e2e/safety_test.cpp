@@ -105,20 +105,25 @@ TEST_P(Safety, WatchdogStopsTheServoWhenItsClientVanishesWhileHmiReadsGoOn) {
 }
 
 TEST_P(Safety, FrozenPlcThatKeepsItsConnectionTripsTheHeartbeatWatchdog) {
-  start(watchdog("heartbeat_register"));
+  // A 2 s watchdog: a count every 50 ms must keep it fed on a loaded machine too, where one
+  // write may wait hundreds of milliseconds for a core.
+  constexpr int kTimeoutMs = 2000;
+  start(watchdog("heartbeat_register", kTimeoutMs));
   ModbusClient plc(gateway_->port(), kUnit);
   spin(plc);
   ModbusClient heartbeat(gateway_->port(), kGateway);
-  // A live PLC counts: 6 timeouts' worth of changing values keep the servo turning.
-  for (std::uint16_t count = 1; count <= 36; ++count) {
-    ASSERT_TRUE(heartbeat.write_register(kHeartbeatRegister, count).ok());
+  // A live PLC counts: two timeouts' worth of changing values keep the servo turning.
+  std::uint16_t count = 0;
+  const auto live_until = std::chrono::steady_clock::now() + 2 * std::chrono::milliseconds(kTimeoutMs);
+  while (std::chrono::steady_clock::now() < live_until) {
+    ASSERT_TRUE(heartbeat.write_register(kHeartbeatRegister, ++count).ok());
     std::this_thread::sleep_for(50ms);
   }
   EXPECT_EQ(gateway_register(kBus0WatchdogState), kRunning) << gateway_->process().output();
   EXPECT_FALSE(stopped());
   // Frozen: the connection stays, the same value keeps arriving, the goal is read back.
   const bool stopped_in_time = eventually([&] {
-    heartbeat.write_register(kHeartbeatRegister, 36);
+    heartbeat.write_register(kHeartbeatRegister, count);
     plc.read_holding(GetParam().goal_address, 1);
     return stopped();
   });
@@ -126,7 +131,7 @@ TEST_P(Safety, FrozenPlcThatKeepsItsConnectionTripsTheHeartbeatWatchdog) {
   EXPECT_EQ(gateway_register(kBus0WatchdogState), kTripped);
   const auto read_back = heartbeat.read_holding(kHeartbeatRegister, 1);
   ASSERT_TRUE(read_back.ok());
-  EXPECT_EQ(read_back.values[0], 36);
+  EXPECT_EQ(read_back.values[0], count);
 }
 
 TEST_P(Safety, EStopRefusesMotionUntilResetAndTheResetMovesNothing) {

@@ -28,7 +28,7 @@ constexpr const char* kTwoServos = R"(
 modbus_tcp: {listen: "@LISTEN@"}
 buses:
   - {name: arm, device: "@DEVICE@", protocol: feetech, baud: 1000000, poll_period_ms: 10,
-     offline_probe_period_ms: 100, response_timeout_ms: 20, retries: 1}
+     offline_probe_period_ms: 100, response_timeout_ms: 100, retries: 1}
 servos:
   - {unit: 1, bus: arm, id: 1, table: sts, name: shoulder}
   - {unit: 12, bus: arm, id: 2, table: sts}
