@@ -9,11 +9,12 @@ packages=(
   libboost-dev libmodbus-dev libspdlog-dev libfmt-dev libyaml-cpp-dev
   libcli11-dev libgtest-dev libgmock-dev libssl-dev openssl
   libmosquitto-dev mosquitto libprotobuf-dev protobuf-compiler
-  clang libclang-rt-14-dev clang-format clang-tidy
-  mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio
+  clang libclang-rt-14-dev clang-format clang-tidy ccache
+  mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio stress-ng
   debhelper help2man pandoc man-db
   tshark  # reads the bus monitor's captures (tests/gateway/monitor); wireshark-common's debconf question takes its default
   libsodium-dev nlohmann-json3-dev libjs-chart.js chromium chromium-driver python3-selenium
+  prometheus python3-yaml  # promtool checks and tests the shipped alert rules (deploy/prometheus)
 )
 
 missing=()
