@@ -78,7 +78,7 @@ class UnitsAndSafetyTest(ConsoleCase):
         self.sim.command(f"set 2 11 {le16(3000)}")
         self.open("/servo/2", "#hold-position:not([disabled])")
         wait_until(lambda: (self.attribute("#jog-position-range", "min"), self.attribute("#jog-position-range", "max"))
-                   == ("100", "3000"), what="servo 2's slider to span 100..3000")
+                   == ("100", "3000"), timeout=10, what="servo 2's slider to span 100..3000")
         self.assertIn("angle limits", self.text("#jog-range"))
 
     def test_c_a_watchdog_trip_shows_in_the_panel_and_names_itself_in_a_refusal(self):
@@ -102,6 +102,7 @@ class UnitsAndSafetyTest(ConsoleCase):
         self.assertRegex(note, r"goal_position := \d+: stopped by the watchdog of bus arm at \d\d:\d\d:\d\d"
                                r".*short of its goal")
         self.assertNotEqual(self.sim.field(3, "present_position"), goal)
+        self.browser.execute_script("window.scrollTo(0, 0)")
         self.screenshot("safety-tripped.png")
         # An edit now: the refusal names the rule.
         self.write_field("goal_position", 2048)

@@ -229,7 +229,7 @@ function renderSafety(data, me) {
     set(cells.timeout, off ? '—' : s.timeout_ms + ' ms', 'num');
     set(cells.feed, s.feed || '—', 'wd-feed');
     set(cells.since, off ? '—' : seconds(s.since_feed_ms), 'num wd-since');
-    set(cells.cause, `${s.trips} trips; last stop: ${s.last_cause}`, 'wd-cause');
+    set(cells.cause, `trips: ${s.trips}; last stop: ${s.last_cause}`, 'wd-cause');
     set(cells.owed, String(s.owed_stops), 'num owed' + (s.owed_stops ? ' bad' : ''));
     const why = blockedWhy(estop, bus);
     set(cells.motion, why, 'motion ' + (why === 'allowed' ? 'ok' : 'bad'));

@@ -285,7 +285,6 @@ onOverview((data) => {
   const reached = move.goal !== null && present !== undefined && Math.abs(present - move.goal) <= 5;
   const text = reached ? `${move.what}: reached its goal; then stopped by ${by}`
     : `${move.what}: stopped by ${by}` + (move.goal !== null && present !== undefined ? `, at position ${present}, short of its goal ${move.goal}` : '');
-  say(text, 'error');
-  document.getElementById('move-stopped').textContent = text;
+  document.getElementById('move-stopped').textContent = text;  // stays until the next stop: #message changes
   move = null;
 });
