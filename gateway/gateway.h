@@ -30,8 +30,9 @@ BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index
 // The configuration `sms-gateway --simulate` runs: one feetech bus on `device` at 1 000 000
 // baud with sts servos 1-6 as units 1-6 (profile native), listening on `listen`.
 config::Config simulated_config(const std::string& device, const config::HostPort& listen);
-// The watchdog --simulate arms on its bus (feed: any_write; docs/PLC_GUIDE.md "Safety").
-inline constexpr std::chrono::milliseconds kSimulateWatchdog{1000};
+// The watchdog --simulate arms on its bus (feed: any_write; docs/PLC_GUIDE.md "Safety"): a first
+// HMI writing once a second (period + worst transaction + its own timer jitter) never trips it.
+inline constexpr std::chrono::milliseconds kSimulateWatchdog{3000};
 
 class Gateway {
  public:

@@ -235,6 +235,21 @@ Expected<CheckedFieldWrite, HttpAnswer> check_field_write(const ServoUnit& unit,
 
 namespace {
 
+// A 0x04 answer says which rule refused: the safety supervisor is asked (the one source of its
+// rules); when none refuses, it was the servo (its ERROR byte) or its answers.
+std::string refusal_text(const Services& services, const ServoUnit& unit, const ModbusAnswer& answer) {
+  if (answer.exception != 0x04) return answer.message;
+  if (const auto why = services.motion_refusal(unit.bus_index, unit.servo_id)) return "refused: " + *why;
+  std::string status;
+  if (const auto polled = read_polled(unit)) {
+    status = fmt::format("status byte 0x{:02X}", polled->status);
+    const auto faults = status_faults(unit.map.servo_table().id, polled->status);
+    for (std::size_t i = 0; i < faults.size(); ++i) status += (i == 0 ? ": " : ", ") + faults[i];
+  }
+  return "the servo refused it or its answers were damaged (no safety rule refuses motion now" +
+         (status.empty() ? std::string(")") : "; last " + status + ")") + "; " + answer.message;
+}
+
 void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   const auto unit = servo_of(call->services, call->params);
   if (!unit) return call->answer(unit.error());
@@ -254,9 +269,10 @@ void api_servo_write(const std::shared_ptr<ApiCall>& call) {
   std::vector<WriteStep> steps{{entry->address, reg, name + " := " + std::to_string(value)}};
   const auto* lock = eeprom_lock(servo);
   const bool eeprom = checked->value.servo_field->area == modbus_map::Area::Eeprom;
-  auto finish = [call, name, value](std::optional<FailedStep> failed) {
+  auto finish = [call, name, value, unit = *unit](std::optional<FailedStep> failed) {
     if (failed) {
-      return call->answer(HttpAnswer::error(status_for(failed->answer), failed->what + ": " + failed->answer.message));
+      return call->answer(HttpAnswer::error(status_for(failed->answer),
+                                            failed->what + ": " + refusal_text(call->services, *unit, failed->answer)));
     }
     call->answer(HttpAnswer::json(200, {{"ok", true}, {"field", name}, {"value", value}}));
   };
@@ -447,12 +463,13 @@ class ServoStream final : public Stream {
 
   void write(std::uint16_t address, std::int64_t value, std::string what, const Send& send) {
     const auto reg = static_cast<std::uint16_t>(static_cast<std::int16_t>(value));
-    services_.modbus(who_, unit_.unit_id, write_register_pdu(address, reg),
-                     [send, what = std::move(what), alive = alive_](const ModbusAnswer& answer) {
-                       if (!*alive || !send) return;
-                       if (answer.ok()) return send(json{{"type", "done"}, {"message", what}}.dump());
-                       send(json{{"type", "error"}, {"message", what + ": " + answer.message}}.dump());
-                     });
+    services_.modbus(
+        who_, unit_.unit_id, write_register_pdu(address, reg),
+        [this, send, what = std::move(what), alive = alive_](const ModbusAnswer& answer) {
+          if (!*alive || !send) return;
+          if (answer.ok()) return send(json{{"type", "done"}, {"message", what}}.dump());
+          send(json{{"type", "error"}, {"message", what + ": " + refusal_text(services_, unit_, answer)}}.dump());
+        });
   }
 
   void start_jog(bool speed, std::int64_t value, JogSession session, const Send& send, SteadyClock::time_point now) {

@@ -85,6 +85,9 @@ class Services {
                                              std::span<const std::uint8_t> pdu) = 0;
   // Bus `bus`'s motion stops now (SafetySupervisor::motion_stops): what a hold-to-run move checks.
   virtual MotionStops motion_stops(std::size_t bus) const = 0;
+  // Which safety rule refuses motion on `bus` to `servo` now (SafetySupervisor::motion_refusal);
+  // nullopt: none does. Asked after a 0x04, so the page names the rule.
+  virtual std::optional<std::string> motion_refusal(std::size_t bus, std::uint8_t servo) const = 0;
   // A write of the hold-to-run move `session`: as modbus(), and on the io thread, right before the
   // router admits it, the session is checked again; one a stop has ended gets 0x04 and nothing is
   // written (a latch and its reset between two looks of the console thread cannot let it through).

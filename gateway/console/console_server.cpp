@@ -250,6 +250,9 @@ class ConsoleServer::Impl final : public Services {
   }
 
   MotionStops motion_stops(std::size_t bus) const override { return backend_.safety->motion_stops(bus); }
+  std::optional<std::string> motion_refusal(std::size_t bus, std::uint8_t servo) const override {
+    return backend_.safety->motion_refusal(bus, servo);
+  }
 
   void login(std::string_view address, std::string user, std::string password,
              std::function<void(LoginOutcome)> done) override {

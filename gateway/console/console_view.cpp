@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <array>
+#include <exception>
+#include <string>
 
 #include "gateway/bus/discovery.h"
 #include "gateway/service/role_policy.h"
@@ -46,6 +48,13 @@ std::string_view access_text(modbus_map::Access access) {
     case modbus_map::Access::ReadWrite: return "RW";
   }
   return "?";
+}
+
+// What feeds the bus's watchdog, as the safety panel says it.
+std::string watchdog_feed_text(const config::BusConfig& bus, std::size_t index) {
+  if (!bus.watchdog) return "";
+  if (bus.watchdog->feed == config::WatchdogFeed::AnyWrite) return "any carried-out write to a unit of the bus";
+  return "a changed value in gateway holding register " + std::to_string(config::kHeartbeatRegisterBase + index);
 }
 
 }  // namespace
@@ -101,6 +110,39 @@ std::optional<PolledValues> read_polled(const ServoUnit& unit) {
     polled.values.emplace_back(&entry, register_to_value(entry, (*registers)[entry.address - window.address]));
   }
   return polled;
+}
+
+std::optional<UnitScale> unit_scale(const modbus_map::FieldSpec& field) {
+  const std::string_view text = field.unit;
+  // Units that name a choice or a product are not one scale.
+  for (const std::string_view ambiguous : {" or ", "/ ", "×"}) {
+    if (text.find(ambiguous) != std::string_view::npos) return std::nullopt;
+  }
+  std::size_t at = 0;
+  while (at < text.size() && ((text[at] >= '0' && text[at] <= '9') || text[at] == '.')) ++at;
+  const std::string_view number = text.substr(0, at);
+  while (at < text.size() && text[at] == ' ') ++at;
+  const std::string_view symbol = text.substr(at);
+  if (symbol.empty() || (symbol[0] >= '0' && symbol[0] <= '9')) return std::nullopt;
+  UnitScale scale;
+  scale.symbol = std::string(symbol);
+  if (!number.empty()) {
+    try {
+      scale.scale = std::stod(std::string(number));
+    } catch (const std::exception&) {
+      return std::nullopt;
+    }
+    if (!(scale.scale > 0)) return std::nullopt;
+    const auto point = number.find('.');
+    scale.decimals = point == std::string_view::npos ? 0 : static_cast<int>(number.size() - point - 1);
+  }
+  return scale;
+}
+
+json unit_scale_json(const modbus_map::FieldSpec& field) {
+  const auto scale = unit_scale(field);
+  if (!scale) return nullptr;
+  return {{"scale", scale->scale}, {"symbol", scale->symbol}, {"decimals", scale->decimals}};
 }
 
 std::vector<std::string> status_faults(modbus_map::TableId table, std::uint8_t status) {
@@ -182,10 +224,13 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
       safety = {{"watchdog", std::string(to_string(bus.safety->state))},
                 {"timeout_ms", bus.safety->timeout.count()},
                 {"since_feed_ms", bus.safety->since_feed ? json(bus.safety->since_feed->count()) : json(nullptr)},
+                {"since_trip_ms", bus.safety->since_trip ? json(bus.safety->since_trip->count()) : json(nullptr)},
+                {"feed", watchdog_feed_text(bus_config, b)},
                 {"last_cause", std::string(to_string(bus.safety->last_cause))},
                 {"trips", bus.safety->trips},
                 {"motion_blocked", bus.safety->motion_blocked},
                 {"owed_stops", bus.safety->owed_stops},
+                {"failed_stops", bus.safety->failed_stops},
                 {"lent", bus.safety->lent}};
     }
     buses.push_back({{"name", bus.name},
@@ -222,10 +267,16 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
       row["online"] = polled->online;
       row["status"] = polled->status;
       row["faults"] = status_faults(unit->map.servo_table().id, polled->status);
+      json units = json::object();
       for (const char* field :
            {"present_position", "present_temperature", "present_voltage", "present_load", "present_current"}) {
-        if (const auto value = polled->value_of(field)) row[std::string(field).substr(8)] = *value;
+        const auto value = polled->value_of(field);
+        if (!value) continue;
+        const std::string key = std::string(field).substr(8);
+        row[key] = *value;  // raw, as FC04 reads it
+        if (const auto* entry = entry_named(unit->map, field)) units[key] = unit_scale_json(*entry->shown);
       }
+      row["units"] = std::move(units);
     }
     servos.push_back(std::move(row));
   }
@@ -245,6 +296,7 @@ json servo_description_json(const config::Config& config, const ServoUnit& unit)
     fields.push_back({{"name", field.name},
                       {"address", entry.address},
                       {"unit", field.unit},
+                      {"scale", unit_scale_json(field)},
                       {"min", entry.min},
                       {"max", entry.max},
                       {"area", eeprom ? "EEPROM" : "RAM"},

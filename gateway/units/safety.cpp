@@ -180,6 +180,9 @@ SafetyFacts SafetySupervisor::Impl::facts() const {
     if (const auto last = bus->last_feed.load(); last != kNever) {
       f.since_feed = std::chrono::duration_cast<std::chrono::milliseconds>(now - from_ticks(last));
     }
+    if (const auto trip = bus->last_trip.load(); trip != kNever) {
+      f.since_trip = std::chrono::duration_cast<std::chrono::milliseconds>(now - from_ticks(trip));
+    }
     f.timeout = bus->watchdog ? bus->watchdog->timeout : std::chrono::milliseconds{0};
     f.trips = bus->trips.load();
     f.stops = bus->stops.load();
@@ -263,6 +266,9 @@ std::optional<std::uint16_t> SafetySupervisor::heartbeat_value(std::size_t bus) 
   return impl_->heartbeat_value(bus);
 }
 Expected<MotionEpoch> SafetySupervisor::admit_motion(std::size_t bus) { return impl_->admit_motion(bus); }
+std::optional<std::string> SafetySupervisor::motion_refusal(std::size_t bus, std::optional<std::uint8_t> servo) const {
+  return impl_->motion_refusal(bus, servo);
+}
 void SafetySupervisor::estop(const PostFn& post, std::function<void(bool)> done, std::string_view who) {
   impl_->estop(post, std::move(done), who);
 }

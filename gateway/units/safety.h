@@ -70,6 +70,7 @@ std::string_view to_string(StopCause cause);
 struct BusSafetyFacts {
   WatchdogState state = WatchdogState::Off;
   std::optional<std::chrono::milliseconds> since_feed;  // nullopt: never fed
+  std::optional<std::chrono::milliseconds> since_trip;  // since its watchdog last tripped; nullopt: never
   std::chrono::milliseconds timeout{0};
   std::uint64_t trips = 0;
   std::uint64_t stops = 0;  // safe stops performed on this bus, every cause
@@ -151,6 +152,10 @@ class SafetySupervisor {
   // Before a motion write on `bus`: the epoch the write carries, or why it is refused (the
   // caller answers 0x04 and logs it). An armed watchdog starts counting here.
   Expected<MotionEpoch> admit_motion(std::size_t bus);
+  // Why a motion write on `bus` (to servo `servo`, when given: also its owed safe stop) would be
+  // refused now, in admit_motion's words; nullopt: it would be admitted. Starts nothing: the
+  // browser console asks it after a 0x04 to name the rule that refused the write.
+  std::optional<std::string> motion_refusal(std::size_t bus, std::optional<std::uint8_t> servo = std::nullopt) const;
 
   // Gateway unit coil 1: latch and stop every bus; `done(ok)` runs through `post` once every
   // stop frame has been sent (ok false when a bus could not take its frames).

@@ -67,6 +67,7 @@ struct BusSafety {
   std::atomic<std::int64_t> last_feed{kNever};
   std::atomic<std::uint32_t> heartbeat{kNoHeartbeat};
   std::atomic<std::uint64_t> trips{0};
+  std::atomic<std::int64_t> last_trip{kNever};
   std::atomic<std::uint64_t> stops{0};
   std::atomic<std::uint64_t> failed_stops{0};
   std::atomic<StopCause> last_cause{StopCause::None};
@@ -86,6 +87,7 @@ class SafetySupervisor::Impl {
   void feed_heartbeat(std::size_t index, std::uint16_t value);
   std::optional<std::uint16_t> heartbeat_value(std::size_t index) const;
   Expected<MotionEpoch> admit_motion(std::size_t index);
+  std::optional<std::string> motion_refusal(std::size_t index, std::optional<std::uint8_t> servo) const;
   void estop(const PostFn& post, std::function<void(bool)> done, std::string_view who);
   void lend_bus(std::size_t index, std::string_view who, std::function<void(bool)> done);
   void return_bus(std::size_t index, std::string_view who);

@@ -7,26 +7,37 @@
 
 namespace sms::gateway {
 
-Expected<MotionEpoch> SafetySupervisor::Impl::admit_motion(std::size_t index) {
-  BusSafety& bus = *buses_.at(index);
+std::optional<std::string> SafetySupervisor::Impl::motion_refusal(std::size_t index,
+                                                                  std::optional<std::uint8_t> servo) const {
+  const BusSafety& bus = *buses_.at(index);
   if (estop_latched_.load()) {
-    return unexpected(
-        "bus " + bus.name +
-        ": the e-stop is latched; motion writes are refused until it is reset (gateway unit coil 1 := 0)");
+    return "bus " + bus.name +
+           ": the e-stop is latched; motion writes are refused until it is reset (gateway unit coil 1 := 0)";
   }
   if (bus.state.load() == WatchdogState::Tripped) {
-    return unexpected("bus " + bus.name + ": its watchdog tripped (no feed for " +
-                      std::to_string(bus.watchdog->timeout.count()) +
-                      " ms); motion writes are refused until it is re-armed (gateway unit coil 2 := 0)");
+    return "bus " + bus.name + ": its watchdog tripped (no feed for " + std::to_string(bus.watchdog->timeout.count()) +
+           " ms); motion writes are refused until it is re-armed (gateway unit coil 2 := 0)";
   }
   if (bus.lent.load()) {
-    return unexpected("bus " + bus.name +
-                      ": its line is lent to commissioning (stopped from the browser console); motion writes are "
-                      "refused until the bus is started again there");
+    return "bus " + bus.name +
+           ": its line is lent to commissioning (stopped from the browser console); motion writes are "
+           "refused until the bus is started again there";
   }
-  if (bus.gate->blocked()) {
-    return unexpected("bus " + bus.name + ": motion is blocked while the gateway stops");
+  if (bus.gate->blocked()) return "bus " + bus.name + ": motion is blocked while the gateway stops";
+  // The bus engine refuses motion to a servo that owes its stop (EngineCore::owed_refusal).
+  if (servo && bus.engine->owed_stop_count() > 0) {
+    for (const auto& owed : bus.engine->owed_stops()) {
+      if (owed.write.servo_id != *servo) continue;
+      return "bus " + bus.name + ": servo " + std::to_string(*servo) + " owes a safe stop (" + owed.why +
+             ") it has not taken yet; motion writes to it are refused until it has";
+    }
   }
+  return std::nullopt;
+}
+
+Expected<MotionEpoch> SafetySupervisor::Impl::admit_motion(std::size_t index) {
+  BusSafety& bus = *buses_.at(index);
+  if (auto refused = motion_refusal(index, std::nullopt)) return unexpected(std::move(*refused));
   // A motion command always has a running watchdog behind it, whatever feeds it. The count
   // starts here: the time goes in before the state says Running (the safety thread reads both).
   if (bus.state.load() == WatchdogState::Armed) {

@@ -75,6 +75,7 @@ void SafetySupervisor::Impl::check_watchdogs() {
       if (!bus->state.compare_exchange_strong(running, WatchdogState::Tripped)) continue;
       apply_gates_locked();
     }
+    bus->last_trip.store(ticks(now));
     bus->trips.fetch_add(1);
     const auto silent = std::chrono::duration_cast<std::chrono::milliseconds>(now - last);
     spdlog::warn(

@@ -29,7 +29,8 @@ class ConsoleTest(ConsoleCase):
                    what="bus arm to show its 3 servos found")
         # Live: a position changed on the wire shows without a reload.
         self.sim.command("set 1 42 00 04")  # servo 1's goal := 1024 through the simulator's backdoor
-        wait_until(lambda: abs(int(self.text("#servos-table tr[data-unit='1'] td.position") or 0) - 1024) < 5,
+        position = "#servos-table tr[data-unit='1'] td.position"  # "1024 steps": the table's unit
+        wait_until(lambda: abs(int(self.text(position).split(" ")[0] or 0) - 1024) < 5,
                    timeout=10, what="servo 1's position to reach 1024 on the overview")
         self.screenshot("overview.png")
 
@@ -41,7 +42,8 @@ class ConsoleTest(ConsoleCase):
         self.browser.find_element(By.CSS_SELECTOR, "#field-acceleration button.write").click()
         wait_until(lambda: self.sim.field(2, "acceleration") == 37, what="the simulator's acceleration of servo 2 to be 37")
         wait_until(lambda: "written" in self.text("#message"), what="the page to say it was written")
-        wait_until(lambda: self.text("#field-acceleration td.value") == "37", what="the table to read 37 back")
+        wait_until(lambda: self.text("#field-acceleration td.raw") == "37", what="the table to read 37 back")
+        self.assertEqual(self.text("#field-acceleration td.value"), "3700 steps/s²")  # the table's 100 steps/s²
         # Out of range: a clear message, nothing written.
         field = self.browser.find_element(By.CSS_SELECTOR, "#field-acceleration input.edit")
         field.send_keys("9999")
@@ -383,11 +385,11 @@ class ConsoleTest(ConsoleCase):
         with open(path, newline="") as f:
             rows = list(csv.reader(f))
         self.assertEqual(rows[0][0], "time_s")
-        self.assertIn("present_position", rows[0])
+        self.assertIn("present_position [steps]", rows[0])
         self.assertEqual(len(rows) - 1, shown)
         times = [float(r[0]) for r in rows[1:]]
         self.assertEqual(times, sorted(times))
-        column = rows[0].index("present_position")
+        column = rows[0].index("present_position [steps]")
         last = int(next(r[column] for r in reversed(rows[1:]) if r[column] != ""))
         self.assertLess(abs(last - self.sim.field(1, "present_position")), 5)
         self.browser.find_element(By.ID, "pause").click()

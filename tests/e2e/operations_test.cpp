@@ -143,7 +143,7 @@ TEST(Operations, SimulateArmsAWatchdogThatTripsAndShowsInMetrics) {
   ChildProcess gateway({bin("sms-gateway"), "--simulate", "--listen", "127.0.0.1:0", "--metrics", "127.0.0.1:0"});
   const std::uint16_t modbus_port = port_after(gateway, "listening on 127.0.0.1:");
   const std::uint16_t metrics_port = port_after(gateway, "/healthz on http://127.0.0.1:");
-  ASSERT_TRUE(gateway.wait_for_line("watchdog armed: 1000 ms, fed by any_write", 15s)) << gateway.output();
+  ASSERT_TRUE(gateway.wait_for_line("watchdog armed: 3000 ms, fed by any_write", 15s)) << gateway.output();
   ASSERT_TRUE(gateway.wait_for_line("servos online", 15s)) << gateway.output();
   wait_until_polled(modbus_port, 1);
   {

@@ -187,7 +187,7 @@ TEST(RtuSlaveCyclicWrite, APlcWritingAnUnchangedGoalEvery100MsIsAlwaysAnsweredAn
 }
 
 TEST(RtuSlaveCyclicWrite, OnSimulateWithTheFlagTwentyIdenticalWritesGetTwentyAnswers) {
-  // The flag's port (19200 8E1 unless given) and --simulate's 1000 ms watchdog.
+  // The flag's port (19200 8E1 unless given) and --simulate's 3000 ms watchdog.
   TempDir dir;
   PtyPair line(dir, "plc");
   GatewayProcess gateway({"--simulate", "--rtu-slave", line.gateway_end() + ":115200:none"}, 1);

@@ -1,5 +1,5 @@
 // Shared by every page: the session (user, role, CSRF token), JSON requests, WebSockets that
-// reconnect, the header with its e-stop button, and messages.
+// reconnect, the header with its e-stop button, the safety panel, units, and messages.
 const ROLES = ['none', 'read', 'operate', 'engineer'];
 
 export function allows(role, need) { return ROLES.indexOf(role) >= ROLES.indexOf(need); }
@@ -113,6 +113,7 @@ export async function header(active) {
   }
   parts.push(estop);
   bar.replaceChildren(...parts);
+  startSafetyPanel(me);
   return me;
 }
 
@@ -122,4 +123,129 @@ export function setEstop(latched) {
   if (!button) return;
   button.classList.toggle('latched', latched);
   button.textContent = latched ? 'E-STOP LATCHED — reset…' : 'E-STOP';
+}
+
+// --- units ------------------------------------------------------------------------------------------
+// `scale` is what the gateway read from the table's unit (console_view.cpp unit_scale): the value
+// in the cell's unit is raw × scale. null: no plain scale, the raw value is shown as it is.
+export function scaled(raw, scale) {
+  if (raw === null || raw === undefined || raw === '') return raw;
+  if (!scale) return raw;
+  return Number((raw * scale.scale).toFixed(scale.decimals));
+}
+
+export function withUnit(raw, scale) {
+  if (raw === null || raw === undefined || raw === '') return '';
+  if (!scale) return String(raw);
+  return scaled(raw, scale).toFixed(scale.decimals) + (scale.symbol.startsWith('°') && scale.symbol.length === 1 ? '' : ' ') + scale.symbol;
+}
+
+// --- the safety panel of every page -------------------------------------------------------------------
+// Per bus: its watchdog (state, timeout, what feeds it, time since the last feed, trips and the last
+// stop's cause), owed stops and whether motion is refused and why; the e-stop latch; re-arm and
+// reset for the operate role. Fed by the overview's WebSocket, which every page opens once here.
+const overviewListeners = [];
+let lastOverview = null;
+export function onOverview(listener) {
+  overviewListeners.push(listener);
+  if (lastOverview) listener(lastOverview);
+}
+
+function clock(msAgo) {
+  const when = new Date(Date.now() - msAgo);
+  return when.toLocaleTimeString('en-GB', { hour12: false });
+}
+
+function seconds(ms) { return ms === null || ms === undefined ? 'never' : (ms / 1000).toFixed(1) + ' s'; }
+
+// Why motion is refused on a bus, from the same facts the safety rules decide on.
+function blockedWhy(estop, bus) {
+  const s = bus.safety;
+  if (estop.latched) return 'refused: e-stop latched';
+  if (s.watchdog === 'tripped') return `refused: watchdog of bus ${bus.name} tripped (re-arm it)`;
+  if (s.lent) return 'refused: bus stopped for commissioning';
+  if (s.motion_blocked) return 'refused: the gateway is stopping';
+  return 'allowed';
+}
+
+// Built once, then updated in place at every push (every 100 ms while a watchdog counts): its
+// buttons stay the same elements, so a click is never lost to a redraw.
+let safetyRows = null;  // bus name -> its cells and re-arm button
+function buildSafety(panel, data, me) {
+  const operate = allows(me.role, 'operate');
+  const needs = 'needs the operate role';
+  const reset = element('button', { id: 'estop-reset', title: operate ? 'motion writes are accepted again; nothing moves by itself' : needs }, 'Reset e-stop');
+  reset.addEventListener('click', async () => {
+    if (!confirm('Reset the e-stop? Motion writes are accepted again (nothing moves by itself).')) return;
+    try { await api('POST', '/api/estop', { latch: false }); say('e-stop reset', 'done'); } catch (error) { say(error.message, 'error'); }
+  });
+  safetyRows = new Map();
+  const rows = data.buses.map((bus) => {
+    const cells = {};
+    for (const name of ['state', 'timeout', 'feed', 'since', 'cause', 'owed', 'motion']) cells[name] = element('td', {}, '');
+    const rearm = element('button', { class: 'rearm', title: operate ? 'back to armed; nothing moves' : needs }, 'Re-arm');
+    rearm.addEventListener('click', async () => {
+      try { await api('POST', '/api/rearm'); say(`watchdog of bus ${bus.name} re-armed`, 'done'); } catch (error) { say(error.message, 'error'); }
+    });
+    safetyRows.set(bus.name, { cells, rearm });
+    return element('tr', { 'data-bus': bus.name }, element('td', {}, bus.name), cells.state, cells.timeout, cells.feed,
+      cells.since, cells.cause, cells.owed, cells.motion, element('td', {}, rearm));
+  });
+  panel.replaceChildren(
+    element('h2', {}, 'Safety'),
+    element('div', { class: 'facts' },
+      element('div', {}, element('span', {}, 'e-stop'), element('b', { id: 'estop-state' }, ''), ' ', reset)),
+    element('table', { id: 'safety-table' },
+      element('thead', {}, element('tr', {}, ...['bus', 'watchdog', 'timeout', 'fed by', 'since last feed', 'trips / last stop', 'owed stops', 'motion', ''].map((t) => element('th', {}, t)))),
+      element('tbody', {}, ...rows)));
+}
+
+function renderSafety(data, me) {
+  const panel = document.getElementById('safety');
+  if (!panel) return;
+  if (!safetyRows || safetyRows.size !== data.buses.length || data.buses.some((b) => !safetyRows.has(b.name))) buildSafety(panel, data, me);
+  const operate = allows(me.role, 'operate');
+  const estop = data.gateway.estop;
+  const state = document.getElementById('estop-state');
+  state.textContent = estop.latched ? 'LATCHED' : 'released';
+  state.className = estop.latched ? 'bad' : 'ok';
+  document.getElementById('estop-reset').disabled = !operate || !estop.latched;
+  for (const bus of data.buses) {
+    const { cells, rearm } = safetyRows.get(bus.name);
+    const s = bus.safety;
+    const set = (cell, text, cls) => { cell.textContent = text; cell.className = cls; };
+    if (!s) {
+      set(cells.state, 'no safety rules on this bus', 'wd-state muted');
+      rearm.disabled = true;
+      continue;
+    }
+    const off = s.watchdog === 'off';
+    const tripped = s.watchdog === 'tripped';
+    let text = s.watchdog;
+    if (tripped) text += ` at ${clock(s.since_trip_ms)} (no feed for ${s.timeout_ms} ms)`;
+    else if (s.watchdog === 'armed') text += ' (counts from the first feed or motion write)';
+    else if (off) text = 'off (no watchdog on this bus)';
+    set(cells.state, text, 'wd-state ' + (tripped ? 'bad' : off ? 'muted' : 'ok'));
+    set(cells.timeout, off ? '—' : s.timeout_ms + ' ms', 'num');
+    set(cells.feed, s.feed || '—', 'wd-feed');
+    set(cells.since, off ? '—' : seconds(s.since_feed_ms), 'num wd-since');
+    set(cells.cause, `trips: ${s.trips}; last stop: ${s.last_cause}`, 'wd-cause');
+    set(cells.owed, String(s.owed_stops), 'num owed' + (s.owed_stops ? ' bad' : ''));
+    const why = blockedWhy(estop, bus);
+    set(cells.motion, why, 'motion ' + (why === 'allowed' ? 'ok' : 'bad'));
+    rearm.disabled = !operate || !tripped;
+  }
+}
+
+function startSafetyPanel(me) {
+  const main = document.querySelector('main');
+  if (!main || document.getElementById('safety')) return;
+  const panel = element('section', { class: 'card safety', id: 'safety' }, element('h2', {}, 'Safety'));
+  const title = main.querySelector('h1');
+  if (title) title.after(panel); else main.prepend(panel);
+  onOverview((data) => { setEstop(data.gateway.estop.latched); renderSafety(data, me); });
+  live('/ws/overview', (data) => {
+    lastOverview = data;
+    for (const listener of overviewListeners) listener(data);
+  });
 }

@@ -1,4 +1,4 @@
-import { header, live, api, say, element, setEstop, allows } from '/static/console.js';
+import { header, onOverview, api, say, element, setEstop, allows, withUnit } from '/static/console.js';
 
 const me = await header('overview');
 const rearm = document.getElementById('rearm');
@@ -56,11 +56,10 @@ function render(data) {
     element('td', {}, servo.table), element('td', {}, servo.model || ''), element('td', {}, servo.firmware || ''),
     element('td', { class: servo.online ? 'ok online' : 'bad offline' }, servo.online ? 'online' : 'offline'),
     element('td', { class: servo.faults && servo.faults.length ? 'bad' : 'muted' }, servo.faults && servo.faults.length ? servo.faults.join(', ') : 'none'),
-    element('td', { class: 'num position' }, servo.position ?? ''),
-    element('td', { class: 'num' }, servo.temperature ?? ''),
-    element('td', { class: 'num' }, servo.voltage ?? ''),
-    element('td', { class: 'num' }, servo.load ?? ''))));
+    ...['position', 'temperature', 'voltage', 'load'].map((key) => element('td',
+      { class: 'num ' + key, 'data-raw': servo[key] ?? '', title: servo[key] === undefined ? '' : `raw ${servo[key]}` },
+      withUnit(servo[key], servo.units && servo.units[key]))))));
 }
 
 render(await api('GET', '/api/overview'));
-live('/ws/overview', render);
+onOverview(render);

@@ -185,6 +185,38 @@ TEST_F(SafetyState, ALentBusRefusesMotionUntilReturned) {
   EXPECT_TRUE(safety_->admit_motion(0));
 }
 
+// motion_refusal() names the rule that refuses a motion write (the console asks it after a 0x04)
+// in admit_motion()'s words, and starts no watchdog: asking is not a motion write.
+TEST_F(SafetyState, MotionRefusalNamesTheRuleAndStartsNothing) {
+  make("", true);
+  EXPECT_FALSE(safety_->motion_refusal(0, 1));
+  EXPECT_EQ(safety_->facts().buses[0].state, WatchdogState::Armed);  // asking started no count
+  EXPECT_FALSE(safety_->facts().buses[0].since_trip);
+  auto inline_post = [](std::function<void()> work) { work(); };
+  safety_->estop(inline_post, [](bool) {});
+  const auto latched = safety_->motion_refusal(1);
+  ASSERT_TRUE(latched);
+  EXPECT_EQ(*latched, safety_->admit_motion(1).error());
+  EXPECT_NE(latched->find("bus base: the e-stop is latched"), std::string::npos) << *latched;
+  safety_->reset_estop();
+  // The e-stop's stop reached no servo (the port is missing): servo 1 owes it.
+  ASSERT_TRUE(test::eventually([&] { return safety_->facts().buses[0].owed_stops == 1; }, "servo 1 owed its stop"));
+  const auto owed = safety_->motion_refusal(0, 1);
+  ASSERT_TRUE(owed);
+  EXPECT_NE(owed->find("servo 1 owes a safe stop (e-stop)"), std::string::npos) << *owed;
+  EXPECT_FALSE(safety_->motion_refusal(0, 2));
+  EXPECT_FALSE(safety_->motion_refusal(0));
+  // A motion write starts bus arm's 10 ms watchdog; once it tripped, that is the rule.
+  ASSERT_TRUE(safety_->admit_motion(0));
+  ASSERT_TRUE(test::eventually([&] { return safety_->facts().buses[0].state == WatchdogState::Tripped; }, "the trip"));
+  const auto tripped = safety_->motion_refusal(0, 1);
+  ASSERT_TRUE(tripped);
+  EXPECT_NE(tripped->find("bus arm: its watchdog tripped (no feed for 10 ms)"), std::string::npos) << *tripped;
+  EXPECT_TRUE(safety_->facts().buses[0].since_trip);
+  EXPECT_FALSE(safety_->motion_refusal(1));
+  safety_->rearm_watchdogs();
+}
+
 TEST_F(SafetyState, LatchAndTripsAreRestoredFromTheStateFile) {
   TempState state;
   { std::ofstream(state.file()) << "estop_latched: true\ntripped_watchdogs: [base, gone]\n"; }
