@@ -258,6 +258,35 @@ TEST_F(TagListTest, NodeRedFlowIsWiredAndShowsErrors) {
     ++counts[type];
     if (type == "tab") continue;
     if (type == "modbus-client") {
+      // Every property of node-red-contrib-modbus's modbus-client defaults (src/modbus-client.html).
+      for (const char* key : {"name",
+                              "clienttype",
+                              "bufferCommands",
+                              "stateLogEnabled",
+                              "queueLogEnabled",
+                              "failureLogEnabled",
+                              "tcpHost",
+                              "tcpPort",
+                              "tcpType",
+                              "serialPort",
+                              "serialType",
+                              "serialBaudrate",
+                              "serialDatabits",
+                              "serialStopbits",
+                              "serialParity",
+                              "serialConnectionDelay",
+                              "serialAsciiResponseStartDelimiter",
+                              "unit_id",
+                              "commandDelay",
+                              "clientTimeout",
+                              "reconnectOnTimeout",
+                              "reconnectTimeout",
+                              "parallelUnitIdsAllowed",
+                              "showErrors",
+                              "showWarnings",
+                              "showLogs"}) {
+        EXPECT_TRUE(node.contains(key)) << key;
+      }
       EXPECT_EQ(node["tcpHost"], "10.0.0.5");
       EXPECT_EQ(node["tcpPort"], "1502");
       EXPECT_EQ(node["clienttype"], "tcp");
@@ -275,6 +304,24 @@ TEST_F(TagListTest, NodeRedFlowIsWiredAndShowsErrors) {
       for (const char* key : {"name", "showStatusActivities", "showWarnings", "unitid", "dataType", "adr", "quantity",
                               "delayOnStart", "startDelayTime", "emptyMsgOnFail"}) {
         EXPECT_TRUE(node.contains(key)) << key << " " << node.dump();
+      }
+    }
+    if (type == "inject") {  // Node-RED's inject defaults
+      for (const char* key :
+           {"name", "props", "repeat", "crontab", "once", "onceDelay", "topic", "payload", "payloadType"}) {
+        EXPECT_TRUE(node.contains(key)) << key;
+      }
+      ASSERT_EQ(node["wires"].size(), 1U);
+      ASSERT_EQ(node["wires"][0].size(), 1U);
+      // It re-arms: false into a write of coil 2 of the gateway unit.
+      EXPECT_EQ(node["payload"], "false");
+      EXPECT_EQ(node["payloadType"], "bool");
+      for (const json& write : flow) {
+        if (write["id"] != node["wires"][0][0]) continue;
+        EXPECT_EQ(write["type"], "modbus-write");
+        EXPECT_EQ(write["unitid"], "255");
+        EXPECT_EQ(write["dataType"], "Coil");
+        EXPECT_EQ(write["adr"], "2");
       }
     }
     if (type == "modbus-read") {
