@@ -25,19 +25,10 @@ namespace sms::gateway {
 
 namespace {
 
-AddressBlock poll_block_of(const config::BusConfig& bus, const config::ServoConfig& servo) {
-  const modbus_map::TableId table = *servo.table;
-  modbus_map::BusRange range;
-  if (bus.poll.range) {
-    range = {bus.poll.range->start, bus.poll.range->count};
-  } else if (!bus.poll.fields.empty()) {
-    const auto fields = modbus_map::poll_block_for_fields(table, bus.poll.fields);
-    if (!fields) throw std::runtime_error("bus '" + bus.name + "': poll_fields: " + fields.error());
-    range = *fields;
-  } else {
-    range = modbus_map::default_poll_block(table);
-  }
-  return AddressBlock{range.address, range.count};
+AddressBlock poll_block_for(const config::BusConfig& bus, const config::ServoConfig& servo) {
+  const auto range = poll_block_of(bus, servo);
+  if (!range) throw std::runtime_error(range.error());
+  return AddressBlock{range->address, range->count};
 }
 
 }  // namespace
@@ -60,7 +51,7 @@ BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index
   for (const auto& servo : config.servos) {
     if (servo.bus_index != bus_index || servo.passthrough() || servo.view_of) continue;  // polled once
     settings.servos.push_back(
-        ServoSettings{servo.servo_id, *servo.table, config::effective_byte_order(servo), poll_block_of(bus, servo)});
+        ServoSettings{servo.servo_id, *servo.table, config::effective_byte_order(servo), poll_block_for(bus, servo)});
   }
   return settings;
 }

@@ -4,7 +4,7 @@
 //   sms-gateway --simulate                   # 6 simulated sts servos, units 1-6, 127.0.0.1:5020
 //   sms-gateway --check-config gateway.yaml
 //
-// Integrator tools (scan, set-id, set-baud, calibrate-middle, factory-reset, dump) and the transparent
+// Integrator tools (scan, set-id, set-baud, calibrate-middle, factory-reset, dump, tags) and the transparent
 // forwarder come as subcommands (gateway/tools/tool_cli.h); without a subcommand the gateway runs.
 #include <signal.h>
 

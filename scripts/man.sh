@@ -30,7 +30,7 @@ trap 'rm -rf "$work"' EXIT
   cat "$root/docs/man/sms-gateway.h2m"
   echo "[TOOLS]"
   echo "Each tool is a subcommand; its options:"
-  for tool in scan set-id set-baud calibrate-middle factory-reset dump forward; do
+  for tool in scan set-id set-baud calibrate-middle factory-reset dump forward tags; do
     echo ".SS \"sms-gateway $tool\""
     echo ".nf"
     sms-gateway "$tool" --help | sed -e 's/\\/\\e/g' -e 's/^\./\\\&./' -e 's/^'"'"'/\\\&'"'"'/'

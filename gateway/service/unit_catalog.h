@@ -19,6 +19,11 @@ namespace sms::gateway {
 // The register map profile a unit's `profile` names.
 modbus_map::Profile map_profile(config::Profile profile);
 
+// The block the bus's poll cycle reads from a table servo (bus addresses): the bus's `poll`
+// range, else the smallest block holding its poll fields, else the table's feedback block. A
+// servo unit's input registers serve this block only. The error names the bus.
+Expected<modbus_map::BusRange> poll_block_of(const config::BusConfig& bus, const config::ServoConfig& servo);
+
 struct CatalogUnit {
   const config::ServoConfig* servo = nullptr;  // its configuration
   // What the unit's Modbus addresses name: its table, in its profile and byte order.

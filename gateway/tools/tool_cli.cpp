@@ -12,6 +12,9 @@
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
+#include "config/load.h"
+#include "gateway/service/unit_catalog.h"
+#include "gateway/tools/tag_list.h"
 #include "gateway/tools/tool_scan.h"
 #include "gateway/tools/tool_servo.h"
 #include "gateway/units/passthrough.h"
@@ -414,6 +417,61 @@ void add_forward(CLI::App& app) {
   });
 }
 
+struct TagsArgs {
+  std::string config_file;
+  std::string format;
+  std::string output;
+  std::string host = "127.0.0.1";
+  unsigned port = 502;
+};
+
+constexpr const char* kTagFormats = "csv, node-red or fuxa";
+
+void add_tags(CLI::App& app) {
+  auto args = std::make_shared<TagsArgs>();
+  CLI::App* command = app.add_subcommand(
+      "tags",
+      "Print every Modbus address a configuration serves as tags for an HMI: csv, node-red, fuxa (docs/HMI.md)");
+  command->add_option("--config", args->config_file, "The gateway configuration (YAML)")->required();
+  // Checked in the callback, not by CLI11: a wrong format is a usage error (2) naming the formats.
+  command->add_option("--format", args->format, std::string("Output format: ") + kTagFormats)->required();
+  command->add_option("--output", args->output, "Write to FILE instead of standard output");
+  command->add_option("--host", args->host, "Gateway address the Node-RED and FUXA connections use")
+      ->capture_default_str();
+  command->add_option("--port", args->port, "Gateway Modbus TCP port the Node-RED and FUXA connections use")
+      ->check(CLI::Range(1U, 65535U))
+      ->capture_default_str();
+  command->callback([args] {
+    if (args->format != "csv" && args->format != "node-red" && args->format != "fuxa") {
+      fail("tags", "--format " + args->format + ": the formats are " + kTagFormats, kExitUsage);
+    }
+    const auto config = config::load_config_file(args->config_file);
+    if (!config) fail("tags", config.error().to_string(), kExitUsage);
+    std::string text;
+    try {
+      const UnitCatalog catalog(*config);
+      const FlowTarget target{args->host, static_cast<std::uint16_t>(args->port)};
+      if (args->format == "csv") {
+        text = tags_csv(tag_list(*config, catalog));
+      } else if (args->format == "node-red") {
+        text = node_red_flow(*config, catalog, target).dump(2) + "\n";
+      } else {
+        text = fuxa_devices(tag_list(*config, catalog), target).dump(2) + "\n";
+      }
+    } catch (const std::exception& error) {
+      fail("tags", args->config_file + ": " + error.what());
+    }
+    if (args->output.empty()) {
+      std::cout << text << std::flush;
+    } else {
+      std::ofstream out(args->output, std::ios::binary);
+      out << text;
+      if (!out) fail("tags", "cannot write " + args->output + ": " + std::strerror(errno));
+    }
+    finish(kExitOk);
+  });
+}
+
 }  // namespace
 
 void add_tool_commands(CLI::App& app) {
@@ -429,6 +487,7 @@ void add_tool_commands(CLI::App& app) {
                    "feetech and modbus-rtu servos have no such instruction)",
                    factory_reset, "");
   add_dump(app);
+  add_tags(app);
 }
 
 }  // namespace sms::gateway

@@ -3,6 +3,7 @@
 //   forward           Modbus TCP -> RTU gateway without a configuration file (passthrough.h)
 //   scan              find servos on a line: every rate of the protocol's table, every ID (tool_scan.h)
 //   set-id, set-baud, calibrate-middle, factory-reset, dump   one servo (tool_servo.h)
+//   tags              a configuration's addresses as HMI tag lists (tag_list.h)
 // `sms-gateway SUBCOMMAND --help` lists each one's options.
 //
 // A subcommand runs inside app.parse() (its callback) and ends the parse with

@@ -41,6 +41,7 @@ inline constexpr std::uint16_t kOnlineBit = 1008;
 inline constexpr std::size_t kStatus = 0;
 inline constexpr std::size_t kOnline = 1;
 inline constexpr std::size_t kCacheAge = 2;
+inline constexpr std::size_t kIdentity = 3;
 inline constexpr std::size_t kRepliesOk = 4;
 inline constexpr std::size_t kTimeouts = 6;
 }  // namespace servo_facts_layout
