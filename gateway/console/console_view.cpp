@@ -7,6 +7,7 @@
 
 #include "gateway/bus/discovery.h"
 #include "gateway/service/role_policy.h"
+#include "modbus_map/field_unit.h"
 #include "modbus_map/tables.h"
 #include "protocol/feetech.h"
 
@@ -113,30 +114,9 @@ std::optional<PolledValues> read_polled(const ServoUnit& unit) {
 }
 
 std::optional<UnitScale> unit_scale(const modbus_map::FieldSpec& field) {
-  const std::string_view text = field.unit;
-  // Units that name a choice or a product are not one scale.
-  for (const std::string_view ambiguous : {" or ", "/ ", "×"}) {
-    if (text.find(ambiguous) != std::string_view::npos) return std::nullopt;
-  }
-  std::size_t at = 0;
-  while (at < text.size() && ((text[at] >= '0' && text[at] <= '9') || text[at] == '.')) ++at;
-  const std::string_view number = text.substr(0, at);
-  while (at < text.size() && text[at] == ' ') ++at;
-  const std::string_view symbol = text.substr(at);
-  if (symbol.empty() || (symbol[0] >= '0' && symbol[0] <= '9')) return std::nullopt;
-  UnitScale scale;
-  scale.symbol = std::string(symbol);
-  if (!number.empty()) {
-    try {
-      scale.scale = std::stod(std::string(number));
-    } catch (const std::exception&) {
-      return std::nullopt;
-    }
-    if (!(scale.scale > 0)) return std::nullopt;
-    const auto point = number.find('.');
-    scale.decimals = point == std::string_view::npos ? 0 : static_cast<int>(number.size() - point - 1);
-  }
-  return scale;
+  const modbus_map::FieldUnit unit = modbus_map::field_unit(field);
+  if (field.unit.empty() || !unit.plain) return std::nullopt;
+  return UnitScale{unit.scale, std::string(unit.symbol), unit.decimals};
 }
 
 json unit_scale_json(const modbus_map::FieldSpec& field) {

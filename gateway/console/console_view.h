@@ -30,16 +30,15 @@ std::optional<PolledValues> read_polled(const ServoUnit& unit);
 // Whether the register of `entry` is signed as a client sees it (negative minimum).
 std::int32_t register_to_value(const modbus_map::RegisterEntry& entry, std::uint16_t reg);
 
-// How the pages show a field's values: raw × scale, in `symbol`, with `decimals` places, read
-// from the table's unit (FieldSpec::unit: "0.1 V" is scale 0.1 in V, "°C" scale 1 in °C).
+// How the pages show a field's values: raw × scale, in `symbol`, with `decimals` places, as
+// modbus_map::field_unit() reads the table's unit (the tag lists read it the same way).
 // nullopt: no unit, or one that is no plain scale ("0.732 rpm or step/s" depends on the servo's
-// phase, "deg × resolution"): the pages show the raw value and the table's text.
+// phase): the pages show the raw value and the table's text.
 struct UnitScale {
   double scale = 1;
   std::string symbol;
   int decimals = 0;
 };
-// The one place the console reads FieldSpec::unit.
 std::optional<UnitScale> unit_scale(const modbus_map::FieldSpec& field);
 // {"scale": 0.1, "symbol": "V", "decimals": 1}, or null when unit_scale() has none.
 nlohmann::json unit_scale_json(const modbus_map::FieldSpec& field);

@@ -14,12 +14,24 @@ TEST(FieldUnit, LeadingNumberIsTheScale) {
   EXPECT_EQ(parse_field_unit("0.087°").symbol, "°");
   EXPECT_DOUBLE_EQ(parse_field_unit("10 ms").scale, 10.0);
   EXPECT_EQ(parse_field_unit("10 ms").symbol, "ms");
-  EXPECT_DOUBLE_EQ(parse_field_unit("0.732 rpm or step/s").scale, 0.732);
-  EXPECT_EQ(parse_field_unit("0.732 rpm or step/s").symbol, "rpm or step/s");
+  EXPECT_EQ(parse_field_unit("0.1 V").decimals, 1);
+  EXPECT_EQ(parse_field_unit("0.087°").decimals, 3);
+  EXPECT_EQ(parse_field_unit("10 ms").decimals, 0);
+  EXPECT_TRUE(parse_field_unit("0.1 V").plain);
+}
+
+// A choice or a product of units is no one scale: shown raw, with the table's whole text.
+TEST(FieldUnit, AChoiceOrAProductIsNotOneScale) {
+  for (const std::string_view unit : {"0.732 rpm or step/s", "ms / 0.1 %", "deg \u00d7 resolution", "10"}) {
+    const FieldUnit parsed = parse_field_unit(unit);
+    EXPECT_FALSE(parsed.plain) << unit;
+    EXPECT_DOUBLE_EQ(parsed.scale, 1.0) << unit;
+    EXPECT_EQ(parsed.symbol, unit) << unit;
+  }
 }
 
 TEST(FieldUnit, NoLeadingNumberIsScaleOne) {
-  for (const std::string_view unit : {"steps", "°C", "", "ms / 0.1 %", "deg × resolution", ".5 V"}) {
+  for (const std::string_view unit : {"steps", "°C", "", ".5 V"}) {
     const FieldUnit parsed = parse_field_unit(unit);
     EXPECT_DOUBLE_EQ(parsed.scale, 1.0) << unit;
     EXPECT_EQ(parsed.symbol, unit) << unit;
