@@ -25,15 +25,8 @@ namespace {
 
 using namespace std::chrono_literals;
 
-struct Finished {
-  int status = -1;
-  std::string output;  // stdout and stderr together
-};
-
-Finished run(std::vector<std::string> argv, std::chrono::milliseconds timeout = 60s) {
-  ChildProcess process(argv);
-  const auto status = process.wait_exit(timeout);  // and has read everything the child wrote
-  return Finished{status.value_or(-1), process.output()};
+Finished run(const std::vector<std::string>& argv, std::chrono::milliseconds timeout = 60s) {
+  return run_to_end(argv, timeout);
 }
 
 // The CSV's rows as header -> value (RFC 4180: quoted fields may hold commas and doubled quotes).

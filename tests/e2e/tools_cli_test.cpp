@@ -21,19 +21,10 @@ namespace {
 
 using namespace std::chrono_literals;
 
-struct Finished {
-  int status = -1;
-  std::string output;  // stdout and stderr together
-};
-
 Finished run_gateway(std::vector<std::string> args, std::chrono::milliseconds timeout = 60s) {
   std::vector<std::string> argv{bin("sms-gateway")};
   argv.insert(argv.end(), args.begin(), args.end());
-  ChildProcess process(argv);
-  const auto status = process.wait_exit(timeout);
-  // The reader thread may still be collecting the last lines: wait for the pipe to close.
-  process.wait_for_line("\x01never\x01", 2s);
-  return Finished{status.value_or(-1), process.output()};
+  return run_to_end(argv, timeout);
 }
 
 bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }

@@ -145,4 +145,15 @@ class ChildProcess {
   bool output_closed_ = false;
 };
 
+// A program run to its end: its exit status (-1 when it ran past `timeout`) and all it wrote.
+struct Finished {
+  int status = -1;
+  std::string output;  // stdout and stderr together
+};
+inline Finished run_to_end(const std::vector<std::string>& argv, std::chrono::milliseconds timeout) {
+  ChildProcess process(argv);
+  const auto status = process.wait_exit(timeout);  // and has read everything the child wrote
+  return Finished{status.value_or(-1), process.output()};
+}
+
 }  // namespace sms::test
