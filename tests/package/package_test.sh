@@ -94,7 +94,7 @@ done) >"$scratch/links"
 
 # postinst configure on a machine without the user: it creates group and user, puts the user in
 # dialout, makes /etc/sms-gateway and the console's self-signed certificate and key (the key
-# 0640 root:sms); the unit is registered but not enabled or started.
+# 0640 root:_sms-gateway); the unit is registered but not enabled or started.
 stand_ins="$scratch/bin"
 mkdir -p "$stand_ins"
 for tool in addgroup adduser systemctl install deb-systemd-helper deb-systemd-invoke openssl chown chmod; do
@@ -107,16 +107,16 @@ printf '#!/bin/sh\necho "deb-systemd-helper $*" >>"%s"\ncase "$*" in *was-enable
 chmod +x "$stand_ins"/*
 PATH="$stand_ins:$PATH" sh "$control/postinst" configure || fail "postinst configure failed"
 calls=$(cat "$scratch/calls")
-grep -q '^addgroup --system --quiet sms$' <<<"$calls" || fail "postinst did not create the group: $calls"
-grep -q '^adduser --system --quiet --ingroup sms .* sms$' <<<"$calls" || fail "postinst did not create the user: $calls"
-grep -q '^adduser --quiet sms dialout$' <<<"$calls" || fail "postinst did not add sms to dialout: $calls"
+grep -q '^addgroup --system --quiet _sms-gateway$' <<<"$calls" || fail "postinst did not create the group: $calls"
+grep -q '^adduser --system --quiet --ingroup _sms-gateway .* _sms-gateway$' <<<"$calls" || fail "postinst did not create the user: $calls"
+grep -q '^adduser --quiet _sms-gateway dialout$' <<<"$calls" || fail "postinst did not add _sms-gateway to dialout: $calls"
 grep -q '^install -d -m 0755 /etc/sms-gateway$' <<<"$calls" || fail "postinst did not make /etc/sms-gateway: $calls"
 if [ ! -e /etc/sms-gateway/console/console.key ] && [ ! -e /etc/sms-gateway/console/console.crt ]; then
-  grep -q '^install -d -m 0750 -o root -g sms /etc/sms-gateway/console$' <<<"$calls" ||
+  grep -q '^install -d -m 0750 -o root -g _sms-gateway /etc/sms-gateway/console$' <<<"$calls" ||
     fail "postinst did not make /etc/sms-gateway/console for the service group: $calls"
   grep -q '^openssl req -x509 .*-keyout /etc/sms-gateway/console/console.key -out /etc/sms-gateway/console/console.crt$' \
     <<<"$calls" || fail "postinst did not make the console's certificate: $calls"
-  grep -q '^chown root:sms /etc/sms-gateway/console/console.key /etc/sms-gateway/console/console.crt$' <<<"$calls" ||
+  grep -q '^chown root:_sms-gateway /etc/sms-gateway/console/console.key /etc/sms-gateway/console/console.crt$' <<<"$calls" ||
     fail "postinst did not give the console's key to the service group: $calls"
   grep -q '^chmod 0640 /etc/sms-gateway/console/console.key$' <<<"$calls" ||
     fail "postinst left the console's key readable beyond the service group: $calls"
