@@ -29,8 +29,9 @@ install(CODE "
 install(FILES docs/man/sms-gateway.1 docs/man/sms-sim.1 DESTINATION ${CMAKE_INSTALL_MANDIR}/man1)
 install(FILES docs/man/sms-gateway.yaml.5 DESTINATION ${CMAKE_INSTALL_MANDIR}/man5)
 
-# The documents keep the source tree's layout, so their links to one another work installed.
-install(FILES README.md DESTINATION ${CMAKE_INSTALL_DOCDIR})
+# The README of the installed product (the source tree's README.md is about building and testing),
+# then the documents in the source tree's layout, so their links to one another keep their sense.
+install(FILES deploy/README.installed.md DESTINATION ${CMAKE_INSTALL_DOCDIR} RENAME README.md)
 install(DIRECTORY docs/ DESTINATION ${CMAKE_INSTALL_DOCDIR}/docs FILES_MATCHING PATTERN "*.md" PATTERN man EXCLUDE)
 # The README's screenshots of the browser console (docs/CONSOLE.md).
 install(DIRECTORY docs/screenshots/ DESTINATION ${CMAKE_INSTALL_DOCDIR}/docs/screenshots FILES_MATCHING PATTERN "*.png")
