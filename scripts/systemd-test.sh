@@ -15,8 +15,8 @@
 #     servos 1 and 6 included; a restart of the gateway while sms-sim holds the pty answers again;
 #   - an upgrade restarts the running service (a new main PID, still active, servo 1 answers);
 #   - purge leaves no enable link and no /var/lib/sms-gateway; a reinstall is not enabled;
-#   - what an earlier package's `sms` account owned (config, state) becomes _sms-gateway's, and
-#     the sms account stays.
+#   - what an earlier package's `sms` account owned (config, state) becomes _sms-gateway's (the
+#     gateway runs on it), and the sms account stays.
 #
 #   scripts/systemd-test.sh [DEB]      # default: the newest build-deb/sms-gateway_*.deb (scripts/package.sh)
 set -euo pipefail
@@ -186,15 +186,19 @@ check "reinstall after purge: not enabled" test "$(systemctl is-enabled sms-gate
 check "reinstall after purge: not started" test "$(prop ActiveState)" != active
 
 # What an earlier package that ran the service as `sms` leaves: a config and state of sms's.
-# Configuring again hands them to _sms-gateway and leaves the sms account alone.
+# Configuring again hands the config to _sms-gateway, the next start the state (StateDirectory=);
+# the sms account stays.
 adduser --system --group --quiet --no-create-home --home /nonexistent sms
 chown root:sms /etc/sms-gateway/config.yaml
 install -d -o sms -g sms -m 0750 /var/lib/sms-gateway
-install -o sms -g sms -m 0600 /dev/null /var/lib/sms-gateway/estop
+install -o sms -g sms -m 0600 /dev/null /var/lib/sms-gateway/left-by-sms
 apt-get install -y -q --reinstall /debs/current.deb >/results/apt-reinstall.log 2>&1
 check "from sms: config.yaml is root:_sms-gateway" test "$(stat -c %U:%G /etc/sms-gateway/config.yaml)" = root:_sms-gateway
-check "from sms: the state is _sms-gateway's" \
-  test "$(stat -c %U:%G /var/lib/sms-gateway /var/lib/sms-gateway/estop | sort -u)" = _sms-gateway:_sms-gateway
+systemctl start sms-sim sms-gateway
+wait_state active 10
+check "from sms: the gateway runs on that config, servo 1 answers" retry 15 servo_answers 1
+check "from sms: the state is _sms-gateway's after the start" \
+  test "$(stat -c %U:%G /var/lib/sms-gateway /var/lib/sms-gateway/left-by-sms | sort -u)" = _sms-gateway:_sms-gateway
 check "from sms: the sms account is still there" getent passwd sms
 
 echo "result: $([ "$failed" = 0 ] && echo PASS || echo FAIL)"
