@@ -55,6 +55,12 @@ git ls-files -z --cached --others --exclude-standard | xargs -0 cp --parents -t 
 # Cross: the architecture-dependent package only (-B), no tests (nocheck: they run under qemu in
 # scripts/cross.sh --test), and -d: dpkg-checkbuilddeps cannot see what cross.sh provides outside
 # dpkg (the sysroot, the unpacked -dev package that is not co-installable); cross.sh checked it.
+# ccache, when installed, in front of the compilers (CMake reads these variables; the fixed path
+# above lets it hit across runs). A cross build's toolchain settings come from cross.sh.
+if command -v ccache >/dev/null; then
+  export CMAKE_C_COMPILER_LAUNCHER=${CMAKE_C_COMPILER_LAUNCHER:-ccache}
+  export CMAKE_CXX_COMPILER_LAUNCHER=${CMAKE_CXX_COMPILER_LAUNCHER:-ccache}
+fi
 build=(dpkg-buildpackage -b -us -uc -j"$(nproc)")
 [ -z "$arch" ] ||
   build=(env DEB_BUILD_OPTIONS="nocheck ${DEB_BUILD_OPTIONS:-}" dpkg-buildpackage -a "$arch" -B -d -us -uc -j"${SMS_CROSS_JOBS:-2}")

@@ -43,7 +43,7 @@ TEST(ConfigExamples, SimulatedIsSixStsServosWithOneGoalPositionGroup) {
   const Config config = load_example("simulated.yaml");
   EXPECT_EQ(config.modbus_tcp.listen, (HostPort{"127.0.0.1", 5020}));
   ASSERT_EQ(config.buses.size(), 1u);
-  EXPECT_EQ(config.buses[0].device, "/tmp/ttySIM0");
+  EXPECT_EQ(config.buses[0].device, "/run/sms-sim/ttySIM0");
   EXPECT_EQ(config.buses[0].protocol, protocol::BusProtocol::Feetech);
   EXPECT_EQ(config.buses[0].baud, 1000000u);
   ASSERT_EQ(config.servos.size(), 6u);

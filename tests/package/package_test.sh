@@ -42,11 +42,11 @@ for script in postinst prerm postrm; do grep -q " $script " <<<"$info" || fail "
 
 contents=$(dpkg-deb --contents "$deb" | awk '{print $6}')
 doc=./usr/share/doc/sms-gateway
-for path in ./usr/bin/sms-gateway ./usr/bin/sms-sim ./lib/systemd/system/sms-gateway.service \
+for path in ./usr/bin/sms-gateway ./usr/bin/sms-sim ./lib/systemd/system/sms-gateway.service ./lib/systemd/system/sms-sim.service \
             ./usr/share/man/man1/sms-gateway.1.gz ./usr/share/man/man1/sms-sim.1.gz \
             ./usr/share/man/man5/sms-gateway.yaml.5.gz \
-            $doc/README.md $doc/copyright $doc/changelog.gz $doc/docs/PLC_GUIDE.md $doc/docs/PROTOCOL.md \
-            $doc/docs/INSTALL.md $doc/config/README.md $doc/config/examples/mixed.yaml $doc/examples \
+            $doc/README.md $doc/copyright $doc/changelog.gz $doc/docs/PLC_GUIDE.md.gz $doc/docs/PROTOCOL.md.gz \
+            $doc/docs/INSTALL.md.gz $doc/config/README.md.gz $doc/config/examples/mixed.yaml $doc/examples \
             ./usr/share/sms-gateway/wireshark/sms_servo.lua; do
   grep -qx "$path" <<<"$contents" || fail "$path is not in the package"
 done
@@ -77,24 +77,26 @@ grep -q '^RestartPreventExitStatus=2$' "$unit" || fail "the unit restarts after 
 grep -q '^SupplementaryGroups=dialout$' "$unit" || fail "the unit lost its dialout group"
 grep -q '^StateDirectory=sms-gateway$' "$unit" || fail "the unit has no StateDirectory"
 # Shipped files describe the installed system, not the source tree.
-if grep -rn -e 'build/bin' -e '/usr/local/bin' -e 'config/examples/' "$unit" "$root/usr/share/doc/sms-gateway/config/examples"; then
+if grep -rn -e 'build/bin' -e '/usr/local/bin' -e 'config/examples/' -e '\./scripts/' "$unit" \
+     "$root/usr/share/doc/sms-gateway/config/examples" "$root/usr/share/doc/sms-gateway/README.md"; then
   fail "shipped files name paths of the source tree (above)"
 fi
 for page in man1/sms-gateway.1 man1/sms-sim.1 man5/sms-gateway.yaml.5; do
   LC_ALL=C.UTF-8 man -l "$root/usr/share/man/$page.gz" 2>/dev/null | grep -q . || fail "man $page does not render"
 done
-# Every relative link of the installed documents resolves where they are installed.
-(cd "$root/usr/share/doc/sms-gateway" && find . -name '*.md' | while read -r md; do
-  { grep -o '](\([^)#: ]*\)[)#]' "$md" || true; } | sed 's/^](//; s/[)#]$//' | while read -r target; do
+# Every relative link of the installed documents resolves where they are installed (to the file,
+# or to it compressed: documents over 4 KiB are).
+(cd "$root/usr/share/doc/sms-gateway" && find . -name '*.md' -o -name '*.md.gz' | while read -r md; do
+  { zcat -f "$md" | grep -o '](\([^)#: ]*\)[)#]' || true; } | sed 's/^](//; s/[)#]$//' | while read -r target; do
     [ -n "$target" ] || continue
-    [ -e "$(dirname "$md")/$target" ] || echo "$md: $target"
+    [ -e "$(dirname "$md")/$target" ] || [ -e "$(dirname "$md")/$target.gz" ] || echo "$md: $target"
   done
 done) >"$scratch/links"
 [ ! -s "$scratch/links" ] || fail "installed documents link to files that are not installed: $(cat "$scratch/links")"
 
 # postinst configure on a machine without the user: it creates group and user, puts the user in
 # dialout, makes /etc/sms-gateway and the console's self-signed certificate and key (the key
-# 0640 root:sms); the unit is registered but not enabled or started.
+# 0640 root:_sms-gateway); the unit is registered but not enabled or started.
 stand_ins="$scratch/bin"
 mkdir -p "$stand_ins"
 for tool in addgroup adduser systemctl install deb-systemd-helper deb-systemd-invoke openssl chown chmod; do
@@ -107,16 +109,16 @@ printf '#!/bin/sh\necho "deb-systemd-helper $*" >>"%s"\ncase "$*" in *was-enable
 chmod +x "$stand_ins"/*
 PATH="$stand_ins:$PATH" sh "$control/postinst" configure || fail "postinst configure failed"
 calls=$(cat "$scratch/calls")
-grep -q '^addgroup --system --quiet sms$' <<<"$calls" || fail "postinst did not create the group: $calls"
-grep -q '^adduser --system --quiet --ingroup sms .* sms$' <<<"$calls" || fail "postinst did not create the user: $calls"
-grep -q '^adduser --quiet sms dialout$' <<<"$calls" || fail "postinst did not add sms to dialout: $calls"
+grep -q '^addgroup --system --quiet _sms-gateway$' <<<"$calls" || fail "postinst did not create the group: $calls"
+grep -q '^adduser --system --quiet --ingroup _sms-gateway .* _sms-gateway$' <<<"$calls" || fail "postinst did not create the user: $calls"
+grep -q '^adduser --quiet _sms-gateway dialout$' <<<"$calls" || fail "postinst did not add _sms-gateway to dialout: $calls"
 grep -q '^install -d -m 0755 /etc/sms-gateway$' <<<"$calls" || fail "postinst did not make /etc/sms-gateway: $calls"
 if [ ! -e /etc/sms-gateway/console/console.key ] && [ ! -e /etc/sms-gateway/console/console.crt ]; then
-  grep -q '^install -d -m 0750 -o root -g sms /etc/sms-gateway/console$' <<<"$calls" ||
+  grep -q '^install -d -m 0750 -o root -g _sms-gateway /etc/sms-gateway/console$' <<<"$calls" ||
     fail "postinst did not make /etc/sms-gateway/console for the service group: $calls"
   grep -q '^openssl req -x509 .*-keyout /etc/sms-gateway/console/console.key -out /etc/sms-gateway/console/console.crt$' \
     <<<"$calls" || fail "postinst did not make the console's certificate: $calls"
-  grep -q '^chown root:sms /etc/sms-gateway/console/console.key /etc/sms-gateway/console/console.crt$' <<<"$calls" ||
+  grep -q '^chown root:_sms-gateway /etc/sms-gateway/console/console.key /etc/sms-gateway/console/console.crt$' <<<"$calls" ||
     fail "postinst did not give the console's key to the service group: $calls"
   grep -q '^chmod 0640 /etc/sms-gateway/console/console.key$' <<<"$calls" ||
     fail "postinst left the console's key readable beyond the service group: $calls"
