@@ -13,7 +13,7 @@ namespace sms::config {
 // One line per file that others may read or change (mode & 0006), naming the file, its mode and
 // the chmod/chown to run, e.g. "configuration file /etc/sms-gateway/config.yaml holds console
 // password hashes (console.users) and is readable by every user of this machine (mode 0644):
-// chmod 0640 /etc/sms-gateway/config.yaml && chown root:sms /etc/sms-gateway/config.yaml".
+// chmod 0640 /etc/sms-gateway/config.yaml && chown root:_sms-gateway /etc/sms-gateway/config.yaml".
 // `config_path` empty: the configuration is not a file (--simulate). A file that cannot be
 // looked at is left to whoever loads it. The group named is the one the gateway runs as.
 std::vector<std::string> secret_file_warnings(const Config& config, const std::string& config_path);

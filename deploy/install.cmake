@@ -43,3 +43,6 @@ install(CODE "file(CREATE_LINK config/examples
 
 # The Wireshark dissector for the bus monitor's captures (docs/MONITOR.md "Opening a capture").
 install(FILES deploy/wireshark/sms_servo.lua DESTINATION ${CMAKE_INSTALL_DATADIR}/sms-gateway/wireshark)
+
+# Prometheus alerting and recording rules for /metrics (docs/OPERATIONS.md "Alerting").
+install(FILES deploy/prometheus/sms-gateway-rules.yml DESTINATION ${CMAKE_INSTALL_DATADIR}/sms-gateway/prometheus)

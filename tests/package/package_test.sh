@@ -47,7 +47,7 @@ for path in ./usr/bin/sms-gateway ./usr/bin/sms-sim ./lib/systemd/system/sms-gat
             ./usr/share/man/man5/sms-gateway.yaml.5.gz \
             $doc/README.md $doc/copyright $doc/changelog.gz $doc/docs/PLC_GUIDE.md.gz $doc/docs/PROTOCOL.md.gz \
             $doc/docs/INSTALL.md.gz $doc/config/README.md.gz $doc/config/examples/mixed.yaml $doc/examples \
-            ./usr/share/sms-gateway/wireshark/sms_servo.lua; do
+            ./usr/share/sms-gateway/wireshark/sms_servo.lua ./usr/share/sms-gateway/prometheus/sms-gateway-rules.yml; do
   grep -qx "$path" <<<"$contents" || fail "$path is not in the package"
 done
 
