@@ -159,6 +159,7 @@ std::vector<Tag> servo_unit_tags(const CatalogUnit& unit, BusRange poll_block, c
                      .space = TagSpace::Discrete,
                      .address = facts::kOnlineBit,
                      .readable = true,
+                     .symbol = {},
                      .notes = "gateway fact; 1 online"});
   return tags;
 }
@@ -235,7 +236,9 @@ void gateway_unit_tags(const config::Config& config, const UnitCatalog& catalog,
                        .name = std::string(kDiscrete[i]),
                        .space = TagSpace::Discrete,
                        .address = static_cast<std::uint16_t>(i),
-                       .readable = true});
+                       .readable = true,
+                       .symbol = {},
+                       .notes = {}});
   }
   for (const config::SyncGroupConfig& group : config.sync_groups) {
     for (std::size_t i = 0; i < group.members.size(); ++i) {
