@@ -4,6 +4,8 @@
 
 #include <spdlog/spdlog.h>
 
+#include "gateway/service/unit_catalog.h"
+#include "gateway/tools/tag_list.h"
 #include "gateway/tools/tool_scan.h"
 #include "gateway/tools/tool_servo.h"
 #include "modbus_map/baud_tables.h"
@@ -182,6 +184,38 @@ void api_commission_config(const std::shared_ptr<ApiCall>& call) {
                           "application/yaml; charset=utf-8",
                           yaml,
                           {{"Content-Disposition", "attachment; filename=\"sms-gateway-scan.yaml\""}}});
+}
+
+void api_tags(const std::shared_ptr<ApiCall>& call) {
+  // The same lists as `sms-gateway tags` (gateway/tools/tag_list.h), of the running configuration,
+  // aimed at this gateway's Modbus TCP listener.
+  const config::Config& config = call->services.config();
+  const std::string file(call->params.get("file").value_or(""));
+  const std::string& listen = config.modbus_tcp.listen.host;
+  const FlowTarget target{listen.empty() || listen == "0.0.0.0" || listen == "::" ? "127.0.0.1" : listen,
+                          config.modbus_tcp.listen.port};
+  const auto attachment = [](const std::string& name) {
+    return std::vector<std::pair<std::string, std::string>>{
+        {"Content-Disposition", "attachment; filename=\"" + name + "\""}};
+  };
+  try {
+    const UnitCatalog catalog(config);
+    if (file == "tags.csv") {
+      return call->answer(HttpAnswer{200, "text/csv; charset=utf-8", tags_csv(tag_list(config, catalog)),
+                                     attachment("sms-gateway-tags.csv")});
+    }
+    if (file == "node-red.json") {
+      return call->answer(HttpAnswer{200, "application/json", node_red_flow(config, catalog, target).dump(2),
+                                     attachment("sms-gateway-node-red.json")});
+    }
+    if (file == "fuxa.json") {
+      return call->answer(HttpAnswer{200, "application/json", fuxa_devices(tag_list(config, catalog), target).dump(2),
+                                     attachment("sms-gateway-fuxa.json")});
+    }
+  } catch (const std::exception& error) {
+    return call->answer(HttpAnswer::error(500, std::string("tag list: ") + error.what()));
+  }
+  call->answer(HttpAnswer::error(404, "no tag list " + file + ": tags.csv, node-red.json or fuxa.json"));
 }
 
 void api_commission_scan(const std::shared_ptr<ApiCall>& call) {

@@ -64,6 +64,9 @@ class Commissioning {
 
 void api_commission_state(const std::shared_ptr<ApiCall>& call);
 void api_commission_config(const std::shared_ptr<ApiCall>& call);
+// GET /api/tags/{file}: the running configuration's tag lists (tags.csv, node-red.json,
+// fuxa.json), as `sms-gateway tags` writes them (docs/HMI.md).
+void api_tags(const std::shared_ptr<ApiCall>& call);
 void api_commission_scan(const std::shared_ptr<ApiCall>& call);
 void api_commission_set_id(const std::shared_ptr<ApiCall>& call);
 void api_commission_set_baud(const std::shared_ptr<ApiCall>& call);

@@ -698,6 +698,7 @@ const Route kRoutes[] = {
     // Commissioning (engineer): a line no bus owns, through the integrator tools' code.
     {"GET", "/api/commission", Role::Read, RouteKind::Api, {}, api_commission_state},
     {"GET", "/api/commission/config.yaml", Role::Read, RouteKind::Api, {}, api_commission_config},
+    {"GET", "/api/tags/{file}", Role::Read, RouteKind::Api, {}, api_tags},
     {"POST", "/api/commission/scan", Role::Engineer, RouteKind::Api, {}, api_commission_scan},
     {"POST", "/api/commission/set-id", Role::Engineer, RouteKind::Api, {}, api_commission_set_id},
     {"POST", "/api/commission/set-baud", Role::Engineer, RouteKind::Api, {}, api_commission_set_baud},

@@ -106,7 +106,7 @@ class UnitsAndSafetyTest(ConsoleCase):
         self.screenshot("safety-tripped.png")
         # An edit now: the refusal names the rule.
         self.write_field("goal_position", 2048)
-        message = wait_until(lambda: "refused" in self.text("#message") and self.text("#message"),
+        message = wait_until(lambda: "refused: bus" in self.text("#message") and self.text("#message"),
                              what="the refusal")
         self.assertIn("refused: bus arm: its watchdog tripped", message)
         self.assertNotIn("e-stop is latched", message)
@@ -125,7 +125,9 @@ class UnitsAndSafetyTest(ConsoleCase):
         wait_until(lambda: self.text("#estop-state") == "LATCHED", what="the panel to show the e-stop latched")
         self.assertIn("refused: e-stop latched", self.text("#safety tr[data-bus='arm'] td.motion"))
         self.write_field("goal_position", 2000)
-        message = wait_until(lambda: "refused" in self.text("#message") and self.text("#message"), what="the refusal")
+        # The write's own answer (the e-stop button's message also says "refused").
+        message = wait_until(lambda: "refused: bus" in self.text("#message") and self.text("#message"),
+                             what="the write's refusal")
         self.assertIn("refused: bus arm: the e-stop is latched", message)
         # A read user sees the latch and gets no reset.
         self.login("viewer")
@@ -140,6 +142,32 @@ class UnitsAndSafetyTest(ConsoleCase):
         wait_until(lambda: self._alert(), what="the reset confirmation").accept()
         wait_until(lambda: self.text("#estop-state") == "released", what="the e-stop to be released")
         self.assertEqual(self.text("#safety tr[data-bus='arm'] td.motion"), "allowed")
+
+    def test_e_the_overviews_tag_lists_are_what_sms_gateway_tags_writes(self):
+        import json
+        import os
+        import subprocess
+        self.login("viewer")
+        self.open("/", "#tag-lists a")
+        links = [a.get_attribute("href") for a in self.browser.find_elements(By.CSS_SELECTOR, "#tag-lists a")]
+        self.assertEqual([link.rsplit("/", 1)[1] for link in links], ["tags.csv", "node-red.json", "fuxa.json"])
+        fetch = "fetch(arguments[0]).then(r => r.text()).then(arguments[1])"
+        csv = self.browser.execute_async_script(fetch, "/api/tags/tags.csv")
+        # Bytes, not text: the CSV's CRLF line ends (RFC 4180) are part of what is compared.
+        tool = subprocess.run([os.path.join(self.bin_dir, "sms-gateway"), "tags", "--config", self.config_path,
+                               "--format", "csv"], capture_output=True)
+        self.assertEqual(tool.returncode, 0, tool.stderr)
+        self.assertEqual(csv, tool.stdout.decode("utf-8"))
+        self.assertIn("present_voltage", csv)
+        flow = json.loads(self.browser.execute_async_script(fetch, "/api/tags/node-red.json"))
+        self.assertTrue(any(node.get("type") == "modbus-read" and node.get("showErrors") for node in flow))
+        devices = json.loads(self.browser.execute_async_script(fetch, "/api/tags/fuxa.json"))
+        self.assertTrue(devices)
+        missing = self.browser.execute_async_script(
+            "fetch(arguments[0]).then(r => r.json().then(j => [r.status, j.error])).then(arguments[1])",
+            "/api/tags/nosuch.txt")
+        self.assertEqual(missing[0], 404)
+        self.assertIn("tags.csv", missing[1])
 
 
 if __name__ == "__main__":
