@@ -23,13 +23,16 @@ if ! command -v podman >/dev/null 2>&1; then
   echo "container-test: skipped: podman not available (apt-get install podman buildah debootstrap runc)"
   exit 0
 fi
-# The runtime podman is configured with below (crun fails on hybrid cgroups); podman alone does
-# not pull it in.
-if ! command -v runc >/dev/null 2>&1; then
-  echo "container-test: installing runc (podman's runtime here)" >&2
-  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends runc >/dev/null \
-    || { echo "container-test: runc is missing and could not be installed (apt-get install runc)" >&2; exit 1; }
-fi
+# The runtime podman is configured with below (crun fails on hybrid cgroups) and the init that
+# `podman run --init` puts in the container: podman only recommends them, so an install without
+# recommends lacks them.
+for need in runc:/usr/sbin/runc catatonit:/usr/libexec/podman/catatonit; do
+  if [ ! -x "${need#*:}" ]; then
+    echo "container-test: installing ${need%%:*} (podman's runtime and its --init here)" >&2
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${need%%:*}" >/dev/null \
+      || { echo "container-test: ${need%%:*} is missing and could not be installed (apt-get install ${need%%:*})" >&2; exit 1; }
+  fi
+done
 if ! command -v mbpoll >/dev/null 2>&1; then
   echo "container-test: mbpoll is needed for the Modbus reads from the host: run scripts/install-deps.sh" >&2
   exit 1
@@ -479,10 +482,10 @@ if read_input_registers "$port" 255 0 1 >/dev/null; then
   fail "SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: a read from the host was answered"
 fi
 curl -fsS "http://127.0.0.1:$metrics_port/metrics" >"$tmp/metrics.txt" || fail "GET /metrics"
-refused=$(awk '/^sms_gateway_tcp_connections_refused_total\{reason="allow"\}/ { print $2 }' "$tmp/metrics.txt")
-[ "${refused:-0}" -ge 1 ] 2>/dev/null || fail "/metrics: refused{reason=\"allow\"} = '${refused:-missing}' after a refused host read"
+refused=$(awk '/^sms_gateway_tcp_connections_refused_total\{listener="plain",reason="allow"\}/ { print $2 }' "$tmp/metrics.txt")
+[ "${refused:-0}" -ge 1 ] 2>/dev/null || fail "/metrics: refused{listener=\"plain\",reason=\"allow\"} = '${refused:-missing}' after a refused host read"
 grep -q '^sms_gateway_build_info{version="'"$want_version"'"} 1' "$tmp/metrics.txt" || fail "/metrics: no sms_gateway_build_info for $want_version"
-check "SMS_GATEWAY_METRICS=0.0.0.0:9102: /healthz 200, /metrics has build_info $want_version; SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: host refused (refused_total{reason=\"allow\"} = $refused), HEALTHCHECK healthy"
+check "SMS_GATEWAY_METRICS=0.0.0.0:9102: /healthz 200, /metrics has build_info $want_version; SMS_GATEWAY_ALLOW=192.0.2.0/24,127.0.0.1: host refused (refused_total{listener=\"plain\",reason=\"allow\"} = $refused), HEALTHCHECK healthy"
 command podman logs "$env_ctr" >"$tmp/env.log" 2>&1
 non_json=$(grep -c -v '^{"ts":"[^"]*","level":"[a-z]*",.*}$' "$tmp/env.log" || true)
 [ "$non_json" = 0 ] || { grep -v '^{"ts":' "$tmp/env.log" | head -5 >&2; fail "SMS_GATEWAY_LOG_FORMAT=json: $non_json log lines are not JSON objects"; }
