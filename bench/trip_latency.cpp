@@ -132,7 +132,13 @@ struct SetupTripped {};
 
 void write_or_throw(modbus_t* context, int unit, int address, std::uint16_t value) {
   modbus_set_slave(context, unit);
-  if (modbus_write_register(context, address, value) != 1) {
+  // A servo that missed the gateway's response timeout (0x0B: a loaded machine can hold the
+  // simulator) is asked again; the figures are about the stop, not the set-up.
+  int attempts = 3;
+  int written = 0;
+  while ((written = modbus_write_register(context, address, value)) != 1 && errno == EMBXGTAR && --attempts > 0) {
+  }
+  if (written != 1) {
     if (errno == EMBXSFAIL) throw SetupTripped{};
     throw std::runtime_error("unit " + std::to_string(unit) + ": FC06 " + std::to_string(address) +
                              " := " + std::to_string(value) + " failed: " + modbus_error_text());

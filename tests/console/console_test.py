@@ -400,7 +400,7 @@ class ConsoleTest(ConsoleCase):
         commissioning page. The simulator is the witness: servo 2 stops short of its goal, servo 3 gets
         its owed stop the moment the bus runs again; meanwhile PLC writes get 0x04 and the page scans
         the bus's own line."""
-        self.sim.command("set 2 41 0a")  # slow acceleration: the move outlasts the stop
+        self.sim.command("set 2 41 03")  # slow acceleration (300 steps/s²): the move outlasts the stop, on a loaded machine too
         self.sim.command("set 3 40 01")  # servo 3's torque on, to see its owed stop take it off
         client = self.modbus()
         start = self.sim.field(2, "present_position")

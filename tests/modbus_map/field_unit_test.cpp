@@ -45,7 +45,9 @@ TEST(FieldUnit, EveryTableFieldParses) {
       const FieldUnit unit = field_unit(field);
       EXPECT_GT(unit.scale, 0.0) << spec->name << " " << field.name;
       EXPECT_TRUE(field.unit.ends_with(unit.symbol)) << spec->name << " " << field.name;
-      if (unit.scale != 1.0) EXPECT_NE(field.unit.find_first_of("0123456789"), std::string_view::npos);
+      if (unit.scale != 1.0) {
+        EXPECT_NE(field.unit.find_first_of("0123456789"), std::string_view::npos);
+      }
     }
   }
 }
