@@ -42,10 +42,10 @@ cmake -S . -B build-asan -G Ninja -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYP
 cmake --build build-asan -j "$jobs"
 ./scripts/tidy.sh build-asan
 
-# GCC 12, every default target, the default build type (as `cmake -S . -B build` makes it),
-# beside ctest at the lowest priority: the suites must pass on a loaded machine anyway, and the
-# cores ctest leaves idle while tests wait on the simulator do the work. Its log is shown only
-# when it fails. -O2's own warnings are the container image's build's to find (step 8).
+# GCC 12, every default target, the default build type (RelWithDebInfo, -O2, as a plain
+# `cmake -S . -B build` makes it), beside ctest at the lowest priority: the suites must pass on a
+# loaded machine anyway, and the cores ctest leaves idle while tests wait on the simulator do the
+# work. Its log is shown only when it fails.
 if [ -f build-gcc/CMakeCache.txt ] && ! grep -q '^CMAKE_CXX_COMPILER:[A-Z]*=.*g++' build-gcc/CMakeCache.txt; then
   rm -rf build-gcc
 fi
