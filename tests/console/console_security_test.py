@@ -164,6 +164,16 @@ class ConsoleSecurityTest(ConsoleCase):
         connection.close()
         return answer, body
 
+    def fail_into_a_long_wait(self, fail):
+        """Five failures (fail(1) .. fail(5)) make the next login wait 1 s, each further one twice
+        as long: two more, each after the wait before it, make a 4 s wait, which the next login
+        falls inside on a loaded machine too."""
+        for attempt in range(1, 6):
+            fail(attempt)
+        for attempt, wait in ((6, 1), (7, 2)):
+            time.sleep(wait + 0.2)
+            fail(attempt)
+
     def assert_waits(self, answer, body, why):
         self.assertEqual(answer.status, 429, body)
         retry = int(answer.getheader("Retry-After"))
@@ -181,10 +191,11 @@ class ConsoleSecurityTest(ConsoleCase):
     def test_throttle_per_address(self):
         failed_before = self.metric('sms_gateway_console_logins_total{result="failed"}')
         throttled_before = self.metric('sms_gateway_console_logins_total{result="throttled"}')
-        for attempt in range(1, 6):  # five failures cost nothing but the answer
+        def fail(attempt):  # the first five failures cost nothing but the answer
             answer, body = self.login_from("127.0.0.2", f"nobody{attempt}", "wrong")
             self.assertEqual(answer.status, 401, f"attempt {attempt}: {body}")
             self.assertEqual(body["error"], "unknown user or wrong password")
+        self.fail_into_a_long_wait(fail)
         # Then the address waits, even with a right password, and is told how long.
         answer, body = self.login_from("127.0.0.2", "viewer", PASSWORD)
         retry = self.assert_waits(answer, body, "too many failed logins from 127.0.0.2")
@@ -200,15 +211,10 @@ class ConsoleSecurityTest(ConsoleCase):
                                 throttled_before + 1)
 
     def test_throttle_per_user(self):
-        for i in range(1, 6):  # five failures in spare's name, each from another address
+        def fail(i):  # failures in spare's name, each from another address
             answer, body = self.login_from(f"127.0.1.{i}", "spare", "wrong")
             self.assertEqual(answer.status, 401, body)
-        # Five make spare wait 1 s, each further one twice as long: two more, each after the wait
-        # before it, make a 4 s wait, which the next login falls inside on a loaded machine too.
-        for i, wait in ((6, 1), (7, 2)):
-            time.sleep(wait + 0.2)
-            answer, body = self.login_from(f"127.0.1.{i}", "spare", "wrong")
-            self.assertEqual(answer.status, 401, body)
+        self.fail_into_a_long_wait(fail)
         answer, body = self.login_from("127.0.1.9", "spare", PASSWORD)
         retry = self.assert_waits(answer, body, "too many failed logins for user `spare`")
         # The other users are not held up, from the same address either.
