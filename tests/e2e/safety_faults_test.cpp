@@ -144,7 +144,9 @@ TEST_P(SafetyFaults, StopOwedToASilentServoIsDeliveredWhenItAnswersAgain) {
   EXPECT_EQ(cell.input(kBus0WatchdogState), kTripped);
   std::this_thread::sleep_for(300ms);
   // (A d55d motor stops by itself 500 ms after its last instruction: its own heartbeat.)
-  if (GetParam().bus_protocol != "d55d") EXPECT_TRUE(cell.turning()) << "the witness: nothing reached the deaf servo";
+  if (GetParam().bus_protocol != "d55d") {
+    EXPECT_TRUE(cell.turning()) << "the witness: nothing reached the deaf servo";
+  }
 
   // Re-armed, the owed servo still refuses motion until it has taken its stop.
   ModbusClient gateway(cell.port(), kGateway);
@@ -172,7 +174,9 @@ TEST_P(SafetyFaults, StopOwedAcrossAnUnpluggedLineIsDeliveredWhenTheLineIsBack) 
   EXPECT_GE(cell.input(kFailedStops + 1), 1);
   EXPECT_EQ(cell.input(kBus0WatchdogState), kTripped);
   std::this_thread::sleep_for(300ms);
-  if (GetParam().bus_protocol != "d55d") EXPECT_TRUE(cell.turning()) << "the witness: the line was down";
+  if (GetParam().bus_protocol != "d55d") {
+    EXPECT_TRUE(cell.turning()) << "the witness: the line was down";
+  }
 
   cell.relay().plug();
   EXPECT_TRUE(eventually([&] { return !cell.turning(); })) << cell.log();

@@ -54,7 +54,9 @@ class RestartCell {
     sim_ = std::make_unique<SimProcess>(dir_, "sim", std::vector<std::string>{"--servo", protocol_.sim_servo});
     // A d55d motor stops by itself 500 ms after its last instruction (address 17): off, so the
     // witness shows what the gateway did, not what the motor's own heartbeat did.
-    if (protocol_.bus_protocol == "d55d") EXPECT_EQ(sim_->control("set 1 17 00"), "ok");
+    if (protocol_.bus_protocol == "d55d") {
+      EXPECT_EQ(sim_->control("set 1 17 00"), "ok");
+    }
     ::mkdir(state_dir().c_str(), 0755);
     start_gateway();
   }

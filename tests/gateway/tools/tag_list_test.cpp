@@ -206,7 +206,9 @@ TEST_F(TagListTest, EveryFieldOfEveryMapIsListedInEachSpaceItServes) {
 
 TEST_F(TagListTest, ReadOnlyViewHasNoWrites) {
   for (const Tag& tag : tags_) {
-    if (tag.unit == 6) EXPECT_FALSE(tag.writable) << tag.name;
+    if (tag.unit == 6) {
+      EXPECT_FALSE(tag.writable) << tag.name;
+    }
   }
 }
 
