@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The one command that runs every test (about 15 minutes on a new 2-core machine, a few minutes
-# less once ccache and the clang-tidy cache are warm). In order:
+# The one command that runs every test (README "The two commands" says how long it takes). In
+# order:
 #   1. installs dependencies (scripts/install-deps.sh) and checks the format of every C++ file
 #      (scripts/format.sh --check, .clang-format);
 #   2. builds every target of the default build (product, tests, benchmarks) with clang and
