@@ -160,7 +160,8 @@ TEST(WireMonitor, FiltersByServoAndKind) {
   EXPECT_EQ(of2.frames[1].frame.instruction, "SYNC WRITE");
 
   MonitorReader errors_only(wire, MonitorReader::Start::Oldest);
-  const auto errors = errors_only.poll(100, MonitorFilter{.requests = false, .answers = false});
+  const auto errors =
+      errors_only.poll(100, MonitorFilter{.servo = std::nullopt, .requests = false, .answers = false, .errors = true});
   ASSERT_EQ(errors.frames.size(), 2u);  // the damaged frame (and the noise counted before it)
   EXPECT_EQ(errors.frames[0].frame.kind, FrameKind::Noise);
   EXPECT_EQ(errors.frames[1].frame.kind, FrameKind::Damaged);
