@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cstdio>
 
+#include "modbus_map/status_bits.h"
 #include "modbus_map/tables.h"
 #include "protocol/d55d.h"
 #include "protocol/feetech.h"
@@ -15,29 +16,6 @@ namespace {
 
 using protocol::BusProtocol;
 using protocol::Bytes;
-
-struct StatusBit {
-  std::uint8_t mask;
-  std::string_view name;
-};
-// The ERROR byte's bits (docs/PROTOCOL.md §1.1, §1.2), named as the protocol headers name them.
-constexpr std::array<StatusBit, 6> kFeetechStatusBits{{
-    {protocol::feetech::error_bit::kVoltage, "voltage"},
-    {protocol::feetech::error_bit::kAngleSensor, "angle_sensor"},
-    {protocol::feetech::error_bit::kTemperature, "temperature"},
-    {protocol::feetech::error_bit::kCurrent, "current"},
-    {protocol::feetech::error_bit::kAngle, "angle"},
-    {protocol::feetech::error_bit::kOverload, "overload"},
-}};
-constexpr std::array<StatusBit, 7> kD55dStatusBits{{
-    {protocol::d55d::error_bit::kOverTemperature, "over_temperature"},
-    {protocol::d55d::error_bit::kOverCurrent, "over_current"},
-    {protocol::d55d::error_bit::kOverVoltage, "over_voltage"},
-    {protocol::d55d::error_bit::kUnderVoltage, "under_voltage"},
-    {protocol::d55d::error_bit::kChecksum, "checksum"},
-    {protocol::d55d::error_bit::kInstruction, "instruction"},
-    {protocol::d55d::error_bit::kStall, "stall"},
-}};
 
 const protocol::PacketFormat& packet_format(BusProtocol protocol) {
   return protocol == BusProtocol::D55d ? protocol::kD55dFormat : protocol::kFeetechFormat;
@@ -344,9 +322,7 @@ FrameDescription FrameDescriber::describe_packet_answer(const protocol::Packet& 
   description.servo = packet.id;
   description.servos = {packet.id};
   description.status = packet.code;
-  const auto bits = protocol_ == BusProtocol::D55d ? std::span<const StatusBit>(kD55dStatusBits)
-                                                   : std::span<const StatusBit>(kFeetechStatusBits);
-  for (const auto& bit : bits) {
+  for (const auto& bit : status_bits(protocol_ == BusProtocol::D55d ? TableId::D55d : TableId::Sts)) {
     if (packet.code & bit.mask) description.status_bits.push_back(bit.name);
   }
   if (!last_packet_request_) {

@@ -10,6 +10,7 @@
 #include "gateway/service/modbus_request.h"
 #include "modbus_map/eeprom_lock.h"
 #include "modbus_map/motion.h"
+#include "modbus_map/status_bits.h"
 #include "protocol/modbus_pdu.h"
 
 namespace sms::gateway::console {
@@ -235,19 +236,11 @@ Expected<CheckedFieldWrite, HttpAnswer> check_field_write(const ServoUnit& unit,
 
 namespace {
 
-// A 0x04 answer says which rule refused: the safety supervisor is asked (the one source of its
-// rules); when none refuses, it was the servo (its ERROR byte) or its answers.
+// A 0x04 answer says which rule refused (UnitRouter::refusal_reason, as the Sparkplug node says it).
 std::string refusal_text(const Services& services, const ServoUnit& unit, const ModbusAnswer& answer) {
   if (answer.exception != 0x04) return answer.message;
-  if (const auto why = services.motion_refusal(unit.bus_index, unit.servo_id)) return "refused: " + *why;
-  std::string status;
-  if (const auto polled = read_polled(unit)) {
-    status = fmt::format("status byte 0x{:02X}", polled->status);
-    const auto faults = status_faults(unit.map.servo_table().id, polled->status);
-    for (std::size_t i = 0; i < faults.size(); ++i) status += (i == 0 ? ": " : ", ") + faults[i];
-  }
-  return "the servo refused it or its answers were damaged (no safety rule refuses motion now" +
-         (status.empty() ? std::string(")") : "; last " + status + ")") + "; " + answer.message;
+  const auto reason = services.units().refusal_reason(unit);
+  return reason.safety_rule ? reason.text : reason.text + "; " + answer.message;
 }
 
 void api_servo_write(const std::shared_ptr<ApiCall>& call) {
@@ -387,7 +380,7 @@ class ServoStream final : public Stream {
                     {"samples", std::move(samples_)},
                     {"online", online_},
                     {"status", status_},
-                    {"faults", status_faults(unit_.map.servo_table().id, status_)},
+                    {"faults", modbus_map::status_faults(unit_.map.servo_table().id, status_)},
                     {"jog", jog_ ? (jog_speed_ ? "speed" : "position") : "stopped"},
                     {"jog_reason", jog_reason_},
                     {"sent_us", steady_us(now)}};

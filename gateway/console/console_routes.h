@@ -1,8 +1,9 @@
 #pragma once
 // Every URL the console answers, as one table (console_routes.cpp `kRoutes`): method, path
 // pattern, the role it needs, and what answers it — an embedded page, a JSON handler, or a
-// WebSocket stream. The server (console_server.cpp) does the HTTP, the access rules and the
-// CSRF check before a handler runs; handlers see only the gateway through `Services`.
+// WebSocket stream. The connection (console_http.cpp) does the HTTP and admission
+// (console_admission.cpp) the access rules and the CSRF check before a handler runs; handlers
+// see only the gateway through `Services`.
 //
 // Adding a page with its live data is one entry per URL and one function each, e.g. a bus page:
 //   {"GET", "/bus/{name}/thing", Role::Read, RouteKind::Page, "thing.html"},
@@ -85,9 +86,6 @@ class Services {
                                              std::span<const std::uint8_t> pdu) = 0;
   // Bus `bus`'s motion stops now (SafetySupervisor::motion_stops): what a hold-to-run move checks.
   virtual MotionStops motion_stops(std::size_t bus) const = 0;
-  // Which safety rule refuses motion on `bus` to `servo` now (SafetySupervisor::motion_refusal);
-  // nullopt: none does. Asked after a 0x04, so the page names the rule.
-  virtual std::optional<std::string> motion_refusal(std::size_t bus, std::uint8_t servo) const = 0;
   // A write of the hold-to-run move `session`: as modbus(), and on the io thread, right before the
   // router admits it, the session is checked again; one a stop has ended gets 0x04 and nothing is
   // written (a latch and its reset between two looks of the console thread cannot let it through).

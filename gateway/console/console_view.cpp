@@ -1,15 +1,14 @@
 #include "gateway/console/console_view.h"
 
 #include <algorithm>
-#include <array>
 #include <exception>
 #include <string>
 
 #include "gateway/bus/discovery.h"
 #include "gateway/service/role_policy.h"
 #include "modbus_map/field_unit.h"
+#include "modbus_map/status_bits.h"
 #include "modbus_map/tables.h"
-#include "protocol/feetech.h"
 
 namespace sms::gateway::console {
 
@@ -23,24 +22,6 @@ modbus_map::BusRange input_window(const ServoUnit& unit) {
   if (unit.map.profile() == modbus_map::Profile::Smsmb) return modbus_map::kSmsmbFeedbackRegisters;
   return unit.poll_block;
 }
-
-struct StatusBit {
-  std::uint8_t mask;
-  std::string_view name;
-};
-// docs/PROTOCOL.md §1.1 (sts/sms/scs ERROR byte) and the smsmb status register's low byte.
-constexpr std::array<StatusBit, 6> kFeetechStatusBits{{{protocol::feetech::error_bit::kVoltage, "voltage"},
-                                                       {protocol::feetech::error_bit::kAngleSensor, "angle sensor"},
-                                                       {protocol::feetech::error_bit::kTemperature, "overheat"},
-                                                       {protocol::feetech::error_bit::kCurrent, "overcurrent"},
-                                                       {protocol::feetech::error_bit::kAngle, "angle/range"},
-                                                       {protocol::feetech::error_bit::kOverload, "overload"}}};
-constexpr std::array<StatusBit, 6> kSmsmbStatusBits{{{1 << 0, "overload"},
-                                                     {1 << 1, "overcurrent"},
-                                                     {1 << 5, "voltage"},
-                                                     {1 << 6, "overheat"},
-                                                     {1 << 7, "encoder"},
-                                                     {1 << 2, "centre set"}}};
 
 std::string_view access_text(modbus_map::Access access) {
   switch (access) {
@@ -123,25 +104,6 @@ json unit_scale_json(const modbus_map::FieldSpec& field) {
   const auto scale = unit_scale(field);
   if (!scale) return nullptr;
   return {{"scale", scale->scale}, {"symbol", scale->symbol}, {"decimals", scale->decimals}};
-}
-
-std::vector<std::string> status_faults(modbus_map::TableId table, std::uint8_t status) {
-  std::vector<std::string> names;
-  const auto& bits = table == modbus_map::TableId::Smsmb ? kSmsmbStatusBits : kFeetechStatusBits;
-  for (const auto& bit : bits) {
-    if (status & bit.mask) names.emplace_back(bit.name);
-  }
-  const std::uint8_t known = [&] {
-    std::uint8_t mask = 0;
-    for (const auto& bit : bits) mask |= bit.mask;
-    return mask;
-  }();
-  if (status & ~known)
-    names.push_back("bits 0x" + [](unsigned v) {
-      constexpr char kHex[] = "0123456789abcdef";
-      return std::string{kHex[v >> 4], kHex[v & 15]};
-    }(status & ~known));
-  return names;
 }
 
 const RegisterEntry* entry_named(const modbus_map::RegisterMap& map, std::string_view field) {
@@ -246,7 +208,7 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
     if (const auto polled = read_polled(*unit)) {
       row["online"] = polled->online;
       row["status"] = polled->status;
-      row["faults"] = status_faults(unit->map.servo_table().id, polled->status);
+      row["faults"] = modbus_map::status_faults(unit->map.servo_table().id, polled->status);
       json units = json::object();
       for (const char* field :
            {"present_position", "present_temperature", "present_voltage", "present_load", "present_current"}) {

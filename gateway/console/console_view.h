@@ -43,9 +43,6 @@ std::optional<UnitScale> unit_scale(const modbus_map::FieldSpec& field);
 // {"scale": 0.1, "symbol": "V", "decimals": 1}, or null when unit_scale() has none.
 nlohmann::json unit_scale_json(const modbus_map::FieldSpec& field);
 
-// Names of the status byte's bits that are set ("overheat", "overload", ...), per table.
-std::vector<std::string> status_faults(modbus_map::TableId table, std::uint8_t status);
-
 // The entry of a shown field by name, or nullptr.
 const modbus_map::RegisterEntry* entry_named(const modbus_map::RegisterMap& map, std::string_view field);
 // The entry whose servo field is `servo_field` (motion spec names), or nullptr.

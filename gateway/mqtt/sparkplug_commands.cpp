@@ -160,10 +160,22 @@ void SparkplugNode::Impl::run_device_command(std::size_t index, const sp::Metric
   ask(device.unit_id, WriteRegistersRequest{fc::kWriteSingleRegister, entry.address, {*reg}},
       [this, index, slot_index, what, written](const Answer& answer) {
         auto& slot = devices_[index].metrics[slot_index];
-        if (!answer.ok()) return finish_command(index, slot.name, what + ": " + answer.error_text());
+        if (!answer.ok()) return finish_command(index, slot.name, what + ": " + refusal_text(index, answer));
         if (!slot.entry->readable) return finish_command(index, slot.name, "", what);
         read_back(index, slot_index, written, what);
       });
+}
+
+// A refused device write in words: the exception, and after a 0x04 the rule that refused it
+// (UnitRouter::refusal_reason, as the console says it).
+std::string SparkplugNode::Impl::refusal_text(std::size_t index, const Answer& answer) const {
+  std::string text = answer.error_text();
+  if (answer.pdu.size() >= 2 &&
+      answer.pdu[1] == static_cast<std::uint8_t>(modbus_map::ModbusException::ServerDeviceFailure) &&
+      answer.refusal.empty()) {
+    text += "; " + router_.refusal_reason(*devices_[index].unit).text;
+  }
+  return text;
 }
 
 // After a write, the field as the servo now holds it (FC03, live): a servo may clamp or refuse

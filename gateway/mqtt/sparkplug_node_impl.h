@@ -62,6 +62,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   static sparkplug::Metric field_metric(const std::string& name, const modbus_map::RegisterEntry& entry,
                                         std::optional<std::int64_t> value);
   static std::uint64_t epoch_ms();
+  std::string refusal_text(std::size_t device, const Answer& answer) const;
 
  private:
   // Where the router's answers go. A Reply keeps its target alive for as long as the work runs

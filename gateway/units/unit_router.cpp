@@ -10,6 +10,7 @@
 #include "gateway/units/no_jump.h"
 #include "gateway/units/passthrough.h"
 #include "modbus_map/motion.h"
+#include "modbus_map/status_bits.h"
 #include "modbus_map/tables.h"
 #include "protocol/modbus_pdu.h"
 #include "protocol/overloaded.h"
@@ -129,6 +130,17 @@ UnitRouter::UnitRouter(const config::Config& config, const UnitCatalog& catalog,
 }
 
 const ServoUnit* UnitRouter::servo_unit(std::uint8_t unit_id) const { return units_[unit_id].get(); }
+
+UnitRouter::RefusalReason UnitRouter::refusal_reason(const ServoUnit& unit) const {
+  if (auto why = safety_.motion_refusal(unit.bus_index, unit.servo_id)) return {"refused: " + *why, true};
+  std::string status;
+  if (const auto state = unit.engine->cache().state(unit.servo_id); state && state->has_data) {
+    status = fmt::format("; last status byte 0x{:02X}", state->counters.last_status);
+    const auto faults = modbus_map::status_faults(unit.map.servo_table().id, state->counters.last_status);
+    for (std::size_t i = 0; i < faults.size(); ++i) status += (i == 0 ? ": " : ", ") + faults[i];
+  }
+  return {"the servo refused it or its answers were damaged (no safety rule refuses motion now" + status + ")", false};
+}
 
 void UnitRouter::handle(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, Reply reply) {
   try {

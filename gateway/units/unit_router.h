@@ -112,6 +112,16 @@ class UnitRouter : public RequestHandler {
   const ServoUnit* servo_unit(std::uint8_t unit_id) const;
   std::uint8_t gateway_unit_id() const { return gateway_unit_id_; }
 
+  // Why a write to `unit` was answered 0x04, in words for a person (the console, the Sparkplug
+  // node's Last Command); Modbus clients get only the code and read the rule from unit 255.
+  struct RefusalReason {
+    std::string text;
+    bool safety_rule = false;  // a safety rule refuses motion to the unit now; else the servo did
+  };
+  // The rule that refuses motion to it now (SafetySupervisor::motion_refusal, the one source of
+  // the rules), else the servo itself, with the faults of its last status byte. Any thread.
+  RefusalReason refusal_reason(const ServoUnit& unit) const;
+
  private:
   void dispatch(std::uint8_t unit_id, std::span<const std::uint8_t> pdu, const Reply& reply);
   void handle_servo(const ServoUnit& unit, const Request& request, const Reply& reply);

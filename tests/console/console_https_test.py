@@ -2,7 +2,8 @@
 with Python's TLS client against the real gateway on sms-sim: password users log in over TLS with
 a self-signed pair made the way the Debian package makes it; a console with users on a
 non-loopback address and no HTTPS does not start, from the file or from --console, unless
-insecure_http says so, and then every start warns."""
+insecure_http says so, and then every start warns; every end the console chooses comes with
+close_notify."""
 import http.client
 import json
 import os
@@ -114,6 +115,48 @@ class ConsoleHttpsTest(unittest.TestCase):
         answer = connection.getresponse()
         self.assertEqual(json.loads(answer.read())["user"], "op")
         self.assertIn(f"serving the browser console on https://127.0.0.1:{self.port}/", read(self.log_path))
+
+    def raw_tls(self, maximum=None):
+        """A TLS socket on which a close without close_notify raises SSLEOFError (Python's default,
+        OP_IGNORE_UNEXPECTED_EOF, would read it as a clean end)."""
+        context = ssl.create_default_context(cafile=self.certificate)
+        context.options &= ~ssl.OP_IGNORE_UNEXPECTED_EOF
+        if maximum:
+            context.maximum_version = maximum
+        raw = socket.create_connection(("127.0.0.1", self.port), timeout=20)
+        tls = context.wrap_socket(raw, server_hostname="localhost", suppress_ragged_eofs=False)
+        self.addCleanup(tls.close)
+        return tls
+
+    @staticmethod
+    def read_to_close_notify(tls):
+        """Everything until the console's close_notify; SSLEOFError if the close came without one."""
+        received = b""
+        while True:
+            data = tls.recv(4096)
+            if not data:
+                return received
+            received += data
+
+    def test_connection_close_ends_with_close_notify(self):
+        tls = self.raw_tls()
+        tls.sendall(b"GET /login HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
+        received = self.read_to_close_notify(tls)
+        self.assertTrue(received.startswith(b"HTTP/1.1 200"), received[:200])
+
+    def test_clients_close_notify_is_answered(self):
+        tls = self.raw_tls(ssl.TLSVersion.TLSv1_2)  # the version whose client-first close was got wrong before
+        tls.sendall(b"GET /login HTTP/1.1\r\nHost: localhost\r\n\r\n")
+        head = b""
+        while b"\r\n\r\n" not in head:
+            head += tls.recv(4096)
+        self.assertTrue(head.startswith(b"HTTP/1.1 200"), head[:200])
+        tls.unwrap()  # sends ours and waits for the console's: raises without it
+
+    def test_silent_client_is_closed_with_close_notify(self):
+        # Past the door's first-request deadline (5 s) the console closes it, saying so.
+        tls = self.raw_tls()
+        self.assertEqual(self.read_to_close_notify(tls), b"")
 
     def test_plain_http_gets_no_page(self):
         connection = http.client.HTTPConnection("127.0.0.1", self.port, timeout=10)

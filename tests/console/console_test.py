@@ -253,7 +253,13 @@ class ConsoleTest(ConsoleCase):
         alert = wait_until(lambda: self._alert(), what="the reset confirmation")
         alert.accept()
         wait_until(lambda: "LATCHED" not in self.browser.find_element(By.ID, "estop").text, what="the e-stop to reset")
-        self.assertFalse(client.write_register(42, 2048, slave=1).isError())
+        # Written again only after a 0x0B: on a loaded machine the simulated servo may miss its
+        # answer's deadline; a 0x04 (still refused) fails at once.
+        for attempt in range(3):
+            answer = client.write_register(42, 2048, slave=1)
+            if not answer.isError() or answer.exception_code != 0x0B:
+                break
+        self.assertFalse(answer.isError(), f"after the reset the write was answered {answer}")
         client.close()
 
     def test_h_stale_csrf_and_bad_requests_are_refused(self):

@@ -200,6 +200,10 @@ TEST(Sparkplug, EstopOverNcmdBlocksMotionCommands) {
 
   const std::string result = command_result(plant.host, sp::Metric::int16("goal_position", 1000));
   EXPECT_NE(result.find("exception 0x04"), std::string::npos) << result;
+  // The rule that refused it, in the words the console uses (UnitRouter::refusal_reason).
+  EXPECT_NE(result.find("refused: bus arm: the e-stop is latched; motion writes are refused until it is reset"),
+            std::string::npos)
+      << result;
   EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
 
   // Garbage on the command topic and an unknown device: logged, counted, nothing written.
