@@ -40,14 +40,11 @@ constexpr std::array<StatusBit, 6> kSmsmbStatusBits{{
 
 std::span<const StatusBit> status_bits(TableId table) {
   switch (table) {
-    case TableId::Smsmb:
-      return kSmsmbStatusBits;
-    case TableId::D55d:
-      return kD55dStatusBits;
+    case TableId::Smsmb: return kSmsmbStatusBits;
+    case TableId::D55d: return kD55dStatusBits;
     case TableId::Sts:
     case TableId::Sms1:
-    case TableId::Scs:
-      break;
+    case TableId::Scs: break;
   }
   return kFeetechStatusBits;
 }

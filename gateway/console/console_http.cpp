@@ -243,7 +243,8 @@ class HttpSession final : public Connection,
         }
         transport_ended_ = true;
         beast::get_lowest_layer(transport_).expires_after(kCloseNotifyWait);
-        transport_.async_shutdown([self = this->shared_from_this()](const beast::error_code&) { self->close_socket(); });
+        transport_.async_shutdown(
+            [self = this->shared_from_this()](const beast::error_code&) { self->close_socket(); });
         return;
       }
     }
@@ -261,12 +262,12 @@ class HttpSession final : public Connection,
   ConnectionHost& host_;
   Peer peer_;
   std::string peer_text_;
-  asio::steady_timer deadline_;  // for the request being read
-  bool spoke_ = false;           // the client's first bytes came (or its connection failed)
-  bool closed_ = false;          // the console is done with the connection (close() or handed over)
-  bool handed_over_ = false;     // to a WebSocketSession, with the door's ticket
-  bool busy_ = false;            // a wait, handshake, read or write is in progress
-  bool tls_up_ = false;          // the handshake succeeded: an end is said with close_notify
+  asio::steady_timer deadline_;    // for the request being read
+  bool spoke_ = false;             // the client's first bytes came (or its connection failed)
+  bool closed_ = false;            // the console is done with the connection (close() or handed over)
+  bool handed_over_ = false;       // to a WebSocketSession, with the door's ticket
+  bool busy_ = false;              // a wait, handshake, read or write is in progress
+  bool tls_up_ = false;            // the handshake succeeded: an end is said with close_notify
   bool transport_failed_ = false;  // a read, write or handshake failed: no close_notify
   bool transport_ended_ = false;
   beast::flat_buffer buffer_;

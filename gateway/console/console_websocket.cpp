@@ -137,7 +137,7 @@ void start_websocket(Transport transport, ConnectionHost& host, OpenedSocket ope
 template void start_websocket<beast::tcp_stream>(beast::tcp_stream, ConnectionHost&, OpenedSocket, Door::Ticket,
                                                  HttpRequest);
 template void start_websocket<beast::ssl_stream<beast::tcp_stream>>(beast::ssl_stream<beast::tcp_stream>,
-                                                                     ConnectionHost&, OpenedSocket, Door::Ticket,
-                                                                     HttpRequest);
+                                                                    ConnectionHost&, OpenedSocket, Door::Ticket,
+                                                                    HttpRequest);
 
 }  // namespace sms::gateway::console

@@ -87,6 +87,7 @@ void SparkplugNode::Impl::publish_node_birth() {
   payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kEStop), estop_));
   payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kWatchdogTripped), tripped_));
   payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStopsOwed), stops_owed_));
+  payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kStateNotPersisted), not_persisted_));
   for (const auto& name : heartbeats_) {
     auto metric = sp::Metric::uint16(name, 0);
     metric.value = std::monostate{};  // write-only: the value is whatever the host sends next

@@ -52,6 +52,16 @@ void SparkplugNode::Impl::read_node_state() {
         payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStopsOwed), stops_owed_));
         publish(sp::MessageType::NData, std::move(payload));
       });
+  // A safety state the gateway could not save (a restart would lose a latch or an owed stop).
+  ask(config_.modbus_tcp.gateway_unit_id,
+      ReadBitsRequest{fc::kReadDiscreteInputs, gateway_unit_layout::kStateNotPersistedInput, 1},
+      [this](const Answer& answer) {
+        if (!answer.ok() || !session_ || answer.bit(0) == not_persisted_) return;
+        not_persisted_ = answer.bit(0);
+        sp::Payload payload;
+        payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kStateNotPersisted), not_persisted_));
+        publish(sp::MessageType::NData, std::move(payload));
+      });
 }
 
 // Facts first (online, status, counters: FC04 1000-1007), then birth, death or data.

@@ -45,7 +45,9 @@ inline constexpr std::string_view kLastCommand = "Gateway/Last Command";  // "ok
 inline constexpr std::string_view kEStop = "Gateway/E-Stop";                      // coil 1
 inline constexpr std::string_view kWatchdogTripped = "Gateway/Watchdog Tripped";  // coil 2; write false re-arms
 inline constexpr std::string_view kStopsOwed = "Gateway/Safe Stops Owed";         // input register 13 (docs/SAFETY.md)
-inline constexpr std::string_view kHeartbeatPrefix = "Gateway/Heartbeat/";        // + bus name: holding 1000 + n
+// Discrete input 4: a save of the safety state failed and none has succeeded since (docs/SAFETY.md).
+inline constexpr std::string_view kStateNotPersisted = "Gateway/Safety State Not Persisted";
+inline constexpr std::string_view kHeartbeatPrefix = "Gateway/Heartbeat/";  // + bus name: holding 1000 + n
 inline constexpr std::string_view kVersion = "Gateway/Version";
 }  // namespace sparkplug_metric
 

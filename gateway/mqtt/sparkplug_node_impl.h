@@ -62,7 +62,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   static sparkplug::Metric field_metric(const std::string& name, const modbus_map::RegisterEntry& entry,
                                         std::optional<std::int64_t> value);
   static std::uint64_t epoch_ms();
-  std::string refusal_text(std::size_t device, const Answer& answer) const;
+  std::string refusal_text(std::size_t index, const Answer& answer) const;  // of devices_[index]
 
  private:
   // Where the router's answers go. A Reply keeps its target alive for as long as the work runs
@@ -174,6 +174,7 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   bool estop_ = false;
   bool tripped_ = false;
   std::uint16_t stops_owed_ = 0;
+  bool not_persisted_ = false;
   std::uint64_t seq_ = 0;
   std::atomic<std::uint64_t> bd_seq_{0};  // of this session's CONNECT (its NBIRTH's)
   // Link thread only: the bdSeq of the next CONNECT, whether a CONNECT used it, the file.

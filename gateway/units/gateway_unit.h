@@ -41,6 +41,7 @@ inline constexpr std::uint16_t kEStopCoil = 1;
 inline constexpr std::uint16_t kWatchdogCoil = 2;
 // 3 a safe stop is owed to some servo (it could not be delivered yet), 4 the safety state is
 // not persisted (a save to state_dir failed and none has succeeded since: docs/SAFETY.md).
+inline constexpr std::uint16_t kStateNotPersistedInput = 4;
 inline constexpr std::uint16_t kCoilCount = 3;
 inline constexpr std::uint16_t kDiscreteInputCount = 5;
 // Input registers 10 e-stop latched, 11-12 e-stops (32-bit), 13 servos owed a safe stop (every

@@ -14,7 +14,7 @@ import subprocess
 import tempfile
 import unittest
 
-from console_support import PASSWORD, Simulator, free_port, wait_until
+from console_support import LOGIN_TIMEOUT, PASSWORD, Simulator, free_port, wait_until
 
 
 def read(path):
@@ -97,7 +97,7 @@ class ConsoleHttpsTest(unittest.TestCase):
 
     def https(self):
         context = ssl.create_default_context(cafile=self.certificate)  # its own certificate, trusted as is
-        connection = http.client.HTTPSConnection("localhost", self.port, context=context, timeout=10)
+        connection = http.client.HTTPSConnection("localhost", self.port, context=context, timeout=LOGIN_TIMEOUT)
         self.addCleanup(connection.close)
         return connection
 

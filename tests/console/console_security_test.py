@@ -11,7 +11,7 @@ import urllib.request
 
 from selenium.webdriver.common.by import By
 
-from console_support import ConsoleCase, PASSWORD, USERS, free_port, wait_until
+from console_support import LOGIN_TIMEOUT, ConsoleCase, PASSWORD, USERS, free_port, wait_until
 
 METRICS_PORT = free_port()
 
@@ -38,7 +38,8 @@ class ConsoleSecurityTest(ConsoleCase):
         self.browser.find_element(By.ID, "user").send_keys("viewer")
         self.browser.find_element(By.ID, "password").send_keys(PASSWORD)
         self.browser.find_element(By.ID, "submit").click()
-        return wait_until(lambda: self.left_login_page(), timeout=10, what=f"the browser to leave {login_url}")
+        return wait_until(lambda: self.left_login_page(), timeout=LOGIN_TIMEOUT,
+                          what=f"the browser to leave {login_url}")
 
     def left_login_page(self):
         url = self.browser.current_url
@@ -91,7 +92,8 @@ class ConsoleSecurityTest(ConsoleCase):
         self.browser.find_element(By.ID, "user").send_keys("viewer")
         self.browser.find_element(By.ID, "password").send_keys(PASSWORD)
         self.browser.find_element(By.ID, "submit").click()
-        wait_until(lambda: self.browser.current_url == self.base + "/servo/2", what="the servo page after the login")
+        wait_until(lambda: self.browser.current_url == self.base + "/servo/2", timeout=LOGIN_TIMEOUT,
+                   what="the servo page after the login")
 
     # --- pages of things that do not exist -----------------------------------------------------------
 
@@ -156,7 +158,8 @@ class ConsoleSecurityTest(ConsoleCase):
     # From other loopback addresses than the browser's 127.0.0.1, which must not be held up.
 
     def login_from(self, source, user, password):
-        connection = http.client.HTTPConnection("127.0.0.1", self.console_port, timeout=10, source_address=(source, 0))
+        connection = http.client.HTTPConnection("127.0.0.1", self.console_port, timeout=LOGIN_TIMEOUT,
+                                                source_address=(source, 0))
         connection.request("POST", "/api/login", json.dumps({"user": user, "password": password}),
                            {"Content-Type": "application/json"})
         answer = connection.getresponse()

@@ -26,6 +26,11 @@ def free_port():
         return s.getsockname()[1]
 
 
+# How long a login may take: the password check runs on a worker at nice 10 (so that a flood of
+# logins never delays the e-stop), which a loaded machine serves last.
+LOGIN_TIMEOUT = 60
+
+
 def wait_until(predicate, timeout=5.0, step=0.05, what="condition"):
     deadline = time.monotonic() + timeout
     last = None
@@ -148,7 +153,7 @@ class GatewayCase(unittest.TestCase):
 
     def api_login(self, user):
         """Logs `user` in over the JSON API: (the session cookie, its CSRF token)."""
-        connection = http.client.HTTPConnection("127.0.0.1", self.console_port, timeout=5)
+        connection = http.client.HTTPConnection("127.0.0.1", self.console_port, timeout=LOGIN_TIMEOUT)
         connection.request("POST", "/api/login", json.dumps({"user": user, "password": PASSWORD}),
                            {"Content-Type": "application/json"})
         answer = connection.getresponse()
@@ -198,7 +203,8 @@ class ConsoleCase(GatewayCase):
         self.browser.find_element(By.ID, "user").send_keys(user)
         self.browser.find_element(By.ID, "password").send_keys(PASSWORD)
         self.browser.find_element(By.ID, "submit").click()
-        wait_until(lambda: self.browser.current_url.rstrip("/") == self.base, what=f"{user} to be logged in")
+        wait_until(lambda: self.browser.current_url.rstrip("/") == self.base, timeout=LOGIN_TIMEOUT,
+                   what=f"{user} to be logged in")
 
     def open(self, path, ready_css):
         from selenium.webdriver.common.by import By

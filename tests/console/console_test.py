@@ -408,13 +408,14 @@ class ConsoleTest(ConsoleCase):
         the bus's own line."""
         self.sim.command("set 2 41 03")  # slow acceleration (300 steps/s²): the move outlasts the stop, on a loaded machine too
         self.sim.command("set 3 40 01")  # servo 3's torque on, to see its owed stop take it off
+        # The page first: a login may take seconds on a loaded machine, the move must not.
+        self.login("eng")
+        self.open("/commission", "#buses-table tr[data-bus='arm'] button.stop-bus:not([disabled])")
         client = self.modbus()
         start = self.sim.field(2, "present_position")
         goal = 4000 if start < 2048 else 100
         self.write_goal(client, 2, goal)
         self.sim.command("offline 3")  # the fault: servo 3 does not answer its stop
-        self.login("eng")
-        self.open("/commission", "#buses-table tr[data-bus='arm'] button.stop-bus:not([disabled])")
         self.browser.find_element(By.CSS_SELECTOR, "#buses-table tr[data-bus='arm'] button.stop-bus").click()
         wait_until(lambda: self._alert(), what="the stop confirmation").accept()
         wait_until(lambda: "bus arm stopped" in self.text("#message"), timeout=15, what="the bus to stop")

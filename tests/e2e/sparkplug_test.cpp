@@ -329,12 +329,18 @@ TEST(Sparkplug, BrokerDownAndBackGivesNewBirthsAndAKilledGatewayItsDeath) {
 }
 
 // A command the broker delivered is carried out, in order, even when the broker dies while the
-// gateway is still working through it: 1000 goal writes in one DCMD; the broker is killed once the
-// first has reached the servo; the last value lands, and the next DBIRTH reports it.
+// gateway is still working through it: 1000 goal writes in one DCMD, each answered 5 ms late by
+// the servo (at least 5 s of work, so that even a loaded machine kills the broker in the middle);
+// the broker is killed once the first has reached the servo; the last value lands, and the next
+// DBIRTH reports it.
 TEST(Sparkplug, ADeliveredCommandIsCarriedOutWhenTheBrokerDiesMeanwhile) {
   Plant plant;
-  auto gateway = GatewayProcess::with_config(plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()), 1);
+  std::string yaml = gateway_yaml(plant.sim.pty(), plant.broker.port());
+  const std::string probe = "offline_probe_period_ms: 50}";
+  yaml.replace(yaml.find(probe), probe.size(), "offline_probe_period_ms: 50, response_timeout_ms: 200}");
+  auto gateway = GatewayProcess::with_config(plant.dir, yaml, 1);
   ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary();
+  ASSERT_EQ(plant.sim.control("late 1 5"), "ok");
   ModbusClient modbus(gateway.port(), 1);
   ASSERT_TRUE(modbus.write_register(42, 0).ok());  // a goal none of the commands has
   std::vector<sp::Metric> writes;
@@ -345,7 +351,7 @@ TEST(Sparkplug, ADeliveredCommandIsCarriedOutWhenTheBrokerDiesMeanwhile) {
   ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") >= 100; })) << gateway.process().output();
   plant.broker.kill();
   EXPECT_NE(plant.sim.field(1, "goal_position"), 2222) << "all writes were done before the broker died";
-  ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 2222; }))
+  ASSERT_TRUE(eventually([&] { return plant.sim.field(1, "goal_position") == 2222; }, 60s, "the last goal"))
       << "goal " << plant.sim.field(1, "goal_position") << "\n"
       << gateway.process().output();
 
@@ -570,6 +576,39 @@ TEST(Sparkplug, BdSeqCountsConnectsSentAndSurvivesARestart) {
   const auto again = host.wait(is(MessageType::NBirth), 15s);
   ASSERT_TRUE(again) << host.summary() << gateway.process().output();
   EXPECT_EQ(int_of(again->metric("bdSeq")), 2);
+}
+
+// A safety state the gateway could not save is a node metric (docs/SAFETY.md), as it is discrete
+// input 4 for a PLC: false at birth, true in NDATA once a save fails (state_dir stops being a
+// directory while the gateway runs), false again once a retried save succeeds.
+TEST(Sparkplug, AnUnsavedSafetyStateIsANodeMetric) {
+  Plant plant;
+  const std::string state = plant.dir.file("state");
+  std::filesystem::create_directories(state);
+  auto gateway = GatewayProcess::with_config(
+      plant.dir, gateway_yaml(plant.sim.pty(), plant.broker.port()) + "state_dir: \"" + state + "\"\n", 1);
+  const auto birth = plant.host.wait(is(MessageType::NBirth));
+  ASSERT_TRUE(birth) << plant.host.summary() << gateway.process().output();
+  ASSERT_NE(birth->metric("Gateway/Safety State Not Persisted"), nullptr) << plant.host.summary();
+  EXPECT_EQ(int_of(birth->metric("Gateway/Safety State Not Persisted")), 0);
+  const auto persistence_news = [](const SparkplugMessage& m) {
+    return m.topic.type == MessageType::NData && m.metric("Gateway/Safety State Not Persisted") != nullptr;
+  };
+
+  std::filesystem::rename(state, state + ".away");
+  std::ofstream(state) << "in the way\n";
+  std::size_t from = plant.host.count();
+  plant.host.command(MessageType::NCmd, kGroup, kNode, "", {sp::Metric::boolean("Gateway/E-Stop", true)});
+  const auto unsaved = plant.host.wait(persistence_news, 10s, from);
+  ASSERT_TRUE(unsaved) << plant.host.summary() << gateway.process().output();
+  EXPECT_EQ(int_of(unsaved->metric("Gateway/Safety State Not Persisted")), 1);
+
+  from = plant.host.count();
+  std::filesystem::remove(state);
+  std::filesystem::rename(state + ".away", state);
+  const auto saved = plant.host.wait(persistence_news, 10s, from);
+  ASSERT_TRUE(saved) << plant.host.summary() << gateway.process().output();
+  EXPECT_EQ(int_of(saved->metric("Gateway/Safety State Not Persisted")), 0);
 }
 
 // A state file that does not hold a bdSeq, or a state_dir that cannot be written: logged, the
