@@ -66,17 +66,22 @@ bool MotionModel::steady() const {
   return true;
 }
 
-void MotionModel::advance(double seconds) {
+std::optional<double> MotionModel::advance(double seconds) {
+  std::optional<double> arrival;
+  double elapsed = 0;
   while (seconds > 0) {
     if (steady()) {
       position_ += velocity_ * seconds;
       acceleration_ = 0;
-      return;
+      return arrival;
     }
     const double dt = std::min(seconds, kMaxStep);
     step(dt);
     seconds -= dt;
+    elapsed += dt;
+    if (arrived()) arrival = elapsed;
   }
+  return arrival;
 }
 
 void MotionModel::step(double dt) {
