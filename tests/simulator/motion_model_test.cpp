@@ -25,7 +25,7 @@ TEST(MotionModel, TellsWhenInsideAnAdvanceItArrived) {
   motor.move_to(1000, MotionLimits{500, 1000, 1000});
   const auto arrival = motor.advance(4.0);
   ASSERT_TRUE(arrival.has_value());
-  EXPECT_NEAR(*arrival, 2.5, 0.005);
+  EXPECT_NEAR(*arrival, 2.5, 0.002);
   EXPECT_FALSE(motor.advance(1.0).has_value());  // already there: no new arrival
 }
 
