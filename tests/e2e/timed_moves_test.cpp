@@ -100,6 +100,8 @@ class Arm {
       return true;
     })) << "the axes never got to "
         << kStart;
+    // And the gateway's poll cache has seen them stand there: a timed move plans from it.
+    ASSERT_TRUE(eventually([&] { return group_inputs(0)[kToGo] == 0; })) << log();
   }
 
   std::vector<std::uint16_t> group_inputs(int group) {
