@@ -4,7 +4,8 @@
 //
 //   timed_moves [--rounds 5] [--move-ms 1500]
 //
-// Each round homes every axis to 500 at its own speed (move time 0), then writes the goals
+// Each round homes every axis to 500 at its own speed (move time 0), waits until the group's
+// distance to go reads 0 (the poll cache has seen them stand), then writes the goals
 // 500 + d (d spread evenly from 100 to 3000 steps) and the move time in one FC16. Figures per
 // axis count: the spread of the arrivals (last - first; the bound is 2 poll periods,
 // 20 ms here), the largest |move time - T| / T over all axes and rounds, and the time from the
@@ -54,6 +55,13 @@ Round run_round(sms::simulator::SimulatedBus& bus, ModbusClient& plc, unsigned a
   auto before = Clock::now();
   if (!plc.write_registers(0, request).ok()) throw std::runtime_error("homing write refused");
   wait_for_arrivals(bus, home, before);
+  // As a PLC would: the next move once the group's distance to go (input register 2002, from the
+  // poll cache the plan starts from) reads 0, not while the cache may still show the axes moving.
+  const auto settled_by = Clock::now() + 10s;
+  while (plc.read_input(2002, 1).or_throw("distance to go").at(0) != 0) {
+    if (Clock::now() > settled_by) throw std::runtime_error("the poll cache never showed the axes home");
+    std::this_thread::sleep_for(5ms);
+  }
 
   std::vector<std::uint16_t> goals;
   for (unsigned axis = 0; axis < axes; ++axis) {
@@ -118,8 +126,8 @@ int main(int argc, char** argv) {
   double rounds = 5;
   double move_ms = 1500;
   if (!parse_arguments(argc, argv, "timed group moves of 2, 6 and 20 sts axes: arrival spread and move time error",
-                       {{"--rounds", &rounds, "timed moves per axis count"},
-                        {"--move-ms", &move_ms, "the move time written, ms"}})) {
+                       {{"rounds", &rounds, "timed moves per axis count"},
+                        {"move-ms", &move_ms, "the move time written, ms"}})) {
     return 2;
   }
   quiet_logs();
