@@ -31,10 +31,11 @@ constexpr std::array<int, kAxes> kDistances{100, 600, 1200, 1800, 2400, 3000};
 // Input registers of a group (docs/PLC_GUIDE.md "Timed group moves").
 enum GroupInput { kMoving = 0, kTimeLeft = 1, kToGo = 2, kLastMove = 3, kLimitingUnit = 4, kShortest = 5, kUsed = 6 };
 
-std::string config(const std::string& pty, const std::string& bus_protocol, const std::string& table, int baud) {
+std::string config(const std::string& pty, const std::string& bus_protocol, const std::string& table, int baud,
+                   const std::string& bus_extra) {
   std::string yaml = "buses:\n  - {name: arm, device: \"" + pty + "\", protocol: " + bus_protocol +
                      ", baud: " + std::to_string(baud) + ", poll_period_ms: " + std::to_string(kPollPeriodMs) +
-                     ", response_timeout_ms: 100, retries: 1}\nservos:\n";
+                     ", response_timeout_ms: 100, retries: 1" + bus_extra + "}\nservos:\n";
   for (int id = 1; id <= kAxes; ++id) {
     yaml += "  - {unit: " + std::to_string(id) + ", bus: arm, id: " + std::to_string(id) + ", table: " + table + "}\n";
   }
@@ -75,10 +76,11 @@ Motion motion_of(SimProcess& sim, int id) {
 
 class Arm {
  public:
+  // `bus_extra`: more keys of the bus (", poll_fields: [...]").
   explicit Arm(const std::string& table = "sts", const std::string& sim_protocol = "feetech",
-               const std::string& bus_protocol = "feetech", int baud = 1000000)
+               const std::string& bus_protocol = "feetech", int baud = 1000000, const std::string& bus_extra = "")
       : sim_(dir_, "arm", servos(table, sim_protocol, baud)),
-        gateway_(GatewayProcess::with_config(dir_, config(sim_.pty(), bus_protocol, table, baud), 1)),
+        gateway_(GatewayProcess::with_config(dir_, config(sim_.pty(), bus_protocol, table, baud, bus_extra), 1)),
         plc_(gateway_.port(), kGateway) {
     for (int unit = 1; unit <= kAxes; ++unit) wait_until_polled(gateway_.port(), unit);
   }
@@ -198,6 +200,12 @@ TEST(TimedMoves, SixStsAxesArriveTogetherAtTheMoveTime) {
 TEST(TimedMoves, SixSmsmbAxesOnModbusRtuArriveTogether) {
   Arm arm("smsmb", "modbus-rtu", "modbus-rtu", 115200);
   timed_move_arrives_together(arm, Spread::MoveTimes);
+}
+
+// A bus that does not poll present positions: the gateway reads each axis's before planning.
+TEST(TimedMoves, PresentPositionsOutsideTheCacheAreReadLive) {
+  Arm arm("sts", "feetech", "feetech", 1000000, ", poll_fields: [present_load]");
+  timed_move_arrives_together(arm);
 }
 
 TEST(TimedMoves, TheMoveTimeWrittenBeforeTheGoalsCounts) {
