@@ -154,8 +154,8 @@ class GatewayUnit {
   void timed_move(SyncGroup& group, std::vector<MemberWrite> writes, std::uint16_t move_time_ms,
                   const WriteRegistersRequest& request, const Reply& reply, std::function<void(const Reply&)> after);
   void plan_and_send(SyncGroup& group, std::vector<MemberWrite> writes, std::vector<std::int32_t> present,
-                     std::vector<MotionEpoch> epochs, std::uint16_t move_time_ms, std::uint8_t function,
-                     const Reply& reply, std::function<void(const Reply&)> after);
+                     std::uint16_t move_time_ms, std::uint8_t function, const Reply& reply,
+                     std::function<void(const Reply&)> after);
   // Sends the frames (after the holds `switched_on` needs), feeds the watchdogs of `buses` once
   // all are carried out, then runs `done` (true) or answers the failure.
   void send_frames(std::vector<Frame> frames, std::vector<HoldTarget> switched_on, std::vector<std::size_t> buses,

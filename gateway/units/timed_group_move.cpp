@@ -139,18 +139,6 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
       return;
     }
   }
-  // Goals are motion: admitted on every bus they go to, before anything is read or planned.
-  std::vector<MotionEpoch> epochs(engines_.size(), 0);
-  std::vector<bool> admitted(engines_.size(), false);
-  for (const MemberWrite& write : writes) {
-    const std::size_t bus = write.member->bus;
-    if (admitted[bus]) continue;
-    const auto epoch = admit_or_refuse(
-        safety_, refusal_log_, bus, "gateway unit sync group '" + group.name + "' timed move", request.function, reply);
-    if (!epoch) return;
-    epochs[bus] = *epoch;
-    admitted[bus] = true;
-  }
   // Present positions: the poll cache's when at most a poll period old, else read now.
   const auto now = std::chrono::steady_clock::now();
   std::vector<std::int32_t> present(writes.size(), 0);
@@ -172,34 +160,32 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
   SyncGroup* const target = &group;
   const std::uint8_t function = request.function;
   if (live.empty()) {
-    plan_and_send(*target, std::move(writes), std::move(present), std::move(epochs), move_time_ms, function, reply,
-                  std::move(after));
+    plan_and_send(*target, std::move(writes), std::move(present), move_time_ms, function, reply, std::move(after));
     return;
   }
-  auto join =
-      BusJoin::create(live.size(), post_,
-                      [this, target, writes, present, live, epochs, move_time_ms, function, reply,
-                       after = std::move(after)](const std::vector<BusResult>& results) mutable {
-                        if (const BusResult* failure = BusJoin::first_failure(results)) {
-                          spdlog::warn("gateway unit: sync group '{}': present position not read, no move: {}",
-                                       target->name, failure->detail);
-                          reply.send(exception_response(function, fault_from(failure->status)));
-                          return;
-                        }
-                        for (std::size_t k = 0; k < live.size(); ++k) {
-                          const SyncMember& member = *writes[live[k]].member;
-                          const FieldSpec& field = present_position_field(*member.map);
-                          if (results[k].data.size() != wire_bytes(*member.map, field)) {
-                            spdlog::warn("gateway unit: sync group '{}' unit {}: present position read {} bytes",
-                                         target->name, member.unit_id, results[k].data.size());
-                            reply.send(exception_response(function, ModbusException::ServerDeviceFailure));
-                            return;
-                          }
-                          present[live[k]] = field_value(field, *member.map, results[k].data);
-                        }
-                        plan_and_send(*target, std::move(writes), std::move(present), std::move(epochs), move_time_ms,
-                                      function, reply, std::move(after));
-                      });
+  auto join = BusJoin::create(
+      live.size(), post_,
+      [this, target, writes, present, live, move_time_ms, function, reply,
+       after = std::move(after)](const std::vector<BusResult>& results) mutable {
+        if (const BusResult* failure = BusJoin::first_failure(results)) {
+          spdlog::warn("gateway unit: sync group '{}': present position not read, no move: {}", target->name,
+                       failure->detail);
+          reply.send(exception_response(function, fault_from(failure->status)));
+          return;
+        }
+        for (std::size_t k = 0; k < live.size(); ++k) {
+          const SyncMember& member = *writes[live[k]].member;
+          const FieldSpec& field = present_position_field(*member.map);
+          if (results[k].data.size() != wire_bytes(*member.map, field)) {
+            spdlog::warn("gateway unit: sync group '{}' unit {}: present position read {} bytes", target->name,
+                         member.unit_id, results[k].data.size());
+            reply.send(exception_response(function, ModbusException::ServerDeviceFailure));
+            return;
+          }
+          present[live[k]] = field_value(field, *member.map, results[k].data);
+        }
+        plan_and_send(*target, std::move(writes), std::move(present), move_time_ms, function, reply, std::move(after));
+      });
   for (std::size_t k = 0; k < live.size(); ++k) {
     const SyncMember& member = *writes[live[k]].member;
     const FieldSpec& field = present_position_field(*member.map);
@@ -210,8 +196,8 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
 }
 
 void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> writes, std::vector<std::int32_t> present,
-                                std::vector<MotionEpoch> epochs, std::uint16_t move_time_ms, std::uint8_t function,
-                                const Reply& reply, std::function<void(const Reply&)> after) {
+                                std::uint16_t move_time_ms, std::uint8_t function, const Reply& reply,
+                                std::function<void(const Reply&)> after) {
   struct Axis {
     const modbus_map::TimedMoveSpec* spec;
     double distance;
@@ -256,6 +242,19 @@ void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> write
     plan.result = layout::TimedMoveResult::Stretched;
   }
   const double seconds = std::chrono::duration<double>(plan.used).count();
+  // Goals are motion: admitted on every bus they go to once the move is known to be possible (a
+  // refused move time starts no watchdog), after the reads, so the epoch is the latest.
+  std::vector<MotionEpoch> epochs(engines_.size(), 0);
+  std::vector<bool> admitted(engines_.size(), false);
+  for (const MemberWrite& write : writes) {
+    const std::size_t bus = write.member->bus;
+    if (admitted[bus]) continue;
+    const auto epoch = admit_or_refuse(safety_, refusal_log_, bus,
+                                       "gateway unit sync group '" + group.name + "' timed move", function, reply);
+    if (!epoch) return;
+    epochs[bus] = *epoch;
+    admitted[bus] = true;
+  }
 
   // Per member: acceleration, goal, the time field 0 (the speed governs) and speed, merged.
   std::vector<std::size_t> order(writes.size());

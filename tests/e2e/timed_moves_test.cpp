@@ -208,6 +208,21 @@ TEST(TimedMoves, PresentPositionsOutsideTheCacheAreReadLive) {
   timed_move_arrives_together(arm);
 }
 
+// The move time register is a write like any other for the watchdog (feed any_write): carried
+// out, it feeds; a refused timed move does not.
+TEST(TimedMoves, AMoveTimeWriteFeedsTheWatchdogARefusedMoveDoesNot) {
+  Arm arm("sts", "feetech", "feetech", 1000000, ", watchdog: {timeout_ms: 60000, feed: any_write}");
+  constexpr int kBus0SinceFeed = 111;  // ms since the last feed; 65535: never
+  const auto since_feed = [&] { return arm.plc().read_input(kBus0SinceFeed, 1).or_throw("since feed")[0]; };
+  ASSERT_EQ(since_feed(), 0xFFFF);
+  std::vector<std::uint16_t> request = goals_for(kDistances);
+  request.push_back(100);  // too short: refused, nothing carried out
+  EXPECT_EQ(arm.plc().write_registers(0, request).exception, 3);
+  EXPECT_EQ(since_feed(), 0xFFFF);
+  ASSERT_TRUE(arm.plc().write_register(kMoveTimeRegister, 1500).ok()) << arm.log();
+  EXPECT_NE(since_feed(), 0xFFFF);
+}
+
 TEST(TimedMoves, TheMoveTimeWrittenBeforeTheGoalsCounts) {
   Arm arm;
   arm.home();
