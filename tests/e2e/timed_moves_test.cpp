@@ -123,7 +123,9 @@ class Arm {
           return true;
         },
         20s);
-    if (!arrived) ADD_FAILURE() << "the axes did not all reach their goals\n" << log();
+    if (!arrived) {
+      ADD_FAILURE() << "the axes did not all reach their goals\n" << log();
+    }
     return motions;
   }
 
