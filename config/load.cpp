@@ -1419,8 +1419,8 @@ void Loader::check_timed_move_members(const Value& value, const SyncGroupConfig&
     }
     if (modbus_map::timed_move_spec(table.id) == nullptr) {
       fail(value.mark, value.path + ": " + who +
-                           " cannot take a timed move (its position unit depends on the motor's angle resolution); "
-                           "leave it out of the group or drop `move_time`");
+                           " cannot take a timed move (modbus_map/timed_move.cpp has no "
+                           "profile for its table); leave it out of the group or drop `move_time`");
     }
   }
 }

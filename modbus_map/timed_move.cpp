@@ -15,16 +15,24 @@ constexpr double k0732RpmInSteps = 0.732 * 4096.0 / 60.0;
 constexpr double kFeetechTopSteps = 65.0 * 4096.0 / 60.0;
 constexpr double kScsTopSteps = 1500.0;  // the SCSCL SDK examples' "maximum speed"
 
+constexpr std::int32_t kFeetechTopCounts = static_cast<std::int32_t>(kFeetechTopSteps / k0732RpmInSteps);
+constexpr double kSms1SpeedUnit = 0.087 * kStepsPerDegree;
+
 constexpr std::array kSpecs{
-    TimedMoveSpec{TableId::Sts, "goal_speed", "acceleration", "goal_time", k0732RpmInSteps, 100.0,
-                  static_cast<std::int32_t>(kFeetechTopSteps / k0732RpmInSteps), 254},
-    TimedMoveSpec{TableId::Sms1, "run_speed", "acceleration", "run_time", 0.087 * kStepsPerDegree, 100.0,
-                  static_cast<std::int32_t>(kFeetechTopSteps / (0.087 * kStepsPerDegree)), 254},
+    TimedMoveSpec{TableId::Sts, "goal_speed", "acceleration", "goal_time", k0732RpmInSteps, 100.0, kFeetechTopCounts,
+                  254, "", "", 0},
+    TimedMoveSpec{TableId::Sms1, "run_speed", "acceleration", "run_time", kSms1SpeedUnit, 100.0,
+                  static_cast<std::int32_t>(kFeetechTopSteps / kSms1SpeedUnit), 254, "", "", 0},
     // SMSMB's acceleration unit 8.79 °/s² is 100 steps/s²; its range allows more than the motor
     // does, so the plan stops where the packet tables' byte does.
     TimedMoveSpec{TableId::Smsmb, "running_speed", "acceleration", "", k0732RpmInSteps, 8.79 * kStepsPerDegree,
-                  static_cast<std::int32_t>(kFeetechTopSteps / k0732RpmInSteps), 254},
-    TimedMoveSpec{TableId::Scs, "goal_speed", "", "goal_time", 1.0, 0.0, static_cast<std::int32_t>(kScsTopSteps), 0},
+                  kFeetechTopCounts, 254, "", "", 0},
+    TimedMoveSpec{TableId::Scs, "goal_speed", "", "goal_time", 1.0, 0.0, static_cast<std::int32_t>(kScsTopSteps), 0, "",
+                  "", 0},
+    // d55d (doc 002): run speed in position units/s, acceleration and deceleration 10 °/s², a
+    // 360 °/s motor; at the default resolution 10 (1° a position unit) 10 units/s² and 360 units/s.
+    TimedMoveSpec{TableId::D55d, "run_speed", "acceleration", "", 1.0, 10.0, 360, 254, "deceleration",
+                  "angle_resolution", 10},
 };
 
 }  // namespace
@@ -34,6 +42,17 @@ const TimedMoveSpec* timed_move_spec(TableId table) {
     if (spec.table == table) return &spec;
   }
   return nullptr;
+}
+
+TimedMoveSpec at_resolution(const TimedMoveSpec& spec, std::int32_t resolution) {
+  if (spec.resolution.empty() || resolution < 1) return spec;
+  // A finer resolution makes more position units to the degree: the same degrees per second
+  // squared are more units, the same top speed more units per second.
+  const double scale = static_cast<double>(spec.reference_resolution) / resolution;
+  TimedMoveSpec scaled = spec;
+  scaled.acceleration_unit = spec.acceleration_unit * scale;
+  scaled.max_speed = std::max<std::int32_t>(1, static_cast<std::int32_t>(spec.max_speed * scale));
+  return scaled;
 }
 
 double move_seconds(double distance, double speed, double acceleration) {

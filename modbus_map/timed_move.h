@@ -25,11 +25,19 @@ struct TimedMoveSpec {
   // the motor runs) and the acceleration field's largest value.
   std::int32_t max_speed;
   std::int32_t max_acceleration;
+  std::string_view deceleration;  // written with the acceleration's count; empty: none
+  // d55d: positions count degrees × this field (0.1° a count), so `acceleration_unit` and
+  // `max_speed` hold at `reference_resolution` and scale with the servo's own (at_resolution);
+  // empty: the units are fixed.
+  std::string_view resolution;
+  std::int32_t reference_resolution;
 };
 
-// nullptr: the table cannot take a timed move (d55d: its position unit depends on each motor's
-// angle resolution, docs/DECISIONS.md "Timed group moves").
+// nullptr: the table cannot take a timed move.
 const TimedMoveSpec* timed_move_spec(TableId table);
+// `spec` for a servo whose resolution field reads `resolution` (>= 1); `spec` itself when its
+// table has no such field.
+TimedMoveSpec at_resolution(const TimedMoveSpec& spec, std::int32_t resolution);
 
 // Seconds a move of `distance` (position units, >= 0) takes at top speed `speed` (units/s, > 0)
 // ramping at `acceleration` (units/s²; 0: at once).

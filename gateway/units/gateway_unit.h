@@ -28,6 +28,7 @@
 #include "gateway/units/safety.h"
 #include "modbus_map/control_table.h"
 #include "modbus_map/register_map.h"
+#include "modbus_map/timed_move.h"
 
 namespace sms::gateway {
 
@@ -153,9 +154,9 @@ class GatewayUnit {
   // The group's timed move of `writes` (docs/PLC_GUIDE.md "Timed group moves").
   void timed_move(SyncGroup& group, std::vector<MemberWrite> writes, std::uint16_t move_time_ms,
                   const WriteRegistersRequest& request, const Reply& reply, std::function<void(const Reply&)> after);
-  void plan_and_send(SyncGroup& group, std::vector<MemberWrite> writes, std::vector<std::int32_t> present,
-                     std::uint16_t move_time_ms, std::uint8_t function, const Reply& reply,
-                     std::function<void(const Reply&)> after);
+  void plan_and_send(SyncGroup& group, std::vector<MemberWrite> writes, std::vector<modbus_map::TimedMoveSpec> specs,
+                     std::vector<std::int32_t> present, std::uint16_t move_time_ms, std::uint8_t function,
+                     const Reply& reply, std::function<void(const Reply&)> after);
   // Sends the frames (after the holds `switched_on` needs), feeds the watchdogs of `buses` once
   // all are carried out, then runs `done` (true) or answers the failure.
   void send_frames(std::vector<Frame> frames, std::vector<HoldTarget> switched_on, std::vector<std::size_t> buses,

@@ -5,6 +5,9 @@
 // modbus-rtu bus one write per servo in unit order. The same admission as every motion write.
 #include <algorithm>
 #include <cmath>
+#include <optional>
+#include <span>
+#include <string_view>
 
 #include <spdlog/spdlog.h>
 
@@ -58,6 +61,40 @@ std::chrono::milliseconds whole_ms_up(double seconds) {
 
 std::uint16_t saturate16(std::int64_t value) {
   return static_cast<std::uint16_t>(std::clamp<std::int64_t>(value, 0, 0xFFFF));
+}
+
+// The bus range to read for a table whose units follow a resolution field (d55d): from the
+// first angle limit to the resolution, so one READ also tells whether the servo is in wheel mode.
+std::optional<modbus_map::BusRange> resolution_context(const RegisterMap& map, const modbus_map::TimedMoveSpec& spec) {
+  if (spec.resolution.empty()) return std::nullopt;
+  const auto& table = map.servo_table();
+  const auto& motion = modbus_map::motion_spec(table.id);
+  std::uint16_t first = 0xFFFF;
+  std::uint16_t end = 0;
+  for (const std::string_view name : {motion.min_limit, motion.max_limit, spec.resolution}) {
+    const FieldSpec* field = modbus_map::field_by_name(table, name);
+    if (field == nullptr) continue;
+    first = std::min(first, field->addr);
+    end = std::max<std::uint16_t>(end, field->addr + modbus_map::address_span(table.addressing, *field));
+  }
+  return modbus_map::BusRange{first, static_cast<std::uint16_t>(end - first)};
+}
+
+// `spec` at the servo's resolution read in `bytes` (from bus address `first`); nullopt when both
+// angle limits are 0: wheel mode, where a goal is relative and a distance cannot be known.
+std::optional<modbus_map::TimedMoveSpec> spec_from_context(const RegisterMap& map,
+                                                           const modbus_map::TimedMoveSpec& spec, std::uint16_t first,
+                                                           std::span<const std::uint8_t> bytes) {
+  const auto& table = map.servo_table();
+  const auto value_of = [&](std::string_view name) -> std::optional<std::int32_t> {
+    const FieldSpec* field = modbus_map::field_by_name(table, name);
+    if (field == nullptr) return std::nullopt;
+    const std::size_t at = std::size_t{static_cast<std::uint16_t>(field->addr - first)} * map.bytes_per_bus_address();
+    return field_value(*field, map, bytes.subspan(at, wire_bytes(map, *field)));
+  };
+  const auto& motion = modbus_map::motion_spec(table.id);
+  if (value_of(motion.min_limit).value_or(1) == 0 && value_of(motion.max_limit).value_or(1) == 0) return std::nullopt;
+  return modbus_map::at_resolution(spec, value_of(spec.resolution).value_or(spec.reference_resolution));
 }
 
 // One member's writes merged where they touch: sts acceleration, goal, time and speed are one
@@ -139,10 +176,29 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
       return;
     }
   }
-  // Present positions: the poll cache's when at most a poll period old, else read now.
+  // Each axis's table profile; a table whose units follow a resolution field (d55d) gets its
+  // servo's, read with the fields that choose its drive.
+  std::vector<modbus_map::TimedMoveSpec> specs;
+  for (const MemberWrite& write : writes) {
+    const auto* spec = modbus_map::timed_move_spec(write.member->map->servo_table().id);
+    if (spec == nullptr) {  // no such table today; kept so a new table cannot slip through
+      spdlog::warn("gateway unit: sync group '{}' unit {}: table {} cannot take a timed move", group.name,
+                   write.member->unit_id, write.member->map->servo_table().name);
+      reply.send(exception_response(request.function, ModbusException::IllegalDataValue));
+      return;
+    }
+    specs.push_back(*spec);
+  }
+  // Reads before the plan: present positions the poll cache does not have fresh (at most a poll
+  // period old), and the resolution context.
+  struct Read {
+    std::size_t axis;
+    bool context;  // the resolution and angle limits, else the present position
+    ReadOp op;
+  };
+  std::vector<Read> reads;
   const auto now = std::chrono::steady_clock::now();
   std::vector<std::int32_t> present(writes.size(), 0);
-  std::vector<std::size_t> live;
   for (std::size_t i = 0; i < writes.size(); ++i) {
     const SyncMember& member = *writes[i].member;
     const FieldSpec& field = present_position_field(*member.map);
@@ -154,48 +210,65 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
     if (age && *age <= fresh_age(engine)) {
       present[i] = field_value(field, *member.map, bytes);
     } else {
-      live.push_back(i);
+      reads.push_back(Read{
+          i, false,
+          ReadOp{member.servo_id, field.addr, modbus_map::address_span(member.map->servo_table().addressing, field)}});
+    }
+    if (const auto range = resolution_context(*member.map, specs[i])) {
+      reads.push_back(Read{i, true, ReadOp{member.servo_id, range->address, range->count}});
     }
   }
   SyncGroup* const target = &group;
   const std::uint8_t function = request.function;
-  if (live.empty()) {
-    plan_and_send(*target, std::move(writes), std::move(present), move_time_ms, function, reply, std::move(after));
+  if (reads.empty()) {
+    plan_and_send(*target, std::move(writes), std::move(specs), std::move(present), move_time_ms, function, reply,
+                  std::move(after));
     return;
   }
   auto join = BusJoin::create(
-      live.size(), post_,
-      [this, target, writes, present, live, move_time_ms, function, reply,
+      reads.size(), post_,
+      [this, target, writes, specs, present, reads, move_time_ms, function, reply,
        after = std::move(after)](const std::vector<BusResult>& results) mutable {
         if (const BusResult* failure = BusJoin::first_failure(results)) {
-          spdlog::warn("gateway unit: sync group '{}': present position not read, no move: {}", target->name,
+          spdlog::warn("gateway unit: sync group '{}': a servo was not read, no move: {}", target->name,
                        failure->detail);
           reply.send(exception_response(function, fault_from(failure->status)));
           return;
         }
-        for (std::size_t k = 0; k < live.size(); ++k) {
-          const SyncMember& member = *writes[live[k]].member;
-          const FieldSpec& field = present_position_field(*member.map);
-          if (results[k].data.size() != wire_bytes(*member.map, field)) {
-            spdlog::warn("gateway unit: sync group '{}' unit {}: present position read {} bytes", target->name,
+        for (std::size_t k = 0; k < reads.size(); ++k) {
+          const SyncMember& member = *writes[reads[k].axis].member;
+          if (results[k].data.size() != std::size_t{reads[k].op.count} * member.map->bytes_per_bus_address()) {
+            spdlog::warn("gateway unit: sync group '{}' unit {}: a read answered {} bytes", target->name,
                          member.unit_id, results[k].data.size());
             reply.send(exception_response(function, ModbusException::ServerDeviceFailure));
             return;
           }
-          present[live[k]] = field_value(field, *member.map, results[k].data);
+          if (!reads[k].context) {
+            present[reads[k].axis] = field_value(present_position_field(*member.map), *member.map, results[k].data);
+            continue;
+          }
+          const auto scaled =
+              spec_from_context(*member.map, specs[reads[k].axis], reads[k].op.address, results[k].data);
+          if (!scaled) {
+            spdlog::info(
+                "gateway unit: sync group '{}' unit {}: both angle limits are 0 (wheel mode: relative goals); "
+                "a timed move needs position mode",
+                target->name, member.unit_id);
+            reply.send(exception_response(function, ModbusException::IllegalDataValue));
+            return;
+          }
+          specs[reads[k].axis] = *scaled;
         }
-        plan_and_send(*target, std::move(writes), std::move(present), move_time_ms, function, reply, std::move(after));
+        plan_and_send(*target, std::move(writes), std::move(specs), std::move(present), move_time_ms, function, reply,
+                      std::move(after));
       });
-  for (std::size_t k = 0; k < live.size(); ++k) {
-    const SyncMember& member = *writes[live[k]].member;
-    const FieldSpec& field = present_position_field(*member.map);
-    engines_[member.bus]->submit(
-        ReadOp{member.servo_id, field.addr, modbus_map::address_span(member.map->servo_table().addressing, field)},
-        Priority::ClientRead, join->completion(k));
+  for (std::size_t k = 0; k < reads.size(); ++k) {
+    engines_[writes[reads[k].axis].member->bus]->submit(reads[k].op, Priority::ClientRead, join->completion(k));
   }
 }
 
-void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> writes, std::vector<std::int32_t> present,
+void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> writes,
+                                std::vector<modbus_map::TimedMoveSpec> specs, std::vector<std::int32_t> present,
                                 std::uint16_t move_time_ms, std::uint8_t function, const Reply& reply,
                                 std::function<void(const Reply&)> after) {
   struct Axis {
@@ -207,13 +280,7 @@ void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> write
   std::size_t slowest = 0;
   for (std::size_t i = 0; i < writes.size(); ++i) {
     const SyncMember& member = *writes[i].member;
-    const auto* spec = modbus_map::timed_move_spec(member.map->servo_table().id);
-    if (spec == nullptr) {  // the loader refuses such groups; kept for a configuration built in code
-      spdlog::warn("gateway unit: sync group '{}' unit {}: table {} cannot take a timed move", group.name,
-                   member.unit_id, member.map->servo_table().name);
-      reply.send(exception_response(function, ModbusException::IllegalDataValue));
-      return;
-    }
+    const modbus_map::TimedMoveSpec* spec = &specs[i];
     const auto goal = member.map->field_bytes(*member.field, writes[i].value);
     const double distance = std::abs(static_cast<double>(field_value(*member.field, *member.map, *goal)) - present[i]);
     axes.push_back(Axis{spec, distance, modbus_map::shortest_seconds(*spec, distance)});
@@ -283,6 +350,10 @@ void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> write
     if (!spec.acceleration.empty()) {
       ok = ok &&
            add(*modbus_map::field_by_name(table, spec.acceleration), static_cast<std::uint16_t>(counts.acceleration));
+    }
+    if (!spec.deceleration.empty()) {
+      ok = ok &&
+           add(*modbus_map::field_by_name(table, spec.deceleration), static_cast<std::uint16_t>(counts.acceleration));
     }
     if (!spec.time.empty()) ok = ok && add(*modbus_map::field_by_name(table, spec.time), 0);
     if (!ok) {

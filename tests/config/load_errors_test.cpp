@@ -180,10 +180,6 @@ sync_groups:
                               "move_time: true}\n"),
             "plant.yaml:9:89: sync_groups[0].move_time: a timed move writes goal positions, but the group writes "
             "`goal_speed`; unit 1 (table sts) has its goal in `goal_position`");
-  EXPECT_EQ(error_text(head + "  - {name: g, field: goal_position, members: [1, 3], holding_register_start: 0, "
-                              "move_time: true}\n"),
-            "plant.yaml:9:92: sync_groups[0].move_time: unit 3 (table d55d) cannot take a timed move (its position "
-            "unit depends on the motor's angle resolution); leave it out of the group or drop `move_time`");
   EXPECT_EQ(error_text(head + "  - {name: g, field: goal_position, members: [1, 2], holding_register_start: 0, "
                               "stretch: true}\n"),
             "plant.yaml:9:90: sync_groups[0].stretch: `stretch` stretches a move time; the group needs "

@@ -89,19 +89,21 @@ class Arm {
   ModbusClient& plc() { return plc_; }
   std::string log() { return gateway_.process().output(); }
 
-  // Every axis to `kStart` at its own speed (move time 0), and waits until all are there.
-  void home() {
-    std::vector<std::uint16_t> values(kAxes, kStart);
-    values.push_back(0);
+  // Every axis to `start` in a timed move of 2 s (d55d runs nowhere at its power-on run speed 0),
+  // the move time back to 0, and waits until all are there.
+  void home(int start = kStart) {
+    std::vector<std::uint16_t> values(kAxes, static_cast<std::uint16_t>(start));
+    values.push_back(2000);
     ASSERT_TRUE(plc_.write_registers(0, values).ok()) << log();
+    ASSERT_TRUE(plc_.write_register(kMoveTimeRegister, 0).ok()) << log();
     ASSERT_TRUE(eventually([&] {
       for (int id = 1; id <= kAxes; ++id) {
         const Motion motion = motion_of(sim_, id);
-        if (motion.position != kStart || motion.arrived_us < 0) return false;
+        if (motion.position != start || motion.arrived_us < 0) return false;
       }
       return true;
     })) << "the axes never got to "
-        << kStart;
+        << start;
     // And the gateway's poll cache has seen them stand there: a timed move plans from it.
     ASSERT_TRUE(eventually([&] { return group_inputs(0)[kToGo] == 0; })) << log();
   }
@@ -150,9 +152,9 @@ long long now_us() {
       .count();
 }
 
-std::vector<std::uint16_t> goals_for(const std::array<int, kAxes>& distances) {
+std::vector<std::uint16_t> goals_for(const std::array<int, kAxes>& distances, int start = kStart) {
   std::vector<std::uint16_t> goals;
-  for (const int distance : distances) goals.push_back(static_cast<std::uint16_t>(kStart + distance));
+  for (const int distance : distances) goals.push_back(static_cast<std::uint16_t>(start + distance));
   return goals;
 }
 
@@ -175,14 +177,15 @@ void expect_together_at(const std::vector<Motion>& motions, int ms, Spread sprea
   }
 }
 
-void timed_move_arrives_together(Arm& arm, Spread spread = Spread::Arrivals) {
-  arm.home();
+void timed_move_arrives_together(Arm& arm, Spread spread = Spread::Arrivals, int start = kStart,
+                                 const std::array<int, kAxes>& distances = kDistances) {
+  arm.home(start);
   const long long before = now_us();
-  std::vector<std::uint16_t> request = goals_for(kDistances);
+  std::vector<std::uint16_t> request = goals_for(distances, start);
   request.push_back(1500);  // the move time, in the same FC16
   const auto answer = arm.plc().write_registers(0, request);
   ASSERT_TRUE(answer.ok()) << answer.error << "\n" << arm.log();
-  const auto motions = arm.arrivals(goals_for(kDistances), before);
+  const auto motions = arm.arrivals(goals_for(distances, start), before);
   expect_together_at(motions, 1500, spread);
   const auto inputs = arm.group_inputs(0);
   EXPECT_EQ(inputs[kLastMove], 1);  // as asked
@@ -202,6 +205,13 @@ TEST(TimedMoves, SixStsAxesArriveTogetherAtTheMoveTime) {
 TEST(TimedMoves, SixSmsmbAxesOnModbusRtuArriveTogether) {
   Arm arm("smsmb", "modbus-rtu", "modbus-rtu", 115200);
   timed_move_arrives_together(arm, Spread::MoveTimes);
+}
+
+// d55d motors in position mode (360° at the default resolution, 1° a position unit): goal, run
+// speed, acceleration and deceleration in one SYNC WRITE block (30-35).
+TEST(TimedMoves, SixD55dAxesArriveTogether) {
+  Arm arm("d55d", "d55d", "d55d", 115200);
+  timed_move_arrives_together(arm, Spread::Arrivals, 20, {10, 60, 120, 180, 240, 300});
 }
 
 // A bus that does not poll present positions: the gateway reads each axis's before planning.

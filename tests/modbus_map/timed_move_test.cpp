@@ -15,15 +15,11 @@ TEST(TimedMove, TrapezoidAndTriangleTimes) {
   EXPECT_DOUBLE_EQ(move_seconds(0, 100, 100), 0.0);
 }
 
-TEST(TimedMove, EveryTableButD55dNamesWritableFieldsOfItsOwn) {
+TEST(TimedMove, EveryTableNamesWritableFieldsOfItsOwn) {
   for (const TableSpec* table : all_tables()) {
     const TimedMoveSpec* spec = timed_move_spec(table->id);
-    if (table->id == TableId::D55d) {
-      EXPECT_EQ(spec, nullptr);
-      continue;
-    }
     ASSERT_NE(spec, nullptr) << table->name;
-    for (const std::string_view name : {spec->speed, spec->acceleration, spec->time}) {
+    for (const std::string_view name : {spec->speed, spec->acceleration, spec->time, spec->deceleration}) {
       if (name.empty()) continue;
       const FieldSpec* field = field_by_name(*table, name);
       ASSERT_NE(field, nullptr) << table->name << " has no " << name;
@@ -54,6 +50,27 @@ TEST(TimedMove, PlansLandWithinOnePercentOfTheTimeAsked) {
       EXPECT_DOUBLE_EQ(move_seconds(distance, plan->speed * spec.speed_unit, a), plan->seconds);
     }
   }
+}
+
+// d55d positions count degrees × resolution: at the default 10 (1°), 10 °/s² is 10 units/s² and
+// 360 °/s is 360 units/s; at 5 (0.5°) twice as many units.
+TEST(TimedMove, D55dUnitsFollowTheAngleResolution) {
+  const TimedMoveSpec& d55d = *timed_move_spec(TableId::D55d);
+  EXPECT_NE(field_by_name(table(TableId::D55d), d55d.resolution), nullptr);
+  const TimedMoveSpec same = at_resolution(d55d, 10);
+  EXPECT_DOUBLE_EQ(same.acceleration_unit, 10.0);
+  EXPECT_EQ(same.max_speed, 360);
+  const TimedMoveSpec finer = at_resolution(d55d, 5);
+  EXPECT_DOUBLE_EQ(finer.acceleration_unit, 20.0);
+  EXPECT_EQ(finer.max_speed, 720);
+  EXPECT_DOUBLE_EQ(finer.speed_unit, 1.0);  // run speed counts position units per second
+  for (double distance = 10; distance <= 350; distance += 10) {
+    const auto plan = plan_axis(same, distance, 1.5);
+    ASSERT_TRUE(plan.has_value()) << distance;
+    EXPECT_NEAR(plan->seconds, 1.5, 0.015) << distance;
+  }
+  // A table without a resolution field keeps its units.
+  EXPECT_DOUBLE_EQ(at_resolution(*timed_move_spec(TableId::Sts), 5).acceleration_unit, 100.0);
 }
 
 TEST(TimedMove, ATimeShorterThanTheFastestMoveIsRefused) {
