@@ -214,6 +214,19 @@ TEST(TimedMoves, SixD55dAxesArriveTogether) {
   timed_move_arrives_together(arm, Spread::Arrivals, 20, {10, 60, 120, 180, 240, 300});
 }
 
+// A d55d motor in wheel mode (both angle limits 0) takes relative goals: no distance to plan.
+TEST(TimedMoves, AD55dInWheelModeRefusesTheMove) {
+  Arm arm("d55d", "d55d", "d55d", 115200);
+  arm.home(20);
+  ASSERT_EQ(arm.sim().control("set 6 6 00 00 00 00"), "ok");  // unit 6: cw and ccw limits 0
+  const long long started_before = motion_of(arm.sim(), 1).started_us;
+  std::vector<std::uint16_t> request = goals_for({10, 60, 120, 180, 240, 300}, 20);
+  request.push_back(1500);
+  EXPECT_EQ(arm.plc().write_registers(0, request).exception, 3);
+  EXPECT_EQ(motion_of(arm.sim(), 1).started_us, started_before) << "an axis was given its goal";
+  EXPECT_EQ(arm.sim().field(1, "goal_position"), 20);
+}
+
 // A bus that does not poll present positions: the gateway reads each axis's before planning.
 TEST(TimedMoves, PresentPositionsOutsideTheCacheAreReadLive) {
   Arm arm("sts", "feetech", "feetech", 1000000, ", poll_fields: [present_load]");
