@@ -125,9 +125,9 @@ void measure(unsigned axes, unsigned rounds, std::uint16_t move_ms) {
 int main(int argc, char** argv) {
   double rounds = 5;
   double move_ms = 1500;
-  if (!parse_arguments(argc, argv, "timed group moves of 2, 6 and 20 sts axes: arrival spread and move time error",
-                       {{"rounds", &rounds, "timed moves per axis count"},
-                        {"move-ms", &move_ms, "the move time written, ms"}})) {
+  if (!parse_arguments(
+          argc, argv, "timed group moves of 2, 6 and 20 sts axes: arrival spread and move time error",
+          {{"rounds", &rounds, "timed moves per axis count"}, {"move-ms", &move_ms, "the move time written, ms"}})) {
     return 2;
   }
   quiet_logs();

@@ -641,7 +641,8 @@ void VirtualServo::advance_motion(double seconds) {
     const double before = motion_.position();
     const std::optional<double> arrival = motion_.advance(chunk);
     if (arrival && move_started_ && !arrived_at_) {
-      arrived_at_ = start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(elapsed + *arrival));
+      arrived_at_ =
+          start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(elapsed + *arrival));
     }
     accumulated_ += motion_.position() - before;
     seconds -= chunk;

@@ -9,9 +9,9 @@ namespace sms::modbus_map {
 namespace {
 
 TEST(TimedMove, TrapezoidAndTriangleTimes) {
-  EXPECT_DOUBLE_EQ(move_seconds(1000, 500, 1000), 2.5);       // d/v + v/a
-  EXPECT_DOUBLE_EQ(move_seconds(100, 1000, 100), 2.0);        // never reaches v: 2·√(d/a)
-  EXPECT_DOUBLE_EQ(move_seconds(300, 100, 0), 3.0);           // no ramps
+  EXPECT_DOUBLE_EQ(move_seconds(1000, 500, 1000), 2.5);  // d/v + v/a
+  EXPECT_DOUBLE_EQ(move_seconds(100, 1000, 100), 2.0);   // never reaches v: 2·√(d/a)
+  EXPECT_DOUBLE_EQ(move_seconds(300, 100, 0), 3.0);      // no ramps
   EXPECT_DOUBLE_EQ(move_seconds(0, 100, 100), 0.0);
 }
 
