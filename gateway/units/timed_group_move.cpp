@@ -1,6 +1,6 @@
 // The gateway unit's timed group moves (docs/PLC_GUIDE.md "Timed group moves"): goals and a move
-// time in; each axis's present position from the poll cache (or read when the cache is older than
-// a poll period); per axis the speed and acceleration counts whose trapezoid takes the move time
+// time in; each axis's present position from the poll cache (or read when the cache missed a
+// poll); per axis the speed and acceleration counts whose trapezoid takes the move time
 // (modbus_map/timed_move.h); out one SYNC WRITE per bus of acceleration, goal and speed, or on a
 // modbus-rtu bus one write per servo in unit order. The same admission as every motion write.
 #include <algorithm>
@@ -47,12 +47,12 @@ const FieldSpec& present_position_field(const RegisterMap& map) {
   return *modbus_map::field_by_name(table, modbus_map::motion_spec(table.id).present_position);
 }
 
-// How old a cached present position may be: one poll period (the last cycle's length when the
-// bus polls back to back).
+// How old a cached present position may be: one poll period after the cycle that read it, so
+// one poll period plus that cycle's length (the block is read somewhere inside its cycle, and a
+// cache refreshed on time is up to that old). Older, the servo missed a poll: read it live.
 std::chrono::steady_clock::duration fresh_age(const BusEngine& engine) {
-  const auto period = engine.settings().poll_period;
-  if (period.count() > 0) return period;
-  return std::chrono::microseconds(engine.counters().last_poll_cycle_us);
+  const std::chrono::steady_clock::duration cycle = std::chrono::microseconds(engine.counters().last_poll_cycle_us);
+  return std::max<std::chrono::steady_clock::duration>(engine.settings().poll_period, cycle) + cycle;
 }
 
 std::chrono::milliseconds whole_ms_up(double seconds) {
@@ -189,8 +189,8 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
     }
     specs.push_back(*spec);
   }
-  // Reads before the plan: present positions the poll cache does not have fresh (at most a poll
-  // period old), and the resolution context.
+  // Reads before the plan: present positions the poll cache does not have fresh (fresh_age),
+  // and the resolution context.
   struct Read {
     std::size_t axis;
     bool context;  // the resolution and angle limits, else the present position
