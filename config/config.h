@@ -257,8 +257,15 @@ struct SyncGroupConfig {
   std::string field;                  // a writable field of every member's table
   std::vector<std::uint8_t> members;  // unit IDs, register i of the block is members[i]
   std::uint16_t holding_register_start = 0;
+  // Timed moves (docs/PLC_GUIDE.md "Timed group moves"): the register after the members' holds
+  // the move time in ms; the group's field must be every member's goal position.
+  bool move_time = false;
+  // A move time some axis cannot make is stretched to the slowest axis instead of refused.
+  bool stretch = false;
 
-  std::uint16_t register_count() const { return static_cast<std::uint16_t>(members.size()); }
+  std::uint16_t member_count() const { return static_cast<std::uint16_t>(members.size()); }
+  // The holding registers of the block: the members, then the move time when the group has one.
+  std::uint16_t register_count() const { return static_cast<std::uint16_t>(members.size() + (move_time ? 1 : 0)); }
   bool operator==(const SyncGroupConfig&) const = default;
 };
 

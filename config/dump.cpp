@@ -259,6 +259,14 @@ void emit_sync_group(YAML::Emitter& out, const SyncGroupConfig& group) {
   out << YAML::EndSeq;
   key(out, "holding_register_start");
   out << group.holding_register_start;
+  if (group.move_time) {
+    key(out, "move_time");
+    out << true;
+  }
+  if (group.stretch) {
+    key(out, "stretch");
+    out << true;
+  }
   out << YAML::EndMap;
 }
 

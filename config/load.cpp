@@ -19,7 +19,9 @@
 
 #include "config/names.h"
 #include "modbus_map/baud_tables.h"
+#include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
+#include "modbus_map/timed_move.h"
 #include "protocol/modbus_pdu.h"
 
 namespace sms::config {
@@ -77,7 +79,8 @@ constexpr std::array<std::string_view, 5> kModbusRtuOnlyKeys{"rs485", "rts", "rt
 constexpr std::array<std::string_view, 2> kPollRangeKeys{"start", "count"};
 constexpr std::array<std::string_view, 10> kServoKeys{
     "unit", "bus", "id", "table", "profile", "byte_order", "response_level", "read_only", "name", "safe_stop"};
-constexpr std::array<std::string_view, 4> kSyncGroupKeys{"name", "field", "members", "holding_register_start"};
+constexpr std::array<std::string_view, 6> kSyncGroupKeys{"name",      "field",  "members", "holding_register_start",
+                                                         "move_time", "stretch"};
 constexpr std::array<std::string_view, 3> kLoggingKeys{"level", "format", "metrics_listen"};
 constexpr std::array<std::string_view, 16> kMqttKeys{"broker",
                                                      "group_id",
@@ -440,6 +443,7 @@ class Loader {
   void check_poll_selections(const Config& config);
   void parse_sync_groups(const Value& value, Config& config);
   SyncGroupConfig parse_sync_group(const MapReader& keys, const Config& config);
+  void check_timed_move_members(const Value& value, const SyncGroupConfig& group, const Config& config);
   LoggingConfig parse_logging(const Value& value);
   std::optional<MqttConfig> parse_mqtt(const Value& value, const Config& config);
   void parse_rtu_slaves(const Value& value, Config& config);
@@ -1301,7 +1305,7 @@ void Loader::parse_sync_groups(const Value& value, Config& config) {
     const YAML::Mark name_mark = keys.require("name").mark;
     const YAML::Mark start_mark = keys.require("holding_register_start").mark;
     const auto first = group.holding_register_start;
-    const auto last = first + group.members.size() - 1;
+    const auto last = first + group.register_count() - 1;
     for (std::size_t i = 0; i < config.sync_groups.size(); ++i) {
       const SyncGroupConfig& other = config.sync_groups[i];
       if (other.name == group.name) {
@@ -1309,7 +1313,7 @@ void Loader::parse_sync_groups(const Value& value, Config& config) {
                             std::to_string(i) + "]");
       }
       const auto other_first = other.holding_register_start;
-      const auto other_last = other_first + other.members.size() - 1;
+      const auto other_last = other_first + other.register_count() - 1;
       if (first <= other_last && other_first <= last) {
         fail(start_mark, item.path + ".holding_register_start: registers " + std::to_string(first) + ".." +
                              std::to_string(last) + " overlap sync group `" + other.name + "` (" +
@@ -1386,10 +1390,39 @@ SyncGroupConfig Loader::parse_sync_group(const MapReader& keys, const Config& co
     group.members.push_back(unit);
   }
 
+  if (const auto v = keys.find("move_time")) {
+    group.move_time = boolean(*v);
+    if (group.move_time) check_timed_move_members(*v, group, config);
+  }
+  if (const auto v = keys.find("stretch")) {
+    group.stretch = boolean(*v);
+    if (group.stretch && !group.move_time) {
+      fail(v->mark, v->path + ": `stretch` stretches a move time; the group needs `move_time: true`");
+    }
+  }
+
   const Value start = keys.require("holding_register_start");
-  const auto last_start = static_cast<std::int64_t>(65536 - group.members.size());
+  const auto last_start = static_cast<std::int64_t>(65536 - group.register_count());
   group.holding_register_start = static_cast<std::uint16_t>(integer(start, 0, last_start));
   return group;
+}
+
+void Loader::check_timed_move_members(const Value& value, const SyncGroupConfig& group, const Config& config) {
+  for (const std::uint8_t unit : group.members) {
+    const ServoConfig& servo = *find_unit(config, unit);
+    const TableSpec& table = modbus_map::table(*servo.table);
+    const std::string who = "unit " + std::to_string(unit) + " (table " + std::string(table.name) + ")";
+    const std::string_view goal = modbus_map::motion_spec(table.id).goal_position;
+    if (group.field != goal) {
+      fail(value.mark, value.path + ": a timed move writes goal positions, but the group writes `" + group.field +
+                           "`; " + who + " has its goal in `" + std::string(goal) + "`");
+    }
+    if (modbus_map::timed_move_spec(table.id) == nullptr) {
+      fail(value.mark, value.path + ": " + who +
+                           " cannot take a timed move (modbus_map/timed_move.cpp has no "
+                           "profile for its table); leave it out of the group or drop `move_time`");
+    }
+  }
 }
 
 LoggingConfig Loader::parse_logging(const Value& value) {

@@ -75,10 +75,12 @@ config::Config simulated_config(const std::string& device, const config::HostPor
   for (int id = 1; id <= 6; ++id) {
     yaml += "  - {unit: " + std::to_string(id) + ", bus: sim, id: " + std::to_string(id) + ", table: sts}\n";
   }
-  // The six goal positions as holding registers 0-5 of the gateway unit: one SYNC WRITE frame.
+  // The six goal positions as holding registers 0-5 of the gateway unit: one SYNC WRITE frame;
+  // register 6 the move time of a timed move (docs/PLC_GUIDE.md "Timed group moves").
   yaml +=
       "sync_groups:\n"
-      "  - {name: goal_position, field: goal_position, members: [1, 2, 3, 4, 5, 6], holding_register_start: 0}\n";
+      "  - {name: goal_position, field: goal_position, members: [1, 2, 3, 4, 5, 6], holding_register_start: 0,\n"
+      "     move_time: true}\n";
   auto config = config::load_config_string(yaml, "<--simulate>");
   if (!config)
     throw std::logic_error("the built-in --simulate configuration is invalid: " + config.error().to_string());

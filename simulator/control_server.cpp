@@ -9,6 +9,7 @@
 
 #include <array>
 #include <cerrno>
+#include <chrono>
 #include <cstring>
 #include <functional>
 #include <optional>
@@ -79,6 +80,13 @@ bool has_servo(SimulatedBus& bus, std::uint8_t id) {
   return false;
 }
 
+// A steady-clock time as microseconds (CLOCK_MONOTONIC: the same clock in every process of the
+// machine), "-" for none.
+std::string monotonic_us(const std::optional<std::chrono::steady_clock::time_point>& when) {
+  if (!when) return "-";
+  return std::to_string(std::chrono::duration_cast<std::chrono::microseconds>(when->time_since_epoch()).count());
+}
+
 std::string usage(std::string_view form) { return "error: usage: " + std::string(form); }
 std::string unknown_id(std::uint8_t id) { return "error: no servo has ID " + std::to_string(id); }
 
@@ -113,7 +121,7 @@ std::optional<std::string> set_probability(const Words& words, const std::functi
 }
 
 // The control commands, one row each (the help text is made from this table).
-const std::array<ControlCommand, 16> kCommands{{
+const std::array<ControlCommand, 17> kCommands{{
     {"offline", "offline ID", "",
      [](SimulatedBus& bus, const Words& w) {
        return on_servo(bus, w, 1, [&](std::uint8_t id) -> std::optional<std::string> {
@@ -220,6 +228,18 @@ const std::array<ControlCommand, 16> kCommands{{
          const auto value = bus.read_field(id, w[2]);
          if (!value) return "error: servo " + w[1] + "'s table has no field '" + w[2] + "'";
          return std::to_string(*value);
+       });
+     }},
+    {"motion", "motion ID", "",
+     [](SimulatedBus& bus, const Words& w) {
+       return on_servo(bus, w, 1, [&](std::uint8_t id) -> std::optional<std::string> {
+         for (const ServoSummary& servo : bus.servos()) {
+           if (servo.config.id != id || servo.duplicate) continue;
+           return "started_us=" + monotonic_us(servo.move_started) + " arrived_us=" + monotonic_us(servo.arrived) +
+                  " position=" + std::to_string(servo.present_position) +
+                  " goal=" + std::to_string(servo.goal_position);
+         }
+         return unknown_id(id);
        });
      }},
     {"list", "list", "",

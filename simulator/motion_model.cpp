@@ -66,17 +66,22 @@ bool MotionModel::steady() const {
   return true;
 }
 
-void MotionModel::advance(double seconds) {
+std::optional<double> MotionModel::advance(double seconds) {
+  std::optional<double> arrival;
+  double elapsed = 0;
   while (seconds > 0) {
     if (steady()) {
       position_ += velocity_ * seconds;
       acceleration_ = 0;
-      return;
+      return arrival;
     }
     const double dt = std::min(seconds, kMaxStep);
     step(dt);
     seconds -= dt;
+    elapsed += dt;
+    if (arrived()) arrival = elapsed;
   }
+  return arrival;
 }
 
 void MotionModel::step(double dt) {
@@ -86,9 +91,12 @@ void MotionModel::step(double dt) {
     position_ += velocity_ * dt;
   } else if (drive_ == Drive::Position) {
     const double distance = target_ - position_;
-    // The fastest speed from which the deceleration still stops at the target.
-    const double stopping_speed = limits_.deceleration > 0 ? std::sqrt(2 * limits_.deceleration * std::abs(distance))
-                                                           : std::numeric_limits<double>::infinity();
+    // The fastest speed from which the deceleration, taken in steps of dt, still stops at the
+    // target: braking from v covers v²/2a + v·dt/2 in steps (the continuous √(2·a·d) would arrive
+    // some 20 ms early, and a timed move would miss its time by that).
+    const double a = limits_.deceleration;
+    const double stopping_speed = a > 0 ? (std::sqrt(a * a * dt * dt + 8 * a * std::abs(distance)) - a * dt) / 2
+                                        : std::numeric_limits<double>::infinity();
     const double wanted = std::copysign(std::min(limits_.max_speed, stopping_speed), distance);
     velocity_ = approach(velocity_, wanted, ramp_rate(velocity_, wanted, limits_), dt);
     const double next = position_ + velocity_ * dt;

@@ -3,6 +3,7 @@
 // a goal position (acceleration, deceleration, top speed) or toward a commanded velocity.
 // Plain numbers, no clock: the owner steps it with the time that has passed.
 #include <cstdint>
+#include <optional>
 
 namespace sms::simulator {
 
@@ -31,7 +32,8 @@ class MotionModel {
   void shift(double delta);
 
   // Advances by `seconds`; steps larger than a millisecond are split so the profile holds.
-  void advance(double seconds);
+  // Returns how far into `seconds` the motor arrived at its target, when it did in this call.
+  std::optional<double> advance(double seconds);
   // Nothing but the position at constant velocity changes with time from here on.
   bool steady() const;
   bool arrived() const { return drive_ == Drive::Position && position_ == target_ && velocity_ == 0; }

@@ -62,6 +62,9 @@ struct ServoSummary {
   std::int32_t present_position = 0;  // as a Modbus client sees it (signed)
   std::int32_t goal_position = 0;
   bool moving = false;
+  // When a goal was last written in position mode and when the motor then reached it.
+  std::optional<std::chrono::steady_clock::time_point> move_started;
+  std::optional<std::chrono::steady_clock::time_point> arrived;
 };
 
 struct BusStats {

@@ -511,6 +511,10 @@ void VirtualServo::drive_from_table(bool goal_written) {
         if (distance > 0) limits.max_speed = std::min(limits.max_speed, distance * 1000.0 / move_ms);
       }
       motion_.move_to(target, limits);
+      if (goal_written) {
+        move_started_ = clock_;
+        arrived_at_.reset();
+      }
       break;
     }
     case ControlMode::Velocity:
@@ -628,14 +632,21 @@ void VirtualServo::on_arrival() {
 }
 
 void VirtualServo::advance_motion(double seconds) {
+  const Clock::time_point start = clock_;
+  double elapsed = 0;
   while (seconds > 0) {
     const bool hooked = trajectory_next_.has_value() || homing_phase_ != HomingPhase::Idle ||
                         (control_mode() == ControlMode::PositionRelease && torque_on());
     const double chunk = hooked && !motion_.steady() ? std::min(seconds, 0.001) : seconds;
     const double before = motion_.position();
-    motion_.advance(chunk);
+    const std::optional<double> arrival = motion_.advance(chunk);
+    if (arrival && move_started_ && !arrived_at_) {
+      arrived_at_ =
+          start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(elapsed + *arrival));
+    }
     accumulated_ += motion_.position() - before;
     seconds -= chunk;
+    elapsed += chunk;
     if (hooked && motion_.arrived()) on_arrival();
   }
 }
@@ -1121,6 +1132,8 @@ ServoSummary VirtualServo::summary() const {
   summary.present_position = get(Role::PresentPosition);
   summary.goal_position = get(Role::GoalPosition);
   summary.moving = get(Role::Moving) != 0;
+  summary.move_started = move_started_;
+  summary.arrived = arrived_at_;
   return summary;
 }
 

@@ -176,6 +176,10 @@ class VirtualServo {
   std::array<const modbus_map::FieldSpec*, static_cast<std::size_t>(Role::Count)> fields_{};
   MotionModel motion_;
   Clock::time_point clock_;
+  // The last goal written in position mode, and when the motor reached it (the arrival of a
+  // timed group move: tests and bench/timed_moves measure these).
+  std::optional<Clock::time_point> move_started_;
+  std::optional<Clock::time_point> arrived_at_;
   Clock::time_point last_command_;
   Clock::time_point deaf_until_;
   std::chrono::milliseconds reboot_time_;

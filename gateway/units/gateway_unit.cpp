@@ -74,7 +74,12 @@ GatewayUnit::GatewayUnit(const config::Config& config, const UnitCatalog& catalo
       safety_(safety),
       started_(started) {
   for (const auto& group_config : config.sync_groups) {
-    SyncGroup group{group_config.name, group_config.holding_register_start, {}};
+    SyncGroup group;
+    group.name = group_config.name;
+    group.start = group_config.holding_register_start;
+    group.has_move_time = group_config.move_time;
+    group.stretch = group_config.stretch;
+    group.last_goals.resize(group_config.members.size());
     for (const std::uint8_t unit : group_config.members) {
       const config::ServoConfig* servo = config::find_unit(config, unit);
       const CatalogUnit* entry = catalog.servo(unit);
@@ -102,6 +107,13 @@ GatewayUnit::GatewayUnit(const config::Config& config, const UnitCatalog& catalo
 
 std::optional<std::vector<std::uint16_t>> GatewayUnit::input_registers(std::uint16_t address,
                                                                        std::uint16_t count) const {
+  if (address >= layout::kFirstGroupBlock) {
+    const std::vector<std::uint16_t> groups = group_input_registers();
+    const std::size_t first = address - layout::kFirstGroupBlock;
+    if (first + count > groups.size()) return std::nullopt;
+    return std::vector<std::uint16_t>(groups.begin() + static_cast<std::ptrdiff_t>(first),
+                                      groups.begin() + static_cast<std::ptrdiff_t>(first + count));
+  }
   const std::size_t end = layout::kFirstBusBlock + layout::kBusBlockSize * engines_.size();
   if (std::size_t{address} + count > end) return std::nullopt;
 
@@ -230,14 +242,26 @@ const GatewayUnit::SyncMember* GatewayUnit::sync_member_at(std::uint16_t address
 
 void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count,
                                       const Reply& reply) {
+  // Registers in order: a member's live value, or a move time (held by the gateway).
+  std::vector<std::uint16_t> values(count, 0);
   std::vector<const SyncMember*> members;
+  std::vector<std::size_t> at;  // where each member's value goes
   for (std::uint32_t a = address; a < std::uint32_t{address} + count; ++a) {
     const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(a));
     if (member == nullptr) {
+      if (const SyncGroup* group = move_time_group_at(static_cast<std::uint16_t>(a))) {
+        values[a - address] = group->move_time_ms;
+        continue;
+      }
       reply.send(exception_response(function, ModbusException::IllegalDataAddress));
       return;
     }
     members.push_back(member);
+    at.push_back(a - address);
+  }
+  if (members.empty()) {
+    reply.send(registers_response(function, values));
+    return;
   }
   // Each member's value is read and converted by its own native register map.
   std::vector<modbus_map::ReadPlan> plans;
@@ -249,23 +273,23 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
     }
     plans.push_back(std::move(*plan));
   }
-  auto join = BusJoin::create(members.size(), post_, [function, members, plans, reply](std::vector<BusResult> results) {
-    if (const BusResult* failure = BusJoin::first_failure(results)) {
-      reply.send(exception_response(function, fault_from(failure->status)));
-      return;
-    }
-    std::vector<std::uint16_t> values;
-    for (std::size_t i = 0; i < members.size(); ++i) {
-      const protocol::Bytes replies[] = {results[i].data};
-      const auto value = members[i]->map->registers_from(plans[i], replies);
-      if (!value) {
-        reply.send(exception_response(function, value.error().code));
-        return;
-      }
-      values.push_back(value->at(0));
-    }
-    reply.send(registers_response(function, values));
-  });
+  auto join = BusJoin::create(members.size(), post_,
+                              [function, members, plans, at, values, reply](std::vector<BusResult> results) mutable {
+                                if (const BusResult* failure = BusJoin::first_failure(results)) {
+                                  reply.send(exception_response(function, fault_from(failure->status)));
+                                  return;
+                                }
+                                for (std::size_t i = 0; i < members.size(); ++i) {
+                                  const protocol::Bytes replies[] = {results[i].data};
+                                  const auto value = members[i]->map->registers_from(plans[i], replies);
+                                  if (!value) {
+                                    reply.send(exception_response(function, value.error().code));
+                                    return;
+                                  }
+                                  values[at[i]] = value->at(0);
+                                }
+                                reply.send(registers_response(function, values));
+                              });
   for (std::size_t i = 0; i < members.size(); ++i) {
     const auto& range = plans[i].reads.front();
     engines_[members[i]->bus]->submit(ReadOp{members[i]->servo_id, range.address, range.count}, Priority::ClientRead,
@@ -273,50 +297,110 @@ void GatewayUnit::read_sync_registers(std::uint8_t function, std::uint16_t addre
   }
 }
 
+GatewayUnit::SyncGroup* GatewayUnit::group_of(const SyncMember* member) {
+  for (auto& group : groups_) {
+    if (!group.members.empty() && member >= group.members.data() &&
+        member < group.members.data() + group.members.size()) {
+      return &group;
+    }
+  }
+  return nullptr;
+}
+
+GatewayUnit::SyncGroup* GatewayUnit::move_time_group_at(std::uint16_t address) {
+  for (auto& group : groups_) {
+    if (group.has_move_time && address == group.start + group.members.size()) return &group;
+  }
+  return nullptr;
+}
+
 void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,
                                        std::function<void(const Reply&)> after) {
   // Validate everything before the first frame: a refused write changes nothing.
   // Packet buses: one SYNC WRITE per bus (per field address, should tables differ); modbus-rtu
   // has no SYNC WRITE, so its members get one acknowledged write each.
-  struct Frame {
-    std::size_t bus;
-    BusOp op;
-  };
-  std::vector<Frame> frames;
-  std::vector<WriteBatch> batches;  // per bus: one SYNC WRITE per field on packet buses
-  for (const BusEngine* engine : engines_) {
-    batches.emplace_back(engine->settings().protocol != protocol::BusProtocol::ModbusRtu);
-  }
-  // Like every write, it feeds the watchdogs of the buses it is for once it is carried out.
-  std::vector<std::size_t> buses;
+  std::vector<MemberWrite> writes;
+  std::vector<std::pair<SyncGroup*, std::uint16_t>> move_times;  // move time registers written
   for (std::size_t i = 0; i < request.values.size(); ++i) {
-    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
-    if (member != nullptr && std::find(buses.begin(), buses.end(), member->bus) == buses.end()) {
-      buses.push_back(member->bus);
+    const auto address = static_cast<std::uint16_t>(request.address + i);
+    const SyncMember* member = sync_member_at(address);
+    if (member == nullptr) {
+      if (SyncGroup* group = move_time_group_at(address)) {
+        move_times.emplace_back(group, request.values[i]);
+        continue;
+      }
     }
-  }
-  for (std::size_t i = 0; i < request.values.size(); ++i) {
-    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
     if (member == nullptr || member->read_only) {
       reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
       return;
     }
-    auto bytes = member->map->field_bytes(*member->field, request.values[i]);
+    const SyncGroup* group = group_of(member);
+    writes.push_back(MemberWrite{member, static_cast<std::size_t>(member - group->members.data()), request.values[i]});
+  }
+  // Like every write, it feeds the watchdogs of the buses it is for once it is carried out.
+  std::vector<std::size_t> buses;
+  const auto note_bus = [&buses](std::size_t bus) {
+    if (std::find(buses.begin(), buses.end(), bus) == buses.end()) buses.push_back(bus);
+  };
+  for (const MemberWrite& write : writes) note_bus(write.member->bus);
+  for (const auto& [group, value] : move_times) {
+    for (const SyncMember& member : group->members) note_bus(member.bus);
+  }
+  const auto store_move_times = [move_times] {
+    for (const auto& [group, value] : move_times) group->move_time_ms = value;
+  };
+  if (writes.empty()) {  // only move times: kept for the next goals; a write carried out all the same
+    store_move_times();
+    for (const std::size_t bus : buses) safety_.feed_write(bus);
+    after(reply);
+    return;
+  }
+  // Goals with a move time (written now or before) are a timed move: every axis arrives together.
+  SyncGroup& first_group = *group_of(writes.front().member);
+  std::uint16_t move_time_ms = first_group.move_time_ms;
+  for (const auto& [group, value] : move_times) {
+    if (group == &first_group) move_time_ms = value;
+  }
+  if (first_group.has_move_time && move_time_ms != 0) {
+    const bool one_group = std::all_of(
+        writes.begin(), writes.end(), [&](const MemberWrite& write) { return group_of(write.member) == &first_group; });
+    if (!one_group) {
+      spdlog::debug("gateway unit: sync group '{}': a timed move writes the goals of one group only", first_group.name);
+      reply.send(exception_response(request.function, ModbusException::IllegalDataAddress));
+      return;
+    }
+    timed_move(first_group, std::move(writes), move_time_ms, request, reply,
+               [store_move_times, after = std::move(after)](const Reply& r) {
+                 store_move_times();
+                 after(r);
+               });
+    return;
+  }
+
+  std::vector<WriteBatch> batches;  // per bus: one SYNC WRITE per field on packet buses
+  for (const BusEngine* engine : engines_) {
+    batches.emplace_back(engine->settings().protocol != protocol::BusProtocol::ModbusRtu);
+  }
+  for (const MemberWrite& write : writes) {
+    const SyncMember* member = write.member;
+    auto bytes = member->map->field_bytes(*member->field, write.value);
     if (!bytes) {
-      spdlog::debug("gateway unit: sync group register {}: {}", request.address + i, bytes.error().message);
+      spdlog::debug("gateway unit: sync group '{}' unit {}: {}", group_of(member)->name, member->unit_id,
+                    bytes.error().message);
       reply.send(exception_response(request.function, bytes.error().code));
       return;
     }
     batches[member->bus].add(member->servo_id, member->field->addr, std::move(*bytes));
   }
+  std::vector<Frame> frames;
   for (std::size_t bus = 0; bus < batches.size(); ++bus) {
     for (BusOp& op : batches[bus].frames()) frames.push_back(Frame{bus, std::move(op)});
   }
   // A motion field needs admission on every bus the write reaches.
   std::vector<MotionEpoch> epochs(engines_.size(), 0);
   std::vector<const SyncMember*> motion_member(engines_.size(), nullptr);
-  for (std::size_t i = 0; i < request.values.size(); ++i) {
-    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+  for (const MemberWrite& write : writes) {
+    const SyncMember* member = write.member;
     if (modbus_map::is_motion_field(modbus_map::motion_spec(member->map->servo_table().id), member->field->name)) {
       motion_member[member->bus] = member;
     }
@@ -339,20 +423,37 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
   // A member the write may enable (torque on, d55d wake or brake release, a drive change) gets the
   // hold of its goal block first where it needs one ("no jump on enable", no_jump.h).
   std::vector<HoldTarget> switched_on;
-  for (std::size_t i = 0; i < request.values.size(); ++i) {
-    const SyncMember* member = sync_member_at(static_cast<std::uint16_t>(request.address + i));
+  for (const MemberWrite& write : writes) {
+    const SyncMember* member = write.member;
     const auto& spec = modbus_map::motion_spec(member->map->servo_table().id);
-    auto bytes = member->map->field_bytes(*member->field, request.values[i]);
+    auto bytes = member->map->field_bytes(*member->field, write.value);
     if (!bytes) continue;  // checked above
-    std::vector<modbus_map::BusWrite> writes{{member->field->addr, std::move(*bytes)}};
-    if (!modbus_map::may_enable_motion(spec, member->map->byte_order(), writes)) continue;
+    std::vector<modbus_map::BusWrite> bus_writes{{member->field->addr, std::move(*bytes)}};
+    if (!modbus_map::may_enable_motion(spec, member->map->byte_order(), bus_writes)) continue;
     switched_on.push_back(HoldTarget{
         engines_[member->bus], member->servo_id, &spec, member->map->byte_order(),
         answers_writes(member->map->servo_table().id, member->response_level, *engines_[member->bus], member->servo_id),
-        epochs[member->bus], "unit " + std::to_string(member->unit_id), std::move(writes)});
+        epochs[member->bus], "unit " + std::to_string(member->unit_id), std::move(bus_writes)});
   }
-  auto send_frames = [this, frames = std::move(frames), buses, function = request.function, reply,
-                      after = std::move(after)](std::optional<BusResult> hold_failure) mutable {
+  // Goals written at each axis's own speed: the group's timed-move registers show no move.
+  send_frames(std::move(frames), std::move(switched_on), std::move(buses), request.function, reply,
+              [this, writes, store_move_times, after = std::move(after)](const Reply& r) {
+                store_move_times();
+                for (const MemberWrite& write : writes) {
+                  SyncGroup& group = *group_of(write.member);
+                  if (!group.has_move_time) continue;
+                  record_goal(group, write);
+                  group.timed.ends.reset();
+                }
+                after(r);
+              });
+}
+
+void GatewayUnit::send_frames(std::vector<Frame> frames, std::vector<HoldTarget> switched_on,
+                              std::vector<std::size_t> buses, std::uint8_t function, const Reply& reply,
+                              std::function<void(const Reply&)> after) {
+  auto send = [this, frames = std::move(frames), buses = std::move(buses), function, reply,
+               after = std::move(after)](std::optional<BusResult> hold_failure) mutable {
     if (hold_failure) {
       spdlog::warn("gateway unit: sync group enabling write not done: {}", hold_failure->detail);
       reply.send(exception_response(function, fault_from(hold_failure->status)));
@@ -374,10 +475,10 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
     }
   };
   if (switched_on.empty()) {
-    send_frames(std::nullopt);
+    send(std::nullopt);
     return;
   }
-  hold_before_enable(std::move(switched_on), post_, std::move(send_frames));
+  hold_before_enable(std::move(switched_on), post_, std::move(send));
 }
 
 std::vector<bool> GatewayUnit::coils() const {

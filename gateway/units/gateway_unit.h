@@ -5,10 +5,15 @@
 // - coils 1-2, discrete inputs 0-4, input registers 10-15 and 100 + 20·n + 10..19, holding
 //   registers 1000 + n: the safety rules (docs/PLC_GUIDE.md "Safety");
 // - holding registers of the configured sync groups: one register per member; a write of a
-//   group's registers becomes one SYNC WRITE frame per bus, read gives the members' live values.
+//   group's registers becomes one SYNC WRITE frame per bus, read gives the members' live values;
+//   a group with `move_time` has the move time after its members, and a non-zero move time makes
+//   its goals a timed move (every axis arrives together);
+// - input registers 2000 + 10·g: sync group g's timed moves.
 // Runs on the io thread like the rest of the TCP side; bus completions come back through PostFn.
 #include <chrono>
 #include <cstdint>
+#include <functional>
+#include <optional>
 #include <span>
 #include <string>
 #include <vector>
@@ -19,9 +24,11 @@
 #include "gateway/service/modbus_request.h"
 #include "gateway/service/request_handler.h"
 #include "gateway/service/unit_catalog.h"
+#include "gateway/units/no_jump.h"
 #include "gateway/units/safety.h"
 #include "modbus_map/control_table.h"
 #include "modbus_map/register_map.h"
+#include "modbus_map/timed_move.h"
 
 namespace sms::gateway {
 
@@ -56,6 +63,23 @@ inline constexpr std::uint16_t kFailedStops = 14;
 // (last feed or request -> frames on the wire; 0 after a stop that failed), 18 motion blocked,
 // 19 servos of the bus owed a safe stop.
 inline constexpr std::uint16_t kWatchdogState = 10;
+// Sync group g's input registers (docs/PLC_GUIDE.md "Timed group moves"), at 2000 + 10·g in the
+// order of `sync_groups`: 0 moving (1 while a timed move runs), 1 time left ms, 2 largest distance
+// to go (position units, from the poll cache), 3 the last timed move (0 none, 1 as asked,
+// 2 stretched, 3 refused), 4 the unit that limits it, 5 that unit's shortest time ms, 6 the move
+// time used ms.
+inline constexpr std::uint16_t kFirstGroupBlock = 2000;
+inline constexpr std::uint16_t kGroupBlockSize = 10;
+enum class GroupRegister : std::uint16_t {
+  Moving = 0,
+  TimeLeft = 1,
+  DistanceToGo = 2,
+  LastMove = 3,
+  LimitingUnit = 4,
+  ShortestTime = 5,
+  MoveTime = 6,
+};
+enum class TimedMoveResult : std::uint16_t { None = 0, AsAsked = 1, Stretched = 2, Refused = 3 };
 }  // namespace gateway_unit_layout
 
 // What the gateway unit shows about one bus (input registers 100 + 20·n ...).
@@ -94,13 +118,50 @@ class GatewayUnit {
     bool read_only = false;
     std::optional<std::uint8_t> response_level;  // as configured; empty: as read from the servo
   };
+  // What the group's input registers show of its last timed move.
+  struct TimedMoveState {
+    gateway_unit_layout::TimedMoveResult result = gateway_unit_layout::TimedMoveResult::None;
+    std::uint8_t limiting_unit = 0;
+    std::chrono::milliseconds shortest{0};
+    std::chrono::milliseconds used{0};
+    std::optional<std::chrono::steady_clock::time_point> ends;  // when the axes arrive (plan)
+  };
   struct SyncGroup {
     std::string name;
     std::uint16_t start = 0;
     std::vector<SyncMember> members;
+    bool has_move_time = false;  // register start + members.size() is the move time (ms)
+    bool stretch = false;
+    std::uint16_t move_time_ms = 0;
+    std::vector<std::optional<std::int32_t>> last_goals;  // per member, in servo units
+    TimedMoveState timed;
+  };
+  // One member's value of a group write.
+  struct MemberWrite {
+    const SyncMember* member = nullptr;
+    std::size_t index = 0;  // in its group
+    std::uint16_t value = 0;
+  };
+  struct Frame {
+    std::size_t bus;
+    BusOp op;
   };
 
   const SyncMember* sync_member_at(std::uint16_t address) const;
+  SyncGroup* group_of(const SyncMember* member);
+  SyncGroup* move_time_group_at(std::uint16_t address);
+  std::vector<std::uint16_t> group_input_registers() const;
+  void record_goal(SyncGroup& group, const MemberWrite& write) const;
+  // The group's timed move of `writes` (docs/PLC_GUIDE.md "Timed group moves").
+  void timed_move(SyncGroup& group, std::vector<MemberWrite> writes, std::uint16_t move_time_ms,
+                  const WriteRegistersRequest& request, const Reply& reply, std::function<void(const Reply&)> after);
+  void plan_and_send(SyncGroup& group, std::vector<MemberWrite> writes, std::vector<modbus_map::TimedMoveSpec> specs,
+                     std::vector<std::int32_t> present, std::uint16_t move_time_ms, std::uint8_t function,
+                     const Reply& reply, std::function<void(const Reply&)> after);
+  // Sends the frames (after the holds `switched_on` needs), feeds the watchdogs of `buses` once
+  // all are carried out, then runs `done` (true) or answers the failure.
+  void send_frames(std::vector<Frame> frames, std::vector<HoldTarget> switched_on, std::vector<std::size_t> buses,
+                   std::uint8_t function, const Reply& reply, std::function<void(const Reply&)> after);
   void read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count, const Reply& reply);
   void write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,
                             std::function<void(const Reply&)> after);

@@ -166,6 +166,32 @@ sync_groups:
             "plant.yaml:6:5: missing required key `field` in sync_groups[0]");
 }
 
+TEST(ConfigErrors, TimedMoveGroups) {
+  const std::string head = R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+  - {name: base, device: /dev/ttyUSB1, protocol: d55d, baud: 115200}
+servos:
+  - {unit: 1, bus: arm, id: 1, table: sts}
+  - {unit: 2, bus: arm, id: 2, table: sts}
+  - {unit: 3, bus: base, id: 1, table: d55d}
+sync_groups:
+)";
+  EXPECT_EQ(error_text(head + "  - {name: g, field: goal_speed, members: [1, 2], holding_register_start: 0, "
+                              "move_time: true}\n"),
+            "plant.yaml:9:89: sync_groups[0].move_time: a timed move writes goal positions, but the group writes "
+            "`goal_speed`; unit 1 (table sts) has its goal in `goal_position`");
+  EXPECT_EQ(error_text(head + "  - {name: g, field: goal_position, members: [1, 2], holding_register_start: 0, "
+                              "stretch: true}\n"),
+            "plant.yaml:9:90: sync_groups[0].stretch: `stretch` stretches a move time; the group needs "
+            "`move_time: true`");
+  // The move time register belongs to the block: a group right after it overlaps.
+  EXPECT_NE(error_text(head + "  - {name: g, field: goal_position, members: [1, 2], holding_register_start: 0, "
+                              "move_time: true}\n"
+                              "  - {name: h, field: lock, members: [1, 2], holding_register_start: 2}\n")
+                .find("registers 2..3 overlap sync group `g` (0..2"),
+            std::string::npos);
+}
+
 TEST(ConfigErrors, EmptyValueCountsAsNothingAndPointsAtItsKey) {
   EXPECT_EQ(error_text(R"(buses:
   - name: arm

@@ -209,10 +209,18 @@ Config every_key_expected() {
                                         .table = TableId::Smsmb,
                                         .profile = Profile::Native});
   expected.servos.push_back(ServoConfig{.unit_id = 247, .bus = "lift", .bus_index = 2, .servo_id = 247});
-  expected.sync_groups.push_back(
-      SyncGroupConfig{.name = "goals", .field = "goal_position", .members = {7, 3}, .holding_register_start = 16});
-  expected.sync_groups.push_back(
-      SyncGroupConfig{.name = "speed", .field = "run_speed", .members = {7}, .holding_register_start = 18});
+  expected.sync_groups.push_back(SyncGroupConfig{.name = "goals",
+                                                 .field = "goal_position",
+                                                 .members = {7, 3},
+                                                 .holding_register_start = 16,
+                                                 .move_time = false,
+                                                 .stretch = false});
+  expected.sync_groups.push_back(SyncGroupConfig{.name = "speed",
+                                                 .field = "run_speed",
+                                                 .members = {7},
+                                                 .holding_register_start = 18,
+                                                 .move_time = false,
+                                                 .stretch = false});
   expected.logging =
       LoggingConfig{.level = LogLevel::Debug, .format = LogFormat::Json, .metrics_listen = HostPort{"0.0.0.0", 9102}};
   return expected;
@@ -358,6 +366,32 @@ sync_groups:
   ASSERT_EQ(config.sync_groups.size(), 2u);
   EXPECT_EQ(config.sync_groups[0].register_count(), 2);
   EXPECT_EQ(config.sync_groups[1].holding_register_start, 2);
+}
+
+// Timed moves (docs/PLC_GUIDE.md "Timed group moves"): the move time register after the members
+// counts in the block, and both keys come back from a dump.
+TEST(ConfigLoad, TimedMoveGroups) {
+  const Config config = load_or_fail(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+  - {name: lift, device: /dev/ttyUSB1, protocol: modbus-rtu, baud: 115200}
+servos:
+  - {unit: 1, bus: arm, id: 1, table: sts}
+  - {unit: 2, bus: arm, id: 2, table: sms1}
+  - {unit: 3, bus: arm, id: 3, table: scs}
+  - {unit: 4, bus: lift, id: 1, table: smsmb}
+sync_groups:
+  - {name: arm, field: goal_position, members: [1, 2, 3, 4], holding_register_start: 0, move_time: true}
+  - {name: again, field: goal_position, members: [1, 2], holding_register_start: 5, move_time: true, stretch: true}
+)");
+  ASSERT_EQ(config.sync_groups.size(), 2u);
+  EXPECT_TRUE(config.sync_groups[0].move_time);
+  EXPECT_FALSE(config.sync_groups[0].stretch);
+  EXPECT_EQ(config.sync_groups[0].register_count(), 5);
+  EXPECT_EQ(config.sync_groups[0].member_count(), 4);
+  EXPECT_TRUE(config.sync_groups[1].stretch);
+  const auto again = load_config_string(dump_config(config), "dump.yaml");
+  ASSERT_TRUE(again) << again.error().to_string() << "\n" << dump_config(config);
+  EXPECT_EQ(again->sync_groups, config.sync_groups);
 }
 
 TEST(ConfigLoad, YamlBooleanSpellingsAndHexNumbers) {

@@ -18,6 +18,17 @@ TEST(MotionModel, ReachesTheTargetAtTopSpeedWithoutAcceleration) {
   EXPECT_DOUBLE_EQ(motor.velocity(), 0);
 }
 
+// A trapezoid's time is d/v + v/a (accelerating and braking at a): 1000 steps at 500 steps/s
+// with 1000 steps/s² take 2 + 0.5 s. The arrival is told to the millisecond inside one advance.
+TEST(MotionModel, TellsWhenInsideAnAdvanceItArrived) {
+  MotionModel motor(0);
+  motor.move_to(1000, MotionLimits{500, 1000, 1000});
+  const auto arrival = motor.advance(4.0);
+  ASSERT_TRUE(arrival.has_value());
+  EXPECT_NEAR(*arrival, 2.5, 0.002);
+  EXPECT_FALSE(motor.advance(1.0).has_value());  // already there: no new arrival
+}
+
 TEST(MotionModel, AccelerationRampsTheSpeedUp) {
   MotionModel motor(0);
   motor.move_to(10'000, MotionLimits{1000, 2000, 2000});

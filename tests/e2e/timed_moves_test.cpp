@@ -1,0 +1,339 @@
+// Timed group moves (docs/PLC_GUIDE.md "Timed group moves"): a PLC writes goals and a move time
+// to a sync group, and every axis arrives together, at that time. The real sms-gateway on the real
+// sms-sim, whose motor model ramps and runs at the speed and acceleration written; the witness is
+// the simulator's own record of when each goal was written and when its motor reached it.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cstdint>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "tests/e2e/safety_support.h"
+#include "tests/support/eventually.h"
+
+namespace sms::e2e {
+namespace {
+
+using namespace std::chrono_literals;
+
+constexpr int kAxes = 6;
+constexpr int kPollPeriodMs = 20;
+constexpr int kMoveTimeRegister = kAxes;  // after the six goals
+constexpr int kStretchGroupStart = 10;    // the same axes, `stretch: true`
+constexpr int kGroupInputs = 2000;        // group 0's input registers; group 1's at 2010
+constexpr int kStart = 500;               // where every axis starts
+constexpr std::array<int, kAxes> kDistances{100, 600, 1200, 1800, 2400, 3000};
+
+// Input registers of a group (docs/PLC_GUIDE.md "Timed group moves").
+enum GroupInput { kMoving = 0, kTimeLeft = 1, kToGo = 2, kLastMove = 3, kLimitingUnit = 4, kShortest = 5, kUsed = 6 };
+
+std::string config(const std::string& pty, const std::string& bus_protocol, const std::string& table, int baud,
+                   const std::string& bus_extra) {
+  std::string yaml = "buses:\n  - {name: arm, device: \"" + pty + "\", protocol: " + bus_protocol +
+                     ", baud: " + std::to_string(baud) + ", poll_period_ms: " + std::to_string(kPollPeriodMs) +
+                     ", response_timeout_ms: 100, retries: 1" + bus_extra + "}\nservos:\n";
+  for (int id = 1; id <= kAxes; ++id) {
+    yaml += "  - {unit: " + std::to_string(id) + ", bus: arm, id: " + std::to_string(id) + ", table: " + table + "}\n";
+  }
+  const std::string members = "[1, 2, 3, 4, 5, 6]";
+  yaml += "sync_groups:\n  - {name: arm, field: goal_position, members: " + members +
+          ", holding_register_start: 0, move_time: true}\n"
+          "  - {name: arm_stretched, field: goal_position, members: " +
+          members + ", holding_register_start: " + std::to_string(kStretchGroupStart) +
+          ", move_time: true, stretch: true}\n";
+  return yaml;
+}
+
+// The simulator's record of a servo's last goal: when it was written and when the motor got there.
+struct Motion {
+  long long started_us = -1;
+  long long arrived_us = -1;  // -1: not (yet)
+  long position = 0;
+  long goal = 0;
+};
+
+Motion motion_of(SimProcess& sim, int id) {
+  const std::string reply = sim.control("motion " + std::to_string(id));
+  Motion motion;
+  std::istringstream words(reply);
+  for (std::string word; words >> word;) {
+    const auto equals = word.find('=');
+    if (equals == std::string::npos) throw std::runtime_error("sms-sim motion: " + reply);
+    const std::string key = word.substr(0, equals);
+    const std::string value = word.substr(equals + 1);
+    const long long number = value == "-" ? -1 : std::stoll(value);
+    if (key == "started_us") motion.started_us = number;
+    if (key == "arrived_us") motion.arrived_us = number;
+    if (key == "position") motion.position = static_cast<long>(number);
+    if (key == "goal") motion.goal = static_cast<long>(number);
+  }
+  return motion;
+}
+
+class Arm {
+ public:
+  // `bus_extra`: more keys of the bus (", poll_fields: [...]").
+  explicit Arm(const std::string& table = "sts", const std::string& sim_protocol = "feetech",
+               const std::string& bus_protocol = "feetech", int baud = 1000000, const std::string& bus_extra = "")
+      : sim_(dir_, "arm", servos(table, sim_protocol, baud)),
+        gateway_(GatewayProcess::with_config(dir_, config(sim_.pty(), bus_protocol, table, baud, bus_extra), 1)),
+        plc_(gateway_.port(), kGateway) {
+    for (int unit = 1; unit <= kAxes; ++unit) wait_until_polled(gateway_.port(), unit);
+  }
+
+  SimProcess& sim() { return sim_; }
+  ModbusClient& plc() { return plc_; }
+  std::string log() { return gateway_.process().output(); }
+
+  // Every axis to `start` in a timed move of 2 s (d55d runs nowhere at its power-on run speed 0),
+  // the move time back to 0, and waits until all are there.
+  void home(int start = kStart) {
+    std::vector<std::uint16_t> values(kAxes, static_cast<std::uint16_t>(start));
+    values.push_back(2000);
+    ASSERT_TRUE(plc_.write_registers(0, values).ok()) << log();
+    ASSERT_TRUE(plc_.write_register(kMoveTimeRegister, 0).ok()) << log();
+    ASSERT_TRUE(eventually([&] {
+      for (int id = 1; id <= kAxes; ++id) {
+        const Motion motion = motion_of(sim_, id);
+        if (motion.position != start || motion.arrived_us < 0) return false;
+      }
+      return true;
+    })) << "the axes never got to "
+        << start;
+    // And the gateway's poll cache has seen them stand there: a timed move plans from it.
+    ASSERT_TRUE(eventually([&] { return group_inputs(0)[kToGo] == 0; })) << log();
+  }
+
+  std::vector<std::uint16_t> group_inputs(int group) {
+    return plc_.read_input(kGroupInputs + 10 * group, 7).or_throw("group input registers");
+  }
+
+  // Waits until every axis has reached `goals` on a goal written after `after_us`; their records.
+  std::vector<Motion> arrivals(const std::vector<std::uint16_t>& goals, long long after_us) {
+    std::vector<Motion> motions(kAxes);
+    const bool arrived = eventually(
+        [&] {
+          for (int id = 1; id <= kAxes; ++id) {
+            motions[id - 1] = motion_of(sim_, id);
+            const Motion& m = motions[id - 1];
+            if (m.started_us <= after_us || m.arrived_us < 0 || m.position != goals[id - 1]) return false;
+          }
+          return true;
+        },
+        20s);
+    if (!arrived) {
+      ADD_FAILURE() << "the axes did not all reach their goals\n" << log();
+    }
+    return motions;
+  }
+
+ private:
+  static std::vector<std::string> servos(const std::string& table, const std::string& protocol, int baud) {
+    std::vector<std::string> args;
+    for (int id = 1; id <= kAxes; ++id) {
+      args.insert(args.end(),
+                  {"--servo", std::to_string(id) + ":" + table + ":" + protocol + ":" + std::to_string(baud)});
+    }
+    return args;
+  }
+
+  TempDir dir_;
+  SimProcess sim_;
+  GatewayProcess gateway_;
+  ModbusClient plc_;
+};
+
+long long now_us() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
+std::vector<std::uint16_t> goals_for(const std::array<int, kAxes>& distances, int start = kStart) {
+  std::vector<std::uint16_t> goals;
+  for (const int distance : distances) goals.push_back(static_cast<std::uint16_t>(start + distance));
+  return goals;
+}
+
+// What the spread of arrivals is measured on: the arrivals themselves when one SYNC WRITE starts
+// every axis at once; each axis's time from its own goal when a modbus-rtu bus writes the goals one
+// after another (how far apart those go out is the bus's and the machine's, not the plan's).
+enum class Spread { Arrivals, MoveTimes };
+
+// The spread of the arrivals and each axis's time from its goal to its arrival, against `ms`.
+void expect_together_at(const std::vector<Motion>& motions, int ms, Spread spread = Spread::Arrivals) {
+  std::vector<long long> ends;
+  for (const Motion& motion : motions) {
+    ends.push_back(spread == Spread::Arrivals ? motion.arrived_us : motion.arrived_us - motion.started_us);
+  }
+  const auto [first, last] = std::minmax_element(ends.begin(), ends.end());
+  EXPECT_LE(*last - *first, 2 * kPollPeriodMs * 1000) << "arrivals spread over more than 2 polls";
+  for (std::size_t axis = 0; axis < motions.size(); ++axis) {
+    const double took_ms = (motions[axis].arrived_us - motions[axis].started_us) / 1000.0;
+    EXPECT_NEAR(took_ms, ms, 0.05 * ms) << "axis " << axis + 1 << " took " << took_ms << " ms";
+  }
+}
+
+void timed_move_arrives_together(Arm& arm, Spread spread = Spread::Arrivals, int start = kStart,
+                                 const std::array<int, kAxes>& distances = kDistances) {
+  arm.home(start);
+  const long long before = now_us();
+  std::vector<std::uint16_t> request = goals_for(distances, start);
+  request.push_back(1500);  // the move time, in the same FC16
+  const auto answer = arm.plc().write_registers(0, request);
+  ASSERT_TRUE(answer.ok()) << answer.error << "\n" << arm.log();
+  const auto motions = arm.arrivals(goals_for(distances, start), before);
+  expect_together_at(motions, 1500, spread);
+  const auto inputs = arm.group_inputs(0);
+  EXPECT_EQ(inputs[kLastMove], 1);  // as asked
+  EXPECT_EQ(inputs[kUsed], 1500);
+  EXPECT_EQ(inputs[kLimitingUnit], 6);  // the longest way
+  EXPECT_LT(inputs[kShortest], 1500);
+  EXPECT_TRUE(eventually([&] { return arm.group_inputs(0)[kMoving] == 0; }));
+  EXPECT_TRUE(eventually([&] { return arm.group_inputs(0)[kToGo] == 0; }));
+}
+
+TEST(TimedMoves, SixStsAxesArriveTogetherAtTheMoveTime) {
+  Arm arm;
+  timed_move_arrives_together(arm);
+}
+
+// SMSMB servos on a modbus-rtu bus: no SYNC WRITE, so one write per servo (speeds first, then goals).
+TEST(TimedMoves, SixSmsmbAxesOnModbusRtuArriveTogether) {
+  Arm arm("smsmb", "modbus-rtu", "modbus-rtu", 115200);
+  timed_move_arrives_together(arm, Spread::MoveTimes);
+}
+
+// d55d motors in position mode (360° at the default resolution, 1° a position unit): goal, run
+// speed, acceleration and deceleration in one SYNC WRITE block (30-35).
+TEST(TimedMoves, SixD55dAxesArriveTogether) {
+  Arm arm("d55d", "d55d", "d55d", 115200);
+  timed_move_arrives_together(arm, Spread::Arrivals, 20, {10, 60, 120, 180, 240, 300});
+}
+
+// A d55d motor in wheel mode (both angle limits 0) takes relative goals: no distance to plan.
+TEST(TimedMoves, AD55dInWheelModeRefusesTheMove) {
+  Arm arm("d55d", "d55d", "d55d", 115200);
+  arm.home(20);
+  ASSERT_EQ(arm.sim().control("set 6 6 00 00 00 00"), "ok");  // unit 6: cw and ccw limits 0
+  const long long started_before = motion_of(arm.sim(), 1).started_us;
+  std::vector<std::uint16_t> request = goals_for({10, 60, 120, 180, 240, 300}, 20);
+  request.push_back(1500);
+  EXPECT_EQ(arm.plc().write_registers(0, request).exception, 3);
+  EXPECT_EQ(motion_of(arm.sim(), 1).started_us, started_before) << "an axis was given its goal";
+  EXPECT_EQ(arm.sim().field(1, "goal_position"), 20);
+}
+
+// A bus that does not poll present positions: the gateway reads each axis's before planning.
+TEST(TimedMoves, PresentPositionsOutsideTheCacheAreReadLive) {
+  Arm arm("sts", "feetech", "feetech", 1000000, ", poll_fields: [present_load]");
+  timed_move_arrives_together(arm);
+}
+
+// The move time register is a write like any other for the watchdog (feed any_write): carried
+// out, it feeds; a refused timed move does not.
+TEST(TimedMoves, AMoveTimeWriteFeedsTheWatchdogARefusedMoveDoesNot) {
+  Arm arm("sts", "feetech", "feetech", 1000000, ", watchdog: {timeout_ms: 60000, feed: any_write}");
+  constexpr int kBus0SinceFeed = 111;  // ms since the last feed; 65535: never
+  const auto since_feed = [&] { return arm.plc().read_input(kBus0SinceFeed, 1).or_throw("since feed")[0]; };
+  ASSERT_EQ(since_feed(), 0xFFFF);
+  std::vector<std::uint16_t> request = goals_for(kDistances);
+  request.push_back(100);  // too short: refused, nothing carried out
+  EXPECT_EQ(arm.plc().write_registers(0, request).exception, 3);
+  EXPECT_EQ(since_feed(), 0xFFFF);
+  ASSERT_TRUE(arm.plc().write_register(kMoveTimeRegister, 1500).ok()) << arm.log();
+  EXPECT_NE(since_feed(), 0xFFFF);
+}
+
+TEST(TimedMoves, TheMoveTimeWrittenBeforeTheGoalsCounts) {
+  Arm arm;
+  arm.home();
+  ASSERT_TRUE(arm.plc().write_register(kMoveTimeRegister, 1500).ok()) << arm.log();
+  EXPECT_EQ(arm.plc().read_holding(kMoveTimeRegister, 1).or_throw("move time")[0], 1500);
+  const long long before = now_us();
+  const auto goals = goals_for(kDistances);
+  ASSERT_TRUE(arm.plc().write_registers(0, goals).ok()) << arm.log();
+  expect_together_at(arm.arrivals(goals, before), 1500);
+}
+
+TEST(TimedMoves, ATimeTooShortIsRefusedAndNothingIsWritten) {
+  Arm arm;
+  arm.home();
+  std::vector<Motion> before;
+  for (int id = 1; id <= kAxes; ++id) before.push_back(motion_of(arm.sim(), id));
+  std::vector<std::uint16_t> request = goals_for(kDistances);
+  request.push_back(300);  // 3000 steps take the servo 855 ms at best
+  const auto answer = arm.plc().write_registers(0, request);
+  EXPECT_EQ(answer.exception, 3) << "a move time no axis can make is an illegal value";
+  for (int id = 1; id <= kAxes; ++id) {
+    const Motion now = motion_of(arm.sim(), id);
+    EXPECT_EQ(now.started_us, before[id - 1].started_us) << "axis " << id << " was given a goal";
+    EXPECT_EQ(arm.sim().field(id, "goal_position"), kStart) << "axis " << id;
+  }
+  const auto inputs = arm.group_inputs(0);
+  EXPECT_EQ(inputs[kLastMove], 3);  // refused
+  EXPECT_EQ(inputs[kLimitingUnit], 6);
+  EXPECT_GT(inputs[kShortest], 300);
+  EXPECT_LT(inputs[kShortest], 1000);
+  EXPECT_EQ(inputs[kMoving], 0);
+  // The refused write kept no move time.
+  EXPECT_EQ(arm.plc().read_holding(kMoveTimeRegister, 1).or_throw("move time")[0], 0);
+}
+
+TEST(TimedMoves, AStretchingGroupTakesTheSlowestAxisTime) {
+  Arm arm;
+  arm.home();
+  const long long before = now_us();
+  std::vector<std::uint16_t> request = goals_for(kDistances);
+  request.push_back(300);
+  const auto answer = arm.plc().write_registers(kStretchGroupStart, request);
+  ASSERT_TRUE(answer.ok()) << answer.error << "\n" << arm.log();
+  const auto inputs = arm.group_inputs(1);
+  EXPECT_EQ(inputs[kLastMove], 2);  // stretched
+  EXPECT_EQ(inputs[kLimitingUnit], 6);
+  EXPECT_EQ(inputs[kUsed], inputs[kShortest]);
+  EXPECT_GT(inputs[kUsed], 300);
+  expect_together_at(arm.arrivals(goals_for(kDistances), before), inputs[kUsed]);
+}
+
+TEST(TimedMoves, AnEStopInTheMiddleStopsEveryAxis) {
+  Arm arm;
+  arm.home();
+  std::vector<std::uint16_t> request = goals_for(kDistances);
+  request.push_back(3000);
+  ASSERT_TRUE(arm.plc().write_registers(0, request).ok()) << arm.log();
+  // Under way: every axis has left its start.
+  ASSERT_TRUE(eventually([&] {
+    for (int id = 1; id <= kAxes; ++id) {
+      if (motion_of(arm.sim(), id).position == kStart) return false;
+    }
+    return true;
+  }));
+  EXPECT_EQ(arm.group_inputs(0)[kMoving], 1);
+  ASSERT_TRUE(arm.plc().write_coil(kEStopCoil, true).ok()) << arm.log();
+  // Every axis stands short of its goal, and stays there.
+  EXPECT_TRUE(eventually([&] {
+    for (int id = 1; id <= kAxes; ++id) {
+      if (arm.sim().field(id, "moving") != 0) return false;
+    }
+    return true;
+  }));
+  for (int id = 1; id <= kAxes; ++id) {
+    const Motion stopped = motion_of(arm.sim(), id);
+    EXPECT_LT(stopped.position, kStart + kDistances[id - 1]) << "axis " << id << " went on to its goal";
+  }
+  const auto inputs = arm.group_inputs(0);
+  EXPECT_EQ(inputs[kMoving], 0);
+  EXPECT_EQ(inputs[kTimeLeft], 0);
+  EXPECT_GT(inputs[kToGo], 0);
+  // While latched, a timed move is refused like every motion write (0x04), nothing written.
+  request.back() = 1500;
+  EXPECT_EQ(arm.plc().write_registers(0, request).exception, 4);
+  ASSERT_TRUE(arm.plc().write_coil(kEStopCoil, false).ok());
+}
+
+}  // namespace
+}  // namespace sms::e2e
