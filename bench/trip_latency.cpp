@@ -126,20 +126,22 @@ class FrameLog {
   std::vector<Frame> frames_;
 };
 
-// A write of a round's set-up refused with 0x04: the watchdog tripped while the round was being
-// set up (a loaded machine can hold the client longer than the timeout between two writes).
+// A round's set-up that did not go through: a write refused with 0x04 (the watchdog tripped while
+// the round was being set up: a loaded machine can hold the client longer than the timeout
+// between two writes), or a servo that kept missing the gateway's response timeout (0x0B: a
+// loaded machine can hold the simulator). The round is set up again; the figures are about the
+// stop, not the set-up.
 struct SetupTripped {};
 
 void write_or_throw(modbus_t* context, int unit, int address, std::uint16_t value) {
   modbus_set_slave(context, unit);
-  // A servo that missed the gateway's response timeout (0x0B: a loaded machine can hold the
-  // simulator) is asked again; the figures are about the stop, not the set-up.
-  int attempts = 3;
+  int attempts = 5;
   int written = 0;
   while ((written = modbus_write_register(context, address, value)) != 1 && errno == EMBXGTAR && --attempts > 0) {
+    std::this_thread::sleep_for(10ms);  // lets a starved simulator catch up
   }
   if (written != 1) {
-    if (errno == EMBXSFAIL) throw SetupTripped{};
+    if (errno == EMBXSFAIL || errno == EMBXGTAR) throw SetupTripped{};
     throw std::runtime_error("unit " + std::to_string(unit) + ": FC06 " + std::to_string(address) +
                              " := " + std::to_string(value) + " failed: " + modbus_error_text());
   }
@@ -157,7 +159,7 @@ struct SizeResult {
   std::chrono::milliseconds timeout{0};
   unsigned missed = 0;                 // no complete stop seen in time
   unsigned not_stopped = 0;            // the frames came but a servo's goal_speed was not 0
-  unsigned setup_tripped = 0;          // rounds set up again: the watchdog tripped during the set-up
+  unsigned setup_tripped = 0;          // rounds set up again: a trip or a kept 0x0B during the set-up
   unsigned no_figure = 0;              // the gateway's register did not show this round's stop
   std::size_t polls_in_reads = 0;      // poll SYNC READs between the stop's first and last READ
   std::size_t polls_before_write = 0;  // ... between its last READ and its first SYNC WRITE
@@ -212,7 +214,11 @@ SizeResult measure(unsigned servos, unsigned rounds, std::chrono::milliseconds t
     } catch (const SetupTripped&) {
       // Not a round: wait for that trip's stop to be recorded, then set the round up again.
       ++result.setup_tripped;
-      if (result.setup_tripped > 3 * rounds) throw std::runtime_error("the watchdog tripped during every set-up");
+      if (result.setup_tripped > 3 * rounds) {
+        throw std::runtime_error(
+            "every set-up failed: the watchdog tripped (0x04) or a servo kept missing the "
+            "response timeout (0x0B) while the round was being set up");
+      }
       std::this_thread::sleep_for(timeout);
       registers = safety_registers();
       trips_seen = u32(registers[kTripsOffset], registers[kTripsOffset + 1]);

@@ -130,6 +130,7 @@ class TransactorLink final : public ServoLink {
     std::this_thread::sleep_until(quiet_until_);
     Heard heard(id);
     const auto retries_before = counters_.retries.load(std::memory_order_relaxed);
+    const auto stray_before = counters_.stray_bytes.load(std::memory_order_relaxed);
     BusResult result = transactor_->execute(request, heard);
     if (counters_.retries.load(std::memory_order_relaxed) != retries_before) {
       quiet_until_ = std::chrono::steady_clock::now() + tool_reply_timeout(*this, 0, protocol::kMinFrameSize);
@@ -140,6 +141,7 @@ class TransactorLink final : public ServoLink {
     answer.heard_anything = heard.anything;
     answer.other_ids = std::move(heard.other_ids);
     answer.damaged = heard.damaged_any;
+    answer.dropped_before = counters_.stray_bytes.load(std::memory_order_relaxed) - stray_before;
     answer.detail = std::move(result.detail);
     switch (result.status) {
       case BusStatus::Ok: answer.status = LinkStatus::Ok; break;

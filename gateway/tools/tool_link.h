@@ -77,6 +77,9 @@ struct LinkAnswer {
   bool heard_anything = false;          // some bytes came back, valid or not (collisions, other IDs)
   std::vector<std::uint8_t> other_ids;  // valid answers from other IDs heard meanwhile (late answers)
   bool damaged = false;                 // bytes that made no valid frame came back (colliding answers, noise)
+  // Bytes that waited unread on the line and were dropped before the request went out: the late
+  // answer of the transaction before (its servo answered after that one gave up), or noise.
+  std::size_t dropped_before = 0;
   std::string detail;
 
   bool ok() const { return status == LinkStatus::Ok; }

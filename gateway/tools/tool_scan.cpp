@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <map>
+#include <optional>
 #include <set>
 #include <vector>
 
@@ -132,13 +133,19 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
     // IDs whose answer arrived in another ID's window: they answered late (a busy adapter or
     // host). Asked again, waiting longer, after the pass, so one slow answer does not hide a
     // servo.
+    // An answer that came after its ID's wait and before the next request is dropped unread
+    // when that request goes out (only the bytes are known, not the ID): the ID asked just before
+    // and found silent is asked again too.
     std::set<std::uint8_t> answered_late;
     std::set<std::uint8_t> seen;
+    std::optional<std::uint8_t> last_silent;
     const auto probe = [&](std::uint8_t id) -> Expected<bool> {
       LinkAnswer answer = link.ping(id);
       if (answer.status == LinkStatus::PortError) return unexpected(answer.detail);
       seen.insert(id);
       answered_late.insert(answer.other_ids.begin(), answer.other_ids.end());
+      if (answer.dropped_before > 0 && last_silent) answered_late.insert(*last_silent);
+      last_silent = id;  // until an answer says otherwise below
       if (!answer.ok() && !answer.heard_anything) return false;
       if (!answer.ok()) {
         // Only damaged answers: several transmitters at once, or a late answer overlapping
@@ -180,6 +187,7 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
       }
       report.found.push_back(std::move(finding));
       ++at_this_baud;
+      last_silent.reset();
       return true;
     };
     std::set<std::uint8_t> found_here;

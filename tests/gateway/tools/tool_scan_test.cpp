@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <iostream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "config/load.h"
@@ -232,6 +233,63 @@ TEST(Scan, WritesAConfigurationTheGatewayLoads) {
   EXPECT_EQ(config->servos[1].unit_id, 1);
   // The servo at the other rate is named with the command that moves it.
   EXPECT_NE(yaml.find("--id 6 --new-baud 1000000"), std::string::npos) << yaml;
+}
+
+// A host that is descheduled between two requests (a loaded edge box): the link works as
+// ever, but each PING leaves only after a pause, so a late answer lands between two requests.
+class PausingBeforeEachPing final : public ServoLink {
+ public:
+  PausingBeforeEachPing(ServoLink& link, std::chrono::milliseconds pause) : link_(link), pause_(pause) {}
+  Expected<Ok> open() override { return link_.open(); }
+  Expected<Ok> set_baud(std::uint32_t baud) override { return link_.set_baud(baud); }
+  const LinkSettings& settings() const override { return link_.settings(); }
+  void set_attempts(unsigned attempts) override { link_.set_attempts(attempts); }
+  void set_latency(std::chrono::milliseconds latency) override { link_.set_latency(latency); }
+  LinkAnswer ping(std::uint8_t id) override {
+    std::this_thread::sleep_for(pause_);
+    return link_.ping(id);
+  }
+  LinkAnswer read(std::uint8_t id, std::uint16_t address, std::uint16_t count) override {
+    return link_.read(id, address, count);
+  }
+  LinkAnswer write(std::uint8_t id, std::uint16_t address, std::span<const std::uint8_t> data) override {
+    return link_.write(id, address, data);
+  }
+  LinkAnswer instruction(std::uint8_t id, std::uint8_t code) override { return link_.instruction(id, code); }
+  std::chrono::nanoseconds wire_time(std::size_t bytes) const override { return link_.wire_time(bytes); }
+
+ private:
+  ServoLink& link_;
+  std::chrono::milliseconds pause_;
+};
+
+// Servo 3 answers 15 ms late, after the scan's wait for it; the host pauses 40 ms before the
+// next PING, so the answer waits on the line and is dropped unread when that PING goes out. The
+// scan knows only that bytes were dropped: it asks the ID before again, waiting longer.
+TEST(Scan, AnAnswerDroppedBeforeTheNextPingGetsItsIdASecondLook) {
+  simulator::BusOptions options;
+  for (std::uint8_t id = 1; id <= 4; ++id)
+    options.servos.push_back({id, TableId::Sts, BusProtocol::Feetech, 1'000'000});
+  simulator::SimulatedBus bus(options);
+  bus.start();
+  bus.set_reply_delay(3, 15ms);
+  LinkSettings settings;
+  settings.device = bus.slave_path();
+  settings.baud = 1'000'000;
+  settings.latency = 5ms;  // the scan's default: servo 3's 15 ms are past it
+  auto link = make_servo_link(settings);
+  ASSERT_TRUE(link->open());
+  PausingBeforeEachPing paused(*link, 40ms);
+  ScanOptions scan;
+  scan.bauds = {1'000'000};
+  scan.ids = ids(1, 6);
+  std::vector<std::string> said;
+  const auto report = scan_bus(paused, scan, [&](const std::string& line) { said.push_back(line); });
+  ASSERT_TRUE(report) << report.error();
+  ASSERT_NE(finding(*report, 1'000'000, 3), nullptr) << format_scan(*report);
+  EXPECT_EQ(report->found.size(), 4U) << format_scan(*report);
+  EXPECT_NE(std::find(said.begin(), said.end(), " 1000000 bit/s: ID 3 answered late; found on a second look"),
+            said.end());
 }
 
 // Every ID at 1 Mbaud with six servos on the line and the scan's default adapter latency
