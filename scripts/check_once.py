@@ -1,15 +1,18 @@
 #!/usr/bin/env python3
-"""clang-tidy over the given files with a result cache, as ccache does for compiles.
+"""A check of every translation unit with a result cache, as ccache does for compiles:
+  tidy  clang-tidy (.clang-tidy at the root), over BUILD_DIR's compile commands;
+  gcc   GCC 12's front end (-fsyntax-only) with the build's own flags (-Wall -Wextra -Werror):
+        every error and warning GCC gives while it parses, checks and instantiates the file.
 
 A file that passed before is not checked again while its preprocessed source (with every
-header it includes), its compile flags, .clang-tidy and the clang-tidy version are unchanged:
+header it includes), its compile flags, the tool's configuration and version are unchanged:
 the key is a SHA-256 of those. Only passing runs are remembered, so a finding shows every time.
 The checkout's own path is left out of the key (as ccache's base_dir does): another clone of the
-same sources on the same machine — CI's fresh clone — finds the results of this one.
-The cache lives in $SMS_TIDY_CACHE (default ~/.cache/sms-gateway/clang-tidy); deleting it only
+same sources on the same machine finds the results of this one.
+The caches live in $SMS_CHECK_CACHE (default ~/.cache/sms-gateway: clang-tidy/, gcc-syntax/); deleting them only
 costs time.
 
-usage: tidy.py BUILD_DIR FILE...   exit 0: no findings; 1: findings (printed); 2: usage
+usage: check_once.py tidy|gcc BUILD_DIR FILE...   exit 0: no findings; 1: findings (printed); 2: usage
 """
 import concurrent.futures
 import hashlib
@@ -55,32 +58,59 @@ def key_of(entry, config, version, root):
     return digest.hexdigest()
 
 
+class Tidy:
+    name, cache_dir = "tidy", "clang-tidy"
+    advice = "fix them, or say why not with NOLINT(check) and a reason"
+
+    def __init__(self, root, build, entries):
+        self.build = build
+        self.config = (root / ".clang-tidy").read_bytes()
+        self.version = subprocess.run(["clang-tidy", "--version"], capture_output=True, check=True).stdout
+
+    def run(self, entry, path):
+        return subprocess.run(["clang-tidy", "-p", str(self.build), "--quiet", path], capture_output=True, text=True)
+
+
+class GccFrontEnd:
+    name, cache_dir = "gcc", "gcc-syntax"
+    advice = "GCC 12 is the compiler of packagers, scripts/bench.sh and the container image: fix them for it too"
+
+    def __init__(self, root, build, entries):
+        self.config = b"-fsyntax-only"
+        compiler = compile_args(next(iter(entries.values())))[0] if entries else "g++"
+        self.version = subprocess.run([compiler, "--version"], capture_output=True, check=True).stdout
+
+    def run(self, entry, path):
+        return subprocess.run(compile_args(entry) + ["-fsyntax-only"], cwd=entry["directory"], capture_output=True,
+                              text=True)
+
+
 def main():
-    if len(sys.argv) < 3:
+    checks = {"tidy": Tidy, "gcc": GccFrontEnd}
+    if len(sys.argv) < 4 or sys.argv[1] not in checks:
         print(__doc__, file=sys.stderr)
         return 2
-    build, files = pathlib.Path(sys.argv[1]), [os.path.abspath(f) for f in sys.argv[2:]]
+    build, files = pathlib.Path(sys.argv[2]), [os.path.abspath(f) for f in sys.argv[3:]]
     root = pathlib.Path(__file__).resolve().parent.parent
     entries = {os.path.abspath(os.path.join(e["directory"], e["file"])): e
                for e in json.loads((build / "compile_commands.json").read_text())}
+    check = checks[sys.argv[1]](root, build, entries)
     missing = [f for f in files if f not in entries]
     if missing:
-        print("tidy: not in %s/compile_commands.json: %s" % (build, " ".join(missing)), file=sys.stderr)
+        print("%s: not in %s/compile_commands.json: %s" % (check.name, build, " ".join(missing)), file=sys.stderr)
         return 2
-    config = (root / ".clang-tidy").read_bytes()
-    version = subprocess.run(["clang-tidy", "--version"], capture_output=True, check=True).stdout
-    cache = pathlib.Path(os.environ.get("SMS_TIDY_CACHE", pathlib.Path.home() / ".cache/sms-gateway/clang-tidy"))
+    cache = pathlib.Path(os.environ.get("SMS_CHECK_CACHE", pathlib.Path.home() / ".cache/sms-gateway")) / check.cache_dir
     cache.mkdir(parents=True, exist_ok=True)
 
-    def check(path):
+    def one(path):
         try:
-            key = key_of(entries[path], config, version, root)
+            key = key_of(entries[path], check.config, check.version, root)
         except subprocess.CalledProcessError as error:
             return path, False, "preprocessing failed: " + error.stderr.decode(errors="replace")
         stamp = cache / key
         if stamp.exists():
             return path, True, None
-        run = subprocess.run(["clang-tidy", "-p", str(build), "--quiet", path], capture_output=True, text=True)
+        run = check.run(entries[path], path)
         if run.returncode == 0:
             stamp.touch()
             return path, False, None
@@ -88,7 +118,7 @@ def main():
 
     failed, cached = 0, 0
     with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        for path, hit, findings in pool.map(check, files):
+        for path, hit, findings in pool.map(one, files):
             cached += hit
             if findings is not None:
                 failed += 1
@@ -96,10 +126,10 @@ def main():
                          and "Use -header-filter" not in l]
                 print("\n".join(lines), file=sys.stderr)
     if failed:
-        print("tidy: findings in %d of %d files (above); fix them, or say why not with NOLINT(check) and a reason"
-              % (failed, len(files)), file=sys.stderr)
+        print("%s: findings in %d of %d files (above); %s" % (check.name, failed, len(files), check.advice),
+              file=sys.stderr)
         return 1
-    print("tidy: %d files, no findings (%d unchanged since a passing run)" % (len(files), cached))
+    print("%s: %d files, no findings (%d unchanged since a passing run)" % (check.name, len(files), cached))
     return 0
 
 
