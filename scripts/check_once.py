@@ -12,7 +12,11 @@ same sources on the same machine finds the results of this one.
 The caches live in $SMS_CHECK_CACHE (default ~/.cache/sms-gateway: clang-tidy/, gcc-syntax/); deleting them only
 costs time.
 
-usage: check_once.py tidy|gcc BUILD_DIR FILE...   exit 0: no findings; 1: findings (printed); 2: usage
+usage: check_once.py tidy|gcc BUILD_DIR [FILE...]   exit 0: no findings; 1: findings (printed); 2: usage
+Without files: tidy checks the product's sources (protocol/, modbus_map/, config/, gateway/,
+simulator/: tests and benchmarks are not, gtest's macros trip bugprone-* without finding
+anything); gcc checks every file of BUILD_DIR's compile database, the sources the build
+generates (protobuf code, the console's embedded pages) made first.
 """
 import concurrent.futures
 import hashlib
@@ -67,6 +71,12 @@ class Tidy:
         self.config = (root / ".clang-tidy").read_bytes()
         self.version = subprocess.run(["clang-tidy", "--version"], capture_output=True, check=True).stdout
 
+    def default_files(self, root, entries):
+        listed = subprocess.run(["git", "ls-files", "protocol/*.cpp", "modbus_map/*.cpp", "config/*.cpp",
+                                 "gateway/*.cpp", "simulator/*.cpp"], cwd=root, capture_output=True, text=True,
+                                check=True).stdout.split()
+        return [str(root / f) for f in listed]
+
     def run(self, entry, path):
         return subprocess.run(["clang-tidy", "-p", str(self.build), "--quiet", path], capture_output=True, text=True)
 
@@ -76,9 +86,17 @@ class GccFrontEnd:
     advice = "GCC 12 is the compiler of packagers, scripts/bench.sh and the container image: fix them for it too"
 
     def __init__(self, root, build, entries):
+        self.build = build
         self.config = b"-fsyntax-only"
         compiler = compile_args(next(iter(entries.values())))[0] if entries else "g++"
         self.version = subprocess.run([compiler, "--version"], capture_output=True, check=True).stdout
+
+    def default_files(self, root, entries):
+        build = os.path.abspath(self.build)
+        generated = [os.path.relpath(f, build) for f in entries if f.startswith(build + "/")]
+        if generated:
+            subprocess.run(["cmake", "--build", build, "--target"] + generated, capture_output=True, check=True)
+        return list(entries)
 
     def run(self, entry, path):
         return subprocess.run(compile_args(entry) + ["-fsyntax-only"], cwd=entry["directory"], capture_output=True,
@@ -87,14 +105,20 @@ class GccFrontEnd:
 
 def main():
     checks = {"tidy": Tidy, "gcc": GccFrontEnd}
-    if len(sys.argv) < 4 or sys.argv[1] not in checks:
+    if len(sys.argv) < 3 or sys.argv[1] not in checks:
         print(__doc__, file=sys.stderr)
         return 2
     build, files = pathlib.Path(sys.argv[2]), [os.path.abspath(f) for f in sys.argv[3:]]
     root = pathlib.Path(__file__).resolve().parent.parent
+    if not (build / "compile_commands.json").is_file():
+        print("%s: %s/compile_commands.json is missing: configure %s first (scripts/test.sh does)"
+              % (sys.argv[1], build, build), file=sys.stderr)
+        return 2
     entries = {os.path.abspath(os.path.join(e["directory"], e["file"])): e
                for e in json.loads((build / "compile_commands.json").read_text())}
     check = checks[sys.argv[1]](root, build, entries)
+    if not files:
+        files = check.default_files(root, entries)
     missing = [f for f in files if f not in entries]
     if missing:
         print("%s: not in %s/compile_commands.json: %s" % (check.name, build, " ".join(missing)), file=sys.stderr)

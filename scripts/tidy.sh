@@ -4,13 +4,6 @@
 # are not checked: gtest's macros trip bugprone-* without finding anything.
 #   scripts/tidy.sh [BUILD_DIR]   BUILD_DIR has compile_commands.json (default build-asan)
 # Exits 1 on any finding (WarningsAsErrors: '*'), naming file, line and check. A file that
-# passed and has not changed (nor its headers, flags or .clang-tidy) is not checked again (check_once.py).
-set -euo pipefail
-cd "$(dirname "$0")/.."
-build=${1:-build-asan}
-if [ ! -f "$build/compile_commands.json" ]; then
-  echo "tidy: $build/compile_commands.json is missing: configure $build first (scripts/test.sh does)" >&2
-  exit 2
-fi
-mapfile -t files < <(git ls-files 'protocol/*.cpp' 'modbus_map/*.cpp' 'config/*.cpp' 'gateway/*.cpp' 'simulator/*.cpp')
-exec "$(dirname "$0")/check_once.py" tidy "$build" "${files[@]}"
+# passed and has not changed (nor its headers, flags or .clang-tidy) is not checked again
+# (check_once.py).
+exec "$(dirname "$0")/check_once.py" tidy "${1:-build-asan}"

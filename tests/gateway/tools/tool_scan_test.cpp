@@ -235,6 +235,26 @@ TEST(Scan, WritesAConfigurationTheGatewayLoads) {
   EXPECT_NE(yaml.find("--id 6 --new-baud 1000000"), std::string::npos) << yaml;
 }
 
+// IDs 1..count, sts, feetech, 1 Mbaud.
+simulator::BusOptions sts_servos(std::uint8_t count) {
+  simulator::BusOptions options;
+  for (std::uint8_t id = 1; id <= count; ++id)
+    options.servos.push_back({id, TableId::Sts, BusProtocol::Feetech, 1'000'000});
+  return options;
+}
+
+// A link at 1 Mbaud with the scan's default adapter latency (5 ms).
+std::unique_ptr<ServoLink> default_scan_link(const std::string& device) {
+  LinkSettings settings;
+  settings.device = device;
+  settings.baud = 1'000'000;
+  settings.latency = 5ms;
+  auto link = make_servo_link(settings);
+  const auto opened = link->open();
+  EXPECT_TRUE(opened) << (opened ? "" : opened.error());
+  return link;
+}
+
 // A host that is descheduled between two requests (a loaded edge box): the link works as
 // ever, but each PING leaves only after a pause, so a late answer lands between two requests.
 class PausingBeforeEachPing final : public ServoLink {
@@ -267,18 +287,10 @@ class PausingBeforeEachPing final : public ServoLink {
 // next PING, so the answer waits on the line and is dropped unread when that PING goes out. The
 // scan knows only that bytes were dropped: it asks the ID before again, waiting longer.
 TEST(Scan, AnAnswerDroppedBeforeTheNextPingGetsItsIdASecondLook) {
-  simulator::BusOptions options;
-  for (std::uint8_t id = 1; id <= 4; ++id)
-    options.servos.push_back({id, TableId::Sts, BusProtocol::Feetech, 1'000'000});
-  simulator::SimulatedBus bus(options);
+  simulator::SimulatedBus bus(sts_servos(4));
   bus.start();
-  bus.set_reply_delay(3, 15ms);
-  LinkSettings settings;
-  settings.device = bus.slave_path();
-  settings.baud = 1'000'000;
-  settings.latency = 5ms;  // the scan's default: servo 3's 15 ms are past it
-  auto link = make_servo_link(settings);
-  ASSERT_TRUE(link->open());
+  bus.set_reply_delay(3, 15ms);  // past the scan's default 5 ms
+  auto link = default_scan_link(bus.slave_path());
   PausingBeforeEachPing paused(*link, 40ms);
   ScanOptions scan;
   scan.bauds = {1'000'000};
@@ -295,17 +307,9 @@ TEST(Scan, AnAnswerDroppedBeforeTheNextPingGetsItsIdASecondLook) {
 // Every ID at 1 Mbaud with six servos on the line and the scan's default adapter latency
 // (5 ms); prints the time it took (the README's figure), without asserting on it.
 TEST(Scan, EveryIdAtOneMegabaudFindsTheSixServos) {
-  simulator::BusOptions options;
-  for (std::uint8_t id = 1; id <= 6; ++id)
-    options.servos.push_back({id, TableId::Sts, BusProtocol::Feetech, 1'000'000});
-  simulator::SimulatedBus bus(options);
+  simulator::SimulatedBus bus(sts_servos(6));
   bus.start();
-  LinkSettings settings;
-  settings.device = bus.slave_path();
-  settings.baud = 1'000'000;
-  settings.latency = 5ms;  // the scan's default
-  auto link = make_servo_link(settings);
-  ASSERT_TRUE(link->open());
+  auto link = default_scan_link(bus.slave_path());
   ScanOptions scan;
   scan.bauds = {1'000'000};
   const auto report = scan_bus(*link, scan, quiet);
