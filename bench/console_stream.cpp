@@ -15,6 +15,8 @@
 #include <iostream>
 #include <mutex>
 #include <sstream>
+#include <stdexcept>
+#include <string>
 #include <thread>
 
 #include <modbus/modbus.h>
@@ -84,9 +86,17 @@ Phase measure(BenchGateway& gateway, std::chrono::milliseconds duration) {
   return phase;
 }
 
+// The consoles' threads: how many have connected, and the first error one met (then it ended).
+struct ConsoleClients {
+  std::atomic<unsigned> connected{0};
+  std::mutex mutex;
+  std::string failure;
+};
+
 // One open console: the session cookie and CSRF token, then its two WebSockets, read until `stop`.
 void console_client(std::uint16_t port, unsigned servo, std::atomic<bool>& stop, std::mutex& mutex,
-                    std::vector<std::uint32_t>& latencies_ns, std::atomic<std::uint64_t>& messages) {
+                    std::vector<std::uint32_t>& latencies_ns, std::atomic<std::uint64_t>& messages,
+                    ConsoleClients& clients) try {
   boost::asio::io_context io;
   tcp::resolver resolver(io);
   const auto endpoints = resolver.resolve("127.0.0.1", std::to_string(port));
@@ -110,6 +120,7 @@ void console_client(std::uint16_t port, unsigned servo, std::atomic<bool>& stop,
     socket->handshake("127.0.0.1", path + "?csrf=" + csrf);
     sockets.push_back(std::move(socket));
   }
+  ++clients.connected;
   std::vector<std::thread> readers;
   for (auto& socket : sockets) {
     readers.emplace_back([&, raw = socket.get()] {
@@ -137,6 +148,9 @@ void console_client(std::uint16_t port, unsigned servo, std::atomic<bool>& stop,
     socket->next_layer().shutdown(tcp::socket::shutdown_both, ignored);
   }
   for (auto& reader : readers) reader.join();
+} catch (const std::exception& error) {
+  std::lock_guard lock(clients.mutex);
+  if (clients.failure.empty()) clients.failure = "console of servo " + std::to_string(servo) + ": " + error.what();
 }
 
 }  // namespace
@@ -172,11 +186,24 @@ int main(int argc, char** argv) {
     std::vector<std::uint32_t> latencies;
     std::atomic<std::uint64_t> messages{0};
     std::vector<std::thread> consoles;
+    ConsoleClients clients;
+    const auto failed = [&] {
+      std::lock_guard lock(clients.mutex);
+      return !clients.failure.empty();
+    };
+    // One console after another, as people open them: the console's door closes the oldest of
+    // more than a few connections from one address still waiting for their first request, which
+    // five consoles opened at the same instant on a loaded machine can be.
     for (unsigned i = 0; i < kConsoles; ++i) {
-      consoles.emplace_back(
-          [&, i] { console_client(console_port, 1 + i * (kServos / kConsoles), stop, mutex, latencies, messages); });
+      consoles.emplace_back([&, i] {
+        console_client(console_port, 1 + i * (kServos / kConsoles), stop, mutex, latencies, messages, clients);
+      });
+      const auto limit = std::chrono::steady_clock::now() + 30s;
+      while (clients.connected.load() <= i && !failed() && std::chrono::steady_clock::now() < limit) {
+        std::this_thread::sleep_for(5ms);
+      }
     }
-    std::this_thread::sleep_for(1s);  // connected and streaming
+    std::this_thread::sleep_for(1s);  // streaming
     {
       std::lock_guard lock(mutex);
       latencies.clear();
@@ -186,6 +213,12 @@ int main(int argc, char** argv) {
     const auto counted = messages.load() - counted_from;
     stop = true;
     for (auto& console : consoles) console.join();
+    if (clients.connected.load() < kConsoles || failed()) {
+      throw std::runtime_error(clients.failure.empty()
+                                   ? std::to_string(clients.connected.load()) + " of " + std::to_string(kConsoles) +
+                                         " consoles connected within 30 s each"
+                                   : clients.failure);
+    }
 
     print_figure("console.idle.gateway_cpu", idle.cpu_percent, "%");
     print_figure("console.streaming.gateway_cpu", streaming.cpu_percent, "%");
