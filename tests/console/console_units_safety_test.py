@@ -119,6 +119,8 @@ class UnitsAndSafetyTest(ConsoleCase):
     def test_d_an_estop_latches_in_the_panel_names_itself_and_resets_for_operate_only(self):
         self.login("op")
         self.open("/servo/2", "#field-goal_position input.edit")
+        # The safety panel is built at the first push of the safety facts, after the page.
+        wait_until(lambda: self.text("#estop-state") == "released", what="the safety panel's first facts")
         reset = self.browser.find_element(By.ID, "estop-reset")
         self.assertFalse(reset.is_enabled(), "reset offered while the e-stop is released")
         self.browser.find_element(By.ID, "estop").click()
