@@ -203,6 +203,16 @@ int main(int argc, char** argv) {
         std::this_thread::sleep_for(5ms);
       }
     }
+    const auto give_up_unless_all_streaming = [&] {
+      if (clients.connected.load() == kConsoles && !failed()) return;
+      stop = true;
+      for (auto& console : consoles) console.join();
+      throw std::runtime_error(clients.failure.empty()
+                                   ? std::to_string(clients.connected.load()) + " of " + std::to_string(kConsoles) +
+                                         " consoles connected within 30 s each"
+                                   : clients.failure);
+    };
+    give_up_unless_all_streaming();   // a phase with fewer consoles would measure something else
     std::this_thread::sleep_for(1s);  // streaming
     {
       std::lock_guard lock(mutex);
@@ -211,14 +221,9 @@ int main(int argc, char** argv) {
     const auto counted_from = messages.load();
     const Phase streaming = measure(gateway, duration);
     const auto counted = messages.load() - counted_from;
+    give_up_unless_all_streaming();
     stop = true;
     for (auto& console : consoles) console.join();
-    if (clients.connected.load() < kConsoles || failed()) {
-      throw std::runtime_error(clients.failure.empty()
-                                   ? std::to_string(clients.connected.load()) + " of " + std::to_string(kConsoles) +
-                                         " consoles connected within 30 s each"
-                                   : clients.failure);
-    }
 
     print_figure("console.idle.gateway_cpu", idle.cpu_percent, "%");
     print_figure("console.streaming.gateway_cpu", streaming.cpu_percent, "%");

@@ -245,13 +245,8 @@ simulator::BusOptions sts_servos(std::uint8_t count) {
 
 // A link at 1 Mbaud with the scan's default adapter latency (5 ms).
 std::unique_ptr<ServoLink> default_scan_link(const std::string& device) {
-  LinkSettings settings;
-  settings.device = device;
-  settings.baud = 1'000'000;
-  settings.latency = 5ms;
-  auto link = make_servo_link(settings);
-  const auto opened = link->open();
-  EXPECT_TRUE(opened) << (opened ? "" : opened.error());
+  auto link = open_link(device, BusProtocol::Feetech, 1'000'000);
+  link->set_latency(5ms);
   return link;
 }
 
