@@ -80,6 +80,23 @@ cleanup() {
 }
 trap cleanup EXIT
 
+# The image's compiler cache (docker/Dockerfile uses one mounted at /ccache), beside podman's
+# storage: a rebuild compiles only the files that changed. --no-cache measures the cold build
+# without it. compile_cache_stats: what the last build found there, for its check line.
+compile_cache=()
+if [[ " ${build_options[*]} " != *" --no-cache "* ]]; then
+  mkdir -p "$work/ccache"
+  compile_cache=(--volume "$work/ccache:/ccache")
+  command -v ccache >/dev/null && CCACHE_DIR=$work/ccache ccache --zero-stats >/dev/null
+fi
+compile_cache_stats() {
+  [ "${#compile_cache[@]}" -gt 0 ] || { echo "no compiler cache"; return; }
+  command -v ccache >/dev/null || { echo "compiler cache in $work/ccache"; return; }
+  CCACHE_DIR=$work/ccache ccache --print-stats | awk -F'\t' '
+    $1 == "direct_cache_hit" || $1 == "preprocessed_cache_hit" { hit += $2 } $1 == "cache_miss" { miss = $2 }
+    END { printf "compiler cache: %d of %d files found", hit, hit + miss }'
+}
+
 checks=()
 check() { checks+=("ok    $*"); echo "container-test: ok: $*"; }
 fail() { echo "container-test: FAILED: $*" >&2; exit 1; }
@@ -203,11 +220,11 @@ if [ "$platform" = arm64 ]; then
   image=localhost/sms-gateway:container-test-arm64
   t0=$(now)
   # BUILDPLATFORM and TARGETPLATFORM spelt out: podman 4.3 leaves the first empty (docker/Dockerfile.cross).
-  podman build "${build_options[@]}" --pull=never --platform linux/arm64 --build-arg BUILDPLATFORM="linux/$(dpkg --print-architecture)" \
+  podman build "${build_options[@]}" "${compile_cache[@]}" --pull=never --platform linux/arm64 --build-arg BUILDPLATFORM="linux/$(dpkg --print-architecture)" \
     --build-arg TARGETPLATFORM=linux/arm64 --build-arg RUNTIME_BASE="$arm_base" --format docker \
     -f "$context/docker/Dockerfile.cross" -t "$image" "$context" >"$tmp/build.log" 2>&1 \
     || { tail -40 "$tmp/build.log" >&2; fail "podman build --platform linux/arm64 -f docker/Dockerfile.cross"; }
-  check "arm64 image built from the $context_mode in $(elapsed "$t0") s (build stage amd64, cross compiled; $(podman image inspect --format '{{.Size}}' "$image" | awk '{ printf "%.0f MB", $1 / 1e6 }'))"
+  check "arm64 image built from the $context_mode in $(elapsed "$t0") s (build stage amd64, cross compiled, $(compile_cache_stats); $(podman image inspect --format '{{.Size}}' "$image" | awk '{ printf "%.0f MB", $1 / 1e6 }'))"
 
   arch=$(podman image inspect --format '{{.Architecture}}' "$image")
   [ "$arch" = arm64 ] || fail "image architecture is '$arch', want arm64"
@@ -300,7 +317,7 @@ if [ "$context_mode" = head ]; then
 fi
 t0=$(now)
 # Each line of the build log gets the second it appeared, for the time of each step.
-podman build "${build_options[@]}" --format docker -f "$context/docker/Dockerfile" -t "$image" "$context" 2>&1 \
+podman build "${build_options[@]}" "${compile_cache[@]}" --format docker -f "$context/docker/Dockerfile" -t "$image" "$context" 2>&1 \
   | while IFS= read -r line; do printf '%(%s)T %s\n' -1 "$line"; done >"$tmp/build.log" \
   || { tail -40 "$tmp/build.log" >&2; fail "podman build (context: $context_mode)"; }
 # seconds from the step whose instruction matches $1 to the next step
@@ -308,7 +325,7 @@ step_seconds() {
   awk -v pattern="$1" '/ STEP [0-9]+\/[0-9]+: / { if (t) { print $1 - t; exit } if ($0 ~ pattern) t = $1 }' "$tmp/build.log"
 }
 check "image built from the $context_mode${build_options:+ (${build_options[*]})} in $(elapsed "$t0") s ($(podman image inspect --format '{{.Size}}' "$image" | awk '{ printf "%.0f MB", $1 / 1e6 }'));" \
-  "build-stage apt $(step_seconds 'RUN apt-get') s, compile $(step_seconds 'RUN cmake --build') s"
+  "build-stage apt $(step_seconds 'RUN apt-get') s, compile $(step_seconds 'cmake --build') s ($(compile_cache_stats))"
 
 # --- what the image declares and contains ------------------------------------------------------
 [ "$(podman image inspect --format '{{.Config.User}}' "$image")" = "sms" ] || fail "image USER is not sms"

@@ -9,7 +9,7 @@ packages=(
   libboost-dev libmodbus-dev libspdlog-dev libfmt-dev libyaml-cpp-dev
   libcli11-dev libgtest-dev libgmock-dev libssl-dev openssl
   libmosquitto-dev mosquitto libprotobuf-dev protobuf-compiler
-  clang libclang-rt-14-dev clang-format clang-tidy ccache
+  clang libclang-rt-14-dev clang-format clang-tidy ccache lld
   mbpoll socat python3-pymodbus python3-serial python3-serial-asyncio stress-ng
   debhelper help2man pandoc man-db
   tshark  # reads the bus monitor's captures (tests/gateway/monitor); wireshark-common's debconf question takes its default

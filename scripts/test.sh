@@ -51,14 +51,23 @@ fresh_with() {
   fi
 }
 # ccache where it is installed (scripts/install-deps.sh installs it): a second run recompiles only
-# what changed. Paths inside the checkout are hashed relative to it, so another clone (CI's) hits
-# the same entries.
+# what changed. Paths inside the checkout are hashed relative to it, and the working directory
+# not at all (ccache hashes it where a compile makes debug info, unless told not to), so another
+# clone (CI's) hits the same entries.
 launcher=()
 command -v ccache >/dev/null && launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache)
-export CCACHE_BASEDIR=${CCACHE_BASEDIR:-$PWD}
+export CCACHE_BASEDIR=${CCACHE_BASEDIR:-$PWD} CCACHE_NOHASHDIR=${CCACHE_NOHASHDIR:-1}
+# The sanitizer builds' compile and link (docs/DECISIONS.md "The test command is the whole truth"):
+# line tables only, which is what a sanitizer report needs for file:line in every frame (full
+# debug info is for a debugger and costs a quarter of clang's compile time here); lld where it is
+# installed (scripts/install-deps.sh installs it), a quarter of ld.bfd's link time.
+sanitizer_build=(-DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug -DCMAKE_CXX_FLAGS_DEBUG=-gline-tables-only)
+if command -v ld.lld >/dev/null; then
+  sanitizer_build+=(-DCMAKE_EXE_LINKER_FLAGS=-fuse-ld=lld -DCMAKE_SHARED_LINKER_FLAGS=-fuse-ld=lld)
+fi
 step=$SECONDS
 fresh_with build-asan 'clang++'
-cmake -S . -B build-asan -G Ninja -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug -DSMS_SANITIZE=ON -DSMS_WERROR=ON \
+cmake -S . -B build-asan -G Ninja "${sanitizer_build[@]}" -DSMS_SANITIZE=ON -DSMS_WERROR=ON \
   -DSMS_BUILD_BENCH=ON "${launcher[@]}" >/dev/null
 cmake --build build-asan -j "$jobs"
 took "clang ASan+UBSan build" "$step"
@@ -89,7 +98,7 @@ tsan_build() {
   # under TSan (build-tsan/, the gateway's unit tests only: processes spawned by e2e tests are
   # not traced); only the test programs that hold those suites are built.
   fresh_with build-tsan 'clang++'
-  cmake -S . -B build-tsan -G Ninja -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug -DSMS_TSAN=ON -DSMS_WERROR=ON \
+  cmake -S . -B build-tsan -G Ninja "${sanitizer_build[@]}" -DSMS_TSAN=ON -DSMS_WERROR=ON \
     -DSMS_BUILD_BENCH=OFF "${launcher[@]}" >/dev/null
   cmake --build build-tsan -j "$jobs" --target gateway_bus_tests gateway_units_tests gateway_modbus_tcp_tests \
     gateway_observability_tests gateway_tools_tests

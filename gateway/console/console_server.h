@@ -50,10 +50,12 @@ struct ConsoleBackend {
 struct ConsoleLimits {
   // Connections served: signed in (a login, a certificate with a role, the loopback user). Those
   // not signed in yet have a budget apart, per client address too, and must send a complete
-  // request within the deadline: they can never keep an operator (and the e-stop) out.
+  // request within the deadline: they can never keep an operator (and the e-stop) out. A browser
+  // opens up to 6 connections to one host while it loads a page, so one address may have 8
+  // waiting: a page load on a busy edge box never evicts its own connections.
   DoorLimits door{.max_served = 32,
                   .max_waiting = 16,
-                  .max_waiting_per_address = 4,
+                  .max_waiting_per_address = 8,
                   .first_request_timeout = std::chrono::seconds{5}};
   std::size_t max_header_bytes = 8192;
   std::size_t max_body_bytes = 16384;
