@@ -41,7 +41,10 @@ TEST_F(ToolLinkEchoTest, ToolLinkSeesThroughTheEchoLikeTheEngine) {
   settings.device = adapter_->host_path();
   settings.protocol = protocol::BusProtocol::Feetech;
   settings.baud = 1'000'000;
-  settings.latency = 20ms;  // a pty, a relay thread and the simulator on 2 shared cores
+  // Long enough that no PING is asked twice, even under ThreadSanitizer on a loaded machine: the
+  // answer to a PING asked again comes after the first one's and lands in the next PING's wait,
+  // where the link rightly reports it as another ID heard (20 ms here failed that way under TSan).
+  settings.latency = 200ms;
   const auto link = make_servo_link(settings);
   const auto opened = link->open();
   ASSERT_TRUE(opened) << opened.error();
