@@ -45,10 +45,12 @@ step=$SECONDS
 took "dependencies and format" "$step"
 jobs=$(nproc)
 # A build dir configured with another compiler is configured anew (CMake cannot switch in place).
+# The compiler's name is compared whole: "g++" is also the end of "clang++".
 fresh_with() {
-  if [ -f "$1/CMakeCache.txt" ] && ! grep -q "^CMAKE_CXX_COMPILER:[A-Z]*=.*$2" "$1/CMakeCache.txt"; then
-    rm -rf "$1"
-  fi
+  local cached
+  [ -f "$1/CMakeCache.txt" ] || return 0
+  cached=$(sed -n 's/^CMAKE_CXX_COMPILER:[A-Z]*=//p' "$1/CMakeCache.txt")
+  [ "$(basename "$cached")" = "$2" ] || rm -rf "$1"
 }
 # ccache where it is installed (scripts/install-deps.sh installs it): a second run recompiles only
 # what changed. Paths inside the checkout are hashed relative to it, and the working directory
