@@ -99,7 +99,10 @@ class GccFrontEnd:
             # with GCC at -O2, which is most of a cold check's time and none of its use.
             commands = subprocess.run(["ninja", "-C", build, "-t", "commands", generated], capture_output=True,
                                       text=True, check=True).stdout.splitlines()
-            subprocess.run(commands[-1], shell=True, capture_output=True, check=True)
+            made = subprocess.run(commands[-1], shell=True, capture_output=True, text=True)
+            if made.returncode != 0:
+                raise SystemExit("gcc: could not make %s, which the build generates (%s):\n%s"
+                                 % (generated, commands[-1], made.stdout + made.stderr))
         return list(entries)
 
     def run(self, entry, path):

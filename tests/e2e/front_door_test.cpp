@@ -20,7 +20,9 @@
 #include <cstdlib>
 #include <fstream>
 #include <iostream>
+#include <memory>
 #include <thread>
+#include <vector>
 
 #include "tests/e2e/tls_client.h"
 #include "tests/support/eventually.h"
@@ -269,12 +271,12 @@ class FourDoors {
 
   // sms_gateway_listener_closed_total of the way in, for `reason`.
   std::uint64_t closed(Way way, const std::string& reason) const {
-    const std::string sample =
-        "sms_gateway_listener_closed_total{listener=\"" + listener_label(way) + "\",reason=\"" + reason + "\"} ";
-    const std::string body = http_request(port(Way::Metrics), "GET", "/metrics").body;
-    const auto at = body.find(sample);
-    if (at == std::string::npos) throw std::runtime_error("no sample " + sample + " in /metrics:\n" + body);
-    return std::stoull(body.substr(at + sample.size()));
+    return sample("sms_gateway_listener_closed_total{listener=\"" + listener_label(way) + "\",reason=\"" + reason +
+                  "\"} ");
+  }
+  // The connections of the way in that wait at its door (open, not trusted yet).
+  std::uint64_t waiting(Way way) const {
+    return sample("sms_gateway_listener_connections{listener=\"" + listener_label(way) + "\",state=\"waiting\"} ");
   }
 
  private:
@@ -282,6 +284,14 @@ class FourDoors {
     const auto line = process_->wait_for_line(marker, 15s);
     if (!line) throw std::runtime_error("sms-gateway did not log `" + marker + "`:\n" + process_->output());
     return static_cast<std::uint16_t>(std::stoi(line->substr(line->find(marker) + marker.size())));
+  }
+
+  // The value of one sample of /metrics, named with its labels and the space after them.
+  std::uint64_t sample(const std::string& name) const {
+    const std::string body = http_request(port(Way::Metrics), "GET", "/metrics").body;
+    const auto at = body.find(name);
+    if (at == std::string::npos) throw std::runtime_error("no sample " + name + " in /metrics:\n" + body);
+    return std::stoull(body.substr(at + name.size()));
   }
 
   std::string certs_;
@@ -396,6 +406,34 @@ TEST_P(FrontDoor, AConnectionWithoutACompleteFirstRequestIsClosedAtTheDeadline) 
 }
 
 INSTANTIATE_TEST_SUITE_P(EveryListener, FrontDoor, testing::Values(Way::Plain, Way::Tls, Way::Console, Way::Metrics),
+                         [](const testing::TestParamInfo<Way>& info) { return listener_label(info.param); });
+
+// A browser opens up to 6 connections to one host while it loads a page, and on the console they
+// all wait at the door until a request of theirs carries a signed-in user (the login page is
+// loaded before anyone signs in). None of them may be the one that makes room: a page load must
+// never evict its own connections. The other doors' clients are PLCs, panels and scrapers, one
+// connection each; their budgets are their own (docs/OPERATIONS.md).
+class BrowserAtTheConsole : public FrontDoor {};
+
+TEST_P(BrowserAtTheConsole, TheSixConnectionsOfAPageLoadAreAllServed) {
+  const Way way = GetParam();
+  ASSERT_TRUE(eventually([&] { return gateway_->waiting(way) == 0; }, "no connection waiting at the door"));
+  const std::uint64_t evicted_before = gateway_->closed(way, "evicted");
+  std::vector<std::unique_ptr<HttpConnection>> page_load;
+  for (int i = 0; i < 6; ++i) page_load.push_back(std::make_unique<HttpConnection>(gateway_->port(way)));
+  // All six admitted before any request: the door holds them at once, as a slow page load does.
+  ASSERT_TRUE(eventually([&] { return gateway_->waiting(way) == 6; }, "six connections waiting at the door"))
+      << gateway_->waiting(way) << " waiting, " << gateway_->closed(way, "evicted") - evicted_before << " evicted";
+  for (auto& connection : page_load) connection->send("GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n");
+  for (std::size_t i = 0; i < page_load.size(); ++i) {
+    const auto response = page_load[i]->read_response();
+    ASSERT_TRUE(response) << "connection " << i << " of the page load was not answered\n" << gateway_->output();
+    EXPECT_EQ(response->status, 200) << "connection " << i;
+  }
+  EXPECT_EQ(gateway_->closed(way, "evicted"), evicted_before);
+}
+
+INSTANTIATE_TEST_SUITE_P(Console, BrowserAtTheConsole, testing::Values(Way::Console),
                          [](const testing::TestParamInfo<Way>& info) { return listener_label(info.param); });
 
 }  // namespace
