@@ -304,9 +304,9 @@ MapResult<ReadPlan> RegisterMap::plan_discrete_read(std::uint16_t start, std::ui
 MapResult<ReadPlan> RegisterMap::plan_read(RequestSpace space, std::uint16_t start, std::uint16_t count,
                                            std::optional<BusRange> poll_block) const {
   const std::uint16_t limit = is_bit_space(space) ? modbus_limits::kReadBits : modbus_limits::kReadRegisters;
-  if (count == 0 || count > limit) {
-    return bad_address("read of " + std::to_string(count) + " " + std::string(space_name(space)) +
-                       ": the quantity must be 1.." + std::to_string(limit));
+  if (count == 0 || count > limit) {  // the quantity first, 0x03, as the Modbus application protocol
+    return bad_value("read of " + std::to_string(count) + " " + std::string(space_name(space)) +
+                     ": the quantity must be 1.." + std::to_string(limit));
   }
   const std::uint32_t end = std::uint32_t{start} + count;
   const std::uint16_t table_end = end_address(*shown_table_);
@@ -613,9 +613,9 @@ MapResult<WritePlan> RegisterMap::plan_write(RequestSpace space, std::uint16_t s
                                              std::span<const std::uint16_t> values) const {
   const bool bits = space == RequestSpace::Coils;
   const std::uint16_t limit = bits ? modbus_limits::kWriteBits : modbus_limits::kWriteRegisters;
-  if (values.empty() || values.size() > limit) {
-    return bad_address("write of " + std::to_string(values.size()) + " " + std::string(space_name(space)) +
-                       ": the quantity must be 1.." + std::to_string(limit));
+  if (values.empty() || values.size() > limit) {  // the quantity first, 0x03, as for reads
+    return bad_value("write of " + std::to_string(values.size()) + " " + std::string(space_name(space)) +
+                     ": the quantity must be 1.." + std::to_string(limit));
   }
   const std::uint16_t table_end = end_address(*shown_table_);
   const bool staged = !bits && start >= kStagedWriteBase && table_end <= kStagedWriteBase;

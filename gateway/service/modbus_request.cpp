@@ -1,5 +1,6 @@
 #include "gateway/service/modbus_request.h"
 
+#include <optional>
 #include <stdexcept>
 #include <type_traits>
 
@@ -25,9 +26,6 @@ using Parsed = Expected<Request, ModbusException>;
 
 // A PDU whose length or byte count does not fit its function: 0x03 (illegal data value).
 Unexpected<ModbusException> malformed() { return unexpected(ModbusException::IllegalDataValue); }
-// A quantity of 0, over the function's limit, or running past address 65535: 0x02.
-Unexpected<ModbusException> over_limit() { return unexpected(ModbusException::IllegalDataAddress); }
-
 std::uint16_t u16_at(std::span<const std::uint8_t> bytes, std::size_t offset) {
   return static_cast<std::uint16_t>((bytes[offset] << 8) | bytes[offset + 1]);
 }
@@ -37,9 +35,13 @@ void append_u16(Bytes& out, std::uint16_t value) {
   out.push_back(static_cast<std::uint8_t>(value & 0xFF));
 }
 
-// A range [address, address + count) with 1 <= count <= limit that stays inside 0..65535.
-bool quantity_ok(std::uint16_t address, std::uint16_t count, std::uint16_t limit) {
-  return count >= 1 && count <= limit && std::uint32_t{address} + count <= 0x10000;
+// A quantity is checked before its addresses, as the Modbus application protocol's diagrams do
+// for every function: a quantity of 0 or over the function's limit is 0x03 (illegal data value);
+// a range running past address 65535 is 0x02 (illegal data address).
+std::optional<ModbusException> range_fault(std::uint16_t address, std::uint16_t count, std::uint16_t limit) {
+  if (count < 1 || count > limit) return ModbusException::IllegalDataValue;
+  if (std::uint32_t{address} + count > 0x10000) return ModbusException::IllegalDataAddress;
+  return std::nullopt;
 }
 
 std::vector<std::uint16_t> registers_from(std::span<const std::uint8_t> bytes, std::uint16_t count) {
@@ -51,15 +53,15 @@ std::vector<std::uint16_t> registers_from(std::span<const std::uint8_t> bytes, s
 Parsed parse_read_bits(std::uint8_t function, std::span<const std::uint8_t> body) {
   if (body.size() != 4) return malformed();
   ReadBitsRequest request{function, u16_at(body, 0), u16_at(body, 2)};
-  if (!quantity_ok(request.address, request.count, limits::kReadBits)) return over_limit();
+  if (const auto fault = range_fault(request.address, request.count, limits::kReadBits)) return unexpected(*fault);
   return Request{request};
 }
 
 Parsed parse_read_registers(std::uint8_t function, std::span<const std::uint8_t> body) {
   if (body.size() != 4) return malformed();
   ReadRegistersRequest request{function, u16_at(body, 0), u16_at(body, 2)};
-  if (!quantity_ok(request.address, request.count, limits::kReadRegisters)) {
-    return over_limit();
+  if (const auto fault = range_fault(request.address, request.count, limits::kReadRegisters)) {
+    return unexpected(*fault);
   }
   return Request{request};
 }
@@ -80,7 +82,7 @@ Parsed parse_write_multiple_coils(std::uint8_t /*function*/, std::span<const std
   if (body.size() < 5) return malformed();
   const std::uint16_t address = u16_at(body, 0);
   const std::uint16_t count = u16_at(body, 2);
-  if (!quantity_ok(address, count, limits::kWriteBits)) return over_limit();
+  if (const auto fault = range_fault(address, count, limits::kWriteBits)) return unexpected(*fault);
   const std::size_t byte_count = body[4];
   if (byte_count != (count + 7u) / 8u || body.size() != 5 + byte_count) return malformed();
   WriteBitsRequest request{fc::kWriteMultipleCoils, address, std::vector<bool>(count)};
@@ -92,7 +94,7 @@ Parsed parse_write_multiple_registers(std::uint8_t /*function*/, std::span<const
   if (body.size() < 5) return malformed();
   const std::uint16_t address = u16_at(body, 0);
   const std::uint16_t count = u16_at(body, 2);
-  if (!quantity_ok(address, count, limits::kWriteRegisters)) return over_limit();
+  if (const auto fault = range_fault(address, count, limits::kWriteRegisters)) return unexpected(*fault);
   const std::size_t byte_count = body[4];
   if (byte_count != std::size_t{2} * count || body.size() != 5 + byte_count) return malformed();
   return Request{WriteRegistersRequest{fc::kWriteMultipleRegisters, address, registers_from(body.subspan(5), count)}};
@@ -103,10 +105,8 @@ Parsed parse_read_write_registers(std::uint8_t /*function*/, std::span<const std
   ReadRegistersRequest read{fc::kReadWriteMultipleRegisters, u16_at(body, 0), u16_at(body, 2)};
   const std::uint16_t write_address = u16_at(body, 4);
   const std::uint16_t write_count = u16_at(body, 6);
-  if (!quantity_ok(read.address, read.count, limits::kReadWriteRead) ||
-      !quantity_ok(write_address, write_count, limits::kReadWriteWrite)) {
-    return over_limit();
-  }
+  if (const auto fault = range_fault(read.address, read.count, limits::kReadWriteRead)) return unexpected(*fault);
+  if (const auto fault = range_fault(write_address, write_count, limits::kReadWriteWrite)) return unexpected(*fault);
   const std::size_t byte_count = body[8];
   if (byte_count != std::size_t{2} * write_count || body.size() != 9 + byte_count) return malformed();
   WriteRegistersRequest write{fc::kReadWriteMultipleRegisters, write_address,

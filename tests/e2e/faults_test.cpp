@@ -488,7 +488,7 @@ TEST(Faults, ZeroLengthOversizedAndForeignHeadersCloseOnlyThatConnectionAfterAns
   // The largest request a function makes (FC16 of 123 registers, length 253) is a request like
   // any other: the gateway unit has no register 200, so 0x02, and the connection goes on. So
   // does a PDU of the full 253 bytes (length 254) that is too long for its function (0x03),
-  // and a read of 126 registers, one over FC03's limit (0x02).
+  // and a read of 126 registers, one over FC03's limit (0x03, illegal data value).
   RawClient largest(cell.port());
   Bytes fc16{0x10, 0x00, 0xC8, 0x00, 0x7B, 0xF6};
   fc16.resize(fc16.size() + 246, 0x00);
@@ -504,7 +504,7 @@ TEST(Faults, ZeroLengthOversizedAndForeignHeadersCloseOnlyThatConnectionAfterAns
   largest.send(longest);
   EXPECT_EQ(largest.receive(9), adu(0x0034, 2, {0x83, 0x03}));
   largest.send(adu(0x0031, 2, {0x03, 0x00, 0x2A, 0x00, 0x7E}));
-  EXPECT_EQ(largest.receive(9), adu(0x0031, 2, {0x83, 0x02}));
+  EXPECT_EQ(largest.receive(9), adu(0x0031, 2, {0x83, 0x03}));
   largest.send(adu(0x0032, 255, {0x04, 0x00, 0x05, 0x00, 0x02}));
   EXPECT_EQ(largest.receive(13), adu(0x0032, 255, {0x04, 0x04, 0x00, 0x02, 0x00, 0x05}));  // 2 buses, 5 servos
 

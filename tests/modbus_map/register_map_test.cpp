@@ -302,17 +302,17 @@ TEST(Exceptions, SecondByteWithoutItsFirstIsRefusedInsideALongerWrite) {
   expect_exception(write(sts, 43, {0, 0, 0}), ModbusException::IllegalDataAddress, "second byte of goal_position");
 }
 
-TEST(Exceptions, QuantityOverTheModbusLimitsIs02) {
+TEST(Exceptions, AQuantityOfZeroOrOverTheModbusLimitsIs03) {
   const RegisterMap smsmb = make(TableId::Smsmb);
   EXPECT_TRUE(smsmb.plan_holding_read(0x100, 125));
-  expect_exception(smsmb.plan_holding_read(0x100, 126), ModbusException::IllegalDataAddress, "1..125");
-  expect_exception(smsmb.plan_holding_read(0x100, 0), ModbusException::IllegalDataAddress);
+  expect_exception(smsmb.plan_holding_read(0x100, 126), ModbusException::IllegalDataValue, "1..125");
+  expect_exception(smsmb.plan_holding_read(0x100, 0), ModbusException::IllegalDataValue);
   expect_exception(smsmb.plan_register_write(0x100, std::vector<std::uint16_t>(124, 0)),
-                   ModbusException::IllegalDataAddress, "1..123");
-  expect_exception(smsmb.plan_register_write(0x100, {}), ModbusException::IllegalDataAddress);
+                   ModbusException::IllegalDataValue, "1..123");
+  expect_exception(smsmb.plan_register_write(0x100, {}), ModbusException::IllegalDataValue);
   const RegisterMap sts = make(TableId::Sts);
-  expect_exception(sts.plan_coil_read(0, 2001), ModbusException::IllegalDataAddress, "1..2000");
-  expect_exception(sts.plan_coil_write(0, std::vector<bool>(1969, false)), ModbusException::IllegalDataAddress,
+  expect_exception(sts.plan_coil_read(0, 2001), ModbusException::IllegalDataValue, "1..2000");
+  expect_exception(sts.plan_coil_write(0, std::vector<bool>(1969, false)), ModbusException::IllegalDataValue,
                    "1..1968");
 }
 

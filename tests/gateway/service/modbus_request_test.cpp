@@ -78,27 +78,34 @@ TEST(ModbusRequest, UnsupportedFunctionCodes) {
   }
 }
 
-TEST(ModbusRequest, QuantityLimitsOfEveryFunction) {
+// The Modbus application protocol checks the quantity first, 0x03 outside 1..limit, then the
+// addresses, 0x02.
+TEST(ModbusRequest, AQuantityOfZeroOrOverTheLimitIsAnIllegalDataValue) {
   EXPECT_TRUE(parse({0x01, 0x00, 0x00, 0x07, 0xD0}));  // 2000 bits
-  EXPECT_EQ(parse({0x01, 0x00, 0x00, 0x07, 0xD1}).error(), ModbusException::IllegalDataAddress);
-  EXPECT_EQ(parse({0x02, 0x00, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataAddress);
+  EXPECT_EQ(parse({0x01, 0x00, 0x00, 0x07, 0xD1}).error(), ModbusException::IllegalDataValue);
+  EXPECT_EQ(parse({0x02, 0x00, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataValue);
   EXPECT_TRUE(parse({0x03, 0x00, 0x00, 0x00, 0x7D}));  // 125 registers
-  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00, 0x7E}).error(), ModbusException::IllegalDataAddress);
-  EXPECT_EQ(parse({0x04, 0x00, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataAddress);
+  EXPECT_EQ(parse({0x03, 0x00, 0x00, 0x00, 0x7E}).error(), ModbusException::IllegalDataValue);
+  EXPECT_EQ(parse({0x04, 0x00, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataValue);
   // 124 registers (248 bytes) cannot be written in one FC16: limit 123.
   Bytes fc16{0x10, 0x00, 0x00, 0x00, 0x7C, 0xF8};
   fc16.resize(fc16.size() + 248, 0);
-  EXPECT_EQ(parse_request(fc16).error(), ModbusException::IllegalDataAddress);
+  EXPECT_EQ(parse_request(fc16).error(), ModbusException::IllegalDataValue);
   Bytes fc15{0x0F, 0x00, 0x00, 0x07, 0xB1, 0xF7};  // 1969 coils > 1968
   fc15.resize(fc15.size() + 247, 0);
-  EXPECT_EQ(parse_request(fc15).error(), ModbusException::IllegalDataAddress);
+  EXPECT_EQ(parse_request(fc15).error(), ModbusException::IllegalDataValue);
   // FC23: write part at most 121 registers.
   Bytes fc23{0x17, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x7A, 0xF4};
   fc23.resize(fc23.size() + 244, 0);
-  EXPECT_EQ(parse_request(fc23).error(), ModbusException::IllegalDataAddress);
+  EXPECT_EQ(parse_request(fc23).error(), ModbusException::IllegalDataValue);
+  // FC16 and FC15 with quantity 0 (byte count 0).
+  EXPECT_EQ(parse({0x10, 0x00, 0x00, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataValue);
+  EXPECT_EQ(parse({0x0F, 0x00, 0x00, 0x00, 0x00, 0x00}).error(), ModbusException::IllegalDataValue);
+  // A quantity of 0 at an address that would also run past 65535: the quantity is checked first.
+  EXPECT_EQ(parse({0x03, 0xFF, 0xFF, 0x00, 0x00}).error(), ModbusException::IllegalDataValue);
 }
 
-TEST(ModbusRequest, RangePastAddress65535IsOverTheLimit) {
+TEST(ModbusRequest, ARangePastAddress65535IsAnIllegalDataAddress) {
   EXPECT_TRUE(parse({0x03, 0xFF, 0xFF, 0x00, 0x01}));
   EXPECT_EQ(parse({0x03, 0xFF, 0xFF, 0x00, 0x02}).error(), ModbusException::IllegalDataAddress);
   EXPECT_EQ(parse({0x01, 0xFF, 0xF0, 0x00, 0x11}).error(), ModbusException::IllegalDataAddress);

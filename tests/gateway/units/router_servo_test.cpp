@@ -120,12 +120,14 @@ TEST_F(Router, UnsupportedFunctionIs01OnEveryUnit) {
   EXPECT_EQ(client.raw({0x08, 0x00, 0x00, 0x12, 0x34}, 255).exception, 0x01);
 }
 
-TEST_F(Router, QuantityOverTheLimitIs02) {
+TEST_F(Router, AQuantityOfZeroOrOverTheLimitIs03) {
   start(config_with(kQuietBus, kTwoServos), sts_bus(2));
   ModbusClient client(port(), 1);
-  EXPECT_EQ(client.raw({0x03, 0x00, 0x00, 0x00, 0x7E}, 1).exception, 0x02);  // 126 registers
-  EXPECT_EQ(client.raw({0x04, 0x00, 0x00, 0x00, 0x00}, 1).exception, 0x02);  // none
-  EXPECT_EQ(client.raw({0x01, 0x00, 0x00, 0x07, 0xD1}, 1).exception, 0x02);  // 2001 coils
+  EXPECT_EQ(client.raw({0x03, 0x00, 0x00, 0x00, 0x7E}, 1).exception, 0x03);        // 126 registers
+  EXPECT_EQ(client.raw({0x04, 0x00, 0x00, 0x00, 0x00}, 1).exception, 0x03);        // none
+  EXPECT_EQ(client.raw({0x01, 0x00, 0x00, 0x07, 0xD1}, 1).exception, 0x03);        // 2001 coils
+  EXPECT_EQ(client.raw({0x10, 0x00, 0x2A, 0x00, 0x00, 0x00}, 1).exception, 0x03);  // FC16 of none
+  EXPECT_EQ(client.raw({0x03, 0xFF, 0xFF, 0x00, 0x02}, 1).exception, 0x02);        // past 65535
 }
 
 TEST_F(Router, UnknownUnitAndDownBusAre0A) {
