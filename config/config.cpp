@@ -168,6 +168,12 @@ modbus_map::StopAction effective_safe_stop(const ServoConfig& servo) {
   return modbus_map::motion_spec(*servo.table).default_stop;
 }
 
+std::optional<std::int32_t> effective_stop_deceleration(const Config& config, const ServoConfig& servo) {
+  if (servo.stop_deceleration) return servo.stop_deceleration;
+  if (servo.bus_index < config.buses.size()) return config.buses[servo.bus_index].stop_deceleration;
+  return std::nullopt;
+}
+
 const BusConfig* find_bus(const Config& config, std::string_view name) {
   for (const auto& bus : config.buses) {
     if (bus.name == name) return &bus;

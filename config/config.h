@@ -209,6 +209,9 @@ struct BusConfig {
   StartAction on_start = StartAction::Keep;
   // What SIGTERM / SIGINT do to the bus's servos before the gateway lets go of the port.
   modbus_map::StopAction on_stop = modbus_map::StopAction::Hold;
+  // The ramp every hold of this bus brakes at, in counts of the servos' ramp fields; empty: the
+  // fastest each servo has (docs/SAFETY.md "Stop distance"). A servo's own overrides it.
+  std::optional<std::int32_t> stop_deceleration;
 
   bool operator==(const BusConfig&) const = default;
 };
@@ -236,6 +239,9 @@ struct ServoConfig {
   // What a watchdog trip or the e-stop does to this servo; empty: the table's default
   // (modbus_map::motion_spec(table).default_stop). Passthrough units are never stopped.
   std::optional<modbus_map::StopAction> safe_stop;
+  // The ramp its hold brakes at (counts of the table's stop ramp fields); empty: the bus's, else
+  // the fastest the servo has (modbus_map::MotionSpec::stop_ramp).
+  std::optional<std::int32_t> stop_deceleration;
   // Set when an earlier unit already shows the same servo (bus, id): the unit id of that first
   // one. Such a second view (an HMI's read-only unit) is served like any unit, but the servo is
   // polled, counted and stopped once, as the first unit. At most one unit of a servo is
@@ -441,5 +447,7 @@ std::string_view to_string(RtuEcho echo);  // "auto", "on", "off"
 std::optional<Role> role_from_name(std::string_view name);
 // The safe stop a servo gets: its own, else its table's default; None for passthrough units.
 modbus_map::StopAction effective_safe_stop(const ServoConfig& servo);
+// The stop ramp of `servo`'s hold: its own stop_deceleration, else its bus's; empty: the fastest.
+std::optional<std::int32_t> effective_stop_deceleration(const Config& config, const ServoConfig& servo);
 
 }  // namespace sms::config

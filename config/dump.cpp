@@ -209,6 +209,10 @@ void emit_bus(YAML::Emitter& out, const BusConfig& bus) {
   out << std::string(to_string(bus.on_start));
   key(out, "on_stop");
   out << std::string(modbus_map::to_string(bus.on_stop));
+  if (bus.stop_deceleration) {
+    key(out, "stop_deceleration");
+    out << *bus.stop_deceleration;
+  }
   out << YAML::EndMap;
 }
 
@@ -243,6 +247,10 @@ void emit_servo(YAML::Emitter& out, const ServoConfig& servo) {
   if (servo.safe_stop) {
     key(out, "safe_stop");
     out << std::string(modbus_map::to_string(*servo.safe_stop));
+  }
+  if (servo.stop_deceleration) {
+    key(out, "stop_deceleration");
+    out << *servo.stop_deceleration;
   }
   out << YAML::EndMap;
 }

@@ -51,7 +51,7 @@ constexpr std::array<std::string_view, 10> kTlsKeys{"listen",         "certifica
                                                     "roles",          "default_role",
                                                     "role_names",     "handshake_timeout_ms",
                                                     "max_handshakes", "max_handshakes_per_address"};
-constexpr std::array<std::string_view, 21> kBusKeys{"name",
+constexpr std::array<std::string_view, 22> kBusKeys{"name",
                                                     "device",
                                                     "protocol",
                                                     "baud",
@@ -71,14 +71,16 @@ constexpr std::array<std::string_view, 21> kBusKeys{"name",
                                                     "frame_gap",
                                                     "watchdog",
                                                     "on_start",
-                                                    "on_stop"};
+                                                    "on_stop",
+                                                    "stop_deceleration"};
 constexpr std::array<std::string_view, 3> kWatchdogKeys{"timeout_ms", "feed", "action"};
 // Keys of kBusKeys that only a modbus-rtu bus takes.
 constexpr std::array<std::string_view, 5> kModbusRtuOnlyKeys{"rs485", "rts", "rts_delay_us", "byte_timeout_ms",
                                                              "frame_gap"};
 constexpr std::array<std::string_view, 2> kPollRangeKeys{"start", "count"};
-constexpr std::array<std::string_view, 10> kServoKeys{
-    "unit", "bus", "id", "table", "profile", "byte_order", "response_level", "read_only", "name", "safe_stop"};
+constexpr std::array<std::string_view, 11> kServoKeys{
+    "unit",           "bus",       "id",   "table",     "profile",          "byte_order",
+    "response_level", "read_only", "name", "safe_stop", "stop_deceleration"};
 constexpr std::array<std::string_view, 6> kSyncGroupKeys{"name",      "field",  "members", "holding_register_start",
                                                          "move_time", "stretch"};
 constexpr std::array<std::string_view, 3> kLoggingKeys{"level", "format", "metrics_listen"};
@@ -895,6 +897,9 @@ BusConfig Loader::parse_bus(const Value& value, BusPlaces& places) {
     bus.on_start = StartAction::Hold;
   }
   if (const auto v = keys.find("on_stop")) bus.on_stop = choice(*v, detail::kStopActionNames);
+  // Checked against each servo's table where the servos are read.
+  if (const auto v = keys.find("stop_deceleration"))
+    bus.stop_deceleration = static_cast<std::int32_t>(integer(*v, 1, 255));
   return bus;
 }
 
@@ -1124,10 +1129,12 @@ void Loader::check_second_view(const ServoConfig& servo, const ServoPlaces& plac
   if (servo.byte_order != other.byte_order) differs = "byte_order";
   if (servo.response_level != other.response_level) differs = "response_level";
   if (servo.safe_stop != other.safe_stop) differs = "safe_stop";
+  if (servo.stop_deceleration != other.stop_deceleration) differs = "stop_deceleration";
   if (!differs.empty()) {
-    fail(places.item, already + " with another " + differs +
-                          "; units of one servo must agree on byte_order, "
-                          "response_level and safe_stop (they describe the servo): give both the same");
+    fail(places.item,
+         already + " with another " + differs +
+             "; units of one servo must agree on byte_order, "
+             "response_level, safe_stop and stop_deceleration (they describe the servo): give both the same");
   }
   if (!servo.read_only && !other.read_only) {
     fail(places.id, already +
@@ -1255,6 +1262,25 @@ ServoConfig Loader::parse_servo(const Value& value, const Config& config, ServoP
                                            "could stop it with; remove the key");
     }
     servo.safe_stop = choice(*v, detail::kStopActionNames);
+  }
+  if (const auto v = keys.find("stop_deceleration")) {
+    if (!servo.table) {
+      fail(keys.key_mark("stop_deceleration"), value.path +
+                                                   ".stop_deceleration: a passthrough unit has no table the gateway "
+                                                   "could stop it with; remove the key");
+    }
+    const auto count = static_cast<std::int32_t>(integer(*v, 1, 255));
+    if (const auto why = modbus_map::check_stop_deceleration(modbus_map::motion_spec(*servo.table), count)) {
+      fail(v->mark, v->path + ": " + *why);
+    }
+    servo.stop_deceleration = count;
+  } else if (servo.table && bus.stop_deceleration) {
+    if (const auto why =
+            modbus_map::check_stop_deceleration(modbus_map::motion_spec(*servo.table), *bus.stop_deceleration)) {
+      fail(places.id, value.path + ": bus `" + bus.name + "`'s stop_deceleration " +
+                          std::to_string(*bus.stop_deceleration) + " does not fit this servo: " + *why +
+                          "; give the servo its own stop_deceleration, or remove the bus's");
+    }
   }
   if (const auto v = keys.find("name")) servo.name = string(*v);
   return servo;

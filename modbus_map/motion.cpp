@@ -2,9 +2,12 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <stdexcept>
 
 #include "modbus_map/tables.h"
+#include "modbus_map/tables/common.h"
+#include "modbus_map/timed_move.h"
 
 namespace sms::modbus_map {
 namespace {
@@ -48,6 +51,12 @@ constexpr EnableField kD55dEnables[] = {{"sleep", 0, "wake"}, {"brake", 0, "brak
 constexpr EnableField kSmsmbEnables[] = {{"torque_switch", 1, "torque on"}};
 constexpr EnableField kScsEnables[] = {{"torque_enable", 1, "torque on"}};
 
+// The fastest braking each servo has (docs/SAFETY.md "Stop distance"): acceleration 0 is "no
+// ramp" on sts, sms1 and SMSMB (their tables' notes: "0 = maximum"); d55d documents no such
+// value, so its largest count, 254 (2540 °/s²), for both of its ramps.
+constexpr RampField kFeetechStopRamp[] = {{"acceleration", 0}};
+constexpr RampField kD55dStopRamp[] = {{"acceleration", tables::kByteMax}, {"deceleration", tables::kByteMax}};
+
 constexpr std::array kMotionSpecs{
     MotionSpec{TableId::Sts,
                "operating_mode",
@@ -63,7 +72,9 @@ constexpr std::array kMotionSpecs{
                kStsMotionFields,
                kStsStops,
                StopAction::Hold,
-               kStsEnables},
+               kStsEnables,
+               kFeetechStopRamp,
+               "present_speed"},
     MotionSpec{TableId::Sms1,
                "operating_mode",
                kSms1Modes,
@@ -78,7 +89,9 @@ constexpr std::array kMotionSpecs{
                kSms1MotionFields,
                kSms1Stops,
                StopAction::Hold,
-               kSms1Enables},
+               kSms1Enables,
+               kFeetechStopRamp,
+               "present_speed"},
     // d55d has no torque switch: run speed 0 is its own "stop without torque" (docs/PROTOCOL.md §2.3).
     MotionSpec{TableId::D55d,
                "",
@@ -94,7 +107,9 @@ constexpr std::array kMotionSpecs{
                kD55dMotionFields,
                kD55dStops,
                StopAction::Hold,
-               kD55dEnables},
+               kD55dEnables,
+               kD55dStopRamp,
+               "present_speed"},
     MotionSpec{TableId::Smsmb,
                "mode",
                kSmsmbModes,
@@ -109,7 +124,9 @@ constexpr std::array kMotionSpecs{
                kSmsmbMotionFields,
                kSmsmbStops,
                StopAction::Hold,
-               kSmsmbEnables},
+               kSmsmbEnables,
+               kFeetechStopRamp,
+               "present_speed"},
     MotionSpec{TableId::Scs,
                "",
                kScsLimitsZeroDrive,
@@ -124,7 +141,9 @@ constexpr std::array kMotionSpecs{
                kScsMotionFields,
                kScsStops,
                StopAction::Hold,
-               kScsEnables},
+               kScsEnables,
+               {},
+               "present_speed"},
 };
 
 const FieldSpec& field_named(const MotionSpec& spec, std::string_view name) {
@@ -207,14 +226,43 @@ const MotionSpec& motion_spec(TableId id) {
 }
 
 BusRange goal_block(const MotionSpec& spec) {
-  const FieldSpec& first = field_named(spec, spec.goal_position);
-  const FieldSpec& last = field_named(spec, spec.goal_speed);
-  std::uint32_t end = last.addr + span_of(spec, last);
-  if (!spec.goal_time.empty()) {
-    const FieldSpec& time = field_named(spec, spec.goal_time);
-    end = std::max<std::uint32_t>(end, time.addr + span_of(spec, time));
+  const FieldSpec& goal = field_named(spec, spec.goal_position);
+  std::uint32_t begin = goal.addr;
+  std::uint32_t end = goal.addr + span_of(spec, goal);
+  const auto cover = [&](std::string_view name) {
+    const FieldSpec& field = field_named(spec, name);
+    begin = std::min<std::uint32_t>(begin, field.addr);
+    end = std::max<std::uint32_t>(end, field.addr + span_of(spec, field));
+  };
+  cover(spec.goal_speed);
+  if (!spec.goal_time.empty()) cover(spec.goal_time);
+  for (const RampField& ramp : spec.stop_ramp) cover(ramp.field);
+  return BusRange{static_cast<std::uint16_t>(begin), static_cast<std::uint16_t>(end - begin)};
+}
+
+double run_on(const MotionSpec& spec, std::int32_t speed, std::int32_t deceleration, std::int32_t resolution,
+              double lead_seconds) {
+  const TimedMoveSpec* units = timed_move_spec(spec.table);
+  if (units == nullptr) return 0;
+  const TimedMoveSpec scaled = at_resolution(*units, resolution);
+  const double velocity = std::abs(speed * scaled.speed_unit);                                    // position units/s
+  const double braking = spec.stop_ramp.empty() ? 0.0 : deceleration * scaled.acceleration_unit;  // units/s²
+  return velocity * std::max(0.0, lead_seconds) + (braking > 0 ? velocity * velocity / (2.0 * braking) : 0.0);
+}
+
+std::optional<std::string> check_stop_deceleration(const MotionSpec& spec, std::int32_t count) {
+  if (spec.stop_ramp.empty()) {
+    return "table " + std::string(table(spec.table).name) +
+           " has no acceleration field: its servos change speed at once, and a stop ramp cannot be set";
   }
-  return BusRange{first.addr, static_cast<std::uint16_t>(end - first.addr)};
+  for (const RampField& ramp : spec.stop_ramp) {
+    const FieldSpec& field = field_named(spec, ramp.field);
+    if (count < 1 || count > field.max) {
+      return "table " + std::string(table(spec.table).name) + " takes 1.." + std::to_string(field.max) + " (" +
+             std::string(ramp.field) + ", " + std::string(field.unit) + "), not " + std::to_string(count);
+    }
+  }
+  return std::nullopt;
 }
 
 namespace {
@@ -245,12 +293,16 @@ std::vector<BusRange> context_reads(const MotionSpec& spec, std::span<const Enab
   add_field(spec.torque);
   needed.push_back(goal_block(spec));
   add_field(spec.present_position);
+  // The run-on: the present speed, and d55d's angle resolution (its units).
+  add_field(spec.present_speed);
+  if (const TimedMoveSpec* units = timed_move_spec(spec.table)) add_field(units->resolution);
   for (const EnableField& enable : extra) add_field(enable.field);
   std::sort(needed.begin(), needed.end(), [](const BusRange& a, const BusRange& b) { return a.address < b.address; });
 
   // Merge ranges whose gap is small: one longer READ costs less than another transaction
-  // (a request and a reply header are about 10 bytes on the wire).
-  constexpr std::uint32_t kMergeGap = 16;
+  // (a request and a reply header are about 10 bytes on the wire, and the servo's return delay
+  // and the gateway's turnaround come on top): d55d's limits, resolution and goal block in one.
+  constexpr std::uint32_t kMergeGap = 24;
   std::vector<BusRange> merged;
   for (const BusRange& range : needed) {
     if (!merged.empty() && range.address <= merged.back().end() + kMergeGap) {
@@ -268,7 +320,7 @@ std::vector<BusRange> context_reads(const MotionSpec& spec, std::span<const Enab
 std::vector<BusRange> stop_context_reads(const MotionSpec& spec) { return context_reads(spec, {}); }
 
 Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action, ByteOrder order,
-                                      const StopContext& context, bool torque_known_on) {
+                                      const StopContext& context, const StopOptions& options) {
   SafeStopPlan plan;
   if (action == StopAction::None) {
     plan.what = "none (configured)";
@@ -277,7 +329,7 @@ Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action,
   const auto drive = drive_of(spec, order, context);
   if (!drive) return unexpected(drive.error());
   plan.drive = *drive;
-  if (!spec.torque.empty() && !torque_known_on) {
+  if (!spec.torque.empty() && !options.torque_known_on) {
     const auto torque = read_raw(spec, order, context, spec.torque);
     if (!torque) return unexpected(std::string("the torque switch was not read"));
     if (*torque == 0) {
@@ -294,37 +346,84 @@ Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action,
     return plan;
   }
 
-  // Hold: the goal block as read, with the one field that stops this drive changed.
+  // Hold: the goal block as read, with the stop ramp and the one field that stops this drive
+  // changed. The block is written whole, so the ramp goes in the same frame as the goal.
   const BusRange block = goal_block(spec);
   protocol::Bytes data = goal_block_as_read(spec, context);
   if (data.empty()) return unexpected(std::string("the goal block was not read"));
-  const auto set_field = [&](std::string_view name, std::span<const std::uint8_t> bytes) {
+  const auto set_raw = [&](std::string_view name, std::uint32_t raw) {
     const FieldSpec& field = field_named(spec, name);
     const std::size_t offset = std::size_t{static_cast<std::size_t>(field.addr - block.address)} *
                                bytes_per_address(table(spec.table).addressing);
-    std::copy(bytes.begin(), bytes.end(), data.begin() + static_cast<std::ptrdiff_t>(offset));
+    store_raw(std::span(data).subspan(offset, field.size), field.size, field_order(spec, order), raw);
   };
-  const protocol::Bytes zero(2, 0);
+  std::string ramp_text;  // ", acceleration := 0"
+  std::optional<std::int32_t> ramp_count;
+  if (!options.keep_ramp) {
+    for (const RampField& ramp : spec.stop_ramp) {
+      const std::int32_t count = options.deceleration.value_or(ramp.fastest);
+      const auto raw = encode_value(field_named(spec, ramp.field), count);
+      if (!raw) return unexpected("stop ramp " + std::to_string(count) + " is outside " + std::string(ramp.field));
+      set_raw(ramp.field, *raw);
+      ramp_text += ", " + std::string(ramp.field) + " := " + std::to_string(count);
+      ramp_count = count;
+    }
+  }
   switch (plan.drive) {
     case Drive::Position: {
-      // The present position's bytes become the goal's: both fields share size and encoding.
       const FieldSpec& present = field_named(spec, spec.present_position);
       const auto raw = read_raw(spec, order, context, spec.present_position);
       if (!raw) return unexpected(std::string("the present position was not read"));
-      protocol::Bytes bytes(present.size, 0);
-      store_raw(bytes, present.size, field_order(spec, order), *raw);
-      set_field(spec.goal_position, bytes);
-      plan.what = "hold (position mode: goal := present position " + std::to_string(decode_value(present, *raw)) + ")";
+      const std::int32_t position = decode_value(present, *raw);
+      // Where the axis will stand once braked at the ramp just set: a goal behind it would be
+      // driven back to. No ramp (the fastest on Feetech tables) stands where it is.
+      std::int64_t goal = position;
+      if (!options.keep_ramp && !spec.present_speed.empty()) {
+        const auto speed = read_raw(spec, order, context, spec.present_speed);
+        const TimedMoveSpec* units = timed_move_spec(spec.table);
+        std::int32_t resolution = 0;
+        if (units != nullptr && !units->resolution.empty()) {
+          const auto read = read_raw(spec, order, context, units->resolution);
+          if (!read) return unexpected(std::string(units->resolution) + " was not read");
+          resolution = std::max<std::int32_t>(1, static_cast<std::int32_t>(*read));
+        }
+        if (!speed) return unexpected(std::string("the present speed was not read"));
+        const std::int32_t velocity = decode_value(field_named(spec, spec.present_speed), *speed);
+        // Up to the next whole unit: a goal a fraction of a step behind the axis is still behind it.
+        const auto ahead = static_cast<std::int64_t>(
+            std::ceil(run_on(spec, velocity, ramp_count.value_or(0), resolution, options.lead_seconds)));
+        goal += velocity < 0 ? -ahead : ahead;
+      }
+      // Inside the axis's angle limits where it has them, and inside what the goal field holds.
+      const auto min_limit = read_raw(spec, order, context, spec.min_limit);
+      const auto max_limit = read_raw(spec, order, context, spec.max_limit);
+      if (goal != position && min_limit && max_limit && *max_limit > *min_limit) {
+        const FieldSpec& min_field = field_named(spec, spec.min_limit);
+        const FieldSpec& max_field = field_named(spec, spec.max_limit);
+        goal = std::clamp<std::int64_t>(goal, decode_value(min_field, *min_limit), decode_value(max_field, *max_limit));
+      }
+      const FieldSpec& goal_field = field_named(spec, spec.goal_position);
+      goal = std::clamp<std::int64_t>(goal, goal_field.min, goal_field.max);
+      if (goal == position) {
+        // The present position's bytes become the goal's: both fields share size and encoding.
+        set_raw(spec.goal_position, *raw);
+      } else {
+        set_raw(spec.goal_position, encode_value(goal_field, static_cast<std::int32_t>(goal)).value_or(*raw));
+      }
+      plan.what = "hold (position mode: goal := present position " + std::to_string(position) +
+                  (goal == position ? std::string()
+                                    : " + run-on " + std::to_string(goal - position) + " = " + std::to_string(goal)) +
+                  ramp_text + ")";
       break;
     }
     case Drive::Velocity:
-      set_field(spec.goal_speed, std::span(zero).first(field_named(spec, spec.goal_speed).size));
-      plan.what = "hold (speed mode: speed := 0)";
+      set_raw(spec.goal_speed, 0);
+      plan.what = "hold (speed mode: speed := 0" + ramp_text + ")";
       break;
     case Drive::Pwm:
       if (spec.goal_time.empty()) return unexpected(std::string("PWM mode without a PWM field"));
-      set_field(spec.goal_time, std::span(zero).first(field_named(spec, spec.goal_time).size));
-      plan.what = "hold (PWM mode: duty := 0)";
+      set_raw(spec.goal_time, 0);
+      plan.what = "hold (PWM mode: duty := 0" + ramp_text + ")";
       break;
     case Drive::Step: break;  // handled above
   }
@@ -493,7 +592,9 @@ Expected<std::optional<SafeStopPlan>> plan_enable_hold(const MotionSpec& spec, B
     // Enabled in its drive: a hold would cancel the move under way. In step mode every goal is
     // relative to the running target: none is stale.
     if (*enabled_before || *drive_after == Drive::Step) return std::optional<SafeStopPlan>();
-    auto hold = plan_safe_stop(spec, StopAction::Hold, order, context, true);
+    // The motor stands: the hold keeps the PLC's ramp (a stop's fastest ramp would outlive it).
+    auto hold =
+        plan_safe_stop(spec, StopAction::Hold, order, context, StopOptions{.torque_known_on = true, .keep_ramp = true});
     if (!hold) return unexpected(hold.error());
     std::string enabled;  // what the writes switch on: "torque on", "wake, brake release"
     for (const EnableField& enable : spec.enables) {

@@ -9,7 +9,7 @@
 //   const MotionSpec& spec = motion_spec(TableId::Sts);
 //   for (const BusRange& r : spec_context_reads(spec)) ... READ r ...
 //   auto stop = plan_safe_stop(spec, StopAction::Hold, ByteOrder::LowFirst, context);
-//   // stop->writes: one block write (goal position .. goal speed) or a torque-off write
+//   // stop->writes: one block write (the stop ramp .. goal speed) or a torque-off write
 #include <cstdint>
 #include <optional>
 #include <span>
@@ -54,6 +54,12 @@ struct EnableField {
   std::string_view what;  // the enabling write, for the log and docs: "torque on", "wake"
 };
 
+// A field of the stop's own ramp and its count for the fastest braking the servo has.
+struct RampField {
+  std::string_view field;
+  std::int32_t fastest;
+};
+
 struct MotionSpec {
   TableId table;
   // Operating-mode field; empty: position mode, and when both angle limits are 0 the drive of
@@ -79,6 +85,15 @@ struct MotionSpec {
   // Fields without which the motor does not drive; writing their `on` value enables motion. The
   // fields that choose the drive (`mode`, or both angle limits) are the other way to start one.
   std::span<const EnableField> enables;
+  // The stop's own ramp (docs/SAFETY.md "Stop distance"): `hold` writes these with the goal, in
+  // the same frame, so the servo brakes at its fastest (or at the configured stop_deceleration),
+  // never at the gentle ramp a move or the PLC left. Empty: the table has none (scs changes
+  // speed at once).
+  std::span<const RampField> stop_ramp;
+  // The axis runs on while the stop frame is on its way and while it brakes at a ramp that takes
+  // time: `hold` puts the goal where it will stand (present position + run-on from this speed),
+  // so it never drives back.
+  std::string_view present_speed;
 };
 
 const MotionSpec& motion_spec(TableId id);
@@ -93,20 +108,47 @@ struct StopContext {
   std::span<const protocol::Bytes> data;
 };
 
+// How a hold brakes.
+struct StopOptions {
+  // Skip the "torque already off, nothing to do" rule (the caller is about to switch the torque
+  // on: "no jump on enable").
+  bool torque_known_on = false;
+  // The count written to every stop_ramp field; nullopt: each field's `fastest` (config
+  // `stop_deceleration`, docs/SAFETY.md "Stop distance").
+  std::optional<std::int32_t> deceleration;
+  // Leave the ramp fields as read (the hold before an enabling write: the motor stands, and the
+  // PLC's own ramp must survive its torque on).
+  bool keep_ramp = false;
+  // Seconds from the present position's sample (the servo's answer to the context read) to the
+  // stop frame's arrival: the axis runs on v·lead meanwhile, and the goal goes that much ahead
+  // too, so a fast axis is not driven back the few steps it moved while the frame was on its way.
+  double lead_seconds = 0;
+};
+
 struct SafeStopPlan {
   std::vector<BusWrite> writes;  // empty: nothing to do (action none, or torque already off)
   Drive drive = Drive::Position;
   std::string what;  // for the log: "hold (position mode: goal := 1523)"
 };
-// The writes that stop one servo. `Hold` on a servo in step mode (every goal is a move relative
-// to the running target, so no goal holds it) becomes a torque off, said in `what`.
-// `torque_known_on`: skip the "torque already off, nothing to do" rule (the caller is about
-// to switch the torque on: "no jump on enable").
+// The writes that stop one servo. `Hold` writes the goal block with the stop ramp; in position
+// mode the goal is the present position plus the run-on at that ramp (0 where the fastest is "no
+// ramp"). On a servo in step mode (every goal is a move relative to the running target, so no
+// goal holds it) it becomes a torque off, said in `what`.
 Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action, ByteOrder order,
-                                      const StopContext& context, bool torque_known_on = false);
+                                      const StopContext& context, const StopOptions& options = {});
 
-// The goal block's range (bus addresses): what `hold` writes.
+// The goal block's range (bus addresses): what `hold` writes, from the first of the stop ramp
+// and the goal position to the last of the goal time, the goal speed and the stop ramp.
 BusRange goal_block(const MotionSpec& spec);
+// Position units an axis at `speed` (counts of its present speed) runs on: `lead_seconds` at that
+// speed, then braking at `deceleration` counts of its stop ramp (none where the table has no
+// ramp or the count means "no ramp"); `resolution`: d55d's angle resolution as read (the units
+// scale with it).
+double run_on(const MotionSpec& spec, std::int32_t speed, std::int32_t deceleration, std::int32_t resolution = 0,
+              double lead_seconds = 0);
+// Whether `count` is a valid stop_deceleration for the table (inside every ramp field's range);
+// an error says why not.
+std::optional<std::string> check_stop_deceleration(const MotionSpec& spec, std::int32_t count);
 // What `torque_off` writes (no read needed).
 BusWrite torque_off_write(const MotionSpec& spec, ByteOrder order);
 

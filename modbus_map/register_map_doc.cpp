@@ -105,9 +105,16 @@ void safety_text(std::string& out, const TableSpec& spec) {
                [](const StoppingWrite& w) { return code(w.field) + " = " + std::to_string(w.value); });
   out += ". Safe stop default " + code(to_string(motion.default_stop)) + ": ";
   const BusRange block = goal_block(motion);
-  out += "`hold` rewrites " + address_text(spec, block.address) + ".." + address_text(spec, block.end() - 1) +
-         " (position mode: `" + std::string(motion.goal_position) + "` := `" + std::string(motion.present_position) +
-         "`; speed mode: `" + std::string(motion.goal_speed) + "` := 0" +
+  std::string ramp;  // "`acceleration` := 0"
+  for (const RampField& field : motion.stop_ramp) {
+    ramp += (ramp.empty() ? "" : ", ") + code(field.field) + " := " + std::to_string(field.fastest);
+  }
+  out += "`hold` rewrites " + address_text(spec, block.address) + ".." + address_text(spec, block.end() - 1) + " (" +
+         (ramp.empty() ? std::string("no stop ramp: the servo changes speed at once")
+                       : "the stop ramp " + ramp + " or `stop_deceleration`, in the same frame") +
+         "; position mode: `" + std::string(motion.goal_position) + "` := `" + std::string(motion.present_position) +
+         "`" + (ramp.empty() ? std::string() : " + the run-on at that ramp") + "; speed mode: `" +
+         std::string(motion.goal_speed) + "` := 0" +
          (motion.goal_time.empty() ? std::string() : "; PWM mode: `" + std::string(motion.goal_time) + "` := 0") +
          (motion.mode.empty() ? "; speed mode = both angle limits 0" : "; step mode: torque off") +
          "), `torque_off` writes `" + std::string(motion.torque_off.field) +

@@ -10,6 +10,7 @@
 #include <array>
 #include <cerrno>
 #include <chrono>
+#include <cmath>
 #include <cstring>
 #include <functional>
 #include <optional>
@@ -237,7 +238,9 @@ const std::array<ControlCommand, 17> kCommands{{
            if (servo.config.id != id || servo.duplicate) continue;
            return "started_us=" + monotonic_us(servo.move_started) + " arrived_us=" + monotonic_us(servo.arrived) +
                   " position=" + std::to_string(servo.present_position) +
-                  " goal=" + std::to_string(servo.goal_position);
+                  " goal=" + std::to_string(servo.goal_position) +
+                  " at_goal_write=" + std::to_string(std::lround(servo.position_at_goal)) +
+                  " reversed=" + (servo.reversed ? "1" : "0");
          }
          return unknown_id(id);
        });

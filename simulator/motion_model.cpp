@@ -25,7 +25,20 @@ double ramp_rate(double from, double to, const MotionLimits& limits) {
 
 }  // namespace
 
+void MotionModel::commanded() {
+  direction_ = velocity_ > 0 ? 1 : (velocity_ < 0 ? -1 : 0);
+  reversed_ = false;
+}
+
+void MotionModel::note_direction() {
+  const int now = velocity_ > 0 ? 1 : (velocity_ < 0 ? -1 : 0);
+  if (now == 0) return;
+  if (direction_ != 0 && now != direction_) reversed_ = true;
+  direction_ = now;
+}
+
 void MotionModel::release() {
+  commanded();
   drive_ = Drive::Free;
   velocity_ = 0;
   acceleration_ = 0;
@@ -33,6 +46,7 @@ void MotionModel::release() {
 }
 
 void MotionModel::hold() {
+  commanded();
   drive_ = Drive::Hold;
   velocity_ = 0;
   acceleration_ = 0;
@@ -40,12 +54,14 @@ void MotionModel::hold() {
 }
 
 void MotionModel::move_to(double target, const MotionLimits& limits) {
+  commanded();
   drive_ = Drive::Position;
   target_ = target;
   limits_ = limits;
 }
 
 void MotionModel::run_at(double velocity, const MotionLimits& limits) {
+  commanded();
   drive_ = Drive::Velocity;
   commanded_velocity_ = std::clamp(velocity, -limits.max_speed, limits.max_speed);
   limits_ = limits;
@@ -108,6 +124,7 @@ void MotionModel::step(double dt) {
     }
   }
   acceleration_ = (velocity_ - before) / dt;
+  note_direction();
 }
 
 }  // namespace sms::simulator

@@ -45,9 +45,14 @@ class MotionModel {
   double target() const { return target_; }
   double commanded_velocity() const { return commanded_velocity_; }
   const MotionLimits& limits() const { return limits_; }
+  // Whether the motor turned back since its last command (move_to, run_at, hold, release): the
+  // witness of a stop that drives an axis back to a goal it ran past.
+  bool reversed() const { return reversed_; }
 
  private:
   void step(double dt);
+  void commanded();       // a new command: the direction from here is the one it had
+  void note_direction();  // after the velocity changed
 
   Drive drive_ = Drive::Hold;
   double position_;
@@ -56,6 +61,8 @@ class MotionModel {
   double acceleration_ = 0;
   double commanded_velocity_ = 0;
   MotionLimits limits_{1, 0, 0};
+  int direction_ = 0;  // -1, 0 (not yet moved since the command), 1
+  bool reversed_ = false;
 };
 
 }  // namespace sms::simulator

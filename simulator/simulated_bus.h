@@ -65,6 +65,8 @@ struct ServoSummary {
   // When a goal was last written in position mode and when the motor then reached it.
   std::optional<std::chrono::steady_clock::time_point> move_started;
   std::optional<std::chrono::steady_clock::time_point> arrived;
+  double position_at_goal = 0;  // where the motor was when that goal was written
+  bool reversed = false;        // it turned back since its last command
 };
 
 struct BusStats {

@@ -514,6 +514,7 @@ void VirtualServo::drive_from_table(bool goal_written) {
       if (goal_written) {
         move_started_ = clock_;
         arrived_at_.reset();
+        position_at_goal_ = motion_.position();
       }
       break;
     }
@@ -1134,6 +1135,8 @@ ServoSummary VirtualServo::summary() const {
   summary.moving = get(Role::Moving) != 0;
   summary.move_started = move_started_;
   summary.arrived = arrived_at_;
+  summary.position_at_goal = position_at_goal_;
+  summary.reversed = motion_.reversed();
   return summary;
 }
 

@@ -180,6 +180,7 @@ class VirtualServo {
   // timed group move: tests and bench/timed_moves measure these).
   std::optional<Clock::time_point> move_started_;
   std::optional<Clock::time_point> arrived_at_;
+  double position_at_goal_ = 0;  // where the motor was when that goal was written (a stop's run-on)
   Clock::time_point last_command_;
   Clock::time_point deaf_until_;
   std::chrono::milliseconds reboot_time_;

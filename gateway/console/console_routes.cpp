@@ -342,7 +342,6 @@ class ServoStream final : public Stream {
         goal_speed_(entry_for_servo_field(unit.map, spec_.goal_speed)),
         torque_(entry_for_servo_field(unit.map, spec_.torque)),
         mode_(spec_.mode.empty() ? nullptr : entry_for_servo_field(unit.map, spec_.mode)),
-        present_position_(entry_named(unit.map, spec_.present_position)),
         bus_name_(services.config().buses.at(unit.bus_index).name),
         alive_(std::make_shared<bool>(true)) {}
   ~ServoStream() override { *alive_ = false; }
@@ -512,48 +511,19 @@ class ServoStream final : public Stream {
     if (send_) send_(json{{"type", "jog_ended"}, {"message", std::move(reason)}}.dump());
   }
 
-  // The servo's safe stop `hold` (units/safety, modbus_map/motion.h): speed moves get speed 0,
-  // position moves goal := present position, read live.
+  // The servo's safe stop `hold`, as every stop path writes it (SafetySupervisor::hold_servo): read
+  // live, speed moves get speed 0 and position moves goal := present position, with the stop
+  // ramp in the same frame, so the jog's ramp cannot carry the axis on and back.
   void stop_jog(std::string reason) {
     if (!jog_) return;
     jog_ = false;
     jog_reason_ = std::move(reason);
     state_changed_ = true;
     spdlog::info("console: hold-to-run on unit {} stopped ({}) for {}", unit_.unit_id, jog_reason_, who_.name);
-    if (jog_speed_) return send_stop(services_, who_, unit_.unit_id, goal_speed_->address, 0, kStopAttempts);
-    if (present_position_ == nullptr) return;
-    Services& services = services_;
-    const Principal who = who_;
-    const ServoUnit* unit = &unit_;
-    const std::uint16_t goal = goal_position_->address;
-    const std::string present = std::string(present_position_->shown->name);
-    services.modbus(who, unit->unit_id, read_registers_pdu(present_position_->address, 1),
-                    [&services, who, unit, goal, present](const ModbusAnswer& answer) {
-                      std::optional<std::uint16_t> position;
-                      if (answer.ok()) {
-                        position = registers_in(answer.pdu).at(0);
-                      } else if (const auto polled = read_polled(*unit)) {
-                        // The live read failed (a timeout): the last polled position, a poll period old.
-                        if (const auto value = polled->value_of(present)) position = static_cast<std::uint16_t>(*value);
-                      }
-                      if (position) send_stop(services, who, unit->unit_id, goal, *position, kStopAttempts);
-                    });
-  }
-
-  // A stop write, tried again after a failure other than a refusal of the safety rules (which
-  // have stopped the servo themselves).
-  static constexpr int kStopAttempts = 3;
-  static void send_stop(Services& services, const Principal& who, std::uint8_t unit_id, std::uint16_t address,
-                        std::uint16_t value, int attempts) {
-    services.modbus(who, unit_id, write_register_pdu(address, value),
-                    [&services, who, unit_id, address, value, attempts](ModbusAnswer answer) {
-                      if (answer.ok() || answer.exception == 0x04 || attempts <= 1) {
-                        if (!answer.ok())
-                          spdlog::warn("console: the hold-to-run stop of unit {}: {}", unit_id, answer.message);
-                        return;
-                      }
-                      send_stop(services, who, unit_id, address, value, attempts - 1);
-                    });
+    services_.hold_servo(who_, unit_, [unit = unit_.unit_id](bool ok) {
+      if (!ok)
+        spdlog::warn("console: the hold-to-run stop of unit {} did not reach the servo (the log says why)", unit);
+    });
   }
 
   Services& services_;
@@ -564,7 +534,6 @@ class ServoStream final : public Stream {
   const modbus_map::RegisterEntry* goal_speed_;
   const modbus_map::RegisterEntry* torque_;
   const modbus_map::RegisterEntry* mode_;  // the operating-mode field; nullptr: the table has none
-  const modbus_map::RegisterEntry* present_position_;
   const std::string bus_name_;
   std::shared_ptr<bool> alive_;
   std::vector<std::string> names_;

@@ -86,6 +86,9 @@ class Services {
                                              std::span<const std::uint8_t> pdu) = 0;
   // Bus `bus`'s motion stops now (SafetySupervisor::motion_stops): what a hold-to-run move checks.
   virtual MotionStops motion_stops(std::size_t bus) const = 0;
+  // The servo's `hold`, as every safe stop writes it (SafetySupervisor::hold_servo), for a
+  // hold-to-run move that ends. `done(ok)` runs on the console thread.
+  virtual void hold_servo(const Principal& who, const ServoUnit& unit, std::function<void(bool ok)> done) = 0;
   // A write of the hold-to-run move `session`: as modbus(), and on the io thread, right before the
   // router admits it, the session is checked again; one a stop has ended gets 0x04 and nothing is
   // written (a latch and its reset between two looks of the console thread cannot let it through).

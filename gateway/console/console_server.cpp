@@ -221,6 +221,12 @@ class ConsoleServer::Impl final : public Services, public ConnectionHost {
 
   MotionStops motion_stops(std::size_t bus) const override { return backend_.safety->motion_stops(bus); }
 
+  void hold_servo(const Principal& who, const ServoUnit& unit, std::function<void(bool)> done) override {
+    backend_.safety->hold_servo(
+        unit.bus_index, unit.servo_id, "the browser console (" + who.name + ")",
+        [mailbox = mailbox_, done = std::move(done)](bool ok) { mailbox->post([done, ok] { done(ok); }); });
+  }
+
   void login(std::string_view address, std::string user, std::string password,
              std::function<void(LoginOutcome)> done) override {
     logins_.login(address, std::move(user), std::move(password), std::move(done));

@@ -40,8 +40,9 @@ struct ConsoleBackend {
   // The bus monitor of the bus named so (docs/MONITOR.md), nullptr for no such bus; any thread.
   std::function<std::shared_ptr<WireMonitor>(std::string_view bus)> monitor;
   BusLending lending;  // empty functions: no bus can be stopped from the console (tests)
-  // The safety rules every hold-to-run move checks (console_jog.h); required.
-  const SafetySupervisor* safety = nullptr;
+  // The safety rules every hold-to-run move checks (console_jog.h), and the hold that ends one
+  // (SafetySupervisor::hold_servo); required.
+  SafetySupervisor* safety = nullptr;
   // The role rights every request passes before the router (the gateway's one RolePolicy); required.
   const RolePolicy* policy = nullptr;
 };

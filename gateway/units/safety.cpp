@@ -78,7 +78,7 @@ SafetySupervisor::Impl::Impl(const config::Config& config, std::vector<BusEngine
       const auto& spec = modbus_map::motion_spec(*servo->table);
       bus->targets.push_back(StopTarget{servo->unit_id, servo->servo_id, &spec, config::effective_byte_order(*servo),
                                         config::effective_safe_stop(*servo), modbus_map::stop_context_reads(spec),
-                                        servo->response_level});
+                                        servo->response_level, config::effective_stop_deceleration(config, *servo)});
     }
     buses_.push_back(std::move(bus));
   }
@@ -275,6 +275,10 @@ void SafetySupervisor::estop(const PostFn& post, std::function<void(bool)> done,
 void SafetySupervisor::reset_estop(std::string_view who) { impl_->reset_estop(who); }
 void SafetySupervisor::lend_bus(std::size_t bus, std::string_view who, std::function<void(bool)> done) {
   impl_->lend_bus(bus, who, std::move(done));
+}
+void SafetySupervisor::hold_servo(std::size_t bus, std::uint8_t servo_id, std::string_view who,
+                                  std::function<void(bool)> done) {
+  impl_->hold_servo(bus, servo_id, who, std::move(done));
 }
 void SafetySupervisor::return_bus(std::size_t bus, std::string_view who) { impl_->return_bus(bus, who); }
 void SafetySupervisor::rearm_watchdogs(std::string_view who) { impl_->rearm_watchdogs(who); }

@@ -168,6 +168,11 @@ class SafetySupervisor {
   // not take stays owed); `done(ok)` runs on the safety thread once the stop frames went out (ok
   // false: some servo was not reached). Not kept in the state file: a restart runs the bus again.
   void lend_bus(std::size_t bus, std::string_view who, std::function<void(bool ok)> done);
+  // One servo's `hold`, as every safe stop writes it (read, then the goal block with the stop
+  // ramp), for an operator's move that ends (the browser console's hold-to-run released): it
+  // blocks nothing and is not counted as a stop of the bus. A servo it could not reach is owed its
+  // stop. `done(ok)` runs on the safety thread (ok false: not reached, or no such servo).
+  void hold_servo(std::size_t bus, std::uint8_t servo_id, std::string_view who, std::function<void(bool ok)> done);
   // The bus is back from commissioning: motion is admitted again (unless the latch or a trip
   // says otherwise). Moves nothing.
   void return_bus(std::size_t bus, std::string_view who);

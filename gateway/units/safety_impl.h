@@ -47,8 +47,16 @@ struct StopTarget {
   const modbus_map::MotionSpec* spec = nullptr;
   modbus_map::ByteOrder order = modbus_map::ByteOrder::LowFirst;
   StopAction action = StopAction::Hold;
-  std::vector<modbus_map::BusRange> context;   // what to read before a hold
-  std::optional<std::uint8_t> response_level;  // as configured; empty: as read from the servo
+  std::vector<modbus_map::BusRange> context;      // what to read before a hold
+  std::optional<std::uint8_t> response_level;     // as configured; empty: as read from the servo
+  std::optional<std::int32_t> stop_deceleration;  // the hold's ramp; empty: the fastest (config)
+};
+
+// What a safe stop read of one target's state: its context ranges in order, and when its last
+// read was answered (the hold's lead: the axis moves on from there).
+struct StopReads {
+  std::vector<BusResult> results;
+  Clock::time_point answered{};
 };
 
 struct BusSafety {
@@ -90,6 +98,7 @@ class SafetySupervisor::Impl {
   std::optional<std::string> motion_refusal(std::size_t index, std::optional<std::uint8_t> servo) const;
   void estop(const PostFn& post, std::function<void(bool)> done, std::string_view who);
   void lend_bus(std::size_t index, std::string_view who, std::function<void(bool)> done);
+  void hold_servo(std::size_t index, std::uint8_t servo_id, std::string_view who, std::function<void(bool)> done);
   void return_bus(std::size_t index, std::string_view who);
   void reset_estop(std::string_view who);
   void rearm_watchdogs(std::string_view who);
@@ -102,8 +111,8 @@ class SafetySupervisor::Impl {
   std::optional<std::chrono::milliseconds> watchdog_timeout(std::size_t index) const;
 
  private:
-  // What was read of each target's state, by target index (its context ranges in order).
-  using Contexts = std::map<std::size_t, std::vector<BusResult>>;
+  // What was read of each target's state, by target index.
+  using Contexts = std::map<std::size_t, StopReads>;
 
   // safety.cpp: the supervisor and its thread
   PostFn safety_post();
@@ -126,14 +135,16 @@ class SafetySupervisor::Impl {
   void persist();
   void arm_persist_retry();
 
-  // safety_stops.cpp: planning and sending a safe stop
+  // safety_stops.cpp: planning and sending a safe stop; `only`: one servo's hold (hold_servo),
+  // which is not a stop of the bus (not counted, no cause).
   void run_stop(std::size_t index, StopCause cause, std::optional<StopAction> override, Clock::time_point since,
-                const std::string& reason, const std::function<void(bool)>& done);
+                const std::string& reason, const std::function<void(bool)>& done,
+                std::optional<std::uint8_t> only = std::nullopt);
   void read_contexts(BusSafety& bus, const std::vector<std::size_t>& targets, const std::shared_ptr<Contexts>& contexts,
                      const std::function<void()>& then);
   void send_stop_frames(std::size_t index, StopCause cause, std::optional<StopAction> override, Clock::time_point since,
-                        const std::string& reason, const std::function<void(bool)>& done,
-                        const std::map<std::size_t, std::vector<const BusResult*>>& context);
+                        const std::string& reason, const std::function<void(bool)>& done, const Contexts& context,
+                        std::optional<std::uint8_t> only);
   void submit_safely(BusSafety& bus, BusOp op, const Completion& done);
 
   // safety_owed.cpp: the safe stops owed to servos

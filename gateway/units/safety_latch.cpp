@@ -111,6 +111,16 @@ void SafetySupervisor::Impl::lend_bus(std::size_t index, std::string_view who, s
   });
 }
 
+void SafetySupervisor::Impl::hold_servo(std::size_t index, std::uint8_t servo_id, std::string_view who,
+                                        std::function<void(bool)> done) {
+  buses_.at(index);  // throws for a bus that does not exist, on the caller's thread
+  asio::post(io_,
+             [this, index, servo_id, reason = "hold of servo " + std::to_string(servo_id) + " for " + std::string(who),
+              done = std::move(done)] {
+               run_stop(index, StopCause::None, StopAction::Hold, Clock::now(), reason, done, servo_id);
+             });
+}
+
 void SafetySupervisor::Impl::return_bus(std::size_t index, std::string_view who) {
   BusSafety& bus = *buses_.at(index);
   {

@@ -14,6 +14,21 @@ namespace sms::gateway {
 
 namespace {
 
+// From the servo's answer to its context read to its stop frame's arrival: the time since the
+// last answer came in, plus that answer's own wire time (the position was sampled before it was
+// sent) and the stop frame's. The axis runs on that long before the frame.
+double stop_lead_seconds(const BusSafety& bus, const StopTarget& target, const StopReads& read,
+                         const std::vector<protocol::Bytes>& data) {
+  constexpr std::size_t kFrameOverhead = 12;  // header, ID, length, checksum or CRC, on either protocol
+  const std::size_t answer = (data.empty() ? 0 : data.back().size()) + kFrameOverhead;
+  const std::size_t frame = std::size_t{modbus_map::goal_block(*target.spec).count} *
+                                modbus_map::bytes_per_address(modbus_map::table(target.spec->table).addressing) +
+                            kFrameOverhead;
+  const SerialSettings& serial = bus.engine->settings().serial;
+  const double wire = static_cast<double>(answer + frame) * serial.bits_per_character() / serial.baud;
+  return std::chrono::duration<double>(Clock::now() - read.answered).count() + wire;
+}
+
 std::string targets_text(const std::vector<std::string>& parts) {
   std::string text;
   for (const auto& part : parts) {
@@ -29,15 +44,11 @@ std::string targets_text(const std::vector<std::string>& parts) {
 // last frame (ok: every servo was reached).
 void SafetySupervisor::Impl::run_stop(std::size_t index, StopCause cause, std::optional<StopAction> override,
                                       Clock::time_point since, const std::string& reason,
-                                      const std::function<void(bool)>& done) {
+                                      const std::function<void(bool)>& done, std::optional<std::uint8_t> only) {
   BusSafety& bus = *buses_[index];
   auto contexts = std::make_shared<Contexts>();
-  auto write_phase = [this, index, cause, override, since, reason, done, contexts] {
-    std::map<std::size_t, std::vector<const BusResult*>> by_target;
-    for (const auto& [target, results] : *contexts) {
-      for (const auto& result : results) by_target[target].push_back(&result);
-    }
-    send_stop_frames(index, cause, override, since, reason, done, by_target);
+  auto write_phase = [this, index, cause, override, since, reason, done, contexts, only] {
+    send_stop_frames(index, cause, override, since, reason, done, *contexts, only);
   };
   // Targets whose whole state is one range of a table with SYNC READ are read in one frame per
   // range (a 60-servo arm: one frame instead of 60 READs); the rest, one READ per range. A servo
@@ -47,6 +58,7 @@ void SafetySupervisor::Impl::run_stop(std::size_t index, StopCause cause, std::o
   std::vector<std::size_t> singly;
   for (std::size_t t = 0; t < bus.targets.size(); ++t) {
     const StopTarget& target = bus.targets[t];
+    if (only && target.servo_id != *only) continue;
     if (override.value_or(target.action) != StopAction::Hold) continue;
     const auto cached = bus.engine->cache().state(target.servo_id);
     const bool known_offline = bus.engine->discovered() && cached && !cached->online;
@@ -86,7 +98,9 @@ void SafetySupervisor::Impl::run_stop(std::size_t index, StopCause cause, std::o
                           const auto& members = groups[g].second;
                           for (std::size_t m = 0; m < members.size(); ++m) {
                             if (answers[m]) {
-                              (*contexts)[members[m]].push_back(BusResult{BusStatus::Ok, 0, *answers[m], {}});
+                              StopReads& read = (*contexts)[members[m]];
+                              read.results.push_back(BusResult{BusStatus::Ok, 0, *answers[m], {}});
+                              read.answered = Clock::now();
                             } else {
                               again.push_back(members[m]);
                             }
@@ -111,20 +125,30 @@ void SafetySupervisor::Impl::read_contexts(BusSafety& bus, const std::vector<std
     then();
     return;
   }
-  auto join = BusJoin::create(reads.size(), run_here(), [reads, contexts, then](std::vector<BusResult> results) {
-    for (std::size_t i = 0; i < reads.size(); ++i) (*contexts)[reads[i].first].push_back(std::move(results[i]));
-    then();
-  });
+  auto answered = std::make_shared<std::vector<Clock::time_point>>(reads.size());
+  auto join =
+      BusJoin::create(reads.size(), run_here(), [reads, contexts, answered, then](std::vector<BusResult> results) {
+        for (std::size_t i = 0; i < reads.size(); ++i) {
+          StopReads& read = (*contexts)[reads[i].first];
+          read.results.push_back(std::move(results[i]));
+          read.answered = std::max(read.answered, (*answered)[i]);
+        }
+        then();
+      });
   for (std::size_t i = 0; i < reads.size(); ++i) {
     const StopTarget& target = bus.targets[reads[i].first];
-    submit_safely(bus, ReadOp{target.servo_id, reads[i].second.address, reads[i].second.count}, join->completion(i));
+    submit_safely(bus, ReadOp{target.servo_id, reads[i].second.address, reads[i].second.count},
+                  [answered, i, completion = join->completion(i)](BusResult result) {
+                    (*answered)[i] = Clock::now();
+                    completion(std::move(result));
+                  });
   }
 }
 
 void SafetySupervisor::Impl::send_stop_frames(std::size_t index, StopCause cause, std::optional<StopAction> override,
                                               Clock::time_point since, const std::string& reason,
-                                              const std::function<void(bool)>& done,
-                                              const std::map<std::size_t, std::vector<const BusResult*>>& context) {
+                                              const std::function<void(bool)>& done, const Contexts& context,
+                                              std::optional<std::uint8_t> only) {
   BusSafety& bus = *buses_[index];
   std::vector<std::string> report;
   WriteBatch batch(bus.packet);                         // one SYNC WRITE per write shape on packet buses
@@ -137,6 +161,7 @@ void SafetySupervisor::Impl::send_stop_frames(std::size_t index, StopCause cause
   };
   for (std::size_t t = 0; t < bus.targets.size(); ++t) {
     const StopTarget& target = bus.targets[t];
+    if (only && target.servo_id != *only) continue;
     const StopAction action = override.value_or(target.action);
     const std::string who = "servo " + std::to_string(target.servo_id);
     if (action == StopAction::None) {
@@ -150,20 +175,23 @@ void SafetySupervisor::Impl::send_stop_frames(std::size_t index, StopCause cause
     }
     std::vector<protocol::Bytes> data;
     std::string failure;
+    double lead_seconds = 0;
     const auto found = context.find(t);
     if (found != context.end()) {
-      for (const BusResult* result : found->second) {
-        if (result->status != BusStatus::Ok) {
-          failure = result->detail.empty() ? std::string(gateway::to_string(result->status)) : result->detail;
+      for (const BusResult& result : found->second.results) {
+        if (result.status != BusStatus::Ok) {
+          failure = result.detail.empty() ? std::string(gateway::to_string(result.status)) : result.detail;
           break;
         }
-        data.push_back(result->data);
+        data.push_back(result.data);
       }
+      lead_seconds = stop_lead_seconds(bus, target, found->second, data);
     }
     Expected<modbus_map::SafeStopPlan> plan = unexpected(failure);
     if (failure.empty()) {
-      plan =
-          modbus_map::plan_safe_stop(*target.spec, action, target.order, modbus_map::StopContext{target.context, data});
+      plan = modbus_map::plan_safe_stop(
+          *target.spec, action, target.order, modbus_map::StopContext{target.context, data},
+          modbus_map::StopOptions{.deceleration = target.stop_deceleration, .lead_seconds = lead_seconds});
     }
     if (!plan) {
       // Without its state no hold can be computed; an unknown motion must still end.
@@ -179,8 +207,8 @@ void SafetySupervisor::Impl::send_stop_frames(std::size_t index, StopCause cause
   }
 
   std::vector<BusOp> frames = std::move(batch.frames());
-  const auto finish = [this, index, cause, since, reason, done, report, frame_targets,
-                       unconfirmed](const std::vector<BusResult>& results) {
+  const auto finish = [this, index, cause, since, reason, done, report, frame_targets, unconfirmed,
+                       only](const std::vector<BusResult>& results) {
     BusSafety& b = *buses_[index];
     // Who the stop did not reach: every servo of a frame that failed, and on packet buses those
     // whose torque off went out blind (a broadcast is never acknowledged).
@@ -197,6 +225,18 @@ void SafetySupervisor::Impl::send_stop_frames(std::size_t index, StopCause cause
     const bool frames_ok = failure.empty();
     const std::string owed = owe_stops(b, unreached, reason);
     const auto latency = std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - since);
+    if (only) {
+      // One servo's hold (an operator's hold-to-run released): not a stop of the bus.
+      if (frames_ok) {
+        spdlog::info("safety: bus {}: {} ({}): {}", b.name, reason, targets_text(report),
+                     report.empty() ? "no such servo on the bus" : "sent");
+      } else {
+        spdlog::error("safety: bus {}: {} FAILED: {}; planned: {}{}", b.name, reason, failure, targets_text(report),
+                      owed.empty() ? std::string() : "; servo " + owed + " is owed its stop (torque off)");
+      }
+      if (done) done(frames_ok && !report.empty());
+      return;
+    }
     b.last_cause.store(cause);
     if (frames_ok) {
       b.stops.fetch_add(1);

@@ -83,7 +83,7 @@ servos: []
             "plant.yaml:5:5: unknown key `baudrate` in buses[0] (did you mean `baud`?); allowed keys here: name, "
             "device, protocol, baud, parity, stop_bits, response_timeout_ms, retries, poll_period_ms, "
             "offline_probe_period_ms, reopen_period_ms, poll_fields, poll_range, rs485, rts, rts_delay_us, "
-            "byte_timeout_ms, frame_gap, watchdog, on_start, on_stop");
+            "byte_timeout_ms, frame_gap, watchdog, on_start, on_stop, stop_deceleration");
 }
 
 TEST(ConfigErrors, UnknownServoKeyInAFlowMap) {
@@ -93,7 +93,7 @@ servos:
   - {bus: arm, id: 1, table: sts, mode: fast}
 )"),
             "plant.yaml:4:35: unknown key `mode` in servos[0]; allowed keys here: unit, bus, id, table, profile, "
-            "byte_order, response_level, read_only, name, safe_stop");
+            "byte_order, response_level, read_only, name, safe_stop, stop_deceleration");
 }
 
 TEST(ConfigErrors, UnknownKeyInModbusTcpAndLogging) {
@@ -557,11 +557,13 @@ servos:
             "must have its table");
   EXPECT_EQ(error_text(head + "  - {unit: 3, bus: arm, id: 5, table: sts, read_only: true, safe_stop: torque_off}\n"),
             "plant.yaml:6:5: servos[2]: servo id 5 is already on bus `arm` as servos[0] (unit 1, line 4, column 29) "
-            "with another safe_stop; units of one servo must agree on byte_order, response_level and safe_stop (they "
+            "with another safe_stop; units of one servo must agree on byte_order, response_level, safe_stop and "
+            "stop_deceleration (they "
             "describe the servo): give both the same");
   EXPECT_EQ(error_text(head + "  - {unit: 3, bus: arm, id: 5, table: sts, read_only: true, byte_order: high-first}\n"),
             "plant.yaml:6:5: servos[2]: servo id 5 is already on bus `arm` as servos[0] (unit 1, line 4, column 29) "
-            "with another byte_order; units of one servo must agree on byte_order, response_level and safe_stop (they "
+            "with another byte_order; units of one servo must agree on byte_order, response_level, safe_stop and "
+            "stop_deceleration (they "
             "describe the servo): give both the same");
   // A read-only view cannot be a sync group member (a group writes).
   EXPECT_NE(error_text(head + "sync_groups:\n  - {name: g, field: goal_position, members: [1, 2], "
@@ -999,6 +1001,41 @@ servos:
 )"),
             "plant.yaml:4:42: servos[0].safe_stop: a passthrough unit has no table the gateway could stop it with; "
             "remove the key");
+}
+
+TEST(ConfigErrors, AStopDecelerationMustFitEveryServoItApplies) {
+  // scs has no ramp to set.
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {bus: arm, id: 1, table: scs, stop_deceleration: 20}
+)"),
+            "plant.yaml:4:54: servos[0].stop_deceleration: table scs has no acceleration field: its servos change "
+            "speed at once, and a stop ramp cannot be set");
+  // A bus's value is checked against each servo that takes it, at that servo.
+  EXPECT_EQ(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000, stop_deceleration: 20}
+servos:
+  - {bus: arm, id: 1, table: sts}
+  - {bus: arm, id: 2, table: scs}
+)"),
+            "plant.yaml:5:20: servos[1]: bus `arm`'s stop_deceleration 20 does not fit this servo: table scs has no "
+            "acceleration field: its servos change speed at once, and a stop ramp cannot be set; give the servo its "
+            "own stop_deceleration, or remove the bus's");
+  EXPECT_NE(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {bus: arm, id: 1, table: sts, stop_deceleration: 255}
+)")
+                .find("takes 1..254 (acceleration, 100 steps/s²), not 255"),
+            std::string::npos);
+  EXPECT_NE(error_text(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}
+servos:
+  - {bus: arm, id: 1, table: sts, stop_deceleration: 0}
+)")
+                .find("stop_deceleration"),
+            std::string::npos);
 }
 
 TEST(ConfigErrors, SyncGroupsMustLeaveTheHeartbeatRegistersFree) {

@@ -340,6 +340,25 @@ servos:
   EXPECT_EQ(*again, config);
 }
 
+// docs/PLC_GUIDE.md "Safety": the ramp a hold brakes at, per bus, a servo's own first; none:
+// the fastest the servo has.
+TEST(ConfigLoad, AServosStopDecelerationIsItsOwnElseItsBussElseNone) {
+  const Config config = load_or_fail(R"(buses:
+  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000, stop_deceleration: 50}
+  - {name: base, device: /dev/ttyUSB1, protocol: d55d, baud: 115200}
+servos:
+  - {unit: 1, bus: arm, id: 1, table: sts}
+  - {unit: 2, bus: arm, id: 2, table: sms1, stop_deceleration: 20}
+  - {unit: 11, bus: base, id: 1, table: d55d}
+)");
+  EXPECT_EQ(effective_stop_deceleration(config, config.servos[0]), 50);
+  EXPECT_EQ(effective_stop_deceleration(config, config.servos[1]), 20);
+  EXPECT_EQ(effective_stop_deceleration(config, config.servos[2]), std::nullopt);
+  const auto again = load_config_string(dump_config(config), "dump.yaml");
+  ASSERT_TRUE(again) << again.error().to_string() << "\n" << dump_config(config);
+  EXPECT_EQ(*again, config);
+}
+
 TEST(ConfigLoad, TheWritableUnitOfAServoMayComeAfterItsReadOnlyOne) {
   const Config config = load_or_fail(R"(buses:
   - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}

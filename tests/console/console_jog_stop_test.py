@@ -284,5 +284,34 @@ class WatchdogTripEndsTheHeldJog(JogStopCase):
                            what="the release (or the next trip) to stop it")
 
 
+class TheReleaseStopsWhereTheAxisIs(JogStopCase):
+    """The release's stop is the safety layer's hold, with the stop's own ramp: a position jog on the
+    gentle ramp a PLC left (acceleration 5, 500 steps/s^2) stands where it was released, instead of
+    braking at that ramp past its hold and driving back (docs/SAFETY.md "Stop distance")."""
+
+    def motion(self):
+        words = dict(word.split("=", 1) for word in self.sim.command(f"motion {SERVO}").split())
+        return words
+
+    def test_a_released_position_jog_on_a_gentle_ramp_stands_where_it_was(self):
+        self.position_mode()
+        self.sim.command(f"set {SERVO} 41 05")     # acceleration 5: the PLC's gentle ramp
+        self.sim.command(f"set {SERVO} 46 e8 03")  # 1000 x 0.732 rpm: as fast as the motor goes
+        start = self.sim.field(SERVO, "present_position")
+        goal = FAR if start < 2048 else 4095 - FAR
+        self.press({"type": "jog", "mode": "position", "value": goal},
+                   lambda: abs(self.sim.field(SERVO, "present_position") - start) > 300,
+                   "the held position jog to move the servo 300 steps")
+        pressed = self.motion()["started_us"]
+        self.hold.release()
+        stop = wait_until(lambda: (lambda m: m if m["started_us"] != pressed and m["arrived_us"] != "-" and
+                                   m["goal"] != str(goal) and m["position"] == m["goal"] else None)(self.motion()),
+                          timeout=AWAIT_S, what="the release's hold, and the servo standing at it")
+        self.assertLessEqual(abs(int(stop["position"]) - int(stop["at_goal_write"])), 20,
+                             f"the servo ran on from where the release's hold found it: {stop}")
+        self.assertEqual(stop["reversed"], "0", f"the servo drove back to the release's hold: {stop}")
+        self.assertEqual(self.sim.field(SERVO, "acceleration"), 0, "the hold's stop ramp")
+
+
 if __name__ == "__main__":
     unittest.main(verbosity=2)

@@ -118,8 +118,9 @@ TEST(EnableFields, AreWritableMotionFieldsWhoseEnablingValueIsNoStop) {
 }
 
 TEST(EnableFields, EnableContextReadsAddOnlyTheEnableFieldsToTheStopContext) {
-  // d55d: sleep (47) and brake (43) extend the goal block's read; the angle limits stay apart.
-  EXPECT_EQ(enable_context_reads(motion_spec(TableId::D55d)), (std::vector<BusRange>{{6, 4}, {30, 18}}));
+  // d55d: sleep (47) and brake (43) extend the one read of the limits, resolution, goal block
+  // with both ramps, and the present position and speed.
+  EXPECT_EQ(enable_context_reads(motion_spec(TableId::D55d)), (std::vector<BusRange>{{6, 42}}));
   // The torque switches are in the stop context already.
   for (const TableId id : {TableId::Sts, TableId::Sms1, TableId::Smsmb, TableId::Scs}) {
     EXPECT_EQ(enable_context_reads(motion_spec(id)), stop_context_reads(motion_spec(id))) << table(id).name;
@@ -167,7 +168,7 @@ TEST(EnableFields, D55dWakingOrReleasingTheBrakeInWheelModeWritesSpeedZeroFirst)
     const auto hold = state.hold({state.write(field, 0)});
     ASSERT_TRUE(hold) << hold.error();
     ASSERT_TRUE(*hold) << field << ": no hold";
-    EXPECT_EQ((*hold)->writes, (std::vector<BusWrite>{{30, {30, 0, 0, 0}}})) << field;  // goal kept, speed 0
+    EXPECT_EQ((*hold)->writes, (std::vector<BusWrite>{{30, {30, 0, 0, 0, 0, 0}}})) << field;  // goal kept, speed 0
     EXPECT_EQ((*hold)->drive, Drive::Velocity);
     EXPECT_NE((*hold)->what.find(std::string_view(field) == "sleep" ? "wake: hold (speed mode: speed := 0)"
                                                                     : "brake release: hold (speed mode"),
@@ -183,7 +184,7 @@ TEST(EnableFields, D55dReleasingABrakedPositionMoveHoldsThePresentPosition) {
   const auto hold = state.hold({state.write("brake", 0)});
   ASSERT_TRUE(hold) << hold.error();
   ASSERT_TRUE(*hold);
-  EXPECT_EQ((*hold)->writes, (std::vector<BusWrite>{{30, {150, 0, 90, 0}}}));  // goal := 150, speed 90 kept
+  EXPECT_EQ((*hold)->writes, (std::vector<BusWrite>{{30, {150, 0, 90, 0, 0, 0}}}));  // goal := 150, speed 90 kept
 }
 
 TEST(EnableFields, D55dWritesThatLeaveTheMotorStoppedOrDrivingGetNoHold) {
@@ -215,7 +216,7 @@ TEST(EnableFields, D55dAngleLimitsThatSwitchTheDriveOfARunningMotorNeutraliseThe
   const auto wheel = position.hold({BusWrite{6, {0, 0, 0, 0}}});
   ASSERT_TRUE(wheel) << wheel.error();
   ASSERT_TRUE(*wheel);
-  EXPECT_EQ((*wheel)->writes, (std::vector<BusWrite>{{30, {120, 0, 0, 0}}}));
+  EXPECT_EQ((*wheel)->writes, (std::vector<BusWrite>{{30, {120, 0, 0, 0, 0, 0}}}));
   EXPECT_NE((*wheel)->what.find("drive change (position mode -> speed mode)"), std::string::npos) << (*wheel)->what;
   // One limit alone that keeps position mode changes no drive.
   const auto narrower = position.hold({position.write("ccw_angle_limit", 1800)});
@@ -233,7 +234,7 @@ TEST(EnableFields, TorqueOnHoldsWhereTheTorqueWasOffOrDampingAndNotWhereItIsOn) 
   off.set("operating_mode", 0).set("torque_enable", 0).set("goal_position", 4000).set("present_position", 10);
   const auto hold = off.hold({off.write("torque_enable", 1)});
   ASSERT_TRUE(hold && *hold);
-  EXPECT_EQ((*hold)->writes, (std::vector<BusWrite>{{42, {10, 0, 0, 0, 0, 0}}}));
+  EXPECT_EQ((*hold)->writes, (std::vector<BusWrite>{{41, {0, 10, 0, 0, 0, 0, 0}}}));
   // The log line the torque-on tests look for.
   EXPECT_EQ((*hold)->what.rfind("torque on: hold (position mode: goal := present position 10)", 0), 0u)
       << (*hold)->what;
@@ -243,7 +244,7 @@ TEST(EnableFields, TorqueOnHoldsWhereTheTorqueWasOffOrDampingAndNotWhereItIsOn) 
   const auto speed = damping.hold({damping.write("torque_enable", 1)});
   ASSERT_TRUE(speed && *speed);
   EXPECT_EQ((*speed)->drive, Drive::Velocity);
-  EXPECT_EQ((*speed)->writes, (std::vector<BusWrite>{{42, {0, 0, 0, 0, 0, 0}}}));
+  EXPECT_EQ((*speed)->writes, (std::vector<BusWrite>{{41, {0, 0, 0, 0, 0, 0, 0}}}));
 
   State sms1(TableId::Sms1);
   sms1.set("operating_mode", 2).set("torque_switch", 0).set("run_time", 300);
@@ -269,7 +270,7 @@ TEST(EnableFields, AModeChangeOfAnEnabledServoNeutralisesTheWholeGoalBlock) {
   ASSERT_TRUE(speed) << speed.error();
   ASSERT_TRUE(*speed);
   // 42-47: goal 2000 (0x07D0), time 0, speed 0.
-  EXPECT_EQ((*speed)->writes, (std::vector<BusWrite>{{42, {0xD0, 0x07, 0, 0, 0, 0}}}));
+  EXPECT_EQ((*speed)->writes, (std::vector<BusWrite>{{41, {0, 0xD0, 0x07, 0, 0, 0, 0}}}));
   EXPECT_NE((*speed)->what.find("drive change (position mode -> speed mode)"), std::string::npos);
   // Into step mode the same; a mode value of the same drive is no change.
   const auto step = sts.hold({sts.write("operating_mode", 3)});
@@ -286,7 +287,7 @@ TEST(EnableFields, AModeChangeOfAnEnabledServoNeutralisesTheWholeGoalBlock) {
   // Mode and torque in one request: the neutral block, written before either.
   const auto both = sts.hold({sts.write("operating_mode", 1), sts.write("torque_enable", 1)});
   ASSERT_TRUE(both && *both);
-  EXPECT_EQ((*both)->writes, (std::vector<BusWrite>{{42, {0xD0, 0x07, 0, 0, 0, 0}}}));
+  EXPECT_EQ((*both)->writes, (std::vector<BusWrite>{{41, {0, 0xD0, 0x07, 0, 0, 0, 0}}}));
 
   State smsmb(TableId::Smsmb);
   smsmb.set("mode", 1).set("torque_switch", 1).set("goal_position", 3000).set("running_speed", -500);

@@ -37,8 +37,8 @@ class Context {
     return *this;
   }
 
-  Expected<SafeStopPlan> plan(StopAction action, bool torque_known_on = false) const {
-    return plan_safe_stop(spec_, action, order_, StopContext{ranges_, data_}, torque_known_on);
+  Expected<SafeStopPlan> plan(StopAction action, StopOptions options = {}) const {
+    return plan_safe_stop(spec_, action, order_, StopContext{ranges_, data_}, options);
   }
   const std::vector<BusRange>& ranges() const { return ranges_; }
 
@@ -68,24 +68,78 @@ TEST(Motion, EveryTableHasAMotionSpecWhoseFieldsExist) {
 }
 
 TEST(Motion, StopContextReadsMergeFieldsThatLieClose) {
-  EXPECT_EQ(stop_context_reads(motion_spec(TableId::Sts)), (std::vector<BusRange>{{33, 25}}));  // mode .. present
-  EXPECT_EQ(stop_context_reads(motion_spec(TableId::Sms1)), (std::vector<BusRange>{{35, 23}}));
-  // d55d: the angle limits (6-9) are too far from the goal block and present position (30-37).
-  EXPECT_EQ(stop_context_reads(motion_spec(TableId::D55d)), (std::vector<BusRange>{{6, 4}, {30, 8}}));
-  // SMSMB registers lie far apart: mode, goal block, present position.
-  EXPECT_EQ(stop_context_reads(motion_spec(TableId::Smsmb)), (std::vector<BusRange>{{0x10, 1}, {0x80, 4}, {0x101, 1}}));
+  // mode .. present speed, the stop ramp (acceleration, 41) inside
+  EXPECT_EQ(stop_context_reads(motion_spec(TableId::Sts)), (std::vector<BusRange>{{33, 27}}));
+  EXPECT_EQ(stop_context_reads(motion_spec(TableId::Sms1)), (std::vector<BusRange>{{35, 25}}));
+  // d55d: the angle limits (6-9) and resolution (10) merge with the goal block, both ramps and
+  // the present position and speed (30-39): one READ.
+  EXPECT_EQ(stop_context_reads(motion_spec(TableId::D55d)), (std::vector<BusRange>{{6, 34}}));
+  // SMSMB registers lie far apart: mode, goal block (its acceleration inside), present position and speed.
+  EXPECT_EQ(stop_context_reads(motion_spec(TableId::Smsmb)), (std::vector<BusRange>{{0x10, 1}, {0x80, 4}, {0x101, 2}}));
 }
 
-TEST(Motion, HoldInPositionModeMakesThePresentPositionTheGoalAndKeepsTheRestOfTheBlock) {
+TEST(Motion, HoldInPositionModeMakesThePresentPositionTheGoalAndBrakesAtTheFastestRamp) {
   Context context(TableId::Sts, ByteOrder::LowFirst);
   context.set("operating_mode", 0).set("torque_enable", 1).set("goal_position", 4000).set("goal_speed", 1200);
-  context.set("present_position", -1523);
+  context.set("acceleration", 9).set("present_position", -1523).set("present_speed", 800);
   const auto plan = context.plan(StopAction::Hold);
   ASSERT_TRUE(plan) << plan.error();
   EXPECT_EQ(plan->drive, Drive::Position);
-  // 42-47: goal -1523 (sign-magnitude bit 15, low first), time 0, speed 1200 kept.
+  // 41-47 in one write: acceleration 0 ("no ramp": the move's gentle 9 would coast the axis on
+  // past its goal, then back), goal -1523 (sign-magnitude bit 15, low first), time 0, speed 1200 kept.
   ASSERT_EQ(plan->writes.size(), 1u);
-  EXPECT_EQ(plan->writes[0], (BusWrite{42, {0xF3, 0x85, 0x00, 0x00, 0xB0, 0x04}}));
+  EXPECT_EQ(plan->writes[0], (BusWrite{41, {0x00, 0xF3, 0x85, 0x00, 0x00, 0xB0, 0x04}}));
+  EXPECT_EQ(plan->what, "hold (position mode: goal := present position -1523, acceleration := 0)");
+}
+
+TEST(Motion, AStopDecelerationPutsTheGoalWhereTheAxisWillStandSoItNeverDrivesBack) {
+  Context context(TableId::Sts, ByteOrder::LowFirst);
+  context.set("operating_mode", 0).set("torque_enable", 1).set("goal_position", 4000).set("goal_speed", 60);
+  context.set("present_position", 1000).set("present_speed", 40);  // 40 x 0.732 rpm = 1999 steps/s
+  const auto plan = context.plan(StopAction::Hold, StopOptions{.deceleration = 50});
+  ASSERT_TRUE(plan) << plan.error();
+  // 1999 steps/s braked at 50 x 100 steps/s^2: v^2 / 2a = 1999^2 / 10000 = 399.5, 400 steps on.
+  const std::int32_t goal = 1000 + 400;
+  EXPECT_EQ(plan->writes, (std::vector<BusWrite>{{41, {50, goal & 0xFF, goal >> 8, 0, 0, 60, 0}}}));
+  EXPECT_EQ(plan->what, "hold (position mode: goal := present position 1000 + run-on 400 = 1400, acceleration := 50)");
+
+  context.set("present_speed", -40);  // the other way
+  const auto back = context.plan(StopAction::Hold, StopOptions{.deceleration = 50});
+  ASSERT_TRUE(back) << back.error();
+  EXPECT_EQ(back->writes[0].data.at(1) | (back->writes[0].data.at(2) << 8), 600);
+}
+
+TEST(Motion, D55dStopsAtBothItsRampsLargestCountWithTheRunOnInItsOwnUnits) {
+  Context arm(TableId::D55d, ByteOrder::LowFirst);
+  arm.set("ccw_angle_limit", 3600).set("angle_resolution", 10).set("present_position", 200);
+  arm.set("run_speed", 300).set("acceleration", 2).set("deceleration", 3).set("present_speed", 300);
+  const auto hold = arm.plan(StopAction::Hold);
+  ASSERT_TRUE(hold) << hold.error();
+  // 300 units/s at 254 x 10 units/s^2 (resolution 10: a unit is a degree): 300^2 / 5080 = 18 on.
+  EXPECT_EQ(hold->writes, (std::vector<BusWrite>{{30, {218, 0, 0x2C, 0x01, 254, 254}}}));
+  // A finer resolution (1: 0.1 deg a unit): the same degrees are more units, the same count of
+  // 10 deg/s^2 too.
+  arm.set("angle_resolution", 1).set("present_speed", 3000);  // 300 deg/s
+  const auto fine = arm.plan(StopAction::Hold);
+  ASSERT_TRUE(fine) << fine.error();
+  const std::int32_t goal = 200 + 178;  // 3000^2 / (2 x 254 x 100) = 177.2, up to the next unit
+  EXPECT_EQ(fine->writes[0].data.at(0) | (fine->writes[0].data.at(1) << 8), goal);
+  // The run-on stops at the angle limit: a goal past it is one the motor never reaches.
+  arm.set("ccw_angle_limit", 250);
+  const auto limited = arm.plan(StopAction::Hold);
+  ASSERT_TRUE(limited) << limited.error();
+  EXPECT_EQ(limited->writes[0].data.at(0), 250);
+}
+
+TEST(Motion, AStopDecelerationOutsideTheRampFieldOrOnATableWithoutOneIsRefused) {
+  EXPECT_FALSE(check_stop_deceleration(motion_spec(TableId::Sts), 1));
+  EXPECT_FALSE(check_stop_deceleration(motion_spec(TableId::D55d), 254));
+  EXPECT_TRUE(check_stop_deceleration(motion_spec(TableId::D55d), 255));
+  EXPECT_TRUE(check_stop_deceleration(motion_spec(TableId::Sts), 0));
+  EXPECT_TRUE(check_stop_deceleration(motion_spec(TableId::Sts), 255));
+  const auto scs = check_stop_deceleration(motion_spec(TableId::Scs), 10);
+  ASSERT_TRUE(scs);
+  EXPECT_NE(scs->find("no acceleration field"), std::string::npos) << *scs;
 }
 
 TEST(Motion, HoldInSpeedModeWritesSpeedZeroAndInPwmModeDutyZero) {
@@ -93,14 +147,14 @@ TEST(Motion, HoldInSpeedModeWritesSpeedZeroAndInPwmModeDutyZero) {
   speed.set("operating_mode", 1).set("torque_enable", 1).set("goal_position", 100).set("goal_speed", -1500);
   const auto stop = speed.plan(StopAction::Hold);
   ASSERT_TRUE(stop) << stop.error();
-  EXPECT_EQ(stop->writes, (std::vector<BusWrite>{{42, {100, 0, 0, 0, 0, 0}}}));
+  EXPECT_EQ(stop->writes, (std::vector<BusWrite>{{41, {0, 100, 0, 0, 0, 0, 0}}}));
 
   Context pwm(TableId::Sms1, ByteOrder::LowFirst);
   pwm.set("operating_mode", 2).set("torque_switch", 1).set("run_time", -500).set("run_speed", 0);
   const auto duty = pwm.plan(StopAction::Hold);
   ASSERT_TRUE(duty) << duty.error();
   EXPECT_EQ(duty->drive, Drive::Pwm);
-  EXPECT_EQ(duty->writes, (std::vector<BusWrite>{{42, {0, 0, 0, 0, 0, 0}}}));
+  EXPECT_EQ(duty->writes, (std::vector<BusWrite>{{41, {0, 0, 0, 0, 0, 0, 0}}}));
 }
 
 TEST(Motion, HoldInStepModeSwitchesTheTorqueOffBecauseNoGoalHolds) {
@@ -118,9 +172,11 @@ TEST(Motion, AServoWithoutTorqueIsLeftAloneUnlessItIsAboutToBeSwitchedOn) {
   const auto idle = context.plan(StopAction::Hold);
   ASSERT_TRUE(idle);
   EXPECT_TRUE(idle->writes.empty());
-  const auto before_torque_on = context.plan(StopAction::Hold, true);
+  context.set("acceleration", 9);
+  const auto before_torque_on = context.plan(StopAction::Hold, StopOptions{.torque_known_on = true, .keep_ramp = true});
   ASSERT_TRUE(before_torque_on);
-  EXPECT_EQ(before_torque_on->writes, (std::vector<BusWrite>{{42, {10, 0, 0, 0, 0, 0}}}));
+  // The motor stands: the PLC's ramp (9) stays.
+  EXPECT_EQ(before_torque_on->writes, (std::vector<BusWrite>{{41, {9, 10, 0, 0, 0, 0, 0}}}));
 }
 
 TEST(Motion, D55dSpeedModeIsBothLimitsZeroAndItsStopIsRunSpeedZero) {
@@ -129,13 +185,14 @@ TEST(Motion, D55dSpeedModeIsBothLimitsZeroAndItsStopIsRunSpeedZero) {
   const auto stop = wheel.plan(StopAction::Hold);
   ASSERT_TRUE(stop) << stop.error();
   EXPECT_EQ(stop->drive, Drive::Velocity);
-  EXPECT_EQ(stop->writes, (std::vector<BusWrite>{{30, {90, 0, 0, 0}}}));
+  EXPECT_EQ(stop->writes, (std::vector<BusWrite>{{30, {90, 0, 0, 0, 254, 254}}}));
 
   Context arm(TableId::D55d, ByteOrder::LowFirst);
   arm.set("ccw_angle_limit", 360).set("present_position", 200).set("run_speed", 300);
   const auto hold = arm.plan(StopAction::Hold);
   ASSERT_TRUE(hold) << hold.error();
-  EXPECT_EQ(hold->writes, (std::vector<BusWrite>{{30, {200, 0, 0x2C, 0x01}}}));  // goal 200, speed 300 kept
+  // goal 200 (standing: no run-on), speed 300 kept, both ramps their largest count
+  EXPECT_EQ(hold->writes, (std::vector<BusWrite>{{30, {200, 0, 0x2C, 0x01, 254, 254}}}));
   EXPECT_EQ(torque_off_write(motion_spec(TableId::D55d), ByteOrder::LowFirst), (BusWrite{32, {0, 0}}));
 }
 
@@ -145,7 +202,8 @@ TEST(Motion, SmsmbHoldWritesTheGoalBlockRegistersHighByteFirst) {
   context.set("goal_position", 3000).set("present_position", -2);
   const auto plan = context.plan(StopAction::Hold);
   ASSERT_TRUE(plan) << plan.error();
-  EXPECT_EQ(plan->writes, (std::vector<BusWrite>{{0x80, {0xFF, 0xFE, 0, 1, 0, 20, 0x01, 0xF4}}}));
+  // acceleration 20 becomes 0 ("0 = maximum"), in the same write
+  EXPECT_EQ(plan->writes, (std::vector<BusWrite>{{0x80, {0xFF, 0xFE, 0, 1, 0, 0, 0x01, 0xF4}}}));
   const auto off = context.plan(StopAction::TorqueOff);
   ASSERT_TRUE(off);
   EXPECT_EQ(off->writes, (std::vector<BusWrite>{{0x81, {0, 0}}}));
