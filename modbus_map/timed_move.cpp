@@ -66,6 +66,11 @@ double shortest_seconds(const TimedMoveSpec& spec, double distance) {
   return move_seconds(distance, spec.max_speed * spec.speed_unit, spec.max_acceleration * spec.acceleration_unit);
 }
 
+double longest_seconds(const TimedMoveSpec& spec, double distance) {
+  const bool ramps = !spec.acceleration.empty() && spec.acceleration_unit > 0;
+  return move_seconds(distance, spec.speed_unit, ramps ? spec.acceleration_unit : 0.0);
+}
+
 std::optional<AxisPlan> plan_axis(const TimedMoveSpec& spec, double distance, double seconds) {
   if (distance <= 0) return AxisPlan{spec.max_speed, spec.max_acceleration, 0};
   if (shortest_seconds(spec, distance) > seconds) return std::nullopt;

@@ -51,6 +51,8 @@ struct AxisPlan {
 
 // The fastest the axis makes `distance`: the largest speed and acceleration.
 double shortest_seconds(const TimedMoveSpec& spec, double distance);
+// The slowest: one count of speed and of acceleration (a longer time cannot be planned).
+double longest_seconds(const TimedMoveSpec& spec, double distance);
 // The counts whose move time is nearest `seconds`; nullopt when the axis cannot make it
 // (shortest_seconds > seconds). A distance of 0 gets the largest counts (nothing moves).
 std::optional<AxisPlan> plan_axis(const TimedMoveSpec& spec, double distance, double seconds);

@@ -451,19 +451,21 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
 
 void GatewayUnit::send_frames(std::vector<Frame> frames, std::vector<HoldTarget> switched_on,
                               std::vector<std::size_t> buses, std::uint8_t function, const Reply& reply,
-                              std::function<void(const Reply&)> after) {
-  auto send = [this, frames = std::move(frames), buses = std::move(buses), function, reply,
-               after = std::move(after)](std::optional<BusResult> hold_failure) mutable {
+                              std::function<void(const Reply&)> after, std::function<void()> failed) {
+  auto send = [this, frames = std::move(frames), buses = std::move(buses), function, reply, after = std::move(after),
+               failed](std::optional<BusResult> hold_failure) mutable {
     if (hold_failure) {
-      spdlog::warn("gateway unit: sync group enabling write not done: {}", hold_failure->detail);
+      failure_log_.warn("gateway unit: sync group enabling write not done: " + hold_failure->detail);
+      if (failed) failed();
       reply.send(exception_response(function, fault_from(hold_failure->status)));
       return;
     }
     auto join = BusJoin::create(
         frames.size(), post_,
-        [this, buses, function, reply, after = std::move(after)](const std::vector<BusResult>& results) {
+        [this, buses, function, reply, after = std::move(after), failed](const std::vector<BusResult>& results) {
           if (const BusResult* failure = BusJoin::first_failure(results)) {
-            spdlog::warn("gateway unit: sync group write failed: {}", failure->detail);
+            failure_log_.warn("gateway unit: sync group write failed: " + failure->detail);
+            if (failed) failed();
             reply.send(exception_response(function, fault_from(failure->status)));
             return;
           }

@@ -22,6 +22,7 @@
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/bus_join.h"
 #include "gateway/service/modbus_request.h"
+#include "gateway/service/rate_limited_log.h"
 #include "gateway/service/request_handler.h"
 #include "gateway/service/unit_catalog.h"
 #include "gateway/units/no_jump.h"
@@ -158,10 +159,14 @@ class GatewayUnit {
   void plan_and_send(SyncGroup& group, std::vector<MemberWrite> writes, std::vector<modbus_map::TimedMoveSpec> specs,
                      std::vector<std::int32_t> present, std::uint16_t move_time_ms, std::uint8_t function,
                      const Reply& reply, std::function<void(const Reply&)> after);
+  // Every refusal of a timed move shows in its group's registers: result 3 (refused), the used
+  // time 0; what still runs from an earlier move shows in moving and distance to go.
+  static void refuse_timed_move(SyncGroup& group);
   // Sends the frames (after the holds `switched_on` needs), feeds the watchdogs of `buses` once
-  // all are carried out, then runs `done` (true) or answers the failure.
+  // all are carried out, then runs `after`, or runs `failed` and answers the failure.
   void send_frames(std::vector<Frame> frames, std::vector<HoldTarget> switched_on, std::vector<std::size_t> buses,
-                   std::uint8_t function, const Reply& reply, std::function<void(const Reply&)> after);
+                   std::uint8_t function, const Reply& reply, std::function<void(const Reply&)> after,
+                   std::function<void()> failed = {});
   void read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count, const Reply& reply);
   void write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,
                             std::function<void(const Reply&)> after);
@@ -180,6 +185,7 @@ class GatewayUnit {
   PostFn post_;
   SafetySupervisor& safety_;
   MotionRefusalLog refusal_log_;
+  RateLimitedLog failure_log_;  // writes not done (an offline servo written cyclically), once a second
   std::chrono::steady_clock::time_point started_;
 };
 

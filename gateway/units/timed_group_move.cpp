@@ -24,6 +24,9 @@ namespace {
 
 namespace layout = gateway_unit_layout;
 using modbus_map::FieldSpec;
+
+// How far from the time asked an accepted timed move may arrive (docs/PLC_GUIDE.md "Timed group moves").
+constexpr double kMoveTimeTolerance = 0.05;
 using modbus_map::RegisterMap;
 
 // SMSMB registers travel high byte first whatever the map's byte order.
@@ -63,16 +66,16 @@ std::uint16_t saturate16(std::int64_t value) {
   return static_cast<std::uint16_t>(std::clamp<std::int64_t>(value, 0, 0xFFFF));
 }
 
-// The bus range to read for a table whose units follow a resolution field (d55d): from the
-// first angle limit to the resolution, so one READ also tells whether the servo is in wheel mode.
-std::optional<modbus_map::BusRange> resolution_context(const RegisterMap& map, const modbus_map::TimedMoveSpec& spec) {
-  if (spec.resolution.empty()) return std::nullopt;
+// The bus range to read before a timed move: from the first angle limit to the last of the
+// limits and the resolution field (d55d, whose units follow it), so one READ tells whether the
+// goal is inside the axis's limits, whether the servo is in wheel or PWM mode, and its units.
+modbus_map::BusRange servo_context(const RegisterMap& map, const modbus_map::TimedMoveSpec& spec) {
   const auto& table = map.servo_table();
   const auto& motion = modbus_map::motion_spec(table.id);
   std::uint16_t first = 0xFFFF;
   std::uint16_t end = 0;
   for (const std::string_view name : {motion.min_limit, motion.max_limit, spec.resolution}) {
-    const FieldSpec* field = modbus_map::field_by_name(table, name);
+    const FieldSpec* field = name.empty() ? nullptr : modbus_map::field_by_name(table, name);
     if (field == nullptr) continue;
     first = std::min(first, field->addr);
     end = std::max<std::uint16_t>(end, field->addr + modbus_map::address_span(table.addressing, *field));
@@ -80,20 +83,33 @@ std::optional<modbus_map::BusRange> resolution_context(const RegisterMap& map, c
   return modbus_map::BusRange{first, static_cast<std::uint16_t>(end - first)};
 }
 
-// `spec` at the servo's resolution read in `bytes` (from bus address `first`); nullopt when both
-// angle limits are 0: wheel mode, where a goal is relative and a distance cannot be known.
-std::optional<modbus_map::TimedMoveSpec> spec_from_context(const RegisterMap& map,
-                                                           const modbus_map::TimedMoveSpec& spec, std::uint16_t first,
-                                                           std::span<const std::uint8_t> bytes) {
+// `spec` at the servo's resolution read in `bytes` (from bus address `first`), or why the axis
+// cannot take the move to `goal`: both angle limits 0 on a table without a mode field (d55d
+// wheel mode: goals are relative; scs PWM), or a goal outside its angle limits (the axis would
+// stop at the limit and never arrive).
+Expected<modbus_map::TimedMoveSpec> spec_from_context(const RegisterMap& map, const modbus_map::TimedMoveSpec& spec,
+                                                      std::uint16_t first, std::span<const std::uint8_t> bytes,
+                                                      std::int32_t goal) {
   const auto& table = map.servo_table();
   const auto value_of = [&](std::string_view name) -> std::optional<std::int32_t> {
-    const FieldSpec* field = modbus_map::field_by_name(table, name);
+    const FieldSpec* field = name.empty() ? nullptr : modbus_map::field_by_name(table, name);
     if (field == nullptr) return std::nullopt;
     const std::size_t at = std::size_t{static_cast<std::uint16_t>(field->addr - first)} * map.bytes_per_bus_address();
     return field_value(*field, map, bytes.subspan(at, wire_bytes(map, *field)));
   };
   const auto& motion = modbus_map::motion_spec(table.id);
-  if (value_of(motion.min_limit).value_or(1) == 0 && value_of(motion.max_limit).value_or(1) == 0) return std::nullopt;
+  const auto min = value_of(motion.min_limit);
+  const auto max = value_of(motion.max_limit);
+  if (min && max && *min == 0 && *max == 0) {
+    if (motion.mode.empty()) {
+      return unexpected(std::string("both angle limits are 0 (") +
+                        (motion.modes.empty() ? "wheel mode: relative goals" : "PWM mode") +
+                        "); a timed move needs position mode");
+    }
+  } else if (min && max && (goal < *min || goal > *max)) {
+    return unexpected("goal " + std::to_string(goal) + " is outside its angle limits " + std::to_string(*min) + ".." +
+                      std::to_string(*max) + ": it would stop at the limit and never arrive");
+  }
   return modbus_map::at_resolution(spec, value_of(spec.resolution).value_or(spec.reference_resolution));
 }
 
@@ -141,10 +157,6 @@ std::vector<std::uint16_t> GatewayUnit::group_input_registers() const {
     const bool stopped = std::any_of(group.members.begin(), group.members.end(), [&](const SyncMember& member) {
       return member.bus < facts.buses.size() && facts.buses[member.bus].motion_blocked;
     });
-    std::int64_t left_ms = 0;
-    if (group.timed.ends && !stopped && *group.timed.ends > now) {
-      left_ms = std::chrono::duration_cast<std::chrono::milliseconds>(*group.timed.ends - now).count() + 1;
-    }
     std::int64_t to_go = 0;
     for (std::size_t i = 0; i < group.members.size(); ++i) {
       if (!group.last_goals[i]) continue;
@@ -153,6 +165,12 @@ std::vector<std::uint16_t> GatewayUnit::group_input_registers() const {
       protocol::Bytes bytes(wire_bytes(*member.map, present));
       if (engines_[member.bus]->cache().copy(member.servo_id, present.addr, bytes) != CacheRead::Ok) continue;
       to_go = std::max<std::int64_t>(to_go, std::abs(*group.last_goals[i] - field_value(present, *member.map, bytes)));
+    }
+    // Moving and time left follow the axes as the poll cache sees them, not only the plan: a move
+    // whose axes are all there (or that moved none) is over, whatever time the plan had left.
+    std::int64_t left_ms = 0;
+    if (group.timed.ends && !stopped && *group.timed.ends > now && to_go > 0) {
+      left_ms = std::chrono::duration_cast<std::chrono::milliseconds>(*group.timed.ends - now).count() + 1;
     }
     put(g, layout::GroupRegister::Moving, left_ms > 0 ? 1 : 0);
     put(g, layout::GroupRegister::TimeLeft, saturate16(left_ms));
@@ -165,6 +183,11 @@ std::vector<std::uint16_t> GatewayUnit::group_input_registers() const {
   return image;
 }
 
+void GatewayUnit::refuse_timed_move(SyncGroup& group) {
+  group.timed.result = layout::TimedMoveResult::Refused;
+  group.timed.used = std::chrono::milliseconds(0);
+}
+
 void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, std::uint16_t move_time_ms,
                              const WriteRegistersRequest& request, const Reply& reply,
                              std::function<void(const Reply&)> after) {
@@ -172,6 +195,7 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
     const SyncMember& member = *write.member;
     if (auto bytes = member.map->field_bytes(*member.field, write.value); !bytes) {
       spdlog::debug("gateway unit: sync group '{}' unit {}: {}", group.name, member.unit_id, bytes.error().message);
+      refuse_timed_move(group);
       reply.send(exception_response(request.function, bytes.error().code));
       return;
     }
@@ -184,13 +208,14 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
     if (spec == nullptr) {  // no such table today; kept so a new table cannot slip through
       spdlog::warn("gateway unit: sync group '{}' unit {}: table {} cannot take a timed move", group.name,
                    write.member->unit_id, write.member->map->servo_table().name);
+      refuse_timed_move(group);
       reply.send(exception_response(request.function, ModbusException::IllegalDataValue));
       return;
     }
     specs.push_back(*spec);
   }
   // Reads before the plan: present positions the poll cache does not have fresh (fresh_age),
-  // and the resolution context.
+  // and each axis's angle limits (and d55d's resolution).
   struct Read {
     std::size_t axis;
     bool context;  // the resolution and angle limits, else the present position
@@ -214,17 +239,11 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
           i, false,
           ReadOp{member.servo_id, field.addr, modbus_map::address_span(member.map->servo_table().addressing, field)}});
     }
-    if (const auto range = resolution_context(*member.map, specs[i])) {
-      reads.push_back(Read{i, true, ReadOp{member.servo_id, range->address, range->count}});
-    }
+    const auto range = servo_context(*member.map, specs[i]);
+    reads.push_back(Read{i, true, ReadOp{member.servo_id, range.address, range.count}});
   }
   SyncGroup* const target = &group;
   const std::uint8_t function = request.function;
-  if (reads.empty()) {
-    plan_and_send(*target, std::move(writes), std::move(specs), std::move(present), move_time_ms, function, reply,
-                  std::move(after));
-    return;
-  }
   auto join = BusJoin::create(
       reads.size(), post_,
       [this, target, writes, specs, present, reads, move_time_ms, function, reply,
@@ -232,6 +251,7 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
         if (const BusResult* failure = BusJoin::first_failure(results)) {
           spdlog::warn("gateway unit: sync group '{}': a servo was not read, no move: {}", target->name,
                        failure->detail);
+          refuse_timed_move(*target);
           reply.send(exception_response(function, fault_from(failure->status)));
           return;
         }
@@ -240,6 +260,7 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
           if (results[k].data.size() != std::size_t{reads[k].op.count} * member.map->bytes_per_bus_address()) {
             spdlog::warn("gateway unit: sync group '{}' unit {}: a read answered {} bytes", target->name,
                          member.unit_id, results[k].data.size());
+            refuse_timed_move(*target);
             reply.send(exception_response(function, ModbusException::ServerDeviceFailure));
             return;
           }
@@ -247,13 +268,15 @@ void GatewayUnit::timed_move(SyncGroup& group, std::vector<MemberWrite> writes, 
             present[reads[k].axis] = field_value(present_position_field(*member.map), *member.map, results[k].data);
             continue;
           }
+          const MemberWrite& write = writes[reads[k].axis];
+          const auto goal =
+              field_value(*member.field, *member.map, *member.map->field_bytes(*member.field, write.value));
           const auto scaled =
-              spec_from_context(*member.map, specs[reads[k].axis], reads[k].op.address, results[k].data);
+              spec_from_context(*member.map, specs[reads[k].axis], reads[k].op.address, results[k].data, goal);
           if (!scaled) {
-            spdlog::info(
-                "gateway unit: sync group '{}' unit {}: both angle limits are 0 (wheel mode: relative goals); "
-                "a timed move needs position mode",
-                target->name, member.unit_id);
+            spdlog::info("gateway unit: sync group '{}' unit {}: {}; nothing written", target->name, member.unit_id,
+                         scaled.error());
+            refuse_timed_move(*target);
             reply.send(exception_response(function, ModbusException::IllegalDataValue));
             return;
           }
@@ -309,6 +332,27 @@ void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> write
     plan.result = layout::TimedMoveResult::Stretched;
   }
   const double seconds = std::chrono::duration<double>(plan.used).count();
+  // Every time accepted is met: an axis whose nearest profile misses it by more than 5 % (a
+  // long time for a short distance: even one count of speed and of acceleration is too fast)
+  // refuses the move, and the group's registers say which axis and the longest it can take.
+  for (std::size_t i = 0; i < axes.size(); ++i) {
+    if (axes[i].distance < 1) continue;
+    const auto nearest = modbus_map::plan_axis(*axes[i].spec, axes[i].distance, seconds);
+    if (!nearest || std::abs(nearest->seconds - seconds) <= kMoveTimeTolerance * seconds) continue;
+    const auto longest = modbus_map::longest_seconds(*axes[i].spec, axes[i].distance);
+    group.timed.result = layout::TimedMoveResult::Refused;
+    group.timed.limiting_unit = writes[i].member->unit_id;
+    group.timed.shortest = whole_ms_up(axes[i].shortest);
+    group.timed.used = std::chrono::milliseconds(static_cast<std::int64_t>(longest * 1000.0));
+    spdlog::info(
+        "gateway unit: sync group '{}': move time {} ms refused, nothing written: unit {} takes at most {:.0f} ms "
+        "for {} steps at its smallest speed and acceleration (write a time between {} and {:.0f} ms, or move it "
+        "in a separate group)",
+        group.name, plan.used.count(), writes[i].member->unit_id, longest * 1000.0, axes[i].distance,
+        whole_ms_up(axes[i].shortest).count(), longest * 1000.0);
+    reply.send(exception_response(function, ModbusException::IllegalDataValue));
+    return;
+  }
   // Goals are motion: admitted on every bus they go to once the move is known to be possible (a
   // refused move time starts no watchdog), after the reads, so the epoch is the latest.
   std::vector<MotionEpoch> epochs(engines_.size(), 0);
@@ -318,7 +362,10 @@ void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> write
     if (admitted[bus]) continue;
     const auto epoch = admit_or_refuse(safety_, refusal_log_, bus,
                                        "gateway unit sync group '" + group.name + "' timed move", function, reply);
-    if (!epoch) return;
+    if (!epoch) {
+      refuse_timed_move(group);
+      return;
+    }
     epochs[bus] = *epoch;
     admitted[bus] = true;
   }
@@ -359,6 +406,7 @@ void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> write
     if (!ok) {
       spdlog::warn("gateway unit: sync group '{}' unit {}: speed {} or acceleration {} outside the table's range",
                    group.name, member.unit_id, counts.speed, counts.acceleration);
+      refuse_timed_move(group);
       reply.send(exception_response(function, ModbusException::IllegalDataValue));
       return;
     }
@@ -405,13 +453,15 @@ void GatewayUnit::plan_and_send(SyncGroup& group, std::vector<MemberWrite> write
   }
   spdlog::debug("gateway unit: sync group '{}': timed move of {} ms (asked {} ms), slowest unit {}", group.name,
                 plan.used.count(), move_time_ms, plan.limiting_unit);
-  send_frames(std::move(frames), std::move(switched_on), std::move(buses), function, reply,
-              [this, target = &group, writes, plan, after = std::move(after)](const Reply& r) mutable {
-                for (const MemberWrite& write : writes) record_goal(*target, write);
-                plan.ends = std::chrono::steady_clock::now() + plan.used;
-                target->timed = plan;
-                after(r);
-              });
+  send_frames(
+      std::move(frames), std::move(switched_on), std::move(buses), function, reply,
+      [this, target = &group, writes, plan, after = std::move(after)](const Reply& r) mutable {
+        for (const MemberWrite& write : writes) record_goal(*target, write);
+        plan.ends = std::chrono::steady_clock::now() + plan.used;
+        target->timed = plan;
+        after(r);
+      },
+      [target = &group] { refuse_timed_move(*target); });
 }
 
 }  // namespace sms::gateway

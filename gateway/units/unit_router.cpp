@@ -478,8 +478,9 @@ void UnitRouter::hold_then_enable(const ServoUnit& unit, std::uint8_t function, 
                      [this, &unit, function, plan = std::move(plan), epoch, reply,
                       after = std::move(after)](std::optional<BusResult> failure) mutable {
                        if (failure) {
-                         spdlog::warn("modbus: {} FC{:02X}: enabling write not done: {}", unit.label, function,
-                                      failure->detail);
+                         // A PLC writing cyclically to an offline servo would otherwise fill the log.
+                         failure_log_.warn(fmt::format("modbus: {} FC{:02X}: enabling write not done: {}", unit.label,
+                                                       function, failure->detail));
                          reply.send(exception_response(function, fault_from(failure->status)));
                          return;
                        }

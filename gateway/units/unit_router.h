@@ -21,6 +21,7 @@
 #include "gateway/bus/bus_engine.h"
 #include "gateway/bus/bus_join.h"
 #include "gateway/service/modbus_request.h"
+#include "gateway/service/rate_limited_log.h"
 #include "gateway/service/request_handler.h"
 #include "gateway/service/unit_catalog.h"
 #include "gateway/units/gateway_unit.h"
@@ -166,6 +167,7 @@ class UnitRouter : public RequestHandler {
   PostFn post_;
   SafetySupervisor& safety_;
   MotionRefusalLog refusal_log_;
+  RateLimitedLog failure_log_;  // writes not done (an offline servo written cyclically), once a second
 };
 
 }  // namespace sms::gateway

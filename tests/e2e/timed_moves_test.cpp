@@ -303,7 +303,7 @@ TEST(TimedMoves, AnEStopInTheMiddleStopsEveryAxis) {
   Arm arm;
   arm.home();
   std::vector<std::uint16_t> request = goals_for(kDistances);
-  request.push_back(3000);
+  request.push_back(2400);  // the longest the 100-step axis can take is 2501 ms
   ASSERT_TRUE(arm.plc().write_registers(0, request).ok()) << arm.log();
   // Under way: every axis has left its start.
   ASSERT_TRUE(eventually([&] {
@@ -329,10 +329,78 @@ TEST(TimedMoves, AnEStopInTheMiddleStopsEveryAxis) {
   EXPECT_EQ(inputs[kMoving], 0);
   EXPECT_EQ(inputs[kTimeLeft], 0);
   EXPECT_GT(inputs[kToGo], 0);
-  // While latched, a timed move is refused like every motion write (0x04), nothing written.
+  // While latched, a timed move is refused like every motion write (0x04), nothing written, and
+  // the group says so: every refusal is result 3, not the last move's 1.
+  EXPECT_EQ(inputs[kLastMove], 1);
   request.back() = 1500;
   EXPECT_EQ(arm.plc().write_registers(0, request).exception, 4);
+  EXPECT_EQ(arm.group_inputs(0)[kLastMove], 3);
   ASSERT_TRUE(arm.plc().write_coil(kEStopCoil, false).ok());
+}
+
+TEST(TimedMoves, AGoalOutsideAnAxissAngleLimitsIsRefusedAndNothingIsWritten) {
+  Arm arm;
+  arm.home();
+  // Axis 1 limited to 0..3000 (the simulator's backdoor: EEPROM as commissioned).
+  ASSERT_EQ(arm.sim().control("set 1 11 B8 0B"), "ok");
+  const long long before = motion_of(arm.sim(), 1).started_us;
+  std::vector<std::uint16_t> request = goals_for(kDistances);
+  request[0] = 3500;  // past its limit: it would stop at 3000 and never arrive
+  request.push_back(3000);
+  EXPECT_EQ(arm.plc().write_registers(0, request).exception, 3) << arm.log();
+  EXPECT_EQ(motion_of(arm.sim(), 1).started_us, before) << "an axis was given its goal";
+  for (int id = 1; id <= kAxes; ++id) EXPECT_EQ(arm.sim().field(id, "goal_position"), kStart) << "axis " << id;
+  EXPECT_EQ(arm.group_inputs(0)[kLastMove], 3);
+  EXPECT_NE(arm.log().find("goal 3500 is outside its angle limits 0..3000"), std::string::npos) << arm.log();
+  // Inside them, the same move goes.
+  request[0] = 2900;
+  EXPECT_TRUE(arm.plc().write_registers(0, request).ok()) << arm.log();
+  EXPECT_EQ(arm.group_inputs(0)[kLastMove], 1);
+}
+
+TEST(TimedMoves, ATimeLongerThanAShortAxisCanTakeIsRefusedWithTheLongestItCan) {
+  Arm arm;
+  arm.home();
+  std::vector<std::uint16_t> request(kAxes, kStart);
+  request[1] = kStart + 10;  // 10 steps: even one count of speed and acceleration takes 0.63 s
+  request.push_back(10000);
+  EXPECT_EQ(arm.plc().write_registers(0, request).exception, 3) << arm.log();
+  EXPECT_EQ(arm.sim().field(2, "goal_position"), kStart) << "nothing written";
+  const auto inputs = arm.group_inputs(0);
+  EXPECT_EQ(inputs[kLastMove], 3);
+  EXPECT_EQ(inputs[kLimitingUnit], 2);
+  EXPECT_GT(inputs[kUsed], 0) << "the longest time unit 2 can take";
+  EXPECT_LT(inputs[kUsed], 2000);
+  // A time it can take goes, and is met.
+  request.back() = inputs[kUsed];
+  const long long after = now_us();
+  ASSERT_TRUE(arm.plc().write_registers(0, request).ok()) << arm.log();
+  Motion moved;
+  ASSERT_TRUE(eventually([&] {
+    moved = motion_of(arm.sim(), 2);
+    return moved.started_us > after && moved.arrived_us >= 0 && moved.position == kStart + 10;
+  })) << arm.log();
+  const double took_ms = (moved.arrived_us - moved.started_us) / 1000.0;
+  EXPECT_NEAR(took_ms, inputs[kUsed], 0.05 * inputs[kUsed]);
+}
+
+TEST(TimedMoves, AMoveWhereNoAxisMovesIsNotMovingForItsWholeTime) {
+  Arm arm;
+  arm.home();
+  std::vector<std::uint16_t> request(kAxes, kStart);
+  request.push_back(5000);
+  const auto sent = std::chrono::steady_clock::now();
+  ASSERT_TRUE(arm.plc().write_registers(0, request).ok()) << arm.log();
+  // Every axis is where its goal is: the move is over as soon as the cache shows it, not when
+  // the plan's 5 s have run out.
+  std::vector<std::uint16_t> inputs;
+  ASSERT_TRUE(eventually([&] {
+    inputs = arm.group_inputs(0);
+    return inputs[kMoving] == 0;
+  }));
+  EXPECT_LT(std::chrono::steady_clock::now() - sent, 4500ms) << "moving read 1 while no axis moved";
+  EXPECT_EQ(inputs[kTimeLeft], 0);
+  EXPECT_EQ(inputs[kLastMove], 1);
 }
 
 }  // namespace
