@@ -284,6 +284,16 @@ int run_gateway(const Options& options) {
   return kExitOk;
 }
 
+// What `argument`, not understood by the command line, is not.
+std::string unknown_argument(const CLI::App& app, const std::string& argument) {
+  if (argument.starts_with('-')) return "no option " + argument + " (sms-gateway --help lists them)";
+  std::string commands;
+  for (const CLI::App* command : app.get_subcommands([](const CLI::App*) { return true; })) {
+    commands += (commands.empty() ? "" : ", ") + command->get_name();
+  }
+  return "no command " + argument + "; the commands are " + commands;
+}
+
 }  // namespace
 
 static int run_command_line(int argc, char** argv) {
@@ -339,6 +349,14 @@ static int run_command_line(int argc, char** argv) {
     app.parse(argc, argv);
   } catch (const CLI::RuntimeError& finished) {
     return finished.get_exit_code();  // a tool subcommand ended with its own status
+  } catch (const CLI::CallForHelp& help) {
+    // `sms-gateway NAME --help` where NAME is not a command: CLI11 answers --help before it looks
+    // at what it did not understand, and would print the general help with status 0.
+    if (const auto unknown = app.remaining(true); !unknown.empty()) {
+      std::cerr << "sms-gateway: " << unknown_argument(app, unknown.front()) << "\n";
+      return kExitConfigError;
+    }
+    return app.exit(help);
   } catch (const CLI::ParseError& error) {
     // CLI11 prints the message; its own codes (105, 109, 114, ...) become the documented
     // command-line error status 2 (README "Command line"); --help stays 0.
