@@ -117,6 +117,20 @@ std::string joined(const std::vector<std::string>& names) {
   return text;
 }
 
+// What the gateway warns about at every start with this configuration, which --check-config says
+// too: files with secrets that every user may read, password logins over plain HTTP.
+std::vector<std::string> start_warnings(const Config& config, const std::string& config_path) {
+  std::vector<std::string> warnings = sms::config::secret_file_warnings(config, config_path);
+  if (const auto& console = config.console; console && console->insecure_http && !console->users.empty() &&
+                                            !sms::config::is_loopback_host(console->listen.host)) {
+    warnings.push_back("console: passwords of console.users cross the network in clear: http://" +
+                       console->listen.to_string() +
+                       " is plain HTTP on a non-loopback address (console.insecure_http: true); give the console a "
+                       "certificate and key (console.certificate, console.key) and remove insecure_http");
+  }
+  return warnings;
+}
+
 // Checks the file and the environment variables the gateway would apply over it.
 int check_config(const std::string& path) {
   auto config = sms::config::load_config_file(path);
@@ -150,7 +164,11 @@ int check_config(const std::string& path) {
       return kExitConfigError;
     }
   }
-  std::cout << path << ": OK: " << summary(*config);
+  const auto warnings = start_warnings(*config, path);
+  for (const auto& warning : warnings) std::cerr << path << ": warning: " << warning << "\n";
+  std::cout << path << ": OK"
+            << (warnings.empty() ? std::string() : " (" + std::to_string(warnings.size()) + " warning(s) above)")
+            << ": " << summary(*config);
   if (!applied.empty()) std::cout << " (with " << joined(applied) << " from the environment)";
   std::cout << "\n";
   return kExitOk;
