@@ -285,7 +285,10 @@ TEST_P(Conformance, AFullQueueAnswersBusyAtOnceAndTheAdmittedWritesLandInOrder) 
   EXPECT_TRUE(one.problems.empty()) << ::testing::PrintToString(one.problems);
   EXPECT_EQ(one.admitted, (std::vector<std::uint8_t>{1, 2, 3, 4}));
   EXPECT_EQ(one.refused, (std::vector<std::uint8_t>{5, 6, 7}));
-  EXPECT_EQ(frames_->writes(pc(), 1), one.admitted) << "the refused writes must not reach the bus";
+  // What servo 1 heard, a write's retries (an answer a loaded machine heard too late) counted once.
+  const auto heard_first = conformance::attempts_per_value(frames_->writes(pc(), 1));
+  EXPECT_EQ(conformance::values_of(heard_first), one.admitted) << "the refused writes must not reach the bus";
+  EXPECT_LE(conformance::most_attempts(heard_first), 1 + settings_.retries);
   EXPECT_EQ(memory(1, pc().ram_field), pc().value(4));
   EXPECT_EQ(engine_->counters().queue_full, 4U);
 
@@ -301,7 +304,9 @@ TEST_P(Conformance, AFullQueueAnswersBusyAtOnceAndTheAdmittedWritesLandInOrder) 
   const auto two = burst.summary();
   EXPECT_TRUE(two.problems.empty()) << ::testing::PrintToString(two.problems);
   ASSERT_GE(two.admitted.size(), kDepth);
-  EXPECT_EQ(frames_->writes(pc(), 1), two.admitted);
+  const auto heard_burst = conformance::attempts_per_value(frames_->writes(pc(), 1));
+  EXPECT_EQ(conformance::values_of(heard_burst), two.admitted);
+  EXPECT_LE(conformance::most_attempts(heard_burst), 1 + settings_.retries);
   EXPECT_EQ(memory(1, pc().ram_field), pc().value(two.admitted.back()));
   RecordProperty("burst_admitted", static_cast<int>(two.admitted.size()));
   RecordProperty("burst_refused", static_cast<int>(two.refused.size()));
@@ -420,7 +425,14 @@ TEST_P(Conformance, ASilentServoOwedAStopCostsOneAttemptPerProbePeriod) {
     std::this_thread::sleep_for(20ms);
   }
   const auto window = Clock::now() - window_start;
-  EXPECT_EQ(frames_->writes(pc(), 1).size(), static_cast<std::size_t>(written));
+  // Every client write reached servo 1, in order, each in at most the attempts the engine's rule
+  // allows (an answer a loaded machine heard too late is asked again): what the simulator heard,
+  // not a count that depends on how the machine's timing went.
+  const auto heard = conformance::attempts_per_value(frames_->writes(pc(), 1));
+  std::vector<std::uint8_t> sent;
+  for (int i = 0; i < written; ++i) sent.push_back(static_cast<std::uint8_t>(10 + i % 100));
+  EXPECT_EQ(conformance::values_of(heard), sent) << "the writes servo 1 heard, each with its retries once";
+  EXPECT_LE(conformance::most_attempts(heard), 1 + settings_.retries);
   // Per probe period one blind stop and one awaited attempt (the fence), no more.
   std::vector<Clock::time_point> attempts;
   const auto frames = frames_->frames();
