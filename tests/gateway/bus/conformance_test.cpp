@@ -364,7 +364,14 @@ TEST_P(Conformance, AnOfflineServoIsAnsweredAtOnceProbedAtItsPeriodAndComesBack)
   Clock::duration slowest{};
   Clock::duration total{};
   int reads = 0;
-  while (Clock::now() - window_start < 1200ms) {
+  // At least 1.2 s, and on until three probes were heard (a loaded machine delays them; at most
+  // 10 s): the probes are counted as the simulator heard them, not expected of a time window.
+  constexpr std::size_t kProbes = 3;
+  const auto probing = [&] {
+    const auto so_far = Clock::now() - window_start;
+    return so_far < 10s && (so_far < 1200ms || frames_->addressed_to(3).size() < kProbes);
+  };
+  while (probing()) {
     const auto asked = Clock::now();
     const BusResult result = transact(*engine_, pc().read_feedback(3), Priority::ClientRead);
     const auto took = Clock::now() - asked;
@@ -377,13 +384,12 @@ TEST_P(Conformance, AnOfflineServoIsAnsweredAtOnceProbedAtItsPeriodAndComesBack)
   }
   const auto window = Clock::now() - window_start;
   const auto probes = frames_->addressed_to(3);
-  // The bus asked servo 3 only for its probes: one per probe period (200 ms) counted from the
-  // end of the previous one, which waits out its response timeout (50 ms) — the reads, about
+  // The bus asked servo 3 only for its probes: at most one per probe period (200 ms) counted from
+  // the end of the previous one, which waits out its response timeout (50 ms) — the reads, about
   // 25 of them, added nothing. One read on the bus would cost a response timeout per attempt,
   // three attempts, and three frames.
   const auto most = window / settings_.probe_period + 1;
-  const auto fewest = window / (settings_.probe_period + settings_.response_timeout + 100ms) - 1;
-  EXPECT_GE(static_cast<long>(probes.size()), fewest) << reads << " reads in " << to_ms(window) << " ms";
+  EXPECT_GE(probes.size(), kProbes) << "servo 3 was not probed in " << to_ms(window) << " ms";
   EXPECT_LE(static_cast<long>(probes.size()), most) << reads << " reads in " << to_ms(window) << " ms";
   for (std::size_t i = 1; i < probes.size(); ++i) {
     EXPECT_GE(probes[i] - probes[i - 1], settings_.probe_period * 9 / 10) << "probe " << i;
