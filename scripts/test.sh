@@ -165,7 +165,8 @@ ctest_fail_fast() {
   tail -n +1 -s 0.2 -f --pid="$ctest_run" "$log" &
   tail_run=$!
   while kill -0 "$ctest_run" 2>/dev/null; do
-    if grep -qE '\*\*\*(Failed|Timeout|Exception|Not Run)' "$log"; then
+    # A failed, timed-out, crashed or missing test; a disabled one is no failure.
+    if grep -qP '\*\*\*(Failed|Timeout|Exception|Not Run(?! \(Disabled\)))' "$log"; then
       sleep 1  # ctest writes the failed test's output right after its line
       stop_tree "$ctest_run"
       wait "$tail_run" || true
