@@ -223,22 +223,26 @@ done
 trap summary EXIT
 took "the checks beside it, after ctest" "$step"
 record_checks
-if [ "$run_tsan" = 1 ]; then
+# ctest_step NAME CTEST_ARGS...: ctest_fail_fast as a step of its own; it is stopped with what it
+# started if the command ends first (an interrupt: a background job does not get the terminal's).
+ctest_step() {
+  local name=$1 status=0
+  shift
   step=$SECONDS
-  status=0
-  TSAN_OPTIONS="halt_on_error=1 second_deadlock_stack=1" \
-    ctest_fail_fast --test-dir build-tsan -j "$jobs" \
-    -R 'SafetyState|BusEngineTest|QueueTest|LateReplyTest|Conformance|Fairness|Scheduling|MotionGateTest|TcpServerTest|Router|RtuEngine|RtuContractTest|MetricsOfARunningGateway|BusReopen|BusLend|EchoTest|PollCycleTest|StatusByte' "$@" ||
-    status=$?
-  [ "$status" -eq 0 ] || { took "ctest (build-tsan) FAILED" "$step"; exit "$status"; }
-  took "ctest (build-tsan)" "$step"
+  ctest_fail_fast "$@" &
+  ctest_pid=$!
+  trap 'stop_tree "$ctest_pid"; summary' EXIT
+  wait "$ctest_pid" || status=$?
+  trap summary EXIT
+  [ "$status" -eq 0 ] || { took "$name FAILED" "$step"; exit "$status"; }
+  took "$name" "$step"
+}
+if [ "$run_tsan" = 1 ]; then
+  TSAN_OPTIONS="halt_on_error=1 second_deadlock_stack=1" ctest_step "ctest (build-tsan)" --test-dir build-tsan -j "$jobs" \
+    -R 'SafetyState|BusEngineTest|QueueTest|LateReplyTest|Conformance|Fairness|Scheduling|MotionGateTest|TcpServerTest|Router|RtuEngine|RtuContractTest|MetricsOfARunningGateway|BusReopen|BusLend|EchoTest|PollCycleTest|StatusByte' "$@"
 fi
 if [ "$run_fuzz" = 1 ]; then
-  step=$SECONDS
-  status=0
-  ctest_fail_fast --test-dir build-fuzz -j "$jobs" "$@" || status=$?
-  [ "$status" -eq 0 ] || { took "fuzzers FAILED" "$step"; exit "$status"; }
-  took "fuzzers" "$step"
+  ctest_step "fuzzers" --test-dir build-fuzz -j "$jobs" "$@"
 fi
 # ARM, light form (docs/ARM.md "In the test command"): the protocol and modbus_map suites cross-built
 # for armhf (32-bit ARMv7: 32-bit long, size_t and time_t; unsigned char) and run under qemu-arm,
