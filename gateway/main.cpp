@@ -117,6 +117,20 @@ std::string joined(const std::vector<std::string>& names) {
   return text;
 }
 
+// What the gateway warns about at every start with this configuration, which --check-config says
+// too: files with secrets that every user may read, password logins over plain HTTP.
+std::vector<std::string> start_warnings(const Config& config, const std::string& config_path) {
+  std::vector<std::string> warnings = sms::config::secret_file_warnings(config, config_path);
+  if (const auto& console = config.console; console && console->insecure_http && !console->users.empty() &&
+                                            !sms::config::is_loopback_host(console->listen.host)) {
+    warnings.push_back("console: passwords of console.users cross the network in clear: http://" +
+                       console->listen.to_string() +
+                       " is plain HTTP on a non-loopback address (console.insecure_http: true); give the console a "
+                       "certificate and key (console.certificate, console.key) and remove insecure_http");
+  }
+  return warnings;
+}
+
 // Checks the file and the environment variables the gateway would apply over it.
 int check_config(const std::string& path) {
   auto config = sms::config::load_config_file(path);
@@ -150,7 +164,11 @@ int check_config(const std::string& path) {
       return kExitConfigError;
     }
   }
-  std::cout << path << ": OK: " << summary(*config);
+  const auto warnings = start_warnings(*config, path);
+  for (const auto& warning : warnings) std::cerr << path << ": warning: " << warning << "\n";
+  std::cout << path << ": OK"
+            << (warnings.empty() ? std::string() : " (" + std::to_string(warnings.size()) + " warning(s) above)")
+            << ": " << summary(*config);
   if (!applied.empty()) std::cout << " (with " << joined(applied) << " from the environment)";
   std::cout << "\n";
   return kExitOk;
@@ -284,6 +302,16 @@ int run_gateway(const Options& options) {
   return kExitOk;
 }
 
+// What `argument`, not understood by the command line, is not.
+std::string unknown_argument(const CLI::App& app, const std::string& argument) {
+  if (argument.starts_with('-')) return "no option " + argument + " (sms-gateway --help lists them)";
+  std::string commands;
+  for (const CLI::App* command : app.get_subcommands([](const CLI::App*) { return true; })) {
+    commands += (commands.empty() ? "" : ", ") + command->get_name();
+  }
+  return "no command " + argument + "; the commands are " + commands;
+}
+
 }  // namespace
 
 static int run_command_line(int argc, char** argv) {
@@ -339,6 +367,14 @@ static int run_command_line(int argc, char** argv) {
     app.parse(argc, argv);
   } catch (const CLI::RuntimeError& finished) {
     return finished.get_exit_code();  // a tool subcommand ended with its own status
+  } catch (const CLI::CallForHelp& help) {
+    // `sms-gateway NAME --help` where NAME is not a command: CLI11 answers --help before it looks
+    // at what it did not understand, and would print the general help with status 0.
+    if (const auto unknown = app.remaining(true); !unknown.empty()) {
+      std::cerr << "sms-gateway: " << unknown_argument(app, unknown.front()) << "\n";
+      return kExitConfigError;
+    }
+    return app.exit(help);
   } catch (const CLI::ParseError& error) {
     // CLI11 prints the message; its own codes (105, 109, 114, ...) become the documented
     // command-line error status 2 (README "Command line"); --help stays 0.

@@ -50,6 +50,7 @@ done
 # and neither the tree nor its parent collects build files.
 work=$PWD/build-deb/work${arch:+-$arch}
 rm -rf "$work" && mkdir -p "$work/src"
+echo "package.sh: copying the sources to $work/src"
 git ls-files -z --cached --others --exclude-standard | xargs -0 cp --parents -t "$work/src" 2>/dev/null ||
   tar --exclude='./build*' --exclude=./.git -cf - . | tar -xf - -C "$work/src"
 # Cross: the architecture-dependent package only (-B), no tests (nocheck: they run under qemu in
@@ -61,11 +62,38 @@ if command -v ccache >/dev/null; then
   export CMAKE_C_COMPILER_LAUNCHER=${CMAKE_C_COMPILER_LAUNCHER:-ccache}
   export CMAKE_CXX_COMPILER_LAUNCHER=${CMAKE_CXX_COMPILER_LAUNCHER:-ccache}
 fi
+started=$SECONDS
 build=(dpkg-buildpackage -b -us -uc -j"$(nproc)")
 [ -z "$arch" ] ||
   build=(env DEB_BUILD_OPTIONS="nocheck ${DEB_BUILD_OPTIONS:-}" dpkg-buildpackage -a "$arch" -B -d -us -uc -j"${SMS_CROSS_JOBS:-2}")
-(cd "$work/src" && "${build[@]}") >"$work/build.log" 2>&1 ||
-  { tail -50 "$work/build.log" >&2; echo "package.sh: dpkg-buildpackage failed ($work/build.log)" >&2; exit 1; }
+# The build's output goes to its log; what it is doing is said as it goes: each debhelper step
+# as it starts, and during the compile ninja's [done/all] once a minute (a native build is about
+# 20 minutes of GCC -O2 on 2 cores, a cross build more).
+log=$work/build.log
+say_progress() {
+  local said='' said_at=$SECONDS step progress
+  while sleep 2; do
+    # "   dh_auto_build -O--buildsystem=cmake+ninja" and the like: dh names each step as it starts it.
+    step=$(sed -n 's/^   \(dh_[a-z_]*\).*/\1/p' "$log" | tail -1)
+    progress=$(tail -c 65536 "$log" | grep -o '^\[[0-9]*/[0-9]*\]' | tail -1 || true)
+    if [ -n "$step" ] && [ "$step" != "$said" ]; then
+      echo "package.sh: $step (after $((SECONDS - started)) s)"
+      said=$step said_at=$SECONDS
+    elif [ -n "$progress" ] && ((SECONDS - said_at >= 60)); then
+      echo "package.sh: $step: compiled $progress (after $((SECONDS - started)) s)"
+      said_at=$SECONDS
+    fi
+  done
+}
+echo "package.sh: ${build[*]} in $work/src (log: $log)"
+: >"$log"
+say_progress &
+speaker=$!
+trap 'kill "$speaker" 2>/dev/null || true' EXIT
+(cd "$work/src" && "${build[@]}") >"$log" 2>&1 ||
+  { tail -50 "$log" >&2; echo "package.sh: dpkg-buildpackage failed ($log)" >&2; exit 1; }
+kill "$speaker" 2>/dev/null || true
+echo "package.sh: built in $((SECONDS - started)) s"
 mkdir -p "$out"
 cp "$work"/*.deb "$work"/*.buildinfo "$work"/*.changes "$out"/
 deb=$(ls "$out"/sms-gateway_*_"${arch:-$native}".deb | head -1)

@@ -17,7 +17,11 @@
 #   6. the ARM light step where its cross toolchain is installed (docs/ARM.md; SMS_SKIP_ARM=1);
 #   7. the container image built from HEAD and checked (scripts/container-test.sh --head) where
 #      podman is installed (SMS_SKIP_CONTAINER=1 skips it).
-# At the end it prints how long each step took. Arguments are passed to each ctest run (e.g. -R Safety).
+# It fails fast: the first failing step ends the command at once, with the failing test's output
+# (the tests still running beside it are stopped and named) or the failing check's log; a check
+# that fails while ctest runs stops ctest, a failing test stops the checks (by their process ids).
+# At the end, failed or not, it prints how long each step took. Arguments are passed to each ctest
+# run (e.g. -R Safety).
 # Why clang for the sanitizer build: it compiles this code with the sanitizers about twice as fast
 # as GCC 12, and its -Wall finds other mistakes. Why GCC's front end and not a GCC build: a
 # GCC -O2 build costs 5 times the CPU of the front end alone, and on 2 cores that was most of the
@@ -41,7 +45,7 @@ trap summary EXIT
 step=$SECONDS
 ./scripts/install-deps.sh
 # First the checks that take seconds: a file off the house format fails the run before the build.
-./scripts/format.sh --check
+./scripts/format.sh --check || { took "dependencies and format FAILED" "$step"; exit 1; }
 took "dependencies and format" "$step"
 jobs=$(nproc)
 # A build dir configured with another compiler is configured anew (CMake cannot switch in place).
@@ -71,7 +75,7 @@ step=$SECONDS
 fresh_with build-asan 'clang++'
 cmake -S . -B build-asan -G Ninja "${sanitizer_build[@]}" -DSMS_SANITIZE=ON -DSMS_WERROR=ON \
   -DSMS_BUILD_BENCH=ON "${launcher[@]}" >/dev/null
-cmake --build build-asan -j "$jobs"
+cmake --build build-asan -j "$jobs" || { took "clang ASan+UBSan build FAILED" "$step"; exit 1; }
 took "clang ASan+UBSan build" "$step"
 
 # The checks beside ctest, one after another at the lowest priority: the suites must pass on a
@@ -86,6 +90,8 @@ run_fuzz=0
 checks=build-asan/checks
 rm -rf "$checks"
 mkdir -p "$checks"
+# beside NAME COMMAND...: one check, its log kept; the first that fails ends the checks (and the
+# command: below).
 beside() {
   local name=$1 start=$SECONDS
   shift
@@ -93,6 +99,7 @@ beside() {
     echo "$name $((SECONDS - start))" >>"$checks/passed"
   else
     echo "$name $((SECONDS - start))" >>"$checks/failed"
+    return 1
   fi
 }
 tsan_build() {
@@ -107,53 +114,135 @@ tsan_build() {
 }
 (
   renice -n 19 -p "$BASHPID" >/dev/null  # before anything starts: what it starts inherits it
-  beside clang-tidy ./scripts/tidy.sh build-asan
-  beside gcc-front-end ./scripts/gcc-check.sh build-gcc
-  [ "$run_tsan" = 0 ] || beside tsan-build tsan_build
-  [ "$run_fuzz" = 0 ] || beside fuzz-build ./scripts/fuzz.sh --build
+  beside clang-tidy ./scripts/tidy.sh build-asan || exit 1
+  beside gcc-front-end ./scripts/gcc-check.sh build-gcc || exit 1
+  if [ "$run_tsan" = 1 ]; then beside tsan-build tsan_build || exit 1; fi
+  if [ "$run_fuzz" = 1 ]; then beside fuzz-build ./scripts/fuzz.sh --build || exit 1; fi
 ) </dev/null &
 beside_pid=$!
-# Stops the checks, with everything they started, if the command ends before they do.
-kill_tree() {
-  local child
-  for child in $(pgrep -P "$1"); do kill_tree "$child"; done
-  kill "$1" 2>/dev/null || true
-}
-trap 'kill_tree "$beside_pid"; summary' EXIT
 
-export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
-export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
-step=$SECONDS
-ctest_status=0
-ctest --test-dir build-asan --output-on-failure -j "$jobs" "$@" || ctest_status=$?
-took "ctest (build-asan)" "$step"
-step=$SECONDS
-wait "$beside_pid" || true
-trap summary EXIT
-took "the checks beside it, after ctest" "$step"
-for outcome in passed failed; do
-  [ -f "$checks/$outcome" ] || continue
-  while read -r name seconds; do record "  $name ($outcome)" "$seconds"; done <"$checks/$outcome"
-done
-if [ -f "$checks/failed" ]; then
+# Fail fast: ctest and the checks run side by side, and whichever fails first ends the command at
+# once, stopping the other by its process id with everything it started.
+# stop_tree PID: the process and all its descendants. They are frozen first, so that none starts
+# another while the tree is walked, then terminated.
+tree_of() {
+  local child
+  echo "$1"
+  for child in $(pgrep -P "$1"); do tree_of "$child"; done
+}
+stop_tree() {
+  local pids
+  [ -n "$1" ] || return 0
+  mapfile -t pids < <(tree_of "$1")
+  kill -STOP "${pids[@]}" 2>/dev/null || true
+  mapfile -t pids < <(tree_of "$1")
+  kill -TERM "${pids[@]}" 2>/dev/null || true
+  kill -CONT "${pids[@]}" 2>/dev/null || true
+}
+# The checks' times, for the summary, and the log of the one that failed.
+record_checks() {
+  local outcome name seconds
+  for outcome in passed failed; do
+    [ -f "$checks/$outcome" ] || continue
+    while read -r name seconds; do record "  $name ($outcome)" "$seconds"; done <"$checks/$outcome"
+  done
+  [ -f "$checks/failed" ] || return 0
   while read -r name _; do
     echo "test.sh: $name failed ($checks/$name.log):" >&2
     grep -B2 -A20 -m5 -E 'error|warning|FAILED|findings' "$checks/$name.log" >&2 || tail -40 "$checks/$name.log" >&2
   done <"$checks/failed"
-  exit 1
-fi
-[ "$ctest_status" -eq 0 ] || exit "$ctest_status"
-if [ "$run_tsan" = 1 ]; then
+}
+
+# ctest_fail_fast CTEST_ARGS...: ctest, its output shown as it runs, ended at the first failed
+# test: that test's output is shown (--output-on-failure), then the tests still running are
+# stopped and named (--stop-on-failure alone starts no new test but waits for them, the longest
+# for a minute). Its status is ctest's, 8 for a failed test.
+ctest_fail_fast() {
+  local log=$checks/ctest-$BASHPID.log ctest_run tail_run status=0
+  : >"$log"
+  ctest --output-on-failure --stop-on-failure "$@" >"$log" 2>&1 &
+  ctest_run=$!
+  tail -n +1 -s 0.2 -f --pid="$ctest_run" "$log" &
+  tail_run=$!
+  while kill -0 "$ctest_run" 2>/dev/null; do
+    # A failed, timed-out, crashed or missing test; a disabled one is no failure.
+    if grep -qP '\*\*\*(Failed|Timeout|Exception|Not Run(?! \(Disabled\)))' "$log"; then
+      sleep 1  # ctest writes the failed test's output right after its line
+      stop_tree "$ctest_run"
+      wait "$tail_run" || true
+      echo "test.sh: a test failed; stopped the tests still running: $(awk '
+        / Start +[0-9]+: / { number = $2; sub(":", "", number); name[number] = $3 }
+        / Test +#[0-9]+: / { match($0, /#[0-9]+/); finished[substr($0, RSTART + 1, RLENGTH - 1)] = 1 }
+        END { for (number in name) if (!(number in finished)) printf "%s ", name[number] }' "$log")" >&2
+      return 8
+    fi
+    sleep 1
+  done
+  wait "$ctest_run" || status=$?
+  wait "$tail_run" || true
+  return "$status"
+}
+
+export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
+export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
+step=$SECONDS
+ctest_fail_fast --test-dir build-asan -j "$jobs" "$@" &
+ctest_pid=$!
+trap 'stop_tree "$ctest_pid"; stop_tree "$beside_pid"; summary' EXIT
+while [ -n "$ctest_pid$beside_pid" ]; do
+  finished=
+  status=0
+  # shellcheck disable=SC2086  # the pids still running, one or two
+  wait -n -p finished $ctest_pid $beside_pid || status=$?
+  if [ "$finished" = "$ctest_pid" ]; then
+    ctest_pid=
+    if [ "$status" -ne 0 ]; then
+      took "ctest (build-asan) FAILED" "$step"
+      [ -z "$beside_pid" ] || echo "test.sh: ctest failed: the checks beside it are stopped" >&2
+      stop_tree "$beside_pid"
+      beside_pid=
+      record_checks
+      exit "$status"
+    fi
+    took "ctest (build-asan)" "$step"
+    step=$SECONDS
+  elif [ "$finished" = "$beside_pid" ]; then
+    beside_pid=
+    if [ "$status" -ne 0 ]; then
+      if [ -n "$ctest_pid" ]; then
+        echo "test.sh: a check beside ctest failed: ctest is stopped" >&2
+        stop_tree "$ctest_pid"
+        ctest_pid=
+        took "ctest (build-asan), stopped" "$step"
+      fi
+      record_checks
+      exit 1
+    fi
+  fi
+done
+trap summary EXIT
+took "the checks beside it, after ctest" "$step"
+record_checks
+# ctest_step NAME CTEST_ARGS...: ctest_fail_fast as a step of its own; it is stopped with what it
+# started if the command ends first (an interrupt: a background job does not get the terminal's).
+ctest_step() {
+  local name=$1 status=0
+  shift
   step=$SECONDS
-  TSAN_OPTIONS="halt_on_error=1 second_deadlock_stack=1" \
-    ctest --test-dir build-tsan --output-on-failure -j "$jobs" \
+  ctest_fail_fast "$@" &
+  ctest_pid=$!
+  trap 'stop_tree "$ctest_pid"; summary' EXIT
+  wait "$ctest_pid" || status=$?
+  trap summary EXIT
+  [ "$status" -eq 0 ] || { took "$name FAILED" "$step"; exit "$status"; }
+  took "$name" "$step"
+}
+if [ "$run_tsan" = 1 ]; then
+  TSAN_OPTIONS="halt_on_error=1 second_deadlock_stack=1" ctest_step "ctest (build-tsan)" --test-dir build-tsan -j "$jobs" \
     -R 'SafetyState|BusEngineTest|QueueTest|LateReplyTest|Conformance|Fairness|Scheduling|MotionGateTest|TcpServerTest|Router|RtuEngine|RtuContractTest|MetricsOfARunningGateway|BusReopen|BusLend|EchoTest|PollCycleTest|StatusByte' "$@"
-  took "ctest (build-tsan)" "$step"
 fi
 if [ "$run_fuzz" = 1 ]; then
-  step=$SECONDS
-  ctest --test-dir build-fuzz --output-on-failure -j "$jobs" "$@"
-  took "fuzzers" "$step"
+  ctest_step "fuzzers" --test-dir build-fuzz -j "$jobs" "$@"
 fi
 # ARM, light form (docs/ARM.md "In the test command"): the protocol and modbus_map suites cross-built
 # for armhf (32-bit ARMv7: 32-bit long, size_t and time_t; unsigned char) and run under qemu-arm,

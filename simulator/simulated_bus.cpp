@@ -3,6 +3,8 @@
 #include <fcntl.h>
 #include <poll.h>
 #include <sys/eventfd.h>
+#include <sys/inotify.h>
+#include <sys/ioctl.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -160,6 +162,7 @@ class SimulatedBus::Impl {
   void flush_due(Clock::time_point now);
   void write_out();
   std::optional<Clock::time_point> next_deadline() const;
+  void on_hosts_opening_or_closing();
   Clock::duration rtu_silence() const;
   // The servo's t3.5 between frames: 3.5 characters at every rate (no fixed 1.75 ms).
   Clock::duration rtu_interframe() const;
@@ -171,6 +174,12 @@ class SimulatedBus::Impl {
   int line_fd_ = -1;
   int slave_fd_ = -1;  // held open so a host closing its end never hangs the pty up
   int wake_fd_ = -1;
+  // A pty's hosts, as a real adapter's last close would: the exclusive use a host claimed
+  // (TIOCEXCL) ends when no host has the pty open any more. Otherwise it would outlive a host
+  // that died without giving it up (SIGKILL, a crash), since our slave_fd_ keeps the tty alive,
+  // and every later open by a user other than root would fail with EBUSY.
+  int hosts_fd_ = -1;  // inotify: the hosts' opens and closes of the pty slave
+  int hosts_open_ = 0;
   std::string slave_path_;
   bool link_created_ = false;
   std::mt19937 dice_;
@@ -255,6 +264,20 @@ void SimulatedBus::Impl::open_line() {
     slave_fd_ = ::open(slave_path_.c_str(), O_RDWR | O_NOCTTY | O_CLOEXEC);
     if (slave_fd_ < 0) fail("cannot open the pty slave " + slave_path_);
     configure_raw_serial(slave_fd_, initial_baud);
+    // From here on every open and close is a host's. Without inotify the pty still works; only a
+    // host that dies holding it exclusively leaves it busy.
+    hosts_fd_ = ::inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
+    if (hosts_fd_ >= 0 && ::inotify_add_watch(hosts_fd_, slave_path_.c_str(), IN_OPEN | IN_CLOSE) < 0) {
+      ::close(hosts_fd_);
+      hosts_fd_ = -1;
+    }
+    if (hosts_fd_ < 0) {
+      spdlog::warn(
+          "sms-sim: cannot watch who opens {} ({}): a host killed while it holds it exclusively leaves it "
+          "busy until sms-sim restarts",
+          slave_path_, std::strerror(errno));
+    }
+    hosts_open_ = 0;
   }
   if (!options_.link.empty()) {
     struct stat existing {};
@@ -275,7 +298,7 @@ void SimulatedBus::Impl::open_line() {
 }
 
 void SimulatedBus::Impl::close_line() {
-  for (int* fd : {&line_fd_, &slave_fd_, &wake_fd_}) {
+  for (int* fd : {&line_fd_, &slave_fd_, &wake_fd_, &hosts_fd_}) {
     if (*fd >= 0) ::close(*fd);
     *fd = -1;
   }
@@ -339,7 +362,7 @@ void SimulatedBus::Impl::run() {
       }
       if (!unsent_.empty()) line_events |= POLLOUT;
     }
-    std::array<pollfd, 2> fds{{{line_fd_, line_events, 0}, {wake_fd_, POLLIN, 0}}};
+    std::array<pollfd, 3> fds{{{line_fd_, line_events, 0}, {wake_fd_, POLLIN, 0}, {hosts_fd_, POLLIN, 0}}};
     const int ready = ::ppoll(fds.data(), fds.size(), timeout_pointer, nullptr);
     if (ready < 0 && errno != EINTR) {
       spdlog::error("sms-sim: poll on {} failed: {}", slave_path_, std::strerror(errno));
@@ -349,6 +372,7 @@ void SimulatedBus::Impl::run() {
       std::uint64_t count = 0;
       [[maybe_unused]] const auto drained = ::read(wake_fd_, &count, sizeof count);
     }
+    if ((fds[2].revents & POLLIN) != 0) on_hosts_opening_or_closing();
     if ((fds[0].revents & POLLIN) != 0) {
       const ssize_t received = ::read(line_fd_, buffer.data(), buffer.size());
       const Clock::time_point now = Clock::now();
@@ -370,6 +394,26 @@ void SimulatedBus::Impl::run() {
     }
     flush_due(now);
   }
+}
+
+void SimulatedBus::Impl::on_hosts_opening_or_closing() {
+  // Counted over every event read at once: a host that died and one that opened right after
+  // (root may, while the flag is still up) leave the count at one and the new host's claim stands.
+  alignas(inotify_event) std::array<char, 4096> events{};
+  for (;;) {
+    const ssize_t length = ::read(hosts_fd_, events.data(), events.size());
+    if (length <= 0) break;
+    for (ssize_t at = 0; at < length;) {
+      inotify_event event{};
+      std::memcpy(&event, events.data() + at, sizeof event);
+      if ((event.mask & IN_OPEN) != 0) ++hosts_open_;
+      if ((event.mask & IN_CLOSE) != 0) hosts_open_ = std::max(hosts_open_ - 1, 0);
+      at += static_cast<ssize_t>(sizeof event + event.len);
+    }
+  }
+  // No-op unless a host left its exclusive claim behind. (The descriptors change only while
+  // this thread is not running.)
+  if (hosts_open_ == 0) (void)::ioctl(slave_fd_, TIOCNXCL);
 }
 
 bool SimulatedBus::Impl::listens(BusProtocol protocol, std::uint32_t speed) const {

@@ -126,12 +126,18 @@ class ConsoleTest(ConsoleCase):
         self.assertEqual(fields.returncode, 0, fields.stderr)
         self.assertIn("3\tWRITE", fields.stdout, fields.stdout + fields.stderr)
 
-    def hold(self, seconds, release=True):
-        button = self.browser.find_element(By.ID, "hold-position")
-        actions = ActionChains(self.browser).click_and_hold(button).pause(seconds)
-        if release:
-            actions = actions.release()
-        actions.perform()
+    def hold(self, servo, release=True, button="hold-position"):
+        """Presses the hold-to-run button and holds it until the simulator shows the servo moving
+        (20 steps from where it was): as long as a loaded machine takes, not a fixed time, after
+        which a slow page or gateway would have moved nothing yet."""
+        before = self.sim.field(servo, "present_position")
+        ActionChains(self.browser).click_and_hold(self.browser.find_element(By.ID, button)).perform()
+        try:
+            wait_until(lambda: abs(self.sim.field(servo, "present_position") - before) > 20,
+                       what=f"the held button to move servo {servo}")
+        finally:
+            if release:
+                ActionChains(self.browser).release().perform()
 
     def wait_stopped(self, servo, timeout=15):
         """The servo's position stays put for 300 ms (the simulator's own motion model)."""
@@ -156,7 +162,7 @@ class ConsoleTest(ConsoleCase):
         self.login("op")
         self.sim.command("set 3 41 0a")  # a slow acceleration, so the move outlasts the hold
         start, goal = self.start_far_move(3)
-        self.hold(0.4)
+        self.hold(3)
         # The release writes a hold where the servo is: the goal is no longer the far one.
         wait_until(lambda: self.sim.field(3, "goal_position") != goal, what="the release to end the jog")
         self.wait_stopped(3)
@@ -171,7 +177,7 @@ class ConsoleTest(ConsoleCase):
         main_window = self.browser.current_window_handle
         self.browser.switch_to.new_window("tab")
         start, goal = self.start_far_move(1)
-        self.hold(0.3, release=False)  # still held when the tab goes
+        self.hold(1, release=False)  # still held when the tab goes
         self.browser.close()
         self.browser.switch_to.window(main_window)
         # The witness is the servo's own goal: the gateway ends the jog when the tab's socket goes,
@@ -209,7 +215,7 @@ class ConsoleTest(ConsoleCase):
             ActionChains(self.browser).release().perform()
         # A new press moves again.
         before = self.sim.field(2, "present_position")
-        self.hold(0.3)
+        self.hold(2)  # a new press moves again
         self.assertGreater(abs(self.sim.field(2, "present_position") - before), 20, "a new press did not move servo 2")
         self.wait_stopped(2)
 
@@ -365,10 +371,14 @@ class ConsoleTest(ConsoleCase):
         wait_until(lambda: self.sim.field(1, "torque_enable") == 0, what="servo 1's torque to go off")
         self.browser.find_element(By.ID, "torque-on").click()
         wait_until(lambda: self.sim.field(1, "torque_enable") == 1, what="servo 1's torque to come on")
-        def hold_to_turn(seconds):
+        def hold_to_turn(seconds=None):
+            """Held for `seconds`, or until servo 1 turns (as long as a loaded machine takes)."""
             speed = self.browser.find_element(By.ID, "jog-speed")
             speed.clear()
             speed.send_keys("800")
+            if seconds is None:
+                self.hold(1, button="hold-speed")
+                return
             button = self.browser.find_element(By.ID, "hold-speed")
             ActionChains(self.browser).click_and_hold(button).pause(seconds).release().perform()
         # In position mode a speed goal turns nothing: the page says so and nothing is written.
@@ -379,7 +389,7 @@ class ConsoleTest(ConsoleCase):
         # Wheel mode: the servo turns while the button is held and stops when it is released.
         self.sim.command("set 1 33 01")  # operating_mode := 1 (wheel) through the simulator's backdoor
         start = self.sim.field(1, "present_position")
-        hold_to_turn(0.5)
+        hold_to_turn()
         self.wait_stopped(1)
         self.assertNotEqual(self.sim.field(1, "present_position"), start, "servo 1 did not turn while held")
         self.assertEqual(self.sim.field(1, "goal_speed"), 0, "the release did not stop the wheel")
@@ -450,13 +460,23 @@ class ConsoleTest(ConsoleCase):
     # --- helpers ----------------------------------------------------------------------------------
 
     def scan(self, bauds, last_id, expected_ids):
-        """Scans the commissioning page's line at `bauds` up to `last_id`; expects those IDs found."""
+        """Scans the commissioning page's line at `bauds` up to `last_id`; expects those IDs found.
+        A scan asks each ID once (gateway/tools/tool_scan.cpp), so on a loaded machine an answer
+        heard late misses its servo, as it would for an engineer, who scans again: up to three
+        scans, each awaited to its end, not a time."""
         self.browser.find_element(By.ID, "bauds").send_keys(bauds)
         self.browser.find_element(By.ID, "last-id").send_keys(last_id)
-        self.browser.find_element(By.ID, "scan").click()
-        wait_until(lambda: self.browser.execute_script(
-            "return [...document.querySelectorAll('#found-table tr[data-id]')].map(r => r.dataset.id).join(',')")
-                   == expected_ids, timeout=30, what=f"servos {expected_ids} in the scan's result")
+        found = None
+        for _ in range(3):
+            self.browser.execute_script("document.getElementById('message').className = ''")
+            self.browser.find_element(By.ID, "scan").click()
+            wait_until(lambda: self.browser.find_element(By.ID, "message").get_attribute("class") in ("done", "error"),
+                       timeout=60, what="the scan to end")
+            found = self.browser.execute_script(
+                "return [...document.querySelectorAll('#found-table tr[data-id]')].map(r => r.dataset.id).join(',')")
+            if found == expected_ids:
+                return
+        self.assertEqual(found, expected_ids, f"servos found by three scans ({self.text('#message')})")
 
     def write_goal(self, client, servo, goal):
         """A PLC's goal_position write; a servo timeout (0x0B) on a loaded test machine is retried, as

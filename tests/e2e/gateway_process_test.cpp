@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <signal.h>
+#include <sys/stat.h>
 
 #include <atomic>
 #include <future>
@@ -328,6 +329,26 @@ TEST(GatewayProcess, CheckConfigAcceptsTheShippedExamples) {
     EXPECT_EQ(check.wait_exit(10s), std::optional<int>{0}) << check.output();
     EXPECT_NE(check.output().find("OK"), std::string::npos) << check.output();
   }
+}
+
+// What the gateway warns about at every start, --check-config says before it: here password
+// logins over plain HTTP off loopback (console.insecure_http), accepted with a warning.
+TEST(GatewayProcess, CheckConfigSaysTheWarningsOfAStart) {
+  TempDir dir;
+  const std::string path = dir.file("insecure.yaml");
+  std::ofstream(path) << "buses:\n  - {name: arm, device: /dev/ttyUSB0, protocol: feetech, baud: 1000000}\n"
+                         "servos:\n  - {bus: arm, id: 1, table: sts}\n"
+                         "console:\n  listen: 0.0.0.0:8080\n  insecure_http: true\n  users:\n"
+                         "    - {name: shift, role: operate, password_hash: "
+                         "\"$argon2id$v=19$m=65536,t=2,p=1$c29tZXNhbHQ$aGFzaA\"}\n";
+  ::chmod(path.c_str(), 0600);  // password hashes: readable by the gateway's user only
+  ChildProcess check({bin("sms-gateway"), "--check-config", path});
+  EXPECT_EQ(check.wait_exit(10s), std::optional<int>{0}) << check.output();
+  const std::string output = check.output();
+  EXPECT_NE(output.find(path + ": warning: console: passwords of console.users cross the network in clear"),
+            std::string::npos)
+      << output;
+  EXPECT_NE(output.find("OK (1 warning(s) above)"), std::string::npos) << output;
 }
 
 TEST(GatewayProcess, VersionAndMissingModeAreAnswered) {

@@ -5,12 +5,15 @@
 #include <poll.h>
 #include <signal.h>
 #include <stdlib.h>
+#include <sys/ioctl.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
 #include <sys/un.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <array>
+#include <cerrno>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
@@ -136,6 +139,52 @@ TEST(SimulatedBusLine, HostClosingItsEndDoesNotHangTheBusUp) {
   Rig rig(quick_options({sts(1)}));
   rig.host.reset();
   HostPort again(rig.bus->slave_path(), 1'000'000);
+  EXPECT_EQ(again.transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
+}
+
+// A host killed while it holds the pty exclusively (TIOCEXCL, as the gateway does; then SIGKILL,
+// or a crash) does not leave it busy for the next one, as a real adapter's claim ends with its
+// last close: the simulator's own descriptor keeps the pty alive, not the dead host's claim.
+TEST(SimulatedBusLine, AHostKilledWhileHoldingThePtyExclusivelyLeavesItFreeForTheNext) {
+  Rig rig(quick_options({sts(1)}));
+  rig.host.reset();
+  const std::string path = rig.bus->slave_path();
+  // Root opens an exclusive tty anyway: then the next host opens it as nobody, who may not.
+  if (::geteuid() == 0) ASSERT_EQ(::chmod(path.c_str(), 0666), 0) << std::strerror(errno);
+  std::array<int, 2> ready{};
+  ASSERT_EQ(::pipe(ready.data()), 0);
+  const pid_t holder = ::fork();
+  ASSERT_GE(holder, 0);
+  if (holder == 0) {
+    const int fd = ::open(path.c_str(), O_RDWR | O_NOCTTY);
+    if (fd < 0 || ::ioctl(fd, TIOCEXCL) != 0) ::_exit(1);
+    [[maybe_unused]] const auto written = ::write(ready[1], "x", 1);
+    ::pause();
+    ::_exit(0);
+  }
+  ::close(ready[1]);
+  char byte = 0;
+  ASSERT_EQ(::read(ready[0], &byte, 1), 1) << "the holder could not open the pty exclusively";
+  ::close(ready[0]);
+  ASSERT_EQ(::kill(holder, SIGKILL), 0);
+  ASSERT_EQ(::waitpid(holder, nullptr, 0), holder);
+
+  // 0: opened; 3: EBUSY; others: could not try.
+  const auto next_host_opens = [&] {
+    const pid_t next = ::fork();
+    if (next == 0) {
+      if (::geteuid() == 0 && ::setuid(65534) != 0) ::_exit(2);
+      const int fd = ::open(path.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK);
+      ::_exit(fd >= 0 ? 0 : errno == EBUSY ? 3 : 4);
+    }
+    int status = 0;
+    if (next < 0 || ::waitpid(next, &status, 0) != next) return -1;
+    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  };
+  int last = -1;
+  EXPECT_TRUE(eventually([&] { return (last = next_host_opens()) == 0; }, "the next host opens the pty"))
+      << "the last try ended with " << last << " (3: EBUSY, the dead host's claim)";
+  HostPort again(path, 1'000'000);
   EXPECT_EQ(again.transact(kFeetechFormat, protocol::ping(1)), status(1, 0));
 }
 

@@ -6,6 +6,7 @@
 // simulator hears and a client that keeps writes queued on an engine.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdint>
@@ -133,6 +134,32 @@ class FrameLog {
   mutable std::mutex mutex_;
   std::vector<simulator::ReceivedFrame> frames_;
 };
+
+// A run of frames writing the same value: one write and its retries, when the writer never writes
+// one value twice in a row.
+struct HeardWrite {
+  std::uint8_t value = 0;
+  unsigned attempts = 0;
+};
+inline std::vector<HeardWrite> attempts_per_value(const std::vector<std::uint8_t>& values) {
+  std::vector<HeardWrite> heard;
+  for (const auto value : values) {
+    if (heard.empty() || heard.back().value != value) heard.push_back({value, 0});
+    ++heard.back().attempts;
+  }
+  return heard;
+}
+// The writes `heard` carried, each with its retries once, and the most attempts any of them took.
+inline std::vector<std::uint8_t> values_of(const std::vector<HeardWrite>& heard) {
+  std::vector<std::uint8_t> values;
+  for (const auto& write : heard) values.push_back(write.value);
+  return values;
+}
+inline unsigned most_attempts(const std::vector<HeardWrite>& heard) {
+  unsigned most = 0;
+  for (const auto& write : heard) most = std::max(most, write.attempts);
+  return most;
+}
 
 // One client writing the case's RAM field of servos 1-3 as fast as the engine takes it, with
 // `depth` writes in flight at all times, until stop(): a flood of client work. Values 1-200.

@@ -285,7 +285,10 @@ TEST_P(Conformance, AFullQueueAnswersBusyAtOnceAndTheAdmittedWritesLandInOrder) 
   EXPECT_TRUE(one.problems.empty()) << ::testing::PrintToString(one.problems);
   EXPECT_EQ(one.admitted, (std::vector<std::uint8_t>{1, 2, 3, 4}));
   EXPECT_EQ(one.refused, (std::vector<std::uint8_t>{5, 6, 7}));
-  EXPECT_EQ(frames_->writes(pc(), 1), one.admitted) << "the refused writes must not reach the bus";
+  // What servo 1 heard, a write's retries (an answer a loaded machine heard too late) counted once.
+  const auto heard_first = conformance::attempts_per_value(frames_->writes(pc(), 1));
+  EXPECT_EQ(conformance::values_of(heard_first), one.admitted) << "the refused writes must not reach the bus";
+  EXPECT_LE(conformance::most_attempts(heard_first), 1 + settings_.retries);
   EXPECT_EQ(memory(1, pc().ram_field), pc().value(4));
   EXPECT_EQ(engine_->counters().queue_full, 4U);
 
@@ -301,7 +304,9 @@ TEST_P(Conformance, AFullQueueAnswersBusyAtOnceAndTheAdmittedWritesLandInOrder) 
   const auto two = burst.summary();
   EXPECT_TRUE(two.problems.empty()) << ::testing::PrintToString(two.problems);
   ASSERT_GE(two.admitted.size(), kDepth);
-  EXPECT_EQ(frames_->writes(pc(), 1), two.admitted);
+  const auto heard_burst = conformance::attempts_per_value(frames_->writes(pc(), 1));
+  EXPECT_EQ(conformance::values_of(heard_burst), two.admitted);
+  EXPECT_LE(conformance::most_attempts(heard_burst), 1 + settings_.retries);
   EXPECT_EQ(memory(1, pc().ram_field), pc().value(two.admitted.back()));
   RecordProperty("burst_admitted", static_cast<int>(two.admitted.size()));
   RecordProperty("burst_refused", static_cast<int>(two.refused.size()));
@@ -359,7 +364,14 @@ TEST_P(Conformance, AnOfflineServoIsAnsweredAtOnceProbedAtItsPeriodAndComesBack)
   Clock::duration slowest{};
   Clock::duration total{};
   int reads = 0;
-  while (Clock::now() - window_start < 1200ms) {
+  // At least 1.2 s, and on until three probes were heard (a loaded machine delays them; at most
+  // 10 s): the probes are counted as the simulator heard them, not expected of a time window.
+  constexpr std::size_t kProbes = 3;
+  const auto probing = [&] {
+    const auto so_far = Clock::now() - window_start;
+    return so_far < 10s && (so_far < 1200ms || frames_->addressed_to(3).size() < kProbes);
+  };
+  while (probing()) {
     const auto asked = Clock::now();
     const BusResult result = transact(*engine_, pc().read_feedback(3), Priority::ClientRead);
     const auto took = Clock::now() - asked;
@@ -372,13 +384,12 @@ TEST_P(Conformance, AnOfflineServoIsAnsweredAtOnceProbedAtItsPeriodAndComesBack)
   }
   const auto window = Clock::now() - window_start;
   const auto probes = frames_->addressed_to(3);
-  // The bus asked servo 3 only for its probes: one per probe period (200 ms) counted from the
-  // end of the previous one, which waits out its response timeout (50 ms) — the reads, about
+  // The bus asked servo 3 only for its probes: at most one per probe period (200 ms) counted from
+  // the end of the previous one, which waits out its response timeout (50 ms) — the reads, about
   // 25 of them, added nothing. One read on the bus would cost a response timeout per attempt,
   // three attempts, and three frames.
   const auto most = window / settings_.probe_period + 1;
-  const auto fewest = window / (settings_.probe_period + settings_.response_timeout + 100ms) - 1;
-  EXPECT_GE(static_cast<long>(probes.size()), fewest) << reads << " reads in " << to_ms(window) << " ms";
+  EXPECT_GE(probes.size(), kProbes) << "servo 3 was not probed in " << to_ms(window) << " ms";
   EXPECT_LE(static_cast<long>(probes.size()), most) << reads << " reads in " << to_ms(window) << " ms";
   for (std::size_t i = 1; i < probes.size(); ++i) {
     EXPECT_GE(probes[i] - probes[i - 1], settings_.probe_period * 9 / 10) << "probe " << i;
@@ -420,7 +431,14 @@ TEST_P(Conformance, ASilentServoOwedAStopCostsOneAttemptPerProbePeriod) {
     std::this_thread::sleep_for(20ms);
   }
   const auto window = Clock::now() - window_start;
-  EXPECT_EQ(frames_->writes(pc(), 1).size(), static_cast<std::size_t>(written));
+  // Every client write reached servo 1, in order, each in at most the attempts the engine's rule
+  // allows (an answer a loaded machine heard too late is asked again): what the simulator heard,
+  // not a count that depends on how the machine's timing went.
+  const auto heard = conformance::attempts_per_value(frames_->writes(pc(), 1));
+  std::vector<std::uint8_t> sent;
+  for (int i = 0; i < written; ++i) sent.push_back(static_cast<std::uint8_t>(10 + i % 100));
+  EXPECT_EQ(conformance::values_of(heard), sent) << "the writes servo 1 heard, each with its retries once";
+  EXPECT_LE(conformance::most_attempts(heard), 1 + settings_.retries);
   // Per probe period one blind stop and one awaited attempt (the fence), no more.
   std::vector<Clock::time_point> attempts;
   const auto frames = frames_->frames();

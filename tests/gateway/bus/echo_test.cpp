@@ -44,7 +44,11 @@ TEST_F(EchoTest, EchoedPingIsNotTakenForTheServosAnswer) {
   const BusResult result = transact(*engine_, PingOp{1});
   ASSERT_EQ(result.status, BusStatus::Ok) << result.detail;
   EXPECT_EQ(result.servo_error, 0x00);
-  EXPECT_EQ(engine_->counters().stray_frames, 1U);
+  // The adapter echoes every attempt: one echo, and for each retry a loaded machine made its echo
+  // and perhaps the late answer it was made for.
+  const auto counters = engine_->counters();
+  EXPECT_GE(counters.stray_frames, 1U + counters.retries);
+  EXPECT_LE(counters.stray_frames, 1U + 2 * counters.retries);
 }
 
 TEST_F(EchoTest, EchoedTwoByteReadIsNotTakenForItsData) {

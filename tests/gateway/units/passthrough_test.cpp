@@ -273,7 +273,10 @@ TEST_F(ForwardTest, RetriesAnAnswerDamagedOnTheLine) {
   EXPECT_EQ(value, 555);
   const auto after = forwarder_->engine().counters();
   EXPECT_EQ(after.checksum_errors, before.checksum_errors + 1);
-  EXPECT_EQ(after.retries, before.retries + 1);
+  // The damaged answer's retry; one more only where a loaded machine heard an answer after its
+  // 50 ms (the line's two retries bound it).
+  EXPECT_GE(after.retries, before.retries + 1);
+  EXPECT_LE(after.retries, before.retries + 2);
 }
 
 TEST_F(ForwardTest, ManyClientsAtOnceAreSerialisedOnTheLine) {
