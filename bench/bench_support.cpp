@@ -300,7 +300,8 @@ ClientTotals run_clients(std::uint16_t port, int unit, unsigned clients, std::ch
   return merged;
 }
 
-bool parse_arguments(int argc, char** argv, std::string_view summary, std::initializer_list<Argument> arguments) {
+std::optional<int> parse_arguments(int argc, char** argv, std::string_view summary,
+                                   std::initializer_list<Argument> arguments) {
   const auto usage = [&](std::ostream& out) {
     out << argv[0] << ": " << summary << "\n";
     for (const auto& argument : arguments) {
@@ -311,7 +312,7 @@ bool parse_arguments(int argc, char** argv, std::string_view summary, std::initi
     const std::string_view option = argv[index];
     if (option == "--help" || option == "-h") {
       usage(std::cout);
-      return false;
+      return 0;
     }
     const auto* found = std::find_if(arguments.begin(), arguments.end(), [&](const Argument& argument) {
       return option.size() > 2 && option.substr(0, 2) == "--" && option.substr(2) == argument.name;
@@ -319,17 +320,17 @@ bool parse_arguments(int argc, char** argv, std::string_view summary, std::initi
     if (found == arguments.end() || index + 1 >= argc) {
       std::cerr << argv[0] << ": unknown option or missing value: " << option << "\n";
       usage(std::cerr);
-      return false;
+      return 2;
     }
     char* end = nullptr;
     const double value = std::strtod(argv[++index], &end);
     if (end == argv[index] || *end != '\0' || value < 0) {
       std::cerr << argv[0] << ": " << option << " wants a non-negative number, not '" << argv[index] << "'\n";
-      return false;
+      return 2;
     }
     *found->value = value;
   }
-  return true;
+  return std::nullopt;
 }
 
 void quiet_logs() { spdlog::set_level(spdlog::level::warn); }

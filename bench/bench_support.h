@@ -183,8 +183,10 @@ struct Argument {
   double* value;
   std::string_view help;
 };
-// Returns false (after printing usage) when the command line is wrong or --help was given.
-bool parse_arguments(int argc, char** argv, std::string_view summary, std::initializer_list<Argument> arguments);
+// nullopt: run with these values; else the program's exit status, the usage printed: 0 after
+// --help (on standard output), 2 for a wrong command line (on standard error).
+std::optional<int> parse_arguments(int argc, char** argv, std::string_view summary,
+                                   std::initializer_list<Argument> arguments);
 
 // spdlog level of the in-process simulator: warnings only.
 void quiet_logs();

@@ -218,13 +218,14 @@ int main(int argc, char** argv) {
   // priority starve its thread on 2 cores, and late replies then look like silent servos
   // (on a real bus the servos are other hardware).
   double flood_nice = 10;
-  if (!parse_arguments(argc, argv,
-                       "cached FC04 reads/s and latency with 1, 8 and 64 clients, gateway vs a bare libmodbus "
-                       "server; then the bounded bus queue under 64 clients of live FC03 reads",
-                       {{"seconds", &seconds, "duration of each throughput run"},
-                        {"flood-seconds", &flood_seconds, "duration of the live-read flood"},
-                        {"flood-nice", &flood_nice, "niceness of the flooding client threads"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(argc, argv,
+                          "cached FC04 reads/s and latency with 1, 8 and 64 clients, gateway vs a bare libmodbus "
+                          "server; then the bounded bus queue under 64 clients of live FC03 reads",
+                          {{"seconds", &seconds, "duration of each throughput run"},
+                           {"flood-seconds", &flood_seconds, "duration of the live-read flood"},
+                           {"flood-nice", &flood_nice, "niceness of the flooding client threads"}})) {
+    return *exit_status;
   }
   const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
   try {

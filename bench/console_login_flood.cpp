@@ -219,13 +219,14 @@ int main(int argc, char** argv) {
       arguments.push_back(argv[i]);
     }
   }
-  if (!parse_arguments(static_cast<int>(arguments.size()), arguments.data(),
-                       "a logged-in operator's e-stop POST latency, idle and during a wrong-password flood of the "
-                       "browser console; --quick: " +
-                           std::to_string(static_cast<int>(kQuickSeconds)) + " s per phase",
-                       {{"seconds", &seconds, "measuring time per phase"},
-                        {"flooders", &flooders, "threads sending wrong passwords, 1-64"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(static_cast<int>(arguments.size()), arguments.data(),
+                          "a logged-in operator's e-stop POST latency, idle and during a wrong-password flood of the "
+                          "browser console; --quick: " +
+                              std::to_string(static_cast<int>(kQuickSeconds)) + " s per phase",
+                          {{"seconds", &seconds, "measuring time per phase"},
+                           {"flooders", &flooders, "threads sending wrong passwords, 1-64"}})) {
+    return *exit_status;
   }
   if (quick) seconds = std::min(seconds, kQuickSeconds);
   if (seconds < 1 || flooders < 1 || flooders > 64) {

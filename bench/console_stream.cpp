@@ -157,9 +157,10 @@ void console_client(std::uint16_t port, unsigned servo, std::atomic<bool>& stop,
 
 int main(int argc, char** argv) {
   double seconds = 5;
-  if (!parse_arguments(argc, argv, "the browser console's cost: 20 servos at 50 Hz streamed to 5 consoles",
-                       {{"seconds", &seconds, "measuring time per phase"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(argc, argv, "the browser console's cost: 20 servos at 50 Hz streamed to 5 consoles",
+                          {{"seconds", &seconds, "measuring time per phase"}})) {
+    return *exit_status;
   }
   try {
     quiet_logs();

@@ -122,9 +122,10 @@ void through_forward(const std::string& gap_setting, std::chrono::milliseconds d
 
 int main(int argc, char** argv) {
   double seconds = 2;
-  if (!parse_arguments(argc, argv, "forward's overhead on a 10-register FC03 against a direct libmodbus RTU master",
-                       {{"seconds", &seconds, "per measurement"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(argc, argv, "forward's overhead on a 10-register FC03 against a direct libmodbus RTU master",
+                          {{"seconds", &seconds, "per measurement"}})) {
+    return *exit_status;
   }
   try {
     quiet_logs();

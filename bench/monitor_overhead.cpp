@@ -150,22 +150,19 @@ CycleFigures measure_cycles(const std::string& device, bool tapped, std::chrono:
 
 int main(int argc, char** argv) {
   spdlog::set_level(spdlog::level::warn);  // no discovery summaries between the figures
-  std::size_t records = 2'000'000;
-  int seconds = 2;
-  int rounds = 3;
-  for (int i = 1; i + 1 < argc; i += 2) {
-    const std::string option = argv[i];
-    if (option == "--records")
-      records = std::stoul(argv[i + 1]);
-    else if (option == "--seconds")
-      seconds = std::stoi(argv[i + 1]);
-    else if (option == "--rounds")
-      rounds = std::stoi(argv[i + 1]);
-    else {
-      std::cerr << "monitor_overhead: unknown option " << option << "\n";
-      return 2;
-    }
+  double records_arg = 2'000'000;
+  double seconds_arg = 2;
+  double rounds_arg = 3;
+  if (const auto exit_status =
+          parse_arguments(argc, argv, "the bus monitor's cost: a record, a poll cycle with and without it",
+                          {{"records", &records_arg, "frames recorded per figure of (a)"},
+                           {"seconds", &seconds_arg, "seconds per poll-cycle figure of (b)"},
+                           {"rounds", &rounds_arg, "rounds of (b)"}})) {
+    return *exit_status;
   }
+  const auto records = static_cast<std::size_t>(records_arg);
+  const auto seconds = static_cast<int>(seconds_arg);
+  const auto rounds = static_cast<int>(rounds_arg);
   print_note("(a) WireMonitor::record of a 21-byte frame");
   print_figure("monitor.clock_ns", clock_ns(records), "ns");
   print_figure("monitor.record_ns", record_ns(records, false), "ns");

@@ -57,11 +57,11 @@ struct Observed {
 
 int main(int argc, char** argv) {
   double seconds = 5, servos = 6, data_period_ms = 10;
-  if (!parse_arguments(argc, argv, "Sparkplug B messages/s and latency while servos move",
-                       {{"seconds", &seconds, "how long the servos move"},
-                        {"servos", &servos, "sts servos on the bus (1..20)"},
-                        {"data-period-ms", &data_period_ms, "mqtt.data_period_ms"}})) {
-    return 2;
+  if (const auto exit_status = parse_arguments(argc, argv, "Sparkplug B messages/s and latency while servos move",
+                                               {{"seconds", &seconds, "how long the servos move"},
+                                                {"servos", &servos, "sts servos on the bus (1..20)"},
+                                                {"data-period-ms", &data_period_ms, "mqtt.data_period_ms"}})) {
+    return *exit_status;
   }
   try {
     quiet_logs();

@@ -252,7 +252,7 @@ int main(int argc, char** argv) {
   double only_servos = 0;
   double only_return_delay_us = -1;
   double rtu_seconds = 2;
-  if (!parse_arguments(
+  if (const auto exit_status = parse_arguments(
           argc, argv,
           "poll cycle time vs the SYNC READ wire-time limit for 6, 20, 60 servos at 1 Mbaud; the cost "
           "of one silent servo",
@@ -261,7 +261,7 @@ int main(int argc, char** argv) {
            {"servos", &only_servos, "only this bus size (6, 20 or 60; 0: all)"},
            {"return-delay-us", &only_return_delay_us, "only this return delay (100 or 500; -1: both)"},
            {"rtu-seconds", &rtu_seconds, "sampling time per modbus-rtu frame gap setting (0: skip)"}})) {
-    return 2;
+    return *exit_status;
   }
   try {
     quiet_logs();

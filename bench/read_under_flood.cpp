@@ -29,9 +29,10 @@ constexpr int kGoalPosition = 42;
 
 int main(int argc, char** argv) {
   double seconds = 5;
-  if (!parse_arguments(argc, argv, "worst live read latency while six clients flood the bus with writes",
-                       {{"seconds", &seconds, "duration of the flood"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(argc, argv, "worst live read latency while six clients flood the bus with writes",
+                          {{"seconds", &seconds, "duration of the flood"}})) {
+    return *exit_status;
   }
   try {
     quiet_logs();

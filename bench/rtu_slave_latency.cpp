@@ -226,10 +226,10 @@ void hmi_poll(std::chrono::milliseconds duration) {
 int main(int argc, char** argv) {
   double seconds = 3;
   double hmi_seconds = 20;
-  if (!parse_arguments(
+  if (const auto exit_status = parse_arguments(
           argc, argv, "the upstream RTU port's added latency, and a 10 Hz HMI poll through it",
           {{"seconds", &seconds, "per latency measurement"}, {"hmi-seconds", &hmi_seconds, "of the 10 Hz HMI poll"}})) {
-    return 2;
+    return *exit_status;
   }
   try {
     quiet_logs();

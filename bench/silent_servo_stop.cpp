@@ -226,8 +226,9 @@ int main(int argc, char** argv) {
     } else if (argument == "--timeouts" && i + 1 < argc) {
       timeouts = parse_timeouts(argv[++i]);
     } else {
-      std::cerr << "usage: silent_servo_stop [--trials N] [--timeouts MS,MS] [--quick]\n";
-      return 2;
+      const bool help = argument == "--help" || argument == "-h";
+      (help ? std::cout : std::cerr) << "usage: silent_servo_stop [--trials N] [--timeouts MS,MS] [--quick]\n";
+      return help ? 0 : 2;
     }
   }
   try {

@@ -150,11 +150,12 @@ double slope_kib_per_min(const RssSeries& series, std::size_t from) {
 
 int main(int argc, char** argv) {
   double seconds = 60;
-  if (!parse_arguments(argc, argv,
-                       "16 clients mixing FC03/FC04/FC06/FC16; gateway RSS every second; acknowledged writes read "
-                       "back at the end",
-                       {{"seconds", &seconds, "duration of the load"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(argc, argv,
+                          "16 clients mixing FC03/FC04/FC06/FC16; gateway RSS every second; acknowledged writes read "
+                          "back at the end",
+                          {{"seconds", &seconds, "duration of the load"}})) {
+    return *exit_status;
   }
   const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
   try {

@@ -376,14 +376,15 @@ int main(int argc, char** argv) {
       arguments.push_back(argv[i]);
     }
   }
-  if (!parse_arguments(static_cast<int>(arguments.size()), arguments.data(),
-                       "watchdog trip latency (last feed -> stop frame on the wire) for 6 and 60 servos at 1 Mbaud; "
-                       "--quick: " +
-                           std::to_string(kQuickRounds) + " rounds per size",
-                       {{"rounds", &rounds, "trips per bus size"},
-                        {"timeout-ms", &timeout_ms, "the watchdog timeout"},
-                        {"servos", &only_servos, "only a bus of this many servos, 1-253 (0: 6 and 60)"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(static_cast<int>(arguments.size()), arguments.data(),
+                          "watchdog trip latency (last feed -> stop frame on the wire) for 6 and 60 servos at 1 Mbaud; "
+                          "--quick: " +
+                              std::to_string(kQuickRounds) + " rounds per size",
+                          {{"rounds", &rounds, "trips per bus size"},
+                           {"timeout-ms", &timeout_ms, "the watchdog timeout"},
+                           {"servos", &only_servos, "only a bus of this many servos, 1-253 (0: 6 and 60)"}})) {
+    return *exit_status;
   }
   if (quick) rounds = std::min<double>(rounds, kQuickRounds);
   if (rounds < 1 || timeout_ms < 10 || only_servos > 253) {

@@ -144,11 +144,12 @@ void measure_gateway(const std::string& mode, std::chrono::milliseconds poll_per
 
 int main(int argc, char** argv) {
   double seconds = 3;
-  if (!parse_arguments(argc, argv,
-                       "live FC06/FC03 latency through the gateway minus the modelled wire time and minus the "
-                       "same transaction done directly on the pty",
-                       {{"seconds", &seconds, "duration of each measurement"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(argc, argv,
+                          "live FC06/FC03 latency through the gateway minus the modelled wire time and minus the "
+                          "same transaction done directly on the pty",
+                          {{"seconds", &seconds, "duration of each measurement"}})) {
+    return *exit_status;
   }
   const auto duration = std::chrono::milliseconds(static_cast<long>(seconds * 1000));
   try {
