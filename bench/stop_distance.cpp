@@ -74,7 +74,7 @@ const std::vector<Axis> kAxes{
      115200,
      {{8, 3600}, {32, 360}, {34, 50}, {35, 50}},
      30,
-     10,  // not its power-on 0: a goal where the motor stands starts no move to arrive from
+     0,
      300,
      3000},
     {"smsmb",
@@ -191,11 +191,12 @@ void measure(const Axis& axis, unsigned rounds) {
 
 int main(int argc, char** argv) {
   double rounds = 10;
-  if (!parse_arguments(argc, argv,
-                       "run-on of a safe stop from top speed and from a timed move, on every table (the simulator's "
-                       "motor model)",
-                       {{"rounds", &rounds, "stops per table and kind"}})) {
-    return 2;
+  if (const auto exit_status =
+          parse_arguments(argc, argv,
+                          "run-on of a safe stop from top speed and from a timed move, on every table (the simulator's "
+                          "motor model)",
+                          {{"rounds", &rounds, "stops per table and kind"}})) {
+    return *exit_status;
   }
   quiet_logs();
   try {

@@ -515,6 +515,8 @@ void VirtualServo::drive_from_table(bool goal_written) {
         move_started_ = clock_;
         arrived_at_.reset();
         position_at_goal_ = motion_.position();
+        // A goal where the motor stands is reached the moment it is written.
+        if (motion_.arrived()) arrived_at_ = clock_;
       }
       break;
     }

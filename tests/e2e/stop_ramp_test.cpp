@@ -7,47 +7,17 @@
 
 #include <chrono>
 #include <cstdint>
-#include <sstream>
 #include <string>
 #include <vector>
 
 #include "tests/e2e/safety_support.h"
+#include "tests/e2e/sim_motion.h"
 #include "tests/support/eventually.h"
 
 namespace sms::e2e {
 namespace {
 
 using namespace std::chrono_literals;
-
-// The simulator's record of a servo's last goal write (sms-sim `motion ID`).
-struct Motion {
-  long long started_us = -1;
-  long long arrived_us = -1;  // -1: not (yet)
-  long position = 0;
-  long goal = 0;
-  long at_goal_write = 0;  // where the motor was when that goal was written
-  bool reversed = false;   // it turned back since
-};
-
-Motion motion_of(SimProcess& sim, int id) {
-  const std::string reply = sim.control("motion " + std::to_string(id));
-  Motion motion;
-  std::istringstream words(reply);
-  for (std::string word; words >> word;) {
-    const auto equals = word.find('=');
-    if (equals == std::string::npos) throw std::runtime_error("sms-sim motion: " + reply);
-    const std::string key = word.substr(0, equals);
-    const std::string value = word.substr(equals + 1);
-    const long long number = value == "-" ? -1 : std::stoll(value);
-    if (key == "started_us") motion.started_us = number;
-    if (key == "arrived_us") motion.arrived_us = number;
-    if (key == "position") motion.position = static_cast<long>(number);
-    if (key == "goal") motion.goal = static_cast<long>(number);
-    if (key == "at_goal_write") motion.at_goal_write = static_cast<long>(number);
-    if (key == "reversed") motion.reversed = number != 0;
-  }
-  return motion;
-}
 
 // One table's axis set on a gentle ramp and sent far: the stop comes mid-move, at speed.
 struct StopCase {

@@ -1,0 +1,41 @@
+#pragma once
+// The simulator's record of a servo's last goal write (sms-sim's `motion ID`, simulator/control_server.h):
+// the witness of timed moves and of stops.
+#include <sstream>
+#include <stdexcept>
+#include <string>
+
+#include "tests/support/processes.h"
+
+namespace sms::e2e {
+
+struct Motion {
+  long long started_us = -1;  // when the last goal was written in position mode (steady clock)
+  long long arrived_us = -1;  // when the motor then reached it; -1: not (yet)
+  long position = 0;
+  long goal = 0;
+  long at_goal_write = 0;  // where the motor was when that goal was written
+  bool reversed = false;   // it turned back since its last command
+};
+
+inline Motion motion_of(test::SimProcess& sim, int id) {
+  const std::string reply = sim.control("motion " + std::to_string(id));
+  Motion motion;
+  std::istringstream words(reply);
+  for (std::string word; words >> word;) {
+    const auto equals = word.find('=');
+    if (equals == std::string::npos) throw std::runtime_error("sms-sim motion: " + reply);
+    const std::string key = word.substr(0, equals);
+    const std::string value = word.substr(equals + 1);
+    const long long number = value == "-" ? -1 : std::stoll(value);
+    if (key == "started_us") motion.started_us = number;
+    if (key == "arrived_us") motion.arrived_us = number;
+    if (key == "position") motion.position = static_cast<long>(number);
+    if (key == "goal") motion.goal = static_cast<long>(number);
+    if (key == "at_goal_write") motion.at_goal_write = static_cast<long>(number);
+    if (key == "reversed") motion.reversed = number != 0;
+  }
+  return motion;
+}
+
+}  // namespace sms::e2e
