@@ -593,8 +593,8 @@ Expected<std::optional<SafeStopPlan>> plan_enable_hold(const MotionSpec& spec, B
     // relative to the running target: none is stale.
     if (*enabled_before || *drive_after == Drive::Step) return std::optional<SafeStopPlan>();
     // The motor stands: the hold keeps the PLC's ramp (a stop's fastest ramp would outlive it).
-    auto hold =
-        plan_safe_stop(spec, StopAction::Hold, order, context, StopOptions{.torque_known_on = true, .keep_ramp = true});
+    auto hold = plan_safe_stop(spec, StopAction::Hold, order, context,
+                               StopOptions{.torque_known_on = true, .deceleration = std::nullopt, .keep_ramp = true});
     if (!hold) return unexpected(hold.error());
     std::string enabled;  // what the writes switch on: "torque on", "wake, brake release"
     for (const EnableField& enable : spec.enables) {

@@ -451,7 +451,7 @@ void GatewayUnit::write_sync_registers(const WriteRegistersRequest& request, con
 
 void GatewayUnit::send_frames(std::vector<Frame> frames, std::vector<HoldTarget> switched_on,
                               std::vector<std::size_t> buses, std::uint8_t function, const Reply& reply,
-                              std::function<void(const Reply&)> after, std::function<void()> failed) {
+                              std::function<void(const Reply&)> after, const std::function<void()>& failed) {
   auto send = [this, frames = std::move(frames), buses = std::move(buses), function, reply, after = std::move(after),
                failed](std::optional<BusResult> hold_failure) mutable {
     if (hold_failure) {

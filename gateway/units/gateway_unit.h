@@ -166,7 +166,7 @@ class GatewayUnit {
   // all are carried out, then runs `after`, or runs `failed` and answers the failure.
   void send_frames(std::vector<Frame> frames, std::vector<HoldTarget> switched_on, std::vector<std::size_t> buses,
                    std::uint8_t function, const Reply& reply, std::function<void(const Reply&)> after,
-                   std::function<void()> failed = {});
+                   const std::function<void()>& failed = {});
   void read_sync_registers(std::uint8_t function, std::uint16_t address, std::uint16_t count, const Reply& reply);
   void write_sync_registers(const WriteRegistersRequest& request, const Reply& reply,
                             std::function<void(const Reply&)> after);

@@ -2,6 +2,8 @@
 // the whole state; the admission of a motion write.
 #include "gateway/units/safety_impl.h"
 
+#include <stdexcept>
+
 #include <spdlog/spdlog.h>
 #include <boost/asio/post.hpp>
 
@@ -113,7 +115,9 @@ void SafetySupervisor::Impl::lend_bus(std::size_t index, std::string_view who, s
 
 void SafetySupervisor::Impl::hold_servo(std::size_t index, std::uint8_t servo_id, std::string_view who,
                                         std::function<void(bool)> done) {
-  buses_.at(index);  // throws for a bus that does not exist, on the caller's thread
+  if (index >= buses_.size()) {  // said on the caller's thread, not lost on the safety thread
+    throw std::out_of_range("hold_servo: no bus " + std::to_string(index));
+  }
   asio::post(io_,
              [this, index, servo_id, reason = "hold of servo " + std::to_string(servo_id) + " for " + std::string(who),
               done = std::move(done)] {

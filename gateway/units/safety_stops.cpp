@@ -189,9 +189,12 @@ void SafetySupervisor::Impl::send_stop_frames(std::size_t index, StopCause cause
     }
     Expected<modbus_map::SafeStopPlan> plan = unexpected(failure);
     if (failure.empty()) {
-      plan = modbus_map::plan_safe_stop(
-          *target.spec, action, target.order, modbus_map::StopContext{target.context, data},
-          modbus_map::StopOptions{.deceleration = target.stop_deceleration, .lead_seconds = lead_seconds});
+      plan =
+          modbus_map::plan_safe_stop(*target.spec, action, target.order, modbus_map::StopContext{target.context, data},
+                                     modbus_map::StopOptions{.torque_known_on = false,
+                                                             .deceleration = target.stop_deceleration,
+                                                             .keep_ramp = false,
+                                                             .lead_seconds = lead_seconds});
     }
     if (!plan) {
       // Without its state no hold can be computed; an unknown motion must still end.

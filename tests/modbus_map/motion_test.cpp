@@ -173,7 +173,8 @@ TEST(Motion, AServoWithoutTorqueIsLeftAloneUnlessItIsAboutToBeSwitchedOn) {
   ASSERT_TRUE(idle);
   EXPECT_TRUE(idle->writes.empty());
   context.set("acceleration", 9);
-  const auto before_torque_on = context.plan(StopAction::Hold, StopOptions{.torque_known_on = true, .keep_ramp = true});
+  const auto before_torque_on = context.plan(
+      StopAction::Hold, StopOptions{.torque_known_on = true, .deceleration = std::nullopt, .keep_ramp = true});
   ASSERT_TRUE(before_torque_on);
   // The motor stands: the PLC's ramp (9) stays.
   EXPECT_EQ(before_torque_on->writes, (std::vector<BusWrite>{{41, {9, 10, 0, 0, 0, 0, 0}}}));
