@@ -83,6 +83,23 @@ std::string summary(const Config& config) {
               : "; " + std::to_string(config.modbus_rtu_slave.size()) + " upstream Modbus RTU port(s)");
 }
 
+// What a bus promises a stop (docs/SAFETY.md "How long a stop can take"): its worst transaction,
+// and with a watchdog the latest its stop frames leave after the last feed.
+std::string bus_bounds(const sms::config::BusConfig& bus) {
+  const auto worst = sms::config::worst_transaction(bus);
+  std::string text = "bus " + bus.name + ": worst transaction " + std::to_string(worst.count()) + " ms (" +
+                     std::to_string(1 + bus.retries) + " attempts of a fence read and the request, " +
+                     std::to_string(bus.response_timeout.count()) + " ms response timeout each)";
+  if (bus.watchdog) {
+    text += "; a watchdog stop leaves at most " + std::to_string((bus.watchdog->timeout + worst).count()) +
+            " ms after the last feed (timeout_ms " + std::to_string(bus.watchdog->timeout.count()) +
+            " + that transaction)";
+  } else {
+    text += "; no watchdog";
+  }
+  return text;
+}
+
 // --rtu-slave options appended to config.modbus_rtu_slave; false after printing why one cannot be.
 bool add_rtu_slave_options(const std::vector<std::string>& texts, Config& config) {
   for (const auto& text : texts) {
@@ -171,6 +188,7 @@ int check_config(const std::string& path) {
             << ": " << summary(*config);
   if (!applied.empty()) std::cout << " (with " << joined(applied) << " from the environment)";
   std::cout << "\n";
+  for (const auto& bus : config->buses) std::cout << path << ": " << bus_bounds(bus) << "\n";
   return kExitOk;
 }
 

@@ -49,6 +49,9 @@ TEST_F(UnitViews, CheckConfigAcceptsAReadOnlySecondUnitAndRefusesASecondWritable
   std::ofstream(good) << config_yaml(sim_->pty(), ", read_only: true");
   ChildProcess ok({bin("sms-gateway"), "--check-config", good});
   EXPECT_EQ(ok.wait_exit(10s), std::optional<int>{0}) << ok.output();
+  // An accepted configuration says what each bus promises a stop.
+  EXPECT_NE(ok.output().find(": bus line: worst transaction "), std::string::npos) << ok.output();
+  EXPECT_NE(ok.output().find("; no watchdog"), std::string::npos) << ok.output();
 
   const std::string bad = dir_.file("bad.yaml");
   std::ofstream(bad) << config_yaml(sim_->pty(), "");
