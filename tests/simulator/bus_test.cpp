@@ -150,7 +150,9 @@ TEST(SimulatedBusLine, AHostKilledWhileHoldingThePtyExclusivelyLeavesItFreeForTh
   rig.host.reset();
   const std::string path = rig.bus->slave_path();
   // Root opens an exclusive tty anyway: then the next host opens it as nobody, who may not.
-  if (::geteuid() == 0) ASSERT_EQ(::chmod(path.c_str(), 0666), 0) << std::strerror(errno);
+  if (::geteuid() == 0) {
+    ASSERT_EQ(::chmod(path.c_str(), 0666), 0) << std::strerror(errno);
+  }
   std::array<int, 2> ready{};
   ASSERT_EQ(::pipe(ready.data()), 0);
   const pid_t holder = ::fork();
