@@ -375,8 +375,9 @@ Expected<SafeStopPlan> plan_safe_stop(const MotionSpec& spec, StopAction action,
       const auto raw = read_raw(spec, order, context, spec.present_position);
       if (!raw) return unexpected(std::string("the present position was not read"));
       const std::int32_t position = decode_value(present, *raw);
-      // Where the axis will stand once braked at the ramp just set: a goal behind it would be
-      // driven back to. No ramp (the fastest on Feetech tables) stands where it is.
+      // Where the axis will stand: on by what it covers while the frame is on its way, then braked
+      // at the ramp just set (none on Feetech tables at their fastest). A goal behind it would be
+      // driven back to.
       std::int64_t goal = position;
       if (!options.keep_ramp && !spec.present_speed.empty()) {
         const auto speed = read_raw(spec, order, context, spec.present_speed);
