@@ -93,6 +93,7 @@ struct Stop {
   double run_on = 0;  // position units past where the stop's frame found the motor
   double stand_ms = 0;
   bool reversed = false;
+  double turned_back = 0;  // how far it came back from the farthest point it reached
   double request_to_frame_ms = 0;
 };
 
@@ -155,6 +156,7 @@ Stop run_round(const Axis& axis, sms::simulator::SimulatedBus& bus, ModbusClient
   stop.run_on = std::abs(stopped.present_position - stopped.position_at_goal);
   stop.stand_ms = std::chrono::duration<double, std::milli>(*stopped.arrived - *stopped.move_started).count();
   stop.reversed = stopped.reversed;
+  stop.turned_back = stopped.turned_back;
   stop.request_to_frame_ms = std::chrono::duration<double, std::milli>(*stopped.move_started - request).count();
   return stop;
 }
@@ -179,7 +181,7 @@ void measure(const Axis& axis, unsigned rounds) {
   ModbusClient plc(gateway.port(), 1);
   ModbusClient panel(gateway.port(), kGatewayUnit);
   for (const bool timed : {false, true}) {
-    double run_on = 0, stand = 0, latency = 0;
+    double run_on = 0, stand = 0, latency = 0, back = 0;
     unsigned reversals = 0;
     unsigned retried = 0;
     for (unsigned r = 0; r < rounds; ++r) {
@@ -199,11 +201,13 @@ void measure(const Axis& axis, unsigned rounds) {
       stand = std::max(stand, stop.stand_ms);
       latency = std::max(latency, stop.request_to_frame_ms);
       reversals += stop.reversed ? 1 : 0;
+      back = std::max(back, stop.turned_back);
     }
     const std::string name = "stop_distance." + axis.name + (timed ? ".timed_move" : ".top_speed");
     print_figure(name + ".run_on.max", run_on, axis.table == TableId::D55d ? "deg" : "steps");
     print_figure(name + ".frame_to_standing.max", stand, "ms");
     print_figure(name + ".turned_back", reversals, "rounds");
+    print_figure(name + ".turned_back.max", back, axis.table == TableId::D55d ? "deg" : "steps");
     print_figure(name + ".request_to_frame.max", latency, "ms");
     print_figure(name + ".rounds_made_again", retried, "rounds");
   }

@@ -28,9 +28,16 @@ double ramp_rate(double from, double to, const MotionLimits& limits) {
 void MotionModel::commanded() {
   direction_ = velocity_ > 0 ? 1 : (velocity_ < 0 ? -1 : 0);
   reversed_ = false;
+  commanded_direction_ = direction_;
+  farthest_ = position_;
+}
+
+double MotionModel::turned_back() const {
+  return commanded_direction_ == 0 ? 0.0 : std::max(0.0, (farthest_ - position_) * commanded_direction_);
 }
 
 void MotionModel::note_direction() {
+  if (commanded_direction_ != 0 && (position_ - farthest_) * commanded_direction_ > 0) farthest_ = position_;
   const int now = velocity_ > 0 ? 1 : (velocity_ < 0 ? -1 : 0);
   if (now == 0) return;
   if (direction_ != 0 && now != direction_) reversed_ = true;
@@ -89,6 +96,7 @@ std::optional<double> MotionModel::advance(double seconds) {
     if (steady()) {
       position_ += velocity_ * seconds;
       acceleration_ = 0;
+      note_direction();
       return arrival;
     }
     const double dt = std::min(seconds, kMaxStep);

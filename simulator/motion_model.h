@@ -48,6 +48,9 @@ class MotionModel {
   // Whether the motor turned back since its last command (move_to, run_at, hold, release): the
   // witness of a stop that drives an axis back to a goal it ran past.
   bool reversed() const { return reversed_; }
+  // How far it came back from the farthest point it reached, in the direction it had at its
+  // last command: 0 for a stop that stands where it braked to.
+  double turned_back() const;
 
  private:
   void step(double dt);
@@ -63,6 +66,8 @@ class MotionModel {
   MotionLimits limits_{1, 0, 0};
   int direction_ = 0;  // -1, 0 (not yet moved since the command), 1
   bool reversed_ = false;
+  int commanded_direction_ = 0;  // the direction at the last command
+  double farthest_ = 0;          // the farthest position reached that way since
 };
 
 }  // namespace sms::simulator

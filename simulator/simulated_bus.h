@@ -67,6 +67,7 @@ struct ServoSummary {
   std::optional<std::chrono::steady_clock::time_point> arrived;
   double position_at_goal = 0;  // where the motor was when that goal was written
   bool reversed = false;        // it turned back since its last command
+  double turned_back = 0;       // how far, from the farthest point it reached
 };
 
 struct BusStats {

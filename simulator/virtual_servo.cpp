@@ -1139,6 +1139,7 @@ ServoSummary VirtualServo::summary() const {
   summary.arrived = arrived_at_;
   summary.position_at_goal = position_at_goal_;
   summary.reversed = motion_.reversed();
+  summary.turned_back = motion_.turned_back();
   return summary;
 }
 

@@ -16,6 +16,7 @@ struct Motion {
   long goal = 0;
   long at_goal_write = 0;  // where the motor was when that goal was written
   bool reversed = false;   // it turned back since its last command
+  long turned_back = 0;    // how far, from the farthest point it reached
 };
 
 inline Motion motion_of(test::SimProcess& sim, int id) {
@@ -34,6 +35,7 @@ inline Motion motion_of(test::SimProcess& sim, int id) {
     if (key == "goal") motion.goal = static_cast<long>(number);
     if (key == "at_goal_write") motion.at_goal_write = static_cast<long>(number);
     if (key == "reversed") motion.reversed = number != 0;
+    if (key == "turned_back") motion.turned_back = static_cast<long>(number);
   }
   return motion;
 }

