@@ -468,6 +468,7 @@ class ServoStream final : public Stream {
     // A stop during the speed jog's mode check ends the session before it moved.
     if (const auto why = session.ended(services_.motion_stops(unit_.bus_index))) return send(error_json(*why));
     session_ = std::move(session);
+    jog_writes_->hold_owed = false;  // pressed again before the last stop went: its write follows the old ones
     jog_ = true;
     jog_speed_ = speed;
     jog_value_ = value;
@@ -482,10 +483,18 @@ class ServoStream final : public Stream {
   // The goal of the session's move, checked against its press once more on the io thread.
   void write_jog_goal() {
     const auto* entry = jog_speed_ ? goal_speed_ : goal_position_;
+    ++jog_writes_->in_flight;
     services_.jog_modbus(
         who_, unit_.unit_id,
         write_register_pdu(entry->address, static_cast<std::uint16_t>(static_cast<std::int16_t>(jog_value_))),
-        *session_, [this, alive = alive_, generation = jog_generation_](const ModbusAnswer& answer) {
+        *session_,
+        [this, alive = alive_, generation = jog_generation_, writes = jog_writes_, services = &services_, who = who_,
+         unit = &unit_](const ModbusAnswer& answer) {
+          // The stop waited for this write (stop_jog); it goes now, after it, even if the page is gone.
+          if (--writes->in_flight == 0 && writes->hold_owed) {
+            writes->hold_owed = false;
+            send_hold(*services, who, *unit);
+          }
           if (!*alive || answer.ok() || !jog_ || generation != jog_generation_) return;
           // Refused (a stop since the press, e-stop, watchdog) or lost (a timeout): the move is
           // over, and the goal an earlier write set must not carry it on.
@@ -513,14 +522,24 @@ class ServoStream final : public Stream {
 
   // The servo's safe stop `hold`, as every stop path writes it (SafetySupervisor::hold_servo): read
   // live, speed moves get speed 0 and position moves goal := present position, with the stop
-  // ramp in the same frame, so the jog's ramp cannot carry the axis on and back.
+  // ramp in the same frame, so the jog's ramp cannot carry the axis on and back. It goes after
+  // every goal write of the jog still on its way: a refresh sent just before the release would
+  // otherwise land after the hold and carry the axis on to the jog's goal.
   void stop_jog(std::string reason) {
     if (!jog_) return;
     jog_ = false;
     jog_reason_ = std::move(reason);
     state_changed_ = true;
     spdlog::info("console: hold-to-run on unit {} stopped ({}) for {}", unit_.unit_id, jog_reason_, who_.name);
-    services_.hold_servo(who_, unit_, [unit = unit_.unit_id](bool ok) {
+    if (jog_writes_->in_flight > 0) {
+      jog_writes_->hold_owed = true;
+      return;
+    }
+    send_hold(services_, who_, unit_);
+  }
+
+  static void send_hold(Services& services, const Principal& who, const ServoUnit& unit) {
+    services.hold_servo(who, unit, [unit = unit.unit_id](bool ok) {
       if (!ok)
         spdlog::warn("console: the hold-to-run stop of unit {} did not reach the servo (the log says why)", unit);
     });
@@ -551,6 +570,13 @@ class ServoStream final : public Stream {
   SteadyClock::time_point last_heartbeat_{};
   SteadyClock::time_point last_refresh_{};
   Send send_;
+  // The jog's goal writes not answered yet, and a stop waiting for them (stop_jog); shared with
+  // their completions, which outlive the page.
+  struct JogWrites {
+    unsigned in_flight = 0;
+    bool hold_owed = false;
+  };
+  std::shared_ptr<JogWrites> jog_writes_ = std::make_shared<JogWrites>();
 };
 
 Expected<std::unique_ptr<Stream>> make_servo_stream(Services& services, const PathParams& params,
