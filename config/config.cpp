@@ -217,6 +217,16 @@ std::chrono::milliseconds worst_transaction(const BusConfig& bus) {
   return per_attempt * (2 * (1 + bus.retries));
 }
 
+std::chrono::milliseconds effective_probe_period(const BusConfig& bus) {
+  if (bus.protocol != protocol::BusProtocol::D55d) return bus.offline_probe_period;
+  return std::min(bus.offline_probe_period, kD55dKeepAlive);
+}
+
+std::optional<std::chrono::milliseconds> d55d_instruction_gap(const BusConfig& bus) {
+  if (bus.protocol != protocol::BusProtocol::D55d) return std::nullopt;
+  return bus.poll_period + worst_transaction(bus);
+}
+
 std::string effective_state_dir(const Config& config) {
   if (!config.state_dir.empty()) return config.state_dir;
   const char* systemd = std::getenv("STATE_DIRECTORY");  // may list several, ':'-separated

@@ -189,6 +189,19 @@ struct BusConfig;
 // must be longer (a trip's stop waits for the transaction on the wire).
 std::chrono::milliseconds worst_transaction(const BusConfig& bus);
 
+// d55d motors stop by themselves after 500 ms without an instruction (their heartbeat,
+// docs/PROTOCOL.md §2.3 address 17). The gateway's polls and probes are instructions: an offline
+// d55d motor is probed at least every kD55dKeepAlive whatever offline_probe_period_ms says, so the
+// gateway's own silence never fires it (docs/PLC_GUIDE.md "d55d heartbeat").
+inline constexpr std::chrono::milliseconds kD55dHeartbeat{500};
+inline constexpr std::chrono::milliseconds kD55dKeepAlive{200};
+// How often an offline servo of `bus` is probed: offline_probe_period_ms, at most kD55dKeepAlive on d55d.
+std::chrono::milliseconds effective_probe_period(const BusConfig& bus);
+// The longest an online d55d motor of `bus` can go without an instruction while the gateway runs:
+// a poll period, then one worst transaction to another servo before its own poll; nullopt on
+// other protocols. An offline one waits for its probe instead (effective_probe_period).
+std::optional<std::chrono::milliseconds> d55d_instruction_gap(const BusConfig& bus);
+
 struct BusConfig {
   std::string name;
   std::string device;  // /dev/ttyUSB0, /dev/serial/by-id/..., a pty path

@@ -45,7 +45,7 @@ BusSettings bus_settings_for(const config::Config& config, std::size_t bus_index
   settings.response_timeout = bus.response_timeout;
   settings.retries = bus.retries;
   settings.poll_period = bus.poll_period;
-  settings.probe_period = bus.offline_probe_period;
+  settings.probe_period = config::effective_probe_period(bus);  // d55d: inside the motors' heartbeat
   settings.reopen_period = bus.reopen_period;
   settings.queue_depth = config.modbus_tcp.request_queue_depth;
   for (const auto& servo : config.servos) {

@@ -97,7 +97,28 @@ std::string bus_bounds(const sms::config::BusConfig& bus) {
   } else {
     text += "; no watchdog";
   }
+  if (const auto gap = sms::config::d55d_instruction_gap(bus)) {
+    text += "; an online d55d motor hears an instruction at least every " + std::to_string(gap->count()) +
+            " ms, an offline one is probed every " + std::to_string(sms::config::effective_probe_period(bus).count()) +
+            " ms (their heartbeat stops them after " + std::to_string(sms::config::kD55dHeartbeat.count()) + " ms)";
+  }
   return text;
+}
+
+// A d55d bus whose motors can go longer without an instruction than their heartbeat allows: one
+// may stop by itself while another servo does not answer (docs/PLC_GUIDE.md "d55d heartbeat").
+std::vector<std::string> heartbeat_warnings(const Config& config) {
+  std::vector<std::string> warnings;
+  for (const auto& bus : config.buses) {
+    const auto gap = sms::config::d55d_instruction_gap(bus);
+    if (!gap || *gap < sms::config::kD55dHeartbeat) continue;
+    warnings.push_back("bus " + bus.name + ": a d55d motor can go " + std::to_string(gap->count()) +
+                       " ms without an instruction (poll_period_ms, then a transaction to another servo of " +
+                       std::to_string(sms::config::worst_transaction(bus).count()) +
+                       " ms at most): its 500 ms heartbeat can stop it while another motor does not answer; lower "
+                       "response_timeout_ms or retries (or poll_period_ms) until the gap is under 500 ms");
+  }
+  return warnings;
 }
 
 // --rtu-slave options appended to config.modbus_rtu_slave; false after printing why one cannot be.
@@ -138,6 +159,7 @@ std::string joined(const std::vector<std::string>& names) {
 // too: files with secrets that every user may read, password logins over plain HTTP.
 std::vector<std::string> start_warnings(const Config& config, const std::string& config_path) {
   std::vector<std::string> warnings = sms::config::secret_file_warnings(config, config_path);
+  for (auto& warning : heartbeat_warnings(config)) warnings.push_back(std::move(warning));
   if (const auto& console = config.console; console && console->insecure_http && !console->users.empty() &&
                                             !sms::config::is_loopback_host(console->listen.host)) {
     warnings.push_back("console: passwords of console.users cross the network in clear: http://" +
@@ -285,6 +307,7 @@ int run_gateway(const Options& options) {
   for (const auto& warning : sms::config::secret_file_warnings(config, options.simulate ? "" : options.config_file)) {
     spdlog::warn("{}", warning);
   }
+  for (const auto& warning : heartbeat_warnings(config)) spdlog::warn("{}", warning);
 
   // The e-stop latch is kept there: a gateway that could not keep it does not start.
   if (const std::string dir = sms::config::effective_state_dir(config); !dir.empty()) {

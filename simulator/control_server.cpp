@@ -241,7 +241,8 @@ const std::array<ControlCommand, 17> kCommands{{
                   " goal=" + std::to_string(servo.goal_position) +
                   " at_goal_write=" + std::to_string(std::lround(servo.position_at_goal)) +
                   " reversed=" + (servo.reversed ? "1" : "0") +
-                  " turned_back=" + std::to_string(std::lround(servo.turned_back));
+                  " turned_back=" + std::to_string(std::lround(servo.turned_back)) +
+                  " heartbeat_stops=" + std::to_string(servo.heartbeat_stops);
          }
          return unknown_id(id);
        });

@@ -689,6 +689,7 @@ void VirtualServo::update(Clock::time_point now) {
     clock_ = until;
     if (heartbeat && clock_ >= deadline) {
       // Heartbeat (d55d address 17): silence for 500 ms stops the motor.
+      ++heartbeat_stops_;
       stop_commands();
       motion_.hold();
       put(Role::GoalPosition, std::lround(motion_.position()));
@@ -1140,6 +1141,7 @@ ServoSummary VirtualServo::summary() const {
   summary.position_at_goal = position_at_goal_;
   summary.reversed = motion_.reversed();
   summary.turned_back = motion_.turned_back();
+  summary.heartbeat_stops = heartbeat_stops_;
   return summary;
 }
 

@@ -182,6 +182,7 @@ class VirtualServo {
   std::optional<Clock::time_point> arrived_at_;
   double position_at_goal_ = 0;  // where the motor was when that goal was written (a stop's run-on)
   Clock::time_point last_command_;
+  std::uint64_t heartbeat_stops_ = 0;  // times the d55d heartbeat stopped the motor (motion ID)
   Clock::time_point deaf_until_;
   std::chrono::milliseconds reboot_time_;
   double temperature_ = 28.0;

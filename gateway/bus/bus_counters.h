@@ -53,20 +53,32 @@ struct BusCounters {
   }
 };
 
+// Why a servo is offline (input register 1008 of its unit, docs/PLC_GUIDE.md "A servo unit").
+enum class OfflineReason : std::uint8_t {
+  None = 0,         // online, or not polled yet
+  NoAnswer = 1,     // its poll went unanswered through every retry (or the bus went down)
+  AnswersLate = 2,  // its answers come after the response timeout, again and again: probe only
+};
+
 struct ServoCountersSnapshot {
-  std::uint64_t replies_ok = 0;  // valid answers from this servo (polls, probes, client operations)
-  std::uint64_t timeouts = 0;    // attempts addressed to it that got no valid answer in time
-  std::uint8_t last_status = 0;  // ERROR / status byte of its latest answer, refusal bits removed
+  std::uint64_t replies_ok = 0;      // valid answers from this servo (polls, probes, client operations)
+  std::uint64_t timeouts = 0;        // attempts addressed to it that got no valid answer in time
+  std::uint8_t last_status = 0;      // ERROR / status byte of its latest answer, refusal bits removed
+  std::uint64_t late_answers = 0;    // answers that came after their request had given up
+  std::uint64_t heartbeat_gaps = 0;  // d55d: times it went longer than its heartbeat without an instruction
 };
 
 struct ServoCounters {
   std::atomic<std::uint64_t> replies_ok{0};
   std::atomic<std::uint64_t> timeouts{0};
   std::atomic<std::uint8_t> last_status{0};
+  std::atomic<std::uint64_t> late_answers{0};
+  std::atomic<std::uint64_t> heartbeat_gaps{0};
 
   ServoCountersSnapshot snapshot() const {
     constexpr auto relaxed = std::memory_order_relaxed;
-    return {replies_ok.load(relaxed), timeouts.load(relaxed), last_status.load(relaxed)};
+    return {replies_ok.load(relaxed), timeouts.load(relaxed), last_status.load(relaxed), late_answers.load(relaxed),
+            heartbeat_gaps.load(relaxed)};
   }
 };
 

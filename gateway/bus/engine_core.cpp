@@ -219,21 +219,27 @@ void EngineCore<Transactor>::run(Job job) {
     }
   }
   const std::uint8_t target = Transactor::target(job.request);
-  if (job.client && !Transactor::broadcast(job.request) && scheduler_.presence(target) == Presence::Offline) {
+  if ((job.client || job.poll_read) && !Transactor::broadcast(job.request) &&
+      scheduler_.presence(target) == Presence::Offline) {
     // A client polling a dead servo must not make the bus pay timeouts; the servo's probe
-    // brings it back within one probe period.
+    // brings it back within one probe period. A poll READ queued before the servo went offline
+    // is not sent either.
     counters_.transactions.fetch_add(1, std::memory_order_relaxed);
-    queue_.complete(job, BusResult{BusStatus::Timeout,
-                                   0,
-                                   {},
-                                   fmt::format("bus {}: servo {} is offline (it stopped answering; probed every {} ms)",
-                                               settings_.name, target, settings_.probe_period.count())});
+    const auto state = cache_.state(target);
+    const bool late = state && state->offline_reason == OfflineReason::AnswersLate;
+    queue_.complete(
+        job, BusResult{BusStatus::Timeout,
+                       0,
+                       {},
+                       fmt::format("bus {}: servo {} is offline ({}; probed every {} ms)", settings_.name, target,
+                                   late ? "it answers late" : "it stopped answering", settings_.probe_period.count())});
     return;
   }
+  note_instructions(job);
   sync_answered_.reset();
   std::map<std::uint8_t, protocol::Bytes> collected;
   if (!job.sync_read_ids.empty()) sync_collect_ = &collected;
-  BusResult result = transactor_->execute(job.request, events_);
+  BusResult result = execute(job.request);
   sync_collect_ = nullptr;
   counters_.transactions.fetch_add(1, std::memory_order_relaxed);
   if (!job.sync_read_ids.empty() && result.status == BusStatus::Ok) {
@@ -363,7 +369,7 @@ bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
   if (offline) {
     WriteOp blind = write;
     blind.expect_reply = false;
-    const BusResult sent = transactor_->execute(transactor_->prepare(BusOp{blind}, 1), events_);
+    const BusResult sent = execute(transactor_->prepare(BusOp{blind}, 1));
     counters_.transactions.fetch_add(1, std::memory_order_relaxed);
     if (sent.status == BusStatus::BusDown) {
       port_lost(sent.detail);
@@ -371,13 +377,13 @@ bool EngineCore<Transactor>::deliver(std::uint8_t servo_id, const Owed& owed) {
     }
     if (write.expect_reply) transactor_->owe_answer(request);
   }
-  BusResult result = transactor_->execute(request, events_);
+  BusResult result = execute(request);
   counters_.transactions.fetch_add(1, std::memory_order_relaxed);
   if (result.status == BusStatus::Ok && !write.expect_reply) {
     // Nothing answers the write itself: a read of what it wrote is the acknowledgement.
     const AddressBlock written{write.address,
                                static_cast<std::uint16_t>(write.data.size() / Transactor::kBytesPerAddress)};
-    result = transactor_->execute(transactor_->read_request(servo_id, written, tries), events_);
+    result = execute(transactor_->read_request(servo_id, written, tries));
     counters_.transactions.fetch_add(1, std::memory_order_relaxed);
     if (result.status == BusStatus::Ok && result.data != write.data) {
       result = BusResult{BusStatus::ServoRefused, 0, {}, "the read-back does not show the stop"};
@@ -438,7 +444,7 @@ void EngineCore<Transactor>::neutralise_staged(const Job& job) {
     if (!staged_.test(write.servo_id)) continue;
     WriteOp staged = write;
     staged.staged = true;
-    const BusResult result = transactor_->execute(transactor_->prepare(BusOp{staged}, attempts()), events_);
+    const BusResult result = execute(transactor_->prepare(BusOp{staged}, attempts()));
     counters_.transactions.fetch_add(1, std::memory_order_relaxed);
     if (result.status == BusStatus::Ok) {
       spdlog::info(
@@ -489,6 +495,7 @@ void EngineCore<Transactor>::close_line(const std::string& why, bool lent) {
   // Before the bus reads down: whoever sees bus_up() false sees the loss logged and counted and
   // every servo offline too.
   cache_.set_all_offline();
+  last_instruction_.fill(std::nullopt);
   discovered_.store(false);
   // New work is refused with the lend's reason; after a loss, with "the port is not open".
   std::vector<Job> failed = queue_.line_down(lent ? why : std::string{});
@@ -698,6 +705,7 @@ void EngineCore<Transactor>::enqueue_poll_read(std::uint8_t servo_id, bool probe
   Job job;
   // A probe is one attempt: an offline servo costs at most one timeout per probe period.
   job.request = transactor_->read_request(servo_id, target->block, probe ? 1 : attempts());
+  job.poll_read = !probe;
   job.done = [this, servo_id, probe, block = target->block](BusResult result) {
     on_poll_read(servo_id, block, probe, result);
   };
@@ -771,14 +779,66 @@ void EngineCore<Transactor>::servo_answered(std::uint8_t servo_id) {
   }
 }
 
+// A servo offline for answering late may only have been held up (a loaded host stalls the line's
+// far end as much as a slow servo does): it is probed again after a poll period, then twice as
+// long each time it stays late, up to the probe period.
+template <BusTransactor Transactor>
+std::chrono::milliseconds EngineCore<Transactor>::next_late_probe(std::uint8_t servo_id) {
+  auto& in = late_probe_in_[servo_id];
+  const auto first = std::max(settings_.poll_period, std::chrono::milliseconds{20});
+  in = in.count() == 0 ? first : std::min(2 * in, settings_.probe_period);
+  return in;
+}
+
 template <BusTransactor Transactor>
 void EngineCore<Transactor>::servo_silent(std::uint8_t servo_id, const std::string& reason, bool log) {
-  const PresenceChange change = scheduler_.silent(servo_id, SteadyClock::now());
+  const auto state = cache_.state(servo_id);
+  const bool late = state && !state->online && state->offline_reason == OfflineReason::AnswersLate;
+  const PresenceChange change =
+      scheduler_.silent(servo_id, SteadyClock::now(), late ? std::optional(next_late_probe(servo_id)) : std::nullopt);
   if (log && change == PresenceChange::WentOffline) {
     spdlog::warn("bus {}: servo {} offline ({}); probing it every {} ms", settings_.name, servo_id, reason,
                  settings_.probe_period.count());
   }
   cache_.set_online(servo_id, false);
+}
+
+// A servo that answers late (docs/DECISIONS.md "A servo that answers late"): late answers heard in
+// one transaction can be a busy host or one slow reply, and cost only that they were dropped;
+// more in a second transaction before the servo answers anything in time shows it answers later than
+// response_timeout_ms allows. Retried inline, every request to it would hold the bus for several timeouts at every
+// other servo's cost, so it goes offline (probe only) with its own reason until a probe is answered in time.
+template <BusTransactor Transactor>
+BusResult EngineCore<Transactor>::execute(const Request& request) {
+  struck_.reset();
+  return transactor_->execute(request, events_);
+}
+
+template <BusTransactor Transactor>
+bool EngineCore<Transactor>::servo_late(std::uint8_t servo_id, std::chrono::milliseconds after_asked) {
+  if (ServoCounters* counters = cache_.counters(servo_id)) {
+    counters->late_answers.fetch_add(1, std::memory_order_relaxed);
+  }
+  constexpr std::uint8_t kLateStrikes = 2;
+  if (scheduler_.presence(servo_id) != Presence::Offline) {
+    // The late answers one transaction hears count once: a servo held up once (a host that stalled
+    // it) owes an answer for each attempt it missed, and they all come together.
+    if (struck_.test(servo_id)) return false;
+    struck_.set(servo_id);
+    if (++late_strikes_[servo_id] < kLateStrikes) return false;
+    late_probe_in_[servo_id] = std::chrono::milliseconds{0};
+    scheduler_.silent(servo_id, SteadyClock::now(), next_late_probe(servo_id));
+  }
+  late_strikes_[servo_id] = 0;
+  if (cache_.set_offline(servo_id, OfflineReason::AnswersLate) != OfflineReason::AnswersLate) {
+    spdlog::warn(
+        "bus {}: servo {} answers late (an answer came at least {} ms after it was asked; response_timeout_ms {}): "
+        "offline: probed (again after {} ms, then less often, up to every {} ms) instead of retried at the other "
+        "servos' cost; if it is that slow, raise response_timeout_ms",
+        settings_.name, servo_id, after_asked.count(), settings_.response_timeout.count(),
+        std::max(settings_.poll_period, std::chrono::milliseconds{20}).count(), settings_.probe_period.count());
+  }
+  return true;
 }
 
 template <BusTransactor Transactor>
@@ -821,6 +881,41 @@ void EngineCore<Transactor>::note_written(const Request& request) {
                               });
 }
 
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::note_instructions(const Job& job) {
+  if (settings_.protocol != protocol::BusProtocol::D55d) return;
+  const auto now = SteadyClock::now();
+  const auto heard = [&](std::uint8_t servo_id) {
+    if (servo(servo_id) == nullptr) return;
+    auto& last = last_instruction_[servo_id];
+    if (last && now - *last > config::kD55dHeartbeat) {
+      if (ServoCounters* counters = cache_.counters(servo_id)) {
+        counters->heartbeat_gaps.fetch_add(1, std::memory_order_relaxed);
+      }
+      // Said once per motor at warning (a poll period longer than the heartbeat would repeat it
+      // every cycle; --check-config warns of that one), then at debug; always counted.
+      const auto level = heartbeat_gap_logged_.test(servo_id) ? spdlog::level::debug : spdlog::level::warn;
+      heartbeat_gap_logged_.set(servo_id);
+      spdlog::log(level,
+                  "bus {}: d55d motor {} went {} ms without an instruction: if it was moving, its {} ms heartbeat "
+                  "stopped it where it stood (goal := present position); counted in "
+                  "sms_gateway_servo_heartbeat_gaps_total, further ones logged at debug",
+                  settings_.name, servo_id, std::chrono::duration_cast<std::chrono::milliseconds>(now - *last).count(),
+                  config::kD55dHeartbeat.count());
+    }
+    last = now;
+  };
+  if (Transactor::broadcast(job.request)) {
+    for (const auto& each : settings_.servos) heard(each.servo_id);
+    return;
+  }
+  heard(Transactor::target(job.request));
+  for (const auto id : job.sync_read_ids) heard(id);
+  transactor_->for_each_write(job.request, [&](std::uint8_t servo_id, std::uint16_t, std::span<const std::uint8_t>) {
+    if (!Transactor::broadcast_id(servo_id)) heard(servo_id);
+  });
+}
+
 // ==== what transactions report ====================================================================
 
 template <BusTransactor Transactor>
@@ -829,6 +924,16 @@ void EngineCore<Transactor>::Events::answered(std::uint8_t servo_id, std::option
   if (counters == nullptr) return;
   counters->replies_ok.fetch_add(1, std::memory_order_relaxed);
   if (status) core_.note_status(servo_id, *status);
+}
+
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::Events::answered_in_time(std::uint8_t servo_id) {
+  core_.late_strikes_[servo_id] = 0;
+}
+
+template <BusTransactor Transactor>
+bool EngineCore<Transactor>::Events::late(std::uint8_t servo_id, std::chrono::milliseconds after_asked) {
+  return core_.servo(servo_id) != nullptr && core_.servo_late(servo_id, after_asked);
 }
 
 template <BusTransactor Transactor>

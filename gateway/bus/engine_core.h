@@ -75,6 +75,7 @@ class EngineCore final : public BusEngine {
   struct Job {
     Request request;
     bool client = false;           // from submit(): holds a slot of the bounded queue, completes on every outcome
+    bool poll_read = false;        // a poll cycle's READ of an online servo (not a probe)
     MotionEpoch motion_epoch = 0;  // motion_refusal() just before the job goes on the wire
     SteadyClock::time_point queued_at{};  // the age rule (job_queue.h)
     Completion done;
@@ -97,6 +98,8 @@ class EngineCore final : public BusEngine {
    public:
     explicit Events(EngineCore& core) : core_(core) {}
     void answered(std::uint8_t servo_id, std::optional<std::uint8_t> status) override;
+    void answered_in_time(std::uint8_t servo_id) override;
+    bool late(std::uint8_t servo_id, std::chrono::milliseconds after_asked) override;
     void unanswered(std::uint8_t servo_id) override;
     void sync_answer(std::uint8_t servo_id, std::span<const std::uint8_t> data) override;
 
@@ -145,9 +148,16 @@ class EngineCore final : public BusEngine {
   void poll_job_done();
   void servo_answered(std::uint8_t servo_id);
   void servo_silent(std::uint8_t servo_id, const std::string& reason, bool log);
+  // An answer it owed came late (Events::late): true once it is offline for answering late.
+  bool servo_late(std::uint8_t servo_id, std::chrono::milliseconds after_asked);
+  std::chrono::milliseconds next_late_probe(std::uint8_t servo_id);
   void note_status(std::uint8_t servo_id, std::uint8_t status);
   void note_timeout(std::uint8_t servo_id);  // a SYNC READ member that stayed silent
   void note_written(const Request& request);
+  BusResult execute(const Request& request);  // the transactor's, one transaction (servo_late counts per one)
+  // d55d: every servo `job` addresses hears an instruction now; one that went longer than its
+  // heartbeat without one may have stopped by itself, which is logged and counted.
+  void note_instructions(const Job& job);
   const ServoSettings* servo(std::uint8_t servo_id) const;
   unsigned attempts() const { return 1 + settings_.retries; }
 
@@ -193,6 +203,15 @@ class EngineCore final : public BusEngine {
   // A client's SYNC READ under way collects its answers here instead of the poll cache.
   std::map<std::uint8_t, protocol::Bytes>* sync_collect_ = nullptr;
   std::bitset<256> staged_;  // servos holding a staged write (REG WRITE since the last ACTION)
+  // Transactions with late answers per servo since it last answered a request in time
+  // (servo_late), and the servos struck in the transaction under way (execute).
+  std::array<std::uint8_t, 256> late_strikes_{};
+  std::bitset<256> struck_;
+  // When a servo offline for answering late is probed next (next_late_probe); 0: not backing off.
+  std::array<std::chrono::milliseconds, 256> late_probe_in_{};
+  // d55d: when each servo last heard an instruction (note_instructions); none since the line opened.
+  std::array<std::optional<SteadyClock::time_point>, 256> last_instruction_{};
+  std::bitset<256> heartbeat_gap_logged_;
   bool open_failure_logged_ = false;
   bool holding_lent_line_ = false;  // the port was closed for a lend that has not been taken back yet
 };

@@ -306,6 +306,7 @@ class PacketTransactor::Transaction {
   Expected<Ok> await_answer();
   Expected<Ok> read_line();
   void on_frame(Packet frame);
+  bool note_if_late(const Packet& frame);
   void on_damaged(std::uint8_t id);
   void accept(Packet frame);
   bool wait_out_bytes_in_flight(SteadyClock::time_point now);
@@ -423,7 +424,7 @@ BusResult PacketTransactor::Transaction::run() {
     if (request_.reply == ReplyKind::SyncRead) {
       // The silent are the engine's to follow up; their answers may still come.
       for (const auto id : request_.sync_ids) {
-        if (!sync_answered_.test(id)) line_.owed_.add(id, shape_, 1);
+        if (!sync_answered_.test(id)) line_.owed_.add(id, shape_, 1, 0, attempt_.sent_at);
       }
       return BusResult{};
     }
@@ -434,19 +435,30 @@ BusResult PacketTransactor::Transaction::run() {
   return line_.fail(request_, found_, made_);
 }
 
-// Drops what the input holds (stray), then transmits: an attempt begins.
+// Drops what the input holds (stray), then transmits: an attempt begins. Answers owed to requests
+// that gave up are recognised in what is dropped (a late servo is told apart from noise).
 Expected<Ok> PacketTransactor::Transaction::send() {
+  const auto stray = line_.port_.read_available(line_.rx_buffer_);
+  if (!stray) return unexpected(stray.error());
+  line_.decoder_.reset();
+  if (*stray > 0) {
+    line_.decoder_.feed(std::span<const std::uint8_t>(line_.rx_buffer_.data(), *stray));
+    while (auto event = line_.decoder_.next()) {
+      if (event->kind == protocol::DecodeEvent::Kind::Frame) note_if_late(event->packet);
+    }
+    line_.decoder_.reset();
+    line_.decoder_discarded_seen_ = line_.decoder_.discarded_bytes();  // stray, not header hunting
+  }
   const auto flushed = line_.port_.discard_input();
   if (!flushed) return unexpected(flushed.error());
-  line_.stray_.count(*flushed, line_.timing_.label, [&] { return "before " + line_.describe(request_); });
-  line_.decoder_.reset();
+  line_.stray_.count(*stray + *flushed, line_.timing_.label, [&] { return "before " + line_.describe(request_); });
   line_.count_discarded();
 
   if (spdlog::should_log(spdlog::level::trace)) {
     spdlog::trace("{}tx {}", line_.timing_.label, spdlog::to_hex(request_.frame));
   }
   const auto sent_at = SteadyClock::now();
-  tally_.sent();
+  tally_.sent(sent_at);
   attempt_ = Attempt{};
   attempt_.sent_at = sent_at;
   attempt_.original_deadline = attempt_.deadline = sent_at + timeout_;
@@ -532,7 +544,17 @@ void PacketTransactor::Transaction::on_frame(Packet frame) {
     attempt_.heard = true;
     // An answer still owed for an earlier request (to this servo or another) has come.
     if (verdict == Verdict::NotOurs) {
-      line_.owed_.arrived(frame.id, AnswerShape::frame(0, frame.params.size()));
+      if (note_if_late(frame) && frame.id == request_.servo_id && request_.reply != ReplyKind::SyncRead && !anyone_) {
+        // Its own answer will be as late: waiting for it, and asking again, costs the bus.
+        line_.counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
+        attempt_.outcome =
+            BusResult{BusStatus::Timeout,
+                      0,
+                      {},
+                      fmt::format("{}servo {} answers late (later than {:.1f} ms): {} not asked again",
+                                  line_.timing_.label, frame.id, to_ms(timeout_), line_.describe(request_))};
+        return;
+      }
     } else if (frame.id == request_.servo_id) {
       tally_.heard();
     }
@@ -567,6 +589,15 @@ void PacketTransactor::Transaction::on_frame(Packet frame) {
   }
 }
 
+// A frame that is nobody's answer now: when it is one its servo owed, the servo is told it came
+// late. True when the engine gives up asking that servo (it answers late over and over).
+bool PacketTransactor::Transaction::note_if_late(const Packet& frame) {
+  const auto arrival = line_.owed_.arrived(frame.id, AnswerShape::frame(0, frame.params.size()));
+  if (!arrival.late_since) return false;
+  return events_.late(frame.id,
+                      std::chrono::duration_cast<std::chrono::milliseconds>(SteadyClock::now() - *arrival.late_since));
+}
+
 // A damaged frame (checksum, or a LEN no frame can have).
 void PacketTransactor::Transaction::on_damaged(std::uint8_t id) {
   line_.counters_.checksum_errors.fetch_add(1, std::memory_order_relaxed);
@@ -587,6 +618,7 @@ void PacketTransactor::Transaction::on_damaged(std::uint8_t id) {
 void PacketTransactor::Transaction::accept(Packet frame) {
   line_.counters_.frames_ok.fetch_add(1, std::memory_order_relaxed);
   events_.answered(frame.id, frame.code);
+  if (made_ == 1) events_.answered_in_time(frame.id);
   // Only this request's answer looks like this: whatever the servo owed before has come or never will.
   if (request_.fence_units != 0) {
     line_.owed_.fence_answered(frame.id, request_.fence_units);

@@ -115,7 +115,8 @@ class PacketTransactor {
   // The answer to `request` may come although it was not awaited (the same write was sent blind):
   // a later request its answer could be taken for goes behind a fence.
   void owe_answer(const Request& request) {
-    if (request.reply != ReplyKind::None && !broadcast(request)) owed_.add(request.servo_id, answer_shape(request), 1);
+    if (request.reply != ReplyKind::None && !broadcast(request))
+      owed_.add(request.servo_id, answer_shape(request), 1, 0, std::nullopt);  // sent blind
   }
 
   std::uint8_t refusal_bits() const { return rules_.refusal_bits; }

@@ -46,6 +46,7 @@ void PollCache::fill_state(const Slot& slot, std::size_t index, CachedServoState
   state.servo_id = slot.servo_id;
   state.block = slot.block;
   state.online = slot.online;
+  state.offline_reason = slot.offline_reason;
   state.has_data = slot.has_data;
   state.updated = slot.updated;
   state.identity = slot.identity;
@@ -96,6 +97,12 @@ std::size_t PollCache::online_count() const {
   return static_cast<std::size_t>(std::count_if(slots_.begin(), slots_.end(), [](const Slot& s) { return s.online; }));
 }
 
+std::size_t PollCache::offline_count(OfflineReason reason) const {
+  std::lock_guard lock(mutex_);
+  return static_cast<std::size_t>(std::count_if(
+      slots_.begin(), slots_.end(), [&](const Slot& s) { return !s.online && s.offline_reason == reason; }));
+}
+
 void PollCache::store_block(std::uint8_t servo_id, std::span<const std::uint8_t> bytes, SteadyClock::time_point when) {
   Slot* found = slot(servo_id);
   if (found == nullptr || bytes.size() != found->bytes.size()) return;
@@ -104,18 +111,37 @@ void PollCache::store_block(std::uint8_t servo_id, std::span<const std::uint8_t>
   found->has_data = true;
   found->updated = when;
   found->online = true;
+  found->offline_reason = OfflineReason::None;
 }
 
 void PollCache::set_online(std::uint8_t servo_id, bool online) {
+  if (!online) {
+    set_offline(servo_id, OfflineReason::NoAnswer);
+    return;
+  }
   Slot* found = slot(servo_id);
   if (found == nullptr) return;
   std::lock_guard lock(mutex_);
-  found->online = online;
+  found->online = true;
+  found->offline_reason = OfflineReason::None;
+}
+
+OfflineReason PollCache::set_offline(std::uint8_t servo_id, OfflineReason reason) {
+  Slot* found = slot(servo_id);
+  if (found == nullptr) return OfflineReason::None;
+  std::lock_guard lock(mutex_);
+  const OfflineReason before = found->offline_reason;
+  found->online = false;
+  if (!(reason == OfflineReason::NoAnswer && before == OfflineReason::AnswersLate)) found->offline_reason = reason;
+  return before;
 }
 
 void PollCache::set_all_offline() {
   std::lock_guard lock(mutex_);
-  for (auto& slot : slots_) slot.online = false;
+  for (auto& slot : slots_) {
+    slot.online = false;
+    slot.offline_reason = OfflineReason::NoAnswer;
+  }
 }
 
 void PollCache::set_identity(std::uint8_t servo_id, const ServoIdentity& identity) {

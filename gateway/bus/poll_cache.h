@@ -45,7 +45,8 @@ struct ServoIdentity {
 struct CachedServoState {
   std::uint8_t servo_id = 0;
   AddressBlock block;
-  bool online = false;              // answered its last poll or probe
+  bool online = false;  // answered its last poll or probe
+  OfflineReason offline_reason = OfflineReason::None;
   bool has_data = false;            // the block was read at least once
   SteadyClock::time_point updated;  // when the block was last read (meaningless without has_data)
   ServoIdentity identity;
@@ -94,12 +95,16 @@ class PollCache {
                  CachedServoState* state = nullptr) const;
   std::optional<CachedServoState> state(std::uint8_t servo_id) const;
   std::size_t online_count() const;
+  std::size_t offline_count(OfflineReason reason) const;  // offline servos of that reason
 
   // --- writer (the bus thread) -------------------------------------------------------------
   // Stores a freshly read block (exactly block.count x bytes_per_address bytes; anything else
   // is ignored) and marks the servo online.
   void store_block(std::uint8_t servo_id, std::span<const std::uint8_t> bytes, SteadyClock::time_point when);
-  void set_online(std::uint8_t servo_id, bool online);
+  void set_online(std::uint8_t servo_id, bool online);  // false: set_offline(NoAnswer)
+  // Offline for `reason`; a servo offline for answering late stays so until it answers (a probe
+  // that goes unanswered does not make it "no answer"). Returns the reason it had before.
+  OfflineReason set_offline(std::uint8_t servo_id, OfflineReason reason);
   void set_all_offline();
   void set_identity(std::uint8_t servo_id, const ServoIdentity& identity);
   void set_response_level(std::uint8_t servo_id, std::optional<std::uint8_t> level);
@@ -114,6 +119,7 @@ class PollCache {
     AddressBlock block;
     protocol::Bytes bytes;  // block.count x bytes_per_address, allocated once
     bool online = false;
+    OfflineReason offline_reason = OfflineReason::None;
     bool has_data = false;
     SteadyClock::time_point updated;
     ServoIdentity identity;

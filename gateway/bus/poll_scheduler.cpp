@@ -57,13 +57,14 @@ PresenceChange PollScheduler::answered(std::uint8_t servo_id) {
   return was_offline ? PresenceChange::CameOnline : PresenceChange::None;
 }
 
-PresenceChange PollScheduler::silent(std::uint8_t servo_id, SteadyClock::time_point now) {
+PresenceChange PollScheduler::silent(std::uint8_t servo_id, SteadyClock::time_point now,
+                                     std::optional<std::chrono::milliseconds> next_probe_in) {
   const auto index = index_of(servo_id);
   if (!index) return PresenceChange::None;
   State& state = states_[*index];
   const bool was_offline = state.presence == Presence::Offline;
   state.presence = Presence::Offline;
-  state.next_probe = now + probe_period_;
+  state.next_probe = now + std::min(next_probe_in.value_or(probe_period_), probe_period_);
   return was_offline ? PresenceChange::None : PresenceChange::WentOffline;
 }
 

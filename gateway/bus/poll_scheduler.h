@@ -47,8 +47,10 @@ class PollScheduler {
   // The servo answered (any poll, probe or discovery transaction).
   PresenceChange answered(std::uint8_t servo_id);
   // A poll READ failed through every retry, a probe failed, or discovery's PING did: offline,
-  // next probe one probe period from `now`.
-  PresenceChange silent(std::uint8_t servo_id, SteadyClock::time_point now);
+  // next probe one probe period from `now` (or `next_probe_in`, shorter, for a servo that may
+  // only have been held up: the engine's backoff for servos offline for answering late).
+  PresenceChange silent(std::uint8_t servo_id, SteadyClock::time_point now,
+                        std::optional<std::chrono::milliseconds> next_probe_in = std::nullopt);
   // The bus went down: nobody is known to answer; when it is back everybody is probed at once.
   void forget_all();
 

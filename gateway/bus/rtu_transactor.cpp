@@ -239,7 +239,7 @@ BusResult RtuTransactor::transact(const Request& request, TransactionEvents& eve
   std::string last_problem;
   for (unsigned attempt = 0; attempt < request.attempts; ++attempt) {
     if (attempt > 0) counters_.retries.fetch_add(1, std::memory_order_relaxed);
-    tally.sent();
+    tally.sent(SteadyClock::now());
     const auto deadline = SteadyClock::now() + master_.wire_time(request.pdu.size() + 3) + reply_timeout;
     RtuExchange exchange = master_.transact(request.slave, request.pdu, reply_timeout);
     stray_.count(exchange.dropped, timing_.label, [&] { return what_for(request); });
@@ -256,11 +256,20 @@ BusResult RtuTransactor::transact(const Request& request, TransactionEvents& eve
         }
         counters_.frames_ok.fetch_add(1, std::memory_order_relaxed);
         events.answered(request.slave, std::nullopt);
+        if (attempt == 0) events.answered_in_time(request.slave);
         return result;
       }
-      owed_.arrived(request.slave, frame_shape(exchange.pdu));
+      const auto arrival = owed_.arrived(request.slave, frame_shape(exchange.pdu));
       counters_.stray_frames.fetch_add(1, std::memory_order_relaxed);
       events.foreign(request.slave);
+      if (arrival.late_since && events.late(request.slave, std::chrono::duration_cast<std::chrono::milliseconds>(
+                                                               SteadyClock::now() - *arrival.late_since))) {
+        // Its own answer will be as late: waiting for it, and asking again, costs the bus.
+        return BusResult{BusStatus::Timeout,
+                         0,
+                         {},
+                         where(request) + ": the slave answers late (after its reply timeout): not asked again"};
+      }
       spdlog::debug("{}: dropped a frame that is not its answer ({})", where(request), result.detail);
       last_problem = result.detail;
       const auto left = deadline - SteadyClock::now();

@@ -92,7 +92,7 @@ class RtuTransactor {
   // The answer to `request` may come although it was not awaited (the same write was sent blind):
   // a later request its answer could be taken for goes behind a fence.
   void owe_answer(const Request& request) {
-    if (!request.no_reply) owed_.add(request.slave, answer_shape(request), 1);
+    if (!request.no_reply) owed_.add(request.slave, answer_shape(request), 1, 0, std::nullopt);  // sent blind
   }
 
   // Modbus answers carry no status byte: nothing is only about the instruction.

@@ -74,8 +74,16 @@ class TransactionEvents {
   virtual void unanswered(std::uint8_t /*servo_id*/) {}
   // One member's answer to a SYNC READ (its data, `count` bytes).
   virtual void sync_answer(std::uint8_t /*servo_id*/, std::span<const std::uint8_t> /*data*/) {}
+  // A valid answer from `servo_id` to the first attempt of a request: it answers in time.
+  virtual void answered_in_time(std::uint8_t /*servo_id*/) {}
   // A valid frame that was not the answer, from `id` (a late answer, another servo).
   virtual void foreign(std::uint8_t /*id*/) {}
+  // An answer `servo_id` owed to a request that had given up came after all (OwedAnswers), at
+  // least `after_asked` after that request was sent: the servo answers later than the response
+  // timeout allows. True when the servo is not to be asked again now (the engine took it offline
+  // for answering late, docs/DECISIONS.md "A servo that answers late"): a transaction to it ends
+  // there instead of waiting for an answer that will be as late.
+  virtual bool late(std::uint8_t /*servo_id*/, std::chrono::milliseconds /*after_asked*/) { return false; }
   // Bytes that made no valid frame (damaged answers, colliding answers, noise).
   virtual void damaged() {}
 };
@@ -126,35 +134,53 @@ class OwedAnswers {
   // after the first owed fence the order no longer matters (a fence's answer settles only what
   // came before the first fence of its length): there an entry of the same kind takes the count,
   // so a silent servo's list stays a few entries long.
-  void add(std::uint8_t id, const AnswerShape& shape, unsigned count, unsigned fence_units = 0) {
+  // `waited_since`: when the latest of them was sent, awaited and given up on; nullopt for a
+  // request sent blind (nobody waited for its answer: it cannot be late).
+  void add(std::uint8_t id, const AnswerShape& shape, unsigned count, unsigned fence_units = 0,
+           std::optional<SteadyClock::time_point> waited_since = SteadyClock::now()) {
     if (count == 0) return;
     auto& owed = entries_[id];
     const auto first_fence =
         std::find_if(owed.begin(), owed.end(), [](const Entry& entry) { return entry.fence_units != 0; });
-    const auto same = [&](const Entry& entry) { return entry.shape == shape && entry.fence_units == fence_units; };
+    const auto same = [&](const Entry& entry) {
+      return entry.shape == shape && entry.fence_units == fence_units &&
+             entry.waited_since.has_value() == waited_since.has_value();
+    };
+    Entry* entry = nullptr;
     if (const auto found = std::find_if(first_fence, owed.end(), same); found != owed.end()) {
-      found->count += count;
+      entry = &*found;
     } else if (!owed.empty() && same(owed.back())) {
-      owed.back().count += count;
+      entry = &owed.back();
     } else {
-      owed.push_back({shape, count, fence_units});
+      entry = &owed.emplace_back(Entry{shape, 0, fence_units, waited_since});
     }
+    entry->count += count;
+    if (waited_since) entry->waited_since = std::max(*entry->waited_since, *waited_since);
   }
+  // What a frame that was nobody's answer turned out to be (arrived()).
+  struct Arrival {
+    bool owed = false;  // one of the answers its servo owed
+    // Owed to a request that waited for it and gave up: since when it waited (the latest such
+    // request's sending); the answer is at least that late. nullopt: not owed, or sent blind.
+    std::optional<SteadyClock::time_point> late_since;
+    explicit operator bool() const { return owed; }
+  };
   // Whether a late answer of `id` could be taken for an answer of `shape`.
   bool collides(std::uint8_t id, const AnswerShape& shape) const {
     return std::any_of(entries_[id].begin(), entries_[id].end(),
                        [&](const Entry& entry) { return entry.shape.overlaps(shape); });
   }
-  // A frame of `shape` from `id` came that was not taken as an answer: true when it was one of
-  // the answers `id` owed (the oldest it can be: answers come in the order asked).
-  bool arrived(std::uint8_t id, const AnswerShape& shape) {
+  // A frame of `shape` from `id` came that was not taken as an answer: whether it was one of the
+  // answers `id` owed (the oldest it can be: answers come in the order asked), and whether late.
+  Arrival arrived(std::uint8_t id, const AnswerShape& shape) {
     auto& owed = entries_[id];
     for (auto entry = owed.begin(); entry != owed.end(); ++entry) {
       if (!entry->shape.overlaps(shape)) continue;
+      const Arrival arrival{true, entry->waited_since};
       if (--entry->count == 0) owed.erase(entry);
-      return true;
+      return arrival;
     }
-    return false;
+    return {};
   }
   // An answer came that only `id`'s latest request could give: whatever it owed before has come
   // or never will.
@@ -225,11 +251,14 @@ class OwedAnswers {
     Tally(OwedAnswers& owed, std::uint8_t id, AnswerShape shape, bool awaited, unsigned fence_units = 0)
         : owed_(owed), id_(id), shape_(shape), awaited_(awaited), fence_units_(fence_units) {}
     ~Tally() {
-      if (awaited_ && sent_ > heard_) owed_.add(id_, shape_, sent_ - heard_, fence_units_);
+      if (awaited_ && sent_ > heard_) owed_.add(id_, shape_, sent_ - heard_, fence_units_, last_sent_);
     }
     Tally(const Tally&) = delete;
     Tally& operator=(const Tally&) = delete;
-    void sent() { ++sent_; }
+    void sent(SteadyClock::time_point at = SteadyClock::now()) {
+      ++sent_;
+      last_sent_ = at;
+    }
     void heard() { ++heard_; }  // a valid answer from `id` to one of the attempts (a damaged one may be anyone's)
 
    private:
@@ -240,6 +269,7 @@ class OwedAnswers {
     unsigned fence_units_;
     unsigned sent_ = 0;
     unsigned heard_ = 0;
+    SteadyClock::time_point last_sent_{};
   };
 
  private:
@@ -247,6 +277,7 @@ class OwedAnswers {
     AnswerShape shape;
     unsigned count = 0;
     unsigned fence_units = 0;
+    std::optional<SteadyClock::time_point> waited_since;  // nullopt: sent blind
   };
   std::array<std::vector<Entry>, 256> entries_{};
 };

@@ -205,6 +205,17 @@ constexpr Family<BusMetrics> kBusFamilies[] = {
 constexpr Family<ServoMetrics> kServoFamilies[] = {
     {"sms_gateway_servo_online", MetricType::Gauge, "1 when the servo answered its last poll or probe",
      [](const ServoMetrics& s) -> std::optional<Value> { return std::uint64_t{s.online ? 1u : 0u}; }},
+    {"sms_gateway_servo_offline_reason", MetricType::Gauge,
+     "Why the servo is offline: 0 online, 1 no answer, 2 answers late (probed only; input register 1008)",
+     [](const ServoMetrics& s) -> std::optional<Value> {
+       return std::uint64_t{static_cast<unsigned>(s.offline_reason)};
+     }},
+    {"sms_gateway_servo_late_answers_total", MetricType::Counter,
+     "Answers from the servo that came after their request had given up",
+     [](const ServoMetrics& s) -> std::optional<Value> { return s.counters.late_answers; }},
+    {"sms_gateway_servo_heartbeat_gaps_total", MetricType::Counter,
+     "d55d: times the motor went longer than its 500 ms heartbeat without an instruction (it stops itself if moving)",
+     [](const ServoMetrics& s) -> std::optional<Value> { return s.counters.heartbeat_gaps; }},
     {"sms_gateway_servo_cache_age_seconds", MetricType::Gauge,
      "Age of the servo's polled data (input registers); absent until the first successful poll",
      [](const ServoMetrics& s) -> std::optional<Value> {
@@ -299,6 +310,7 @@ BusMetrics read_bus_metrics(const config::Config& config, std::size_t bus_index,
     entry.servo_id = servo.servo_id;
     entry.name = servo.name;
     entry.online = state->online;
+    entry.offline_reason = state->offline_reason;
     if (const auto age = state->age(now)) {
       entry.cache_age =
           std::max(std::chrono::duration_cast<std::chrono::microseconds>(*age), std::chrono::microseconds{0});

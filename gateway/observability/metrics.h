@@ -37,6 +37,7 @@ struct ServoMetrics {
   std::uint8_t servo_id = 0;
   std::string name;  // servos[].name, may be empty
   bool online = false;
+  OfflineReason offline_reason = OfflineReason::None;
   std::optional<std::chrono::microseconds> cache_age;  // nullopt: never polled successfully
   ServoCountersSnapshot counters;
 };

@@ -141,6 +141,7 @@ std::vector<Tag> servo_unit_tags(const CatalogUnit& unit, BusRange poll_block, c
       {"fact.identity", facts::kIdentity, 1, "", "model (else firmware) read at discovery"},
       {"fact.replies_ok", facts::kRepliesOk, 2, "", "32-bit, wraps"},
       {"fact.timeouts", facts::kTimeouts, 2, "", "32-bit, wraps"},
+      {"fact.offline_reason", facts::kOfflineReason, 1, "", "0 online, 1 no answer, 2 answers late (probed only)"},
   };
   for (const Fact& fact : kFacts) {
     tags.push_back(Tag{.unit = servo.unit_id,
@@ -199,6 +200,7 @@ void gateway_unit_tags(const config::Config& config, const UnitCatalog& catalog,
   in("estop_count", layout::kEStopCount, 2, "", "e-stops so far");
   in("owed_stops", layout::kOwedStops, 1, "", "servos owed a safe stop, every bus");
   in("failed_stops", layout::kFailedStops, 2, "", "safe stops that failed, every bus");
+  in("late_servos", layout::kLateServos, 1, "", "servos offline because they answer late (probed only), every bus");
   for (std::size_t n = 0; n < config.buses.size(); ++n) {
     const auto block = static_cast<std::uint16_t>(layout::kFirstBusBlock + layout::kBusBlockSize * n);
     const std::string bus = "bus." + config.buses[n].name + ".";

@@ -136,6 +136,9 @@ std::optional<std::vector<std::uint16_t>> GatewayUnit::input_registers(std::uint
   }
   image[layout::kOwedStops] = saturate16(owed);
   put_words(image, layout::kFailedStops, 2, failed);
+  std::size_t late = 0;
+  for (const BusEngine* engine : engines_) late += engine->cache().offline_count(OfflineReason::AnswersLate);
+  image[layout::kLateServos] = saturate16(late);
   for (std::size_t bus = 0; bus < engines_.size(); ++bus) {
     const std::size_t block = layout::kFirstBusBlock + layout::kBusBlockSize * bus;
     // Only the blocks the request touches are worth the counters' atomics.

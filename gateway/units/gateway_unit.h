@@ -58,6 +58,9 @@ inline constexpr std::uint16_t kEStopLatched = 10;
 inline constexpr std::uint16_t kEStopCount = 11;
 inline constexpr std::uint16_t kOwedStops = 13;
 inline constexpr std::uint16_t kFailedStops = 14;
+// Input register 16: servos offline because they answer late (probed only), every bus
+// (docs/DECISIONS.md "A servo that answers late"; each servo's own reason is its input register 1008).
+inline constexpr std::uint16_t kLateServos = 16;
 // Inside bus n's block (100 + 20·n): 10 watchdog state (0 off, 1 armed, 2 running, 3 tripped),
 // 11 ms since the last feed (65535: never or longer), 12-13 trips, 14 timeout ms, 15 cause of
 // the last safe stop (0 none, 1 watchdog, 2 e-stop, 3 on_start, 4 on_stop, 5 commissioning), 16-17 its latency µs

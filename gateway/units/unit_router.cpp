@@ -90,6 +90,7 @@ std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registe
       static_cast<std::uint16_t>(facts.replies_ok & 0xFFFF),
       static_cast<std::uint16_t>((facts.timeouts >> 16) & 0xFFFF),
       static_cast<std::uint16_t>(facts.timeouts & 0xFFFF),
+      static_cast<std::uint16_t>(facts.offline_reason),
   };
 }
 
@@ -506,6 +507,7 @@ ServoFacts UnitRouter::facts_of(const ServoUnit& unit) const {
   if (!state) return facts;
   facts.last_status = state->counters.last_status;
   facts.online = state->online;
+  facts.offline_reason = state->offline_reason;
   if (const auto age = state->age(SteadyClock::now())) {
     facts.cache_age = std::chrono::duration_cast<std::chrono::milliseconds>(*age);
   }

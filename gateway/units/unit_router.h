@@ -34,17 +34,18 @@ namespace sms::gateway {
 // keeps about the servo (no table uses these addresses).
 namespace servo_facts_layout {
 inline constexpr std::uint16_t kFirstRegister = 1000;
-inline constexpr std::uint16_t kRegisterCount = 8;  // 1000 .. 1007
+inline constexpr std::uint16_t kRegisterCount = 9;  // 1000 .. 1008
 inline constexpr std::uint16_t kFirstBit = 1000;    // 1000 + b: bit b of register 1000
 inline constexpr std::uint16_t kOnlineBit = 1008;
 // Offsets inside the block: 0 status byte, 1 online, 2 cache age ms, 3 identity, 4-5 replies ok
-// and 6-7 timeouts (32-bit, high word first).
+// and 6-7 timeouts (32-bit, high word first), 8 why it is offline (OfflineReason).
 inline constexpr std::size_t kStatus = 0;
 inline constexpr std::size_t kOnline = 1;
 inline constexpr std::size_t kCacheAge = 2;
 inline constexpr std::size_t kIdentity = 3;
 inline constexpr std::size_t kRepliesOk = 4;
 inline constexpr std::size_t kTimeouts = 6;
+inline constexpr std::size_t kOfflineReason = 8;
 }  // namespace servo_facts_layout
 
 // Whether a servo of `table` at `response_level` answers unicast WRITE / REG WRITE (docs/PROTOCOL.md §2.1
@@ -59,8 +60,9 @@ struct ServoFacts {
   std::uint16_t identity = 0;                          // model, else firmware, as read at discovery
   std::uint64_t replies_ok = 0;
   std::uint64_t timeouts = 0;
+  OfflineReason offline_reason = OfflineReason::None;
 };
-// Registers 1000-1007 from the facts: saturating age (65535 also before the first poll),
+// Registers 1000-1008 from the facts: saturating age (65535 also before the first poll),
 // 32-bit counters high word first (they wrap).
 std::array<std::uint16_t, servo_facts_layout::kRegisterCount> servo_fact_registers(const ServoFacts& facts);
 

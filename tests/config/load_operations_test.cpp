@@ -187,3 +187,32 @@ TEST(ConfigOperations, DumpWritesAllowAndFormatAndLoadsBackEqual) {
 
 }  // namespace
 }  // namespace sms::config
+
+namespace sms::config {
+namespace {
+
+// d55d motors stop by themselves after 500 ms without an instruction: an offline one is probed at
+// least every 200 ms whatever offline_probe_period_ms says, and the gap an online one can see
+// (a poll period, then one worst transaction) is what --check-config reports and warns about.
+TEST(D55dHeartbeatRules, OfflineMotorsAreProbedInsideTheHeartbeat) {
+  BusConfig bus;
+  bus.protocol = protocol::BusProtocol::D55d;
+  bus.baud = 115200;
+  bus.offline_probe_period = std::chrono::milliseconds{1000};
+  EXPECT_EQ(effective_probe_period(bus), kD55dKeepAlive);
+  bus.offline_probe_period = std::chrono::milliseconds{50};
+  EXPECT_EQ(effective_probe_period(bus), std::chrono::milliseconds{50});
+  bus.response_timeout = std::chrono::milliseconds{20};
+  bus.retries = 2;
+  bus.poll_period = std::chrono::milliseconds{20};
+  // 256 bytes each way at 115200 8N1: 45 ms; (20 + 45) x 2 x 3 = 390; + the poll period.
+  EXPECT_EQ(worst_transaction(bus), std::chrono::milliseconds{390});
+  EXPECT_EQ(d55d_instruction_gap(bus), std::chrono::milliseconds{410});
+  bus.protocol = protocol::BusProtocol::Feetech;
+  bus.offline_probe_period = std::chrono::milliseconds{1000};
+  EXPECT_EQ(effective_probe_period(bus), std::chrono::milliseconds{1000});
+  EXPECT_EQ(d55d_instruction_gap(bus), std::nullopt);
+}
+
+}  // namespace
+}  // namespace sms::config

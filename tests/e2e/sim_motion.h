@@ -14,9 +14,10 @@ struct Motion {
   long long arrived_us = -1;  // when the motor then reached it; -1: not (yet)
   long position = 0;
   long goal = 0;
-  long at_goal_write = 0;  // where the motor was when that goal was written
-  bool reversed = false;   // it turned back since its last command
-  long turned_back = 0;    // how far, from the farthest point it reached
+  long at_goal_write = 0;    // where the motor was when that goal was written
+  bool reversed = false;     // it turned back since its last command
+  long turned_back = 0;      // how far, from the farthest point it reached
+  long heartbeat_stops = 0;  // d55d: how often its heartbeat stopped it
 };
 
 inline Motion motion_of(test::SimProcess& sim, int id) {
@@ -36,6 +37,7 @@ inline Motion motion_of(test::SimProcess& sim, int id) {
     if (key == "at_goal_write") motion.at_goal_write = static_cast<long>(number);
     if (key == "reversed") motion.reversed = number != 0;
     if (key == "turned_back") motion.turned_back = static_cast<long>(number);
+    if (key == "heartbeat_stops") motion.heartbeat_stops = static_cast<long>(number);
   }
   return motion;
 }

@@ -152,6 +152,26 @@ TEST(OwedAnswers, AStrayFrameIsTheOldestOwedAnswerItCanBe) {
   EXPECT_FALSE(owed.owes(1));
 }
 
+// A late answer is one a request waited for and gave up on: it says since when it waited. The
+// answer to a frame sent blind (an owed stop's first try) is owed too, but nobody waited: not late.
+TEST(OwedAnswers, AnAnswerIsLateOnlyWhereARequestWaitedForIt) {
+  OwedAnswers owed;
+  const auto asked = SteadyClock::now() - std::chrono::milliseconds{50};
+  owed.add(1, params({4, 0}), 1, 0, asked);
+  owed.add(1, params({0}), 1, 0, std::nullopt);  // a write sent blind
+  const auto read = owed.arrived(1, AnswerShape::frame(0, 4));
+  ASSERT_TRUE(read);
+  EXPECT_EQ(read.late_since, asked);
+  const auto blind = owed.arrived(1, AnswerShape::frame(0, 0));
+  EXPECT_TRUE(blind);
+  EXPECT_FALSE(blind.late_since);
+  EXPECT_FALSE(owed.arrived(1, AnswerShape::frame(0, 4)));  // nothing owed any more: noise
+  // Entries of one kind keep the latest request's sending: the answer is at least that late.
+  owed.add(2, params({4, 0}), 1, 0, asked);
+  owed.add(2, params({4, 0}), 1, 0, asked + std::chrono::milliseconds{20});
+  EXPECT_EQ(owed.arrived(2, AnswerShape::frame(0, 4)).late_since, asked + std::chrono::milliseconds{20});
+}
+
 TEST(LateAnswers, PacketBusNeverTakesALateAnswerForTheNextRequests) {
   simulator::SimulatedBus bus(one_servo(modbus_map::TableId::Sts, 1'000'000));
   bus.start();

@@ -67,6 +67,27 @@ TEST(PollCache, OfflineServoKeepsItsLastDataAndItsAgeGrows) {
   EXPECT_EQ(cache.online_count(), 0U);
 }
 
+// Why a servo is offline: a servo known to answer late stays "answers late" through its
+// unanswered probes, and an answer clears the reason.
+TEST(PollCache, AServoOfflineForAnsweringLateKeepsThatReasonUntilItAnswers) {
+  PollCache cache(two_servos());
+  cache.set_online(9, true);
+  EXPECT_EQ(cache.state(9)->offline_reason, OfflineReason::None);
+  EXPECT_EQ(cache.set_offline(9, OfflineReason::AnswersLate), OfflineReason::None);
+  EXPECT_EQ(cache.set_offline(9, OfflineReason::NoAnswer), OfflineReason::AnswersLate);  // a probe unanswered
+  EXPECT_EQ(cache.state(9)->offline_reason, OfflineReason::AnswersLate);
+  EXPECT_FALSE(cache.state(9)->online);
+  EXPECT_EQ(cache.offline_count(OfflineReason::AnswersLate), 1U);
+  cache.store_block(9, std::vector<std::uint8_t>{0x01, 0x02}, SteadyClock::now());
+  EXPECT_TRUE(cache.state(9)->online);
+  EXPECT_EQ(cache.state(9)->offline_reason, OfflineReason::None);
+  // A silent servo first, then its late answers come: the reason becomes "answers late".
+  cache.set_online(9, false);
+  EXPECT_EQ(cache.state(9)->offline_reason, OfflineReason::NoAnswer);
+  cache.set_offline(9, OfflineReason::AnswersLate);
+  EXPECT_EQ(cache.state(9)->offline_reason, OfflineReason::AnswersLate);
+}
+
 TEST(PollCache, BlockOfTheWrongSizeIsNotStored) {
   PollCache cache(two_servos());
   cache.store_block(1, std::vector<std::uint8_t>{1, 2, 3}, SteadyClock::now());

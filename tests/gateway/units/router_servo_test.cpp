@@ -70,7 +70,7 @@ TEST_F(Router, FactRegistersDescribeTheServo) {
   start(kSixStsConfig);
   gateway_->wait_until_polled(1);
   ModbusClient client(port(), 1);
-  const auto facts = client.read_input(1000, 8);
+  const auto facts = client.read_input(1000, 9);
   ASSERT_TRUE(facts.ok()) << facts.error;
   EXPECT_EQ(facts.values[0], 0);                            // status byte
   EXPECT_EQ(facts.values[1], 1);                            // online
@@ -79,7 +79,8 @@ TEST_F(Router, FactRegistersDescribeTheServo) {
   EXPECT_GT((facts.values[4] << 16) | facts.values[5], 1);  // replies OK
   EXPECT_EQ(facts.values[6], 0);                            // timeouts, high word
   EXPECT_EQ(facts.values[7], 0);
-  EXPECT_EQ(client.read_input(1007, 2).exception, 0x02);  // past 1007
+  EXPECT_EQ(facts.values[8], 0);                          // offline reason: none, it is online
+  EXPECT_EQ(client.read_input(1008, 2).exception, 0x02);  // past 1008
 }
 
 TEST_F(Router, DiscreteInputsShowTheStatusBitsAndOnline) {
