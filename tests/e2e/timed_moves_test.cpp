@@ -175,6 +175,17 @@ TEST(TimedMoves, SixStsAxesArriveTogetherAtTheMoveTime) {
   timed_move_arrives_together(arm);
 }
 
+// The other feetech tables: sms1 (its own speed and ramp units) and scs (no ramp, 0-1023).
+TEST(TimedMoves, SixSms1AxesArriveTogetherAtTheMoveTime) {
+  Arm arm("sms1");
+  timed_move_arrives_together(arm);
+}
+
+TEST(TimedMoves, SixScsAxesArriveTogetherAtTheMoveTime) {
+  Arm arm("scs");
+  timed_move_arrives_together(arm, Spread::Arrivals, 100, {50, 150, 300, 450, 600, 800});
+}
+
 // SMSMB servos on a modbus-rtu bus: no SYNC WRITE, so one write per servo (speeds first, then goals).
 TEST(TimedMoves, SixSmsmbAxesOnModbusRtuArriveTogether) {
   Arm arm("smsmb", "modbus-rtu", "modbus-rtu", 115200);
