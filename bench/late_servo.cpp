@@ -85,7 +85,7 @@ void run_case(const Bus& bus_spec, int response_timeout_ms, int late_ms, std::ch
     yaml += "  - {bus: line, id: " + std::to_string(id) + ", table: " + bus_spec.name + "}\n";
   }
   GatewayProcess gateway = GatewayProcess::with_config(dir, yaml, 1, {}, gateway_program());
-  sms::test::wait_until_polled(gateway.port(), 1);
+  for (int id = 1; id <= 3; ++id) sms::test::wait_until_polled(gateway.port(), id);
   for (const int id : {kLate, kOther}) {
     ModbusClient unit(gateway.port(), id);
     for (const Write& write : bus_spec.spin) {
