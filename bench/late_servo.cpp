@@ -32,9 +32,9 @@ constexpr int kRetries = 2;
 constexpr int kLate = 2;
 constexpr int kOther = 3;
 constexpr auto kPlcPeriod = 20ms;
-constexpr int kBus0Trips = 112;              // gateway unit, 32 bits
-constexpr int kFactCacheAge = 1002;          // servo unit input registers
-constexpr int kFactOfflineReason = 1008;     // 2: answers late
+constexpr int kBus0Trips = 112;           // gateway unit, 32 bits
+constexpr int kFactCacheAge = 1002;       // servo unit input registers
+constexpr int kFactOfflineReason = 1008;  // 2: answers late
 constexpr std::uint16_t kAnswersLate = 2;
 
 struct Write {
@@ -48,9 +48,9 @@ struct Bus {
   BusProtocol protocol;
   std::string bus_protocol;  // config
   std::uint32_t baud;
-  Write harmless;            // the PLC's cyclic write to servo 1 (feeds the watchdog, moves nothing)
-  int read_address;          // the HMI's live read of servo 2
-  std::vector<Write> spin;   // d55d: speed mode, turning (a heartbeat stop would end it)
+  Write harmless;           // the PLC's cyclic write to servo 1 (feeds the watchdog, moves nothing)
+  int read_address;         // the HMI's live read of servo 2
+  std::vector<Write> spin;  // d55d: speed mode, turning (a heartbeat stop would end it)
 };
 
 const std::vector<Bus> kBuses{
@@ -76,8 +76,8 @@ void run_case(const Bus& bus_spec, int response_timeout_ms, int late_ms, std::ch
   sms::test::TempDir dir;
   const int worst = worst_transaction_ms(bus_spec.baud, response_timeout_ms);
   const int watchdog = worst + 1;
-  std::string yaml = "buses:\n  - {name: line, device: \"" + bus.slave_path() + "\", protocol: " +
-                     bus_spec.bus_protocol + ", baud: " + std::to_string(bus_spec.baud) +
+  std::string yaml = "buses:\n  - {name: line, device: \"" + bus.slave_path() +
+                     "\", protocol: " + bus_spec.bus_protocol + ", baud: " + std::to_string(bus_spec.baud) +
                      ", response_timeout_ms: " + std::to_string(response_timeout_ms) +
                      ", retries: " + std::to_string(kRetries) + ", watchdog: {timeout_ms: " + std::to_string(watchdog) +
                      ", feed: any_write}}\nservos:\n";
@@ -118,7 +118,8 @@ void run_case(const Bus& bus_spec, int response_timeout_ms, int late_ms, std::ch
   const auto end = Clock::now() + duration;
   for (std::uint16_t i = 0; Clock::now() < end; ++i) {
     const auto sent = Clock::now();
-    const auto answer = plc.write_register(bus_spec.harmless.address, static_cast<std::uint16_t>(bus_spec.harmless.value + i % 2));
+    const auto answer =
+        plc.write_register(bus_spec.harmless.address, static_cast<std::uint16_t>(bus_spec.harmless.value + i % 2));
     write_ns.push_back(to_ns(Clock::now() - sent));
     if (!answer.ok()) ++failed;
     std::this_thread::sleep_until(sent + kPlcPeriod);
@@ -144,7 +145,8 @@ void run_case(const Bus& bus_spec, int response_timeout_ms, int late_ms, std::ch
   print_figure(name + ".servo3_cache_age.max", oldest_other_ms.load(), "ms");
   print_figure(name + ".servo2_offline_as_late", reason == kAnswersLate ? 1 : 0, "bool");
   print_figure(name + ".hmi_reads", static_cast<double>(hmi_reads.load()), "reads");
-  if (bus_spec.table == TableId::D55d) print_figure(name + ".heartbeat_stops", static_cast<double>(heartbeat_stops), "stops");
+  if (bus_spec.table == TableId::D55d)
+    print_figure(name + ".heartbeat_stops", static_cast<double>(heartbeat_stops), "stops");
   if (gateway.stop() != 0) throw std::runtime_error("the gateway did not stop cleanly");
 }
 
@@ -161,8 +163,9 @@ int main(int argc, char** argv) {
   }
   quiet_logs();
   try {
-    print_note("servos 1-3, servo 2 late; PLC writes servo 1 every 20 ms; an HMI reads servo 2 back to back; retries 2; "
-               "watchdog = worst transaction + 1 ms");
+    print_note(
+        "servos 1-3, servo 2 late; PLC writes servo 1 every 20 ms; an HMI reads servo 2 back to back; retries 2; "
+        "watchdog = worst transaction + 1 ms");
     const auto duration = std::chrono::milliseconds{static_cast<long>(seconds * 1000)};
     for (const Bus& bus : kBuses) {
       if (quick != 0 && bus.table != TableId::Sts) continue;

@@ -131,10 +131,13 @@ TEST_P(LateServo, GoesOfflineWithItsOwnReasonAndCostsTheOthersNothing) {
   hmi.join();
 
   // Servo 2 is offline for answering late, and said so; the HMI's reads of it were refused at once.
-  ASSERT_TRUE(eventually([&] {
-    const auto facts = late_unit.read_input(kFactOnline, kFactOfflineReason - kFactOnline + 1);
-    return facts.ok() && facts.values.front() == 0 && facts.values.back() == kAnswersLate;
-  }, "servo 2 offline, reason 2 (answers late)")) << log();
+  ASSERT_TRUE(eventually(
+      [&] {
+        const auto facts = late_unit.read_input(kFactOnline, kFactOfflineReason - kFactOnline + 1);
+        return facts.ok() && facts.values.front() == 0 && facts.values.back() == kAnswersLate;
+      },
+      "servo 2 offline, reason 2 (answers late)"))
+      << log();
   EXPECT_EQ(gateway_unit.read_input(kLateServos, 1).or_throw("late servos").at(0), 1);
   EXPECT_NE(log().find("servo 2 answers late"), std::string::npos) << log();
   EXPECT_GT(hmi_busy.load(), 0) << "no read of the late servo was refused with 0x0B";
@@ -165,10 +168,13 @@ TEST_P(LateServo, GoesOfflineWithItsOwnReasonAndCostsTheOthersNothing) {
 
   // In time again: its probe brings it back, reason 0.
   ASSERT_EQ(sim.control("late " + std::to_string(kLate) + " 0"), "ok");
-  ASSERT_TRUE(eventually([&] {
-    const auto facts = late_unit.read_input(kFactOnline, kFactOfflineReason - kFactOnline + 1);
-    return facts.ok() && facts.values.front() == 1 && facts.values.back() == 0;
-  }, "servo 2 online again, reason 0")) << log();
+  ASSERT_TRUE(eventually(
+      [&] {
+        const auto facts = late_unit.read_input(kFactOnline, kFactOfflineReason - kFactOnline + 1);
+        return facts.ok() && facts.values.front() == 1 && facts.values.back() == 0;
+      },
+      "servo 2 online again, reason 0"))
+      << log();
   EXPECT_EQ(gateway_unit.read_input(kLateServos, 1).or_throw("late servos").at(0), 0);
 }
 
@@ -176,8 +182,7 @@ INSTANTIATE_TEST_SUITE_P(EveryBusProtocol, LateServo,
                          testing::Values(Case{protocol_named("feetech_sts"), 50, 20},
                                          Case{protocol_named("feetech_sts"), 400, 20},
                                          Case{protocol_named("feetech_sts"), 150, 100},
-                                         Case{protocol_named("d55d"), 50, 20},
-                                         Case{protocol_named("d55d"), 400, 20},
+                                         Case{protocol_named("d55d"), 50, 20}, Case{protocol_named("d55d"), 400, 20},
                                          Case{protocol_named("modbus_rtu_smsmb"), 50, 20}),
                          case_name);
 
@@ -202,9 +207,11 @@ TEST(D55dHeartbeat, AGapLongerThanTheHeartbeatIsLoggedAndCounted) {
   ASSERT_TRUE(eventually([&] { return motion_of(sim, kUnit).heartbeat_stops > 0; },
                          "the motor's heartbeat stops it between two polls", std::chrono::seconds{10}))
       << log();
-  ASSERT_TRUE(eventually([&] { return log().find("went ") != std::string::npos &&
-                                      log().find("without an instruction") != std::string::npos; },
-                         "the gateway logs the gap"))
+  ASSERT_TRUE(eventually(
+      [&] {
+        return log().find("went ") != std::string::npos && log().find("without an instruction") != std::string::npos;
+      },
+      "the gateway logs the gap"))
       << log();
 }
 
