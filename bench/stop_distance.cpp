@@ -98,8 +98,9 @@ struct Stop {
 };
 
 // The e-stop's frames not acknowledged in time (0x04: a loaded machine delays the simulator past
-// the response timeout; the servo is then owed its stop): no run-on to measure, the round is made
-// again, at most kRetries times a table.
+// the response timeout; the servo is then owed its stop), or a setup write refused while the servo
+// was offline for the same reason: no run-on to measure, the round is made again once the servo is
+// polled again, at most kRetries times a table.
 constexpr unsigned kRetries = 3;
 struct NotAcknowledged : std::runtime_error {
   using std::runtime_error::runtime_error;
@@ -126,7 +127,11 @@ Stop run_round(const Axis& axis, sms::simulator::SimulatedBus& bus, ModbusClient
   // Home at the start, as fast as it goes, the e-stop reset first.
   if (!panel.write_coil(1, false).ok()) throw std::runtime_error("e-stop reset refused");
   for (const Write& write : axis.setup) {
-    if (!plc.write_register(write.address, write.value).ok()) throw std::runtime_error("setup write refused");
+    // Refused while the servo is offline (a loaded machine held the simulator past the response
+    // timeout): the round is made again once it is back.
+    if (const auto answer = plc.write_register(write.address, write.value); !answer.ok()) {
+      throw NotAcknowledged("a setup write was answered with " + answer.error);
+    }
   }
   auto before = Clock::now();
   if (!plc.write_register(axis.goal_address, static_cast<std::uint16_t>(axis.start)).ok()) {
@@ -191,6 +196,7 @@ void measure(const Axis& axis, unsigned rounds) {
       } catch (const NotAcknowledged& late) {
         if (++retried > kRetries) throw;
         std::cerr << "stop_distance: " << axis.name << ": " << late.what() << "; the round is made again\n";
+        sms::test::wait_until_polled(gateway.port(), 1);
         --r;
         continue;
       } catch (const std::exception& error) {
