@@ -17,6 +17,18 @@ Without files: tidy checks the product's sources (protocol/, modbus_map/, config
 simulator/: tests and benchmarks are not, gtest's macros trip bugprone-* without finding
 anything); gcc checks every file of BUILD_DIR's compile database, the sources the build
 generates (protobuf code, the console's embedded pages) made first, alone.
+
+Of those, only the files a change touched, with every file that includes a touched header, are
+checked against the commit the change builds on (docs/DECISIONS.md "The checks look at what
+changed"): the tree passed both checks there, as every commit passes the test command before it
+is made. The base is $SMS_CHECK_BASE where set (a revision; "all" for the full sweep), else the
+merge-base of HEAD with main, or HEAD's parent where that is HEAD itself and nothing is
+uncommitted. Which files include which header is read from the dependency log of
+$SMS_CHECK_DEPS (a ninja build of the same sources, default build-asan, which the test command
+has just built). The full sweep is made where the base is unknown (no main, a shallow clone,
+CI=true: CI's fresh clone cannot tell which commits are new), where the change touched what
+shapes every compile or check (a CMakeLists.txt, cmake/, .clang-tidy, the scripts that run the
+checks), and where this machine's cache saw another version of the tool.
 """
 import concurrent.futures
 import hashlib
@@ -46,6 +58,86 @@ def compile_args(entry):
     if out and os.path.basename(out[0]) == "ccache":
         out = out[1:]
     return out
+
+
+def output_of(entry):
+    args = entry["arguments"] if "arguments" in entry else shlex.split(entry["command"])
+    return args[args.index("-o") + 1] if "-o" in args else None
+
+
+def git(root, *args):
+    return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True)
+
+
+def change_base(root):
+    """The commit the change builds on, and how it was found; None where it is not known."""
+    asked = os.environ.get("SMS_CHECK_BASE", "")
+    if asked == "all":
+        return None, "SMS_CHECK_BASE=all"
+    if asked:
+        found = git(root, "rev-parse", "-q", "--verify", asked + "^{commit}")
+        if found.returncode != 0:
+            raise SystemExit("check_once: SMS_CHECK_BASE=%s is no commit here" % asked)
+        return found.stdout.strip(), "SMS_CHECK_BASE=" + asked
+    if os.environ.get("CI") == "true":
+        return None, "CI=true: a fresh clone cannot tell which commits are new"
+    head = git(root, "rev-parse", "-q", "--verify", "HEAD^{commit}").stdout.strip()
+    if not head:
+        return None, "no commit yet"
+    for main in ("main", "origin/main"):
+        merge_base = git(root, "merge-base", "HEAD", main)
+        if merge_base.returncode == 0:
+            break
+    else:
+        return None, "no main branch to compare with"
+    base = merge_base.stdout.strip()
+    uncommitted = git(root, "status", "--porcelain", "--untracked-files=normal").stdout.strip()
+    if base == head and not uncommitted:
+        parent = git(root, "rev-parse", "-q", "--verify", "HEAD^1")
+        if parent.returncode != 0:
+            return None, "HEAD's parent is not here (a shallow clone?)"
+        return parent.stdout.strip(), "HEAD's parent (HEAD is %s, nothing uncommitted)" % main
+    return base, "the merge-base of HEAD and " + main
+
+
+# A change to these shapes every compile or check: it is checked by the full sweep.
+SWEEP_ALL_NAMES = ("CMakeLists.txt", ".clang-tidy")
+SWEEP_ALL_PATHS = ("cmake/", "scripts/check_once.py", "scripts/tidy.sh", "scripts/gcc-check.sh", "scripts/test.sh")
+
+
+def changed_since(root, base):
+    """The files (real paths) that differ between base and the working tree, untracked ones
+    included; and the first of them that calls for the full sweep, if any."""
+    names = git(root, "diff", "--name-only", "--no-renames", base).stdout.splitlines()
+    names += git(root, "ls-files", "--others", "--exclude-standard").stdout.splitlines()
+    sweep = next((n for n in names if os.path.basename(n) in SWEEP_ALL_NAMES or n.startswith(SWEEP_ALL_PATHS)
+                  or n.endswith(".cmake")), None)
+    return {os.path.realpath(root / n) for n in names if n}, sweep
+
+
+def dependencies(deps_build):
+    """{source: the real paths of the files it read} from the ninja dependency log of deps_build;
+    a source whose record is missing or stale is left out (and so counts as touched)."""
+    database = json.loads((deps_build / "compile_commands.json").read_text())
+    source_of = {}
+    for entry in database:
+        output = output_of(entry)
+        if output:
+            source_of[os.path.normpath(os.path.join(entry["directory"], output))] = os.path.abspath(
+                os.path.join(entry["directory"], entry["file"]))
+    log = subprocess.run(["ninja", "-C", str(deps_build), "-t", "deps"], capture_output=True, text=True,
+                         check=True).stdout
+    result, current = {}, None
+    for line in log.splitlines():
+        if not line.startswith(" "):
+            current = None
+            if ": #deps" in line and line.rstrip().endswith("(VALID)"):
+                current = source_of.get(os.path.normpath(os.path.join(deps_build, line.split(": #deps")[0])))
+                if current is not None:
+                    result[current] = set()
+        elif current is not None and line.strip():
+            result[current].add(os.path.realpath(os.path.join(deps_build, line.strip())))
+    return result
 
 
 def key_of(entry, config, version, root):
@@ -124,14 +216,39 @@ def main():
     entries = {os.path.abspath(os.path.join(e["directory"], e["file"])): e
                for e in json.loads((build / "compile_commands.json").read_text())}
     check = checks[sys.argv[1]](root, build, entries)
+    cache = pathlib.Path(os.environ.get("SMS_CHECK_CACHE", pathlib.Path.home() / ".cache/sms-gateway")) / check.cache_dir
+    cache.mkdir(parents=True, exist_ok=True)
+    # This version of the tool with this configuration has run here (a marker beside the results).
+    tool = cache / ("tool-" + hashlib.sha256(check.version + b"\0" + check.config).hexdigest()[:16])
+    scope = "the files named"
     if not files:
         files = check.default_files(root, entries)
+        base, how = change_base(root)
+        sweep = None
+        if base is not None:
+            changed, sweep = changed_since(root, base)
+            if sweep:
+                sweep = "the change touches %s" % sweep
+            elif not tool.exists() and any(cache.glob("tool-*")):
+                sweep = "this machine's cache saw another version of the tool or its configuration"
+        if base is None or sweep:
+            scope = "the full sweep (%s)" % (sweep or how)
+        else:
+            deps_build = pathlib.Path(os.environ.get("SMS_CHECK_DEPS", root / "build-asan"))
+            if not (deps_build / "compile_commands.json").is_file():
+                print("%s: %s/compile_commands.json is missing: build %s first (scripts/test.sh does), or set "
+                      "SMS_CHECK_BASE=all" % (check.name, deps_build, deps_build), file=sys.stderr)
+                return 2
+            deps = dependencies(deps_build)
+            everything = len(files)
+            files = [f for f in files if os.path.realpath(f) in changed or f not in deps or deps[f] & changed]
+            scope = "%d of %d files: those touched since %s, %s, or including a touched header" % (
+                len(files), everything, base[:12], how)
     missing = [f for f in files if f not in entries]
     if missing:
         print("%s: not in %s/compile_commands.json: %s" % (check.name, build, " ".join(missing)), file=sys.stderr)
         return 2
-    cache = pathlib.Path(os.environ.get("SMS_CHECK_CACHE", pathlib.Path.home() / ".cache/sms-gateway")) / check.cache_dir
-    cache.mkdir(parents=True, exist_ok=True)
+    print("%s: %s" % (check.name, scope))
 
     def one(path):
         try:
@@ -160,6 +277,7 @@ def main():
         print("%s: findings in %d of %d files (above); %s" % (check.name, failed, len(files), check.advice),
               file=sys.stderr)
         return 1
+    tool.touch()
     print("%s: %d files, no findings (%d unchanged since a passing run)" % (check.name, len(files), cached))
     return 0
 

@@ -8,6 +8,8 @@
 #   ./scripts/container-test.sh --head     # build context = the committed HEAD (git archive)
 #   ./scripts/container-test.sh --context DIR   # build context = DIR (e.g. an unpacked release)
 #   ... --no-cache                          # rebuild every layer (apt steps included): cold build time
+#   ... --build-only                        # build the image and stop (the test command builds it beside
+#                                           # ctest at low priority; the checking run then finds every layer built)
 #   ./scripts/container-test.sh --arm64    # instead: docker/Dockerfile.cross for linux/arm64, run under
 #                                          # qemu-user-static (binfmt_misc); says so where podman cannot
 #
@@ -39,6 +41,7 @@ if ! command -v mbpoll >/dev/null 2>&1; then
 fi
 
 context_mode=worktree
+build_only=0
 platform=amd64
 build_options=()
 context=$repo
@@ -46,10 +49,11 @@ while [ "$#" -gt 0 ]; do
   case "$1" in
     --head) context_mode="head" ;;
     --no-cache) build_options+=(--no-cache) ;;
+    --build-only) build_only=1 ;;
     --arm64) platform=arm64 ;;
-    --context) [ "$#" -ge 2 ] || { echo "usage: $0 [--head | --context DIR] [--no-cache]" >&2; exit 2; }
+    --context) [ "$#" -ge 2 ] || { echo "usage: $0 [--head | --context DIR] [--no-cache] [--build-only]" >&2; exit 2; }
                context_mode="directory $2"; context=$(cd "$2" && pwd); shift ;;
-    *) echo "usage: $0 [--head | --context DIR] [--no-cache] [--arm64]" >&2; exit 2 ;;
+    *) echo "usage: $0 [--head | --context DIR] [--no-cache] [--build-only] [--arm64]" >&2; exit 2 ;;
   esac
   shift
 done
@@ -326,6 +330,10 @@ step_seconds() {
 }
 check "image built from the $context_mode${build_options:+ (${build_options[*]})} in $(elapsed "$t0") s ($(podman image inspect --format '{{.Size}}' "$image" | awk '{ printf "%.0f MB", $1 / 1e6 }'));" \
   "build-stage apt $(step_seconds 'RUN apt-get') s, compile $(step_seconds 'cmake --build') s ($(compile_cache_stats))"
+if [ "$build_only" = 1 ]; then
+  echo "container-test: image built (--build-only): nothing run or checked"
+  exit 0
+fi
 
 # --- what the image declares and contains ------------------------------------------------------
 [ "$(podman image inspect --format '{{.Config.User}}' "$image")" = "sms" ] || fail "image USER is not sms"

@@ -1,27 +1,30 @@
 #!/usr/bin/env bash
-# The one command that runs every test (README "The two commands" says how long it takes). In
+# The one command that runs every test (tests/README.md "How long it takes" says how long). In
 # order:
 #   1. installs dependencies (scripts/install-deps.sh) and checks the format of every C++ file
 #      (scripts/format.sh --check, .clang-format);
 #   2. builds every target of the default build (product, tests, benchmarks) with clang and
 #      AddressSanitizer + UndefinedBehaviorSanitizer into build-asan/;
-#   3. runs ctest: every suite, and each benchmark once in its shortest form
-#      (bench/programs.txt), so a benchmark that no longer builds or runs fails here;
-#      beside it, at the lowest priority, the checks that need no test: clang-tidy over the
-#      product's sources (scripts/tidy.sh), GCC 12's front end over every file of the default
-#      build (scripts/gcc-check.sh: the compiler of packagers, scripts/bench.sh and the container
-#      image), then the ThreadSanitizer and fuzzer builds; a check that passed on an unchanged
-#      file is not run again (scripts/check_once.py);
-#   4. the gateway's threaded suites again under ThreadSanitizer (SMS_SKIP_TSAN=1 skips it);
-#   5. the libFuzzer targets, briefly (SMS_SKIP_FUZZ=1 skips them; scripts/fuzz.sh runs longer);
-#   6. the ARM light step where its cross toolchain is installed (docs/ARM.md; SMS_SKIP_ARM=1);
-#   7. the container image built from HEAD and checked (scripts/container-test.sh --head) where
-#      podman is installed (SMS_SKIP_CONTAINER=1 skips it).
-# It fails fast: the first failing step ends the command at once, with the failing test's output
-# (the tests still running beside it are stopped and named) or the failing check's log; a check
-# that fails while ctest runs stops ctest, a failing test stops the checks (by their process ids).
-# At the end, failed or not, it prints how long each step took. Arguments are passed to each ctest
-# run (e.g. -R Safety).
+#   3. runs ctest there: every suite, and each benchmark once in its shortest form
+#      (bench/programs.txt), so a benchmark that no longer builds or runs fails here; more tests
+#      at once than cores (SMS_TEST_JOBS, default 3 a core): they mostly wait on the simulator.
+#      Beside it, in two lanes of their own:
+#      - the checks: clang-tidy over the product's sources (scripts/tidy.sh) and GCC 12's front end
+#        over every file of the default build (scripts/gcc-check.sh: the compiler of packagers,
+#        scripts/bench.sh and the container image), each over the files the change touched and
+#        those including a touched header, against the commit it builds on, the full sweep where
+#        that is unknown (as on CI) (scripts/check_once.py, which also skips a file that passed
+#        unchanged); then the ThreadSanitizer build and the gateway's threaded suites under it
+#        (SMS_SKIP_TSAN=1 skips them); then the libFuzzer targets, built and run briefly
+#        (SMS_SKIP_FUZZ=1; scripts/fuzz.sh runs longer);
+#      - the container image built from HEAD and checked (scripts/container-test.sh --head) where
+#        podman is installed (SMS_SKIP_CONTAINER=1 skips it).
+#      Builds and checks there run at the lowest priority; suites at normal priority.
+#   4. the ARM light step where its cross toolchain is installed (docs/ARM.md; SMS_SKIP_ARM=1).
+# It fails fast: the first failure anywhere ends the command at once, with the failing test's
+# output (the tests still running beside it are stopped and named) or the failing item's log; the
+# lanes are stopped by their process ids. At the end, failed or not, it prints how long each step
+# took. Arguments are passed to each ctest run (e.g. -R Safety).
 # Why clang for the sanitizer build: it compiles this code with the sanitizers about twice as fast
 # as GCC 12, and its -Wall finds other mistakes. Why GCC's front end and not a GCC build: a
 # GCC -O2 build costs 5 times the CPU of the front end alone, and on 2 cores that was most of the
@@ -36,7 +39,7 @@ steps=()
 record() { steps+=("$(printf '%-36s %4d s' "$1" "$2")"); }
 took() { record "$1" $((SECONDS - $2)); }
 summary() {
-  echo "test.sh: how long each step took (the checks ran beside ctest, at the lowest priority):"
+  echo "test.sh: how long each step took (indented: the lanes beside ctest, each item from its start):"
   [ "${#steps[@]}" -eq 0 ] || printf '  %s\n' "${steps[@]}"
   echo "test.sh: $((SECONDS - began)) s in all"
 }
@@ -78,20 +81,35 @@ cmake -S . -B build-asan -G Ninja "${sanitizer_build[@]}" -DSMS_SANITIZE=ON -DSM
 cmake --build build-asan -j "$jobs" || { took "clang ASan+UBSan build FAILED" "$step"; exit 1; }
 took "clang ASan+UBSan build" "$step"
 
-# The checks beside ctest, one after another at the lowest priority: the suites must pass on a
-# loaded machine anyway, and the cores ctest leaves idle while tests wait on the simulator do the
-# work. Each one's log is shown only when it fails.
+# Beside ctest, in two lanes of their own: the checks (clang-tidy, GCC's front end, then the
+# ThreadSanitizer build and its suites, then the fuzzer build and the fuzzers), and the container
+# image (built, then run and checked). Builds and checks run at the lowest priority, on the cores
+# the suites leave idle while they wait on the simulator; the suites (ThreadSanitizer's, the
+# fuzzers, the image's checks) at normal priority: they must pass on a loaded machine anyway.
+# Each item's log is shown only when it fails.
 fresh_with build-gcc 'g++'
 cmake -S . -B build-gcc -G Ninja -DCMAKE_CXX_COMPILER=g++ -DSMS_WERROR=ON >/dev/null  # configured only: its compile database
 run_tsan=0
 [ "${SMS_SKIP_TSAN:-0}" != 1 ] && run_tsan=1
 run_fuzz=0
 [ "${SMS_SKIP_FUZZ:-0}" != 1 ] && run_fuzz=1
+run_container=0
+if [ "${SMS_SKIP_CONTAINER:-0}" != 1 ]; then
+  if command -v podman >/dev/null && [ "$(id -u)" -eq 0 ]; then
+    run_container=1
+  else
+    echo "test.sh: container check not run: needs podman and root (apt-get install podman buildah debootstrap; scripts/container-test.sh)"
+  fi
+fi
+# How many tests ctest runs at once: most of a test's time is spent waiting on the simulator, so
+# more than the cores (docs/DECISIONS.md "The test command is the whole truth");
+# scripts/test-under-load.sh runs as many.
+test_jobs=${SMS_TEST_JOBS:-$((3 * jobs))}
 checks=build-asan/checks
 rm -rf "$checks"
 mkdir -p "$checks"
-# beside NAME COMMAND...: one check, its log kept; the first that fails ends the checks (and the
-# command: below).
+# beside NAME COMMAND...: one item of a lane, its log kept; the first that fails ends its lane
+# (and the command: below).
 beside() {
   local name=$1 start=$SECONDS
   shift
@@ -102,6 +120,7 @@ beside() {
     return 1
   fi
 }
+low() { nice -n 19 "$@"; }
 tsan_build() {
   # ThreadSanitizer: the ASan build cannot see data races. The suites where threads meet run again
   # under TSan (build-tsan/, the gateway's unit tests only: processes spawned by e2e tests are
@@ -109,20 +128,40 @@ tsan_build() {
   fresh_with build-tsan 'clang++'
   cmake -S . -B build-tsan -G Ninja "${sanitizer_build[@]}" -DSMS_TSAN=ON -DSMS_WERROR=ON \
     -DSMS_BUILD_BENCH=OFF "${launcher[@]}" >/dev/null
-  cmake --build build-tsan -j "$jobs" --target gateway_bus_tests gateway_units_tests gateway_modbus_tcp_tests \
+  low cmake --build build-tsan -j "$jobs" --target gateway_bus_tests gateway_units_tests gateway_modbus_tcp_tests \
     gateway_observability_tests gateway_tools_tests
 }
+export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
+export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 (
-  renice -n 19 -p "$BASHPID" >/dev/null  # before anything starts: what it starts inherits it
-  beside clang-tidy ./scripts/tidy.sh build-asan || exit 1
-  beside gcc-front-end ./scripts/gcc-check.sh build-gcc || exit 1
-  if [ "$run_tsan" = 1 ]; then beside tsan-build tsan_build || exit 1; fi
-  if [ "$run_fuzz" = 1 ]; then beside fuzz-build ./scripts/fuzz.sh --build || exit 1; fi
+  beside clang-tidy low ./scripts/tidy.sh build-asan || exit 1
+  beside gcc-front-end low ./scripts/gcc-check.sh build-gcc || exit 1
+  if [ "$run_tsan" = 1 ]; then
+    beside tsan-build tsan_build || exit 1
+    TSAN_OPTIONS="halt_on_error=1 second_deadlock_stack=1" beside tsan-suites \
+      ctest --test-dir build-tsan --output-on-failure --stop-on-failure -j "$jobs" \
+      -R 'SafetyState|BusEngineTest|QueueTest|LateReplyTest|Conformance|Fairness|Scheduling|MotionGateTest|TcpServerTest|Router|RtuEngine|RtuContractTest|MetricsOfARunningGateway|BusReopen|BusLend|EchoTest|PollCycleTest|StatusByte' "$@" || exit 1
+  fi
+  if [ "$run_fuzz" = 1 ]; then
+    beside fuzz-build low ./scripts/fuzz.sh --build || exit 1
+    # One at a time: each keeps a core busy for its whole run.
+    beside fuzzers ctest --test-dir build-fuzz --output-on-failure --stop-on-failure -j 1 "$@" || exit 1
+  fi
 ) </dev/null &
-beside_pid=$!
+checks_pid=$!
+container_pid=
+if [ "$run_container" = 1 ]; then
+  # The image from the committed HEAD, built as the README says and run (it needs root; it installs
+  # runc, podman's runtime here). Its build is most of the step: at the lowest priority first.
+  (
+    beside image-build low ./scripts/container-test.sh --head --build-only || exit 1
+    beside container ./scripts/container-test.sh --head || exit 1
+  ) </dev/null &
+  container_pid=$!
+fi
 
-# Fail fast: ctest and the checks run side by side, and whichever fails first ends the command at
-# once, stopping the other by its process id with everything it started.
+# Fail fast: ctest and the lanes beside it run side by side, and whichever fails first ends the
+# command at once, stopping the others by their process ids with everything they started.
 # stop_tree PID: the process and all its descendants. They are frozen first, so that none starts
 # another while the tree is walked, then terminated.
 tree_of() {
@@ -139,7 +178,8 @@ stop_tree() {
   kill -TERM "${pids[@]}" 2>/dev/null || true
   kill -CONT "${pids[@]}" 2>/dev/null || true
 }
-# The checks' times, for the summary, and the log of the one that failed.
+# The lanes' times, for the summary, and the log of the item that failed: from a failed suite's
+# first failure, else the check's findings.
 record_checks() {
   local outcome name seconds
   for outcome in passed failed; do
@@ -149,8 +189,12 @@ record_checks() {
   [ -f "$checks/failed" ] || return 0
   while read -r name _; do
     echo "test.sh: $name failed ($checks/$name.log):" >&2
-    grep -B2 -A20 -m5 -E 'error|warning|FAILED|findings' "$checks/$name.log" >&2 || tail -40 "$checks/$name.log" >&2
-  done <"$checks/failed"
+    if grep -qP '\*\*\*(Failed|Timeout|Exception|Not Run(?! \(Disabled\)))' "$checks/$name.log"; then
+      sed -n '/\*\*\*\(Failed\|Timeout\|Exception\|Not Run\)/,$p' "$checks/$name.log" | head -80 >&2
+    else
+      grep -B2 -A20 -m5 -E 'error|warning|FAILED|findings' "$checks/$name.log" >&2 || tail -40 "$checks/$name.log" >&2
+    fi
+  done < <(sed 's/ [0-9]*$//' "$checks/failed")
 }
 
 # ctest_fail_fast CTEST_ARGS...: ctest, its output shown as it runs, ended at the first failed
@@ -183,67 +227,50 @@ ctest_fail_fast() {
   return "$status"
 }
 
-export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
-export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 step=$SECONDS
-ctest_fail_fast --test-dir build-asan -j "$jobs" "$@" &
+ctest_fail_fast --test-dir build-asan -j "$test_jobs" "$@" &
 ctest_pid=$!
-trap 'stop_tree "$ctest_pid"; stop_tree "$beside_pid"; summary' EXIT
-while [ -n "$ctest_pid$beside_pid" ]; do
+trap 'stop_tree "$ctest_pid"; stop_tree "$checks_pid"; stop_tree "$container_pid"; summary' EXIT
+# stop_lanes: every lane still running, stopped with what it started.
+stop_lanes() {
+  stop_tree "$ctest_pid"
+  stop_tree "$checks_pid"
+  stop_tree "$container_pid"
+  ctest_pid='' checks_pid='' container_pid=''
+}
+while [ -n "$ctest_pid$checks_pid$container_pid" ]; do
   finished=
   status=0
-  # shellcheck disable=SC2086  # the pids still running, one or two
-  wait -n -p finished $ctest_pid $beside_pid || status=$?
+  # shellcheck disable=SC2086  # the pids still running, one to three
+  wait -n -p finished $ctest_pid $checks_pid $container_pid || status=$?
   if [ "$finished" = "$ctest_pid" ]; then
     ctest_pid=
     if [ "$status" -ne 0 ]; then
       took "ctest (build-asan) FAILED" "$step"
-      [ -z "$beside_pid" ] || echo "test.sh: ctest failed: the checks beside it are stopped" >&2
-      stop_tree "$beside_pid"
-      beside_pid=
+      [ -z "$checks_pid$container_pid" ] || echo "test.sh: ctest failed: the lanes beside it are stopped" >&2
+      stop_lanes
       record_checks
       exit "$status"
     fi
-    took "ctest (build-asan)" "$step"
-    step=$SECONDS
-  elif [ "$finished" = "$beside_pid" ]; then
-    beside_pid=
-    if [ "$status" -ne 0 ]; then
-      if [ -n "$ctest_pid" ]; then
-        echo "test.sh: a check beside ctest failed: ctest is stopped" >&2
-        stop_tree "$ctest_pid"
-        ctest_pid=
-        took "ctest (build-asan), stopped" "$step"
-      fi
-      record_checks
-      exit 1
+    took "ctest (build-asan), -j $test_jobs" "$step"
+    after_ctest=$SECONDS
+  elif [ -n "$finished" ] && [ "$status" -ne 0 ]; then
+    if [ -n "$ctest_pid" ]; then
+      echo "test.sh: an item beside ctest failed: ctest is stopped" >&2
+      took "ctest (build-asan), stopped" "$step"
     fi
+    stop_lanes
+    record_checks
+    exit 1
+  elif [ "$finished" = "$checks_pid" ]; then
+    checks_pid=
+  elif [ "$finished" = "$container_pid" ]; then
+    container_pid=
   fi
 done
 trap summary EXIT
-took "the checks beside it, after ctest" "$step"
+took "the lanes beside it, after ctest" "${after_ctest:-$SECONDS}"
 record_checks
-# ctest_step NAME CTEST_ARGS...: ctest_fail_fast as a step of its own; it is stopped with what it
-# started if the command ends first (an interrupt: a background job does not get the terminal's).
-ctest_step() {
-  local name=$1 status=0
-  shift
-  step=$SECONDS
-  ctest_fail_fast "$@" &
-  ctest_pid=$!
-  trap 'stop_tree "$ctest_pid"; summary' EXIT
-  wait "$ctest_pid" || status=$?
-  trap summary EXIT
-  [ "$status" -eq 0 ] || { took "$name FAILED" "$step"; exit "$status"; }
-  took "$name" "$step"
-}
-if [ "$run_tsan" = 1 ]; then
-  TSAN_OPTIONS="halt_on_error=1 second_deadlock_stack=1" ctest_step "ctest (build-tsan)" --test-dir build-tsan -j "$jobs" \
-    -R 'SafetyState|BusEngineTest|QueueTest|LateReplyTest|Conformance|Fairness|Scheduling|MotionGateTest|TcpServerTest|Router|RtuEngine|RtuContractTest|MetricsOfARunningGateway|BusReopen|BusLend|EchoTest|PollCycleTest|StatusByte' "$@"
-fi
-if [ "$run_fuzz" = 1 ]; then
-  ctest_step "fuzzers" --test-dir build-fuzz -j "$jobs" "$@"
-fi
 # ARM, light form (docs/ARM.md "In the test command"): the protocol and modbus_map suites cross-built
 # for armhf (32-bit ARMv7: 32-bit long, size_t and time_t; unsigned char) and run under qemu-arm,
 # on a machine where scripts/cross.sh finds its cross toolchain, qemu and the armhf sysroot ready.
@@ -251,17 +278,10 @@ fi
 # minutes and a few hundred MB, which a fresh CI machine would pay on every run (README "The two commands").
 if [ "${SMS_SKIP_ARM:-0}" != 1 ]; then
   if arm_ready=$(./scripts/cross.sh armhf --ready 2>&1); then
-    ./scripts/cross.sh armhf --test-light --suites protocol_tests,modbus_map_tests
+    step=$SECONDS
+    ./scripts/cross.sh armhf --test-light --suites protocol_tests,modbus_map_tests || { took "ARM light step FAILED" "$step"; exit 1; }
+    took "ARM light step" "$step"
   else
     echo "test.sh: ARM light step not run: ${arm_ready##*: } (scripts/cross.sh armhf --deps-only installs it)"
-  fi
-fi
-# The container image from the committed HEAD, built and run as the README says, where podman is
-# installed (it needs root; it installs runc, podman's runtime here).
-if [ "${SMS_SKIP_CONTAINER:-0}" != 1 ]; then
-  if command -v podman >/dev/null && [ "$(id -u)" -eq 0 ]; then
-    ./scripts/container-test.sh --head
-  else
-    echo "test.sh: container check not run: needs podman and root (apt-get install podman buildah debootstrap; scripts/container-test.sh)"
   fi
 fi

@@ -136,10 +136,30 @@ CyclicRun write_unchanged_goal(const std::string& device, int baud, char parity,
   return run;
 }
 
+// The writes the gateway answered with exception 0x0B (its servo did not answer): an answer all
+// the same, the frame not taken for an echo. The gateway's rule where the servo missed its
+// response timeouts and went offline until its probe, as a loaded machine can make the simulator
+// do: counted apart, and allowed only where the gateway logged a servo offline.
+int answered_servo_silent(const CyclicRun& run) {
+  return static_cast<int>(std::count_if(run.failures.begin(), run.failures.end(), [](const std::string& failure) {
+    return failure.ends_with(": Target device failed to respond");
+  }));
+}
+
 std::string listed(const std::vector<std::string>& lines) {
   std::string text;
   for (const auto& line : lines) text += line + "\n";
   return text;
+}
+
+void expect_every_write_answered(const CyclicRun& run, int writes, const std::string& gateway_output) {
+  const int servo_silent = answered_servo_silent(run);
+  if (servo_silent > 0) {
+    EXPECT_NE(gateway_output.find(" offline ("), std::string::npos)
+        << servo_silent << " writes answered 0x0B while no servo went offline:\n"
+        << listed(run.failures) << gateway_output;
+  }
+  EXPECT_EQ(run.answered + servo_silent, writes) << listed(run.failures) << gateway_output;
 }
 
 std::uint32_t watchdog_trips(std::uint16_t tcp_port) {
@@ -187,7 +207,7 @@ TEST(RtuSlaveCyclicWrite, APlcWritingAnUnchangedGoalEvery100MsIsAlwaysAnsweredAn
     GTEST_SKIP() << "this machine left the 500 ms watchdog unfed for up to " << feed_gap_text(run)
                  << ": its trip is the watchdog's rule, nothing to assert";
   }
-  EXPECT_EQ(run.answered, kWrites) << listed(run.failures) << gateway.process().output();
+  expect_every_write_answered(run, kWrites, gateway.process().output());
   EXPECT_EQ(run.states, std::vector<std::uint16_t>(kWrites, kRunning)) << "the watchdog left running";
   EXPECT_EQ(watchdog_trips(gateway.port()), 0u);
   EXPECT_EQ(gateway.process().output().find("WATCHDOG TRIPPED"), std::string::npos) << gateway.process().output();
@@ -224,7 +244,7 @@ TEST(RtuSlaveCyclicWrite, OnSimulateWithTheFlagTwentyIdenticalWritesGetTwentyAns
     GTEST_SKIP() << "this machine left the 3000 ms watchdog unfed for up to " << feed_gap_text(run)
                  << ": its trip is the watchdog's rule, nothing to assert";
   }
-  EXPECT_EQ(run.answered, kWrites) << listed(run.failures) << gateway.process().output();
+  expect_every_write_answered(run, kWrites, gateway.process().output());
   EXPECT_EQ(run.states, std::vector<std::uint16_t>(kWrites, kRunning));
   EXPECT_EQ(watchdog_trips(gateway.port()), 0u);
   // The in-process simulator's servo, through the poll cache: it went to the goal.

@@ -161,7 +161,7 @@ TEST_F(FeetechSim, SyncWriteSetsEachListedServo) {
 TEST_F(FeetechSim, SyncReadAnswersInListOrder) {
   start({sts(1), sts(2), sts(3)});
   const std::vector<std::uint8_t> ids{3, 1, 2};
-  const auto replies = host().transact_all(kFeetechFormat, feetech::sync_read(5, 1, ids));
+  const auto replies = host().transact_expecting(kFeetechFormat, feetech::sync_read(5, 1, ids), 3);
   ASSERT_EQ(replies.size(), 3U);
   EXPECT_EQ(replies[0], status(3, 0, {3}));
   EXPECT_EQ(replies[1], status(1, 0, {1}));
@@ -171,7 +171,7 @@ TEST_F(FeetechSim, SyncReadAnswersInListOrder) {
 TEST_F(FeetechSim, SyncReadSkipsServosNotListed) {
   start({sts(1), sts(2)});
   const std::vector<std::uint8_t> ids{2};
-  EXPECT_EQ(host().transact_all(kFeetechFormat, feetech::sync_read(56, 2, ids)),
+  EXPECT_EQ(host().transact_expecting(kFeetechFormat, feetech::sync_read(56, 2, ids), 1),
             (std::vector<protocol::Packet>{status(2, 0, {0x00, 0x08})}));
 }
 

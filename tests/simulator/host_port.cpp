@@ -112,6 +112,26 @@ std::vector<protocol::Packet> HostPort::transact_all(const protocol::PacketForma
   return decode_all(format, receive(quiet, quiet + std::chrono::milliseconds(60)));
 }
 
+std::vector<protocol::Packet> HostPort::transact_expecting(const protocol::PacketFormat& format,
+                                                           const protocol::Packet& request, std::size_t count,
+                                                           std::chrono::milliseconds limit,
+                                                           std::chrono::milliseconds quiet) {
+  send(protocol::encode(format, request));
+  protocol::StreamDecoder decoder(format);
+  std::vector<protocol::Packet> packets;
+  const auto give_up = std::chrono::steady_clock::now() + limit;
+  for (;;) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(give_up - std::chrono::steady_clock::now());
+    // Until `count` frames: a little at a time up to the limit; then only while more follow.
+    const Bytes bytes = packets.size() < count ? receive(5ms, std::max(left, 1ms)) : receive(quiet, quiet);
+    decoder.feed(bytes);
+    while (const auto event = decoder.next()) {
+      if (event->kind == protocol::DecodeEvent::Kind::Frame) packets.push_back(event->packet);
+    }
+    if (packets.size() >= count ? bytes.empty() : std::chrono::steady_clock::now() >= give_up) return packets;
+  }
+}
+
 std::vector<protocol::Packet> decode_all(const protocol::PacketFormat& format, const Bytes& bytes) {
   protocol::StreamDecoder decoder(format);
   decoder.feed(bytes);

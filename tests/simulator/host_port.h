@@ -34,9 +34,16 @@ class HostPort {
   // Sends the packet and decodes the first status frame that comes back.
   std::optional<protocol::Packet> transact(const protocol::PacketFormat& format, const protocol::Packet& request,
                                            std::chrono::milliseconds limit = 1000ms);
-  // Every status frame until the line goes quiet.
+  // Every status frame until the line goes quiet: for a request whose answer is silence.
   std::vector<protocol::Packet> transact_all(const protocol::PacketFormat& format, const protocol::Packet& request,
                                              std::chrono::milliseconds quiet = 40ms);
+  // Every status frame until `count` have come (or `limit` passes), and any that follow within
+  // `quiet`: for a request that is answered, awaited as long as a loaded machine holds the
+  // simulator back, not for a window (tests/README.md "Counting on a loaded machine").
+  std::vector<protocol::Packet> transact_expecting(const protocol::PacketFormat& format,
+                                                   const protocol::Packet& request, std::size_t count,
+                                                   std::chrono::milliseconds limit = 5000ms,
+                                                   std::chrono::milliseconds quiet = 40ms);
 
  private:
   int fd_ = -1;

@@ -175,7 +175,9 @@ class WriteFlood {
               const auto id = static_cast<std::uint8_t>(1 + sent % 3);
               engine.submit(c.write(id, static_cast<std::uint8_t>(1 + sent % 200)), Priority::ClientWrite,
                             [state](BusResult result) {
-                              ++(result.status == BusStatus::Ok ? state->answered : state->failed);
+                              ++(result.status == BusStatus::Ok        ? state->answered
+                                 : result.status == BusStatus::Timeout ? state->timed_out
+                                                                       : state->failed);
                               --state->in_flight;
                             });
             }
@@ -197,6 +199,10 @@ class WriteFlood {
   std::function<unsigned()> answered_counter() const {
     return [state = state_] { return state->answered.load(); };
   }
+  // Answered Timeout: the servo did not answer within 1 + retries response timeouts, or was
+  // offline after that until its probe (the engine's rule; on a loaded machine the simulator can
+  // be descheduled for longer than that).
+  unsigned timed_out() const { return state_->timed_out.load(); }
   unsigned failed() const { return state_->failed.load(); }  // any other answer
 
  private:
@@ -204,6 +210,7 @@ class WriteFlood {
     std::atomic<bool> running{true};
     std::atomic<unsigned> in_flight{0};
     std::atomic<unsigned> answered{0};
+    std::atomic<unsigned> timed_out{0};
     std::atomic<unsigned> failed{0};
   };
   std::shared_ptr<State> state_ = std::make_shared<State>();

@@ -90,9 +90,12 @@ TEST_F(PollFairnessTest, PollCyclesContinueWhileClientReadsKeepTheQueueFull) {
                          "10 poll cycles while the clients keep the queue full"));
   const auto cycles = engine_->counters().poll_cycles - cycles_before;
   const auto answered = flood_->answered() - answered_before;
-  // The clients keep most of the bus: a cycle is one SYNC READ of 52 bytes (0.5 ms on the
-  // wire) per poll period, a client READ 16 bytes.
-  EXPECT_GT(answered, 5 * cycles);
+  // The clients are not starved either: a cycle's work goes after the work queued before it, and
+  // the flood keeps 4 reads in the engine (3 queued while one is on the wire), so at least 3
+  // client answers come between two cycles. By the rule, not by how many reads fit in a poll
+  // period: that is wall-clock time (more than 5 a cycle failed at a load of 12, where each
+  // transaction took longer and the 10 ms period came sooner).
+  EXPECT_GE(answered, 3 * (cycles - 1));
   // The cache of the servo no client reads is fresh: it was polled within the last cycles.
   const auto age = engine_->cache().state(2)->age(std::chrono::steady_clock::now());
   ASSERT_TRUE(age.has_value());
