@@ -17,6 +17,7 @@
 #include <spdlog/spdlog.h>
 
 #include "gateway/bus/serial_port_termios2.h"
+#include "protocol/hex_text.h"
 #include "protocol/modbus_pdu.h"
 #include "protocol/modbus_rtu.h"
 
@@ -120,12 +121,6 @@ int poll_ms(std::chrono::nanoseconds timeout) {
 
 }  // namespace
 
-std::string hex_bytes(std::span<const std::uint8_t> bytes) {
-  std::string text;
-  for (const auto byte : bytes) text += fmt::format("{}{:02X}", text.empty() ? "" : " ", byte);
-  return text;
-}
-
 struct RtuMaster::Line {
   modbus_t* context = nullptr;
   SteadyClock::time_point quiet_since{};  // when the line last fell silent (a frame ended)
@@ -224,7 +219,7 @@ RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t
   }
   modbus_t* context = line_->context;
   wait_for_frame_gap();
-  const std::size_t dropped = drop_input();  // late replies and noise would otherwise be read as this answer
+  Bytes dropped = drop_input();  // late replies and noise would otherwise be read as this answer
   modbus_set_slave(context, slave);
   Bytes request;
   request.reserve(pdu.size() + 1);
@@ -242,7 +237,8 @@ RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t
   }
   tap_request(request);
   RtuExchange exchange = receive_answer(slave, pdu[0], response_timeout);
-  exchange.dropped = dropped;
+  exchange.dropped = dropped.size();
+  exchange.dropped_bytes = std::move(dropped);
   return exchange;
 }
 
@@ -320,7 +316,9 @@ RtuExchange RtuMaster::receive_until_silence(std::uint8_t slave, std::chrono::na
   if (frame.size() < protocol::rtu::kMinAduSize ||
       protocol::rtu::crc16(std::span(frame).first(frame.size() - 2)) !=
           static_cast<std::uint16_t>(frame[frame.size() - 2] | frame[frame.size() - 1] << 8)) {
-    return {RtuOutcome::Corrupt, {}, fmt::format("answer from slave {} with a wrong CRC: {}", slave, hex_bytes(frame))};
+    return {RtuOutcome::Corrupt,
+            {},
+            fmt::format("answer from slave {} with a wrong CRC: {}", slave, protocol::hex_bytes(frame))};
   }
   if (frame[0] != slave) {
     return {RtuOutcome::WrongSlave, {}, fmt::format("asked slave {}, slave {} answered", slave, frame[0]), frame[0]};
@@ -336,7 +334,7 @@ RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_
   }
   modbus_t* context = line_->context;
   wait_for_frame_gap();
-  const std::size_t dropped = drop_input();
+  Bytes dropped = drop_input();
   modbus_set_slave(context, slave);
   Bytes request;
   request.push_back(slave);
@@ -349,23 +347,25 @@ RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_
   std::this_thread::sleep_for(on_wire + turnaround);
   line_->quiet_since = SteadyClock::now();
   RtuExchange sent{RtuOutcome::Sent, {}, {}};
-  sent.dropped = dropped;
+  sent.dropped = dropped.size();
+  sent.dropped_bytes = std::move(dropped);
   return sent;
 }
 
-std::size_t RtuMaster::drop_input() {
+Bytes RtuMaster::drop_input() {
   const int fd = modbus_get_socket(line_->context);
   std::array<std::uint8_t, 256> buffer{};
-  std::size_t dropped = 0;
+  Bytes dropped;
   for (;;) {
     pollfd descriptor{fd, POLLIN, 0};
     if (::poll(&descriptor, 1, 0) <= 0 || (descriptor.revents & POLLIN) == 0) break;
     const ssize_t got = ::read(fd, buffer.data(), buffer.size());
     if (got <= 0) break;  // a lost device is reported by the exchange that follows
-    tap(WireDirection::FromServos, std::span(buffer).first(static_cast<std::size_t>(got)));
-    dropped += static_cast<std::size_t>(got);
+    const auto bytes = std::span(buffer).first(static_cast<std::size_t>(got));
+    tap(WireDirection::FromServos, bytes);
+    dropped.insert(dropped.end(), bytes.begin(), bytes.end());
   }
-  if (dropped > 0) line_->quiet_since = SteadyClock::now();
+  if (!dropped.empty()) line_->quiet_since = SteadyClock::now();
   return dropped;
 }
 

@@ -35,9 +35,6 @@ struct RtuLineSettings {
   config::ModbusRtuOptions options;  // RS-485 mode, RTS direction control and delay, byte timeout
 };
 
-// "01 03 00 0A" for messages about frames.
-std::string hex_bytes(std::span<const std::uint8_t> bytes);
-
 // True when libmodbus 3.1.6 would set `baud` itself (a Bxxx constant exists for it).
 bool libmodbus_sets_rate(std::uint32_t baud);
 
@@ -61,7 +58,8 @@ struct RtuExchange {
   protocol::Bytes pdu;                      // Reply: function code first, no slave, no CRC
   std::string detail;                       // what went wrong, for logs
   std::optional<std::uint8_t> other_slave;  // WrongSlave: who answered, when the frame says so
-  std::size_t dropped = 0;                  // bytes the input held before the request, read and dropped unseen
+  std::size_t dropped = 0;                  // bytes the input held before the request, read and dropped
+  protocol::Bytes dropped_bytes;            // those bytes: late answers that came while the line was idle
 
   // A constructor rather than an aggregate, so `{outcome, pdu, detail}` leaves other_slave empty.
   RtuExchange(RtuOutcome result = RtuOutcome::Timeout, protocol::Bytes reply_pdu = {}, std::string what = {},
@@ -123,7 +121,7 @@ class RtuMaster {
   RtuExchange receive_until_silence(std::uint8_t slave, std::chrono::nanoseconds first_byte_timeout);
   void wait_for_frame_gap();
   // Reads what the input holds (modbus_flush's tcflush would not say how much): the count.
-  std::size_t drop_input();
+  protocol::Bytes drop_input();
 
   void tap(WireDirection direction, std::span<const std::uint8_t> bytes) const;
   void tap_request(std::span<const std::uint8_t> slave_and_pdu) const;

@@ -7,6 +7,7 @@
 #include <variant>
 
 #include "gateway/bus/discovery.h"
+#include "protocol/hex_text.h"
 #include "protocol/modbus_pdu.h"
 #include "protocol/modbus_rtu.h"
 
@@ -185,6 +186,35 @@ AnswerShape RtuTransactor::frame_shape(std::span<const std::uint8_t> pdu) {
                             exception ? AnswerShape::kExceptionLength : pdu.size());
 }
 
+void RtuTransactor::note_late_answers(std::span<const std::uint8_t> dropped, TransactionEvents& events) {
+  std::size_t at = 0;
+  while (dropped.size() - at >= 5) {
+    const std::uint8_t function = dropped[at + 1];
+    std::size_t length = 0;  // slave, PDU, CRC
+    if ((function & fc::kExceptionBit) != 0) {
+      length = 5;
+    } else if (function == fc::kReadHoldingRegisters || function == fc::kReadInputRegisters) {
+      length = 5 + std::size_t{dropped[at + 2]};
+    } else if (function == fc::kWriteSingleRegister || function == fc::kWriteMultipleRegisters) {
+      length = 8;
+    }
+    const auto frame = dropped.subspan(at, std::min(length, dropped.size() - at));
+    const bool whole = length != 0 && frame.size() == length &&
+                       protocol::rtu::crc16(frame.first(length - 2)) == (frame[length - 2] | frame[length - 1] << 8);
+    if (!whole) {
+      ++at;  // noise, or a frame cut short: look for one further on
+      continue;
+    }
+    const std::uint8_t slave = frame[0];
+    const auto arrival = owed_.arrived(slave, frame_shape(frame.subspan(1, length - 3)));
+    if (arrival.late_since) {
+      (void)events.late(
+          slave, std::chrono::duration_cast<std::chrono::milliseconds>(SteadyClock::now() - *arrival.late_since));
+    }
+    at += length;
+  }
+}
+
 std::optional<BusResult> RtuTransactor::fence_before(const Request& request, TransactionEvents& events) {
   const AnswerShape shape = answer_shape(request);
   const auto fence_shape = [](unsigned units) {
@@ -225,6 +255,7 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
     const RtuExchange sent = master_.send_only(request.slave, request.pdu, timing_.reply_allowance);
     if (sent.outcome == RtuOutcome::PortError) return BusResult{BusStatus::BusDown, 0, {}, sent.detail};
     stray_.count(sent.dropped, timing_.label, [&] { return what_for(request); });
+    note_late_answers(sent.dropped_bytes, events);
     return BusResult{};
   }
   if (auto not_sent = fence_before(request, events)) return std::move(*not_sent);
@@ -243,6 +274,7 @@ BusResult RtuTransactor::transact(const Request& request, TransactionEvents& eve
     const auto deadline = SteadyClock::now() + master_.wire_time(request.pdu.size() + 3) + reply_timeout;
     RtuExchange exchange = master_.transact(request.slave, request.pdu, reply_timeout);
     stray_.count(exchange.dropped, timing_.label, [&] { return what_for(request); });
+    note_late_answers(exchange.dropped_bytes, events);
     // A valid frame from the addressed slave that is not this request's answer is one it owed to
     // an earlier request: dropped and counted, and this attempt's own answer awaited until its deadline.
     while (exchange.outcome == RtuOutcome::Reply) {
@@ -319,7 +351,8 @@ BusResult RtuTransactor::transact(const Request& request, TransactionEvents& eve
 BusResult RtuTransactor::check_reply(const Request& request, Bytes reply) const {
   const std::uint8_t requested = request.pdu[0];
   const auto corrupt = [&](std::string_view what) {
-    return BusResult{BusStatus::Corrupt, 0, {}, fmt::format("{}: {}: {}", where(request), what, hex_bytes(reply))};
+    return BusResult{
+        BusStatus::Corrupt, 0, {}, fmt::format("{}: {}: {}", where(request), what, protocol::hex_bytes(reply))};
   };
   if (reply.empty()) return corrupt("empty answer");
   if (reply[0] == (requested | fc::kExceptionBit)) {

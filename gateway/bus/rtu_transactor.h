@@ -111,6 +111,10 @@ class RtuTransactor {
   // When the slave owes answers that could look like `request`'s: the fence read first; nullopt
   // when the request may go, otherwise why it did not.
   std::optional<BusResult> fence_before(const Request& request, TransactionEvents& events);
+  // The bytes dropped before a request, which came while the line was idle: each whole frame
+  // among them (its length from its function code, its CRC right) that a slave owed is taken off
+  // its owed answers, and told to `events` as late where it was (as the packet buses do).
+  void note_late_answers(std::span<const std::uint8_t> dropped, TransactionEvents& events);
   BusResult transact(const Request& request, TransactionEvents& events);
   BusResult check_reply(const Request& request, protocol::Bytes reply) const;
   std::string where(const Request& request) const;
