@@ -33,11 +33,26 @@ std::string identity_text(const ScanFinding& finding, bool model) {
   return format_identity_value(layout, model, model ? finding.identity.model : finding.identity.firmware);
 }
 
+// What the reads that confirm a found servo heard besides its answers: other IDs' late answers,
+// and bytes dropped before a request (a late answer that came between two requests).
+struct HeardMeanwhile {
+  std::set<std::uint8_t> ids;
+  bool dropped = false;
+};
+
+LinkAnswer watched_read(ServoLink& link, HeardMeanwhile& heard, std::uint8_t id, std::uint16_t address,
+                        std::uint16_t count) {
+  LinkAnswer answer = link.read(id, address, count);
+  heard.ids.insert(answer.other_ids.begin(), answer.other_ids.end());
+  heard.dropped = heard.dropped || answer.dropped_before > 0;
+  return answer;
+}
+
 // The identity, and the table the servo speaks when its byte-order flag tells (SCS or STS/SMS).
-ServoIdentity read_identity(ServoLink& link, TableId& table_id, std::uint8_t id) {
+ServoIdentity read_identity(ServoLink& link, HeardMeanwhile& heard, TableId& table_id, std::uint8_t id) {
   const IdentityLayout* layout = identity_layout(table_id);
   if (layout == nullptr) return {};
-  const LinkAnswer answer = link.read(id, layout->read.address, layout->read.count);
+  const LinkAnswer answer = watched_read(link, heard, id, layout->read.address, layout->read.count);
   if (!answer.ok()) return {};
   if (layout->read.address == 0) {
     if (const auto spoken = table_from_byte_order_flag(table_id, answer.data)) {
@@ -49,12 +64,12 @@ ServoIdentity read_identity(ServoLink& link, TableId& table_id, std::uint8_t id)
 }
 
 // How many of `reads` reads of present_position come back damaged.
-int damaged_position_reads(ServoLink& link, const modbus_map::TableSpec& table, const modbus_map::FieldSpec& position,
-                           std::uint8_t id, int reads) {
+int damaged_position_reads(ServoLink& link, HeardMeanwhile& heard, const modbus_map::TableSpec& table,
+                           const modbus_map::FieldSpec& position, std::uint8_t id, int reads) {
   const std::uint16_t span = modbus_map::address_span(table.addressing, position);
   int damaged = 0;
   for (int read = 0; read < reads; ++read) {
-    if (link.read(id, position.addr, span).status == LinkStatus::Corrupt) ++damaged;
+    if (watched_read(link, heard, id, position.addr, span).status == LinkStatus::Corrupt) ++damaged;
   }
   return damaged;
 }
@@ -63,14 +78,14 @@ int damaged_position_reads(ServoLink& link, const modbus_map::TableSpec& table, 
 // damaged answer can also be a late answer overlapping the next request (a timeout shorter
 // than the servo's delay on a busy machine): a suspicion is confirmed with reads that wait
 // longer, and only a majority of damaged ones counts.
-bool answers_collide(ServoLink& link, TableId table_id, std::uint8_t id) {
+bool answers_collide(ServoLink& link, HeardMeanwhile& heard, TableId table_id, std::uint8_t id) {
   const auto& table = modbus_map::table(table_id);
   const modbus_map::FieldSpec* position = modbus_map::field_by_name(table, "present_position");
   if (position == nullptr) return false;
-  if (damaged_position_reads(link, table, *position, id, kConflictReads) == 0) return false;
+  if (damaged_position_reads(link, heard, table, *position, id, kConflictReads) == 0) return false;
   const auto latency = link.settings().latency;
   link.set_latency(latency + kConfirmExtraWait);
-  const int damaged = damaged_position_reads(link, table, *position, id, kConflictReads);
+  const int damaged = damaged_position_reads(link, heard, table, *position, id, kConflictReads);
   link.set_latency(latency);
   return damaged * 2 > kConflictReads;
 }
@@ -145,6 +160,7 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
       seen.insert(id);
       answered_late.insert(answer.other_ids.begin(), answer.other_ids.end());
       if (answer.dropped_before > 0 && last_silent) answered_late.insert(*last_silent);
+      const std::optional<std::uint8_t> silent_before = answer.dropped_before > 0 ? std::nullopt : last_silent;
       last_silent = id;  // until an answer says otherwise below
       if (!answer.ok() && !answer.heard_anything) return false;
       if (!answer.ok()) {
@@ -164,10 +180,15 @@ Expected<ScanReport> scan_bus(ServoLink& link, const ScanOptions& options, const
       finding.table = options.table;
       if (answer.ok()) {
         finding.status = answer.servo_status;
+        // The reads that confirm it can drop the late answer of the ID asked just before, as the
+        // next ping would: that ID is asked again too.
+        HeardMeanwhile heard;
         link.set_attempts(attempts);  // the identity is worth a retry; a collision check is not
-        finding.identity = read_identity(link, finding.table, id);
+        finding.identity = read_identity(link, heard, finding.table, id);
         link.set_attempts(1);
-        finding.conflict = answers_collide(link, options.table, id);
+        finding.conflict = answers_collide(link, heard, options.table, id);
+        answered_late.insert(heard.ids.begin(), heard.ids.end());
+        if (heard.dropped && silent_before) answered_late.insert(*silent_before);
         if (finding.table != options.table) {
           finding.note = fmt::format("table {}: address 2 says {} byte first", modbus_map::table(finding.table).name,
                                      finding.table == TableId::Scs ? "high" : "low");
