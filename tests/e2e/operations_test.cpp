@@ -7,10 +7,13 @@
 #include <string>
 #include <vector>
 
+#include "tests/support/eventually.h"
 #include "tests/support/metrics_http_client.h"
 #include "tests/support/processes.h"
 
-namespace sms::e2e {
+// Its own namespace: the test files of e2e_tests compile in batches (unity build), where the
+// helpers of one file's anonymous namespace would meet another's of the same name.
+namespace sms::e2e::operations_test {
 
 using namespace ::sms::test;  // the toolkit: tests/support
 
@@ -153,10 +156,19 @@ TEST(Operations, SimulateArmsAWatchdogThatTripsAndShowsInMetrics) {
   ASSERT_TRUE(gateway.wait_for_line("WATCHDOG TRIPPED", 10s)) << gateway.output();
   ASSERT_TRUE(gateway.wait_for_line("safe stop (watchdog) sent", 5s)) << gateway.output();
 
-  int status = 0;
-  const auto metrics = parse_exposition(http_get(metrics_port, "/metrics", &status));
-  ASSERT_EQ(status, 200);
+  // A servo whose answer to the stop came later than its response timeout (a loaded machine) is
+  // owed its torque off until it acknowledges it, at its next answer (docs/SAFETY.md): the owed
+  // count is awaited back at 0, not expected there at once.
   const std::string bus = R"({bus="sim",protocol="feetech"})";
+  int status = 0;
+  Exposition metrics;
+  ASSERT_TRUE(eventually(
+      [&] {
+        metrics = parse_exposition(http_get(metrics_port, "/metrics", &status));
+        return status == 200 && metrics.value("sms_gateway_safe_stops_owed" + bus) == "0";
+      },
+      "no safe stop owed"))
+      << gateway.output();
   EXPECT_EQ(metrics.value("sms_gateway_watchdog_state" + bus), "3");
   EXPECT_EQ(metrics.value("sms_gateway_watchdog_trips_total" + bus), "1");
   // The on_start hold (the default on a bus with a watchdog), then the trip's.
@@ -169,4 +181,4 @@ TEST(Operations, SimulateArmsAWatchdogThatTripsAndShowsInMetrics) {
 }
 
 }  // namespace
-}  // namespace sms::e2e
+}  // namespace sms::e2e::operations_test

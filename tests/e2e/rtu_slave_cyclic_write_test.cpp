@@ -92,8 +92,10 @@ struct CyclicRun {
   std::vector<std::uint16_t> states;  // unit 255's watchdog state after each write
   // The longest the watchdog can have gone unfed, by the PLC's clock: a write feeds it somewhere
   // between being sent and being answered, so two feeds are at most (one write's answer - the
-  // previous write's sending) apart. A loaded machine can stretch it beyond the watchdog's
-  // timeout, and then a trip is the product's rule, not a fault.
+  // previous write's sending) apart; a write refused (0x0B while a loaded machine held the
+  // simulator past its response timeout and the servo went offline) feeds nothing, so the gap runs
+  // on through it. A loaded machine can stretch it beyond the watchdog's timeout, and then a trip
+  // is the product's rule, not a fault.
   std::chrono::steady_clock::duration widest_feed_gap{};
 };
 
@@ -124,8 +126,8 @@ CyclicRun write_unchanged_goal(const std::string& device, int baud, char parity,
     const auto sent = std::chrono::steady_clock::now();
     const std::string failure = plc.write_register(42, goal);
     run.widest_feed_gap = std::max(run.widest_feed_gap, std::chrono::steady_clock::now() - previous_sent);
-    previous_sent = sent;
     if (failure.empty()) {
+      previous_sent = sent;  // a refused write (0x0B while the servo was offline) fed nothing
       ++run.answered;
     } else {
       run.failures.push_back("write " + std::to_string(i) + ": " + failure);

@@ -31,11 +31,14 @@ constexpr std::array<int, kAxes> kDistances{100, 600, 1200, 1800, 2400, 3000};
 // Input registers of a group (docs/PLC_GUIDE.md "Timed group moves").
 enum GroupInput { kMoving = 0, kTimeLeft = 1, kToGo = 2, kLastMove = 3, kLimitingUnit = 4, kShortest = 5, kUsed = 6 };
 
+// Response timeout 500 ms: the test command's first minute (Chromium starting beside six
+// sanitizer suites and the compile lanes) held simulators 170-575 ms; these tests are about
+// moves, and a servo taken offline by such a stall would refuse their writes.
 std::string config(const std::string& pty, const std::string& bus_protocol, const std::string& table, int baud,
                    const std::string& bus_extra) {
   std::string yaml = "buses:\n  - {name: arm, device: \"" + pty + "\", protocol: " + bus_protocol +
                      ", baud: " + std::to_string(baud) + ", poll_period_ms: " + std::to_string(kPollPeriodMs) +
-                     ", response_timeout_ms: 100, retries: 1" + bus_extra + "}\nservos:\n";
+                     ", response_timeout_ms: 500, retries: 1" + bus_extra + "}\nservos:\n";
   for (int id = 1; id <= kAxes; ++id) {
     yaml += "  - {unit: " + std::to_string(id) + ", bus: arm, id: " + std::to_string(id) + ", table: " + table + "}\n";
   }
