@@ -85,3 +85,10 @@ function(sms_library target)
     sms_include_folder(${target} ${scope} ${CMAKE_CURRENT_SOURCE_DIR})
   endif()
 endfunction()
+
+# sms_compile_alone(<source>...): sources that include <asm/termbits.h> (tty/termios2_io.h, for
+# the termios2 ioctls) never share a unity batch (CMAKE_UNITY_BUILD, scripts/test.sh) with one
+# that includes <termios.h>: both define struct termios. Each compiles on its own.
+function(sms_compile_alone)
+  set_source_files_properties(${ARGN} DIRECTORY ${CMAKE_CURRENT_SOURCE_DIR} PROPERTIES SKIP_UNITY_BUILD_INCLUSION ON)
+endfunction()

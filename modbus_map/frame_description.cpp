@@ -7,6 +7,7 @@
 #include "modbus_map/tables.h"
 #include "protocol/d55d.h"
 #include "protocol/feetech.h"
+#include "protocol/hex_text.h"
 #include "protocol/instructions.h"
 #include "protocol/modbus_pdu.h"
 #include "protocol/modbus_rtu.h"
@@ -21,21 +22,15 @@ const protocol::PacketFormat& packet_format(BusProtocol protocol) {
   return protocol == BusProtocol::D55d ? protocol::kD55dFormat : protocol::kFeetechFormat;
 }
 
-std::string hex(std::uint8_t value) {
-  char text[8];
-  std::snprintf(text, sizeof text, "0x%02X", value);
-  return text;
-}
-
 std::string instruction_name(BusProtocol protocol, std::uint8_t code) {
   const auto name = protocol == BusProtocol::D55d ? protocol::d55d::instruction_name(code)
                                                   : protocol::feetech::instruction_name(code);
-  return name ? std::string(*name) : "instruction " + hex(code);
+  return name ? std::string(*name) : "instruction " + protocol::hex_number(code);
 }
 
 std::string function_name(std::uint8_t code) {
   const auto* function = protocol::find_modbus_function(code);
-  return function != nullptr ? std::string(function->name) : "function " + hex(code);
+  return function != nullptr ? std::string(function->name) : "function " + protocol::hex_number(code);
 }
 
 // The table to name a broadcast's fields by: the lowest ID's (a bus speaks one protocol; its
@@ -249,7 +244,8 @@ std::vector<FrameDescription> FrameDescriber::feed_packets(WireDirection directi
       FrameDescription damaged = direction == WireDirection::ToServos ? describe_packet_request(event->packet)
                                                                       : describe_packet_answer(event->packet);
       damaged.kind = FrameKind::Damaged;
-      damaged.error = "checksum error: " + hex(event->received_checksum) + " received, " + hex(expected) + " expected";
+      damaged.error = "checksum error: " + protocol::hex_number(event->received_checksum) + " received, " +
+                      protocol::hex_number(expected) + " expected";
       damaged.bytes = std::move(raw);
       tail = damaged.bytes.size();
       frames.push_back(std::move(damaged));
@@ -444,7 +440,8 @@ FrameDescription FrameDescriber::describe_rtu_answer(std::span<const std::uint8_
   const auto pdu = frame.first(frame.size() - 2);
   if (function & fc::kExceptionBit) {
     if (pdu.size() >= 3) {
-      description.error = "exception " + hex(pdu[2]) + " " + std::string(protocol::modbus_exception_name(pdu[2]));
+      description.error =
+          "exception " + protocol::hex_number(pdu[2]) + " " + std::string(protocol::modbus_exception_name(pdu[2]));
     }
     return description;
   }

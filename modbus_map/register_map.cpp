@@ -7,6 +7,7 @@
 #include "modbus_map/baud_tables.h"
 #include "modbus_map/tables.h"
 #include "modbus_map/tables/smsmb_links.h"
+#include "protocol/hex_text.h"
 #include "protocol/modbus_pdu.h"
 
 namespace sms::modbus_map {
@@ -44,23 +45,6 @@ Unexpected<MapError> bad_address(std::string message) {
 Unexpected<MapError> bad_value(std::string message) {
   return fail(ModbusException::IllegalDataValue, std::move(message));
 }
-
-std::string hex(std::uint32_t value) {
-  static constexpr char kDigits[] = "0123456789ABCDEF";
-  std::string digits;
-  do {
-    digits.insert(digits.begin(), kDigits[value & 0xF]);
-    value >>= 4;
-  } while (value != 0);
-  if (digits.size() < 2) digits.insert(digits.begin(), '0');
-  return "0x" + digits;
-}
-
-std::string address_text(const TableSpec& table, std::uint32_t address) {
-  return table.addressing == Addressing::Register ? hex(address) : std::to_string(address);
-}
-
-std::string range_text(std::int32_t min, std::int32_t max) { return std::to_string(min) + ".." + std::to_string(max); }
 
 // value × num / den, rounded half away from zero.
 std::int32_t scale_round(std::int64_t value, std::int64_t num, std::int64_t den) {
@@ -111,7 +95,8 @@ std::string_view to_string(ModbusException code) {
 
 std::string to_string(const MapError& error) {
   const auto code = static_cast<std::uint8_t>(error.code);
-  return "exception " + hex(code) + " (" + std::string(protocol::modbus_exception_name(code)) + "): " + error.message;
+  return "exception " + protocol::hex_number(code) + " (" + std::string(protocol::modbus_exception_name(code)) +
+         "): " + error.message;
 }
 
 std::string_view to_string(Profile profile) {
@@ -584,8 +569,8 @@ MapResult<std::optional<RegisterMap::FieldWrite>> RegisterMap::convert_write(con
     case Conversion::FaultReset: {
       const std::uint16_t bits = register_value;
       if ((bits & ~kFaultResetAcceptedBits) != 0) {
-        return bad_value("value " + hex(bits) + " for " + label + " sets undefined bits " +
-                         hex(bits & ~kFaultResetAcceptedBits) +
+        return bad_value("value " + protocol::hex_number(bits) + " for " + label + " sets undefined bits " +
+                         protocol::hex_number(bits & ~kFaultResetAcceptedBits) +
                          "; bits 0 overload, 1 over-current, 2 set centre, 5 voltage, 6 overheat, 7 encoder");
       }
       if ((bits & kFaultResetSetCentre) == 0) return std::optional<FieldWrite>{};  // nothing to send

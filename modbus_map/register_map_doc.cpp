@@ -10,18 +10,6 @@
 namespace sms::modbus_map {
 namespace {
 
-std::string address_text(const TableSpec& table, std::uint32_t address) {
-  if (table.addressing == Addressing::Byte) return std::to_string(address);
-  static constexpr char kDigits[] = "0123456789ABCDEF";
-  std::string digits;
-  do {
-    digits.insert(digits.begin(), kDigits[address & 0xF]);
-    address >>= 4;
-  } while (address != 0);
-  if (digits.size() < 2) digits.insert(digits.begin(), '0');
-  return "0x" + digits;
-}
-
 std::string_view access_text(Access access) {
   switch (access) {
     case Access::ReadOnly: return "R";
@@ -39,8 +27,6 @@ std::string encoding_text(const Encoding& encoding) {
   }
   return "";
 }
-
-std::string range_text(std::int32_t min, std::int32_t max) { return std::to_string(min) + ".." + std::to_string(max); }
 
 std::string field_range_text(const FieldSpec& field) {
   if (field.allowed_values.empty()) return range_text(field.min, field.max);

@@ -11,6 +11,7 @@
 #include "modbus_map/tables/sms1.h"
 #include "modbus_map/tables/smsmb.h"
 #include "modbus_map/tables/sts.h"
+#include "protocol/hex_text.h"
 
 namespace sms::modbus_map {
 namespace {
@@ -201,5 +202,11 @@ void store_raw(std::span<std::uint8_t> bytes, std::uint8_t size, ByteOrder order
   bytes[0] = order == ByteOrder::LowFirst ? low : high;
   bytes[1] = order == ByteOrder::LowFirst ? high : low;
 }
+
+std::string address_text(const TableSpec& table, std::uint32_t address) {
+  return table.addressing == Addressing::Register ? protocol::hex_number(address) : std::to_string(address);
+}
+
+std::string range_text(std::int32_t min, std::int32_t max) { return std::to_string(min) + ".." + std::to_string(max); }
 
 }  // namespace sms::modbus_map

@@ -3,6 +3,7 @@
 #include <cstdint>
 #include <optional>
 #include <span>
+#include <string>
 #include <string_view>
 
 #include "modbus_map/control_table.h"
@@ -20,6 +21,12 @@ const FieldSpec* field_covering(const TableSpec& table, std::uint16_t addr);
 const FieldSpec* field_by_name(const TableSpec& table, std::string_view name);
 // One past the highest address any field occupies.
 std::uint16_t end_address(const TableSpec& table);
+
+// An address as the table's documents write it: hex for register tables ("0x0A"), decimal for
+// byte tables.
+std::string address_text(const TableSpec& table, std::uint32_t address);
+// "min..max".
+std::string range_text(std::int32_t min, std::int32_t max);
 
 // Raw bus value <-> the value a Modbus client sees (sign-magnitude and two's complement
 // become signed; docs/PROTOCOL.md §4).

@@ -35,6 +35,7 @@ import hashlib
 import json
 import os
 import pathlib
+import re
 import shlex
 import subprocess
 import sys
@@ -63,6 +64,40 @@ def compile_args(entry):
 def output_of(entry):
     args = entry["arguments"] if "arguments" in entry else shlex.split(entry["command"])
     return args[args.index("-o") + 1] if "-o" in args else None
+
+
+# A batch of CMake's unity build (CMAKE_UNITY_BUILD, scripts/test.sh): a generated source that
+# includes the target's sources by their absolute paths.
+UNITY_MEMBER = re.compile(r'^#include "(/[^"]+)"$', re.M)
+
+
+def unity_members(entry):
+    """The sources a unity batch compiles, or None for an entry of one source."""
+    path = os.path.join(entry["directory"], entry["file"])
+    if "/Unity/unity_" not in path or not os.path.isfile(path):
+        return None
+    return UNITY_MEMBER.findall(pathlib.Path(path).read_text())
+
+
+def database_of(build):
+    """BUILD's compile commands, an entry per source: a unity batch's entry stands for each of its
+    sources, with the batch's flags (every source of a batch is one target's)."""
+    entries = []
+    for entry in json.loads((build / "compile_commands.json").read_text()):
+        members = unity_members(entry)
+        if members is None:
+            entries.append(entry)
+            continue
+        batch = os.path.join(entry["directory"], entry["file"])
+        for member in members:
+            one = dict(entry, file=member)
+            if "arguments" in one:
+                one["arguments"] = [member if a in (entry["file"], batch) else a for a in one["arguments"]]
+            else:
+                one["command"] = shlex.join(member if a in (entry["file"], batch) else a
+                                            for a in shlex.split(one["command"]))
+            entries.append(one)
+    return entries
 
 
 def git(root, *args):
@@ -117,26 +152,34 @@ def changed_since(root, base):
 
 def dependencies(deps_build):
     """{source: the real paths of the files it read} from the ninja dependency log of deps_build;
-    a source whose record is missing or stale is left out (and so counts as touched)."""
+    a source whose record is missing or stale is left out (and so counts as touched). The sources
+    of a unity batch each get the batch's record less the batch's other sources: a header any of
+    them includes counts for all of them."""
     database = json.loads((deps_build / "compile_commands.json").read_text())
-    source_of = {}
+    sources_of = {}
     for entry in database:
         output = output_of(entry)
         if output:
-            source_of[os.path.normpath(os.path.join(entry["directory"], output))] = os.path.abspath(
-                os.path.join(entry["directory"], entry["file"]))
+            members = unity_members(entry) or [os.path.join(entry["directory"], entry["file"])]
+            sources_of[os.path.normpath(os.path.join(entry["directory"], output))] = [os.path.abspath(m) for m in members]
     log = subprocess.run(["ninja", "-C", str(deps_build), "-t", "deps"], capture_output=True, text=True,
                          check=True).stdout
-    result, current = {}, None
+    records, current = [], None
     for line in log.splitlines():
         if not line.startswith(" "):
             current = None
             if ": #deps" in line and line.rstrip().endswith("(VALID)"):
-                current = source_of.get(os.path.normpath(os.path.join(deps_build, line.split(": #deps")[0])))
-                if current is not None:
-                    result[current] = set()
+                sources = sources_of.get(os.path.normpath(os.path.join(deps_build, line.split(": #deps")[0])))
+                if sources is not None:
+                    current = set()
+                    records.append((sources, current))
         elif current is not None and line.strip():
-            result[current].add(os.path.realpath(os.path.join(deps_build, line.strip())))
+            current.add(os.path.realpath(os.path.join(deps_build, line.strip())))
+    result = {}
+    for sources, read in records:
+        batch = {os.path.realpath(source) for source in sources}
+        for source in sources:
+            result[source] = read - (batch - {os.path.realpath(source)})
     return result
 
 
@@ -159,7 +202,11 @@ class Tidy:
     advice = "fix them, or say why not with NOLINT(check) and a reason"
 
     def __init__(self, root, build, entries):
-        self.build = build
+        # clang-tidy finds a file's flags in a compile database: one with an entry per source,
+        # where the build's own lists unity batches (database_of).
+        self.build = build / "tidy-database"
+        self.build.mkdir(exist_ok=True)
+        (self.build / "compile_commands.json").write_text(json.dumps(list(entries.values()), indent=1))
         self.config = (root / ".clang-tidy").read_bytes()
         self.version = subprocess.run(["clang-tidy", "--version"], capture_output=True, check=True).stdout
 
@@ -213,8 +260,7 @@ def main():
         print("%s: %s/compile_commands.json is missing: configure %s first (scripts/test.sh does)"
               % (sys.argv[1], build, build), file=sys.stderr)
         return 2
-    entries = {os.path.abspath(os.path.join(e["directory"], e["file"])): e
-               for e in json.loads((build / "compile_commands.json").read_text())}
+    entries = {os.path.abspath(os.path.join(e["directory"], e["file"])): e for e in database_of(build)}
     check = checks[sys.argv[1]](root, build, entries)
     cache = pathlib.Path(os.environ.get("SMS_CHECK_CACHE", pathlib.Path.home() / ".cache/sms-gateway")) / check.cache_dir
     cache.mkdir(parents=True, exist_ok=True)

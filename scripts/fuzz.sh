@@ -18,7 +18,8 @@ build_dir=build-fuzz
 
 build() {
   cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER=clang++ \
-    -DSMS_SANITIZE=ON -DSMS_FUZZ=ON -DSMS_BUILD_TESTS=OFF -DSMS_BUILD_BENCH=OFF -DSMS_WERROR=ON >/dev/null
+    -DSMS_SANITIZE=ON -DSMS_FUZZ=ON -DSMS_BUILD_TESTS=OFF -DSMS_BUILD_BENCH=OFF -DSMS_WERROR=ON \
+    -DCMAKE_UNITY_BUILD=ON >/dev/null
   # Only the fuzzers and what they link: the rest of the tree is built and tested in build-asan/.
   cmake --build "$build_dir" --target sms_fuzzers -j "$(nproc)"
 }

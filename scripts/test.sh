@@ -8,17 +8,19 @@
 #   3. runs ctest there: every suite, and each benchmark once in its shortest form
 #      (bench/programs.txt), so a benchmark that no longer builds or runs fails here; more tests
 #      at once than cores (SMS_TEST_JOBS, default 3 a core): they mostly wait on the simulator.
-#      Beside it, in two lanes of their own:
+#      Beside it, in three lanes of their own:
 #      - the checks: clang-tidy over the product's sources (scripts/tidy.sh) and GCC 12's front end
 #        over every file of the default build (scripts/gcc-check.sh: the compiler of packagers,
 #        scripts/bench.sh and the container image), each over the files the change touched and
 #        those including a touched header, against the commit it builds on, the full sweep where
 #        that is unknown (as on CI) (scripts/check_once.py, which also skips a file that passed
-#        unchanged); then the ThreadSanitizer build and the gateway's threaded suites under it
-#        (SMS_SKIP_TSAN=1 skips them); then the libFuzzer targets, built and run briefly
-#        (SMS_SKIP_FUZZ=1; scripts/fuzz.sh runs longer);
-#      - the container image built from HEAD and checked (scripts/container-test.sh --head) where
-#        podman is installed (SMS_SKIP_CONTAINER=1 skips it).
+#        unchanged);
+#      - the other sanitizers: the ThreadSanitizer build and the gateway's threaded suites under
+#        it (SMS_SKIP_TSAN=1 skips them); then the libFuzzer targets, built and run briefly, each
+#        whose program or seed corpus changed since it last passed here (SMS_SKIP_FUZZ=1;
+#        scripts/fuzz.sh runs longer); the builds beside ctest, the suites once it has ended;
+#      - the container image built from HEAD and checked (scripts/container-test.sh --head) once
+#        ctest has ended, where podman is installed (SMS_SKIP_CONTAINER=1 skips it).
 #      Builds and checks there run at the lowest priority; suites at normal priority.
 #   4. the ARM light step where its cross toolchain is installed (docs/ARM.md; SMS_SKIP_ARM=1).
 # It fails fast: the first failure anywhere ends the command at once, with the failing test's
@@ -70,7 +72,12 @@ export CCACHE_BASEDIR=${CCACHE_BASEDIR:-$PWD} CCACHE_NOHASHDIR=${CCACHE_NOHASHDI
 # line tables only, which is what a sanitizer report needs for file:line in every frame (full
 # debug info is for a debugger and costs a quarter of clang's compile time here); lld where it is
 # installed (scripts/install-deps.sh installs it), a quarter of ld.bfd's link time.
-sanitizer_build=(-DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug -DCMAKE_CXX_FLAGS_DEBUG=-gline-tables-only)
+# Unity build (CMAKE_UNITY_BUILD): each target's sources compile in batches of 8, which parse
+# Asio, Beast, spdlog and gtest once a batch instead of once a file: 45 % less CPU for a cold
+# build (tests/README.md "How long it takes"); a changed file recompiles its batch. The compile
+# database then lists the batches; scripts/check_once.py reads them as the files they hold.
+sanitizer_build=(-DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug -DCMAKE_CXX_FLAGS_DEBUG=-gline-tables-only
+  -DCMAKE_UNITY_BUILD=ON)
 if command -v ld.lld >/dev/null; then
   sanitizer_build+=(-DCMAKE_EXE_LINKER_FLAGS=-fuse-ld=lld -DCMAKE_SHARED_LINKER_FLAGS=-fuse-ld=lld)
 fi
@@ -81,9 +88,9 @@ cmake -S . -B build-asan -G Ninja "${sanitizer_build[@]}" -DSMS_SANITIZE=ON -DSM
 cmake --build build-asan -j "$jobs" || { took "clang ASan+UBSan build FAILED" "$step"; exit 1; }
 took "clang ASan+UBSan build" "$step"
 
-# Beside ctest, in two lanes of their own: the checks (clang-tidy, GCC's front end, then the
-# ThreadSanitizer build and its suites, then the fuzzer build and the fuzzers), and the container
-# image (built, then run and checked). Builds and checks run at the lowest priority, on the cores
+# Beside ctest, in three lanes of their own: the checks (clang-tidy, GCC's front end), the other
+# sanitizers (the ThreadSanitizer build and its suites, then the fuzzer build and the fuzzers), and
+# the container image (built, then run and checked). Builds and checks run at the lowest priority, on the cores
 # the suites leave idle while they wait on the simulator; the suites (ThreadSanitizer's, the
 # fuzzers, the image's checks) at normal priority: they must pass on a loaded machine anyway.
 # Each item's log is shown only when it fails.
@@ -121,6 +128,12 @@ beside() {
   fi
 }
 low() { nice -n 19 "$@"; }
+# after_ctest: a lane's suites (ThreadSanitizer's, the fuzzers) and the image (its build writes
+# hundreds of MB of layers; then its checks) wait for ctest to end. Beside ctest's first minutes (its longest tests go first: Chromium, the benchmarks,
+# 60-servo buses) they held the simulators 0.2-5 s, past the response timeouts of the tests
+# beside them (docs/DECISIONS.md "Lanes beside ctest"); the builds before them run beside ctest
+# at the lowest priority.
+after_ctest() { while [ ! -e "$checks/ctest-ended" ]; do sleep 1; done; }
 tsan_build() {
   # ThreadSanitizer: the ASan build cannot see data races. The suites where threads meet run again
   # under TSan (build-tsan/, the gateway's unit tests only: processes spawned by e2e tests are
@@ -131,29 +144,62 @@ tsan_build() {
   low cmake --build build-tsan -j "$jobs" --target gateway_bus_tests gateway_units_tests gateway_modbus_tcp_tests \
     gateway_observability_tests gateway_tools_tests
 }
+# fuzzers_to_run: the fuzz targets whose program or seed corpus differ from those of their last
+# pass (build-fuzz/passed/NAME holds that fingerprint); fuzzers_passed NAME...: remember them.
+fuzz_fingerprint() {
+  { sha256sum "build-fuzz/bin/$1"; find "tests/fuzz/corpus/$1" -type f -print0 | sort -z | xargs -0r sha256sum; } |
+    sha256sum | cut -d' ' -f1
+}
+fuzzers_to_run() {
+  local binary name
+  for binary in build-fuzz/bin/fuzz_*; do
+    name=$(basename "$binary")
+    [ "$(cat "build-fuzz/passed/$name" 2>/dev/null)" = "$(fuzz_fingerprint "$name")" ] || echo "$name"
+  done
+}
+fuzzers_passed() {
+  local name
+  mkdir -p build-fuzz/passed
+  for name in "$@"; do fuzz_fingerprint "$name" >"build-fuzz/passed/$name"; done
+}
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
 export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 (
   beside clang-tidy low ./scripts/tidy.sh build-asan || exit 1
   beside gcc-front-end low ./scripts/gcc-check.sh build-gcc || exit 1
+) </dev/null &
+checks_pid=$!
+(
   if [ "$run_tsan" = 1 ]; then
     beside tsan-build tsan_build || exit 1
+    after_ctest
     TSAN_OPTIONS="halt_on_error=1 second_deadlock_stack=1" beside tsan-suites \
       ctest --test-dir build-tsan --output-on-failure --stop-on-failure -j "$jobs" \
       -R 'SafetyState|BusEngineTest|QueueTest|LateReplyTest|Conformance|Fairness|Scheduling|MotionGateTest|TcpServerTest|Router|RtuEngine|RtuContractTest|MetricsOfARunningGateway|BusReopen|BusLend|EchoTest|PollCycleTest|StatusByte' "$@" || exit 1
   fi
   if [ "$run_fuzz" = 1 ]; then
     beside fuzz-build low ./scripts/fuzz.sh --build || exit 1
-    # One at a time: each keeps a core busy for its whole run.
-    beside fuzzers ctest --test-dir build-fuzz --output-on-failure --stop-on-failure -j 1 "$@" || exit 1
+    # As many at once as cores: each keeps a core busy for its whole run. A fuzzer whose program and seed
+    # corpus are those of its last pass here is not run again (the run would only fuzz longer,
+    # which scripts/fuzz.sh is for; a fresh clone runs them all).
+    mapfile -t fuzzers < <(fuzzers_to_run)
+    if [ "${#fuzzers[@]}" -gt 0 ]; then
+      after_ctest
+      beside fuzzers ctest --test-dir build-fuzz --output-on-failure --stop-on-failure -j "$jobs" \
+        -R "^($(IFS='|'; echo "${fuzzers[*]}"))\$" "$@" || exit 1
+      fuzzers_passed "${fuzzers[@]}"
+    else
+      echo "fuzzers-all-unchanged 0" >>"$checks/passed"
+    fi
   fi
 ) </dev/null &
-checks_pid=$!
+sanitizers_pid=$!
 container_pid=
 if [ "$run_container" = 1 ]; then
   # The image from the committed HEAD, built as the README says and run (it needs root; it installs
   # runc, podman's runtime here). Its build is most of the step: at the lowest priority first.
   (
+    after_ctest
     beside image-build low ./scripts/container-test.sh --head --build-only || exit 1
     beside container ./scripts/container-test.sh --head || exit 1
   ) </dev/null &
@@ -230,30 +276,32 @@ ctest_fail_fast() {
 step=$SECONDS
 ctest_fail_fast --test-dir build-asan -j "$test_jobs" "$@" &
 ctest_pid=$!
-trap 'stop_tree "$ctest_pid"; stop_tree "$checks_pid"; stop_tree "$container_pid"; summary' EXIT
+trap 'stop_tree "$ctest_pid"; stop_tree "$checks_pid"; stop_tree "$sanitizers_pid"; stop_tree "$container_pid"; summary' EXIT
 # stop_lanes: every lane still running, stopped with what it started.
 stop_lanes() {
   stop_tree "$ctest_pid"
   stop_tree "$checks_pid"
+  stop_tree "$sanitizers_pid"
   stop_tree "$container_pid"
-  ctest_pid='' checks_pid='' container_pid=''
+  ctest_pid='' checks_pid='' sanitizers_pid='' container_pid=''
 }
-while [ -n "$ctest_pid$checks_pid$container_pid" ]; do
+while [ -n "$ctest_pid$checks_pid$sanitizers_pid$container_pid" ]; do
   finished=
   status=0
-  # shellcheck disable=SC2086  # the pids still running, one to three
-  wait -n -p finished $ctest_pid $checks_pid $container_pid || status=$?
+  # shellcheck disable=SC2086  # the pids still running, one to four
+  wait -n -p finished $ctest_pid $checks_pid $sanitizers_pid $container_pid || status=$?
   if [ "$finished" = "$ctest_pid" ]; then
     ctest_pid=
     if [ "$status" -ne 0 ]; then
       took "ctest (build-asan) FAILED" "$step"
-      [ -z "$checks_pid$container_pid" ] || echo "test.sh: ctest failed: the lanes beside it are stopped" >&2
+      [ -z "$checks_pid$sanitizers_pid$container_pid" ] || echo "test.sh: ctest failed: the lanes beside it are stopped" >&2
       stop_lanes
       record_checks
       exit "$status"
     fi
     took "ctest (build-asan), -j $test_jobs" "$step"
-    after_ctest=$SECONDS
+    ctest_ended_at=$SECONDS
+    touch "$checks/ctest-ended"
   elif [ -n "$finished" ] && [ "$status" -ne 0 ]; then
     if [ -n "$ctest_pid" ]; then
       echo "test.sh: an item beside ctest failed: ctest is stopped" >&2
@@ -264,12 +312,14 @@ while [ -n "$ctest_pid$checks_pid$container_pid" ]; do
     exit 1
   elif [ "$finished" = "$checks_pid" ]; then
     checks_pid=
+  elif [ "$finished" = "$sanitizers_pid" ]; then
+    sanitizers_pid=
   elif [ "$finished" = "$container_pid" ]; then
     container_pid=
   fi
 done
 trap summary EXIT
-took "the lanes beside it, after ctest" "${after_ctest:-$SECONDS}"
+took "the lanes beside it, after ctest" "${ctest_ended_at:-$SECONDS}"
 record_checks
 # ARM, light form (docs/ARM.md "In the test command"): the protocol and modbus_map suites cross-built
 # for armhf (32-bit ARMv7: 32-bit long, size_t and time_t; unsigned char) and run under qemu-arm,

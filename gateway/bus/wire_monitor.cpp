@@ -8,6 +8,7 @@
 
 #include "gateway/bus/bus_engine.h"
 #include "modbus_map/tables.h"
+#include "protocol/hex_text.h"
 #include "protocol/pcapng.h"
 
 namespace sms::gateway {
@@ -38,18 +39,6 @@ void append_escaped(std::string& out, std::string_view text) {
     }
   }
   out += '"';
-}
-
-std::string hex_bytes(std::span<const std::uint8_t> bytes) {
-  std::string text;
-  text.reserve(bytes.size() * 3);
-  char digits[4];
-  for (const auto byte : bytes) {
-    std::snprintf(digits, sizeof digits, "%02X", byte);
-    if (!text.empty()) text += ' ';
-    text += digits;
-  }
-  return text;
 }
 
 // What a pcapng packet's comment says beyond the bytes: the error, the retry.
@@ -266,7 +255,7 @@ std::string to_json(std::string_view bus_name, const MonitorBatch& batch) {
     out += ",\"retry\":";
     out += frame.retry ? "true" : "false";
     out += ",\"bytes\":";
-    append_escaped(out, hex_bytes(frame.bytes));
+    append_escaped(out, protocol::hex_bytes(frame.bytes));
     out += '}';
   }
   out += "]}";

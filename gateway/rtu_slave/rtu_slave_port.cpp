@@ -15,6 +15,7 @@
 
 #include "gateway/bus/wakeup.h"
 #include "gateway/service/modbus_request.h"
+#include "protocol/hex_text.h"
 #include "protocol/modbus_pdu.h"
 
 namespace sms::gateway {
@@ -296,12 +297,12 @@ void RtuSlavePort::end_of_frame() {
   auto event = decoder_.end_of_frame();
   if (!event) {
     counters_.dropped_frames.fetch_add(1, std::memory_order_relaxed);
-    spdlog::debug("{}: {} byte(s) of noise dropped: {}", what(), frame.size(), hex_bytes(frame));
+    spdlog::debug("{}: {} byte(s) of noise dropped: {}", what(), frame.size(), protocol::hex_bytes(frame));
     return;
   }
   if (event->kind == protocol::rtu::RequestDecoder::Event::Kind::CrcError) {
     counters_.crc_errors.fetch_add(1, std::memory_order_relaxed);
-    spdlog::debug("{}: frame with a wrong CRC dropped: {}", what(), hex_bytes(frame));
+    spdlog::debug("{}: frame with a wrong CRC dropped: {}", what(), protocol::hex_bytes(frame));
     return;
   }
   accept(std::move(event->adu), ended);

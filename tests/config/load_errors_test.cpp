@@ -5,16 +5,12 @@
 #include <string_view>
 
 #include "config/load.h"
+#include "tests/config/config_test_support.h"
 
 namespace sms::config {
 namespace {
 
-// "plant.yaml:LINE:COL: message", or "<loaded>" when the text was accepted.
-std::string error_text(std::string_view yaml) {
-  const auto config = load_config_string(yaml, "plant.yaml");
-  if (config) return "<loaded>";
-  return config.error().to_string();
-}
+using testing::error_text;
 
 // ---- YAML itself ----
 

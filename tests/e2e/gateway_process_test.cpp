@@ -13,7 +13,9 @@
 #include "tests/e2e/plant.h"
 #include "tests/support/eventually.h"
 
-namespace sms::e2e {
+// Its own namespace: the test files of e2e_tests compile in batches (unity build), where the
+// helpers of one file's anonymous namespace would meet another's of the same name.
+namespace sms::e2e::gateway_process_test {
 
 using namespace ::sms::test;  // the toolkit: tests/support
 
@@ -362,4 +364,4 @@ TEST(GatewayProcess, VersionAndMissingModeAreAnswered) {
 }
 
 }  // namespace
-}  // namespace sms::e2e
+}  // namespace sms::e2e::gateway_process_test

@@ -22,7 +22,9 @@
 #include "tests/support/metrics_http_client.h"
 #include "tests/support/processes.h"
 
-namespace sms::e2e {
+// Its own namespace: the test files of e2e_tests compile in batches (unity build), where the
+// helpers of one file's anonymous namespace would meet another's of the same name.
+namespace sms::e2e::rtu_slave_test {
 
 using namespace ::sms::test;  // the toolkit: tests/support
 
@@ -476,4 +478,4 @@ TEST(RtuSlaveCommandLine, TheShippedPanelExampleChecks) {
 }
 
 }  // namespace
-}  // namespace sms::e2e
+}  // namespace sms::e2e::rtu_slave_test

@@ -14,7 +14,9 @@
 #include "tests/support/eventually.h"
 #include "tests/support/processes.h"
 
-namespace sms::e2e {
+// Its own namespace: the test files of e2e_tests compile in batches (unity build), where the
+// helpers of one file's anonymous namespace would meet another's of the same name.
+namespace sms::e2e::scs_bus_process_test {
 
 using namespace ::sms::test;  // the toolkit: tests/support
 
@@ -102,4 +104,4 @@ TEST(ScsBusProcess, MbpollReadsAndWritesGoalAndPresentPosition) {
 }
 
 }  // namespace
-}  // namespace sms::e2e
+}  // namespace sms::e2e::scs_bus_process_test

@@ -11,7 +11,9 @@
 #include "tests/e2e/mqtt_support.h"
 #include "tests/support/eventually.h"
 
-namespace sms::e2e {
+// Its own namespace: the test files of e2e_tests compile in batches (unity build), where the
+// helpers of one file's anonymous namespace would meet another's of the same name.
+namespace sms::e2e::sparkplug_test {
 
 using namespace ::sms::test;  // the toolkit: tests/support
 
@@ -684,4 +686,4 @@ TEST(Sparkplug, PrimaryHostStateGatesTheBirths) {
 }
 
 }  // namespace
-}  // namespace sms::e2e
+}  // namespace sms::e2e::sparkplug_test

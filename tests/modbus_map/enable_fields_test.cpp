@@ -11,6 +11,7 @@
 #include "modbus_map/motion.h"
 #include "modbus_map/register_map_doc.h"
 #include "modbus_map/tables.h"
+#include "tests/modbus_map/doc_text.h"
 
 namespace sms::modbus_map {
 namespace {
@@ -329,12 +330,7 @@ TEST(EnableFields, AStateNotReadWholeIsAnError) {
   EXPECT_FALSE(plan_enable_hold(d55d, ByteOrder::LowFirst, StopContext{ranges, data}, wake));
 }
 
-std::string read_file(const std::string& path) {
-  std::ifstream file(path, std::ios::binary);
-  std::ostringstream text;
-  text << file.rdbuf();
-  return text.str();
-}
+using testing::read_file;
 
 // docs/SAFETY.md's table of enabling writes is the table data's.
 TEST(EnableFields, SafetyDocListsEveryTablesEnablingWrites) {

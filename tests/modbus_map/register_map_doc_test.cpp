@@ -6,16 +6,12 @@
 #include <fstream>
 #include <sstream>
 #include <string>
+#include "tests/modbus_map/doc_text.h"
 
 namespace sms::modbus_map {
 namespace {
 
-std::string read_file(const std::string& path) {
-  std::ifstream file(path, std::ios::binary);
-  std::ostringstream text;
-  text << file.rdbuf();
-  return text.str();
-}
+using testing::read_file;
 
 TEST(RegisterMapDoc, CommittedFileMatchesTheGenerator) {
   const std::string committed = read_file(SMS_REGISTER_MAP_PATH);

@@ -14,6 +14,7 @@
 #include "gateway/tools/tool_link.h"
 #include "gateway/tools/tool_scan.h"
 #include "simulator/simulated_bus.h"
+#include "tests/gateway/tools/tool_test_support.h"
 
 namespace sms::gateway {
 namespace {
@@ -21,6 +22,9 @@ namespace {
 using namespace std::chrono_literals;
 using modbus_map::TableId;
 using protocol::BusProtocol;
+using tool_testing::one_servo;
+using tool_testing::open_link;
+using tool_testing::quiet;
 
 std::vector<std::uint8_t> ids(unsigned first, unsigned last) {
   std::vector<std::uint8_t> list;
@@ -28,31 +32,11 @@ std::vector<std::uint8_t> ids(unsigned first, unsigned last) {
   return list;
 }
 
-std::unique_ptr<ServoLink> open_link(const std::string& device, BusProtocol protocol, std::uint32_t baud) {
-  LinkSettings settings;
-  settings.device = device;
-  settings.protocol = protocol;
-  settings.baud = baud;
-  settings.latency = 20ms;  // a pty and the simulator's thread on 2 shared cores, sanitizers on, CI load
-  auto link = make_servo_link(settings);
-  const auto opened = link->open();
-  EXPECT_TRUE(opened) << (opened ? "" : opened.error());
-  return link;
-}
-
 const ScanFinding* finding(const ScanReport& report, std::uint32_t baud, std::uint8_t id) {
   const auto found = std::find_if(report.found.begin(), report.found.end(),
                                   [&](const ScanFinding& f) { return f.baud == baud && f.id == id; });
   return found == report.found.end() ? nullptr : &*found;
 }
-
-simulator::BusOptions one_servo(simulator::ServoConfig servo) {
-  simulator::BusOptions options;
-  options.servos = {servo};
-  return options;
-}
-
-void quiet(const std::string&) {}
 
 TEST(Scan, FindsFeetechServosAtNonDefaultRatesAndSkipsSilentRates) {
   simulator::BusOptions options;

@@ -14,6 +14,7 @@
 #include "gateway/tools/tool_servo.h"
 #include "modbus_map/tables.h"
 #include "simulator/simulated_bus.h"
+#include "tests/gateway/tools/tool_test_support.h"
 #include "tests/support/eventually.h"
 
 namespace sms::gateway {
@@ -22,26 +23,9 @@ namespace {
 using namespace std::chrono_literals;
 using modbus_map::TableId;
 using protocol::BusProtocol;
-
-simulator::BusOptions one_servo(simulator::ServoConfig servo) {
-  simulator::BusOptions options;
-  options.servos = {servo};
-  return options;
-}
-
-void quiet(const std::string&) {}
-
-std::unique_ptr<ServoLink> open_link(const std::string& device, BusProtocol protocol, std::uint32_t baud) {
-  LinkSettings settings;
-  settings.device = device;
-  settings.protocol = protocol;
-  settings.baud = baud;
-  settings.latency = 20ms;  // a pty and the simulator's thread on 2 shared cores, sanitizers on, CI load
-  auto link = make_servo_link(settings);
-  const auto opened = link->open();
-  EXPECT_TRUE(opened) << (opened ? "" : opened.error());
-  return link;
-}
+using tool_testing::one_servo;
+using tool_testing::open_link;
+using tool_testing::quiet;
 
 // A restarted servo answers within a second (a loaded machine may delay the first answers).
 bool answers_soon(ServoLink& link, std::uint8_t id) {
