@@ -208,7 +208,11 @@ void measure_silent_servo(std::chrono::milliseconds duration) {
   bus.set_offline(kSilentServo, false);
   const auto came_back = Clock::now();
   while (!read_servo_facts(client, kSilentServo).online) {
-    if (Clock::now() - came_back > 2 * kProbePeriod + 1s) throw std::runtime_error("the servo never came back online");
+    // Its probe brings it back within a probe period or two on an idle machine (back_ms below
+    // says how long it took); the bound is only that it comes back: on a loaded one (the test
+    // command's run of this benchmark) its probes' answers can be late too, and a servo that
+    // answers late stays offline until one comes in time (docs/DECISIONS.md).
+    if (Clock::now() - came_back > 10s) throw std::runtime_error("the servo never came back online");
     std::this_thread::sleep_for(1ms);
   }
   const double back_ms = std::chrono::duration<double, std::milli>(Clock::now() - came_back).count();
