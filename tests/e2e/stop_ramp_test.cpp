@@ -69,12 +69,14 @@ class StopRamp : public testing::TestWithParam<StopCase> {
   void start(const std::string& bus_extra = "", const std::string& more_yaml = "") {
     const StopCase& c = GetParam();
     sim_ = std::make_unique<SimProcess>(dir_, "line", std::vector<std::string>{"--servo", "1:" + c.sim_servo});
-    const std::string yaml = "buses:\n  - {name: line, device: \"" + sim_->pty() + "\", protocol: " + c.bus_protocol +
-                             ", baud: " + std::to_string(c.baud) +
-                             // 200 ms: a loaded machine holds the simulator longer than 100 (the test is about the
-                             // stop, not the timeout), and the watchdog test's 1000 ms must outlast 2 x 2 attempts.
-                             ", poll_period_ms: 20, response_timeout_ms: 200, retries: 1" + bus_extra +
-                             "}\nservos:\n  - {unit: 1, bus: line, id: 1, table: " + c.table + "}\n" + more_yaml;
+    const std::string yaml =
+        "buses:\n  - {name: line, device: \"" + sim_->pty() + "\", protocol: " + c.bus_protocol +
+        ", baud: " + std::to_string(c.baud) +
+        // 200 ms: a loaded machine holds the simulator longer than 100 (the test is about the
+        // stop, not the timeout), and the watchdog test's 1000 ms must outlast 2 x 2 attempts;
+        // d55d 100 ms: its motors stop themselves after 500 ms without an instruction.
+        ", poll_period_ms: 20, response_timeout_ms: " + (c.bus_protocol == "d55d" ? "100" : "200") + ", retries: 1" +
+        bus_extra + "}\nservos:\n  - {unit: 1, bus: line, id: 1, table: " + c.table + "}\n" + more_yaml;
     yaml_ = yaml;
     start_gateway();
   }

@@ -33,12 +33,15 @@ enum GroupInput { kMoving = 0, kTimeLeft = 1, kToGo = 2, kLastMove = 3, kLimitin
 
 // Response timeout 500 ms: the test command's first minute (Chromium starting beside six
 // sanitizer suites and the compile lanes) held simulators 170-575 ms; these tests are about
-// moves, and a servo taken offline by such a stall would refuse their writes.
+// moves, and a servo taken offline by such a stall would refuse their writes. d55d stays at
+// 100 ms: its motors stop themselves after 500 ms without an instruction (their heartbeat), and
+// two 500 ms attempts to one motor would leave the others that long.
 std::string config(const std::string& pty, const std::string& bus_protocol, const std::string& table, int baud,
                    const std::string& bus_extra) {
   std::string yaml = "buses:\n  - {name: arm, device: \"" + pty + "\", protocol: " + bus_protocol +
                      ", baud: " + std::to_string(baud) + ", poll_period_ms: " + std::to_string(kPollPeriodMs) +
-                     ", response_timeout_ms: 500, retries: 1" + bus_extra + "}\nservos:\n";
+                     ", response_timeout_ms: " + (bus_protocol == "d55d" ? "100" : "500") + ", retries: 1" + bus_extra +
+                     "}\nservos:\n";
   for (int id = 1; id <= kAxes; ++id) {
     yaml += "  - {unit: " + std::to_string(id) + ", bus: arm, id: " + std::to_string(id) + ", table: " + table + "}\n";
   }
