@@ -237,8 +237,7 @@ RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t
   }
   tap_request(request);
   RtuExchange exchange = receive_answer(slave, pdu[0], response_timeout);
-  exchange.dropped = dropped.size();
-  exchange.dropped_bytes = std::move(dropped);
+  exchange.dropped = std::move(dropped);
   return exchange;
 }
 
@@ -347,8 +346,7 @@ RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_
   std::this_thread::sleep_for(on_wire + turnaround);
   line_->quiet_since = SteadyClock::now();
   RtuExchange sent{RtuOutcome::Sent, {}, {}};
-  sent.dropped = dropped.size();
-  sent.dropped_bytes = std::move(dropped);
+  sent.dropped = std::move(dropped);
   return sent;
 }
 

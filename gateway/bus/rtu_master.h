@@ -58,8 +58,7 @@ struct RtuExchange {
   protocol::Bytes pdu;                      // Reply: function code first, no slave, no CRC
   std::string detail;                       // what went wrong, for logs
   std::optional<std::uint8_t> other_slave;  // WrongSlave: who answered, when the frame says so
-  std::size_t dropped = 0;                  // bytes the input held before the request, read and dropped
-  protocol::Bytes dropped_bytes;            // those bytes: late answers that came while the line was idle
+  protocol::Bytes dropped;  // what the input held before the request, read and dropped: late answers, noise
 
   // A constructor rather than an aggregate, so `{outcome, pdu, detail}` leaves other_slave empty.
   RtuExchange(RtuOutcome result = RtuOutcome::Timeout, protocol::Bytes reply_pdu = {}, std::string what = {},
@@ -87,7 +86,7 @@ class RtuMaster {
   // Sends `pdu` to `slave` (1-247) and waits for the answer: its first byte within
   // `reply_timeout` after the request has left the wire, the rest with at most the byte
   // timeout between bytes. The input is read and dropped before sending (late replies, noise;
-  // how many bytes in the exchange's `dropped`).
+  // the bytes in the exchange's `dropped`).
   // Function codes whose answer length libmodbus knows (01-06, 0F, 10, 11, 16, 17 and every
   // exception) go through modbus_send_raw_request/modbus_receive_confirmation; any other
   // code's answer ends when the line stays silent for the byte timeout.

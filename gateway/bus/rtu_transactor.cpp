@@ -254,8 +254,8 @@ BusResult RtuTransactor::execute(const Request& request, TransactionEvents& even
   if (request.no_reply) {
     const RtuExchange sent = master_.send_only(request.slave, request.pdu, timing_.reply_allowance);
     if (sent.outcome == RtuOutcome::PortError) return BusResult{BusStatus::BusDown, 0, {}, sent.detail};
-    stray_.count(sent.dropped, timing_.label, [&] { return what_for(request); });
-    note_late_answers(sent.dropped_bytes, events);
+    stray_.count(sent.dropped.size(), timing_.label, [&] { return what_for(request); });
+    note_late_answers(sent.dropped, events);
     return BusResult{};
   }
   if (auto not_sent = fence_before(request, events)) return std::move(*not_sent);
@@ -273,8 +273,8 @@ BusResult RtuTransactor::transact(const Request& request, TransactionEvents& eve
     tally.sent(SteadyClock::now());
     const auto deadline = SteadyClock::now() + master_.wire_time(request.pdu.size() + 3) + reply_timeout;
     RtuExchange exchange = master_.transact(request.slave, request.pdu, reply_timeout);
-    stray_.count(exchange.dropped, timing_.label, [&] { return what_for(request); });
-    note_late_answers(exchange.dropped_bytes, events);
+    stray_.count(exchange.dropped.size(), timing_.label, [&] { return what_for(request); });
+    note_late_answers(exchange.dropped, events);
     // A valid frame from the addressed slave that is not this request's answer is one it owed to
     // an earlier request: dropped and counted, and this attempt's own answer awaited until its deadline.
     while (exchange.outcome == RtuOutcome::Reply) {
