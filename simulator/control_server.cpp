@@ -240,6 +240,7 @@ const std::array<ControlCommand, 17> kCommands{{
                   " position=" + std::to_string(servo.present_position) +
                   " goal=" + std::to_string(servo.goal_position) +
                   " at_goal_write=" + std::to_string(std::lround(servo.position_at_goal)) +
+                  " read_before_goal=" + std::to_string(std::lround(servo.read_before_goal)) +
                   " reversed=" + (servo.reversed ? "1" : "0") +
                   " turned_back=" + std::to_string(std::lround(servo.turned_back)) +
                   " heartbeat_stops=" + std::to_string(servo.heartbeat_stops);

@@ -13,10 +13,11 @@
 //   get 3 56 2                    -> "18 05" (hex bytes; SMSMB: registers, 2 bytes each)
 //   set 3 42 00 08                write hex bytes from address 42 (test backdoor, any field)
 //   field 3 present_position      -> the field's value, decimal, signed where the field is
-//   motion 3                      -> "started_us=.. arrived_us=.. position=.. goal=.. at_goal_write=.. reversed=0|1
-//                                    turned_back=N heartbeat_stops=N" (steady-clock µs of the last goal
-//                                    written in position mode and of its arrival, "-": none; where the motor
-//                                    was when that goal was written; whether it turned back since its last
+//   motion 3                      -> "started_us=.. arrived_us=.. position=.. goal=.. at_goal_write=..
+//                                    read_before_goal=.. reversed=0|1 turned_back=N heartbeat_stops=N"
+//                                    (steady-clock µs of the last goal written in position mode and of its
+//                                    arrival, "-": none; where the motor was when that goal was written, and
+//                                    when it answered the last read before it; whether it turned back since its last
 //                                    command, and how far from the farthest point it reached; how often its
 //                                    d55d heartbeat stopped it)
 //   list                          -> "1:sts:feetech:1000000 2:..." (current ID and baud)

@@ -66,6 +66,7 @@ struct ServoSummary {
   std::optional<std::chrono::steady_clock::time_point> move_started;
   std::optional<std::chrono::steady_clock::time_point> arrived;
   double position_at_goal = 0;        // where the motor was when that goal was written
+  double read_before_goal = 0;        // where it was when it answered the last read before that write
   bool reversed = false;              // it turned back since its last command
   double turned_back = 0;             // how far, from the farthest point it reached
   std::uint64_t heartbeat_stops = 0;  // d55d: times its heartbeat stopped it (500 ms without an instruction)

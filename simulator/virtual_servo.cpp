@@ -515,6 +515,7 @@ void VirtualServo::drive_from_table(bool goal_written) {
         move_started_ = clock_;
         arrived_at_.reset();
         position_at_goal_ = motion_.position();
+        read_before_goal_ = position_at_read_;
         // A goal where the motor stands is reached the moment it is written.
         if (motion_.arrived()) arrived_at_ = clock_;
       }
@@ -816,6 +817,7 @@ VirtualServo::Outcome VirtualServo::on_read(const Packet& request) {
   const auto read = protocol::parse_read(request.params);
   if (!read || !memory_.contains(read->address, read->count)) return {true, behaviour_->refused_bit, {}};
   const auto bytes = memory_.wire(read->address, read->count);
+  position_at_read_ = motion_.position();
   return {true, 0, Bytes(bytes.begin(), bytes.end())};
 }
 
@@ -865,6 +867,7 @@ VirtualServo::Outcome VirtualServo::on_sync_read(const Packet& request) {
   if (!sync || std::find(sync->ids.begin(), sync->ids.end(), id()) == sync->ids.end()) return {false, 0, {}};
   if (!memory_.contains(sync->address, sync->count)) return {true, behaviour_->refused_bit, {}};
   const auto bytes = memory_.wire(sync->address, sync->count);
+  position_at_read_ = motion_.position();
   return {true, 0, Bytes(bytes.begin(), bytes.end())};
 }
 
@@ -1049,6 +1052,7 @@ VirtualServo::ModbusOutcome VirtualServo::on_read_holding(std::span<const std::u
     if (modbus_map::field_covering(*table_, static_cast<std::uint16_t>(reg)) == nullptr) return {{}, kIllegalAddress};
   }
   const auto bytes = memory_.wire(address, quantity);
+  position_at_read_ = motion_.position();
   Bytes reply{0x03, static_cast<std::uint8_t>(bytes.size())};
   reply.insert(reply.end(), bytes.begin(), bytes.end());
   return {std::move(reply), 0};
@@ -1139,6 +1143,7 @@ ServoSummary VirtualServo::summary() const {
   summary.move_started = move_started_;
   summary.arrived = arrived_at_;
   summary.position_at_goal = position_at_goal_;
+  summary.read_before_goal = read_before_goal_;
   summary.reversed = motion_.reversed();
   summary.turned_back = motion_.turned_back();
   summary.heartbeat_stops = heartbeat_stops_;

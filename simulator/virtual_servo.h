@@ -181,6 +181,10 @@ class VirtualServo {
   std::optional<Clock::time_point> move_started_;
   std::optional<Clock::time_point> arrived_at_;
   double position_at_goal_ = 0;  // where the motor was when that goal was written (a stop's run-on)
+  // Where the motor was when it last answered a read, and that as of the last goal write: a stop
+  // computed from that read cannot know how far the axis ran on while the host held its frame.
+  double position_at_read_ = 0;
+  double read_before_goal_ = 0;
   Clock::time_point last_command_;
   std::uint64_t heartbeat_stops_ = 0;  // times the d55d heartbeat stopped the motor (motion ID)
   Clock::time_point deaf_until_;

@@ -307,9 +307,16 @@ class TheReleaseStopsWhereTheAxisIs(JogStopCase):
         stop = wait_until(lambda: (lambda m: m if m["started_us"] != pressed and m["arrived_us"] != "-" and
                                    m["goal"] != str(goal) and m["position"] == m["goal"] else None)(self.motion()),
                           timeout=AWAIT_S, what="the release's hold, and the servo standing at it")
-        self.assertLessEqual(abs(int(stop["position"]) - int(stop["at_goal_write"])), 20,
-                             f"the servo ran on from where the release's hold found it: {stop}")
-        self.assertLessEqual(int(stop["turned_back"]), 5, f"the servo drove back to the release's hold: {stop}")
+        # The hold goes ahead by what the axis covers while its frame is on the way; where a loaded
+        # host held the frame back longer, the servo pulls back what it ran on meanwhile: at most
+        # its run-on since the last read it answered (tests/e2e/sim_motion.h), never a ramp's run-on.
+        late = abs(int(stop["at_goal_write"]) - int(stop["read_before_goal"]))
+        onward = 1 if goal > start else -1
+        ran_on = (int(stop["position"]) - int(stop["at_goal_write"])) * onward
+        self.assertLessEqual(ran_on, 20, f"the servo ran on from where the release's hold found it: {stop}")
+        self.assertLessEqual(-ran_on, 20 + late, f"the servo stood short of where the hold found it: {stop}")
+        self.assertLessEqual(int(stop["turned_back"]), 5 + late,
+                             f"the servo drove back to the release's hold: {stop}")
         self.assertEqual(self.sim.field(SERVO, "acceleration"), 0, "the hold's stop ramp")
 
 

@@ -14,11 +14,22 @@ struct Motion {
   long long arrived_us = -1;  // when the motor then reached it; -1: not (yet)
   long position = 0;
   long goal = 0;
-  long at_goal_write = 0;    // where the motor was when that goal was written
-  bool reversed = false;     // it turned back since its last command
-  long turned_back = 0;      // how far, from the farthest point it reached
-  long heartbeat_stops = 0;  // d55d: how often its heartbeat stopped it
+  long at_goal_write = 0;     // where the motor was when that goal was written
+  long read_before_goal = 0;  // where it was when it answered the last read before that write
+  bool reversed = false;      // it turned back since its last command
+  long turned_back = 0;       // how far, from the farthest point it reached
+  long heartbeat_stops = 0;   // d55d: how often its heartbeat stopped it
 };
+
+// How far the motor ran between answering the last read before its last goal write and that
+// write's arrival. A stop computes its hold from that read, plus the run-on it expects while its
+// frame is on the way; where a loaded host held the frame back longer, the axis ran on further and
+// the servo pulls back by that much. A stop's bounds allow this much more (never the hundreds of
+// steps of a run-on on the move's own ramp, which is what they are there to catch).
+inline long run_on_since_read(const Motion& motion) {
+  const long run_on = motion.at_goal_write - motion.read_before_goal;
+  return run_on < 0 ? -run_on : run_on;
+}
 
 inline Motion motion_of(test::SimProcess& sim, int id) {
   const std::string reply = sim.control("motion " + std::to_string(id));
@@ -35,6 +46,7 @@ inline Motion motion_of(test::SimProcess& sim, int id) {
     if (key == "position") motion.position = static_cast<long>(number);
     if (key == "goal") motion.goal = static_cast<long>(number);
     if (key == "at_goal_write") motion.at_goal_write = static_cast<long>(number);
+    if (key == "read_before_goal") motion.read_before_goal = static_cast<long>(number);
     if (key == "reversed") motion.reversed = number != 0;
     if (key == "turned_back") motion.turned_back = static_cast<long>(number);
     if (key == "heartbeat_stops") motion.heartbeat_stops = static_cast<long>(number);
