@@ -129,7 +129,7 @@ TEST(SimulatedBusLine, MixedBusAnswersEachServoAtItsOwnRateAndProtocol) {
   EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(2)), status(2, 0));
   EXPECT_EQ(rig.host->transact(kD55dFormat, protocol::ping(4)), status(4, 0, {0}));
   rig.host->send({0x03, 0x11, 0xC1, 0x4C});  // FC 0x11 to slave 3
-  EXPECT_EQ(rig.host->receive(), (Bytes{0x03, 0x11, 0x03, 0x03, 0x00, 0x00, 0x0C, 0x6F}));
+  EXPECT_EQ(rig.host->receive_answer(8), (Bytes{0x03, 0x11, 0x03, 0x03, 0x00, 0x00, 0x0C, 0x6F}));
 
   rig.host->set_baud(76'800);  // not a standard termios rate: BOTHER
   EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(5)), status(5, 0));
@@ -285,7 +285,7 @@ TEST(SimulatedBusFaults, CorruptedReplyFailsItsChecksumAndTheNextIsClean) {
   Rig rig(quick_options({sts(1)}));
   rig.bus->corrupt_next_replies(1);
   rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 2)));
-  const Bytes corrupted = rig.host->receive();
+  const Bytes corrupted = rig.host->receive_answer(8);
   EXPECT_EQ(corrupted.size(), 8U);
   EXPECT_NE(corrupted, (Bytes{0xFF, 0xFF, 0x01, 0x04, 0x00, 0x00, 0x08, 0xF2}));
   EXPECT_TRUE(decode_all(kFeetechFormat, corrupted).empty()) << hex(corrupted);
@@ -329,7 +329,7 @@ TEST(SimulatedBusFaults, GarbledServoSpoilsOnlyItsOwnReplies) {
   }
   // A write to the garbled servo still lands: only its answer is damaged.
   rig.host->send(protocol::encode(kFeetechFormat, protocol::write(2, 42, Bytes{0xDC, 0x05})));
-  (void)rig.host->receive();
+  (void)rig.host->receive_answer(6);
   EXPECT_EQ(rig.bus->read_field(2, "goal_position"), std::optional<std::int32_t>{1500});
   rig.bus->set_garbled(2, false);
   EXPECT_EQ(rig.host->transact(kFeetechFormat, protocol::ping(2)), status(2, 0));
@@ -339,7 +339,7 @@ TEST(SimulatedBusFaults, DuplicateIdRepliesCollideOnTheWire) {
   Rig rig(quick_options({sts(1)}));
   rig.bus->add_duplicate(1);
   rig.host->send(protocol::encode(kFeetechFormat, protocol::read(1, 56, 2)));
-  const Bytes collided = rig.host->receive();
+  const Bytes collided = rig.host->receive_answer(8);
   EXPECT_EQ(collided.size(), 8U) << "both start together: one frame's worth of garbled characters";
   EXPECT_TRUE(decode_all(kFeetechFormat, collided).empty()) << hex(collided);
   EXPECT_EQ(rig.bus->stats().collisions, 1U);
@@ -360,7 +360,7 @@ TEST(SimulatedBusLine, BackToBackRequestsToOneServoAreAnsweredInTurn) {
     const Bytes read = protocol::encode(kFeetechFormat, protocol::read(1, 56, 2));
     both.insert(both.end(), read.begin(), read.end());
     rig.host->send(both);
-    const Bytes replies = rig.host->receive();
+    const Bytes replies = rig.host->receive_answer(6 + 8);  // the PING's status, the READ's with 2 bytes
     const auto frames = decode_all(kFeetechFormat, replies);
     ASSERT_EQ(frames.size(), 2U) << "timing " << timing << ": " << hex(replies);
     EXPECT_EQ(frames[0], status(1, 0));
@@ -371,7 +371,7 @@ TEST(SimulatedBusLine, BackToBackRequestsToOneServoAreAnsweredInTurn) {
     Bytes pings = ping;
     pings.insert(pings.end(), ping.begin(), ping.end());
     rig.host->send(pings);
-    const Bytes pongs = rig.host->receive();
+    const Bytes pongs = rig.host->receive_answer(6 + 6);
     EXPECT_EQ(decode_all(kFeetechFormat, pongs), (std::vector<protocol::Packet>{status(1, 0), status(1, 0)}))
         << "timing " << timing << ": " << hex(pongs);
     EXPECT_EQ(rig.bus->stats().collisions, 0U);
@@ -386,7 +386,7 @@ TEST(SimulatedBusFaults, LateServoAnswersInTheOrderAsked) {
   std::this_thread::sleep_for(std::chrono::milliseconds(5));
   rig.bus->set_reply_delay(1, std::chrono::milliseconds(0));
   rig.host->send(protocol::encode(kFeetechFormat, protocol::ping(1)));
-  const Bytes replies = rig.host->receive(std::chrono::milliseconds(150), std::chrono::milliseconds(2000));
+  const Bytes replies = rig.host->receive_answer(8 + 6);
   const auto frames = decode_all(kFeetechFormat, replies);
   ASSERT_EQ(frames.size(), 2U) << hex(replies);
   EXPECT_EQ(frames[0].params.size(), 2U) << "the READ was asked first";

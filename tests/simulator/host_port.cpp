@@ -89,6 +89,14 @@ Bytes HostPort::receive_exactly(std::size_t count, std::chrono::milliseconds lim
   return bytes;
 }
 
+Bytes HostPort::receive_answer(std::size_t count, std::chrono::milliseconds limit, std::chrono::milliseconds quiet) {
+  Bytes bytes = receive_exactly(count, limit);
+  if (bytes.size() < count) return bytes;
+  const Bytes after = receive(quiet, quiet);
+  bytes.insert(bytes.end(), after.begin(), after.end());
+  return bytes;
+}
+
 std::optional<protocol::Packet> HostPort::transact(const protocol::PacketFormat& format,
                                                    const protocol::Packet& request, std::chrono::milliseconds limit) {
   send(protocol::encode(format, request));

@@ -28,12 +28,19 @@ class HostPort {
   void send(const Bytes& bytes);
   // Whatever arrives until the line stays quiet for `quiet` (or `limit` passes).
   Bytes receive(std::chrono::milliseconds quiet = 30ms, std::chrono::milliseconds limit = 1000ms);
-  // Exactly `count` bytes, or fewer if `limit` passes first.
-  Bytes receive_exactly(std::size_t count, std::chrono::milliseconds limit = 1000ms);
+  // Exactly `count` bytes, or fewer if `limit` passes first (an answer's bytes: awaited as long
+  // as a loaded machine holds the simulator back).
+  Bytes receive_exactly(std::size_t count, std::chrono::milliseconds limit = 5000ms);
+  // An answer of `count` bytes, awaited as long as a loaded machine holds the simulator back (at
+  // most `limit`), and whatever follows it until the line stays quiet for `quiet`: a test of what
+  // was answered, never of how soon (tests/README.md "Counting on a loaded machine").
+  Bytes receive_answer(std::size_t count, std::chrono::milliseconds limit = 5000ms,
+                       std::chrono::milliseconds quiet = 30ms);
 
-  // Sends the packet and decodes the first status frame that comes back.
+  // Sends the packet and decodes the first status frame that comes back, awaited up to `limit`
+  // (a test that expects silence passes its own, short one).
   std::optional<protocol::Packet> transact(const protocol::PacketFormat& format, const protocol::Packet& request,
-                                           std::chrono::milliseconds limit = 1000ms);
+                                           std::chrono::milliseconds limit = 5000ms);
   // Every status frame until the line goes quiet: for a request whose answer is silence.
   std::vector<protocol::Packet> transact_all(const protocol::PacketFormat& format, const protocol::Packet& request,
                                              std::chrono::milliseconds quiet = 40ms);

@@ -256,14 +256,14 @@ TEST_F(SmsmbSim, RequestCloserThanThreePointFiveCharactersToThePreviousFrameIsIg
   both.insert(both.end(), read.begin(), read.end());          // back to back: no silence between them
   std::this_thread::sleep_for(std::chrono::milliseconds(5));  // the line was just opened
   host().send(both);
-  const Bytes answers = host().receive(std::chrono::milliseconds(30), std::chrono::milliseconds(300));
+  const Bytes answers = host().receive_answer(7);
   EXPECT_EQ(answers.size(), 7u) << "only the first request is answered";
   EXPECT_EQ(rig->bus->stats().merged_requests, 1u);
 
   // A silence longer than t3.5 first (3.5 characters at 115200 bit/s are 304 us): answered.
   std::this_thread::sleep_for(std::chrono::milliseconds(5));
   host().send(read);
-  EXPECT_EQ(host().receive_exactly(7, std::chrono::milliseconds(300)).size(), 7u);
+  EXPECT_EQ(host().receive_exactly(7).size(), 7u);
   EXPECT_EQ(rig->bus->stats().merged_requests, 1u);
 }
 
