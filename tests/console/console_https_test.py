@@ -52,7 +52,7 @@ class ConsoleHttpsTest(unittest.TestCase):
     @classmethod
     def start(cls, console_yaml, name, *options, mode=0o640, device=None):
         config = (f"modbus_tcp: {{listen: \"127.0.0.1:{free_port()}\"}}\n"
-                  f"buses:\n  - {{name: arm, device: \"{device or cls.sim.link}\", protocol: feetech, baud: 1000000}}\n"
+                  f"buses:\n  - {{name: arm, device: \"{device or cls.sim.link}\", protocol: feetech, baud: 1000000, response_timeout_ms: 200}}\n"
                   "servos:\n  - {bus: arm, id: 1, table: sts}\n"
                   f"state_dir: \"{cls.workdir}\"\n" + console_yaml +
                   f"  users:\n    - {{name: op, role: operate, password_hash: \"{cls.hash}\"}}\n")

@@ -82,7 +82,9 @@ class GatewayCase(unittest.TestCase):
 
     servo_ids = "1-3"
     sim_options = ()  # more sms-sim options, e.g. ("--no-timing",)
-    bus_yaml = ""    # more keys of bus `arm`, e.g. ", watchdog: {timeout_ms: 300, feed: heartbeat_register}"
+    # More keys of bus `arm`, e.g. ", watchdog: {timeout_ms: 300, feed: heartbeat_register}". A
+    # response timeout a loaded machine meets (tests/README.md "Counting on a loaded machine").
+    bus_yaml = ", response_timeout_ms: 200"
     extra_yaml = ""
     users = USERS    # console.users: name -> role, each with the password PASSWORD
 

@@ -30,7 +30,7 @@ class ConsoleTlsTest(unittest.TestCase):
         config = (f"modbus_tcp:\n  listen: \"127.0.0.1:{free_port()}\"\n"
                   f"  tls: {{listen: \"127.0.0.1:{free_port()}\", certificate: {c}/server.crt, private_key: {c}/server.key, "
                   f"ca: {c}/ca.crt}}\n"
-                  f"buses:\n  - {{name: arm, device: \"{cls.sim.link}\", protocol: feetech, baud: 1000000}}\n"
+                  f"buses:\n  - {{name: arm, device: \"{cls.sim.link}\", protocol: feetech, baud: 1000000, response_timeout_ms: 200}}\n"
                   "servos:\n  - {bus: arm, id: 1, table: sts}\n  - {bus: arm, id: 2, table: sts}\n"
                   f"state_dir: \"{cls.workdir}\"\n"
                   f"console: {{listen: \"127.0.0.1:{cls.port}\", tls: true}}\n")

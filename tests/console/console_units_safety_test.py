@@ -15,7 +15,7 @@ def le16(value):
 
 
 class UnitsAndSafetyTest(ConsoleCase):
-    bus_yaml = ", watchdog: {timeout_ms: 1000, feed: any_write}"
+    bus_yaml = ConsoleCase.bus_yaml + ", retries: 1, watchdog: {timeout_ms: 1000, feed: any_write}"
 
     def text(self, css):
         return self.browser.execute_script(

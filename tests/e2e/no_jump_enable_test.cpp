@@ -55,7 +55,7 @@ class D55dCell {
       : sim_(dir_, "sim", {"--servo", "1:d55d:d55d:115200"}),
         gateway_(GatewayProcess::with_config(dir_,
                                              "buses:\n  - {name: line, device: \"" + sim_.pty() +
-                                                 "\", protocol: d55d, baud: 115200}\n"
+                                                 "\", protocol: d55d, baud: 115200, response_timeout_ms: 100}\n"
                                                  "servos:\n  - {bus: line, id: 1, table: d55d}\n"
                                                  "sync_groups:\n"
                                                  "  - {name: sleep, field: sleep, members: [1], "
@@ -209,7 +209,7 @@ TEST(NoJumpDriveChange, StsOperatingModeIntoSpeedModeDoesNotRunTheOldGoalSpeed) 
   SimProcess sim(dir, "sim", {"--servo", "1:sts"});
   auto gateway = GatewayProcess::with_config(dir,
                                              "buses:\n  - {name: line, device: \"" + sim.pty() +
-                                                 "\", protocol: feetech, baud: 1000000}\n"
+                                                 "\", protocol: feetech, baud: 1000000, response_timeout_ms: 200}\n"
                                                  "servos:\n  - {bus: line, id: 1, table: sts}\n"
                                                  "sync_groups:\n  - {name: modes, field: operating_mode, "
                                                  "members: [1], holding_register_start: 0}\n"

@@ -133,7 +133,7 @@ TEST(PassthroughProcess, ReadOnlyPassthroughUnitForwardsReadsOnly) {
   auto gateway =
       GatewayProcess::with_config(dir,
                                   "buses:\n  - {name: line, device: \"" + sim.pty() +
-                                      "\", protocol: modbus-rtu, baud: 115200}\n"
+                                      "\", protocol: modbus-rtu, baud: 115200, response_timeout_ms: 200}\n"
                                       "servos:\n"
                                       "  - {bus: line, id: 7, table: passthrough, read_only: true}\n"
                                       "  - {bus: line, id: 8, table: passthrough}\n",

@@ -201,7 +201,7 @@ TEST(SafetyTorqueOn, TorqueOnHoldsThePresentPositionInsteadOfAStaleGoal) {
   auto gateway =
       GatewayProcess::with_config(dir,
                                   "buses:\n  - {name: line, device: \"" + sim.pty() +
-                                      "\", protocol: feetech, baud: 1000000}\n"
+                                      "\", protocol: feetech, baud: 1000000, response_timeout_ms: 200}\n"
                                       "servos:\n  - {bus: line, id: 1, table: sts}\nlogging: {level: debug}\n",
                                   1);
   wait_until_polled(gateway.port(), kUnit);
@@ -238,10 +238,10 @@ TEST(SafetyEStop, CoversSyncGroupsStagedWritesActionAndPassthroughUnits) {
       "buses:\n"
       "  - {name: arm, device: \"" +
           arm.pty() +
-          "\", protocol: feetech, baud: 1000000}\n"
+          "\", protocol: feetech, baud: 1000000, response_timeout_ms: 200}\n"
           "  - {name: line, device: \"" +
           line.pty() +
-          "\", protocol: modbus-rtu, baud: 115200}\n"
+          "\", protocol: modbus-rtu, baud: 115200, response_timeout_ms: 200}\n"
           "servos:\n"
           "  - {bus: arm, id: 1, table: sts}\n"
           "  - {bus: arm, id: 2, table: sts}\n"
@@ -279,8 +279,9 @@ TEST(SafetyEStop, StopsMoreServosThanOneSyncWriteFrameCarries) {
   TempDir dir;
   SimProcess sim(dir, "sim", {"--ids", "1-40"});
   // One poll cycle at start, then none for a minute: the frames counted are the stop's.
-  std::string yaml = "buses:\n  - {name: arm, device: \"" + sim.pty() +
-                     "\", protocol: feetech, baud: 1000000, poll_period_ms: 60000}\nservos:\n";
+  std::string yaml =
+      "buses:\n  - {name: arm, device: \"" + sim.pty() +
+      "\", protocol: feetech, baud: 1000000, poll_period_ms: 60000, response_timeout_ms: 200}\nservos:\n";
   for (int id = 1; id <= kServos; ++id) yaml += "  - {bus: arm, id: " + std::to_string(id) + ", table: sts}\n";
   auto gateway = GatewayProcess::with_config(dir, yaml, 1);
   wait_until_polled(gateway.port(), kServos);

@@ -102,7 +102,8 @@ inline std::string tls_listener_yaml(const std::string& certs, const std::string
 }
 inline std::string one_servo_yaml(const std::string& pty) {
   return "buses:\n  - {name: line, device: \"" + pty +
-         "\", protocol: feetech, baud: 1000000}\nservos:\n  - {bus: line, id: 1, table: sts}\n";
+         "\", protocol: feetech, baud: 1000000, response_timeout_ms: 200}\nservos:\n  - {bus: line, id: 1, table: "
+         "sts}\n";
 }
 
 }  // namespace sms::e2e

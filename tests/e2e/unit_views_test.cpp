@@ -27,7 +27,7 @@ std::string config_yaml(const std::string& pty, const std::string& hmi_unit_extr
   return "buses:\n"
          "  - {name: line, device: \"" +
          pty +
-         "\", protocol: feetech, baud: 1000000}\n"
+         "\", protocol: feetech, baud: 1000000, response_timeout_ms: 200}\n"
          "servos:\n"
          "  - {unit: 1, bus: line, id: 1, table: sts, name: axis-1}\n"
          "  - {unit: 101, bus: line, id: 1, table: sts, name: axis-1-hmi" +
@@ -94,8 +94,9 @@ TEST_F(UnitViews, PlcUnitWritesHmiUnitOfTheSameServoReadsAndIsRefusedWrites) {
 }
 
 TEST_F(UnitViews, WatchdogStopsTheServoOnceNotOncePerUnit) {
-  const std::string yaml = substitute(config_yaml(sim_->pty(), ", read_only: true"), "baud: 1000000}",
-                                      "baud: 1000000, watchdog: {timeout_ms: 300, feed: any_write}}");
+  const std::string yaml =
+      substitute(config_yaml(sim_->pty(), ", read_only: true"), "response_timeout_ms: 200}",
+                 "response_timeout_ms: 200, retries: 1, watchdog: {timeout_ms: 1000, feed: any_write}}");
   GatewayProcess gateway = GatewayProcess::with_config(dir_, yaml, 1);
   wait_until_polled(gateway.port(), kPlcUnit);
   {
