@@ -122,7 +122,7 @@ std::optional<std::string> set_probability(const Words& words, const std::functi
 }
 
 // The control commands, one row each (the help text is made from this table).
-const std::array<ControlCommand, 17> kCommands{{
+const std::array<ControlCommand, 18> kCommands{{
     {"offline", "offline ID", "",
      [](SimulatedBus& bus, const Words& w) {
        return on_servo(bus, w, 1, [&](std::uint8_t id) -> std::optional<std::string> {
@@ -268,6 +268,16 @@ const std::array<ControlCommand, 17> kCommands{{
               " collisions=" + std::to_string(stats.collisions) +
               " checksum_errors=" + std::to_string(stats.checksum_errors) +
               " merged_requests=" + std::to_string(stats.merged_requests);
+     }},
+    {"holds", "holds", "",
+     [](SimulatedBus& bus, const Words&) -> std::optional<std::string> {
+       std::string text;
+       for (const Hold& hold : bus.holds()) {
+         if (!text.empty()) text += ' ';
+         text += monotonic_us(hold.ended) + ":" +
+                 std::to_string(std::chrono::duration_cast<std::chrono::microseconds>(hold.held).count());
+       }
+       return text.empty() ? "none" : text;
      }},
     {"help", "help", "", [](SimulatedBus&, const Words&) -> std::optional<std::string> { return help_text(); }},
 }};

@@ -20,6 +20,9 @@
 //                                    when it answered the last read before it; whether it turned back since its last
 //                                    command, and how far from the farthest point it reached; how often its
 //                                    d55d heartbeat stopped it)
+//   holds                         -> "ENDED_US:HELD_US ..." or "none": the last times (at most 256) the
+//                                    machine held the bus thread 5 ms or more past its wake-up (steady
+//                                    clock µs of the hold's end, its length): no request was read meanwhile
 //   list                          -> "1:sts:feetech:1000000 2:..." (current ID and baud)
 //   stats                         -> "requests=.. replies=.. dropped=.. corrupted=.. collisions=.. checksum_errors=.."
 //   help

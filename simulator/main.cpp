@@ -47,7 +47,8 @@ Control socket (--control PATH; one command per line, one reply line each: "ok",
 "error: ..."):
   offline ID | online ID | drop P | corrupt P | corrupt-next [N] | garble ID on|off | late ID MS |
   error ID BITS | duplicate ID | timing on|off | get ID ADDR COUNT (hex bytes) | set ID ADDR HEX... |
-  field ID NAME | motion ID (last goal's start and arrival, steady-clock µs) | list | stats | help
+  field ID NAME | motion ID (last goal's start and arrival, steady-clock µs) | list | stats |
+  holds (times the machine held the simulator, steady-clock µs) | help
   e.g. `get 3 56 2` -> `18 05`, `set 3 42 00 08`, `error 2 0x04`, `late 2 50`.
   SMSMB addresses are registers; get/set move 2 bytes per register, high byte first.
 )";

@@ -14,6 +14,7 @@
 #include <cerrno>
 #include <cstdlib>
 #include <cstring>
+#include <deque>
 #include <map>
 #include <mutex>
 #include <random>
@@ -47,6 +48,11 @@ constexpr auto kFixedSilence = std::chrono::microseconds(1750);
 constexpr double kDuplicateSkew = 37.0;
 // A host that stops reading: keep at most this much unsent, like a UART's buffer overflowing.
 constexpr std::size_t kMaxUnsent = std::size_t{64} * 1024;
+// The bus thread wakes at least this often; a wake-up this much later than asked is a hold of
+// the machine's, kept (the last kHoldsKept) for the tests that ask (SimulatedBus::holds).
+constexpr auto kHoldTick = std::chrono::milliseconds(5);
+constexpr auto kHoldNoted = std::chrono::milliseconds(5);
+constexpr std::size_t kHoldsKept = 256;
 
 Clock::duration character_time(std::uint32_t baud) {
   return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(kBitsPerCharacter / baud));
@@ -120,6 +126,7 @@ class SimulatedBus::Impl {
   unsigned corrupt_next_ = 0;
   bool timing_ = true;
   BusStats stats_;
+  std::deque<Hold> holds_;  // the last kHoldsKept
   FrameObserver observer_;
 
   struct Slot {
@@ -348,22 +355,28 @@ void SimulatedBus::Impl::run() {
   std::array<std::uint8_t, 4096> buffer{};
   for (;;) {
     timespec timeout{};
-    const timespec* timeout_pointer = nullptr;
     short line_events = POLLIN;
+    Clock::time_point wake_by;
     {
       std::lock_guard lock(mutex_);
       if (stopping_) return;
-      if (const auto deadline = next_deadline()) {
-        const auto wait = std::max(*deadline - Clock::now(), Clock::duration::zero());
-        const auto nanos = std::chrono::duration_cast<std::chrono::nanoseconds>(wait).count();
-        timeout.tv_sec = static_cast<time_t>(nanos / 1'000'000'000);
-        timeout.tv_nsec = static_cast<long>(nanos % 1'000'000'000);
-        timeout_pointer = &timeout;
-      }
+      // At the next deadline, and every kHoldTick at the latest: a wake-up later than asked for
+      // is a hold of the machine's (holds()).
+      const Clock::time_point now = Clock::now();
+      wake_by = now + kHoldTick;
+      if (const auto deadline = next_deadline()) wake_by = std::clamp(*deadline, now, wake_by);
+      const auto nanos = std::chrono::duration_cast<std::chrono::nanoseconds>(wake_by - now).count();
+      timeout.tv_sec = static_cast<time_t>(nanos / 1'000'000'000);
+      timeout.tv_nsec = static_cast<long>(nanos % 1'000'000'000);
       if (!unsent_.empty()) line_events |= POLLOUT;
     }
     std::array<pollfd, 3> fds{{{line_fd_, line_events, 0}, {wake_fd_, POLLIN, 0}, {hosts_fd_, POLLIN, 0}}};
-    const int ready = ::ppoll(fds.data(), fds.size(), timeout_pointer, nullptr);
+    const int ready = ::ppoll(fds.data(), fds.size(), &timeout, nullptr);
+    if (const Clock::time_point woke = Clock::now(); woke - wake_by >= kHoldNoted) {
+      std::lock_guard lock(mutex_);
+      holds_.push_back(Hold{woke, woke - wake_by});
+      if (holds_.size() > kHoldsKept) holds_.pop_front();
+    }
     if (ready < 0 && errno != EINTR) {
       spdlog::error("sms-sim: poll on {} failed: {}", slave_path_, std::strerror(errno));
       return;
@@ -772,6 +785,11 @@ std::vector<ServoSummary> SimulatedBus::servos() const {
 BusStats SimulatedBus::stats() const {
   std::lock_guard lock(impl_->mutex_);
   return impl_->stats_;
+}
+
+std::vector<Hold> SimulatedBus::holds() const {
+  std::lock_guard lock(impl_->mutex_);
+  return {impl_->holds_.begin(), impl_->holds_.end()};
 }
 
 void SimulatedBus::set_frame_observer(FrameObserver observer) {

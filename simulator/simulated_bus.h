@@ -84,6 +84,15 @@ struct BusStats {
   std::uint64_t merged_requests = 0;
 };
 
+// A time the machine held the bus thread: it woke `held` after the moment it had asked to (its
+// wake-up comes every few milliseconds whether or not a frame comes). Meanwhile no request was
+// read and no reply sent: the witness tests ask before they call a servo's silence the gateway's
+// doing (tests/README.md "Counting on a loaded machine").
+struct Hold {
+  std::chrono::steady_clock::time_point ended;
+  std::chrono::steady_clock::duration held{};
+};
+
 // One request frame the bus decoded (any servo, any protocol), for programs that time what a
 // host sends (bench/trip_latency). With wire timing on, `wire_end` is when the last byte of the
 // read that completed the frame ends on the modelled wire (several frames read at once share
@@ -150,6 +159,8 @@ class SimulatedBus {
 
   std::vector<ServoSummary> servos() const;
   BusStats stats() const;
+  // The last holds of 5 ms or more (at most 256), oldest first.
+  std::vector<Hold> holds() const;
   // Called for every request frame decoded from now on (checksum errors excluded); an empty
   // function removes it.
   void set_frame_observer(FrameObserver observer);

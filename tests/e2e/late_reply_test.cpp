@@ -9,12 +9,15 @@
 // and what was dropped is counted (stray frames, fences).
 #include <gtest/gtest.h>
 
+#include <csignal>
 #include <fstream>
 #include <iostream>
 #include <memory>
 #include <string>
+#include <thread>
 #include <vector>
 
+#include "tests/e2e/sim_motion.h"
 #include "tests/support/eventually.h"
 #include "tests/support/metrics_http_client.h"
 #include "tests/support/processes.h"
@@ -74,19 +77,28 @@ struct Tally {
   int refused = 0;
   int others_checked = 0;
   int others_late = 0;  // checks that found another servo offline for its own late answers
+  int others_held = 0;  // checks that found another servo offline unanswered while the machine held the simulator
 };
 
 // The other servos of the bus (units 2 and 3): online (input register 1001). Offline only for
 // answering late themselves (register 1008 = 2: their own address on their late answers, which a
-// loaded machine can make of any servo: the product's rule), never for the late servo's answers.
-void others_answer(std::vector<std::unique_ptr<ModbusClient>>& others, const std::string& phase, Tally& tally) {
-  constexpr std::uint16_t kOnline = 1001, kOfflineReason = 1008, kAnswersLate = 2;
+// loaded machine can make of any servo: the product's rule), or for no answer (1) where the
+// simulator witnessed the machine holding it an attempt's time in the last seconds; never for the
+// late servo's answers.
+void others_answer(SimProcess& sim, std::vector<std::unique_ptr<ModbusClient>>& others, const std::string& phase,
+                   Tally& tally) {
+  constexpr std::uint16_t kOnline = 1001, kOfflineReason = 1008, kAnswersLate = 2, kNoAnswer = 1;
   for (std::size_t i = 0; i < others.size(); ++i) {
     const int unit = static_cast<int>(i) + 2;
     const auto online = others[i]->read_input(kOnline, kOfflineReason - kOnline + 1);
     ASSERT_TRUE(online.ok()) << phase << ": unit " << unit << ": " << online.error;
     if (online.values.front() == 0 && online.values.back() == kAnswersLate) {
       ++tally.others_late;
+      continue;
+    }
+    if (online.values.front() == 0 && online.values.back() == kNoAnswer &&
+        sim_held(sim, std::chrono::milliseconds(kTimeoutMs), std::chrono::steady_clock::now() - 3s)) {
+      ++tally.others_held;
       continue;
     }
     EXPECT_EQ(online.values.front(), 1) << phase << ": unit " << unit << " went offline beside the late servo, reason "
@@ -97,12 +109,12 @@ void others_answer(std::vector<std::unique_ptr<ModbusClient>>& others, const std
 
 // Reads `constant` and `other` in turn on `unit` for `duration`; every Ok answer of the constant
 // block must be `expected`, and no Ok answer of the other block may be it.
-void read_in_turn(ModbusClient& unit, std::vector<std::unique_ptr<ModbusClient>>& others, int constant, int other,
-                  int count, const Registers& expected, std::chrono::milliseconds duration, const std::string& phase,
-                  Tally& tally) {
+void read_in_turn(SimProcess& sim, ModbusClient& unit, std::vector<std::unique_ptr<ModbusClient>>& others, int constant,
+                  int other, int count, const Registers& expected, std::chrono::milliseconds duration,
+                  const std::string& phase, Tally& tally) {
   const auto until = std::chrono::steady_clock::now() + duration;
   for (int i = 0; std::chrono::steady_clock::now() < until; ++i) {
-    if (i % 4 == 0) others_answer(others, phase, tally);
+    if (i % 4 == 0) others_answer(sim, others, phase, tally);
     const bool constant_turn = i % 2 == 0;
     const auto answer = unit.read_holding(constant_turn ? constant : other, count);
     if (!answer.ok()) {
@@ -137,27 +149,29 @@ void late_servo_never_yields_a_wrong_value(SimProcess& sim, GatewayProcess& gate
   Tally tally;
   for (const int lateness : {50, 90, 150, 400}) {
     ASSERT_EQ(sim.control("late 1 " + std::to_string(lateness)), "ok");
-    read_in_turn(unit, others, constant, other, count, expected, 1200ms, "late " + std::to_string(lateness), tally);
+    read_in_turn(sim, unit, others, constant, other, count, expected, 1200ms, "late " + std::to_string(lateness),
+                 tally);
     ASSERT_EQ(sim.control("late 1 0"), "ok");
-    read_in_turn(unit, others, constant, other, count, expected, 600ms, "after late " + std::to_string(lateness),
+    read_in_turn(sim, unit, others, constant, other, count, expected, 600ms, "after late " + std::to_string(lateness),
                  tally);
   }
   // Toggled while the reads go on, as a flaky adapter or a busy servo would.
   for (int round = 0; round < 8; ++round) {
     ASSERT_EQ(sim.control(round % 2 == 0 ? "late 1 " + std::to_string(kTimeoutMs * 2) : "late 1 0"), "ok");
-    read_in_turn(unit, others, constant, other, count, expected, 200ms, "toggling, round " + std::to_string(round),
+    read_in_turn(sim, unit, others, constant, other, count, expected, 200ms, "toggling, round " + std::to_string(round),
                  tally);
   }
   ASSERT_EQ(sim.control("late 1 0"), "ok");
   // On time again: answered again, with the right values.
   EXPECT_TRUE(eventually([&] { return unit.read_holding(constant, count).ok(); }));
-  read_in_turn(unit, others, constant, other, count, expected, 500ms, "on time", tally);
+  read_in_turn(sim, unit, others, constant, other, count, expected, 500ms, "on time", tally);
   EXPECT_GT(tally.ok_constant, 0);
   EXPECT_GT(tally.ok_other, 0);
   EXPECT_GT(tally.others_checked, 0);
   std::cout << "answered ok: constant " << tally.ok_constant << ", other " << tally.ok_other << "; refused "
             << tally.refused << "; the other servos checked " << tally.others_checked << " times, " << tally.others_late
-            << " of them one offline for its own late answers\n";
+            << " of them one offline for its own late answers, " << tally.others_held
+            << " one offline unanswered while the machine held the simulator\n";
 
   const auto metrics = parse_exposition(metrics_text(port_after(gateway.process(), "/healthz on http://127.0.0.1:")));
   const auto counted = [&](const std::string& family) {
@@ -192,6 +206,21 @@ TEST(LateReply, ModbusRtuLateServoNeverAnswersOneReadWithAnotherReadsValues) {
   GatewayProcess gateway({"--config", path, "--metrics", "127.0.0.1:0"}, 1);
   // Holding 0x0D-0x0E: the angle limits; 0x11-0x12: the position gains (both constant, different).
   late_servo_never_yields_a_wrong_value(sim, gateway, 1, 0x0D, 0x11, 2, R"({bus="lift",protocol="modbus-rtu"})");
+}
+
+// The witness the allowance above asks: a simulator the machine held (here: stopped by a signal)
+// says so, with how long; one never held says "none" of that length.
+TEST(SimHolds, ASimulatorTheMachineHeldReportsTheHold) {
+  TempDir dir;
+  SimProcess sim(dir, "line", {"--servo", "1:sts"});
+  const auto before = std::chrono::steady_clock::now();
+  EXPECT_FALSE(sim_held(sim, 10s, before)) << sim.control("holds");
+  sim.process().signal(SIGSTOP);
+  std::this_thread::sleep_for(300ms);
+  sim.process().signal(SIGCONT);
+  EXPECT_TRUE(eventually([&] { return sim_held(sim, 250ms, before); }, "a hold of 250 ms or more"))
+      << sim.control("holds");
+  EXPECT_FALSE(sim_held(sim, 250ms, std::chrono::steady_clock::now())) << "none ended after now";
 }
 
 }  // namespace

@@ -1,6 +1,7 @@
 #pragma once
 // The simulator's record of a servo's last goal write (sms-sim's `motion ID`, simulator/control_server.h):
-// the witness of timed moves and of stops.
+// the witness of timed moves and of stops; and of the times the machine held the simulator (`holds`).
+#include <chrono>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -52,6 +53,25 @@ inline Motion motion_of(test::SimProcess& sim, int id) {
     if (key == "heartbeat_stops") motion.heartbeat_stops = static_cast<long>(number);
   }
   return motion;
+}
+
+// Whether the machine held the simulator's bus thread `at_least` in one go, in a hold that ended
+// after `since` (sms-sim's `holds`): a servo silent then was silent by the machine's doing, which
+// the product answers by its rule (retries, then offline), not a fault of the gateway's.
+inline bool sim_held(test::SimProcess& sim, std::chrono::microseconds at_least,
+                     std::chrono::steady_clock::time_point since) {
+  const std::string reply = sim.control("holds");
+  if (reply == "none") return false;
+  const long long since_us = std::chrono::duration_cast<std::chrono::microseconds>(since.time_since_epoch()).count();
+  std::istringstream words(reply);
+  for (std::string word; words >> word;) {
+    const auto colon = word.find(':');
+    if (colon == std::string::npos) throw std::runtime_error("sms-sim holds: " + reply);
+    if (std::stoll(word.substr(0, colon)) >= since_us && std::stoll(word.substr(colon + 1)) >= at_least.count()) {
+      return true;
+    }
+  }
+  return false;
 }
 
 }  // namespace sms::e2e

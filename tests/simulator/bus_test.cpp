@@ -518,7 +518,7 @@ TEST(SimulatedBusControl, SocketCommandsInjectFaultsAndReadMemory) {
       control.ask("help"),
       "commands: offline ID | online ID | drop P | corrupt P | corrupt-next [N] | garble ID on|off | late ID MS | "
       "error ID BITS | duplicate ID | timing on|off | get ID ADDR COUNT | set ID ADDR HEX... | field ID NAME | "
-      "motion ID | list | stats | help");
+      "motion ID | list | stats | holds | help");
 }
 
 // --- the sms-sim program ------------------------------------------------------------------
