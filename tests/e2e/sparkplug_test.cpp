@@ -30,7 +30,7 @@ std::string gateway_yaml(const std::string& pty, std::uint16_t broker, const std
          "  - {name: arm, device: \"" +
          pty +
          "\", protocol: feetech, baud: 1000000, poll_period_ms: 20,\n"
-         "     offline_probe_period_ms: 50}\n"
+         "     response_timeout_ms: 200, offline_probe_period_ms: 50}\n"
          "servos:\n"
          "  - {unit: 1, bus: arm, id: 1, table: sts, name: shoulder}\n"
          "  - {unit: 2, bus: arm, id: 2, table: sts}\n"
@@ -220,8 +220,9 @@ TEST(Sparkplug, RebirthAndHeartbeatOverNcmd) {
   Plant plant;
   auto gateway = GatewayProcess::with_config(
       plant.dir,
-      substitute(gateway_yaml(plant.sim.pty(), plant.broker.port()), "offline_probe_period_ms: 50}",
-                 "offline_probe_period_ms: 50,\n     watchdog: {timeout_ms: 600, feed: heartbeat_register}}"),
+      substitute(
+          gateway_yaml(plant.sim.pty(), plant.broker.port()), "offline_probe_period_ms: 50}",
+          "offline_probe_period_ms: 50, retries: 1,\n     watchdog: {timeout_ms: 1000, feed: heartbeat_register}}"),
       1);
   const auto first = plant.host.wait(is(MessageType::NBirth));
   ASSERT_TRUE(first) << plant.host.summary() << gateway.process().output();
@@ -238,8 +239,8 @@ TEST(Sparkplug, RebirthAndHeartbeatOverNcmd) {
   ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "unit-2"), 10s, from));
 
   // The heartbeat register through NCMD feeds the watchdog: a changing value every 100 ms keeps it
-  // from tripping for well over its 600 ms timeout, and motion commands pass meanwhile.
-  for (int beat = 1; beat <= 12; ++beat) {
+  // from tripping for well over its 1000 ms timeout, and motion commands pass meanwhile.
+  for (int beat = 1; beat <= 20; ++beat) {
     plant.host.command(MessageType::NCmd, kGroup, kNode, "",
                        {sp::Metric::uint16("Gateway/Heartbeat/arm", static_cast<std::uint16_t>(beat))});
     std::this_thread::sleep_for(100ms);
@@ -337,9 +338,7 @@ TEST(Sparkplug, BrokerDownAndBackGivesNewBirthsAndAKilledGatewayItsDeath) {
 // DBIRTH reports it.
 TEST(Sparkplug, ADeliveredCommandIsCarriedOutWhenTheBrokerDiesMeanwhile) {
   Plant plant;
-  std::string yaml = gateway_yaml(plant.sim.pty(), plant.broker.port());
-  const std::string probe = "offline_probe_period_ms: 50}";
-  yaml.replace(yaml.find(probe), probe.size(), "offline_probe_period_ms: 50, response_timeout_ms: 200}");
+  const std::string yaml = gateway_yaml(plant.sim.pty(), plant.broker.port());
   auto gateway = GatewayProcess::with_config(plant.dir, yaml, 1);
   ASSERT_TRUE(plant.host.wait(is(MessageType::DBirth, "shoulder"))) << plant.host.summary();
   ASSERT_EQ(plant.sim.control("late 1 5"), "ok");
