@@ -7,6 +7,7 @@
 
 #include <chrono>
 #include <cstdint>
+#include <iostream>
 #include <string>
 #include <vector>
 
@@ -118,8 +119,25 @@ class StopRamp : public testing::TestWithParam<StopCase> {
           return stop.started_us > moving_.started_us && stop.arrived_us >= 0 && stop.position == stop.goal;
         },
         10s);
+    if (!stood && hold_unreadable_by_the_machine()) {
+      unreadable_ = true;
+      return stop;
+    }
     EXPECT_TRUE(stood) << "the axis did not come to stand at the stop's goal: " << sim_->control("motion 1") << log();
     return stop;
+  }
+
+  // The product's rule where a loaded machine held the simulator past every attempt of the hold's
+  // read: the servo's state is unknown, so its stop is a torque off (docs/SAFETY.md), which the
+  // claims here are not about. True (and said) only where the simulator witnessed a hold of at
+  // least one attempt's time.
+  bool hold_unreadable_by_the_machine() {
+    if (gateway_->process().output().find("cannot hold it (") == std::string::npos) return false;
+    const auto attempt = std::chrono::milliseconds(GetParam().bus_protocol == "d55d" ? 100 : 200);
+    if (!sim_held(*sim_, attempt, started_)) return false;
+    std::cout << "the machine held the simulator past the hold's read (" << sim_->control("holds")
+              << "): the stop was a torque off, the product's rule; its position is not checked\n";
+    return true;
   }
 
   // Every stop: within the tolerance of where the axis was when the stop's frame arrived, turning
@@ -128,6 +146,7 @@ class StopRamp : public testing::TestWithParam<StopCase> {
   // frame a loaded host held back longer arrives later, and the servo pulls back what the axis
   // covered meanwhile: at most its run-on since that read (sim_motion.h), never a ramp's run-on.
   void expect_stopped_where_it_was(const Motion& stop, const std::string& what) {
+    if (unreadable_) return;
     const StopCase& c = GetParam();
     const long late = run_on_since_read(stop);
     EXPECT_LE(stop.position - stop.at_goal_write, c.tolerance)
@@ -153,6 +172,8 @@ class StopRamp : public testing::TestWithParam<StopCase> {
   std::unique_ptr<ModbusClient> plc_;
   std::unique_ptr<ModbusClient> panel_;
   Motion moving_;
+  std::chrono::steady_clock::time_point started_ = std::chrono::steady_clock::now();
+  bool unreadable_ = false;  // hold_unreadable_by_the_machine() said so
 };
 
 TEST_P(StopRamp, AnEStopMidMoveStandsWhereTheAxisWasNotWhereTheMovesRampWouldTakeIt) {
