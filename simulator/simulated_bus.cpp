@@ -124,6 +124,7 @@ class SimulatedBus::Impl {
   double drop_probability_ = 0;
   double corrupt_probability_ = 0;
   unsigned corrupt_next_ = 0;
+  unsigned drop_next_ = 0;
   bool timing_ = true;
   BusStats stats_;
   std::deque<Hold> holds_;  // the last kHoldsKept
@@ -594,7 +595,8 @@ void SimulatedBus::Impl::schedule(std::vector<Reply> replies, std::uint32_t spee
     const Clock::time_point end = start + character * static_cast<long>(reply.bytes.size());
     answering.wire_end = end;
     group_end = std::max(group_end, end);
-    if (drop_probability_ > 0 && chance(dice_) < drop_probability_) {
+    if (drop_next_ > 0 || (drop_probability_ > 0 && chance(dice_) < drop_probability_)) {
+      if (drop_next_ > 0) --drop_next_;
       ++stats_.dropped;
       continue;
     }
@@ -720,6 +722,11 @@ void SimulatedBus::set_corrupt_probability(double probability) {
 void SimulatedBus::corrupt_next_replies(unsigned count) {
   std::lock_guard lock(impl_->mutex_);
   impl_->corrupt_next_ += count;
+}
+
+void SimulatedBus::drop_next_replies(unsigned count) {
+  std::lock_guard lock(impl_->mutex_);
+  impl_->drop_next_ += count;
 }
 
 void SimulatedBus::set_garbled(std::uint8_t id, bool garbled) {

@@ -131,6 +131,7 @@ class SimulatedBus {
   void set_drop_probability(double probability);     // each reply dropped with probability p
   void set_corrupt_probability(double probability);  // each reply gets one byte flipped
   void corrupt_next_replies(unsigned count = 1);
+  void drop_next_replies(unsigned count = 1);  // the next `count` replies are never sent
   // Every reply of this servo gets one byte flipped (the other servos stay clean) until
   // cleared: a servo answering garbage.
   void set_garbled(std::uint8_t id, bool garbled);
