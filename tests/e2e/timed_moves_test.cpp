@@ -8,6 +8,7 @@
 #include <array>
 #include <chrono>
 #include <cstdint>
+#include <iostream>
 #include <string>
 #include <vector>
 
@@ -114,7 +115,8 @@ class Arm {
   }
 
   // Waits until every axis has reached `goals` on a goal written after `after_us`; their records.
-  std::vector<Motion> arrivals(const std::vector<std::uint16_t>& goals, long long after_us) {
+  // `report`: a failure where they did not (else the caller decides).
+  std::vector<Motion> arrivals(const std::vector<std::uint16_t>& goals, long long after_us, bool report = true) {
     std::vector<Motion> motions(kAxes);
     const bool arrived = eventually(
         [&] {
@@ -127,7 +129,8 @@ class Arm {
         },
         20s);
     if (!arrived) {
-      ADD_FAILURE() << "the axes did not all reach their goals\n" << log();
+      if (report) ADD_FAILURE() << "the axes did not all reach their goals\n" << log();
+      return {};
     }
     return motions;
   }
@@ -180,13 +183,31 @@ void expect_together_at(const std::vector<Motion>& motions, int ms, Spread sprea
 
 void timed_move_arrives_together(Arm& arm, Spread spread = Spread::Arrivals, int start = kStart,
                                  const std::array<int, kAxes>& distances = kDistances) {
-  arm.home(start);
-  const long long before = now_us();
-  std::vector<std::uint16_t> request = goals_for(distances, start);
-  request.push_back(1500);  // the move time, in the same FC16
-  const auto answer = arm.plc().write_registers(0, request);
-  ASSERT_TRUE(answer.ok()) << answer.error << "\n" << arm.log();
-  const auto motions = arm.arrivals(goals_for(distances, start), before);
+  // A move the machine held the simulator through (half a second: a d55d motor's heartbeat stops
+  // it, a poll comes too late to plan from) is made again, at most three times, where the
+  // simulator witnessed the hold (tests/README.md "Counting on a loaded machine").
+  std::vector<Motion> motions;
+  for (int attempt = 1; motions.empty(); ++attempt) {
+    arm.home(start);
+    const auto sent = std::chrono::steady_clock::now();
+    const long long before = now_us();
+    std::vector<std::uint16_t> request = goals_for(distances, start);
+    request.push_back(1500);  // the move time, in the same FC16
+    const auto answer = arm.plc().write_registers(0, request);
+    ASSERT_TRUE(answer.ok()) << answer.error << "\n" << arm.log();
+    const bool held = [&] {
+      motions = arm.arrivals(goals_for(distances, start), before, false);
+      return sim_held(arm.sim(), 400ms, sent);
+    }();
+    if (!motions.empty() && !held) break;
+    if (!held || attempt == 3) {
+      if (motions.empty()) FAIL() << "the axes did not all reach their goals\n" << arm.log();
+      break;
+    }
+    std::cout << "attempt " << attempt << ": the machine held the simulator (" << arm.sim().control("holds")
+              << "); the move is made again\n";
+    motions.clear();
+  }
   expect_together_at(motions, 1500, spread);
   const auto inputs = arm.group_inputs(0);
   EXPECT_EQ(inputs[kLastMove], 1);  // as asked
