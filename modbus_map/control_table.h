@@ -53,6 +53,14 @@ struct FieldSpec {
   std::span<const std::int32_t> allowed_values = {};
 };
 
+// One bit of a servo's status byte: the ERROR byte of a packet table's answers (docs/PROTOCOL.md
+// §1.1, §1.2), the low byte of smsmb's status register 0x100 (§2.3).
+struct StatusBit {
+  std::uint8_t mask = 0;  // one bit
+  std::string_view name;  // snake_case: the console, the bus monitor and refusal reasons show it
+  bool fault = true;      // false: a state the byte reports (smsmb bit 4, torque on), never a fault
+};
+
 struct TableSpec {
   TableId id;
   std::string_view name;           // "sts", "sms1", "d55d", "smsmb", "scs"
@@ -60,8 +68,10 @@ struct TableSpec {
   protocol::BusProtocol protocol;  // the only bus protocol this table is spoken over
   Addressing addressing;
   ByteOrder default_byte_order;
-  std::span<const FieldSpec> fields;  // sorted by addr, non-overlapping
-  bool has_sync_read;                 // the poll cache may use one SYNC READ per cycle
+  std::span<const FieldSpec> fields;       // sorted by addr, non-overlapping
+  bool has_sync_read;                      // the poll cache may use one SYNC READ per cycle
+  std::span<const StatusBit> status_bits;  // the bits its servos' status byte has, by name
+  std::string_view status_field;           // the field that holds that byte too; "": answers only (d55d)
 };
 
 // Bus address units one field address stands for: a byte on packet tables, a 16-bit register
@@ -70,6 +80,20 @@ constexpr std::uint8_t bytes_per_address(Addressing addressing) { return address
 // Addresses a field occupies: its size in bytes on packet tables, always one register on SMSMB.
 constexpr std::uint16_t address_span(Addressing addressing, const FieldSpec& field) {
   return addressing == Addressing::Register ? 1 : field.size;
+}
+
+// Every status bit one bit of its own, named once.
+constexpr bool status_bits_well_formed(std::span<const StatusBit> bits) {
+  std::uint8_t seen = 0;
+  for (std::size_t i = 0; i < bits.size(); ++i) {
+    const std::uint8_t mask = bits[i].mask;
+    if (mask == 0 || (mask & (mask - 1)) != 0 || (seen & mask) != 0 || bits[i].name.empty()) return false;
+    seen |= mask;
+    for (std::size_t j = i + 1; j < bits.size(); ++j) {
+      if (bits[j].name == bits[i].name) return false;
+    }
+  }
+  return true;
 }
 
 // The compile-time checks every table gets: fields sorted by address, no two

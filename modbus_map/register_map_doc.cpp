@@ -110,6 +110,24 @@ void safety_text(std::string& out, const TableSpec& spec) {
          enabling_writes_text(spec.id) + ".\n\n";
 }
 
+// The status byte's bits by name, as the console, the bus monitor and refusal reasons show them.
+void status_bits_text(std::string& out, const TableSpec& spec) {
+  out += "Status bits (";
+  if (spec.addressing == Addressing::Byte) out += "the ERROR byte of every answer";
+  if (const FieldSpec* field = field_by_name(spec, spec.status_field)) {
+    out += std::string(spec.addressing == Addressing::Byte ? ", and " : "the low byte of ") + "`" +
+           std::string(field->name) + "` (" + address_text(spec, field->addr) + ")";
+  }
+  out += "): ";
+  bool first = true;
+  for (const StatusBit& bit : spec.status_bits) {
+    out += (first ? "" : ", ") + std::string("bit ") + std::to_string(std::countr_zero(bit.mask)) + " `" +
+           std::string(bit.name) + "`" + (bit.fault ? "" : " (a state, no fault)");
+    first = false;
+  }
+  out += ".\n\n";
+}
+
 void native_table(std::string& out, const TableSpec& spec) {
   const BusRange poll = default_poll_block(spec.id);
   out += "### Table `" + std::string(spec.name) + "`: " + std::string(spec.title) + "\n\n";
@@ -136,6 +154,7 @@ void native_table(std::string& out, const TableSpec& spec) {
            std::string(bit_space_text(field.bit_space)) + " | " + std::string(field.notes) + " |\n";
   }
   out += "\n";
+  status_bits_text(out, spec);
 }
 
 std::string entry_access_text(const RegisterEntry& entry) {

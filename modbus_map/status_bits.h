@@ -1,8 +1,8 @@
 #pragma once
-// The bits of a servo's status byte, as data per table: the ERROR byte of an FF FF answer
-// (docs/PROTOCOL.md §1.1), D5 5D's (§1.2), and the low byte of smsmb's status register. One list
-// for every place that names them: the bus monitor's decoded answers, the console's servo page,
-// and the reason a refused motion write is given.
+// The bits of a servo's status byte, kept with each table's data (TableSpec::status_bits): the
+// ERROR byte of an FF FF answer (docs/PROTOCOL.md §1.1), D5 5D's (§1.2), and the low byte of
+// smsmb's status register. One list for every place that names them: the bus monitor's decoded
+// answers, the console's servo page, the register map, and the reason a refused motion write is given.
 #include <cstdint>
 #include <span>
 #include <string>
@@ -13,13 +13,9 @@
 
 namespace sms::modbus_map {
 
-struct StatusBit {
-  std::uint8_t mask;
-  std::string_view name;  // snake_case, as the protocol headers name the bit
-};
-
 std::span<const StatusBit> status_bits(TableId table);
-// The names of the bits set in `status`; bits the table does not name as "bits 0x..".
+// The names of the fault bits set in `status` (a state such as smsmb's torque on is none); bits
+// the table does not name as "bits 0x..".
 std::vector<std::string> status_faults(TableId table, std::uint8_t status);
 
 }  // namespace sms::modbus_map

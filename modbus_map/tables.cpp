@@ -27,6 +27,8 @@ constexpr TableSpec kSts{
     .default_byte_order = ByteOrder::LowFirst,
     .fields = tables::kStsFields,
     .has_sync_read = true,
+    .status_bits = tables::kStsStatusBits,
+    .status_field = "status",
 };
 constexpr TableSpec kSms1{
     .id = TableId::Sms1,
@@ -37,6 +39,8 @@ constexpr TableSpec kSms1{
     .default_byte_order = ByteOrder::LowFirst,
     .fields = tables::kSms1Fields,
     .has_sync_read = true,  // SYNC READ is STS/SMS (docs/PROTOCOL.md §1.1)
+    .status_bits = tables::kSms1StatusBits,
+    .status_field = "error",
 };
 constexpr TableSpec kD55d{
     .id = TableId::D55d,
@@ -47,6 +51,8 @@ constexpr TableSpec kD55d{
     .default_byte_order = ByteOrder::LowFirst,
     .fields = tables::kD55dFields,
     .has_sync_read = false,
+    .status_bits = tables::kD55dStatusBits,
+    .status_field = "",
 };
 constexpr TableSpec kSmsmb{
     .id = TableId::Smsmb,
@@ -57,6 +63,8 @@ constexpr TableSpec kSmsmb{
     .default_byte_order = ByteOrder::HighFirst,
     .fields = tables::kSmsmbFields,
     .has_sync_read = false,
+    .status_bits = tables::kSmsmbStatusBits,
+    .status_field = "status",
 };
 
 constexpr TableSpec kScs{
@@ -68,6 +76,8 @@ constexpr TableSpec kScs{
     .default_byte_order = ByteOrder::HighFirst,
     .fields = tables::kScsFields,
     .has_sync_read = false,  // SYNC READ is STS/SMS only (docs/PROTOCOL.md §1.1)
+    .status_bits = tables::kScsStatusBits,
+    .status_field = "status",
 };
 
 // In TableId order.

@@ -400,7 +400,7 @@ constexpr TableBehaviour kSmsmb{
     .checksum_bit = 0,
     .temperature_bit = 1 << 2,
     .overvoltage_bit = 1 << 0,
-    .error_mask = 0xEF,
+    .error_mask = 0x2F,  // bits 0-3 and 5 (the wiki names no bit 6 or 7); bit 4 is torque on
     .torque_on_status_bit = 1 << 4,
     .d55d_response_levels = false,
     .speed_zero_stops = false,

@@ -4,6 +4,7 @@
 #include <array>
 
 #include "modbus_map/tables/common.h"
+#include "protocol/d55d.h"
 
 namespace sms::modbus_map::tables {
 
@@ -255,6 +256,19 @@ inline constexpr std::array kD55dFields{
 };
 static_assert(fields_sorted_and_disjoint(kD55dFields, Addressing::Byte), "d55d: fields overlap or are out of order");
 static_assert(fields_well_formed(kD55dFields), "d55d: a field's range, default or name is inconsistent");
+
+// The ERROR byte of its answers (doc 002 §2.3, docs/PROTOCOL.md §1.2); unload_conditions (18)
+// has the same bits.
+inline constexpr std::array<StatusBit, 7> kD55dStatusBits{{
+    {protocol::d55d::error_bit::kOverTemperature, "over_temperature"},
+    {protocol::d55d::error_bit::kOverCurrent, "over_current"},
+    {protocol::d55d::error_bit::kOverVoltage, "over_voltage"},
+    {protocol::d55d::error_bit::kUnderVoltage, "under_voltage"},
+    {protocol::d55d::error_bit::kChecksum, "checksum"},
+    {protocol::d55d::error_bit::kInstruction, "instruction"},
+    {protocol::d55d::error_bit::kStall, "stall"},
+}};
+static_assert(status_bits_well_formed(kD55dStatusBits), "d55d: a status bit is not one bit, or named twice");
 
 #pragma GCC diagnostic pop
 

@@ -8,6 +8,7 @@
 #include <array>
 
 #include "modbus_map/tables/common.h"
+#include "protocol/feetech.h"
 
 namespace sms::modbus_map::tables {
 
@@ -280,6 +281,16 @@ inline constexpr std::array kScsFields{
 };
 static_assert(fields_sorted_and_disjoint(kScsFields, Addressing::Byte), "scs: fields overlap or are out of order");
 static_assert(fields_well_formed(kScsFields), "scs: a field's range, default or name is inconsistent");
+
+// The ERROR byte of its answers (the SCSCL SDK, address 65): no bit 4.
+inline constexpr std::array<StatusBit, 5> kScsStatusBits{{
+    {protocol::feetech::error_bit::kVoltage, "voltage"},
+    {protocol::feetech::error_bit::kAngleSensor, "angle_sensor"},
+    {protocol::feetech::error_bit::kTemperature, "temperature"},
+    {protocol::feetech::error_bit::kCurrent, "current"},
+    {protocol::feetech::error_bit::kOverload, "overload"},
+}};
+static_assert(status_bits_well_formed(kScsStatusBits), "scs: a status bit is not one bit, or named twice");
 
 #pragma GCC diagnostic pop
 

@@ -4,6 +4,7 @@
 #include <array>
 
 #include "modbus_map/tables/common.h"
+#include "protocol/feetech.h"
 
 namespace sms::modbus_map::tables {
 
@@ -340,6 +341,16 @@ inline constexpr std::array kSms1Fields{
 };
 static_assert(fields_sorted_and_disjoint(kSms1Fields, Addressing::Byte), "sms1: fields overlap or are out of order");
 static_assert(fields_well_formed(kSms1Fields), "sms1: a field's range, default or name is inconsistent");
+
+// The ERROR byte of its answers (doc 000, address 65): no bit 4.
+inline constexpr std::array<StatusBit, 5> kSms1StatusBits{{
+    {protocol::feetech::error_bit::kVoltage, "voltage"},
+    {protocol::feetech::error_bit::kAngleSensor, "angle_sensor"},
+    {protocol::feetech::error_bit::kTemperature, "temperature"},
+    {protocol::feetech::error_bit::kCurrent, "current"},
+    {protocol::feetech::error_bit::kOverload, "overload"},
+}};
+static_assert(status_bits_well_formed(kSms1StatusBits), "sms1: a status bit is not one bit, or named twice");
 
 #pragma GCC diagnostic pop
 

@@ -367,6 +367,18 @@ static_assert(fields_sorted_and_disjoint(kSmsmbFields, Addressing::Register),
               "smsmb: registers overlap or are out of order");
 static_assert(fields_well_formed(kSmsmbFields), "smsmb: a field's range, default or name is inconsistent");
 
+// The status register's low byte (0x100, Feetech wiki memory-smsmb; docs/PROTOCOL.md §2.3). Not
+// the layout of fault_reset (0x86), whose bits clear faults. Bit 4 is a state: torque on.
+inline constexpr std::array<StatusBit, 6> kSmsmbStatusBits{{
+    {1 << 0, "voltage"},
+    {1 << 1, "encoder"},
+    {1 << 2, "temperature"},
+    {1 << 3, "current"},
+    {1 << 4, "torque_on", false},
+    {1 << 5, "overload"},
+}};
+static_assert(status_bits_well_formed(kSmsmbStatusBits), "smsmb: a status bit is not one bit, or named twice");
+
 #pragma GCC diagnostic pop
 
 }  // namespace sms::modbus_map::tables

@@ -5,6 +5,7 @@
 #include <array>
 
 #include "modbus_map/tables/common.h"
+#include "protocol/feetech.h"
 
 namespace sms::modbus_map::tables {
 
@@ -384,7 +385,7 @@ inline constexpr std::array kStsFields{
               .area = Ram,
               .default_value = 0,
               .max = kReadByteMax,
-              .notes = "bit0 voltage, 1 angle sensor, 2 temperature, 3 current, 5 overload; 4 unused"},
+              .notes = "bit0 voltage, 1 angle sensor, 2 temperature, 3 current, 4 angle, 5 overload"},
     FieldSpec{.addr = 66,
               .name = "moving",
               .size = 1,
@@ -416,6 +417,17 @@ inline constexpr std::array kStsFields{
 };
 static_assert(fields_sorted_and_disjoint(kStsFields, Addressing::Byte), "sts: fields overlap or are out of order");
 static_assert(fields_well_formed(kStsFields), "sts: a field's range, default or name is inconsistent");
+
+// The ERROR byte of its answers (doc 001, address 65; docs/PROTOCOL.md §1.1).
+inline constexpr std::array<StatusBit, 6> kStsStatusBits{{
+    {protocol::feetech::error_bit::kVoltage, "voltage"},
+    {protocol::feetech::error_bit::kAngleSensor, "angle_sensor"},
+    {protocol::feetech::error_bit::kTemperature, "temperature"},
+    {protocol::feetech::error_bit::kCurrent, "current"},
+    {protocol::feetech::error_bit::kAngle, "angle"},
+    {protocol::feetech::error_bit::kOverload, "overload"},
+}};
+static_assert(status_bits_well_formed(kStsStatusBits), "sts: a status bit is not one bit, or named twice");
 
 #pragma GCC diagnostic pop
 

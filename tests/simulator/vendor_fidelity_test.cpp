@@ -9,7 +9,9 @@
 #include <numeric>
 #include <thread>
 
+#include "modbus_map/status_bits.h"
 #include "modbus_map/tables.h"
+#include "simulator/table_behaviour.h"
 #include "simulator/virtual_servo.h"
 #include "tests/simulator/sim_fixture.h"
 
@@ -223,6 +225,33 @@ TEST_F(VendorFidelity, Sms1TakesTheSmsclSevenByteWrite) {
   write(1, 41, {20, 0x00, 0x0C, 0x00, 0x00, 0x00, 0x00});  // ACC 20, goal 3072, time 0, speed 0
   EXPECT_EQ(read(1, 41, 1), Bytes{20});
   EXPECT_EQ(read(1, 42, 2), (Bytes{0x00, 0x0C}));
+}
+
+// --- status bits: the gateway's names (TableSpec::status_bits) for the bits the firmware reports --
+
+TEST(VendorStatusBits, EveryTableNamesEachBitItsServosReportAndCallsTorqueOnNoFault) {
+  for (const modbus_map::TableSpec* spec : modbus_map::all_tables()) {
+    std::uint8_t faults = 0;
+    std::uint8_t states = 0;
+    for (const modbus_map::StatusBit& bit : spec->status_bits) (bit.fault ? faults : states) |= bit.mask;
+    EXPECT_EQ(faults, behaviour(spec->id).error_mask) << spec->name << ": the fault bits its firmware reports";
+    EXPECT_EQ(states, behaviour(spec->id).torque_on_status_bit) << spec->name << ": the bits that are states";
+  }
+}
+
+TEST_F(VendorFidelity, SmsmbWithTorqueOnShowsBitFourAndNoFault) {
+  start({smsmb(1)});
+  ASSERT_TRUE(rig->bus->write_memory(1, 0x81, Bytes{0x00, 0x01}));  // torque on
+  const auto status = rig->bus->read_field(1, "status");
+  ASSERT_TRUE(status);
+  EXPECT_EQ(*status, 0x10);
+  EXPECT_TRUE(modbus_map::status_faults(modbus_map::TableId::Smsmb, static_cast<std::uint8_t>(*status)).empty());
+  rig->bus->set_error_bits(1, 0x01);  // over-voltage
+  const auto faulty = rig->bus->read_field(1, "status");
+  ASSERT_TRUE(faulty);
+  EXPECT_EQ(*faulty, 0x11);
+  EXPECT_EQ(modbus_map::status_faults(modbus_map::TableId::Smsmb, static_cast<std::uint8_t>(*faulty)),
+            std::vector<std::string>{"voltage"});
 }
 
 }  // namespace
