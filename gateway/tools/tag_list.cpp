@@ -2,8 +2,6 @@
 
 #include <algorithm>
 #include <charconv>
-#include <cmath>
-#include <cstdio>
 #include <stdexcept>
 #include <utility>
 
@@ -71,12 +69,12 @@ std::string mbpoll_arguments(const Tag& tag) {
   return "-a " + std::to_string(tag.unit) + " -t " + type + " -r " + std::to_string(address_1based(tag));
 }
 
-namespace {
-
 std::string servo_label(const config::ServoConfig& servo, const std::string& bus) {
   if (!servo.name.empty()) return servo.name;
   return "bus " + bus + " id " + std::to_string(servo.servo_id);
 }
+
+namespace {
 
 std::string joined_notes(std::string_view first, std::string_view second) {
   std::string text(first);
@@ -242,7 +240,29 @@ void gateway_unit_tags(const config::Config& config, const UnitCatalog& catalog,
                        .symbol = {},
                        .notes = {}});
   }
-  for (const config::SyncGroupConfig& group : config.sync_groups) {
+  for (std::size_t g = 0; g < config.sync_groups.size(); ++g) {
+    const config::SyncGroupConfig& group = config.sync_groups[g];
+    const std::string prefix = "sync." + group.name + ".";
+    if (group.move_time) {
+      add(prefix + "move_time", TagSpace::Holding,
+          static_cast<std::uint16_t>(group.holding_register_start + group.members.size()), 1, true, "ms",
+          "the timed move's time, written with the goals in one FC16 (0: each axis at its own speed)");
+    }
+    // The group's timed moves (docs/PLC_GUIDE.md "Timed group moves"): 2000 + 10·g.
+    using Reg = layout::GroupRegister;
+    const auto status = [&](std::string name, Reg reg, std::string unit_symbol, std::string notes) {
+      in(prefix + name,
+         static_cast<std::uint16_t>(layout::kFirstGroupBlock + layout::kGroupBlockSize * g +
+                                    static_cast<std::uint16_t>(reg)),
+         1, std::move(unit_symbol), std::move(notes));
+    };
+    status("moving", Reg::Moving, "", "1 while a timed move runs");
+    status("time_left", Reg::TimeLeft, "ms", "");
+    status("distance_to_go", Reg::DistanceToGo, "", "the largest of the members', position units");
+    status("last_move", Reg::LastMove, "", "0 none, 1 as asked, 2 stretched, 3 refused");
+    status("limiting_unit", Reg::LimitingUnit, "", "the unit that limits it");
+    status("shortest_time", Reg::ShortestTime, "ms", "that unit's shortest time");
+    status("move_time_used", Reg::MoveTime, "ms", "");
     for (std::size_t i = 0; i < group.members.size(); ++i) {
       const CatalogUnit* member = catalog.servo(group.members[i]);
       if (member == nullptr) continue;  // the loader refuses such groups
@@ -252,7 +272,7 @@ void gateway_unit_tags(const config::Config& config, const UnitCatalog& catalog,
       const modbus_map::FieldUnit field_unit = modbus_map::field_unit(*field);
       tags.push_back(Tag{.unit = unit,
                          .servo = "gateway",
-                         .name = "sync." + group.name + ".unit" + std::to_string(group.members[i]),
+                         .name = prefix + "unit" + std::to_string(group.members[i]),
                          .space = TagSpace::Holding,
                          .address = static_cast<std::uint16_t>(group.holding_register_start + i),
                          .is_signed = field->encoding.kind != modbus_map::EncodingKind::Unsigned,
@@ -284,13 +304,13 @@ std::vector<Tag> tag_list(const config::Config& config, const UnitCatalog& catal
   return tags;
 }
 
-namespace {
-
 std::string number_text(double value) {
   char buffer[32];
   const auto [end, error] = std::to_chars(buffer, buffer + sizeof buffer, value);
   return error == std::errc{} ? std::string(buffer, end) : std::string("1");
 }
+
+namespace {
 
 // RFC 4180: fields with a comma, quote or line break are quoted, quotes doubled.
 std::string csv_field(std::string_view text) {
@@ -333,319 +353,6 @@ std::string tags_csv(const std::vector<Tag>& tags) {
     out += "\r\n";
   }
   return out;
-}
-
-// --- Node-RED ------------------------------------------------------------------------------------
-
-namespace {
-
-// Node-RED ids: 16 hex digits, numbered in the order the nodes are made (stable output).
-class NodeIds {
- public:
-  std::string next() {
-    char text[17];
-    std::snprintf(text, sizeof text, "5a5e%012llx", static_cast<unsigned long long>(++count_));
-    return text;
-  }
-
- private:
-  std::uint64_t count_ = 0;
-};
-
-json debug_node(const std::string& id, const std::string& tab, int x, int y) {
-  return {{"id", id},
-          {"type", "debug"},
-          {"z", tab},
-          {"name", "sms-gateway answers"},
-          {"active", true},
-          {"tosidebar", true},
-          {"console", false},
-          {"tostatus", false},
-          {"complete", "true"},
-          {"targetType", "full"},
-          {"statusVal", ""},
-          {"statusType", "auto"},
-          {"x", x},
-          {"y", y},
-          {"wires", json::array()}};
-}
-
-// modbus-write (FC05 "Coil", FC06 "HoldingRegister"), every property of its editor's defaults.
-json modbus_write_node(const std::string& id, const std::string& tab, const std::string& name, std::uint8_t unit,
-                       const char* data_type, std::uint16_t address, const std::string& server,
-                       const std::string& debug, int x, int y) {
-  return {{"id", id},
-          {"type", "modbus-write"},
-          {"z", tab},
-          {"name", name},
-          {"showStatusActivities", true},
-          {"showErrors", true},
-          {"showWarnings", true},
-          {"unitid", std::to_string(unit)},
-          {"dataType", data_type},
-          {"adr", std::to_string(address)},
-          {"quantity", "1"},
-          {"server", server},
-          {"emptyMsgOnFail", false},
-          {"keepMsgProperties", false},
-          {"delayOnStart", false},
-          {"startDelayTime", ""},
-          {"x", x},
-          {"y", y},
-          {"wires", json::array({json::array({debug}), json::array()})}};
-}
-
-}  // namespace
-
-json node_red_flow(const config::Config& config, const UnitCatalog& catalog, const FlowTarget& target) {
-  NodeIds ids;
-  const std::string tab = ids.next();
-  const std::string client = ids.next();
-  const std::string debug = ids.next();
-  json flow = json::array();
-  flow.push_back({{"id", tab},
-                  {"type", "tab"},
-                  {"label", "sms-gateway"},
-                  {"disabled", false},
-                  {"info",
-                   "Generated by sms-gateway tags --format node-red. Addresses count from 0, as on the wire "
-                   "(docs/HMI.md)."}});
-  flow.push_back({{"id", client},
-                  {"type", "modbus-client"},
-                  {"name", "sms-gateway"},
-                  {"clienttype", "tcp"},
-                  {"bufferCommands", true},
-                  {"stateLogEnabled", false},
-                  {"queueLogEnabled", false},
-                  {"failureLogEnabled", true},
-                  {"tcpHost", target.host},
-                  {"tcpPort", std::to_string(target.port)},
-                  {"tcpType", "DEFAULT"},
-                  {"serialPort", "/dev/ttyUSB"},
-                  {"serialType", "RTU-BUFFERD"},
-                  {"serialBaudrate", "9600"},
-                  {"serialDatabits", "8"},
-                  {"serialStopbits", "1"},
-                  {"serialParity", "none"},
-                  {"serialConnectionDelay", "100"},
-                  {"serialAsciiResponseStartDelimiter", "0x3A"},
-                  {"unit_id", 1},
-                  {"commandDelay", 1},
-                  {"clientTimeout", 1000},
-                  {"reconnectOnTimeout", true},
-                  {"reconnectTimeout", 2000},
-                  {"parallelUnitIdsAllowed", true},
-                  {"showErrors", true},
-                  {"showWarnings", true},
-                  {"showLogs", true}});
-  int y = 40;
-  for (unsigned id = 0; id < 256; ++id) {
-    const CatalogUnit* unit = catalog.servo(static_cast<std::uint8_t>(id));
-    if (unit == nullptr) continue;
-    const config::ServoConfig& servo = *unit->servo;
-    const config::BusConfig& bus = config.buses.at(servo.bus_index);
-    const std::string label = "unit " + std::to_string(id) + " (" + servo_label(servo, bus.name) + ")";
-    const auto block = poll_block_of(bus, servo);
-    if (!block) throw std::runtime_error(block.error());
-    // Native units serve their poll block as input registers, smsmb-profile units 0x100-0x107.
-    const BusRange window =
-        unit->map.profile() == modbus_map::Profile::Native ? *block : modbus_map::kSmsmbFeedbackRegisters;
-    flow.push_back({{"id", ids.next()},
-                    {"type", "modbus-read"},
-                    {"z", tab},
-                    {"name", label + " feedback"},
-                    {"topic", "unit" + std::to_string(id) + "/feedback"},
-                    {"showStatusActivities", true},
-                    {"logIOActivities", false},
-                    {"showErrors", true},  // else an exception answer never shows
-                    {"showWarnings", true},
-                    {"unitid", std::to_string(id)},
-                    {"dataType", "InputRegister"},
-                    {"adr", std::to_string(window.address)},
-                    {"quantity", std::to_string(window.count)},
-                    {"rate", "500"},
-                    {"rateUnit", "ms"},
-                    {"delayOnStart", false},
-                    {"enableDeformedMessages", false},
-                    {"startDelayTime", ""},
-                    {"server", client},
-                    {"useIOFile", false},
-                    {"ioFile", ""},
-                    {"useIOForPayload", false},
-                    {"emptyMsgOnFail", false},
-                    {"x", 200},
-                    {"y", y},
-                    {"wires", json::array({json::array({debug}), json::array()})}});
-    const modbus_map::TableSpec& shown = unit->map.shown_table();
-    const auto& goal = modbus_map::motion_spec(shown.id).goal_position;
-    const modbus_map::FieldSpec* goal_field = modbus_map::field_by_name(shown, goal);
-    const RegisterEntry* entry = goal_field != nullptr ? unit->map.entry_at(goal_field->addr) : nullptr;
-    if (entry != nullptr && entry->writable && !servo.read_only) {
-      // Its input is left open: wire a dashboard slider or an inject sending msg.payload.
-      flow.push_back(modbus_write_node(ids.next(), tab, label + " " + std::string(goal), servo.unit_id,
-                                       "HoldingRegister", entry->address, client, debug, 560, y));
-    }
-    y += 60;
-  }
-  for (const config::BusConfig& bus : config.buses) {
-    if (!bus.watchdog) continue;
-    const std::string inject = ids.next();
-    const std::string write = ids.next();
-    flow.push_back({{"id", inject},
-                    {"type", "inject"},
-                    {"z", tab},
-                    {"name", "re-arm watchdogs (bus " + bus.name + ")"},
-                    {"props", json::array({{{"p", "payload"}}})},
-                    {"repeat", ""},
-                    {"crontab", ""},
-                    {"once", false},
-                    {"onceDelay", 0.1},
-                    {"topic", ""},
-                    {"payload", "false"},
-                    {"payloadType", "bool"},
-                    {"x", 200},
-                    {"y", y},
-                    {"wires", json::array({json::array({write})})}});
-    flow.push_back(modbus_write_node(write, tab, "coil 2 := 0 (re-arm every tripped watchdog)",
-                                     catalog.gateway_unit_id(), "Coil", gateway_unit_layout::kWatchdogCoil, client,
-                                     debug, 560, y));
-    y += 60;
-  }
-  flow.push_back(debug_node(debug, tab, 900, 40));
-  return flow;
-}
-
-// --- FUXA ----------------------------------------------------------------------------------------
-
-namespace {
-
-// FUXA's Modbus memory areas (server/runtime/devices/modbus: ModbusMemoryAddress).
-std::string_view fuxa_memaddress(TagSpace space) {
-  switch (space) {
-    case TagSpace::Coil: return "000000";
-    case TagSpace::Discrete: return "100000";
-    case TagSpace::Input: return "300000";
-    case TagSpace::Holding: return "400000";
-  }
-  return "";
-}
-
-// FUXA's ModbusTagType names.
-std::string_view fuxa_type(const Tag& tag) {
-  if (tag.space == TagSpace::Coil || tag.space == TagSpace::Discrete) return "Bool";
-  if (tag.words == 2) return tag.is_signed ? "Int32" : "UInt32";
-  return tag.is_signed ? "Int16" : "UInt16";
-}
-
-// FUXA shows raw / divisor and writes value × divisor.
-double fuxa_divisor(double scale) {
-  if (scale == 1.0) return 1.0;
-  const double divisor = 1.0 / scale;
-  const double magnitude = std::pow(10.0, 5 - std::floor(std::log10(divisor)));
-  return std::round(divisor * magnitude) / magnitude;  // 6 significant digits
-}
-
-// FUXA's tokenized polling reads each run of adjacent tags with one request, but fills in only
-// the tags of the 100-address block the run starts in (TOKEN_LIMIT in its modbus driver): a tag
-// at a multiple of 100 that continues a run goes to another device of the same unit, where it
-// starts a run of its own. Returns each tag's part (0: the unit's first device).
-std::vector<std::size_t> fuxa_parts(const std::vector<const Tag*>& unit_tags) {
-  std::vector<std::size_t> order(unit_tags.size());
-  for (std::size_t i = 0; i < order.size(); ++i) order[i] = i;
-  const auto key = [&](std::size_t i) { return std::pair{unit_tags[i]->space, unit_tags[i]->address}; };
-  std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return key(a) < key(b); });
-  struct Run {
-    TagSpace space = TagSpace::Holding;
-    std::uint32_t block = 0;  // the 100-address block it started in
-    std::uint32_t end = 0;
-    bool open = false;
-  };
-  std::vector<Run> runs;  // the current run of each part
-  std::vector<std::size_t> parts(unit_tags.size(), 0);
-  for (const std::size_t i : order) {
-    const Tag& tag = *unit_tags[i];
-    std::size_t part = 0;
-    for (;; ++part) {
-      if (part == runs.size()) runs.emplace_back();
-      const Run& run = runs[part];
-      const bool continues = run.open && run.space == tag.space && tag.address <= run.end;
-      if (!continues || tag.address / 100U == run.block) break;
-    }
-    Run& run = runs[part];
-    if (run.open && run.space == tag.space && tag.address <= run.end) {
-      run.end = std::max(run.end, std::uint32_t{tag.address} + tag.words);
-    } else {
-      run = Run{tag.space, tag.address / 100U, std::uint32_t{tag.address} + tag.words, true};
-    }
-    parts[i] = part;
-  }
-  return parts;
-}
-
-json fuxa_device(const Tag& first, std::size_t part, const FlowTarget& target) {
-  const std::string unit = std::to_string(first.unit);
-  const std::string suffix = part == 0 ? std::string() : "_p" + std::to_string(part + 1);
-  return {{"id", "d_sms_unit" + unit + suffix},
-          {"name", "unit " + unit + " " + first.servo + (part == 0 ? "" : " (" + std::to_string(part + 1) + ")")},
-          {"enabled", true},
-          {"type", "ModbusTCP"},
-          {"polling", 1000},
-          {"property",
-           {{"address", target.host},
-            {"port", std::to_string(target.port)},
-            {"slaveid", unit},
-            {"connectionOption", "TcpPort"},
-            {"delay", 10},
-            // FUXA's "Tokenized" switch: one read per run of adjacent tags. Without it FUXA reads
-            // from the lowest to the highest tag of every 100 addresses, across addresses the
-            // unit answers 0x02 for (an smsmb register the servo lacks, the gaps between sync
-            // groups).
-            {"options", true}}},
-          {"tags", json::object()}};
-}
-
-json fuxa_tag(const Tag& tag) {
-  const std::string id =
-      "t_u" + std::to_string(tag.unit) + "_" + std::string(to_string(tag.space)) + "_" + std::to_string(tag.address);
-  const std::string name =
-      tag.space == TagSpace::Holding ? tag.name : tag.name + " (" + std::string(to_string(tag.space)) + ")";
-  std::string description = tag.symbol.empty() ? std::string() : "in " + tag.symbol;
-  if (!tag.notes.empty()) description += (description.empty() ? "" : "; ") + tag.notes;
-  return {{"id", id},
-          {"name", name},
-          {"label", name},
-          {"type", fuxa_type(tag)},
-          {"memaddress", fuxa_memaddress(tag.space)},
-          {"address", std::to_string(address_1based(tag))},
-          {"divisor", fuxa_divisor(tag.scale)},
-          {"access", access_text(tag)},
-          {"description", description},
-          {"daq", {{"enabled", false}, {"changed", false}, {"interval", 60}, {"restored", false}}}};
-}
-
-}  // namespace
-
-json fuxa_devices(const std::vector<Tag>& tags, const FlowTarget& target) {
-  json devices = json::array();
-  for (std::size_t begin = 0; begin < tags.size();) {
-    std::size_t end = begin;
-    std::vector<const Tag*> unit_tags;
-    while (end < tags.size() && tags[end].unit == tags[begin].unit) unit_tags.push_back(&tags[end++]);
-    const std::vector<std::size_t> parts = fuxa_parts(unit_tags);
-    const std::size_t count = *std::max_element(parts.begin(), parts.end()) + 1;
-    for (std::size_t part = 0; part < count; ++part) {
-      json device = fuxa_device(tags[begin], part, target);
-      for (std::size_t i = 0; i < unit_tags.size(); ++i) {
-        if (parts[i] != part) continue;
-        json tag = fuxa_tag(*unit_tags[i]);
-        const std::string id = tag["id"];
-        device["tags"][id] = std::move(tag);
-      }
-      devices.push_back(std::move(device));
-    }
-    begin = end;
-  }
-  return devices;
 }
 
 }  // namespace sms::gateway

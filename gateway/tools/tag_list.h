@@ -45,6 +45,9 @@ std::string data_type(const Tag& tag);         // "bool", "uint16", "int16", "ui
 std::string access_text(const Tag& tag);       // "R", "W", "RW"
 std::string mbpoll_arguments(const Tag& tag);  // "-a 1 -t 4 -r 43" (mbpoll counts from 1)
 std::uint32_t address_1based(const Tag& tag);  // address + 1, as FUXA and mbpoll count
+std::string number_text(double value);         // shortest round-trip text: "0.1", "2048"
+// A servo's name in the lists: its configured name, else "bus B id N".
+std::string servo_label(const config::ServoConfig& servo, const std::string& bus);
 
 // The tags of one servo unit: every field its map shows in each space that serves it (holding
 // registers, the input registers of `poll_block`, coils, discrete inputs), then the facts the
@@ -66,8 +69,10 @@ struct FlowTarget {
 };
 
 // A Node-RED flow (an array of nodes) for node-red-contrib-modbus: one tab, one modbus-client,
-// per servo unit a modbus-read of its input registers (its poll block) and a modbus-write of its
-// goal position, per bus with a watchdog an inject + modbus-write that re-arms the watchdogs,
+// per servo unit a modbus-read of its input registers (its poll block) into a function node that
+// names and scales them, and a modbus-write of each field it needs written to move (torque, speed,
+// goal); per bus fed by its heartbeat register an inject + counter + modbus-write that feeds it;
+// per bus with a watchdog an inject + modbus-write that re-arms the watchdogs,
 // and a debug node everything answers to.
 nlohmann::json node_red_flow(const config::Config& config, const UnitCatalog& catalog, const FlowTarget& target);
 

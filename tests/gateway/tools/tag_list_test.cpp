@@ -14,6 +14,7 @@
 #include "config/load.h"
 #include "gateway/units/unit_router.h"
 #include "modbus_map/field_unit.h"
+#include "modbus_map/motion.h"
 #include "modbus_map/tables.h"
 
 namespace sms::gateway {
@@ -42,7 +43,7 @@ servos:
   - {unit: 11, bus: base, id: 1, table: d55d}
   - {unit: 21, bus: rtu, id: 1, table: smsmb}
 sync_groups:
-  - {name: arm_goals, field: goal_position, members: [1, 3], holding_register_start: 0}
+  - {name: arm_goals, field: goal_position, members: [1, 3], holding_register_start: 0, move_time: true}
   - {name: base_speeds, field: run_speed, members: [11], holding_register_start: 10}
 )";
 
@@ -230,6 +231,18 @@ TEST_F(TagListTest, GatewayUnitListsSafetyHeartbeatsAndSyncGroups) {
   ASSERT_TRUE(gateway.contains("holding sync.base_speeds.unit11"));
   EXPECT_EQ(gateway["holding sync.base_speeds.unit11"]->address, 10);
   EXPECT_EQ(gateway.count("discrete estop_latched"), 1U);
+  // The timed move's time after the goals, and each group's status block at 2000 + 10·g.
+  ASSERT_TRUE(gateway.contains("holding sync.arm_goals.move_time"));
+  EXPECT_EQ(gateway["holding sync.arm_goals.move_time"]->address, 2);
+  EXPECT_TRUE(gateway["holding sync.arm_goals.move_time"]->writable);
+  EXPECT_EQ(gateway["holding sync.arm_goals.move_time"]->symbol, "ms");
+  EXPECT_FALSE(gateway.contains("holding sync.base_speeds.move_time"));
+  ASSERT_TRUE(gateway.contains("input sync.arm_goals.moving"));
+  EXPECT_EQ(gateway["input sync.arm_goals.moving"]->address, 2000);
+  ASSERT_TRUE(gateway.contains("input sync.base_speeds.last_move"));
+  EXPECT_EQ(gateway["input sync.base_speeds.last_move"]->address, 2013);
+  ASSERT_TRUE(gateway.contains("input sync.base_speeds.move_time_used"));
+  EXPECT_EQ(gateway["input sync.base_speeds.move_time_used"]->address, 2016);
 }
 
 TEST_F(TagListTest, CsvQuotesPerRfc4180) {
@@ -240,8 +253,19 @@ TEST_F(TagListTest, CsvQuotesPerRfc4180) {
   EXPECT_TRUE(view_parsed);
 }
 
+const json& node_of(const json& flow, const json& id) {
+  for (const json& node : flow) {
+    if (node["id"] == id) return node;
+  }
+  static const json none = json::object({{"type", "none"}, {"wires", json::array({json::array({""})})}});
+  ADD_FAILURE() << "no node " << id;
+  return none;
+}
+
 TEST_F(TagListTest, NodeRedFlowIsWiredAndShowsErrors) {
   const json flow = json::parse(node_red_flow(config_, catalog_, FlowTarget{"10.0.0.5", 1502}).dump());
+  int heartbeats = 0;
+  std::map<int, int> servo_writes;
   ASSERT_TRUE(flow.is_array());
   std::set<std::string> ids;
   std::string tab;
@@ -315,15 +339,27 @@ TEST_F(TagListTest, NodeRedFlowIsWiredAndShowsErrors) {
       }
       ASSERT_EQ(node["wires"].size(), 1U);
       ASSERT_EQ(node["wires"][0].size(), 1U);
-      // It re-arms: false into a write of coil 2 of the gateway unit.
-      EXPECT_EQ(node["payload"], "false");
-      EXPECT_EQ(node["payloadType"], "bool");
-      for (const json& write : flow) {
-        if (write["id"] != node["wires"][0][0]) continue;
+      const json& next = node_of(flow, node["wires"][0][0]);
+      if (node["name"].get<std::string>().starts_with("heartbeat")) {
+        // The heartbeat of bus arm (fed by its heartbeat register): a changed value into holding
+        // 1000 of the gateway unit, three times a timeout (500 ms).
+        EXPECT_EQ(node["repeat"], "0.16666666666666666") << node.dump();
+        EXPECT_EQ(node["once"], true);
+        EXPECT_EQ(next["type"], "function");
+        const json& write = node_of(flow, next["wires"][0][0]);
         EXPECT_EQ(write["type"], "modbus-write");
         EXPECT_EQ(write["unitid"], "255");
-        EXPECT_EQ(write["dataType"], "Coil");
-        EXPECT_EQ(write["adr"], "2");
+        EXPECT_EQ(write["dataType"], "HoldingRegister");
+        EXPECT_EQ(write["adr"], "1000");
+        ++heartbeats;
+      } else {
+        // It re-arms: false into a write of coil 2 of the gateway unit.
+        EXPECT_EQ(node["payload"], "false");
+        EXPECT_EQ(node["payloadType"], "bool");
+        EXPECT_EQ(next["type"], "modbus-write");
+        EXPECT_EQ(next["unitid"], "255");
+        EXPECT_EQ(next["dataType"], "Coil");
+        EXPECT_EQ(next["adr"], "2");
       }
     }
     if (type == "modbus-read") {
@@ -341,6 +377,13 @@ TEST_F(TagListTest, NodeRedFlowIsWiredAndShowsErrors) {
         EXPECT_TRUE(node.contains(key)) << key;
       }
     }
+    if (type == "modbus-read") {
+      // Into a function node that names and scales the registers, then the debug node.
+      const json& scaling = node_of(flow, node["wires"][0][0]);
+      EXPECT_EQ(scaling["type"], "function");
+      EXPECT_NE(scaling["func"].get<std::string>().find("\"name\":\"present_position\""), std::string::npos)
+          << scaling["func"];
+    }
     if (type == "modbus-write" && node["unitid"] != "255") {
       const int unit = std::stoi(node["unitid"].get<std::string>());
       const CatalogUnit* servo = catalog_.servo(static_cast<std::uint8_t>(unit));
@@ -348,14 +391,23 @@ TEST_F(TagListTest, NodeRedFlowIsWiredAndShowsErrors) {
       const RegisterEntry* entry =
           servo->map.entry_at(static_cast<std::uint16_t>(std::stoi(node["adr"].get<std::string>())));
       ASSERT_NE(entry, nullptr);
-      EXPECT_EQ(entry->shown->name, "goal_position");
+      // What the servo needs written to move: its torque, speed and goal fields (modbus_map/motion.h).
+      const auto& motion = modbus_map::motion_spec(servo->map.shown_table().id);
+      EXPECT_TRUE(entry->shown->name == motion.goal_position || entry->shown->name == motion.goal_speed ||
+                  entry->shown->name == motion.torque)
+          << entry->shown->name;
       EXPECT_TRUE(entry->writable);
+      ++servo_writes[unit];
     }
   }
   EXPECT_EQ(counts["modbus-client"], 1);
-  EXPECT_EQ(counts["modbus-read"], 8);       // every servo unit
-  EXPECT_EQ(counts["inject"], 2);            // arm and rtu have watchdogs
-  EXPECT_EQ(counts["modbus-write"], 7 + 2);  // goal positions of the writable units, two re-arms
+  EXPECT_EQ(counts["modbus-read"], 8);  // every servo unit
+  EXPECT_EQ(counts["inject"], 3);       // arm and rtu have watchdogs; arm's is fed by its heartbeat register
+  EXPECT_EQ(heartbeats, 1);
+  EXPECT_EQ(counts["function"], 8 + 1);  // one scaling per read, the heartbeat's counter
+  EXPECT_EQ(servo_writes.size(), 7U);    // the writable units
+  // d55d (unit 11) is given its run speed too: it runs at 0 after power-on.
+  EXPECT_EQ(servo_writes[11], 2);
 }
 
 TEST_F(TagListTest, FuxaTagsAgreeWithTheCsv) {
@@ -375,8 +427,10 @@ TEST_F(TagListTest, FuxaTagsAgreeWithTheCsv) {
   for (const json& device : devices) {
     EXPECT_EQ(device["type"], "ModbusTCP");
     EXPECT_TRUE(device_ids.insert(device["id"].get<std::string>()).second);
-    EXPECT_EQ(device["property"]["address"], "127.0.0.1");
+    // FUXA's driver reads the port from the address only (modbus/index.js `_connect`).
+    EXPECT_EQ(device["property"]["address"], "127.0.0.1:502");
     EXPECT_EQ(device["property"]["port"], "502");
+    EXPECT_EQ(device["id"].get<std::string>().rfind("d_sms_127_0_0_1_502_unit", 0), 0u) << device["id"];
     const std::string unit = device["property"]["slaveid"];
     for (const auto& [id, tag] : device["tags"].items()) {
       ++tag_count;
@@ -387,7 +441,17 @@ TEST_F(TagListTest, FuxaTagsAgreeWithTheCsv) {
       EXPECT_GT(tag["divisor"].get<double>(), 0.0);
     }
   }
-  EXPECT_EQ(tag_count, rows_.size());
+  // Every tag but the read-only holding registers the poll cache serves as input registers too:
+  // FUXA polls those from the cache only.
+  std::size_t polled_twice = 0;
+  for (const Tag& tag : tags_) {
+    if (tag.space != TagSpace::Holding || tag.writable) continue;
+    polled_twice += std::any_of(tags_.begin(), tags_.end(), [&](const Tag& other) {
+      return other.unit == tag.unit && other.space == TagSpace::Input && other.address == tag.address;
+    });
+  }
+  EXPECT_GT(polled_twice, 0U);
+  EXPECT_EQ(tag_count, rows_.size() - polled_twice);
 }
 
 // FUXA with the device's "options" set polls each run of adjacent tags with one request

@@ -1,0 +1,287 @@
+// The Node-RED export of a tag list (docs/HMI.md "Node-RED"): a flow for node-red-contrib-modbus.
+#include <algorithm>
+#include <cstdio>
+#include <string>
+#include <vector>
+
+#include "gateway/tools/tag_list.h"
+#include "gateway/units/gateway_unit.h"
+#include "gateway/units/unit_router.h"
+#include "modbus_map/field_unit.h"
+#include "modbus_map/motion.h"
+#include "modbus_map/tables.h"
+
+namespace sms::gateway {
+
+using modbus_map::BusRange;
+using modbus_map::RegisterEntry;
+using nlohmann::json;
+
+// --- Node-RED ------------------------------------------------------------------------------------
+
+namespace {
+
+// Node-RED ids: 16 hex digits, numbered in the order the nodes are made (stable output).
+class NodeIds {
+ public:
+  std::string next() {
+    char text[17];
+    std::snprintf(text, sizeof text, "5a5e%012llx", static_cast<unsigned long long>(++count_));
+    return text;
+  }
+
+ private:
+  std::uint64_t count_ = 0;
+};
+
+json debug_node(const std::string& id, const std::string& tab, int x, int y) {
+  return {{"id", id},
+          {"type", "debug"},
+          {"z", tab},
+          {"name", "sms-gateway answers"},
+          {"active", true},
+          {"tosidebar", true},
+          {"console", false},
+          {"tostatus", false},
+          {"complete", "true"},
+          {"targetType", "full"},
+          {"statusVal", ""},
+          {"statusType", "auto"},
+          {"x", x},
+          {"y", y},
+          {"wires", json::array()}};
+}
+
+// modbus-write (FC05 "Coil", FC06 "HoldingRegister"), every property of its editor's defaults.
+json modbus_write_node(const std::string& id, const std::string& tab, const std::string& name, std::uint8_t unit,
+                       const char* data_type, std::uint16_t address, const std::string& server,
+                       const std::string& debug, int x, int y) {
+  return {{"id", id},
+          {"type", "modbus-write"},
+          {"z", tab},
+          {"name", name},
+          {"showStatusActivities", true},
+          {"showErrors", true},
+          {"showWarnings", true},
+          {"unitid", std::to_string(unit)},
+          {"dataType", data_type},
+          {"adr", std::to_string(address)},
+          {"quantity", "1"},
+          {"server", server},
+          {"emptyMsgOnFail", false},
+          {"keepMsgProperties", false},
+          {"delayOnStart", false},
+          {"startDelayTime", ""},
+          {"x", x},
+          {"y", y},
+          {"wires", json::array({json::array({debug}), json::array()})}};
+}
+
+// The field's register where the unit can write it; nullptr where the table has no such field.
+const RegisterEntry* writable_entry(const CatalogUnit& unit, std::string_view field_name) {
+  if (field_name.empty()) return nullptr;
+  const modbus_map::FieldSpec* field = modbus_map::field_by_name(unit.map.shown_table(), field_name);
+  const RegisterEntry* entry = field != nullptr ? unit.map.entry_at(field->addr) : nullptr;
+  return entry != nullptr && entry->writable ? entry : nullptr;
+}
+
+// A function node that turns a feedback read's raw registers into named values in their
+// engineering unit ({"present_position": 2048, "present_voltage": 12.1, ...}; the unit in
+// msg.units), as docs/REGISTER_MAP.md names and scales them.
+json scaling_node(const std::string& id, const std::string& tab, const std::string& label,
+                  const std::vector<Tag>& unit_tags, BusRange window, int x, int y, const std::string& debug) {
+  json fields = json::array();
+  for (const Tag& tag : unit_tags) {
+    if (tag.space != TagSpace::Input || tag.address < window.address || tag.address >= window.end()) continue;
+    fields.push_back({{"name", tag.name},
+                      {"at", tag.address - window.address},
+                      {"signed", tag.is_signed},
+                      {"scale", tag.scale},
+                      {"unit", tag.symbol}});
+  }
+  const std::string func =
+      "const fields = " + fields.dump() +
+      ";\nconst raw = msg.payload;\nmsg.payload = {};\nmsg.units = {};\n"
+      "for (const f of fields) {\n"
+      "  let v = raw[f.at];\n  if (f.signed && v > 32767) v -= 65536;\n"
+      "  msg.payload[f.name] = Math.round(v * f.scale * 1000) / 1000;\n  msg.units[f.name] = f.unit;\n}\n"
+      "return msg;";
+  return {{"id", id},
+          {"type", "function"},
+          {"z", tab},
+          {"name", label + " in units"},
+          {"func", func},
+          {"outputs", 1},
+          {"x", x},
+          {"y", y},
+          {"wires", json::array({json::array({debug})})}};
+}
+
+}  // namespace
+
+json node_red_flow(const config::Config& config, const UnitCatalog& catalog, const FlowTarget& target) {
+  NodeIds ids;
+  const std::string tab = ids.next();
+  const std::string client = ids.next();
+  const std::string debug = ids.next();
+  json flow = json::array();
+  flow.push_back({{"id", tab},
+                  {"type", "tab"},
+                  {"label", "sms-gateway"},
+                  {"disabled", false},
+                  {"info",
+                   "Generated by sms-gateway tags --format node-red. Addresses count from 0, as on the wire "
+                   "(docs/HMI.md)."}});
+  flow.push_back({{"id", client},
+                  {"type", "modbus-client"},
+                  {"name", "sms-gateway"},
+                  {"clienttype", "tcp"},
+                  {"bufferCommands", true},
+                  {"stateLogEnabled", false},
+                  {"queueLogEnabled", false},
+                  {"failureLogEnabled", true},
+                  {"tcpHost", target.host},
+                  {"tcpPort", std::to_string(target.port)},
+                  {"tcpType", "DEFAULT"},
+                  {"serialPort", "/dev/ttyUSB"},
+                  {"serialType", "RTU-BUFFERD"},
+                  {"serialBaudrate", "9600"},
+                  {"serialDatabits", "8"},
+                  {"serialStopbits", "1"},
+                  {"serialParity", "none"},
+                  {"serialConnectionDelay", "100"},
+                  {"serialAsciiResponseStartDelimiter", "0x3A"},
+                  {"unit_id", 1},
+                  {"commandDelay", 1},
+                  {"clientTimeout", 1000},
+                  {"reconnectOnTimeout", true},
+                  {"reconnectTimeout", 2000},
+                  {"parallelUnitIdsAllowed", true},
+                  {"showErrors", true},
+                  {"showWarnings", true},
+                  {"showLogs", true}});
+  int y = 40;
+  for (unsigned id = 0; id < 256; ++id) {
+    const CatalogUnit* unit = catalog.servo(static_cast<std::uint8_t>(id));
+    if (unit == nullptr) continue;
+    const config::ServoConfig& servo = *unit->servo;
+    const config::BusConfig& bus = config.buses.at(servo.bus_index);
+    const std::string label = "unit " + std::to_string(id) + " (" + servo_label(servo, bus.name) + ")";
+    const auto block = poll_block_of(bus, servo);
+    if (!block) throw std::runtime_error(block.error());
+    const std::vector<Tag> unit_tags = servo_unit_tags(*unit, *block, bus.name);
+    const std::string scaled = ids.next();
+    // Native units serve their poll block as input registers, smsmb-profile units 0x100-0x107.
+    const BusRange window =
+        unit->map.profile() == modbus_map::Profile::Native ? *block : modbus_map::kSmsmbFeedbackRegisters;
+    flow.push_back({{"id", ids.next()},
+                    {"type", "modbus-read"},
+                    {"z", tab},
+                    {"name", label + " feedback"},
+                    {"topic", "unit" + std::to_string(id) + "/feedback"},
+                    {"showStatusActivities", true},
+                    {"logIOActivities", false},
+                    {"showErrors", true},  // else an exception answer never shows
+                    {"showWarnings", true},
+                    {"unitid", std::to_string(id)},
+                    {"dataType", "InputRegister"},
+                    {"adr", std::to_string(window.address)},
+                    {"quantity", std::to_string(window.count)},
+                    {"rate", "500"},
+                    {"rateUnit", "ms"},
+                    {"delayOnStart", false},
+                    {"enableDeformedMessages", false},
+                    {"startDelayTime", ""},
+                    {"server", client},
+                    {"useIOFile", false},
+                    {"ioFile", ""},
+                    {"useIOForPayload", false},
+                    {"emptyMsgOnFail", false},
+                    {"x", 200},
+                    {"y", y},
+                    {"wires", json::array({json::array({scaled}), json::array()})}});
+    flow.push_back(scaling_node(scaled, tab, label, unit_tags, window, 420, y, debug));
+    // What a servo needs written to move, in the order to write it: torque on, a speed (d55d runs
+    // at 0 after power-on and after a torque-off stop), the goal. Their inputs are left open: wire
+    // a dashboard slider or an inject sending msg.payload.
+    const modbus_map::MotionSpec& motion = modbus_map::motion_spec(unit->map.shown_table().id);
+    int row = 0;
+    for (const std::string_view field : {motion.torque, motion.goal_speed, motion.goal_position}) {
+      const RegisterEntry* entry = writable_entry(*unit, field);
+      if (entry == nullptr || servo.read_only) continue;
+      flow.push_back(modbus_write_node(ids.next(), tab, label + " " + std::string(field), servo.unit_id,
+                                       "HoldingRegister", entry->address, client, debug, 640, y + 40 * row++));
+    }
+    y += 40 * std::max(row, 1) + 20;
+  }
+  for (std::size_t n = 0; n < config.buses.size(); ++n) {
+    const config::BusConfig& bus = config.buses[n];
+    if (!bus.watchdog || bus.watchdog->feed != config::WatchdogFeed::HeartbeatRegister) continue;
+    // A bus fed by its heartbeat register trips unless the value changes within the timeout: a
+    // counter written three times a timeout (goal writes alone do not feed it).
+    const std::string tick = ids.next();
+    const std::string count = ids.next();
+    const std::string write = ids.next();
+    const double period_s = std::max(0.1, static_cast<double>(bus.watchdog->timeout.count()) / 3000.0);
+    flow.push_back({{"id", tick},
+                    {"type", "inject"},
+                    {"z", tab},
+                    {"name", "heartbeat (bus " + bus.name + ")"},
+                    {"props", json::array({{{"p", "payload"}}})},
+                    {"repeat", number_text(period_s)},
+                    {"crontab", ""},
+                    {"once", true},
+                    {"onceDelay", 0.1},
+                    {"topic", ""},
+                    {"payload", ""},
+                    {"payloadType", "date"},
+                    {"x", 200},
+                    {"y", y},
+                    {"wires", json::array({json::array({count})})}});
+    flow.push_back({{"id", count},
+                    {"type", "function"},
+                    {"z", tab},
+                    {"name", "a changed value each time"},
+                    {"func",
+                     "const n = ((context.get('n') || 0) + 1) % 65536;\ncontext.set('n', n);\n"
+                     "msg.payload = n;\nreturn msg;"},
+                    {"outputs", 1},
+                    {"x", 420},
+                    {"y", y},
+                    {"wires", json::array({json::array({write})})}});
+    flow.push_back(modbus_write_node(
+        write, tab,
+        "holding " + std::to_string(config::kHeartbeatRegisterBase + n) + " (heartbeat of bus " + bus.name + ")",
+        catalog.gateway_unit_id(), "HoldingRegister", static_cast<std::uint16_t>(config::kHeartbeatRegisterBase + n),
+        client, debug, 640, y));
+    y += 60;
+  }
+  for (const config::BusConfig& bus : config.buses) {
+    if (!bus.watchdog) continue;
+    const std::string inject = ids.next();
+    const std::string write = ids.next();
+    flow.push_back({{"id", inject},
+                    {"type", "inject"},
+                    {"z", tab},
+                    {"name", "re-arm watchdogs (bus " + bus.name + ")"},
+                    {"props", json::array({{{"p", "payload"}}})},
+                    {"repeat", ""},
+                    {"crontab", ""},
+                    {"once", false},
+                    {"onceDelay", 0.1},
+                    {"topic", ""},
+                    {"payload", "false"},
+                    {"payloadType", "bool"},
+                    {"x", 200},
+                    {"y", y},
+                    {"wires", json::array({json::array({write})})}});
+    flow.push_back(modbus_write_node(write, tab, "coil 2 := 0 (re-arm every tripped watchdog)",
+                                     catalog.gateway_unit_id(), "Coil", gateway_unit_layout::kWatchdogCoil, client,
+                                     debug, 560, y));
+    y += 60;
+  }
+  flow.push_back(debug_node(debug, tab, 900, 40));
+  return flow;
+}
+
+}  // namespace sms::gateway
