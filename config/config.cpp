@@ -300,7 +300,9 @@ std::optional<std::string> rtu_slave_conflict(const Config& config, const RtuSla
 namespace sms::config {
 
 bool is_loopback_host(std::string_view host) {
-  return host == "localhost" || host == "::1" || host == "[::1]" || host.starts_with("127.");
+  if (host.starts_with('[') && host.ends_with(']')) host = host.substr(1, host.size() - 2);
+  if (host.starts_with("::ffff:")) host.remove_prefix(7);  // an IPv4 address in IPv6 form
+  return host == "localhost" || host == "::1" || host.starts_with("127.");
 }
 
 std::optional<std::string> console_listen_problem(const ConsoleConfig& console) {

@@ -10,7 +10,11 @@ namespace sms::config {
 
 namespace {
 
+// The group the file should belong to: the package's service account where it exists (the
+// gateway runs as it; `sudo sms-gateway --check-config` must not suggest root's own group), else
+// this process's.
 std::string group_name() {
+  if (const group* service = getgrnam("_sms-gateway"); service != nullptr) return service->gr_name;
   if (const group* entry = getgrgid(getegid()); entry != nullptr && entry->gr_name != nullptr) return entry->gr_name;
   return std::to_string(getegid());
 }

@@ -472,6 +472,22 @@ MapResult<std::vector<bool>> RegisterMap::bits_from(const ReadPlan& plan, std::s
   return bits;
 }
 
+std::vector<BusRange> RegisterMap::live_read_runs(std::span<const RegisterEntry* const> entries) const {
+  std::vector<BusRange> runs;
+  for (std::size_t i = 0; i < entries.size();) {
+    const std::uint16_t start = entries[i]->address;
+    const auto count_to = [&](std::size_t j) { return static_cast<std::uint16_t>(entries[j]->address - start + 1); };
+    std::size_t j = i + 1;
+    while (j < entries.size() && count_to(j) <= modbus_limits::kReadRegisters &&
+           plan_holding_read(start, count_to(j))) {
+      ++j;
+    }
+    runs.push_back(BusRange{start, count_to(j - 1)});
+    i = j;
+  }
+  return runs;
+}
+
 // --- writes ------------------------------------------------------------------------------------------
 
 MapResult<WritePlan> RegisterMap::plan_register_write(std::uint16_t start,

@@ -190,6 +190,10 @@ class RegisterMap {
   // FC03 (and FC23's read): live values, one bus READ covering the range (modbus-rtu: one FC03
   // per run of readable registers).
   MapResult<ReadPlan> plan_holding_read(std::uint16_t start, std::uint16_t count) const;
+  // The FC03 reads that read `entries` (readable, ascending address) live: runs the map accepts,
+  // at most 125 registers each. A table whose fields leave addresses that answer 0x02 (smsmb)
+  // needs several; the console's servo page and the Sparkplug node read with these.
+  std::vector<BusRange> live_read_runs(std::span<const RegisterEntry* const> entries) const;
   // FC04: the same values from the poll cache; the request must lie in the unit's input window
   // (native: the poll block; smsmb profile: 0x100-0x107) and its bytes in `poll_block`.
   MapResult<ReadPlan> plan_input_read(std::uint16_t start, std::uint16_t count, BusRange poll_block) const;

@@ -211,33 +211,49 @@ void RtuMaster::wait_for_frame_gap() {
   if (ready > now) std::this_thread::sleep_for(ready - now);
 }
 
-RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t> pdu,
-                                std::chrono::nanoseconds reply_timeout) {
-  if (!is_open()) return {RtuOutcome::PortError, {}, settings_.serial.device + " is not open"};
+RtuMaster::Sending RtuMaster::send_request(std::uint8_t slave, std::span<const std::uint8_t> pdu,
+                                           std::string_view caller,
+                                           std::optional<std::chrono::nanoseconds> answer_within) {
+  Sending sending;
+  if (!is_open()) {
+    sending.failure = RtuExchange{RtuOutcome::PortError, {}, settings_.serial.device + " is not open"};
+    return sending;
+  }
   if (pdu.empty() || pdu.size() > protocol::rtu::kMaxPduSize) {
-    throw std::invalid_argument("RtuMaster::transact: a PDU is 1 to 253 bytes, not " + std::to_string(pdu.size()));
+    throw std::invalid_argument("RtuMaster::" + std::string(caller) + ": a PDU is 1 to 253 bytes, not " +
+                                std::to_string(pdu.size()));
   }
   modbus_t* context = line_->context;
   wait_for_frame_gap();
-  Bytes dropped = drop_input();  // late replies and noise would otherwise be read as this answer
+  sending.dropped = drop_input();  // late replies and noise would otherwise be read as this answer
   modbus_set_slave(context, slave);
-  Bytes request;
-  request.reserve(pdu.size() + 1);
-  request.push_back(slave);
-  request.insert(request.end(), pdu.begin(), pdu.end());
-  // The reply timeout counts from when the request has left the wire (write() returns at once).
-  const auto response_timeout = wire_time(request.size() + 2) + reply_timeout;
-  std::uint32_t seconds = 0;
-  std::uint32_t micros = 0;
-  split_timeout(response_timeout, seconds, micros);
-  modbus_set_response_timeout(context, seconds, micros);
-  if (modbus_send_raw_request(context, request.data(), static_cast<int>(request.size())) < 0) {
-    const int error = errno;
-    return {RtuOutcome::PortError, {}, "write to " + settings_.serial.device + ": " + modbus_strerror(error)};
+  sending.request.reserve(pdu.size() + 1);
+  sending.request.push_back(slave);
+  sending.request.insert(sending.request.end(), pdu.begin(), pdu.end());
+  if (answer_within) {
+    // The reply timeout counts from when the request has left the wire (write() returns at once).
+    sending.response_timeout = wire_time(sending.request.size() + 2) + *answer_within;
+    std::uint32_t seconds = 0;
+    std::uint32_t micros = 0;
+    split_timeout(sending.response_timeout, seconds, micros);
+    modbus_set_response_timeout(context, seconds, micros);
   }
-  tap_request(request);
-  RtuExchange exchange = receive_answer(slave, pdu[0], response_timeout);
-  exchange.dropped = std::move(dropped);
+  if (modbus_send_raw_request(context, sending.request.data(), static_cast<int>(sending.request.size())) < 0) {
+    const int error = errno;
+    sending.failure =
+        RtuExchange{RtuOutcome::PortError, {}, "write to " + settings_.serial.device + ": " + modbus_strerror(error)};
+    return sending;
+  }
+  tap_request(sending.request);
+  return sending;
+}
+
+RtuExchange RtuMaster::transact(std::uint8_t slave, std::span<const std::uint8_t> pdu,
+                                std::chrono::nanoseconds reply_timeout) {
+  Sending sending = send_request(slave, pdu, "transact", reply_timeout);
+  if (sending.failure) return std::move(*sending.failure);
+  RtuExchange exchange = receive_answer(slave, pdu[0], sending.response_timeout);
+  exchange.dropped = std::move(sending.dropped);
   return exchange;
 }
 
@@ -327,26 +343,12 @@ RtuExchange RtuMaster::receive_until_silence(std::uint8_t slave, std::chrono::na
 
 RtuExchange RtuMaster::send_only(std::uint8_t slave, std::span<const std::uint8_t> pdu,
                                  std::chrono::nanoseconds turnaround) {
-  if (!is_open()) return {RtuOutcome::PortError, {}, settings_.serial.device + " is not open"};
-  if (pdu.empty() || pdu.size() > protocol::rtu::kMaxPduSize) {
-    throw std::invalid_argument("RtuMaster::send_only: a PDU is 1 to 253 bytes, not " + std::to_string(pdu.size()));
-  }
-  modbus_t* context = line_->context;
-  wait_for_frame_gap();
-  Bytes dropped = drop_input();
-  modbus_set_slave(context, slave);
-  Bytes request;
-  request.push_back(slave);
-  request.insert(request.end(), pdu.begin(), pdu.end());
-  if (modbus_send_raw_request(context, request.data(), static_cast<int>(request.size())) < 0) {
-    return {RtuOutcome::PortError, {}, "write to " + settings_.serial.device + ": " + modbus_strerror(errno)};
-  }
-  tap_request(request);
-  const auto on_wire = wire_time(request.size() + 2);
-  std::this_thread::sleep_for(on_wire + turnaround);
+  Sending sending = send_request(slave, pdu, "send_only", std::nullopt);
+  if (sending.failure) return std::move(*sending.failure);
+  std::this_thread::sleep_for(wire_time(sending.request.size() + 2) + turnaround);
   line_->quiet_since = SteadyClock::now();
   RtuExchange sent{RtuOutcome::Sent, {}, {}};
-  sent.dropped = std::move(dropped);
+  sent.dropped = std::move(sending.dropped);
   return sent;
 }
 

@@ -21,6 +21,7 @@
 #include <optional>
 #include <span>
 #include <string>
+#include <string_view>
 
 #include "config/config.h"
 #include "gateway/bus/poll_cache.h"
@@ -119,8 +120,19 @@ class RtuMaster {
   RtuExchange receive_answer(std::uint8_t slave, std::uint8_t function, std::chrono::nanoseconds response_timeout);
   RtuExchange receive_until_silence(std::uint8_t slave, std::chrono::nanoseconds first_byte_timeout);
   void wait_for_frame_gap();
-  // Reads what the input holds (modbus_flush's tcflush would not say how much): the count.
+  // Reads what the input holds (modbus_flush's tcflush would not say which bytes): those bytes.
   protocol::Bytes drop_input();
+  // What transact() and send_only() both do first: the line open, the PDU's size, the frame gap,
+  // the input dropped, the request framed and written; with `answer_within`, the response
+  // timeout set first (from when the request has left the wire). `failure`: a PortError, not sent.
+  struct Sending {
+    protocol::Bytes request;  // slave address and PDU, as written (the CRC is libmodbus's)
+    protocol::Bytes dropped;
+    std::chrono::nanoseconds response_timeout{};
+    std::optional<RtuExchange> failure;
+  };
+  Sending send_request(std::uint8_t slave, std::span<const std::uint8_t> pdu, std::string_view caller,
+                       std::optional<std::chrono::nanoseconds> answer_within);
 
   void tap(WireDirection direction, std::span<const std::uint8_t> bytes) const;
   void tap_request(std::span<const std::uint8_t> slave_and_pdu) const;

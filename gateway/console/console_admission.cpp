@@ -52,7 +52,8 @@ std::optional<HttpAnswer> Admission::refusal(const Route& route, const Identity&
         return HttpAnswer{303,
                           "text/plain; charset=utf-8",
                           "log in first\n",
-                          {{"Location", "/login?next=" + std::string(path_of(request.target))}}};
+                          // The whole target, its query too (a servo page's ?unit=), encoded as one value.
+                          {{"Location", "/login?next=" + percent_encode(request.target)}}};
       }
       return HttpAnswer::json(401, {{"error", "log in first"}, {"login", true}});
     }
@@ -73,8 +74,10 @@ std::optional<HttpAnswer> Admission::refusal(const Route& route, const Identity&
 
 std::optional<HttpAnswer> Admission::socket_refusal(const Identity& identity, const RequestFacts& request) const {
   if (request.origin) {
-    const std::string host(request.host);
-    if (*request.origin != "http://" + host && *request.origin != "https://" + host) {
+    // The page's own origin: this console's scheme and the host it was asked by; an https:// page
+    // may not open the plain HTTP console's socket, nor the reverse.
+    const std::string own = std::string(settings_.https() ? "https://" : "http://") + std::string(request.host);
+    if (*request.origin != own) {
       return HttpAnswer::error(403, "WebSocket from another origin (" + printable(*request.origin) + ") refused");
     }
   }

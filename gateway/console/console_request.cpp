@@ -1,5 +1,6 @@
 #include "gateway/console/console_request.h"
 
+#include <cctype>
 #include <charconv>
 
 #include <nlohmann/json.hpp>
@@ -77,6 +78,22 @@ bool match_path(std::string_view pattern, std::string_view path, PathParams& par
     }
   }
   return true;
+}
+
+std::string percent_encode(std::string_view text) {
+  static constexpr char kHex[] = "0123456789ABCDEF";
+  std::string encoded;
+  for (const char c : text) {
+    const auto byte = static_cast<unsigned char>(c);
+    if (std::isalnum(byte) != 0 || c == '-' || c == '.' || c == '_' || c == '~' || c == '/') {
+      encoded += c;
+    } else {
+      encoded += '%';
+      encoded += kHex[byte >> 4];
+      encoded += kHex[byte & 0x0F];
+    }
+  }
+  return encoded;
 }
 
 std::optional<std::string> percent_decode(std::string_view text, bool plus_is_space) {

@@ -31,6 +31,8 @@ std::string_view path_of(std::string_view target);
 bool match_path(std::string_view pattern, std::string_view path, PathParams& params);
 // %XX and '+' decoded; nullopt for a broken escape or a decoded NUL.
 std::optional<std::string> percent_decode(std::string_view text, bool plus_is_space = false);
+// `text` as a query value: every byte but the unreserved (A-Z a-z 0-9 - . _ ~) and `/` as %XX.
+std::string percent_encode(std::string_view text);
 // The value of query parameter `name` in `target`, decoded.
 std::optional<std::string> query_value(std::string_view target, std::string_view name);
 // The value of cookie `name` in a Cookie header.

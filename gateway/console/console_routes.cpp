@@ -8,6 +8,7 @@
 #include "gateway/console/console_commission.h"
 #include "gateway/console/console_view.h"
 #include "gateway/service/modbus_request.h"
+#include "gateway/units/gateway_unit.h"
 #include "modbus_map/eeprom_lock.h"
 #include "modbus_map/motion.h"
 #include "modbus_map/status_bits.h"
@@ -19,10 +20,6 @@ namespace {
 
 using config::Role;
 using nlohmann::json;
-
-// Coils of the gateway unit (docs/PLC_GUIDE.md "Safety").
-constexpr std::uint16_t kEstopCoil = 1;
-constexpr std::uint16_t kRearmCoil = 2;
 
 std::string role_text(Role role) { return std::string(config::to_string(role)); }
 
@@ -143,38 +140,57 @@ void api_overview(const std::shared_ptr<ApiCall>& call) {
   call->answer(HttpAnswer::json(200, call->services.overview()));
 }
 
-// The table with the value of every readable field, read live through the router (FC03).
+// The table with the value of every readable field, read live through the router: one FC03 per
+// run the map accepts (RegisterMap::live_read_runs: an smsmb table's gaps answer 0x02), in turn.
+struct ServoRead {
+  std::shared_ptr<ApiCall> call;
+  const ServoUnit* unit;
+  json body;
+  json values = json::object();
+  std::vector<modbus_map::BusRange> runs;
+  std::size_t next = 0;
+};
+
+void read_next_run(const std::shared_ptr<ServoRead>& read) {
+  if (read->next == read->runs.size()) {
+    read->body["values"] = std::move(read->values);
+    return read->call->answer(HttpAnswer::json(200, read->body));
+  }
+  const modbus_map::BusRange run = read->runs[read->next++];
+  read->call->services.modbus(
+      read->call->who, read->unit->unit_id, read_registers_pdu(run.address, run.count),
+      [read, run](const ModbusAnswer& answer) {
+        if (!answer.ok()) {
+          // The values read so far stay; the rest are missing, and the page says why.
+          read->body["values_error"] = answer.message;
+          read->next = read->runs.size();
+          return read_next_run(read);
+        }
+        const auto registers = registers_in(answer.pdu);
+        for (const auto& entry : read->unit->map.entries()) {
+          if (!entry.readable || entry.address < run.address || entry.address - run.address >= registers.size())
+            continue;
+          read->values[std::string(entry.shown->name)] =
+              register_to_value(entry, registers[entry.address - run.address]);
+        }
+        read_next_run(read);
+      });
+}
+
 void api_servo(const std::shared_ptr<ApiCall>& call) {
   const auto unit = servo_of(call->services, call->params);
   if (!unit) return call->answer(unit.error());
-  json body = servo_description_json(call->services.config(), **unit);
-  std::uint16_t first = 0xFFFF;
-  std::uint16_t last = 0;
+  auto read = std::make_shared<ServoRead>();
+  read->call = call;
+  read->unit = *unit;
+  read->body = servo_description_json(call->services.config(), **unit);
+  std::vector<const modbus_map::RegisterEntry*> readable;
   for (const auto& entry : (*unit)->map.entries()) {
-    if (!entry.readable || entry.address >= modbus_map::kStagedWriteBase) continue;
-    first = std::min(first, entry.address);
-    last = std::max(last, entry.address);
+    if (entry.readable && entry.address < modbus_map::kStagedWriteBase) readable.push_back(&entry);
   }
-  if (first > last) return call->answer(HttpAnswer::json(200, body));
-  const auto count = static_cast<std::uint16_t>(std::min<int>(last - first + 1, limits::kReadRegisters));
-  const std::uint8_t unit_id = (*unit)->unit_id;
-  call->services.modbus(
-      call->who, unit_id, read_registers_pdu(first, count),
-      [call, body = std::move(body), first, unit = *unit](const ModbusAnswer& answer) mutable {
-        json values = json::object();
-        if (answer.ok()) {
-          const auto registers = registers_in(answer.pdu);
-          for (const auto& entry : unit->map.entries()) {
-            if (!entry.readable || entry.address < first || std::size_t{entry.address} - first >= registers.size())
-              continue;
-            values[std::string(entry.shown->name)] = register_to_value(entry, registers[entry.address - first]);
-          }
-        } else {
-          body["values_error"] = answer.message;
-        }
-        body["values"] = std::move(values);
-        call->answer(HttpAnswer::json(200, body));
-      });
+  std::sort(readable.begin(), readable.end(), [](auto* a, auto* b) { return a->address < b->address; });
+  read->runs = (*unit)->map.live_read_runs(readable);
+  read_next_run(read);
 }
 
 // The register that shows the table's EEPROM lock (modbus_map/eeprom_lock.h), or nullptr.
@@ -302,10 +318,13 @@ void gateway_coil(const std::shared_ptr<ApiCall>& call, std::uint16_t coil, bool
 void api_estop(const std::shared_ptr<ApiCall>& call) {
   const auto request = parse_estop(call->body);
   if (!request) return call->answer(HttpAnswer::error(400, "e-stop: " + request.error()));
-  gateway_coil(call, kEstopCoil, request->latch, request->latch ? "e-stop latched" : "e-stop reset");
+  gateway_coil(call, gateway_unit_layout::kEStopCoil, request->latch,
+               request->latch ? "e-stop latched" : "e-stop reset");
 }
 
-void api_rearm(const std::shared_ptr<ApiCall>& call) { gateway_coil(call, kRearmCoil, false, "watchdogs re-armed"); }
+void api_rearm(const std::shared_ptr<ApiCall>& call) {
+  gateway_coil(call, gateway_unit_layout::kWatchdogCoil, false, "watchdogs re-armed");
+}
 
 // --- streams ------------------------------------------------------------------------------------
 

@@ -40,6 +40,14 @@ using tcp = asio::ip::tcp;
 
 namespace {
 
+// 127.0.0.0/8 and ::1, and an IPv4 loopback address as an IPv6 socket shows it (::ffff:127.0.0.1).
+bool is_loopback(const asio::ip::address& address) {
+  if (address.is_v6() && address.to_v6().is_v4_mapped()) {
+    return asio::ip::make_address_v4(asio::ip::v4_mapped, address.to_v6()).is_loopback();
+  }
+  return address.is_loopback();
+}
+
 std::string_view view(beast::string_view text) { return {text.data(), text.size()}; }
 
 // A header's value, nullopt when the request has none.
@@ -356,7 +364,7 @@ class ConsoleServer::Impl final : public Services, public ConnectionHost {
       beast::error_code ignored;
       const auto remote = socket.remote_endpoint(ignored);
       serve_connection(std::move(socket), ssl_.get(), *this,
-                       Peer{remote.address().is_loopback(), remote.address().to_string(), std::nullopt, 0, false});
+                       Peer{is_loopback(remote.address()), remote.address().to_string(), std::nullopt, 0, false});
       accept();
     });
   }

@@ -7,6 +7,7 @@
 #include "gateway/bus/discovery.h"
 #include "gateway/service/role_policy.h"
 #include "modbus_map/field_unit.h"
+#include "modbus_map/motion.h"
 #include "modbus_map/status_bits.h"
 #include "modbus_map/tables.h"
 
@@ -225,6 +226,18 @@ json overview_json(const config::Config& config, const MetricsSnapshot& metrics,
   return {{"type", "overview"}, {"gateway", gateway}, {"buses", buses}, {"servos", servos}};
 }
 
+// The fields that move this unit's servo, by the names its map shows (modbus_map/motion.h): the
+// jog reads its limits from these, whatever the table calls them ("" where it has none).
+json motion_fields_json(const ServoUnit& unit) {
+  const modbus_map::MotionSpec& motion = modbus_map::motion_spec(unit.map.shown_table().id);
+  return {{"goal_position", motion.goal_position},
+          {"goal_speed", motion.goal_speed},
+          {"present_position", motion.present_position},
+          {"torque", motion.torque},
+          {"min_limit", motion.min_limit},
+          {"max_limit", motion.max_limit}};
+}
+
 json servo_description_json(const config::Config& config, const ServoUnit& unit) {
   const config::ServoConfig* servo = config::find_unit(config, unit.unit_id);
   json fields = json::array();
@@ -259,6 +272,7 @@ json servo_description_json(const config::Config& config, const ServoUnit& unit)
           {"map", unit.map.description()},
           {"read_only", unit.read_only},
           {"poll_period_ms", config.buses.at(unit.bus_index).poll_period.count()},
+          {"motion", motion_fields_json(unit)},
           {"fields", fields}};
 }
 

@@ -63,17 +63,8 @@ SparkplugNode::Impl::Device SparkplugNode::Impl::make_device(const config::Servo
     }
   }
   // Runs of live fields, each one FC03 the map accepts (at most 125 registers).
-  for (std::size_t i = 0; i < live.size();) {
-    std::size_t j = i + 1;
-    while (
-        j < live.size() && live[j]->address - live[i]->address < limits::kReadRegisters &&
-        map.plan_holding_read(live[i]->address, static_cast<std::uint16_t>(live[j]->address - live[i]->address + 1))) {
-      ++j;
-    }
-    device.live_reads.push_back(
-        ReadRegistersRequest{fc::kReadHoldingRegisters, live[i]->address,
-                             static_cast<std::uint16_t>(live[j - 1]->address - live[i]->address + 1)});
-    i = j;
+  for (const modbus_map::BusRange& run : map.live_read_runs(live)) {
+    device.live_reads.push_back(ReadRegistersRequest{fc::kReadHoldingRegisters, run.address, run.count});
   }
   return device;
 }
@@ -88,10 +79,9 @@ void SparkplugNode::Impl::publish_node_birth() {
   payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kWatchdogTripped), tripped_));
   payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStopsOwed), stops_owed_));
   payload.metrics.push_back(sp::Metric::boolean(std::string(metric_name::kStateNotPersisted), not_persisted_));
-  for (const auto& name : heartbeats_) {
-    auto metric = sp::Metric::uint16(name, 0);
-    metric.value = std::monostate{};  // write-only: the value is whatever the host sends next
-    payload.metrics.push_back(std::move(metric));
+  // What holding 1000 + n of the gateway unit reads: the last value written, 0 before any.
+  for (std::size_t bus = 0; bus < heartbeats_.size(); ++bus) {
+    payload.metrics.push_back(sp::Metric::uint16(heartbeats_[bus], heartbeat_values_[bus]));
   }
   publish(sp::MessageType::NBirth, std::move(payload));
 }

@@ -160,20 +160,24 @@ void SparkplugNode::Impl::run_device_command(std::size_t index, const sp::Metric
   ask(device.unit_id, WriteRegistersRequest{fc::kWriteSingleRegister, entry.address, {*reg}},
       [this, index, slot_index, what, written](const Answer& answer) {
         auto& slot = devices_[index].metrics[slot_index];
-        if (!answer.ok()) return finish_command(index, slot.name, what + ": " + refusal_text(index, answer));
+        if (!answer.ok()) return finish_command(index, slot.name, refusal_text(index, answer), what);
         if (!slot.entry->readable) return finish_command(index, slot.name, "", what);
         read_back(index, slot_index, written, what);
       });
 }
 
 // A refused device write in words: the exception, and after a 0x04 the rule that refused it
-// (UnitRouter::refusal_reason, as the console says it).
+// (UnitRouter::refusal_reason, as the console says it, without its own "refused: ": the Last
+// Command says that once).
 std::string SparkplugNode::Impl::refusal_text(std::size_t index, const Answer& answer) const {
   std::string text = answer.error_text();
   if (answer.pdu.size() >= 2 &&
       answer.pdu[1] == static_cast<std::uint8_t>(modbus_map::ModbusException::ServerDeviceFailure) &&
       answer.refusal.empty()) {
-    text += "; " + router_.refusal_reason(*devices_[index].unit).text;
+    constexpr std::string_view kRefused = "refused: ";
+    std::string reason = router_.refusal_reason(*devices_[index].unit).text;
+    if (reason.starts_with(kRefused)) reason.erase(0, kRefused.size());
+    text += ": " + reason;
   }
   return text;
 }
@@ -199,7 +203,8 @@ void SparkplugNode::Impl::read_back(std::size_t index, std::size_t slot_index, s
       });
 }
 
-// Ends a device command: logs a refusal, records "ok: ..." or "refused: ..." as the device's
+// Ends a device command: logs a refusal, records "ok: DONE" or "refused: DONE: REFUSAL" (DONE: the
+// write, "goal_position := 1500", or the metric's name where nothing was written) as the device's
 // Gateway/Last Command and publishes it (with the value read back after a write).
 void SparkplugNode::Impl::finish_command(std::size_t index, const std::string& name, const std::string& refusal,
                                          const std::string& done, bool report_value) {
@@ -211,8 +216,9 @@ void SparkplugNode::Impl::finish_command(std::size_t index, const std::string& n
   if (refusal.empty()) {
     device.last_command = "ok: " + done;
   } else {
-    device.last_command = "refused: " + name + ": " + refusal;
-    spdlog::warn("mqtt: DCMD for {} (unit {}) refused: {}: {}", device.id, device.unit_id, name, refusal);
+    const std::string& what = done.empty() ? name : done;
+    device.last_command = "refused: " + what + ": " + refusal;
+    spdlog::warn("mqtt: DCMD for {} (unit {}) refused: {}: {}", device.id, device.unit_id, what, refusal);
   }
   if (session_ && device.born) {
     sp::Payload payload;

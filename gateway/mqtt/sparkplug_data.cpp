@@ -52,6 +52,24 @@ void SparkplugNode::Impl::read_node_state() {
         payload.metrics.push_back(sp::Metric::uint16(std::string(metric_name::kStopsOwed), stops_owed_));
         publish(sp::MessageType::NData, std::move(payload));
       });
+  // The heartbeat registers (holding 1000 + n), as any client reads them: written by a PLC, a host's
+  // NCMD or the console alike.
+  if (!heartbeats_.empty()) {
+    ask(config_.modbus_tcp.gateway_unit_id,
+        ReadRegistersRequest{fc::kReadHoldingRegisters, config::kHeartbeatRegisterBase,
+                             static_cast<std::uint16_t>(heartbeats_.size())},
+        [this](const Answer& answer) {
+          const auto registers = answer.registers();
+          if (!answer.ok() || !session_ || registers.size() != heartbeat_values_.size()) return;
+          sp::Payload payload;
+          for (std::size_t bus = 0; bus < registers.size(); ++bus) {
+            if (registers[bus] == heartbeat_values_[bus]) continue;
+            heartbeat_values_[bus] = registers[bus];
+            payload.metrics.push_back(sp::Metric::uint16(heartbeats_[bus], registers[bus]));
+          }
+          if (!payload.metrics.empty()) publish(sp::MessageType::NData, std::move(payload));
+        });
+  }
   // A safety state the gateway could not save (a restart would lose a latch or an owed stop).
   ask(config_.modbus_tcp.gateway_unit_id,
       ReadBitsRequest{fc::kReadDiscreteInputs, gateway_unit_layout::kStateNotPersistedInput, 1},

@@ -50,6 +50,7 @@ SparkplugNode::Impl::Impl(const config::Config& config, asio::io_context& io, Un
   }
   for (std::size_t i = 0; i < config.buses.size(); ++i) {
     heartbeats_.push_back(std::string(metric_name::kHeartbeatPrefix) + config.buses[i].name);
+    heartbeat_values_.push_back(0);
   }
   if (const std::string dir = config::effective_state_dir(config); !dir.empty()) {
     bd_seq_path_ = (std::filesystem::path(dir) / kBdSeqFile).string();

@@ -164,6 +164,8 @@ class SparkplugNode::Impl final : public std::enable_shared_from_this<SparkplugN
   std::shared_ptr<Replies> replies_;
   std::vector<Device> devices_;
   std::vector<std::string> heartbeats_;
+  // Their values as holding 1000 + n of the gateway unit reads them (0 until a client writes one).
+  std::vector<std::uint16_t> heartbeat_values_;
   std::unordered_map<std::uint64_t, std::function<void(const Answer&)>> pending_;
   std::uint64_t next_serial_ = 1;
   std::deque<Command> commands_;

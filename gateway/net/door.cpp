@@ -123,21 +123,18 @@ struct Door::State : std::enable_shared_from_this<Door::State> {
     for (const auto& entry : entries) {
       if (!entry.trusted) ++waiting_from[entry.address];
     }
-    std::string_view greediest;
     std::size_t most = 0;
-    for (const auto& [address, count] : waiting_from) {
-      if (count > most) {
-        most = count;
-        greediest = address;
-      }
-    }
+    for (const auto& [address, count] : waiting_from) most = std::max(most, count);
+    // Entries are in arrival order: the first found is the oldest. Among addresses that hold
+    // equally many, the one whose connection waited longest gives way, never the one that sorts
+    // first (a flood from many addresses, one each, churns among itself, not at 127.0.0.1's cost).
     Entry* oldest_silent = nullptr;
     Entry* oldest_of_greediest = nullptr;
     for (auto& entry : entries) {
       if (entry.trusted || (only != nullptr && entry.address != *only)) continue;
       const auto guest = entry.guest.lock();
       if (oldest_silent == nullptr && (!guest || guest->silent())) oldest_silent = &entry;
-      if (oldest_of_greediest == nullptr && (only != nullptr || entry.address == greediest)) {
+      if (oldest_of_greediest == nullptr && (only != nullptr || waiting_from[entry.address] == most)) {
         oldest_of_greediest = &entry;
       }
     }

@@ -98,5 +98,16 @@ TEST(LoadConsole, WithoutUsersOrTlsOnlyLoopback) {
             std::string::npos);
 }
 
+// Loopback in every form a listen address takes: IPv4, IPv6, an IPv4 address in IPv6 form.
+TEST(LoadConsole, LoopbackIsKnownInEveryForm) {
+  for (const char* host :
+       {"127.0.0.1", "127.1.2.3", "localhost", "::1", "[::1]", "::ffff:127.0.0.1", "[::ffff:127.0.0.1]"}) {
+    EXPECT_TRUE(is_loopback_host(host)) << host;
+  }
+  for (const char* host : {"0.0.0.0", "::", "[::]", "192.168.1.20", "::ffff:192.168.1.20", "128.0.0.1"}) {
+    EXPECT_FALSE(is_loopback_host(host)) << host;
+  }
+}
+
 }  // namespace
 }  // namespace sms::config

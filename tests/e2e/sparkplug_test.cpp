@@ -10,6 +10,7 @@
 
 #include "tests/e2e/mqtt_support.h"
 #include "tests/support/eventually.h"
+#include "tests/support/modbus_client.h"
 
 // Its own namespace: the test files of e2e_tests compile in batches (unity build), where the
 // helpers of one file's anonymous namespace would meet another's of the same name.
@@ -89,7 +90,11 @@ TEST(Sparkplug, BirthsCarryEveryFieldAndDeathsFollowTheServo) {
   ASSERT_TRUE(int_of(nbirth->metric("bdSeq")));
   ASSERT_NE(nbirth->metric("Node Control/Rebirth"), nullptr);
   EXPECT_EQ(int_of(nbirth->metric("Gateway/E-Stop")), 0);
-  ASSERT_NE(nbirth->metric("Gateway/Heartbeat/arm"), nullptr);
+  // The heartbeat as holding 1000 of the gateway unit reads it: 0 before any write, not null.
+  ModbusClient panel(gateway.port(), 255);
+  const auto heartbeat = panel.read_holding(1000, 1);
+  ASSERT_TRUE(heartbeat.ok()) << heartbeat.error;
+  EXPECT_EQ(int_of(nbirth->metric("Gateway/Heartbeat/arm")), heartbeat.values.at(0));
 
   for (const std::string device : {"shoulder", "unit-2"}) {
     const auto dbirth = plant.host.wait(is(MessageType::DBirth, device));
@@ -201,11 +206,15 @@ TEST(Sparkplug, EstopOverNcmdBlocksMotionCommands) {
       << gateway.process().output();
 
   const std::string result = command_result(plant.host, sp::Metric::int16("goal_position", 1000));
-  EXPECT_NE(result.find("exception 0x04"), std::string::npos) << result;
-  // The rule that refused it, in the words the console uses (UnitRouter::refusal_reason).
-  EXPECT_NE(result.find("refused: bus arm: the e-stop is latched; motion writes are refused until it is reset"),
+  // The write, the exception, and the rule that refused it in the words the console uses
+  // (UnitRouter::refusal_reason): each once (docs/MQTT.md "Commands").
+  EXPECT_EQ(result.rfind("refused: goal_position := 1000: exception 0x04", 0), 0u) << result;
+  EXPECT_NE(result.find(": bus arm: the e-stop is latched; motion writes are refused until it is reset"),
             std::string::npos)
       << result;
+  EXPECT_EQ(result.find("refused:", 1), std::string::npos) << "said once: " << result;
+  EXPECT_EQ(result.find("goal_position", result.find("goal_position") + 1), std::string::npos)
+      << "named once: " << result;
   EXPECT_EQ(plant.sim.field(1, "goal_position"), goal);
 
   // Garbage on the command topic and an unknown device: logged, counted, nothing written.
@@ -240,7 +249,8 @@ TEST(Sparkplug, RebirthAndHeartbeatOverNcmd) {
 
   // The heartbeat register through NCMD feeds the watchdog: a changing value every 100 ms keeps it
   // from tripping for well over its 1000 ms timeout, and motion commands pass meanwhile.
-  for (int beat = 1; beat <= 20; ++beat) {
+  static constexpr int kLastBeat = 20;
+  for (int beat = 1; beat <= kLastBeat; ++beat) {
     plant.host.command(MessageType::NCmd, kGroup, kNode, "",
                        {sp::Metric::uint16("Gateway/Heartbeat/arm", static_cast<std::uint16_t>(beat))});
     std::this_thread::sleep_for(100ms);
@@ -252,6 +262,18 @@ TEST(Sparkplug, RebirthAndHeartbeatOverNcmd) {
       },
       0ms, from))
       << gateway.process().output();
+  // The last beat, as NDATA reports it and as FC03 reads holding 1000: the same value.
+  const auto beat_reported = plant.host.wait(
+      [](const SparkplugMessage& m) {
+        const auto* beat = m.metric("Gateway/Heartbeat/arm");
+        return m.topic.type == MessageType::NData && beat != nullptr && sp::integer_value(beat->value) == kLastBeat;
+      },
+      10s, from);
+  EXPECT_TRUE(beat_reported) << plant.host.summary();
+  ModbusClient panel(gateway.port(), 255);
+  const auto heartbeat = panel.read_holding(1000, 1);
+  ASSERT_TRUE(heartbeat.ok()) << heartbeat.error;
+  EXPECT_EQ(heartbeat.values.at(0), kLastBeat);
   // Heartbeats stop: the watchdog trips, NDATA says so, and re-arming over NCMD clears it.
   const auto tripped = plant.host.wait(
       [](const SparkplugMessage& m) {

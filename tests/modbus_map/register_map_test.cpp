@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -363,6 +364,35 @@ TEST(PollBlocks, DefaultsAndConfiguredFields) {
   EXPECT_NE(error.error().find("table sts has no field 'position' to poll"), std::string::npos) << error.error();
   const std::vector<std::string> write_only{"clear_unload_condition"};
   EXPECT_FALSE(poll_block_for_fields(TableId::D55d, write_only));
+}
+
+// Every readable field of every table and profile, read live in runs the map accepts: each run one
+// FC03 of at most 125 registers, together every field once (an smsmb table needs several: its
+// gaps answer 0x02).
+TEST(LiveReadRuns, CoverEveryReadableFieldInRunsTheMapAccepts) {
+  for (const TableId id : {TableId::Sts, TableId::Sms1, TableId::D55d, TableId::Smsmb, TableId::Scs}) {
+    for (const Profile profile : {Profile::Native, Profile::Smsmb}) {
+      if (profile == Profile::Smsmb && (id == TableId::D55d || id == TableId::Smsmb || id == TableId::Scs)) continue;
+      const RegisterMap map = make(id, profile);
+      std::vector<const RegisterEntry*> readable;
+      for (const RegisterEntry& entry : map.entries()) {
+        if (entry.readable && entry.address < kStagedWriteBase) readable.push_back(&entry);
+      }
+      const auto runs = map.live_read_runs(readable);
+      std::size_t covered = 0;
+      for (const BusRange& run : runs) {
+        EXPECT_LE(run.count, 125) << map.description();
+        EXPECT_TRUE(map.plan_holding_read(run.address, run.count)) << map.description() << " " << run.address;
+      }
+      for (const RegisterEntry* entry : readable) {
+        covered += std::count_if(runs.begin(), runs.end(), [&](const BusRange& run) {
+          return entry->address >= run.address && entry->address < run.end();
+        });
+      }
+      EXPECT_EQ(covered, readable.size()) << map.description();
+      if (id == TableId::Smsmb) EXPECT_GT(runs.size(), 1U) << "smsmb's gaps";
+    }
+  }
 }
 
 }  // namespace

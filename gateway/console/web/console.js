@@ -23,7 +23,16 @@ export async function api(method, url, body) {
     options.headers['X-CSRF-Token'] = csrf;
     options.body = JSON.stringify(body || {});
   }
-  const response = await fetch(url, options);
+  let response;
+  try {
+    response = await fetch(url, options);
+  } catch (e) {
+    // No HTTP answer at all: the connection closed before one (the gateway stopped, the network
+    // went, or the console's door made room for other connections while this one waited).
+    throw new Error(`no answer from the gateway to ${method} ${url} (the connection closed before one came: ` +
+      'is the gateway running and reachable? under many connections at once, try again; reload the page to see ' +
+      'what was carried out)');
+  }
   let data = {};
   try { data = await response.json(); } catch (e) { data = { error: response.statusText }; }
   if (!response.ok) throw new Error(data.error || ('HTTP ' + response.status));

@@ -15,10 +15,16 @@ export function sameOriginTarget(next) {
 
 document.getElementById('login').addEventListener('submit', async (event) => {
   event.preventDefault();
-  const response = await fetch('/api/login', {
-    method: 'POST', credentials: 'same-origin', headers: { 'Content-Type': 'application/json' },
-    body: JSON.stringify({ user: document.getElementById('user').value, password: document.getElementById('password').value }),
-  });
+  let response;
+  try {
+    response = await fetch('/api/login', {
+      method: 'POST', credentials: 'same-origin', headers: { 'Content-Type': 'application/json' },
+      body: JSON.stringify({ user: document.getElementById('user').value, password: document.getElementById('password').value }),
+    });
+  } catch (e) {
+    return say('no answer from the gateway (the connection closed before one came: is it running and reachable? ' +
+      'under many connections at once, try again)', 'error');
+  }
   let data = {};
   try { data = await response.json(); } catch (e) { data = { error: `HTTP ${response.status}` }; }
   if (!response.ok) return say(data.error, 'error');

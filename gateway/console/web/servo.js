@@ -63,13 +63,14 @@ function showValue(name, raw) {
   cells[1].textContent = raw ?? '';
 }
 
-// The jog slider spans what the servo may be driven to: goal_position's range, narrowed to the
-// servo's angle limits where the table has them (both 0: multi-turn, the field's range).
+// The jog slider spans what the servo may be driven to: the goal's range, narrowed to the
+// servo's angle limits where the table has them (both 0: multi-turn, the field's range), by the
+// names the gateway gives for this table (servo.motion: d55d's are cw/ccw_angle_limit).
 function setupJogRange() {
-  const goal = servo.fields.find((f) => f.name === 'goal_position');
+  const goal = servo.fields.find((f) => f.name === servo.motion.goal_position);
   if (!goal) return;
-  let min = goal.min, max = goal.max, from = 'goal_position';
-  const low = servo.values.min_angle_limit, high = servo.values.max_angle_limit;
+  let min = goal.min, max = goal.max, from = goal.name;
+  const low = servo.values[servo.motion.min_limit], high = servo.values[servo.motion.max_limit];
   if (low !== undefined && high !== undefined && !(low === 0 && high === 0) && low <= high) {
     min = Math.max(min, low); max = Math.min(max, high); from = 'the servo\'s angle limits';
   }

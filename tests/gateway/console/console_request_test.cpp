@@ -32,6 +32,14 @@ TEST(ConsoleRequest, QueryAndCookieValues) {
   EXPECT_FALSE(percent_decode("a%00b"));
 }
 
+// The login redirect's `next`: a whole target, its query too, one value that decodes back.
+TEST(ConsoleRequest, APercentEncodedTargetDecodesBackWhole) {
+  const std::string target = "/bus/arm/monitor?servo=3&kind=write answer";
+  const std::string encoded = percent_encode(target);
+  EXPECT_EQ(encoded, "/bus/arm/monitor%3Fservo%3D3%26kind%3Dwrite%20answer");
+  EXPECT_EQ(query_value("/login?next=" + encoded, "next"), target);
+}
+
 TEST(ConsoleRequest, UnitsAreOneTo255InDecimal) {
   EXPECT_EQ(parse_unit("1"), 1);
   EXPECT_EQ(parse_unit("255"), 255);

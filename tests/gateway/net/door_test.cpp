@@ -87,6 +87,26 @@ TEST_F(DoorTest, AFloodMakesRoomFromItsOwnAddressNotFromAClientThatCameAlone) {
   for (int i = 7; i < 10; ++i) EXPECT_FALSE(flood[i]->closed) << i;
 }
 
+// A flood from many addresses, one connection each: every address holds as many, so the
+// connection that waited longest gives way, never the one whose address sorts first. A client at
+// 127.0.0.1 that came after the flood's connections keeps its place while older ones are there;
+// the flood churns among itself.
+TEST_F(DoorTest, AFloodFromManyAddressesChurnsAmongItselfWhateverTheAddressesSortLike) {
+  constexpr int kFlood = 50;
+  Door door(io_, settings(8, kFlood + 1, 4));
+  std::vector<std::shared_ptr<Guest>> flood;
+  for (int i = 0; i < kFlood; ++i) flood.push_back(arrive(door, "127.0.0." + std::to_string(i + 2)));
+  const auto probe = arrive(door, "127.0.0.1");  // sorts first, came last
+  for (int i = 0; i < kFlood; ++i) {
+    arrive(door, "127.0.1." + std::to_string(i + 2));
+    EXPECT_FALSE(probe->closed) << "newcomer " << i << " closed the probe while the flood's older ones waited";
+    EXPECT_TRUE(flood[static_cast<std::size_t>(i)]->closed) << "the oldest of the flood gives way first: " << i;
+  }
+  // Now the probe is the oldest: the next newcomer closes it, by age, as it would any other.
+  arrive(door, "127.0.2.1");
+  EXPECT_TRUE(probe->closed);
+}
+
 TEST_F(DoorTest, AnAddressAtItsBudgetMakesRoomFromItself) {
   Door door(io_, settings(8, 16, 2));
   const auto a1 = arrive(door, "10.0.0.1");
