@@ -76,11 +76,23 @@ class JogStopCase(GatewayCase):
         return [m for m in self.page.received()[mark:] if m.get("type") in types]
 
     def torque_on(self):
-        mark = len(self.page.received())
-        self.page.send({"type": "torque", "on": True})
-        answer = wait_until(lambda: self.told_since(mark, "done", "error"), timeout=AWAIT_S,
-                            what="the answer to torque on")
+        """A set-up write: where a loaded machine held the simulator past the response timeout the
+        servo is offline a moment and the gateway answers 0x0B (the product's rule); it is made
+        again once the servo answers, at most five times."""
+        answer = None
+        for _ in range(5):
+            mark = len(self.page.received())
+            self.page.send({"type": "torque", "on": True})
+            answer = wait_until(lambda: self.told_since(mark, "done", "error"), timeout=AWAIT_S,
+                                what="the answer to torque on")
+            if answer[0] == {"type": "done", "message": "torque on"} or "exception 0x0B" not in answer[0]["message"]:
+                break
+            wait_until(lambda: self.online(), timeout=AWAIT_S, what="the servo online again")
         self.assertEqual(answer[0], {"type": "done", "message": "torque on"})
+
+    def online(self):
+        answer = self.plc.read_discrete_inputs(1008, count=1, slave=SERVO)
+        return not answer.isError() and answer.bits[0]
 
     def wheel_mode(self):
         self.sim.command(f"set {SERVO} 46 00 00")  # goal speed 0 first: wheel mode runs at once
