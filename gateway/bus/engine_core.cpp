@@ -663,15 +663,15 @@ template <BusTransactor Transactor>
 void EngineCore<Transactor>::start_poll_cycle_if_due() {
   const auto now = SteadyClock::now();
   if (!poll_due(now)) return;
-  PollCyclePlan plan = scheduler_.plan_cycle(now);
+  const bool polls = now >= next_poll_;
+  PollCyclePlan plan = scheduler_.plan_cycle(now, polls);
   skip_probes_of_owed(plan, now);
   if (plan.empty()) {
-    // Nobody to poll and no probe due yet: wake up for the next probe.
-    const auto due = scheduler_.next_probe_due();
-    next_cycle_ = due ? std::optional(std::max(*due, now + settings_.poll_period)) : std::nullopt;
+    schedule_next_cycle(now);  // nobody to poll and no probe due yet
     return;
   }
-  cycle_ = Cycle{true, now, 0};
+  cycle_ = Cycle{true, now, 0, polls};
+  if (polls) next_poll_ = now + settings_.poll_period;
   next_cycle_.reset();
   for (const auto& sync : plan.sync_reads) {
     Job job;
@@ -757,12 +757,37 @@ void EngineCore<Transactor>::poll_job_done() {
   if (!cycle_.running || --cycle_.outstanding > 0) return;
   const auto now = SteadyClock::now();
   cycle_.running = false;
-  counters_.poll_cycles.fetch_add(1, std::memory_order_relaxed);
-  counters_.last_poll_cycle_us.store(saturate_us(now - cycle_.started), std::memory_order_relaxed);
+  if (cycle_.polls) {  // a probe between polls is no poll cycle
+    counters_.poll_cycles.fetch_add(1, std::memory_order_relaxed);
+    counters_.last_poll_cycle_us.store(saturate_us(now - cycle_.started), std::memory_order_relaxed);
+  }
+  schedule_next_cycle(now);
+}
+
+// A servo went offline outside a cycle (a client's request it did not answer): its probe may be
+// due before the cycle already planned.
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::reschedule_for_probe() {
+  if (!cycle_.running && next_cycle_) schedule_next_cycle(SteadyClock::now());
+}
+
+// The next cycle: the next poll while anyone is online; a probe due before it goes out on its own
+// where the bus is polled more rarely than its servos are probed (poll_period_ms over
+// offline_probe_period_ms: a servo offline a moment is back within its probe period, not after an
+// hour's poll), or where nobody is online. Elsewhere probes ride on the polls.
+template <BusTransactor Transactor>
+void EngineCore<Transactor>::schedule_next_cycle(SteadyClock::time_point now) {
   const bool anyone_online = std::any_of(
       scheduler_.targets().begin(), scheduler_.targets().end(),
       [this](const PollTarget& target) { return scheduler_.presence(target.servo_id) != Presence::Offline; });
-  next_cycle_ = anyone_online ? std::optional(cycle_.started + settings_.poll_period) : scheduler_.next_probe_due();
+  std::optional<SteadyClock::time_point> next;
+  if (anyone_online) next = next_poll_;
+  const auto due = scheduler_.next_probe_due();
+  if (due && (!anyone_online || settings_.poll_period > settings_.probe_period)) {
+    next = next ? std::min(*next, *due) : *due;
+  }
+  // Never at once again: a probe that was due and skipped (owed a stop) is due a period on.
+  next_cycle_ = next ? std::optional(std::max(*next, now + std::chrono::milliseconds{1})) : std::nullopt;
 }
 
 template <BusTransactor Transactor>
@@ -780,13 +805,19 @@ void EngineCore<Transactor>::servo_answered(std::uint8_t servo_id) {
 }
 
 // A servo offline for answering late may only have been held up (a loaded host stalls the line's
-// far end as much as a slow servo does): it is probed again after a poll period, then twice as
-// long each time it stays late, up to the probe period.
+// far end as much as a slow servo does): it is probed again after a poll period (at least 20 ms,
+// at most the probe period: a bus polled once an hour must not leave it offline that long), then
+// twice as long each time it stays late, up to the probe period.
+template <BusTransactor Transactor>
+std::chrono::milliseconds EngineCore<Transactor>::first_late_probe() const {
+  constexpr std::chrono::milliseconds kShortest{20};
+  return std::min(std::max(settings_.poll_period, kShortest), std::max(settings_.probe_period, kShortest));
+}
+
 template <BusTransactor Transactor>
 std::chrono::milliseconds EngineCore<Transactor>::next_late_probe(std::uint8_t servo_id) {
   auto& in = late_probe_in_[servo_id];
-  const auto first = std::max(settings_.poll_period, std::chrono::milliseconds{20});
-  in = in.count() == 0 ? first : std::min(2 * in, settings_.probe_period);
+  in = in.count() == 0 ? first_late_probe() : std::min(2 * in, std::max(settings_.probe_period, first_late_probe()));
   return in;
 }
 
@@ -796,6 +827,7 @@ void EngineCore<Transactor>::servo_silent(std::uint8_t servo_id, const std::stri
   const bool late = state && !state->online && state->offline_reason == OfflineReason::AnswersLate;
   const PresenceChange change =
       scheduler_.silent(servo_id, SteadyClock::now(), late ? std::optional(next_late_probe(servo_id)) : std::nullopt);
+  reschedule_for_probe();
   if (log && change == PresenceChange::WentOffline) {
     spdlog::warn("bus {}: servo {} offline ({}); probing it every {} ms", settings_.name, servo_id, reason,
                  settings_.probe_period.count());
@@ -828,6 +860,7 @@ bool EngineCore<Transactor>::servo_late(std::uint8_t servo_id, std::chrono::mill
     if (++late_strikes_[servo_id] < kLateStrikes) return false;
     late_probe_in_[servo_id] = std::chrono::milliseconds{0};
     scheduler_.silent(servo_id, SteadyClock::now(), next_late_probe(servo_id));
+    reschedule_for_probe();
   }
   late_strikes_[servo_id] = 0;
   if (cache_.set_offline(servo_id, OfflineReason::AnswersLate) != OfflineReason::AnswersLate) {
@@ -835,8 +868,8 @@ bool EngineCore<Transactor>::servo_late(std::uint8_t servo_id, std::chrono::mill
         "bus {}: servo {} answers late (an answer came at least {} ms after it was asked; response_timeout_ms {}): "
         "offline: probed (again after {} ms, then less often, up to every {} ms) instead of retried at the other "
         "servos' cost; if it is that slow, raise response_timeout_ms",
-        settings_.name, servo_id, after_asked.count(), settings_.response_timeout.count(),
-        std::max(settings_.poll_period, std::chrono::milliseconds{20}).count(), settings_.probe_period.count());
+        settings_.name, servo_id, after_asked.count(), settings_.response_timeout.count(), first_late_probe().count(),
+        settings_.probe_period.count());
   }
   return true;
 }

@@ -141,6 +141,8 @@ class EngineCore final : public BusEngine {
   void discovery_step_done();
   bool poll_due(SteadyClock::time_point now) const;
   void start_poll_cycle_if_due();
+  void schedule_next_cycle(SteadyClock::time_point now);
+  void reschedule_for_probe();
   void skip_probes_of_owed(PollCyclePlan& plan, SteadyClock::time_point now);
   void enqueue_poll_read(std::uint8_t servo_id, bool probe);
   void on_poll_read(std::uint8_t servo_id, AddressBlock block, bool probe, const BusResult& result);
@@ -150,6 +152,7 @@ class EngineCore final : public BusEngine {
   void servo_silent(std::uint8_t servo_id, const std::string& reason, bool log);
   // An answer it owed came late (Events::late): true once it is offline for answering late.
   bool servo_late(std::uint8_t servo_id, std::chrono::milliseconds after_asked);
+  std::chrono::milliseconds first_late_probe() const;
   std::chrono::milliseconds next_late_probe(std::uint8_t servo_id);
   void note_status(std::uint8_t servo_id, std::uint8_t status);
   void note_timeout(std::uint8_t servo_id);  // a SYNC READ member that stayed silent
@@ -190,8 +193,10 @@ class EngineCore final : public BusEngine {
     bool running = false;
     SteadyClock::time_point started{};
     std::size_t outstanding = 0;
+    bool polls = true;  // false: probes only, between polls (schedule_next_cycle)
   } cycle_;
   std::optional<SteadyClock::time_point> next_cycle_;  // when the next poll cycle is due; none: not scheduled
+  SteadyClock::time_point next_poll_{};                // when the online servos are polled next
   struct Discovery {
     std::vector<DiscoveredServo> servos;
     std::size_t pending = 0;

@@ -15,7 +15,7 @@ std::optional<std::size_t> PollScheduler::index_of(std::uint8_t servo_id) const 
   return static_cast<std::size_t>(found - targets_.begin());
 }
 
-PollCyclePlan PollScheduler::plan_cycle(SteadyClock::time_point now) const {
+PollCyclePlan PollScheduler::plan_cycle(SteadyClock::time_point now, bool polls) const {
   PollCyclePlan plan;
   for (std::size_t i = 0; i < targets_.size(); ++i) {
     const PollTarget& target = targets_[i];
@@ -24,6 +24,7 @@ PollCyclePlan PollScheduler::plan_cycle(SteadyClock::time_point now) const {
       if (now >= state.next_probe) plan.probes.push_back(target.servo_id);
       continue;
     }
+    if (!polls) continue;
     if (!target.sync_read) {
       plan.reads.push_back(target.servo_id);
       continue;

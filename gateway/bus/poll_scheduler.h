@@ -43,7 +43,8 @@ class PollScheduler {
  public:
   PollScheduler(std::vector<PollTarget> targets, std::chrono::milliseconds probe_period);
 
-  PollCyclePlan plan_cycle(SteadyClock::time_point now) const;
+  // `polls`: the online servos' reads too; without, only the probes that are due.
+  PollCyclePlan plan_cycle(SteadyClock::time_point now, bool polls = true) const;
   // The servo answered (any poll, probe or discovery transaction).
   PresenceChange answered(std::uint8_t servo_id);
   // A poll READ failed through every retry, a probe failed, or discovery's PING did: offline,

@@ -254,6 +254,35 @@ TEST_F(BusEngineTest, DecoderResynchronisesAfterGarbageOnTheLine) {
   EXPECT_GE(ok, 15);
 }
 
+// A servo that answers late on a bus polled once an hour: offline for answering late, it is
+// probed again within the probe period, not after a poll period (a loaded machine that held the
+// simulator at start once left such a servo offline for the hour).
+class LateServoOnAQuietBus : public BusEngineTest {
+  void tweak(BusSettings& settings) override {
+    settings.poll = true;
+    settings.poll_period = 3600s;
+    settings.probe_period = 100ms;
+    settings.response_timeout = 30ms;
+    settings.retries = 0;
+  }
+};
+
+TEST_F(LateServoOnAQuietBus, IsProbedAgainWithinTheProbePeriodNotAfterAPollPeriod) {
+  start({1});
+  ASSERT_TRUE(eventually([&] { return engine_->cache().state(1) && engine_->cache().state(1)->has_data; }))
+      << "the start's one poll";
+  simulator_->set_reply_delay(1, 60ms);  // past each 30 ms attempt: heard late in the next transaction
+  ASSERT_TRUE(eventually(
+      [&] {
+        (void)transact(*engine_, ReadOp{1, 5, 1}, Priority::ClientRead);
+        const auto state = engine_->cache().state(1);
+        return state && !state->online && state->offline_reason == OfflineReason::AnswersLate;
+      },
+      "servo 1 offline for answering late"));
+  simulator_->set_reply_delay(1, 0ms);
+  EXPECT_TRUE(eventually([&] { return engine_->cache().state(1)->online; }, "servo 1 online again, probed"));
+}
+
 class LateReplyTest : public BusEngineTest {
   void tweak(BusSettings& settings) override {
     settings.response_timeout = 100ms;
