@@ -49,6 +49,17 @@ inline AddressBlock feedback_block(modbus_map::TableId table) {
   return {block.address, block.count};
 }
 
+// Whether the machine held the simulator's bus thread `at_least` in one go, in a hold that ended
+// after `since` (SimulatedBus::holds): a servo silent then was silent by the machine's doing
+// (tests/README.md "Counting on a loaded machine").
+inline bool simulator_held(const simulator::SimulatedBus& bus, std::chrono::steady_clock::duration at_least,
+                           std::chrono::steady_clock::time_point since) {
+  for (const simulator::Hold& hold : bus.holds()) {
+    if (hold.ended >= since && hold.held >= at_least) return true;
+  }
+  return false;
+}
+
 // Settings for a bus on `device` with the servos `ids`. The response timeout is generous: on a
 // loaded machine (2 cores, sanitizers) a pty and the simulator's thread add milliseconds.
 inline BusSettings bus_settings(std::string device, std::vector<std::uint8_t> ids,
