@@ -1,5 +1,6 @@
 #include "modbus_map/register_map_doc.h"
 
+#include <bit>
 #include <string_view>
 
 #include "modbus_map/baud_tables.h"

@@ -164,9 +164,21 @@ fuzzers_passed() {
 }
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1
 export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
+# The checks look at what changed since the last commit whose checks passed here (an ancestor of
+# HEAD, kept in build-gcc/checks-passed-at), else at what check_once.py takes for the base (main's
+# merge-base, or HEAD's parent): commits made while the command failed elsewhere are checked too.
+checks_passed_at=build-gcc/checks-passed-at
+if [ -z "${SMS_CHECK_BASE:-}" ] && [ -s "$checks_passed_at" ] &&
+  git merge-base --is-ancestor "$(cat "$checks_passed_at")" HEAD 2>/dev/null; then
+  SMS_CHECK_BASE=$(cat "$checks_passed_at")
+  export SMS_CHECK_BASE
+fi
+checked_commit=$(git rev-parse HEAD 2>/dev/null || true)
 (
   beside clang-tidy low ./scripts/tidy.sh build-asan || exit 1
   beside gcc-front-end low ./scripts/gcc-check.sh build-gcc || exit 1
+  [ -n "$checked_commit" ] && echo "$checked_commit" >"$checks_passed_at"
+  true
 ) </dev/null &
 checks_pid=$!
 (

@@ -157,24 +157,24 @@ void read_next_run(const std::shared_ptr<ServoRead>& read) {
     return read->call->answer(HttpAnswer::json(200, read->body));
   }
   const modbus_map::BusRange run = read->runs[read->next++];
-  read->call->services.modbus(
-      read->call->who, read->unit->unit_id, read_registers_pdu(run.address, run.count),
-      [read, run](const ModbusAnswer& answer) {
-        if (!answer.ok()) {
-          // The values read so far stay; the rest are missing, and the page says why.
-          read->body["values_error"] = answer.message;
-          read->next = read->runs.size();
-          return read_next_run(read);
-        }
-        const auto registers = registers_in(answer.pdu);
-        for (const auto& entry : read->unit->map.entries()) {
-          if (!entry.readable || entry.address < run.address || entry.address - run.address >= registers.size())
-            continue;
-          read->values[std::string(entry.shown->name)] =
-              register_to_value(entry, registers[entry.address - run.address]);
-        }
-        read_next_run(read);
-      });
+  read->call->services.modbus(read->call->who, read->unit->unit_id, read_registers_pdu(run.address, run.count),
+                              [read, run](const ModbusAnswer& answer) {
+                                if (!answer.ok()) {
+                                  // The values read so far stay; the rest are missing, and the page says why.
+                                  read->body["values_error"] = answer.message;
+                                  read->next = read->runs.size();
+                                  return read_next_run(read);
+                                }
+                                const auto registers = registers_in(answer.pdu);
+                                for (const auto& entry : read->unit->map.entries()) {
+                                  if (!entry.readable || entry.address < run.address) continue;
+                                  const std::size_t at = std::size_t{entry.address} - run.address;
+                                  if (at >= registers.size()) continue;
+                                  read->values[std::string(entry.shown->name)] =
+                                      register_to_value(entry, registers[at]);
+                                }
+                                read_next_run(read);
+                              });
 }
 
 void api_servo(const std::shared_ptr<ApiCall>& call) {

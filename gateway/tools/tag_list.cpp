@@ -250,7 +250,7 @@ void gateway_unit_tags(const config::Config& config, const UnitCatalog& catalog,
     }
     // The group's timed moves (docs/PLC_GUIDE.md "Timed group moves"): 2000 + 10·g.
     using Reg = layout::GroupRegister;
-    const auto status = [&](std::string name, Reg reg, std::string unit_symbol, std::string notes) {
+    const auto status = [&](const std::string& name, Reg reg, std::string unit_symbol, std::string notes) {
       in(prefix + name,
          static_cast<std::uint16_t>(layout::kFirstGroupBlock + layout::kGroupBlockSize * g +
                                     static_cast<std::uint16_t>(reg)),

@@ -390,7 +390,9 @@ TEST(LiveReadRuns, CoverEveryReadableFieldInRunsTheMapAccepts) {
         });
       }
       EXPECT_EQ(covered, readable.size()) << map.description();
-      if (id == TableId::Smsmb) EXPECT_GT(runs.size(), 1U) << "smsmb's gaps";
+      if (id == TableId::Smsmb) {
+        EXPECT_GT(runs.size(), 1U) << "smsmb's gaps";
+      }
     }
   }
 }

@@ -30,7 +30,10 @@ TEST(ConsoleAdmission, AWebSocketOpensFromTheConsolesOwnOriginOnly) {
     for (const auto& [origin, admitted] :
          {std::pair{own, true}, std::pair{other_scheme, false}, std::pair{std::string("http://evil.example"), false},
           std::pair{own + ".evil.example", false}}) {
-      const RequestFacts facts{.target = target, .origin = origin, .host = "gw.local:8080"};
+      RequestFacts facts;
+      facts.target = target;
+      facts.origin = origin;
+      facts.host = "gw.local:8080";
       EXPECT_EQ(!admission.socket_refusal(identity, facts).has_value(), admitted)
           << (https ? "HTTPS" : "HTTP") << " console, origin " << origin;
     }
