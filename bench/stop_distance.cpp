@@ -98,9 +98,9 @@ struct Stop {
 };
 
 // The e-stop's frames not acknowledged in time (0x04: a loaded machine delays the simulator past
-// the response timeout; the servo is then owed its stop), or a setup write refused while the servo
-// was offline for the same reason: no run-on to measure, the round is made again once the servo is
-// polled again, at most kRetries times a table.
+// the response timeout; the servo is then owed its stop), a setup write refused while the servo
+// was offline for the same reason, or a d55d motor its own heartbeat stopped: no run-on to
+// measure, the round is made again once the servo is polled again, at most kRetries times a table.
 constexpr unsigned kRetries = 3;
 struct NotAcknowledged : std::runtime_error {
   using std::runtime_error::runtime_error;
@@ -145,7 +145,13 @@ Stop run_round(const Axis& axis, sms::simulator::SimulatedBus& bus, ModbusClient
   }
   // Stop two thirds of the way: at top speed on the plain move, at the plan's cruise on the timed.
   const auto deadline = Clock::now() + 20s;
+  const std::uint64_t heartbeat_stops = servo_of(bus).heartbeat_stops;
   while (servo_of(bus).present_position < axis.start + 2 * axis.distance / 3) {
+    // A d55d motor left 500 ms without an instruction (a loaded machine held the gateway's bus
+    // thread) stops itself: no stop to measure, the round is made again.
+    if (servo_of(bus).heartbeat_stops != heartbeat_stops) {
+      throw NotAcknowledged("the motor's own heartbeat stopped it before the e-stop (the gateway was held 500 ms)");
+    }
     if (Clock::now() > deadline) throw std::runtime_error("the axis never got two thirds of the way");
     std::this_thread::sleep_for(1ms);
   }
