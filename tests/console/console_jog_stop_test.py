@@ -112,7 +112,8 @@ class JogStopCase(GatewayCase):
 
     def press(self, message, moving, what):
         """Presses and holds until `moving()`. A press the gateway could not carry out (it says so:
-        the servo did not answer in time on a loaded machine) is released and made again."""
+        the servo did not answer in time on a loaded machine, 0x0B while it is offline) is released
+        and made again once the servo answers."""
         last = None
         for _ in range(5):
             mark = len(self.page.received())
@@ -123,6 +124,7 @@ class JogStopCase(GatewayCase):
                 return
             last = result
             self.hold.release()
+            wait_until(self.online, timeout=AWAIT_S, what="the servo online again")
         self.fail(f"{what}: five presses failed, the last: {last}")
 
     def press_speed(self):
